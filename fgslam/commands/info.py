@@ -1,0 +1,49 @@
+"""``fgslam info PATH``: describe a dataset (format, frames, resolution, rate, sensors, intrinsics)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from . import add_config_arguments
+
+HELP = "describe a dataset folder or video: format, frames, resolution, rate, stereo/depth/IMU/ground truth"
+
+FORMAT_CHOICES = ("auto", "tum", "euroc", "kitti", "tartanair", "7scenes", "folder", "video")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("path", help="dataset folder (or video file)")
+    parser.add_argument("--format", default="auto", choices=FORMAT_CHOICES, help="loader (default: detect from the layout)")
+    add_config_arguments(parser, "DatasetConfig", "configs/dataset.yaml")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..config import load_config
+    from ..io.datasets import DatasetConfig, open_dataset
+
+    config = load_config(DatasetConfig, args.config, args.overrides)
+    ds = open_dataset(args.path, args.format, config)
+    info = ds.summary()
+    if args.json:
+        print(json.dumps(info))
+        return 0
+    yes_no = {True: "yes", False: "no"}
+    w, h = info["resolution"]
+    rw, rh = info["raw_resolution"]
+    lines = [
+        f"path:         {info['path']}",
+        f"format:       {info['format']}  ({info['name']})",
+        f"frames:       {info['frames']}",
+        f"resolution:   {w}x{h} (raw {rw}x{rh}, raw distortion {info['raw_distortion_model']})",
+        f"rate:         {info['rate_hz']:.3f} Hz",
+        f"stereo:       {yes_no[info['stereo']]}" + (f" (baseline {info['baseline_m']:.4f} m)" if "baseline_m" in info else ""),
+        f"depth:        {yes_no[info['depth']]}",
+        f"imu:          {yes_no[info['imu']]}" + (
+            f" ({info['imu_samples']} samples, {info['imu_samples_in_span']} between the first and last frame)"
+            if info["imu"] else ""),
+        f"ground truth: {yes_no[info['groundtruth']]}" + (f" ({info['groundtruth_poses']} frames)" if info["groundtruth"] else ""),
+        "intrinsics:   fx={:.3f} fy={:.3f} cx={:.3f} cy={:.3f}".format(*info["intrinsics"]),
+    ]
+    print("\n".join(lines))
+    return 0

@@ -1,0 +1,227 @@
+"""Typed configuration: dataclasses loaded from YAML with command-line overrides.
+
+Every tunable of fgslam lives in a dataclass field (defaults plus a one-line comment). A YAML file
+in ``configs/`` sets some of them; ``-o section.key=value`` overrides set more. Anything that does
+not fit the dataclass (an unknown key, a string where a float belongs, a value outside a ``Literal``)
+is a :class:`~fgslam.errors.ConfigError` naming the key and where it came from.
+
+Supported field types: ``bool``, ``int``, ``float``, ``str``, ``pathlib.Path``, ``Literal[...]``,
+``Optional[T]`` / ``T | None``, ``list[T]``, ``tuple[T, ...]``, ``tuple[T1, T2]``, ``dict[str, T]``
+and nested dataclasses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+from .errors import ConfigError
+
+T = TypeVar("T")
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def _convert(value: Any, tp: Any, key: str, source: str) -> Any:
+    """Check/convert ``value`` to type ``tp``; raise ConfigError naming ``key`` and ``source``."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+
+    def fail(why: str) -> ConfigError:
+        return ConfigError(f"{source}: key '{key}': {why} (got {value!r})")
+
+    if tp is Any:
+        return value
+    if dataclasses.is_dataclass(tp):
+        if isinstance(value, tp):
+            return value
+        if not isinstance(value, Mapping):
+            raise fail(f"expected a mapping for section {_type_name(tp)}")
+        return _build(tp, value, source, prefix=key + ".")
+    if origin is typing.Union or origin is types.UnionType:
+        if value is None:
+            if type(None) in args:
+                return None
+            raise fail("null is not allowed")
+        errors = []
+        for option in args:
+            if option is type(None):
+                continue
+            try:
+                return _convert(value, option, key, source)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise fail(f"expected {' or '.join(_type_name(a) for a in args if a is not type(None))}")
+    if origin is typing.Literal:
+        if value not in args:
+            raise fail(f"must be one of {list(args)}")
+        return value
+    if origin in (list, Sequence) or tp is list:
+        if not isinstance(value, (list, tuple)):
+            raise fail("expected a list")
+        item_tp = args[0] if args else Any
+        return [_convert(v, item_tp, f"{key}[{i}]", source) for i, v in enumerate(value)]
+    if origin is tuple or tp is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise fail("expected a list")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(v, args[0], f"{key}[{i}]", source) for i, v in enumerate(value))
+        if args and len(args) != len(value):
+            raise fail(f"expected {len(args)} items")
+        if not args:
+            return tuple(value)
+        return tuple(_convert(v, a, f"{key}[{i}]", source) for i, (v, a) in enumerate(zip(value, args)))
+    if origin is dict or tp is dict:
+        if not isinstance(value, Mapping):
+            raise fail("expected a mapping")
+        val_tp = args[1] if len(args) == 2 else Any
+        return {str(k): _convert(v, val_tp, f"{key}.{k}", source) for k, v in value.items()}
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise fail("expected true or false")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise fail("expected an integer")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise fail("expected a number")
+        if math.isnan(float(value)):
+            raise fail("NaN is not a valid value")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise fail("expected a string")
+        return value
+    if tp is Path:
+        if not isinstance(value, (str, Path)):
+            raise fail("expected a path")
+        return Path(value)
+    raise ConfigError(f"{source}: key '{key}': unsupported field type {_type_name(tp)}")
+
+
+def _build(cls: type[T], data: Mapping[str, Any], source: str, prefix: str = "") -> T:
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(
+            f"{source}: unknown key '{prefix}{unknown[0]}' (valid keys of {cls.__name__}: {', '.join(sorted(fields))})"
+        )
+    kwargs = {name: _convert(value, hints[name], prefix + name, source) for name, value in data.items()}
+    try:
+        obj = cls(**kwargs)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{source}: section '{prefix.rstrip('.') or cls.__name__}': {exc}") from exc
+    validate = getattr(obj, "validate", None)
+    if callable(validate):
+        try:
+            validate()
+        except (ValueError, ConfigError) as exc:
+            raise ConfigError(f"{source}: {prefix.rstrip('.') or cls.__name__}: {exc}") from exc
+    return obj
+
+
+def from_dict(cls: type[T], data: Mapping[str, Any] | None, source: str = "<dict>") -> T:
+    """Build dataclass ``cls`` from a (nested) mapping; missing keys keep their defaults."""
+    if data is None:
+        data = {}
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{source}: the top level must be a mapping of keys to values")
+    return _build(cls, data, source)
+
+
+def to_dict(obj: Any) -> Any:
+    """Plain-YAML/JSON form of a config dataclass (paths and tuples become strings and lists)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (list, tuple)):
+        return [to_dict(v) for v in obj]
+    if isinstance(obj, dict):
+        return {str(k): to_dict(v) for k, v in obj.items()}
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def read_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping; errors name the file (and the line for syntax errors)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f":{mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}{where}: invalid YAML: {getattr(exc, 'problem', exc)}") from exc
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of keys to values")
+    return data
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """Split ``"a.b.c=value"`` into (["a", "b", "c"], parsed YAML value)."""
+    if "=" not in text:
+        raise ConfigError(f"override '{text}': expected the form section.key=value")
+    key, raw = text.split("=", 1)
+    key = key.strip()
+    if not key or any(not part for part in key.split(".")):
+        raise ConfigError(f"override '{text}': empty key")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"override '{text}': value is not valid YAML: {exc}") from exc
+    return key.split("."), value
+
+
+def merge_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
+    """Return a copy of ``data`` with each ``section.key=value`` override applied."""
+    merged = _deep_copy(data)
+    for text in overrides:
+        path, value = parse_override(text)
+        node = merged
+        for part in path[:-1]:
+            child = node.get(part)
+            if child is None:
+                child = node[part] = {}
+            elif not isinstance(child, dict):
+                raise ConfigError(f"override '{text}': '{part}' is a value, not a section")
+            node = child
+        node[path[-1]] = value
+    return merged
+
+
+def _deep_copy(data: Any) -> Any:
+    if isinstance(data, dict):
+        return {k: _deep_copy(v) for k, v in data.items()}
+    if isinstance(data, list):
+        return [_deep_copy(v) for v in data]
+    return data
+
+
+def load_config(cls: type[T], path: str | Path | None = None, overrides: Sequence[str] = ()) -> T:
+    """Build ``cls`` from the YAML file ``path`` (optional) and command-line ``overrides``.
+
+    Errors name the offending key together with the file it came from, or the override text.
+    """
+    data: dict[str, Any] = read_yaml(path) if path is not None else {}
+    source = str(path) if path is not None else "<defaults>"
+    if overrides:
+        # Validate the file alone first so that a bad key in the file is blamed on the file.
+        _build(cls, data, source)
+        data = merge_overrides(data, overrides)
+        source = f"{source} with overrides {list(overrides)}"
+    return _build(cls, data, source)

@@ -1,0 +1,313 @@
+"""Inverse-depth reprojection between two Sim(3) keyframes, with analytic Jacobians (batched torch).
+
+The residual of DROID-SLAM eq. 4 (Jacobians: appendix C, eqs. 6-14) and of DPV-SLAM eqs. 2-3
+(patches), in the conventions of fgslam:
+
+- Poses ``T_WCi``, ``T_WCj`` are camera-to-world Sim(3): ``X_W = s R X_C + t`` (``fgslam.lie.Sim3``).
+  Anything with attributes ``.R (..., 3, 3)``, ``.t (..., 3)`` and optionally ``.s (...)`` (an SE3
+  object has scale 1), or a tuple ``(R, t, s)``, is accepted.
+- Jacobians are w.r.t. RIGHT perturbations ``T <- T Exp(xi)`` with the gtsam ``Similarity3``
+  tangent order ``xi = [w (3), u (3), lambda]`` (rotation, translation, log-scale); columns 0-5
+  are also the ``Pose3`` ``[w, v]`` Jacobian of an SE(3) pose held at scale 1.
+- A measurement ``n`` is a source pixel ``uv_i`` of keyframe ``i`` with inverse depth ``d`` (the
+  source camera-frame point ``X_i = p / d``, ``p = [(u - cx) / fx, (v - cy) / fy, 1]``) observed at
+  ``uv_target`` in keyframe ``j``. Residual ``r = pi(T_WCj^-1 T_WCi X_i) - uv_target``.
+
+Homogeneous form (no division by ``d``, so ``d = 0``, a point at infinity, is fine)::
+
+    Q = R_j^T (s_i R_i p + d (t_i - t_j))  =  d s_j (T_WCj^-1 T_WCi X_i)
+    uv = pi(Q)
+
+Scale gauge: ``Q`` does not contain ``s_j`` and ``pi`` is scale-invariant, so the target scale drops
+out (the ``lambda_j`` column of ``J_Tj`` is exactly zero), and ``s_i`` enters only through
+``d / s_i``, so the ``lambda_i`` column of ``J_Ti`` equals ``-d * J_d``. The monocular frontends
+therefore hold each keyframe's scale fixed and fold Sim(3) corrections into depths (``d <- d / s``).
+
+An optional fixed extrinsic ``T_CtCj`` (e.g. ``T_CRCL`` of a stereo rig, in metres) moves the
+target to a camera rigidly attached to keyframe ``j``. Its translation is metric, so it is applied
+in the metric camera frame of ``j`` (camera-frame coordinates are world coordinates divided by
+``s_j``, i.e. ``s_j`` is "world units per metre")::
+
+    Q_t = R_CtCj Q + d s_j t_CtCj  =  d s_j (T_CtCj T_WCj^-1 T_WCi X_i)
+
+Now ``s_j`` matters (a metric baseline fixes the scale); with ``s_j = 1`` (stereo and RGB-D
+frontends) camera frames and world share metric units.
+
+Patches (DPV-SLAM eq. 3): a patch of ``p x p`` pixels shares one inverse depth. The functions work
+on rows; :func:`flatten_patches` turns patch ``k`` into rows ``k p^2 + a p + b`` (pixel row ``a``,
+column ``b``), each carrying the patch's depth, and the patch's depth Jacobian is the sum of its
+rows' contributions (e.g. ``J_d.reshape(..., P, p * p, 2)``).
+
+Validity: a row is valid when ``d`` is finite and ``>= 0`` (``d < 0`` is behind the source camera),
+the inputs are finite, and the point lies in front of the target camera with depth above
+``config.min_depth`` (``Q_z > min_depth * d * s_j`` and ``Q_z > 0``). Invalid rows hold zeros in the
+residual and every Jacobian (never NaN or inf); ``n_invalid`` counts them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..errors import DataError
+
+__all__ = [
+    "ReprojectionConfig",
+    "ReprojectionResult",
+    "flatten_patches",
+    "pose_components",
+    "reproject",
+    "reproject_inv_depth",
+]
+
+
+@dataclass
+class ReprojectionConfig:
+    """Tunables of the inverse-depth reprojection residual."""
+
+    min_depth: float = 0.2  # smallest valid depth in the target camera, camera-frame units (DROID-SLAM's MIN_DEPTH)
+
+
+@dataclass
+class ReprojectionResult:
+    """Residuals and Jacobians of ``N`` (any batch shape ``...``) reprojection measurements.
+
+    Attributes:
+        residual: ``(..., 2)`` predicted minus observed pixel coordinates.
+        J_Ti: ``(..., 2, 7)`` d(residual)/d(xi_i), right perturbation of ``T_WCi``, order [w, u, lambda].
+        J_Tj: ``(..., 2, 7)`` same for ``T_WCj``.
+        J_d: ``(..., 2)`` d(residual)/d(inverse depth of the source pixel).
+        valid: ``(...)`` bool; invalid rows are zero in all of the above.
+    """
+
+    residual: torch.Tensor
+    J_Ti: torch.Tensor
+    J_Tj: torch.Tensor
+    J_d: torch.Tensor
+    valid: torch.Tensor
+
+    @property
+    def n_invalid(self) -> int:
+        """Number of invalid (zeroed) rows."""
+        return int(self.valid.numel() - int(self.valid.sum()))
+
+
+def pose_components(T: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(R (..., 3, 3), t (..., 3), s (...))`` of a Sim3/SE3-like object or an ``(R, t, s)`` tuple.
+
+    Objects without an ``s`` attribute (SE3) get scale 1.
+    """
+    if isinstance(T, tuple):
+        R, t, s = T
+        return R, t, torch.as_tensor(s, dtype=t.dtype, device=t.device)
+    s = getattr(T, "s", None)
+    if s is None:
+        s = torch.ones(T.t.shape[:-1], dtype=T.t.dtype, device=T.t.device)
+    return T.R, T.t, s
+
+
+def _as_rigid(T: Any, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rotation and translation of a fixed 4x4 transform (numpy or torch), cast like ``like``."""
+    M = torch.as_tensor(np.asarray(T) if not isinstance(T, torch.Tensor) else T, dtype=like.dtype, device=like.device)
+    return M[..., :3, :3], M[..., :3, 3]
+
+
+def _transfer(
+    uv_i: torch.Tensor,
+    inv_depth: torch.Tensor,
+    T_WCi: Any,
+    T_WCj: Any,
+    K_i: torch.Tensor,
+    K_t: torch.Tensor,
+    T_CtCj: Any,
+    min_depth: float,
+    jacobians: bool,
+    rows_ok: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None]:
+    """Shared kernel: predicted target pixels, validity, and (optionally) Jacobians.
+
+    ``rows_ok`` (optional bool mask) marks further invalid rows (e.g. a non-finite target).
+    Returns ``uv (..., 2)`` (not zeroed), ``valid (...)`` and ``(J_Ti, J_Tj, J_d)`` or None. The
+    Jacobians are already zero on invalid rows: every entry carries a factor ``fx / Q_z`` or
+    ``fy / Q_z``, which is set to 0 there (and every other factor is made finite).
+    """
+    R_i, t_i, s_i = pose_components(T_WCi)
+    R_j, t_j, s_j = pose_components(T_WCj)
+    d = inv_depth
+
+    # Pose-level quantities (once per pose pair when poses are shared, else once per row).
+    R_jT = R_j.transpose(-1, -2)
+    M = s_i[..., None, None] * (R_jT @ R_i)  # source unit-depth ray -> target direction
+    b = (R_jT @ (t_i - t_j)[..., None])[..., 0]  # d(Q)/dd: source centre seen from the target
+    if T_CtCj is not None:
+        R_tj, t_tj = _as_rigid(T_CtCj, t_i)
+        M = R_tj @ M
+        b_lam = s_j[..., None] * t_tj  # metric extrinsic translation in units of frame j
+        b = (R_tj @ b[..., None])[..., 0] + b_lam
+
+    # Row-level: Q = M p + d b with p = [px, py, 1] (homogeneous target-camera point).
+    px, py = _rays(uv_i, K_i)
+    m0, m1, m2 = M.unbind(-2)  # rows of M
+    Qx = m0[..., 0] * px + m0[..., 1] * py + m0[..., 2] + d * b[..., 0]
+    Qy = m1[..., 0] * px + m1[..., 1] * py + m1[..., 2] + d * b[..., 1]
+    Qz = m2[..., 0] * px + m2[..., 1] * py + m2[..., 2] + d * b[..., 2]
+    fx, fy, cx, cy = K_t.unbind(-1)
+    in_front = (Qz > 0) & (Qz > min_depth * d * s_j)  # target depth Q_z / (d s_j) above min_depth
+    valid = torch.isfinite(d) & (d >= 0) & in_front & torch.isfinite(Qx) & torch.isfinite(Qy)
+    one = torch.ones((), dtype=Qz.dtype, device=Qz.device)
+    zero = torch.zeros((), dtype=Qz.dtype, device=Qz.device)
+    inv_z = 1.0 / torch.where(valid, Qz, one)
+    xn = Qx * inv_z
+    yn = Qy * inv_z
+    uv = torch.stack((fx * xn + cx, fy * yn + cy), dim=-1)
+    valid = valid & torch.isfinite(uv).all(-1) & torch.isfinite(xn * inv_z) & torch.isfinite(yn * inv_z)
+    if rows_ok is not None:
+        valid = valid & rows_ok
+    if not jacobians:
+        return uv, valid, None
+
+    # Make every factor finite and the projection Jacobian A = d(uv)/dQ zero on invalid rows:
+    # rows of A are a0 = fx/Qz [1, 0, -xn], a1 = fy/Qz [0, 1, -yn].
+    fx_iz = torch.where(valid, fx * inv_z, zero)
+    fy_iz = torch.where(valid, fy * inv_z, zero)
+    xn = torch.where(valid, xn, zero)
+    yn = torch.where(valid, yn, zero)
+    px = torch.where(valid, px, zero)
+    py = torch.where(valid, py, zero)
+    d = torch.where(valid, d, zero)
+
+    # B = A M = d uv / d(source ray); J_d = A b.
+    B0 = fx_iz[..., None] * (m0 - xn[..., None] * m2)
+    B1 = fy_iz[..., None] * (m1 - yn[..., None] * m2)
+    J_d = torch.stack((fx_iz * (b[..., 0] - xn * b[..., 2]), fy_iz * (b[..., 1] - yn * b[..., 2])), dim=-1)
+
+    # Source pose: dQ/dxi_i = M [-[p]x, d I, p]  ->  row r = [p x B_r, d B_r, B_r . p].
+    def source_row(Br: torch.Tensor) -> list[torch.Tensor]:
+        bx, by, bz = Br.unbind(-1)
+        return [py * bz - by, bx - px * bz, px * by - py * bx, d * bx, d * by, d * bz, bx * px + by * py + bz]
+
+    J_Ti = torch.stack(source_row(B0) + source_row(B1), dim=-1).unflatten(-1, (2, 7))
+
+    # Target pose (frame j): dQ_j/dxi_j = [[Q_j]x, -d s_j I, 0].
+    ds_j = d * s_j
+    if T_CtCj is None:
+        # a0 x Q = fx [xn yn, -(1 + xn^2), yn], a1 x Q = fy [1 + yn^2, -xn yn, -xn] (Q = Q_z [xn, yn, 1]).
+        fxm = torch.where(valid, fx, zero)
+        fym = torch.where(valid, fy, zero)
+        xy = xn * yn
+        z = torch.zeros_like(fx_iz)
+        J_Tj = torch.stack(
+            (
+                fxm * xy, -fxm * (1 + xn * xn), fxm * yn, -ds_j * fx_iz, z, ds_j * fx_iz * xn, z,
+                fym * (1 + yn * yn), -fym * xy, -fym * xn, z, -ds_j * fy_iz, ds_j * fy_iz * yn, z,
+            ),
+            dim=-1,
+        ).unflatten(-1, (2, 7))
+    else:
+        # With Q = R_tj Q_j + d b_lam: R_tj [Q_j]x = [Q - d b_lam]x R_tj, lambda column A d b_lam.
+        z = torch.zeros_like(fx_iz)
+        A = torch.stack(
+            (torch.stack((fx_iz, z, -fx_iz * xn), dim=-1), torch.stack((z, fy_iz, -fy_iz * yn), dim=-1)), dim=-2
+        )
+        Q_rot = torch.stack((Qx, Qy, Qz), dim=-1).where(valid[..., None], zero) - d[..., None] * b_lam
+        J_w = torch.linalg.cross(A, Q_rot[..., None, :].expand_as(A), dim=-1) @ R_tj
+        J_u = -ds_j[..., None, None] * (A @ R_tj)
+        J_lam = (A * (d[..., None] * b_lam)[..., None, :]).sum(-1, keepdim=True)
+        J_Tj = torch.cat((J_w, J_u, J_lam), dim=-1)
+    return uv, valid, (J_Ti, J_Tj, J_d)
+
+
+def _rays(uv: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``x, y`` of the unit-depth ray ``p = [x, y, 1]`` of pixels ``uv`` (see ``camera.pixel_rays``)."""
+    u, v = uv.unbind(-1)
+    fx, fy, cx, cy = K.unbind(-1)
+    return (u - cx) / fx, (v - cy) / fy
+
+
+def _zero(x: torch.Tensor, valid: torch.Tensor, n_trailing: int) -> torch.Tensor:
+    mask = valid.reshape(valid.shape + (1,) * n_trailing)
+    return torch.where(mask, x, torch.zeros((), dtype=x.dtype, device=x.device))
+
+
+def reproject(
+    uv_i: torch.Tensor,
+    inv_depth: torch.Tensor,
+    T_WCi: Any,
+    T_WCj: Any,
+    K_i: torch.Tensor,
+    K_j: torch.Tensor | None = None,
+    *,
+    T_CtCj: Any = None,
+    config: ReprojectionConfig | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Predicted pixel coordinates of source pixels in keyframe ``j`` (what a frontend tracks from).
+
+    Args:
+        uv_i: ``(..., 2)`` source pixels of keyframe ``i``.
+        inv_depth: ``(...)`` their inverse depths.
+        T_WCi, T_WCj: camera-to-world Sim(3) poses (batch shapes broadcast against the rows).
+        K_i: ``(..., 4)`` source intrinsics ``[fx, fy, cx, cy]``; ``K_j`` target intrinsics (default ``K_i``).
+        T_CtCj: optional fixed metric 4x4 transform from keyframe ``j``'s camera to the observing
+            camera (stereo: ``StereoRig.T_CRCL``).
+
+    Returns:
+        ``uv_j (..., 2)`` (zero where invalid) and ``valid (...)``.
+    """
+    config = config or ReprojectionConfig()
+    K_t = K_i if K_j is None else K_j
+    uv, valid, _ = _transfer(uv_i, inv_depth, T_WCi, T_WCj, K_i, K_t, T_CtCj, config.min_depth, jacobians=False)
+    return _zero(uv, valid, 1), valid
+
+
+def reproject_inv_depth(
+    uv_i: torch.Tensor,
+    inv_depth: torch.Tensor,
+    T_WCi: Any,
+    T_WCj: Any,
+    K_i: torch.Tensor,
+    uv_target: torch.Tensor,
+    K_j: torch.Tensor | None = None,
+    *,
+    T_CtCj: Any = None,
+    config: ReprojectionConfig | None = None,
+) -> ReprojectionResult:
+    """Inverse-depth reprojection residuals and Jacobians (DROID-SLAM eq. 4, DPV-SLAM eq. 3).
+
+    Args: as :func:`reproject`, plus ``uv_target (..., 2)``, the observed pixels in keyframe ``j``
+    (e.g. the source pixel's current reprojection plus the network's flow revision).
+
+    Returns:
+        :class:`ReprojectionResult`; ``residual = pi(T_CtCj T_WCj^-1 T_WCi X_i) - uv_target``.
+        Weights are not applied: the caller whitens rows with its confidences.
+    """
+    config = config or ReprojectionConfig()
+    K_t = K_i if K_j is None else K_j
+    uv, valid, jac = _transfer(
+        uv_i, inv_depth, T_WCi, T_WCj, K_i, K_t, T_CtCj, config.min_depth, jacobians=True,
+        rows_ok=torch.isfinite(uv_target).all(-1),
+    )
+    J_Ti, J_Tj, J_d = jac
+    residual = _zero(uv - uv_target, valid, 1)
+    return ReprojectionResult(residual=residual, J_Ti=J_Ti, J_Tj=J_Tj, J_d=J_d, valid=valid)
+
+
+def flatten_patches(uv_patches: torch.Tensor, inv_depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rows of DPV-SLAM patches for :func:`reproject_inv_depth`.
+
+    Args:
+        uv_patches: ``(..., P, p, p, 2)`` pixel coordinates of the ``p x p`` pixels of ``P`` patches.
+        inv_depth: ``(..., P)`` one inverse depth per patch.
+
+    Returns:
+        ``uv (..., P * p * p, 2)`` with patch ``k``'s pixel ``(a, b)`` at row ``k p^2 + a p + b``,
+        and ``inv_depth (..., P * p * p)`` (each patch's depth repeated over its rows).
+    """
+    *batch, P, p, p2, two = uv_patches.shape
+    if p != p2 or two != 2 or tuple(inv_depth.shape[-1:]) != (P,):
+        raise DataError(f"flatten_patches: got uv {tuple(uv_patches.shape)} and depths {tuple(inv_depth.shape)}")
+    uv = uv_patches.reshape(*batch, P * p * p, 2)
+    d = inv_depth[..., :, None].expand(*inv_depth.shape, p * p).reshape(*inv_depth.shape[:-1], P * p * p)
+    return uv, d

@@ -1,0 +1,613 @@
+"""Schur elimination of scalar structure variables and its GTSAM factor (DESIGN section 3).
+
+A *visual block* is a set of weighted measurement residuals that depend on a few keyframe poses
+(the block's *pose slots* ``0..k-1``) and on scalar *structure* variables (one inverse depth per
+pixel or per patch). Each measurement has ``m`` residual rows, belongs to one structure variable
+and involves ``S`` pose slots (``S = 2`` for a reprojection: source and target). Linearised,
+
+    r(x + dx, d + dd) ~ r0 + J dx + E dd,      cost = 0.5 * sum_rows w r^2,
+
+and the structure is eliminated exactly (DROID-SLAM eq. 5, per-structure Schur complement)::
+
+    C_p = E_p^T W E_p + lambda_s,  b_p = E_p^T W r0,  F_p = E_p^T W J        (per structure p)
+    H = J^T W J - sum_p F_p^T F_p / C_p
+    g = J^T W r0 - sum_p F_p^T b_p / C_p
+    c = r0^T W r0 - sum_p b_p^2 / C_p
+
+so that ``min_dd [ |r0 + J dx + E dd|_W^2 + lambda_s |dd|^2 ] = dx^T H dx + 2 g^T dx + c`` and the
+minimiser is the back-substitution ``dd_p = -(b_p + F_p dx) / C_p``. The reduced model of the
+GTSAM-convention cost (0.5 times the squared norm) is ``0.5 (dx^T H dx + 2 g^T dx + c)``.
+
+Conventions: pose tangents are gtsam's Similarity3 tangent ``[w(3), u(3), lambda]`` (dimension 7,
+right perturbation, ``T.retract(xi) = T @ Exp(xi)``), pose slot ``a`` occupies rows/columns
+``7a .. 7a+6`` of H. All linear algebra handed to GTSAM is float64.
+
+GTSAM side: :func:`to_gaussian_factor` makes a ``gtsam.HessianFactor`` on any number of keys
+(built from unary/pairwise pieces via ``gtsam.HessianFactor(GaussianFactorGraph)``, because the
+4.3.0 wheel's constructors take at most 3 keys) or, for up to 3 keys, the compressed
+``gtsam.JacobianFactor`` ``[A; 0] x - [-b; e]`` with ``A^T A = H``, ``A^T b = g``,
+``e^2 = c - b^T b`` (pivoted Cholesky, exact because g lies in the range of H). Either factor's
+``error(dx)`` equals the reduced cost above.
+
+Blocks: :class:`VisualBlock` owns measurements and structure and offers ``linearize(values) ->
+(keys, H, g, c)``, ``back_substitute(delta)``, ``cost(values)`` and ``refine_structure(values)``
+(``values``: a ``gtsam.Values`` of Similarity3 T_WC). :class:`InverseDepthBlock` implements it with
+``fgslam.factors.reprojection``; a frontend builds one block per source keyframe (its inverse-depth
+map or patches, with all outgoing edges) and hands it to ``fgslam.map.SlamMap.add_block``::
+
+    block = InverseDepthBlock(keys=[pose_key(i), pose_key(j1), pose_key(j2)],
+                              source_slot=zeros, target_slot=slot_of_each_row, uv_source=uv_i,
+                              uv_target=uv_i_reprojected_plus_flow, struct_idx=pixel_or_patch_id,
+                              weights=confidences, K=K, inverse_depth=d_i)
+"""
+
+from __future__ import annotations
+
+import abc
+import contextlib
+import logging
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import OptimizationError
+from ..lie import Sim3
+from .reprojection import ReprojectionConfig, reproject, reproject_inv_depth
+
+logger = logging.getLogger(__name__)
+
+POSE_DIM = 7  # dimension of gtsam.Similarity3's tangent space [w, u, lambda]
+
+
+@contextlib.contextmanager
+def torch_threads(num_threads: int) -> Iterator[None]:
+    """Temporarily set torch's intra-op thread count (small dense solves are faster single-threaded)."""
+    if num_threads <= 0:
+        yield
+        return
+    previous = torch.get_num_threads()
+    torch.set_num_threads(num_threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+# ----------------------------------------------------------------------------------------------
+# Generic vectorised elimination
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SlotGroups:
+    """Contiguous runs of rows that share the same pose-slot tuple (one run per edge).
+
+    ``bounds[i]:bounds[i+1]`` are the rows of group ``i``; ``slots[i]`` its pose-slot tuple.
+    Rows must already be ordered by group (see :meth:`sort_rows`).
+    """
+
+    bounds: tuple[int, ...]
+    slots: tuple[tuple[int, ...], ...]
+
+    @staticmethod
+    def sort_rows(slots: torch.Tensor) -> tuple[torch.Tensor, "SlotGroups"]:
+        """Order (N,) that makes rows with equal slot tuples contiguous, and the resulting groups.
+
+        ``slots``: (N, S) integer pose slots. Stable: keeps the original order inside a group.
+        """
+        if slots.ndim != 2:
+            raise ValueError(f"slots must be (N, S), got shape {tuple(slots.shape)}")
+        n, s = slots.shape
+        if n == 0:
+            return torch.zeros(0, dtype=torch.long), SlotGroups((0,), ())
+        base = int(slots.max().item()) + 1
+        key = torch.zeros(n, dtype=torch.long)
+        for col in range(s):
+            key = key * base + slots[:, col].long()
+        order = torch.argsort(key, stable=True)
+        uniq, counts = torch.unique_consecutive(key[order], return_counts=True)
+        bounds = [0] + torch.cumsum(counts, 0).tolist()
+        first = torch.as_tensor(bounds[:-1], dtype=torch.long)
+        group_slots = slots[order[first]].tolist()
+        return order, SlotGroups(tuple(bounds), tuple(tuple(int(v) for v in row) for row in group_slots))
+
+
+@dataclass
+class SchurSystem:
+    """Reduced normal equations over the k pose slots of a block, plus what back-substitution needs.
+
+    ``H`` (7k, 7k), ``g`` (7k,), ``c`` scalar: reduced model ``dx^T H dx + 2 g^T dx + c`` of the
+    squared weighted residual norm (twice the GTSAM-convention cost). ``F`` (P, 7k), ``b`` (P,),
+    ``inv_C`` (P,) per structure; ``inv_C`` is 0 for structures without information (C ~ 0).
+    """
+
+    H: torch.Tensor
+    g: torch.Tensor
+    c: float
+    F: torch.Tensor
+    b: torch.Tensor
+    inv_C: torch.Tensor
+
+    def back_substitute(self, dx: torch.Tensor) -> torch.Tensor:
+        """Structure update (P,) minimising the joint quadratic for the pose update ``dx`` (7k,)."""
+        return -self.inv_C * (self.b + self.F @ dx.to(self.F.dtype))
+
+    def model(self, dx: torch.Tensor) -> float:
+        """Reduced quadratic ``dx^T H dx + 2 g^T dx + c`` at ``dx`` (7k,)."""
+        dx = dx.to(self.H.dtype)
+        return float(dx @ self.H @ dx + 2.0 * self.g @ dx + self.c)
+
+
+def schur_reduce(
+    r: torch.Tensor,
+    J: torch.Tensor | Sequence[torch.Tensor],
+    slots: torch.Tensor,
+    E: torch.Tensor,
+    struct_idx: torch.Tensor,
+    weights: torch.Tensor,
+    num_slots: int,
+    num_structs: int,
+    structure_damping: float | torch.Tensor = 0.0,
+    groups: SlotGroups | None = None,
+    min_information: float = 0.0,
+) -> SchurSystem:
+    """Eliminate scalar structure variables from weighted linearised residuals.
+
+    Shapes (N measurements, m rows each, S pose slots per measurement, D = pose dimension):
+    ``r`` (N, m) residuals, ``J`` pose Jacobians as (N, m, S, D) or a sequence of S tensors
+    (N, m, D) (one per slot column), ``slots`` (N, S) pose slots in ``[0, num_slots)``, ``E`` (N, m)
+    structure Jacobian, ``struct_idx`` (N,) in ``[0, num_structs)``, ``weights`` (N, m) non-negative
+    (confidence times robust weights; zero for invalid rows). ``structure_damping`` adds
+    ``lambda_s`` (scalar, or (P,) per structure like DROID's predicted damping) to every ``C_p``. Structures with ``C_p <= min_information`` are left out of the
+    elimination (their F and b are zero anyway when all their rows have zero weight). ``groups``:
+    precomputed contiguous slot groups (rows must be sorted accordingly); computed here (with a
+    sort) when omitted.
+
+    Cost: O(N m (S D)^2) for J^T W J (one matmul per group) plus O(P (D k)^2) for the Schur
+    correction, so blocks should group the structure of one source keyframe with its edges.
+    """
+    J_cols = list(J.unbind(2)) if isinstance(J, torch.Tensor) else list(J)
+    if r.ndim != 2 or len(J_cols) != slots.shape[1] or any(Js.shape[:2] != r.shape for Js in J_cols):
+        raise ValueError(
+            f"inconsistent shapes: r {tuple(r.shape)}, J {[tuple(Js.shape) for Js in J_cols]}, slots {tuple(slots.shape)}"
+        )
+    if groups is None:
+        order, groups = SlotGroups.sort_rows(slots)
+        r, slots, E, struct_idx, weights = r[order], slots[order], E[order], struct_idx[order], weights[order]
+        J_cols = [Js[order] for Js in J_cols]
+    dtype = torch.float64
+    r, E, weights = r.to(dtype), E.to(dtype), weights.to(dtype)
+    J_cols = [Js.to(dtype) for Js in J_cols]
+    n, m = r.shape
+    s = len(J_cols)
+    d = J_cols[0].shape[-1]
+    k = num_slots
+    struct_idx = struct_idx.long()
+
+    # Per-structure scalars (1-D index_add is fast; (N, D) rows are flattened for the same reason).
+    w_E = weights * E
+    C = torch.zeros(num_structs, dtype=dtype).index_add_(0, struct_idx, (w_E * E).sum(1))
+    C = C + structure_damping
+    b = torch.zeros(num_structs, dtype=dtype).index_add_(0, struct_idx, (w_E * r).sum(1))
+    # F_p = E_p^T W J, scattered into the slots each measurement touches.
+    FE = torch.stack([torch.bmm(w_E[:, None, :], Js)[:, 0] for Js in J_cols], dim=1)  # (N, S, D)
+    flat = ((struct_idx[:, None] * k + slots.long()) * d)[:, :, None] + torch.arange(d)
+    F = torch.zeros(num_structs * k * d, dtype=dtype).index_add_(0, flat.reshape(-1), FE.reshape(-1))
+    F = F.reshape(num_structs, k * d)
+
+    # J^T W J, J^T W r and r^T W r from one product per group: A = sqrt(W) [J_1 .. J_S | r].
+    H = torch.zeros(k * d, k * d, dtype=dtype)
+    g = torch.zeros(k * d, dtype=dtype)
+    c = 0.0
+    sqrt_w = weights.sqrt()[:, :, None]
+    for gi, group_slots in enumerate(groups.slots):
+        lo, hi = groups.bounds[gi], groups.bounds[gi + 1]
+        sw = sqrt_w[lo:hi]
+        A = torch.empty(hi - lo, m, s * d + 1, dtype=dtype)
+        for col, Js in enumerate(J_cols):
+            torch.mul(Js[lo:hi], sw, out=A[:, :, col * d:(col + 1) * d])
+        torch.mul(r[lo:hi, :, None], sw, out=A[:, :, s * d:])
+        A = A.reshape(-1, s * d + 1)
+        AtA = A.T @ A
+        c += float(AtA[-1, -1])
+        for ca, sa in enumerate(group_slots):
+            g[sa * d:(sa + 1) * d] += AtA[ca * d:(ca + 1) * d, -1]
+            for cb, sb in enumerate(group_slots):
+                H[sa * d:(sa + 1) * d, sb * d:(sb + 1) * d] += AtA[ca * d:(ca + 1) * d, cb * d:(cb + 1) * d]
+
+    informative = C > min_information
+    inv_C = torch.where(informative, 1.0 / torch.where(informative, C, torch.ones_like(C)), torch.zeros_like(C))
+    H = H - F.T @ (F * inv_C[:, None])
+    H = 0.5 * (H + H.T)
+    g = g - F.T @ (inv_C * b)
+    c = c - float((inv_C * b * b).sum())
+    if not (torch.isfinite(H).all() and torch.isfinite(g).all() and np.isfinite(c)):
+        raise OptimizationError("Schur elimination produced non-finite values (NaN/inf in residuals or Jacobians)")
+    return SchurSystem(H=H, g=g, c=c, F=F, b=b, inv_C=inv_C)
+
+
+def structure_gauss_newton_step(
+    r: torch.Tensor, E: torch.Tensor, struct_idx: torch.Tensor, weights: torch.Tensor,
+    num_structs: int, structure_damping: float | torch.Tensor = 0.0, min_information: float = 0.0,
+) -> torch.Tensor:
+    """Per-structure Gauss-Newton step at fixed poses: ``dd_p = -(E_p^T W r_p) / (E_p^T W E_p + lambda_s)``.
+
+    Shapes as in :func:`schur_reduce`; returns (P,) (zero where ``C_p <= min_information``).
+    """
+    dtype = torch.float64
+    r, E, weights = r.to(dtype), E.to(dtype), weights.to(dtype)
+    idx = struct_idx.long()
+    w_E = weights * E
+    C = torch.zeros(num_structs, dtype=dtype).index_add_(0, idx, (w_E * E).sum(1)) + structure_damping
+    b = torch.zeros(num_structs, dtype=dtype).index_add_(0, idx, (w_E * r).sum(1))
+    ok = C > min_information
+    return torch.where(ok, -b / torch.where(ok, C, torch.ones_like(C)), torch.zeros_like(C))
+
+
+def per_structure_cost(r: torch.Tensor, struct_idx: torch.Tensor, weights: torch.Tensor, num_structs: int) -> torch.Tensor:
+    """(P,) sum of ``w r^2`` over each structure's rows (twice its GTSAM-convention cost)."""
+    dtype = torch.float64
+    per_row = (weights.to(dtype) * r.to(dtype) ** 2).sum(1)
+    return torch.zeros(num_structs, dtype=dtype).index_add_(0, struct_idx.long(), per_row)
+
+
+# ----------------------------------------------------------------------------------------------
+# GTSAM factors
+# ----------------------------------------------------------------------------------------------
+
+
+def factorize_psd(H: np.ndarray, g: np.ndarray, c: float, rank_tolerance: float = -1.0) -> tuple[np.ndarray, np.ndarray, float]:
+    """Square-root form of a PSD quadratic: ``A`` (r, n), ``b`` (r,), ``e`` with
+    ``|A x + b|^2 + e^2 = x^T H x + 2 g^T x + c`` for all x.
+
+    Uses LAPACK's pivoted Cholesky ``dpstrf`` (``P^T H P = U^T U``, rank r); ``rank_tolerance`` is
+    its ``tol`` argument (negative: LAPACK's default ``n * eps * max(diag H)``). Exact when g lies in
+    the range of H, which holds for Schur-reduced systems. ``e^2 = c - b^T b`` is clamped at 0.
+    """
+    from scipy.linalg import lapack, solve_triangular
+
+    H = np.asarray(H, dtype=np.float64)
+    g = np.asarray(g, dtype=np.float64)
+    n = H.shape[0]
+    U, piv, rank, info = lapack.dpstrf(H, lower=0, tol=rank_tolerance)
+    if info < 0:
+        raise OptimizationError(f"dpstrf failed with info={info} on a {n}x{n} matrix")
+    perm = piv - 1
+    U = np.triu(U)[:rank, :]
+    A = np.zeros((rank, n))
+    A[:, perm] = U
+    b = solve_triangular(U[:, :rank], g[perm][:rank], trans="T", lower=False)
+    e2 = float(c - b @ b)
+    return A, b, float(np.sqrt(max(e2, 0.0)))
+
+
+def hessian_pieces(keys: Sequence[int], H: np.ndarray, g: np.ndarray, c: float) -> list:
+    """Unary and pairwise ``gtsam.HessianFactor`` pieces whose sum has error
+    ``0.5 (x^T H x + 2 g^T x + c)`` (gtsam: error = 0.5 (f - 2 x^T g_gtsam + x^T G x), so g_gtsam = -g).
+
+    ``keys``: k gtsam keys of 7-dimensional variables, H (7k, 7k), g (7k,). All-zero off-diagonal
+    blocks are skipped.
+    """
+    import gtsam
+
+    H = np.asarray(H, dtype=np.float64)
+    g = np.asarray(g, dtype=np.float64)
+    d = POSE_DIM
+    k = len(keys)
+    if H.shape != (d * k, d * k) or g.shape != (d * k,):
+        raise ValueError(f"H {H.shape} / g {g.shape} do not match {k} keys of dimension {d}")
+    pieces = []
+    zero_block = np.zeros((d, d))
+    zero_vec = np.zeros(d)
+    for a in range(k):
+        sa = slice(d * a, d * a + d)
+        pieces.append(gtsam.HessianFactor(keys[a], H[sa, sa], -g[sa], float(c) if a == 0 else 0.0))
+    for a in range(k):
+        sa = slice(d * a, d * a + d)
+        for bb in range(a + 1, k):
+            sb = slice(d * bb, d * bb + d)
+            block = H[sa, sb]
+            if not block.any():
+                continue
+            pieces.append(gtsam.HessianFactor(keys[a], keys[bb], zero_block, block, zero_vec, zero_block, zero_vec, 0.0))
+    return pieces
+
+
+def to_gaussian_factor(keys: Sequence[int], H: np.ndarray, g: np.ndarray, c: float, kind: str = "hessian"):
+    """A gtsam Gaussian factor on ``keys`` whose ``error(dx) = 0.5 (dx^T H dx + 2 g^T dx + c)``.
+
+    ``kind="hessian"``: one N-key ``gtsam.HessianFactor`` (any number of keys).
+    ``kind="jacobian"``: the compressed ``gtsam.JacobianFactor`` with rows ``[A; 0]`` and
+    right-hand side ``[-b; e]`` (``rank(H) + 1`` rows, at most 3 keys in the 4.3.0 wheel).
+    """
+    import gtsam
+
+    if kind == "hessian":
+        graph = gtsam.GaussianFactorGraph()
+        for piece in hessian_pieces(keys, H, g, c):
+            graph.add(piece)
+        return gtsam.HessianFactor(graph)
+    if kind == "jacobian":
+        if not 1 <= len(keys) <= 3:
+            raise ValueError(f"a JacobianFactor can be built on 1 to 3 keys here, got {len(keys)}")
+        A, b, e = factorize_psd(H, g, c)
+        rows = A.shape[0] + 1
+        A_full = np.zeros((rows, A.shape[1]))
+        A_full[:-1] = A
+        rhs = np.concatenate([-b, [e]])
+        model = gtsam.noiseModel.Unit.Create(rows)
+        d = POSE_DIM
+        args = []
+        for a, key in enumerate(keys):
+            args += [key, A_full[:, d * a:d * a + d]]
+        return gtsam.JacobianFactor(*args, rhs, model)
+    raise ValueError(f"unknown factor kind {kind!r} (expected 'hessian' or 'jacobian')")
+
+
+# ----------------------------------------------------------------------------------------------
+# Visual blocks
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class BlockResiduals:
+    """Weighted residuals of a block at given poses/structure (shapes as in :func:`schur_reduce`).
+
+    ``J`` is a list of S pose-Jacobian columns (N, m, 7) (see :func:`schur_reduce`); ``E`` and
+    ``J`` are None when Jacobians were not requested; ``num_invalid`` counts measurements that
+    got zero weight because they are degenerate (behind a camera, non-finite...).
+    """
+
+    r: torch.Tensor
+    weights: torch.Tensor
+    E: torch.Tensor | None = None
+    J: list[torch.Tensor] | None = None
+    num_invalid: int = 0
+
+
+@dataclass
+class BlockConfig:
+    """Tunables shared by visual blocks."""
+
+    structure_damping: float = 0.0  # lambda_s added to each structure's information C_p
+    min_information: float = 1e-12  # structures with C_p at or below this are not eliminated
+    refine_steps: int = 2  # per-structure Gauss-Newton steps of refine_structure() at fixed poses
+    min_structure: float = 1e-6  # lower clamp of the structure (inverse depth stays positive)
+    threads: int = 1  # torch threads inside linearize/cost/refine (small dense work: 1 is fastest)
+    per_edge_min_rows: int = 2048  # evaluate edge by edge (pose pair broadcast) when edges average this many rows
+
+
+class VisualBlock(abc.ABC):
+    """Measurements on ``k`` pose keys with their own scalar structure, eliminated when linearised.
+
+    Subclasses implement :meth:`evaluate`; rows must be stored grouped by pose-slot tuple
+    (``self.slots`` sorted, ``self.groups`` set) so that linearisation needs no sort.
+    The block's state is its structure (P,) (float64 torch tensor).
+    """
+
+    keys: tuple[int, ...]
+    slots: torch.Tensor  # (N, S) pose slots of each measurement
+    struct_idx: torch.Tensor  # (N,) structure of each measurement
+    groups: SlotGroups
+    config: BlockConfig
+
+    def __init__(self) -> None:
+        self._system: SchurSystem | None = None
+
+    # --- to implement
+    @abc.abstractmethod
+    def evaluate(self, poses: Sim3, structure: torch.Tensor, jacobians: bool) -> BlockResiduals:
+        """Residuals (N, m) and weights (N, m) at ``poses`` (k,) (T_WC of the block's keys) and
+        ``structure`` (P,); with ``jacobians`` also E (N, m) and pose Jacobians J (S tensors (N, m, 7))."""
+
+    @property
+    @abc.abstractmethod
+    def structure(self) -> torch.Tensor:
+        """Current structure (P,)."""
+
+    @abc.abstractmethod
+    def set_structure(self, structure: torch.Tensor) -> None:
+        """Replace the structure (projected by :meth:`clamp_structure`)."""
+
+    def clamp_structure(self, structure: torch.Tensor) -> torch.Tensor:
+        """Project a structure onto its valid domain (default: unchanged)."""
+        return structure
+
+    # --- generic machinery
+    @property
+    def num_structs(self) -> int:
+        return int(self.structure.shape[0])
+
+    def poses_from_values(self, values) -> Sim3:
+        """The block's poses (k,) from a ``gtsam.Values`` holding Similarity3 at ``self.keys``."""
+        return Sim3.from_gtsam([values.atSimilarity3(key) for key in self.keys])
+
+    def linearize(self, values) -> tuple[tuple[int, ...], np.ndarray, np.ndarray, float]:
+        """``(keys, H, g, c)`` of the Schur-reduced system at ``values`` and the current structure;
+        the reduced GTSAM-convention cost model is ``0.5 (dx^T H dx + 2 g^T dx + c)``."""
+        with torch_threads(self.config.threads):
+            res = self.evaluate(self.poses_from_values(values), self.structure, jacobians=True)
+            self._system = schur_reduce(
+                res.r, res.J, self.slots, res.E, self.struct_idx, res.weights, len(self.keys),
+                self.num_structs, self.config.structure_damping, self.groups, self.config.min_information,
+            )
+        sys_ = self._system
+        return self.keys, sys_.H.numpy(), sys_.g.numpy(), sys_.c
+
+    def back_substitute(self, delta) -> torch.Tensor:
+        """Structure update (P,) for the pose update ``delta`` (gtsam.VectorValues or (7k,) array)
+        at the last linearisation point."""
+        if self._system is None:
+            raise OptimizationError("back_substitute() called before linearize()")
+        if not isinstance(delta, (np.ndarray, torch.Tensor)):
+            delta = np.concatenate([delta.at(key) for key in self.keys])
+        return self._system.back_substitute(torch.as_tensor(np.asarray(delta), dtype=torch.float64))
+
+    def cost(self, values, structure: torch.Tensor | None = None) -> float:
+        """GTSAM-convention cost ``0.5 sum w r^2`` at ``values`` and ``structure`` (default: current)."""
+        structure = self.structure if structure is None else structure
+        with torch_threads(self.config.threads):
+            res = self.evaluate(self.poses_from_values(values), structure, jacobians=False)
+            return 0.5 * float(per_structure_cost(res.r, self.struct_idx, res.weights, self.num_structs).sum())
+
+    def refine_structure(self, values, steps: int | None = None) -> float:
+        """Per-structure Gauss-Newton at fixed poses, warm-started from the current structure.
+
+        A structure keeps a step only where its own cost does not increase. Returns the block's
+        GTSAM-convention cost after refinement.
+        """
+        steps = self.config.refine_steps if steps is None else steps
+        if steps <= 0:
+            return self.cost(values)
+        with torch_threads(self.config.threads):
+            poses = self.poses_from_values(values)
+            d = self.structure.clone()
+            res = self.evaluate(poses, d, jacobians=True)
+            cost_p = per_structure_cost(res.r, self.struct_idx, res.weights, self.num_structs)
+            for it in range(steps):
+                step = structure_gauss_newton_step(
+                    res.r, res.E, self.struct_idx, res.weights, self.num_structs,
+                    self.config.structure_damping, self.config.min_information,
+                )
+                trial = self.clamp_structure(d + step)
+                res_t = self.evaluate(poses, trial, jacobians=True)
+                cost_t = per_structure_cost(res_t.r, self.struct_idx, res_t.weights, self.num_structs)
+                better = cost_t <= cost_p
+                d = torch.where(better, trial, d)
+                cost_p = torch.where(better, cost_t, cost_p)
+                if bool(better.all()):
+                    res = res_t
+                elif it + 1 < steps:
+                    res = self.evaluate(poses, d, jacobians=True)
+            self.set_structure(d)
+            return 0.5 * float(cost_p.sum())
+
+
+class InverseDepthBlock(VisualBlock):
+    """Inverse-depth reprojection measurements with one inverse depth per structure variable.
+
+    Measurement ``n``: source pixel ``uv_source[n]`` of the keyframe in pose slot
+    ``source_slot[n]``, carrying inverse depth ``structure[struct_idx[n]]``, observed at
+    ``uv_target[n]`` in the keyframe of slot ``target_slot[n]``, with weights ``weights[n]`` (2,)
+    (per-axis confidences, DROID's w_ij; or (N,) shared by both axes). Residual and Jacobians come
+    from :func:`fgslam.factors.reprojection.reproject_inv_depth` (tangent [w, u, lambda], right
+    perturbation). Dense DROID pixels: one structure per pixel of the source keyframe and one
+    measurement per pixel and edge. DPV-SLAM patches: one structure per patch and ``p*p``
+    measurements (its pixels, :func:`~fgslam.factors.reprojection.flatten_patches`) per patch and edge.
+    Rows with invalid geometry (behind a camera...) get zero weight and are counted in
+    ``num_invalid`` after each evaluation.
+
+    Args:
+        keys: gtsam keys of the k poses (Similarity3 T_WC) the block touches; slots index into them.
+        K: (4,) intrinsics ``[fx, fy, cx, cy]`` shared by all keyframes of the block.
+        inverse_depth: (P,) initial structure.
+    """
+
+    def __init__(
+        self,
+        keys: Sequence[int],
+        source_slot: torch.Tensor,
+        target_slot: torch.Tensor,
+        uv_source: torch.Tensor,
+        uv_target: torch.Tensor,
+        struct_idx: torch.Tensor,
+        weights: torch.Tensor,
+        K: torch.Tensor,
+        inverse_depth: torch.Tensor,
+        config: BlockConfig | None = None,
+        reprojection: ReprojectionConfig | None = None,
+    ):
+        super().__init__()
+        dtype = torch.float64
+        self.keys = tuple(int(k) for k in keys)
+        self.config = config or BlockConfig()
+        self.reprojection = reprojection or ReprojectionConfig()
+        n = int(uv_source.shape[0])
+        weights = torch.as_tensor(weights, dtype=dtype)
+        if weights.ndim == 1:
+            weights = weights[:, None].expand(n, 2)
+        slots = torch.stack([torch.as_tensor(source_slot).long(), torch.as_tensor(target_slot).long()], dim=1)
+        if n and (int(slots.min()) < 0 or int(slots.max()) >= len(self.keys)):
+            raise ValueError(f"pose slots must lie in [0, {len(self.keys)}), got [{int(slots.min())}, {int(slots.max())}]")
+        order, self.groups = SlotGroups.sort_rows(slots)
+        self._order = order  # internal row r holds input measurement order[r]
+        self.slots = slots[order]
+        self.uv_source = torch.as_tensor(uv_source, dtype=dtype)[order]
+        self.uv_target = torch.as_tensor(uv_target, dtype=dtype)[order]
+        self.struct_idx = torch.as_tensor(struct_idx).long()[order]
+        self.weights = self._checked_weights(weights[order])
+        self.K = torch.as_tensor(K, dtype=dtype)
+        self._structure = torch.zeros(0, dtype=dtype)
+        self.set_structure(torch.as_tensor(inverse_depth, dtype=dtype))
+        self.num_invalid = 0
+
+    @staticmethod
+    def _checked_weights(weights: torch.Tensor) -> torch.Tensor:
+        if bool((weights < 0).any()) or not bool(torch.isfinite(weights).all()):
+            raise ValueError("weights must be finite and non-negative")
+        return weights.contiguous()
+
+    def set_observations(self, uv_target: torch.Tensor | None = None, weights: torch.Tensor | None = None) -> None:
+        """Replace observed target pixels (N, 2) and/or weights (N, 2) or (N,), given in the order
+        of the constructor's measurements (e.g. new flow revisions and confidences of an update)."""
+        if uv_target is not None:
+            self.uv_target = torch.as_tensor(uv_target, dtype=torch.float64)[self._order]
+        if weights is not None:
+            weights = torch.as_tensor(weights, dtype=torch.float64)
+            if weights.ndim == 1:
+                weights = weights[:, None].expand(weights.shape[0], 2)
+            self.weights = self._checked_weights(weights[self._order])
+
+    @property
+    def structure(self) -> torch.Tensor:
+        return self._structure
+
+    def clamp_structure(self, structure: torch.Tensor) -> torch.Tensor:
+        """Inverse depths clamped to ``config.min_structure`` (a step never flips a point behind its camera)."""
+        return structure.to(torch.float64).clamp_min(self.config.min_structure)
+
+    def set_structure(self, structure: torch.Tensor) -> None:
+        self._structure = self.clamp_structure(structure)
+
+    def evaluate(self, poses: Sim3, structure: torch.Tensor, jacobians: bool) -> BlockResiduals:
+        dtype = torch.float64
+        d_rows = structure.to(dtype)[self.struct_idx]
+        R, t, s = poses.R.to(dtype), poses.t.to(dtype), poses.s.to(dtype)
+        n = int(self.uv_source.shape[0])
+        if n >= self.config.per_edge_min_rows * max(len(self.groups.slots), 1):
+            # few large edges: one call per edge with the pose pair broadcast over its rows
+            parts = [
+                (lo, hi, (R[si], t[si], s[si]), (R[sj], t[sj], s[sj]))
+                for (lo, hi), (si, sj) in zip(zip(self.groups.bounds[:-1], self.groups.bounds[1:]), self.groups.slots)
+            ]
+        else:
+            # many small edges: one call with per-row poses
+            si, sj = self.slots[:, 0], self.slots[:, 1]
+            parts = [(0, n, (R[si], t[si], s[si]), (R[sj], t[sj], s[sj]))]
+        rs, valids, Es, Jis, Jjs = [], [], [], [], []
+        for lo, hi, T_i, T_j in parts:
+            uv_s, d_s, uv_t = self.uv_source[lo:hi], d_rows[lo:hi], self.uv_target[lo:hi]
+            if jacobians:
+                res = reproject_inv_depth(uv_s, d_s, T_i, T_j, self.K, uv_t, config=self.reprojection)
+                rs.append(res.residual)
+                valids.append(res.valid)
+                Es.append(res.J_d)
+                Jis.append(res.J_Ti)
+                Jjs.append(res.J_Tj)
+            else:
+                uv, ok = reproject(uv_s, d_s, T_i, T_j, self.K, config=self.reprojection)
+                res_g = uv - uv_t
+                ok = ok & torch.isfinite(res_g).all(-1)
+                rs.append(torch.where(ok[:, None], res_g, torch.zeros((), dtype=dtype)))
+                valids.append(ok)
+        cat = (lambda xs: xs[0]) if len(parts) == 1 else (lambda xs: torch.cat(xs))
+        r, valid = cat(rs), cat(valids)
+        self.num_invalid = int(valid.numel() - int(valid.sum()))
+        if self.num_invalid:
+            logger.debug("inverse-depth block: %d of %d measurements invalid (zero weight)", self.num_invalid, n)
+        weights = torch.where(valid[:, None], self.weights, torch.zeros((), dtype=dtype))
+        if not jacobians:
+            return BlockResiduals(r=r, weights=weights, num_invalid=self.num_invalid)
+        return BlockResiduals(r=r, weights=weights, E=cat(Es), J=[cat(Jis), cat(Jjs)], num_invalid=self.num_invalid)

@@ -1,0 +1,76 @@
+"""Dataset loaders: one lazy ``Dataset`` interface over TUM RGB-D, EuRoC, KITTI, TartanAir,
+7-Scenes, image folders and videos.  ``open_dataset`` picks the loader from the folder layout.
+
+Detection order (``fmt="auto"``): a file with a video extension -> ``video``; ``mav0/cam0`` or
+``cam0/data.csv`` -> ``euroc``; ``image_0/`` + ``calib.txt`` -> ``kitti``; ``image_left/`` ->
+``tartanair``; ``rgb.txt`` -> ``tum``; ``seq-NN/frame-*.color.*`` (or such frames directly) ->
+``7scenes``; a folder with images -> ``folder``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ...errors import DataError
+from .common import Dataset, DatasetConfig
+from .euroc import EurocDataset, mav0_dir
+from .folder import VIDEO_EXTENSIONS, FolderDataset, VideoDataset
+from .kitti import KittiDataset, list_images
+from .sevenscenes import SevenScenesDataset, is_sequence_dir
+from .tartanair import TartanAirDataset
+from .tum import TumDataset
+
+LOADERS: dict[str, type[Dataset]] = {
+    "tum": TumDataset,
+    "euroc": EurocDataset,
+    "kitti": KittiDataset,
+    "tartanair": TartanAirDataset,
+    "7scenes": SevenScenesDataset,
+    "folder": FolderDataset,
+    "video": VideoDataset,
+}
+FORMATS = tuple(LOADERS)
+
+
+def detect_format(path: str | Path) -> str:
+    """Loader name for the layout at ``path``; DataError when nothing matches."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: no such file or folder")
+    if path.is_file():
+        if path.suffix.lower() in VIDEO_EXTENSIONS:
+            return "video"
+        raise DataError(f"{path}: a file that is not a video ({', '.join(VIDEO_EXTENSIONS)}); give a dataset folder")
+    if mav0_dir(path) is not None:
+        return "euroc"
+    if (path / "image_0").is_dir() and (path / "calib.txt").is_file():
+        return "kitti"
+    if (path / "image_left").is_dir():
+        return "tartanair"
+    if (path / "rgb.txt").is_file():
+        return "tum"
+    if is_sequence_dir(path) or any(is_sequence_dir(p) for p in path.glob("seq-*")):
+        return "7scenes"
+    if list_images(path):
+        return "folder"
+    raise DataError(
+        f"{path}: unknown dataset layout (looked for mav0/cam0 (EuRoC), image_0 + calib.txt (KITTI), "
+        "image_left (TartanAir), rgb.txt (TUM), seq-NN/frame-*.color.* (7-Scenes), image files (folder))"
+    )
+
+
+def open_dataset(path: str | Path, fmt: str = "auto", config: DatasetConfig | None = None) -> Dataset:
+    """Open the sequence at ``path`` with the loader ``fmt`` (``auto``: detected from the layout)."""
+    path = Path(path)
+    if fmt == "auto":
+        fmt = detect_format(path)
+    elif fmt not in LOADERS:
+        raise DataError(f"{path}: unknown dataset format {fmt!r} (expected auto or one of {', '.join(FORMATS)})")
+    elif not path.exists():
+        raise DataError(f"{path}: no such file or folder")
+    return LOADERS[fmt](path, config if config is not None else DatasetConfig())
+
+
+__all__ = ["Dataset", "DatasetConfig", "FORMATS", "LOADERS", "detect_format", "open_dataset"] + [
+    cls.__name__ for cls in LOADERS.values()
+]

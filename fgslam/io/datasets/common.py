@@ -1,0 +1,487 @@
+"""Shared machinery of the dataset loaders: configuration, the lazy ``Dataset`` base class, helpers.
+
+A ``Dataset`` is a lazy sequence of :class:`~fgslam.io.frame.Frame`: opening it reads only the
+index files (lists of frames, timestamps, calibration, IMU table) and one image to check the
+calibration against the image size; image, depth and pose files are read when a frame is requested,
+and nothing per frame is cached, so memory does not grow while iterating.
+
+Corrupt frames: ``dataset[i]`` raises :class:`~fgslam.io.frame.FrameReadError` for a frame whose
+files cannot be read or have the wrong size; iterating a dataset skips such frames with a warning
+and records ``(index, reason)`` in ``dataset.skipped_frames`` (the next frame's IMU block then
+starts at the last frame actually yielded). More than ``DatasetConfig.max_skipped_fraction`` of the
+frames skipped raises :class:`~fgslam.errors.DataError`.
+
+Ground truth: ``dataset.groundtruth`` is a :class:`~fgslam.io.trajectory.Trajectory` of the output
+left camera (after rectification, ``T_WC = T_W_Craw @ T_Craw_Cout``) at the timestamps of the
+dataset's frames that have ground truth; time-stamped ground truth is interpolated (linear position,
+slerp rotation) between samples at most ``gt_max_gap`` apart and never extrapolated beyond
+``gt_snap_dt``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, NamedTuple, Optional
+
+import numpy as np
+
+from ...errors import ConfigError, DataError
+from ..calibration import Calibration, Undistorter
+from ..frame import Frame, FrameReadError, ImuSamples
+from ..trajectory import Trajectory
+
+logger = logging.getLogger(__name__)
+
+NS_PER_S = 1_000_000_000  # nanoseconds per second (EuRoC timestamps are integer nanoseconds)
+
+
+@dataclass
+class DatasetConfig:
+    """How a dataset is opened (all loaders). Loadable with ``fgslam.config.load_config``."""
+
+    start: int = 0  # first raw frame index used
+    end: Optional[int] = None  # one past the last raw frame index used (None: to the end)
+    stride: int = 1  # use every stride-th raw frame
+    rectify_stereo: bool = True  # rectify stereo pairs (else undistort each camera on its own)
+    undistort_alpha: float = 0.0  # 0: output has only valid pixels; 1: keeps all source pixels
+    resize_scale: float = 1.0  # scale factor of the output image (ignored when resize_width/height set)
+    resize_width: int = 0  # output width before cropping (0: from resize_height/aspect or scale)
+    resize_height: int = 0  # output height before cropping (0: from resize_width/aspect or scale)
+    crop_multiple: int = 8  # centre-crop output to multiples of this (network frontends need 8); <=1: off
+    load_rgb: bool = True  # also return the RGB image of colour sources
+    load_right: bool = True  # read the right image of stereo sources
+    load_depth: bool = True  # read depth of RGB-D sources
+    load_imu: bool = True  # attach IMU samples
+    calibration_file: Optional[str] = None  # calibration YAML overriding the source's (folder/video/TUM)
+    groundtruth_file: Optional[str] = None  # ground-truth file overriding the default location
+    tum_camera: Optional[str] = None  # fr1|fr2|fr3 for TUM RGB-D (None: from the folder name, else fr1)
+    sequence: Optional[str] = None  # 7-Scenes sequence folder (None: the first seq-NN)
+    association_max_dt: float = 0.02  # s, TUM rgb/depth association (the benchmark's associate.py)
+    stereo_max_dt: float = 0.001  # s, EuRoC cam0/cam1/depth0 timestamp matching
+    gt_max_gap: float = 0.1  # s, largest ground-truth sample gap a frame pose is interpolated across
+    gt_snap_dt: float = 0.001  # s, a frame this close outside the ground-truth time range snaps to its end
+    max_skipped_fraction: float = 0.1  # iteration fails when more corrupt frames than this fraction
+    default_rate_hz: float = 30.0  # frame rate of image folders without timestamps.txt or rate_hz
+
+    def validate(self) -> None:
+        if self.start < 0:
+            raise ConfigError(f"start must be >= 0, got {self.start}")
+        if self.end is not None and self.end <= self.start:
+            raise ConfigError(f"end ({self.end}) must be > start ({self.start})")
+        if self.stride < 1:
+            raise ConfigError(f"stride must be >= 1, got {self.stride}")
+        if self.resize_scale <= 0 or self.resize_width < 0 or self.resize_height < 0:
+            raise ConfigError("resize_scale must be > 0 and resize_width/height >= 0")
+        if not 0.0 <= self.undistort_alpha <= 1.0:
+            raise ConfigError(f"undistort_alpha must be in [0, 1], got {self.undistort_alpha}")
+        if self.tum_camera is not None and self.tum_camera not in ("fr1", "fr2", "fr3"):
+            raise ConfigError(f"tum_camera must be fr1, fr2 or fr3, got {self.tum_camera!r}")
+        for name in ("association_max_dt", "stereo_max_dt", "gt_max_gap", "gt_snap_dt", "default_rate_hz"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"{name} must be > 0")
+        if not 0.0 <= self.max_skipped_fraction < 1.0:
+            raise ConfigError("max_skipped_fraction must be in [0, 1)")
+
+    def output_size(self, width: int, height: int) -> tuple[int, int]:
+        """Output size before cropping for a raw ``width x height`` image."""
+        if self.resize_width and self.resize_height:
+            return self.resize_width, self.resize_height
+        if self.resize_width:
+            return self.resize_width, max(1, round(height * self.resize_width / width))
+        if self.resize_height:
+            return max(1, round(width * self.resize_height / height)), self.resize_height
+        return max(1, round(width * self.resize_scale)), max(1, round(height * self.resize_scale))
+
+
+class RawFrame(NamedTuple):
+    """What a loader reads for one raw frame, before any geometry is applied."""
+
+    image: np.ndarray  # uint8 grey (H, W) or BGR (H, W, 3) as OpenCV reads it
+    path: Optional[Path]
+    right: Optional[np.ndarray] = None  # grey uint8
+    depth: Optional[np.ndarray] = None  # float32 metres, any value (sanitised by the base class)
+
+
+# ---------------------------------------------------------------------------- helpers
+def ns_to_seconds(ns: np.ndarray) -> np.ndarray:
+    """Integer nanoseconds ``(N,)`` int64 -> float64 seconds without losing the sub-second part."""
+    ns = np.asarray(ns, dtype=np.int64)
+    return (ns // NS_PER_S).astype(np.float64) + (ns % NS_PER_S) / NS_PER_S
+
+
+def require_dir(path: Path, what: str) -> Path:
+    if not path.is_dir():
+        raise DataError(f"{path}: missing {what} folder")
+    return path
+
+
+def require_file(path: Path, what: str) -> Path:
+    if not path.is_file():
+        raise DataError(f"{path}: missing {what} file")
+    return path
+
+
+def read_text_lines(path: Path) -> list[tuple[int, str]]:
+    """Non-blank, non-``#`` lines of a text file as ``(1-based line number, stripped text)``."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path}: cannot read file: {exc}") from exc
+    out = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        line = line.strip()
+        if line and not line.startswith("#"):
+            out.append((lineno, line))
+    return out
+
+
+def read_number_table(path: Path, ncols: int, sep: Optional[str] = None, min_cols: bool = False) -> np.ndarray:
+    """Parse a table of numbers (``ncols`` per line, or at least that many with ``min_cols``)."""
+    rows = []
+    for lineno, line in read_text_lines(path):
+        tokens = line.split(sep) if sep else line.split()
+        if len(tokens) != ncols and not (min_cols and len(tokens) >= ncols):
+            raise DataError(f"{path}:{lineno}: expected {ncols} values, got {len(tokens)}")
+        try:
+            rows.append([float(t) for t in tokens[:ncols]])
+        except ValueError as exc:
+            raise DataError(f"{path}:{lineno}: not a number: {exc}") from exc
+    return np.asarray(rows, dtype=np.float64).reshape(-1, ncols)
+
+
+def read_image(path: Path, flags: Optional[int] = None) -> np.ndarray:
+    """``cv2.imread`` that raises FrameReadError (naming the file) instead of returning None."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED if flags is None else flags)
+    if img is None or img.size == 0:
+        reason = "missing file" if not path.exists() else "unreadable or corrupt image"
+        raise FrameReadError(f"{path}: {reason}")
+    return img
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """``(width, height)`` of an image file (reads it)."""
+    img = read_image(path)
+    return int(img.shape[1]), int(img.shape[0])
+
+
+def interpolate_poses(
+    times: np.ndarray, gt_times: np.ndarray, gt_T: np.ndarray, max_gap: float, snap_dt: float
+) -> np.ndarray:
+    """Poses ``(N, 4, 4)`` at ``times`` from time-stamped poses; NaN where not available.
+
+    Linear in position, slerp in rotation between the bracketing samples when they are at most
+    ``max_gap`` apart; times up to ``snap_dt`` outside ``[gt_times[0], gt_times[-1]]`` take the end
+    sample; anything else gets NaN (never extrapolated).
+    """
+    from scipy.spatial.transform import Rotation
+
+    times = np.asarray(times, dtype=np.float64)
+    out = np.full((times.shape[0], 4, 4), np.nan)
+    if gt_times.shape[0] == 0:
+        return out
+    t = times.copy()
+    lo_snap = (t < gt_times[0]) & (gt_times[0] - t <= snap_dt)
+    hi_snap = (t > gt_times[-1]) & (t - gt_times[-1] <= snap_dt)
+    t[lo_snap], t[hi_snap] = gt_times[0], gt_times[-1]
+    inside = (t >= gt_times[0]) & (t <= gt_times[-1])
+    if gt_times.shape[0] == 1:
+        out[inside] = gt_T[0]
+        return out
+    k = np.clip(np.searchsorted(gt_times, t, side="right") - 1, 0, gt_times.shape[0] - 2)
+    t0, t1 = gt_times[k], gt_times[k + 1]
+    exact0, exact1 = t == t0, t == t1
+    ok = inside & ((t1 - t0 <= max_gap) | exact0 | exact1)
+    alpha = np.where(exact1, 1.0, np.where(exact0, 0.0, (t - t0) / np.maximum(t1 - t0, 1e-300)))
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return out
+    a = alpha[idx]
+    T0, T1 = gt_T[k[idx]], gt_T[k[idx] + 1]
+    R0, R1 = T0[:, :3, :3], T1[:, :3, :3]
+    dR = Rotation.from_matrix(np.einsum("nji,njk->nik", R0, R1)).as_rotvec()
+    R = R0 @ Rotation.from_rotvec(dR * a[:, None]).as_matrix()
+    out[idx] = np.eye(4)
+    out[idx, :3, :3] = R
+    out[idx, :3, 3] = (1 - a)[:, None] * T0[:, :3, 3] + a[:, None] * T1[:, :3, 3]
+    return out
+
+
+def nearest_rotation(R: np.ndarray) -> np.ndarray:
+    """Closest rotation matrices (Frobenius norm, SVD) to ``(..., 3, 3)`` near-rotations."""
+    U, _, Vt = np.linalg.svd(R)
+    D = np.ones(R.shape[:-1])
+    D[..., -1] = np.sign(np.linalg.det(U @ Vt))
+    return (U * D[..., None, :]) @ Vt
+
+
+def to_grey_and_rgb(img: np.ndarray, want_rgb: bool, path: Optional[Path]) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """uint8 grey ``(H, W)`` and (optionally) RGB ``(H, W, 3)`` from an OpenCV image."""
+    import cv2
+
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise FrameReadError(f"{path}: unsupported image type {img.dtype}")
+    if img.ndim == 2:
+        return img, None
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise FrameReadError(f"{path}: unsupported image shape {img.shape}")
+    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    return grey, (cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if want_rgb else None)
+
+
+# ---------------------------------------------------------------------------- base class
+class Dataset:
+    """Lazy sequence of frames (``len``, ``[i]``, iteration); see the module docstring.
+
+    Subclasses set the attributes below, implement ``_read_raw`` (and ``_raw_groundtruth`` when the
+    source has ground truth), and call ``_setup()`` at the end of their ``__init__``.
+
+    Attributes:
+        root: the path opened.
+        format: loader name (``tum``, ``euroc``, ...).
+        name: sequence name (folder or file name).
+        config: the DatasetConfig used.
+        raw_calibration: calibration of the raw images.
+        calibration: calibration of the output images (undistorted, rectified, resized, cropped).
+        skipped_frames: ``[(index, reason), ...]`` of the frames skipped while iterating.
+        imu: all IMU samples of the source (None without IMU).
+    """
+
+    format: str = ""
+
+    def __init__(self, root: Path, config: Optional[DatasetConfig] = None) -> None:
+        config = DatasetConfig() if config is None else config
+        config.validate()
+        self.root = Path(root)
+        self.config = config
+        self.name = self.root.name
+        self.skipped_frames: list[tuple[int, str]] = []
+        self.raw_timestamps = np.zeros(0)
+        self.raw_calibration: Optional[Calibration] = None
+        self.calibration_source = str(self.root)
+        self.imu: Optional[ImuSamples] = None
+        self._has_stereo = False
+        self._has_depth = False
+        self._gt_cache: Optional[np.ndarray] = None
+
+    # ------------------------------------------------------------ subclass interface
+    def _read_raw(self, raw_index: int) -> RawFrame:
+        raise NotImplementedError
+
+    def _raw_groundtruth(self) -> Optional[np.ndarray]:
+        """``(N_raw, 4, 4)`` raw-left-camera camera-to-world poses per raw frame, NaN where absent."""
+        return None
+
+    def _setup(self) -> None:
+        """Select frames, build the undistortion maps, check the first image against the calibration."""
+        n_raw = self.raw_timestamps.shape[0]
+        if n_raw == 0:
+            raise DataError(f"{self.root}: empty sequence (no frames)")
+        cfg = self.config
+        self._indices = np.arange(n_raw)[cfg.start : cfg.end : cfg.stride]
+        if self._indices.size == 0:
+            raise DataError(f"{self.root}: empty selection: start={cfg.start}, end={cfg.end} of {n_raw} frames")
+        calib = self.raw_calibration.validate(self.calibration_source)
+        self._undistorter = Undistorter(
+            calib,
+            rectify=cfg.rectify_stereo,
+            alpha=cfg.undistort_alpha,
+            out_size=cfg.output_size(calib.width, calib.height),
+            crop_multiple=cfg.crop_multiple,
+        )
+        self.calibration = self._undistorter.calibration
+        try:
+            first = self._read_raw(int(self._indices[0]))
+        except FrameReadError as exc:
+            logger.warning("first frame of %s is unreadable (%s); image size not checked at open", self.root, exc)
+        else:
+            h, w = first.image.shape[:2]
+            if (w, h) != (calib.width, calib.height):
+                raise DataError(
+                    f"{self.calibration_source}: calibration is for {calib.width}x{calib.height} images but "
+                    f"{first.path or self.root} is {w}x{h}"
+                )
+        if self.imu is not None and len(self.imu) == 0:
+            self.imu = None
+
+    # ------------------------------------------------------------ properties
+    @property
+    def timestamps(self) -> np.ndarray:
+        """Timestamps (s) of the dataset's frames."""
+        return self.raw_timestamps[self._indices]
+
+    @property
+    def rate(self) -> float:
+        """Frame rate (Hz) of the dataset's frames (after stride): 1 / median interval (0 for one frame)."""
+        t = self.timestamps
+        if t.shape[0] < 2:
+            return 0.0
+        return float(1.0 / np.median(np.diff(t)))
+
+    @property
+    def has_stereo(self) -> bool:
+        return self._has_stereo and self.config.load_right
+
+    @property
+    def has_depth(self) -> bool:
+        return self._has_depth and self.config.load_depth
+
+    @property
+    def has_imu(self) -> bool:
+        return self.imu is not None and self.config.load_imu
+
+    @property
+    def imu_count(self) -> int:
+        return 0 if self.imu is None else len(self.imu)
+
+    def _gt_out(self) -> Optional[np.ndarray]:
+        if self._gt_cache is None:
+            raw = self._raw_groundtruth()
+            if raw is None:
+                return None
+            self._gt_cache = raw @ self._undistorter.T_C_Cout
+        return self._gt_cache
+
+    @property
+    def groundtruth(self) -> Optional[Trajectory]:
+        """Ground truth of the output left camera at the frames that have it (None: no ground truth)."""
+        gt = self._gt_out()
+        if gt is None:
+            return None
+        sel = gt[self._indices]
+        ok = np.all(np.isfinite(sel), axis=(1, 2))
+        if not np.any(ok):
+            return None
+        return Trajectory(self.timestamps[ok], sel[ok])
+
+    @property
+    def has_groundtruth(self) -> bool:
+        return self.groundtruth is not None
+
+    # ------------------------------------------------------------ sequence protocol
+    def __len__(self) -> int:
+        return int(self._indices.shape[0])
+
+    def __getitem__(self, index: int) -> Frame:
+        n = len(self)
+        if not isinstance(index, (int, np.integer)):
+            raise TypeError(f"dataset indices must be integers, got {type(index).__name__}")
+        if index < 0:
+            index += n
+        if not 0 <= index < n:
+            raise IndexError(f"frame index {index} out of range for {n} frames")
+        prev_t = None if index == 0 else float(self.raw_timestamps[self._indices[index - 1]])
+        return self._frame(int(index), prev_t)
+
+    def __iter__(self) -> Iterator[Frame]:
+        prev_t = None
+        n = len(self)
+        max_skipped = int(self.config.max_skipped_fraction * n)
+        recorded = {i for i, _ in self.skipped_frames}
+        skipped_now = 0
+        for i in range(n):
+            try:
+                frame = self._frame(i, prev_t)
+            except FrameReadError as exc:
+                skipped_now += 1
+                if i not in recorded:
+                    self.skipped_frames.append((i, str(exc)))
+                    recorded.add(i)
+                logger.warning("skipping frame %d: %s", i, exc)
+                if skipped_now > max_skipped:
+                    raise DataError(
+                        f"{self.root}: {skipped_now} of {n} frames unreadable, more than allowed "
+                        f"(max_skipped_fraction={self.config.max_skipped_fraction}); last: {exc}"
+                    ) from exc
+                continue
+            prev_t = frame.timestamp
+            yield frame
+
+    # ------------------------------------------------------------ frame assembly
+    def _frame(self, index: int, prev_t: Optional[float]) -> Frame:
+        cfg = self.config
+        raw_index = int(self._indices[index])
+        raw = self._read_raw(raw_index)
+        calib = self.raw_calibration
+        where = raw.path or f"{self.root} frame {raw_index}"
+        h, w = raw.image.shape[:2]
+        if (w, h) != (calib.width, calib.height):
+            raise FrameReadError(f"{where}: image is {w}x{h}, calibration expects {calib.width}x{calib.height}")
+        grey, rgb = to_grey_and_rgb(raw.image, cfg.load_rgb, raw.path)
+        und = self._undistorter
+        frame = Frame(
+            index=index,
+            source_index=raw_index,
+            timestamp=float(self.raw_timestamps[raw_index]),
+            image=und.left(grey),
+            calibration=self.calibration,
+            rgb=None if rgb is None else und.left(rgb),
+            path=raw.path,
+        )
+        if raw.right is not None and self.has_stereo:
+            rh, rw = raw.right.shape[:2]
+            if (rw, rh) != (calib.right.width, calib.right.height):
+                raise FrameReadError(f"{where}: right image is {rw}x{rh}, calibration expects {calib.right.width}x{calib.right.height}")
+            frame.image_right = und.right(to_grey_and_rgb(raw.right, False, raw.path)[0])
+        if raw.depth is not None and self.has_depth:
+            dh, dw = raw.depth.shape[:2]
+            if (dw, dh) != (calib.width, calib.height) or raw.depth.ndim != 2:
+                raise FrameReadError(f"{where}: depth map is {raw.depth.shape}, calibration expects {calib.height}x{calib.width}")
+            depth = np.asarray(raw.depth, dtype=np.float32)
+            depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0))
+            frame.depth = und.depth(depth)
+        if self.has_imu:
+            frame.imu = self._imu_between(prev_t, frame.timestamp)
+        gt = self._gt_out()
+        if gt is not None and np.all(np.isfinite(gt[raw_index])):
+            frame.T_WC_gt = gt[raw_index].copy()
+        return frame
+
+    def _imu_between(self, t_prev: Optional[float], t: float) -> ImuSamples:
+        imu = self.imu
+        hi = int(np.searchsorted(imu.timestamps, t, side="right"))
+        lo = hi if t_prev is None else int(np.searchsorted(imu.timestamps, t_prev, side="right"))
+        return ImuSamples(imu.timestamps[lo:hi].copy(), imu.gyro[lo:hi].copy(), imu.accel[lo:hi].copy())
+
+    def _imu_in_span(self) -> int:
+        """IMU samples with ``t_first < t <= t_last`` of the dataset's frames (what frames carry)."""
+        if not self.has_imu:
+            return 0
+        t = self.timestamps
+        return len(self._imu_between(float(t[0]), float(t[-1])))
+
+    def summary(self) -> dict:
+        """Plain-type description (what ``fgslam info`` prints)."""
+        calib = self.calibration
+        gt = self.groundtruth
+        out = {
+            "path": str(self.root),
+            "format": self.format,
+            "name": self.name,
+            "frames": len(self),
+            "resolution": [calib.width, calib.height],
+            "raw_resolution": [self.raw_calibration.width, self.raw_calibration.height],
+            "rate_hz": round(self.rate, 6),
+            "stereo": self.has_stereo,
+            "depth": self.has_depth,
+            "imu": self.has_imu,
+            "imu_samples": self.imu_count,
+            "imu_samples_in_span": self._imu_in_span(),
+            "groundtruth": gt is not None,
+            "groundtruth_poses": 0 if gt is None else len(gt),
+            "intrinsics": [round(float(v), 6) for v in calib.K],
+            "raw_distortion_model": self.raw_calibration.distortion_model,
+        }
+        if calib.right is not None:
+            out["baseline_m"] = round(calib.baseline, 6)
+        return out
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.root} frames={len(self)}>"

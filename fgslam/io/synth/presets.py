@@ -1,0 +1,412 @@
+"""Configuration of the synthetic generator and the three presets (scene + trajectory builders).
+
+Presets:
+
+- ``room-loop``: hand-held-like smooth loop (a few metres) inside a textured room with furniture
+  boxes; the body path and attitude are periodic with period ``loop_duration_s``, so the sequence
+  ends exactly where it started (default frame count = one period).
+- ``street-loop``: KITTI-like drive around a city block (facades, ground, parked cars, poles) at
+  ``camera_height`` with a forward-looking camera at 10 Hz; the road is a smooth Fourier fit of a
+  rounded rectangle traversed once per ``loop_duration_s`` (default 1,001 frames, ~600 m).
+- ``orbit``: camera circling a cluster of boxes in a hall, always looking at the cluster centre.
+
+Changing ``frames`` truncates or extends (periodically) the motion, it does not change its speed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ...errors import ConfigError
+from .imu import ImuConfig
+from .render import RenderConfig
+from .scene import Scene
+from .texture import TextureConfig
+from .trajectory import AnalyticTrajectory, Fourier1D, closed_curve_fourier, rounded_rectangle
+
+PRESET_NAMES = ("room-loop", "street-loop", "orbit")
+
+_ROAD_SAMPLES = 8192  # arc-length samples of the rounded rectangle fitted by the Fourier road
+_GROUND_LINE_SAMPLES = 2048  # samples of the road centre line for choosing ground tiles
+
+# street and orbit furniture (metres)
+_FAR_GROUND_MARGIN = 40.0      # coarse ground extends this far beyond the outermost buildings
+_SETBACK_JITTER = 2.0          # random extra setback of each building
+_CAR_SLOT = 8.0                # kerb length per possible parked car
+_CAR_SIZE = (4.2, 1.8, 1.5)    # parked car box (length, width, height)
+_CAR_YAW = 0.05                # rad, random misalignment of parked cars
+_POLE_SIZE = (0.25, 0.25, 5.0)
+_POLE_SETBACK = 1.5            # poles stand this much closer to the road than the facades
+_ORBIT_FLOOR_MARGIN = 2.5      # the dense floor decal extends this far beyond the orbit radius
+_DECAL_OFFSET = 0.002          # height of the dense floor decal above the coarse floor
+
+# texture styles: index into TextureConfig.style_mark_scale
+STYLE_WALL, STYLE_GROUND, STYLE_OBJECT = 0, 1, 2
+
+
+@dataclass
+class CameraConfig:
+    """Rectified stereo pair (same intrinsics) and its mounting on the body (IMU) frame."""
+
+    width: int = 640
+    height: int = 480
+    hfov_deg: float = 90.0              # horizontal field of view; fx = fy = (width / 2) / tan(hfov / 2)
+    rate_hz: float = 20.0
+    baseline: float = 0.11              # metres; cam1 sits at +baseline along the x axis of cam0
+    mount_rpy_deg: list[float] = field(default_factory=lambda: [0.8, -1.5, 1.2])  # small rotation
+    # (roll, pitch, yaw about the camera x, y, z axes) applied after the nominal forward-looking mount
+    t_BS: list[float] = field(default_factory=lambda: [0.06, -0.02, 0.03])  # cam0 origin in body (m)
+    colour: bool = False                # write RGB PNGs (per-surface tints) instead of grey
+    depth_scale: float = 1000.0         # depth PNG units per metre (0 = invalid, > 65535 -> 0)
+
+
+@dataclass
+class RoomConfig:
+    """room-loop scene and motion."""
+
+    size: list[float] = field(default_factory=lambda: [8.0, 6.0, 3.0])  # room x, y, z extents (m)
+    n_boxes: int = 10                   # furniture boxes
+    box_size_range: list[float] = field(default_factory=lambda: [0.3, 1.4])  # horizontal sizes
+    box_height_range: list[float] = field(default_factory=lambda: [0.3, 2.0])
+    path_radii: list[float] = field(default_factory=lambda: [1.3, 0.9])  # ellipse of the path (m)
+    path_clearance: float = 0.9         # minimum gap between the path ellipse and furniture (m)
+    height: float = 1.4                 # mean body height (m)
+    loop_duration_s: float = 20.0
+    jitter: float = 1.0                 # scale of the hand-held wobble (0: smooth ellipse + turn)
+    wall_density: float = 160.0         # texels per metre
+    box_density: float = 200.0
+
+
+@dataclass
+class StreetConfig:
+    """street-loop scene and motion."""
+
+    half_size: list[float] = field(default_factory=lambda: [100.0, 60.0])  # road centre-line box (m)
+    corner_radius: float = 20.0
+    harmonics: int = 40                 # Fourier harmonics of the road centre line
+    loop_duration_s: float = 100.0
+    jitter: float = 1.0                 # scale of the body bounce / sway
+    camera_height: float = 1.6          # body height above ground (m)
+    road_band: float = 11.0             # half-width of the high-resolution ground band (m)
+    ground_tile: float = 10.0           # size of the ground texture tiles (m)
+    ground_density: float = 24.0
+    far_ground_density: float = 2.0
+    setback: float = 9.0                # facade distance from the road centre line (m)
+    building_width_range: list[float] = field(default_factory=lambda: [10.0, 24.0])
+    building_depth_range: list[float] = field(default_factory=lambda: [8.0, 14.0])
+    building_height_range: list[float] = field(default_factory=lambda: [6.0, 24.0])
+    building_gap_range: list[float] = field(default_factory=lambda: [0.0, 5.0])
+    facade_density: float = 28.0
+    side_density: float = 12.0          # building faces perpendicular to the road
+    back_density: float = 2.0           # faces that never face the road
+    parked_car_prob: float = 0.35       # probability of a parked car per 8 m of kerb
+    kerb_offset: float = 4.8            # parked car centre distance from the centre line (m)
+    pole_spacing: float = 25.0          # mean distance between poles (m)
+    object_density: float = 48.0
+
+
+@dataclass
+class OrbitConfig:
+    """orbit scene and motion."""
+
+    hall_size: list[float] = field(default_factory=lambda: [16.0, 16.0, 6.0])
+    n_boxes: int = 8
+    cluster_radius: float = 1.0         # box centres within this radius of the origin (m)
+    box_size_range: list[float] = field(default_factory=lambda: [0.3, 0.9])  # box sides (m)
+    radius: float = 3.5                 # orbit radius (m)
+    height: float = 1.5                 # mean camera height (m)
+    target_height: float = 0.5          # height of the looked-at point (m)
+    loop_duration_s: float = 15.0
+    jitter: float = 1.0                 # scale of the height / pitch oscillation
+    wall_density: float = 40.0
+    floor_density: float = 100.0
+    box_density: float = 200.0
+
+
+@dataclass
+class SynthConfig:
+    """Everything the generator needs; ``default_config(preset)`` gives the preset's defaults."""
+
+    preset: str = "room-loop"
+    frames: int = 401                   # camera frames (default: one loop period + 1)
+    seed: int = 0
+    start_time_ns: int = 1_600_000_000_000_000_000  # timestamp of frame 0
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    imu: ImuConfig = field(default_factory=ImuConfig)
+    texture: TextureConfig = field(default_factory=TextureConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    room: RoomConfig = field(default_factory=RoomConfig)
+    street: StreetConfig = field(default_factory=StreetConfig)
+    orbit: OrbitConfig = field(default_factory=OrbitConfig)
+
+    def validate(self) -> None:
+        if self.preset not in PRESET_NAMES:
+            raise ConfigError(f"preset: unknown preset '{self.preset}' (valid: {', '.join(PRESET_NAMES)})")
+        if self.frames < 1:
+            raise ConfigError(f"frames: must be >= 1 (got {self.frames})")
+        if self.camera.width < 8 or self.camera.height < 8:
+            raise ConfigError(f"camera: image size {self.camera.width}x{self.camera.height} is too small")
+        if 1e9 / self.camera.rate_hz != round(1e9 / self.camera.rate_hz) or \
+                1e9 / self.imu.rate_hz != round(1e9 / self.imu.rate_hz):
+            raise ConfigError("camera.rate_hz / imu.rate_hz: periods must be whole nanoseconds")
+        if not 0 < self.camera.hfov_deg < 170:
+            raise ConfigError(f"camera.hfov_deg: must be in (0, 170) (got {self.camera.hfov_deg})")
+
+    def loop_duration_s(self) -> float:
+        return {"room-loop": self.room.loop_duration_s, "street-loop": self.street.loop_duration_s,
+                "orbit": self.orbit.loop_duration_s}[self.preset]
+
+
+def default_config(preset: str) -> SynthConfig:
+    """Preset defaults: frame count = one loop + 1, resolution, field of view, rate, baseline."""
+    if preset not in PRESET_NAMES:
+        raise ConfigError(f"unknown preset '{preset}' (valid: {', '.join(PRESET_NAMES)})")
+    cfg = SynthConfig(preset=preset)
+    if preset == "street-loop":
+        cfg.camera = CameraConfig(width=640, height=200, hfov_deg=82.0, rate_hz=10.0, baseline=0.54)
+    elif preset == "orbit":
+        cfg.camera = CameraConfig(hfov_deg=70.0)
+    cfg.frames = int(round(cfg.loop_duration_s() * cfg.camera.rate_hz)) + 1
+    return cfg
+
+
+# ----------------------------------------------------------------------------------- scenes
+
+def _room_box(scene: Scene, size, density: float, style: int, center=(0.0, 0.0)) -> None:
+    """Inward-facing room (walls, floor, ceiling) of ``size = (x, y, z)``, floor at z = 0."""
+    sx, sy, sz = size
+    x0, x1 = center[0] - sx / 2, center[0] + sx / 2
+    y0, y1 = center[1] - sy / 2, center[1] + sy / 2
+    ez = (0.0, 0.0, 1.0)
+    scene.add_quad((x1, y0, 0), (-1, 0, 0), ez, sx, sz, density=density, style=style)  # y0, faces +y
+    scene.add_quad((x0, y1, 0), (1, 0, 0), ez, sx, sz, density=density, style=style)   # y1, faces -y
+    scene.add_quad((x1, y1, 0), (0, -1, 0), ez, sy, sz, density=density, style=style)  # x1, faces -x
+    scene.add_quad((x0, y0, 0), (0, 1, 0), ez, sy, sz, density=density, style=style)   # x0, faces +x
+    scene.add_quad((x0, y0, 0), (1, 0, 0), (0, 1, 0), sx, sy, density=density, style=STYLE_GROUND)
+    scene.add_quad((x0, y1, sz), (1, 0, 0), (0, -1, 0), sx, sy, density=density, style=style)
+
+
+def _build_room(cfg: RoomConfig, rng: np.random.Generator) -> Scene:
+    scene = Scene()
+    _room_box(scene, cfg.size, cfg.wall_density, STYLE_WALL)
+    sx, sy, _ = cfg.size
+    rx, ry = cfg.path_radii
+    placed = 0
+    for _ in range(1000 * max(cfg.n_boxes, 1)):
+        if placed == cfg.n_boxes:
+            break
+        w, d = rng.uniform(*cfg.box_size_range, size=2)
+        h = rng.uniform(*cfg.box_height_range)
+        r_box = 0.5 * np.hypot(w, d)
+        x = rng.uniform(-sx / 2 + r_box, sx / 2 - r_box)
+        y = rng.uniform(-sy / 2 + r_box, sy / 2 - r_box)
+        m = cfg.path_clearance + r_box
+        if (x / (rx + m)) ** 2 + (y / (ry + m)) ** 2 < 1.0:
+            continue
+        scene.add_box((x, y, h / 2), (w, d, h), rng.uniform(0, np.pi), density=cfg.box_density,
+                      style=STYLE_OBJECT, faces=("+x", "-x", "+y", "-y", "+z"))
+        placed += 1
+    return scene
+
+
+def _build_street(cfg: StreetConfig, rng: np.random.Generator) -> Scene:
+    scene = Scene()
+    hx, hy = cfg.half_size
+    r = cfg.corner_radius
+    margin = cfg.setback + max(cfg.building_depth_range) + _FAR_GROUND_MARGIN
+    scene.add_quad((-hx - margin, -hy - margin, -0.05), (1, 0, 0), (0, 1, 0), 2 * (hx + margin),
+                   2 * (hy + margin), density=cfg.far_ground_density, style=STYLE_GROUND)
+    # high-resolution ground tiles where the distance to the road centre line < road_band
+    tile = cfg.ground_tile
+    xs = np.arange(-hx - cfg.road_band - tile, hx + cfg.road_band + tile, tile)
+    ys = np.arange(-hy - cfg.road_band - tile, hy + cfg.road_band + tile, tile)
+    line = rounded_rectangle(hx, hy, r, _GROUND_LINE_SAMPLES)
+    for x0 in xs:
+        for y0 in ys:
+            c = np.array([x0 + tile / 2, y0 + tile / 2])
+            if np.min(np.linalg.norm(line - c, axis=1)) < cfg.road_band + tile / 2:
+                scene.add_quad((x0, y0, 0.0), (1, 0, 0), (0, 1, 0), tile, tile,
+                               density=cfg.ground_density, style=STYLE_GROUND)
+    sides = [((0.0, -hy), (1.0, 0.0), 2 * (hx - r)), ((hx, 0.0), (0.0, 1.0), 2 * (hy - r)),
+             ((0.0, hy), (-1.0, 0.0), 2 * (hx - r)), ((-hx, 0.0), (0.0, -1.0), 2 * (hy - r))]
+    for c, tdir, length in sides:
+        c, tdir = np.array(c), np.array(tdir)
+        left = np.array([-tdir[1], tdir[0]])  # towards the block centre
+        yaw = float(np.arctan2(tdir[1], tdir[0]))
+        for sign, front in ((1.0, "-y"), (-1.0, "+y")):
+            s = -length / 2 + rng.uniform(*cfg.building_gap_range)
+            while True:
+                w = rng.uniform(*cfg.building_width_range)
+                if s + w > length / 2:
+                    break
+                d = rng.uniform(*cfg.building_depth_range)
+                h = rng.uniform(*cfg.building_height_range)
+                off = cfg.setback + rng.uniform(0.0, _SETBACK_JITTER) + d / 2
+                center = c + tdir * (s + w / 2) + sign * left * off
+                back = "+y" if front == "-y" else "-y"
+                scene.add_box((center[0], center[1], h / 2), (w, d, h), yaw, density=cfg.facade_density,
+                              style=STYLE_WALL, faces=("+x", "-x", "+y", "-y"),
+                              face_density={back: cfg.back_density, "+x": cfg.side_density,
+                                          "-x": cfg.side_density})
+                s += w + rng.uniform(*cfg.building_gap_range)
+            # parked cars along the kerb and poles on the pavement
+            for s_car in np.arange(-length / 2 + _CAR_SLOT / 2, length / 2 - _CAR_SLOT / 2, _CAR_SLOT):
+                if rng.random() < cfg.parked_car_prob:
+                    center = c + tdir * (s_car + rng.uniform(-1, 1)) + sign * left * cfg.kerb_offset
+                    scene.add_box((center[0], center[1], _CAR_SIZE[2] / 2), _CAR_SIZE,
+                                  yaw + rng.uniform(-_CAR_YAW, _CAR_YAW), density=cfg.object_density,
+                                  style=STYLE_OBJECT, faces=("+x", "-x", "+y", "-y", "+z"))
+            s = -length / 2 + rng.uniform(0, cfg.pole_spacing)
+            while s < length / 2:
+                center = c + tdir * s + sign * left * (cfg.setback - _POLE_SETBACK)
+                scene.add_box((center[0], center[1], _POLE_SIZE[2] / 2), _POLE_SIZE, yaw,
+                              density=cfg.object_density, style=STYLE_OBJECT,
+                              faces=("+x", "-x", "+y", "-y"))
+                s += rng.uniform(0.5, 1.5) * cfg.pole_spacing
+    # one building facing each outer corner (its front face at the setback from the curved road)
+    for sx_, sy_ in ((1, -1), (1, 1), (-1, 1), (-1, -1)):
+        centre = np.array([sx_ * (hx - r), sy_ * (hy - r)])
+        phi = float(np.arctan2(sy_, sx_))
+        d = rng.uniform(*cfg.building_depth_range)
+        h = rng.uniform(*cfg.building_height_range)
+        pos = centre + (r + cfg.setback + d / 2) * np.array([np.cos(phi), np.sin(phi)])
+        scene.add_box((pos[0], pos[1], h / 2), (max(cfg.building_width_range), d, h), phi + 0.5 * np.pi,
+                      density=cfg.facade_density, style=STYLE_WALL, faces=("+x", "-x", "+y", "-y"),
+                      face_density={"-y": cfg.back_density, "+x": cfg.side_density,
+                                    "-x": cfg.side_density})
+    return scene
+
+
+def _build_orbit(cfg: OrbitConfig, rng: np.random.Generator) -> Scene:
+    scene = Scene()
+    _room_box(scene, cfg.hall_size, cfg.wall_density, STYLE_WALL)
+    # replace the floor density: a dense floor quad just above the coarse one near the cluster
+    half = cfg.radius + _ORBIT_FLOOR_MARGIN
+    scene.add_quad((-half, -half, _DECAL_OFFSET), (1, 0, 0), (0, 1, 0), 2 * half, 2 * half,
+                   density=cfg.floor_density, style=STYLE_GROUND)
+    stacks: list[tuple[float, float, float, float]] = []  # x, y, footprint radius, top height
+    for _ in range(cfg.n_boxes):
+        w, d = rng.uniform(*cfg.box_size_range, size=2)
+        h = rng.uniform(*cfg.box_size_range)
+        rad = rng.uniform(0, cfg.cluster_radius)
+        ang = rng.uniform(0, 2 * np.pi)
+        x, y = rad * np.cos(ang), rad * np.sin(ang)
+        base = 0.0
+        for (px, py, pr, top) in stacks:  # stack on a box whose footprint contains the centre
+            if np.hypot(x - px, y - py) < 0.5 * pr:
+                base = max(base, top)
+        scene.add_box((x, y, base + h / 2), (w, d, h), rng.uniform(0, np.pi), density=cfg.box_density,
+                      style=STYLE_OBJECT, faces=("+x", "-x", "+y", "-y", "+z"))
+        stacks.append((x, y, 0.5 * min(w, d), base + h))
+    return scene
+
+
+def build_scene(cfg: SynthConfig, rng: np.random.Generator) -> Scene:
+    """Scene of the preset ``cfg.preset`` (random layout drawn from ``rng``)."""
+    builders = {"room-loop": lambda: _build_room(cfg.room, rng),
+                "street-loop": lambda: _build_street(cfg.street, rng),
+                "orbit": lambda: _build_orbit(cfg.orbit, rng)}
+    return builders[cfg.preset]()
+
+
+# ------------------------------------------------------------------------------ trajectories
+
+# Wobble of the motions, as {harmonic k of the loop frequency: amplitude} (m or rad), scaled by the
+# preset's ``jitter``: hand-held sway for the room, body bounce / sway for the car, height and
+# pitch oscillation for the orbit. These shape the motion only; any values give exact derivatives.
+_ROOM_WOBBLE = {
+    "x_cos": {3: 0.05}, "x_sin": {2: 0.12, 5: 0.02},
+    "y_cos": {2: 0.08, 4: 0.03}, "y_sin": {3: 0.06},
+    "z_sin": {3: 0.12, 6: 0.02},
+    "yaw_cos": {3: 0.1}, "yaw_sin": {2: 0.3, 5: 0.06},
+    "pitch_sin": {2: 0.12, 7: 0.03},
+    "roll_cos": {6: 0.02}, "roll_sin": {3: 0.06},
+}
+_ROOM_YAW_OFFSET = 0.5 * np.pi + 0.6  # rad: view direction relative to the radial direction at t=0
+_ROOM_MEAN_PITCH = 0.1                # rad, slightly looking down (positive pitch = nose down)
+_STREET_WOBBLE = {"z_sin": {37: 0.01, 54: 0.006}, "pitch_sin": {18: 0.006, 44: 0.004},
+                  "roll_cos": {7: 0.004, 33: 0.006}}
+_ORBIT_WOBBLE = {"xy_radial": {3: 0.1}, "z_sin": {2: 0.3}, "yaw_sin": {3: 0.05}, "pitch_sin": {2: 0.06}}
+
+
+def _coeffs(terms: dict[int, float], scale: float = 1.0, base: dict[int, float] | None = None
+            ) -> tuple[float, ...]:
+    """Coefficient tuple (harmonics 1..K) from {k: amplitude} (times ``scale``) plus ``base``."""
+    merged = {k: scale * a for k, a in terms.items()}
+    for k, a in (base or {}).items():
+        merged[k] = merged.get(k, 0.0) + a
+    out = [0.0] * max(merged, default=0)
+    for k, a in merged.items():
+        out[k - 1] = a
+    return tuple(out)
+
+
+def build_trajectory(cfg: SynthConfig) -> AnalyticTrajectory:
+    """Body trajectory of the preset (deterministic; period = the preset's loop duration)."""
+    T = cfg.loop_duration_s()
+    turn = 2 * np.pi / T  # one full turn of yaw per loop
+    if cfg.preset == "room-loop":
+        rc, w = cfg.room, _ROOM_WOBBLE
+        j = rc.jitter
+        rx, ry = rc.path_radii
+        return AnalyticTrajectory(
+            x=Fourier1D(T, cos_coeffs=_coeffs(w["x_cos"], j, {1: rx}), sin_coeffs=_coeffs(w["x_sin"], j)),
+            y=Fourier1D(T, cos_coeffs=_coeffs(w["y_cos"], j), sin_coeffs=_coeffs(w["y_sin"], j, {1: ry})),
+            z=Fourier1D(T, c0=rc.height, sin_coeffs=_coeffs(w["z_sin"], j)),
+            yaw=Fourier1D(T, c0=_ROOM_YAW_OFFSET, rate=turn, cos_coeffs=_coeffs(w["yaw_cos"], j),
+                          sin_coeffs=_coeffs(w["yaw_sin"], j)),
+            pitch=Fourier1D(T, c0=_ROOM_MEAN_PITCH, sin_coeffs=_coeffs(w["pitch_sin"], j)),
+            roll=Fourier1D(T, cos_coeffs=_coeffs(w["roll_cos"], j), sin_coeffs=_coeffs(w["roll_sin"], j)),
+        )
+    if cfg.preset == "street-loop":
+        sc, w = cfg.street, _STREET_WOBBLE
+        j = sc.jitter
+        pts = rounded_rectangle(sc.half_size[0], sc.half_size[1], sc.corner_radius, _ROAD_SAMPLES)
+        fx, fy = closed_curve_fourier(pts, sc.harmonics, T)
+        return AnalyticTrajectory(
+            x=fx, y=fy,
+            z=Fourier1D(T, c0=sc.camera_height - cfg.camera.t_BS[2], sin_coeffs=_coeffs(w["z_sin"], j)),
+            yaw=None, pitch=Fourier1D(T, sin_coeffs=_coeffs(w["pitch_sin"], j)),
+            roll=Fourier1D(T, cos_coeffs=_coeffs(w["roll_cos"], j)),
+        )
+    oc, w = cfg.orbit, _ORBIT_WOBBLE
+    j = oc.jitter
+    pitch = float(np.arctan2(oc.height - oc.target_height, oc.radius))
+    return AnalyticTrajectory(
+        x=Fourier1D(T, cos_coeffs=_coeffs(w["xy_radial"], j, {1: oc.radius})),
+        y=Fourier1D(T, sin_coeffs=_coeffs(w["xy_radial"], j, {1: oc.radius})),
+        z=Fourier1D(T, c0=oc.height, sin_coeffs=_coeffs(w["z_sin"], j)),
+        yaw=Fourier1D(T, c0=np.pi, rate=turn, sin_coeffs=_coeffs(w["yaw_sin"], j)),
+        pitch=Fourier1D(T, c0=pitch, sin_coeffs=_coeffs(w["pitch_sin"], j)),
+        roll=Fourier1D(T),
+    )
+
+
+def load_synth_config(preset: str | None = None, path=None, overrides=()) -> SynthConfig:
+    """Preset defaults, then the YAML file ``path`` (keys as in :class:`SynthConfig`; its ``preset``
+    is used when ``preset`` is None), then ``section.key=value`` overrides."""
+    from ...config import from_dict, merge_overrides, read_yaml, to_dict
+
+    file_data = read_yaml(path) if path is not None else {}
+    name = preset or file_data.get("preset") or SynthConfig.preset
+    if not isinstance(name, str):
+        raise ConfigError(f"{path}: key 'preset': expected a string (got {name!r})")
+    data = _deep_merge(to_dict(default_config(name)), file_data)
+    data["preset"] = name
+    source = str(path) if path is not None else f"<preset {name}>"
+    if overrides:
+        data = merge_overrides(data, overrides)
+        source = f"{source} with overrides {list(overrides)}"
+    return from_dict(SynthConfig, data, source)
+
+
+def _deep_merge(base: dict, update: dict) -> dict:
+    out = dict(base)
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out

@@ -1,0 +1,181 @@
+"""Smooth analytic body trajectories with exact velocities, accelerations and angular rates.
+
+The body frame B (the IMU frame) has x forward, y left, z up at zero attitude; the world frame W has
+z up. A trajectory is given by truncated Fourier series in time (period = sequence duration, so a
+trajectory whose series has no linear term ends exactly where it starts)::
+
+    f(t) = c0 + rate * t + sum_k a_k cos(k w t) + b_k sin(k w t),   w = 2 pi / period
+
+for the body position ``p_WB = (x, y, z)`` and the ZYX Euler angles ``R_WB = Rz(yaw) Ry(pitch)
+Rx(roll)`` (positive pitch = nose down). The yaw can instead follow the horizontal direction of
+travel (``yaw = atan2(vy, vx)``, car-like). Angular rates use the exact ZYX kinematics
+``w_B = [roll' - yaw' sin(pitch), pitch' cos(roll) + yaw' cos(pitch) sin(roll),
+-pitch' sin(roll) + yaw' cos(pitch) cos(roll)]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Fourier1D:
+    """Scalar truncated Fourier series plus a linear term; ``cos_coeffs[k-1]``/``sin_coeffs[k-1]``
+    multiply harmonic k."""
+
+    period: float
+    c0: float = 0.0
+    rate: float = 0.0
+    cos_coeffs: tuple[float, ...] = ()
+    sin_coeffs: tuple[float, ...] = ()
+
+    def evaluate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Value, first and second time derivative at times ``t`` (float64 arrays, shape of t)."""
+        t = np.asarray(t, np.float64)
+        w = 2.0 * np.pi / self.period
+        f = self.c0 + self.rate * t
+        df = np.full_like(t, self.rate)
+        ddf = np.zeros_like(t)
+        n = max(len(self.cos_coeffs), len(self.sin_coeffs))
+        ca = np.zeros(n)
+        sb = np.zeros(n)
+        ca[:len(self.cos_coeffs)] = self.cos_coeffs
+        sb[:len(self.sin_coeffs)] = self.sin_coeffs
+        for k in range(1, n + 1):
+            a, b = ca[k - 1], sb[k - 1]
+            if a == 0.0 and b == 0.0:
+                continue
+            kw = k * w
+            c, s = np.cos(kw * t), np.sin(kw * t)
+            f = f + a * c + b * s
+            df = df + kw * (-a * s + b * c)
+            ddf = ddf - kw * kw * (a * c + b * s)
+        return f, df, ddf
+
+
+@dataclass(frozen=True)
+class BodyState:
+    """Body states at N times: ``p_WB``, ``v_WB``, ``a_WB`` (N, 3) world frame, ``R_WB`` (N, 3, 3),
+    ``w_B`` (N, 3) angular velocity in the body frame (rad/s)."""
+
+    t: np.ndarray
+    p_WB: np.ndarray
+    v_WB: np.ndarray
+    a_WB: np.ndarray
+    R_WB: np.ndarray
+    w_B: np.ndarray
+
+    def T_WB(self) -> np.ndarray:
+        """(N, 4, 4) body-to-world poses."""
+        T = np.tile(np.eye(4), (len(self.t), 1, 1))
+        T[:, :3, :3] = self.R_WB
+        T[:, :3, 3] = self.p_WB
+        return T
+
+
+def euler_zyx_to_R(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cr, sr = np.cos(roll), np.sin(roll)
+    R = np.empty(np.shape(yaw) + (3, 3))
+    R[..., 0, 0] = cy * cp
+    R[..., 0, 1] = cy * sp * sr - sy * cr
+    R[..., 0, 2] = cy * sp * cr + sy * sr
+    R[..., 1, 0] = sy * cp
+    R[..., 1, 1] = sy * sp * sr + cy * cr
+    R[..., 1, 2] = sy * sp * cr - cy * sr
+    R[..., 2, 0] = -sp
+    R[..., 2, 1] = cp * sr
+    R[..., 2, 2] = cp * cr
+    return R
+
+
+@dataclass(frozen=True)
+class AnalyticTrajectory:
+    """Body trajectory from Fourier series; ``yaw=None`` means yaw follows the direction of travel."""
+
+    x: Fourier1D
+    y: Fourier1D
+    z: Fourier1D
+    yaw: Fourier1D | None
+    pitch: Fourier1D
+    roll: Fourier1D
+
+    def sample(self, t: np.ndarray) -> BodyState:
+        t = np.asarray(t, np.float64)
+        px, vx, ax = self.x.evaluate(t)
+        py, vy, ay = self.y.evaluate(t)
+        pz, vz, az = self.z.evaluate(t)
+        if self.yaw is None:
+            yaw = np.arctan2(vy, vx)
+            dyaw = (vx * ay - vy * ax) / (vx * vx + vy * vy)
+        else:
+            yaw, dyaw, _ = self.yaw.evaluate(t)
+        pitch, dpitch, _ = self.pitch.evaluate(t)
+        roll, droll, _ = self.roll.evaluate(t)
+        w_B = np.stack([
+            droll - dyaw * np.sin(pitch),
+            dpitch * np.cos(roll) + dyaw * np.cos(pitch) * np.sin(roll),
+            -dpitch * np.sin(roll) + dyaw * np.cos(pitch) * np.cos(roll),
+        ], axis=-1)
+        return BodyState(t=t, p_WB=np.stack([px, py, pz], -1), v_WB=np.stack([vx, vy, vz], -1),
+                         a_WB=np.stack([ax, ay, az], -1), R_WB=euler_zyx_to_R(yaw, pitch, roll),
+                         w_B=w_B)
+
+
+def closed_curve_fourier(points_xy: np.ndarray, n_harmonics: int, period: float
+                         ) -> tuple[Fourier1D, Fourier1D]:
+    """Fourier series (x(t), y(t)) of period ``period`` through a closed planar polyline sampled
+    uniformly in arc length (``points_xy`` (M, 2), first point not repeated), truncated to
+    ``n_harmonics``; t = 0 maps to the first point (up to the truncation)."""
+    m = len(points_xy)
+    out = []
+    for dim in range(2):
+        F = np.fft.rfft(points_xy[:, dim])
+        k = np.arange(1, n_harmonics + 1)
+        out.append(Fourier1D(period=period, c0=float(F[0].real / m),
+                             cos_coeffs=tuple(2.0 * F[k].real / m),
+                             sin_coeffs=tuple(-2.0 * F[k].imag / m)))
+    return out[0], out[1]
+
+
+def rounded_rectangle(half_x: float, half_y: float, radius: float, n_points: int) -> np.ndarray:
+    """(n_points, 2) points uniformly in arc length around a rounded rectangle centred at the origin,
+    counter-clockwise, starting at (0, -half_y) heading +x."""
+    lx, ly = 2 * (half_x - radius), 2 * (half_y - radius)
+    arc = 0.5 * np.pi * radius
+    # segments: bottom (from the middle), corner, right, corner, top, corner, left, corner, bottom
+    lengths = np.array([lx / 2, arc, ly, arc, lx, arc, ly, arc, lx / 2])
+    ends = np.cumsum(lengths)
+    s = np.arange(n_points) * (ends[-1] / n_points)
+    pts = np.empty((n_points, 2))
+    corners = [(half_x - radius, -half_y + radius, -0.5 * np.pi),
+               (half_x - radius, half_y - radius, 0.0),
+               (-half_x + radius, half_y - radius, 0.5 * np.pi),
+               (-half_x + radius, -half_y + radius, np.pi)]
+    starts = np.concatenate([[0.0], ends[:-1]])
+    seg = np.searchsorted(ends, s, side="right").clip(0, 8)
+    d = s - starts[seg]
+    for i in range(9):
+        m = seg == i
+        di = d[m]
+        if i == 0:
+            pts[m] = np.stack([di, np.full_like(di, -half_y)], -1)
+        elif i == 8:
+            pts[m] = np.stack([-half_x + radius + di, np.full_like(di, -half_y)], -1)
+        elif i % 2 == 1:
+            cx, cy, a0 = corners[i // 2]
+            ang = a0 + di / radius
+            pts[m] = np.stack([cx + radius * np.cos(ang), cy + radius * np.sin(ang)], -1)
+        else:
+            side = i // 2 - 1  # 0 right (+y), 1 top (-x), 2 left (-y)
+            if side == 0:
+                pts[m] = np.stack([np.full_like(di, half_x), -half_y + radius + di], -1)
+            elif side == 1:
+                pts[m] = np.stack([half_x - radius - di, np.full_like(di, half_y)], -1)
+            else:
+                pts[m] = np.stack([np.full_like(di, -half_x), half_y - radius - di], -1)
+    return pts

@@ -1,0 +1,133 @@
+"""Typed configuration: YAML loading, overrides and error messages."""
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional
+
+import pytest
+
+from fgslam.config import from_dict, load_config, merge_overrides, to_dict
+from fgslam.errors import ConfigError
+
+
+@dataclass
+class SolverSection:
+    kind: Literal["lm", "isam2"] = "lm"
+    iterations: int = 10  # test value
+    tolerance: float = 1e-6  # test value
+    robust_delta: Optional[float] = None
+
+
+@dataclass
+class RootConfig:
+    name: str = "default"
+    solver: SolverSection = field(default_factory=SolverSection)
+    sizes: tuple[int, int] = (640, 480)
+    weights: list[float] = field(default_factory=lambda: [1.0, 2.0])
+    output: Path = Path("out")
+    verbose: bool = False
+
+    def validate(self) -> None:
+        if self.solver.iterations <= 0:
+            raise ValueError("solver.iterations must be positive")
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "cfg.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_defaults_without_file():
+    cfg = load_config(RootConfig)
+    assert cfg == RootConfig()
+
+
+def test_yaml_sets_nested_values_and_keeps_defaults(tmp_path):
+    path = write(tmp_path, "name: run1\nsolver:\n  kind: isam2\n  tolerance: 1.0e-3\nsizes: [320, 240]\n")
+    cfg = load_config(RootConfig, path)
+    assert cfg.name == "run1"
+    assert cfg.solver.kind == "isam2"
+    assert cfg.solver.tolerance == pytest.approx(1e-3)
+    assert cfg.solver.iterations == 10
+    assert cfg.sizes == (320, 240)
+    assert isinstance(cfg.output, Path)
+
+
+def test_int_is_accepted_for_float_but_not_string_for_float(tmp_path):
+    cfg = load_config(RootConfig, write(tmp_path, "solver:\n  tolerance: 1\n"))
+    assert isinstance(cfg.solver.tolerance, float)
+    with pytest.raises(ConfigError, match=r"cfg.yaml.*'solver.tolerance'.*number"):
+        load_config(RootConfig, write(tmp_path, "solver:\n  tolerance: small\n"))
+
+
+def test_overrides_parse_yaml_values(tmp_path):
+    path = write(tmp_path, "solver:\n  kind: isam2\n")
+    cfg = load_config(RootConfig, path, ["solver.iterations=3", "verbose=true", "weights=[0.5, 1.5]"])
+    assert cfg.solver.kind == "isam2"
+    assert cfg.solver.iterations == 3
+    assert cfg.verbose is True
+    assert cfg.weights == [0.5, 1.5]
+    assert load_config(RootConfig, None, ["solver.robust_delta=2.5"]).solver.robust_delta == 2.5
+
+
+def test_unknown_key_in_file_names_key_and_file(tmp_path):
+    path = write(tmp_path, "solver:\n  iteratons: 3\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(RootConfig, path)
+    assert "solver.iteratons" in str(info.value)
+    assert str(path) in str(info.value)
+
+
+def test_unknown_key_in_override_names_override():
+    with pytest.raises(ConfigError, match="solver.nope"):
+        load_config(RootConfig, None, ["solver.nope=1"])
+
+
+def test_invalid_literal_bool_and_tuple_length(tmp_path):
+    with pytest.raises(ConfigError, match=r"solver.kind.*one of"):
+        load_config(RootConfig, None, ["solver.kind=gauss"])
+    with pytest.raises(ConfigError, match=r"'verbose'.*true or false"):
+        load_config(RootConfig, None, ["verbose=1"])
+    with pytest.raises(ConfigError, match=r"'sizes'.*2 items"):
+        load_config(RootConfig, write(tmp_path, "sizes: [1, 2, 3]\n"))
+
+
+def test_validate_hook_errors_are_config_errors():
+    with pytest.raises(ConfigError, match="iterations must be positive"):
+        load_config(RootConfig, None, ["solver.iterations=0"])
+
+
+def test_bad_yaml_names_file_and_line(tmp_path):
+    path = write(tmp_path, "name: a\nsolver: [unclosed\n")
+    with pytest.raises(ConfigError, match=r"cfg.yaml:\d+: invalid YAML"):
+        load_config(RootConfig, path)
+
+
+def test_missing_file_and_non_mapping(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(RootConfig, tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(RootConfig, write(tmp_path, "- 1\n- 2\n"))
+
+
+def test_malformed_override():
+    with pytest.raises(ConfigError, match="section.key=value"):
+        load_config(RootConfig, None, ["solver.iterations"])
+    with pytest.raises(ConfigError, match="is a value"):
+        merge_overrides({"name": "x"}, ["name.sub=1"])
+
+
+def test_to_dict_round_trip():
+    cfg = load_config(RootConfig, None, ["solver.kind=isam2", "sizes=[8, 16]"])
+    assert from_dict(RootConfig, to_dict(cfg)) == cfg
+
+
+def test_shipped_presets_load(repo_root):
+    """Every YAML preset in configs/ names a module config class and loads without error."""
+    from fgslam.presets import load_preset_file
+
+    presets = sorted((repo_root / "configs").glob("*.yaml"))
+    assert presets, "configs/ holds no presets"
+    for path in presets:
+        load_preset_file(path)

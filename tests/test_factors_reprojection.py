@@ -1,0 +1,344 @@
+"""Inverse-depth reprojection factor: values vs gtsam, Jacobians vs central finite differences."""
+
+import gtsam
+import numpy as np
+import pytest
+import torch
+
+from fgslam.errors import DataError
+from fgslam.factors.reprojection import (
+    ReprojectionConfig,
+    flatten_patches,
+    reproject,
+    reproject_inv_depth,
+)
+from fgslam.lie import SE3, Sim3
+
+F64 = torch.float64
+WIDTH, HEIGHT = 640, 480
+
+
+# ---------------------------------------------------------------- helpers (numpy / gtsam reference)
+def sim3_exp_gtsam(xi: np.ndarray) -> np.ndarray:
+    """gtsam Similarity3.Expmap(xi) as a 4x4 matrix [[s R, t], [0, 1]] (fgslam's convention)."""
+    S = gtsam.Similarity3.Expmap(np.asarray(xi, dtype=float))
+    M = np.eye(4)
+    M[:3, :3] = S.scale() * S.rotation().matrix()
+    M[:3, 3] = S.scale() * np.asarray(S.translation())
+    return M
+
+
+def to_parts(M: np.ndarray):
+    """(R, t, s) torch float64 tensors of (N, 4, 4) similarity matrices."""
+    A = M[..., :3, :3]
+    s = np.asarray(np.cbrt(np.linalg.det(A)))
+    return (torch.from_numpy(A / s[..., None, None]), torch.from_numpy(M[..., :3, 3].copy()), torch.from_numpy(s))
+
+
+def to_matrix(R, t, s) -> np.ndarray:
+    M = np.zeros(R.shape[:-2] + (4, 4))
+    M[..., :3, :3] = s.numpy()[..., None, None] * R.numpy()
+    M[..., :3, 3] = t.numpy()
+    M[..., 3, 3] = 1
+    return M
+
+
+def random_sim3(rng, n, rot=0.5, trans=1.0, log_s=0.3) -> np.ndarray:
+    xi = np.concatenate([rng.normal(size=(n, 3)) * rot, rng.normal(size=(n, 3)) * trans,
+                         rng.normal(size=(n, 1)) * log_s], 1)
+    return np.stack([sim3_exp_gtsam(x) for x in xi])
+
+
+def make_configurations(rng, n_per_kind=40):
+    """Source/target poses, pixels and inverse depths over generic and near-degenerate cases."""
+    Ti, Tj, uv, d, kinds = [], [], [], [], []
+    n = n_per_kind
+
+    def add(kind, T_i, T_j, uv_k, d_k):
+        Ti.append(T_i)
+        Tj.append(T_j)
+        uv.append(uv_k)
+        d.append(d_k)
+        kinds.extend([kind] * len(d_k))
+
+    def small_motion(T, scale_rot, scale_t, log_s=0.2):
+        xi = np.concatenate([rng.normal(size=(len(T), 3)) * scale_rot, rng.normal(size=(len(T), 3)) * scale_t,
+                             rng.normal(size=(len(T), 1)) * log_s], 1)
+        return np.stack([T[k] @ sim3_exp_gtsam(xi[k]) for k in range(len(T))])
+
+    pix = lambda m: rng.uniform([0, 0], [WIDTH - 1, HEIGHT - 1], size=(m, 2))  # noqa: E731
+    # generic: moderate motion, moderate depth
+    T = random_sim3(rng, n)
+    add("generic", T, small_motion(T, 0.1, 0.2), pix(n), rng.uniform(0.05, 1.0, n))
+    # pixels within a pixel of the image border
+    T = random_sim3(rng, n)
+    border = pix(n)
+    side = rng.integers(0, 4, n)
+    border[side == 0, 0] = rng.uniform(-0.5, 0.5, (side == 0).sum())
+    border[side == 1, 0] = WIDTH - 1 + rng.uniform(-0.5, 0.5, (side == 1).sum())
+    border[side == 2, 1] = rng.uniform(-0.5, 0.5, (side == 2).sum())
+    border[side == 3, 1] = HEIGHT - 1 + rng.uniform(-0.5, 0.5, (side == 3).sum())
+    add("border", T, small_motion(T, 0.05, 0.1), border, rng.uniform(0.05, 1.0, n))
+    # tiny parallax: near-identical poses
+    T = random_sim3(rng, n)
+    add("tiny_parallax", T, small_motion(T, 1e-6, 1e-6, 1e-6), pix(n), rng.uniform(0.05, 1.0, n))
+    # pure rotation between the frames (same camera centre), different scales
+    T = random_sim3(rng, n)
+    T2 = small_motion(T, 0.1, 0.0)
+    T2[:, :3, 3] = T[:, :3, 3]
+    add("pure_rotation", T, T2, pix(n), rng.uniform(0.05, 1.0, n))
+    # very small inverse depth (far points)
+    T = random_sim3(rng, n)
+    add("far", T, small_motion(T, 0.1, 0.3), pix(n), 10 ** rng.uniform(-6, -3, n))
+    # very large inverse depth (near points), small baseline keeps them in front of the target
+    T = random_sim3(rng, n)
+    add("near", T, small_motion(T, 0.02, 0.005), pix(n), rng.uniform(5.0, 20.0, n))
+    return (np.concatenate(Ti), np.concatenate(Tj), torch.from_numpy(np.concatenate(uv)),
+            torch.from_numpy(np.concatenate(d)), np.array(kinds))
+
+
+K_REF = torch.tensor([420.0, 410.0, 319.5, 239.5], dtype=F64)
+CONFIG = ReprojectionConfig(min_depth=1e-3)
+
+
+def residual_fn(uv, d, Mi, Mj, target, config=CONFIG, K=K_REF):
+    return reproject_inv_depth(uv, d, to_parts(Mi), to_parts(Mj), K, target, config=config)
+
+
+def fd_jacobians(uv, d, Mi, Mj, target, eps=1e-6):
+    """Central differences: right perturbations via gtsam Expmap, and the inverse depth."""
+    n = len(d)
+    J_Ti = np.zeros((n, 2, 7))
+    J_Tj = np.zeros((n, 2, 7))
+    ok = torch.ones(n, dtype=torch.bool)
+    for k in range(7):
+        e = np.zeros(7)
+        e[k] = eps
+        Ep, Em = sim3_exp_gtsam(e), sim3_exp_gtsam(-e)
+        for which, J in ((0, J_Ti), (1, J_Tj)):
+            Mp = (Mi @ Ep, Mj) if which == 0 else (Mi, Mj @ Ep)
+            Mm = (Mi @ Em, Mj) if which == 0 else (Mi, Mj @ Em)
+            rp = residual_fn(uv, d, *Mp, target)
+            rm = residual_fn(uv, d, *Mm, target)
+            ok &= rp.valid & rm.valid
+            J[:, :, k] = ((rp.residual - rm.residual) / (2 * eps)).numpy()
+    h = torch.clamp(0.5 * d, max=eps)
+    rp = residual_fn(uv, d + h, Mi, Mj, target)
+    rm = residual_fn(uv, d - h, Mi, Mj, target)
+    ok &= rp.valid & rm.valid
+    J_d = ((rp.residual - rm.residual) / (2 * h[:, None])).numpy()
+    return J_Ti, J_Tj, J_d, ok.numpy()
+
+
+def assert_jacobian_close(J, J_fd, kinds, name):
+    scale = 1.0 + np.abs(J_fd).max(axis=tuple(range(1, J.ndim)), keepdims=True)
+    err = np.abs(J - J_fd) / scale
+    worst = np.unravel_index(np.argmax(err), err.shape)
+    assert err.max() < 2e-6, f"{name}: max scaled error {err.max():.3g} at row {worst[0]} ({kinds[worst[0]]})"
+
+
+# ---------------------------------------------------------------- tests
+def test_jacobians_match_finite_differences_on_degenerate_configurations():
+    rng = np.random.default_rng(0)
+    Mi, Mj, uv, d, kinds = make_configurations(rng)
+    target = uv + torch.from_numpy(rng.normal(size=uv.shape))
+    res = residual_fn(uv, d, Mi, Mj, target)
+    J_Ti, J_Tj, J_d, ok = fd_jacobians(uv, d, Mi, Mj, target)
+    ok &= res.valid.numpy()
+    assert ok.sum() >= 200, f"only {ok.sum()} valid configurations"
+    for kind in np.unique(kinds):
+        assert ok[kinds == kind].sum() >= 30, f"too few valid rows of kind {kind}"
+    assert_jacobian_close(res.J_Ti.numpy()[ok], J_Ti[ok], kinds[ok], "J_Ti")
+    assert_jacobian_close(res.J_Tj.numpy()[ok], J_Tj[ok], kinds[ok], "J_Tj")
+    assert_jacobian_close(res.J_d.numpy()[ok], J_d[ok], kinds[ok], "J_d")
+    # pure rotation: the depth is unobservable
+    rot = (kinds == "pure_rotation") & ok
+    assert np.abs(res.J_d.numpy()[rot]).max() < 1e-9
+
+
+def test_scale_gauge_structure():
+    rng = np.random.default_rng(1)
+    Mi, Mj, uv, d, _ = make_configurations(rng, n_per_kind=20)
+    res = residual_fn(uv, d, Mi, Mj, uv)
+    v = res.valid
+    assert v.sum() > 100
+    # target scale drops out exactly
+    assert torch.all(res.J_Tj[..., 6] == 0)
+    # source scale enters only through d / s_i: J_lambda_i = -d J_d
+    torch.testing.assert_close(res.J_Ti[v][..., 6], -d[v][:, None] * res.J_d[v], rtol=1e-9, atol=1e-9)
+    # and the residual is unchanged under (s_i, d) -> (a s_i, a d), for any s_j
+    R_i, t_i, s_i = to_parts(Mi)
+    R_j, t_j, s_j = to_parts(Mj)
+    a = 1.7
+    res2 = reproject_inv_depth(uv, a * d, (R_i, t_i, a * s_i), (R_j, t_j, 3.0 * s_j), K_REF, uv, config=CONFIG)
+    torch.testing.assert_close(res2.residual[v], res.residual[v], rtol=1e-9, atol=1e-8)
+
+
+def test_identical_poses_give_opposite_pose_jacobians():
+    rng = np.random.default_rng(2)
+    M = random_sim3(rng, 100)
+    uv = torch.from_numpy(rng.uniform(0, 600, (100, 2)))
+    d = torch.from_numpy(rng.uniform(0.1, 2.0, 100))
+    res = residual_fn(uv, d, M, M, uv)
+    assert res.valid.all()
+    torch.testing.assert_close(res.residual, torch.zeros_like(uv), atol=1e-9, rtol=0)
+    torch.testing.assert_close(res.J_Ti + res.J_Tj, torch.zeros_like(res.J_Ti), atol=1e-8, rtol=0)
+
+
+def test_values_match_gtsam_and_pose_jacobian_matches_pinhole_camera():
+    rng = np.random.default_rng(3)
+    n = 60
+    Mi = random_sim3(rng, n)
+    Mj = Mi @ random_sim3(rng, n, rot=0.1, trans=0.2, log_s=0.0)  # s_j = s_i
+    Mj[:, :3, :3] /= np.cbrt(np.linalg.det(Mj[:, :3, :3]))[:, None, None]  # target scale 1
+    uv = torch.from_numpy(rng.uniform(0, 600, (n, 2)))
+    d = torch.from_numpy(rng.uniform(0.1, 1.0, n))
+    res = residual_fn(uv, d, Mi, Mj, torch.zeros_like(uv))
+    fx, fy, cx, cy = K_REF.tolist()
+    cal = gtsam.Cal3_S2(fx, fy, 0.0, cx, cy)
+    checked = 0
+    for k in range(n):
+        Ri, ti, si = (x.numpy() for x in to_parts(Mi[k]))
+        Rj, tj, sj = (x.numpy() for x in to_parts(Mj[k]))
+        Si = gtsam.Similarity3(gtsam.Rot3(Ri), ti / si, float(si))
+        X_i = np.array([(uv[k, 0] - cx) / fx, (uv[k, 1] - cy) / fy, 1.0]) / d[k].item()
+        X_W = Si.transformFrom(X_i)
+        cam = gtsam.PinholeCameraCal3_S2(gtsam.Pose3(gtsam.Rot3(Rj), tj), cal)
+        if not res.valid[k]:
+            continue
+        Dpose = np.zeros((2, 6), order="F")
+        uv_g = cam.project(X_W, Dpose, None, None)
+        np.testing.assert_allclose(res.residual[k].numpy(), uv_g, rtol=0, atol=1e-8)
+        np.testing.assert_allclose(res.J_Tj[k, :, :6].numpy(), Dpose, rtol=1e-9, atol=1e-7)
+        checked += 1
+    assert checked > 50
+
+
+def test_invalid_geometry_is_masked_zeroed_and_counted():
+    rng = np.random.default_rng(4)
+    n = 12
+    M = random_sim3(rng, n, trans=0.0, log_s=0.0)
+    Mj = M.copy()
+    uv = torch.from_numpy(rng.uniform(0, 600, (n, 2)))
+    d = torch.full((n,), 0.5, dtype=F64)
+    target = uv.clone()
+    # row 0: target camera 3 units in front of the source along its optical axis -> point behind it
+    Mj[0, :3, 3] = M[0, :3, :3] @ np.array([0.0, 0.0, 3.0])
+    d[1] = -0.1  # behind the source camera
+    d[2] = float("nan")
+    d[3] = float("inf")
+    uv[4, 0] = float("nan")
+    target[5, 1] = float("nan")
+    # row 6: point 0.1 in front of the target camera (source depth 2, target moved 1.9 forward)
+    Mj[6, :3, 3] = M[6, :3, :3] @ np.array([0.0, 0.0, 1.9])
+    uv[6] = K_REF[2:]
+    res = residual_fn(uv, d, M, Mj, target, config=ReprojectionConfig(min_depth=0.2))
+    expected_invalid = {0, 1, 2, 3, 4, 5, 6}
+    assert set(np.flatnonzero(~res.valid.numpy())) == expected_invalid
+    assert res.n_invalid == len(expected_invalid)
+    for x in (res.residual, res.J_Ti, res.J_Tj, res.J_d):
+        assert torch.isfinite(x).all()
+        assert (x[~res.valid] == 0).all()
+    # the row at depth 0.1 is valid with a smaller minimum depth
+    res2 = residual_fn(uv, d, M, Mj, target, config=ReprojectionConfig(min_depth=0.05))
+    assert res2.valid[6] and not res2.valid[0]
+    # points at infinity (d = 0) are valid
+    uv0 = torch.from_numpy(rng.uniform(0, 600, (n, 2)))
+    res3 = residual_fn(uv0, torch.zeros(n, dtype=F64), M, Mj, uv0)
+    assert res3.valid.all() and torch.isfinite(res3.J_Ti).all()
+
+
+def test_float32_degenerate_inputs_stay_finite():
+    rng = np.random.default_rng(5)
+    n = 200
+    Mi = random_sim3(rng, n)
+    Mj = random_sim3(rng, n)  # unrelated poses: many points behind the target
+    parts_i = tuple(x.float() for x in to_parts(Mi))
+    parts_j = tuple(x.float() for x in to_parts(Mj))
+    uv = torch.from_numpy(rng.uniform(-1e4, 1e4, (n, 2))).float()
+    d = torch.from_numpy(10 ** rng.uniform(-30, 30, n)).float()
+    d[::7] = 0
+    res = reproject_inv_depth(uv, d, parts_i, parts_j, K_REF.float(), uv)
+    assert res.residual.dtype == torch.float32
+    assert 0 < res.n_invalid < n
+    for x in (res.residual, res.J_Ti, res.J_Tj, res.J_d):
+        assert torch.isfinite(x).all()
+
+
+def test_accepts_lie_objects_and_broadcasts_shared_poses():
+    rng = np.random.default_rng(6)
+    E, m = 4, 30
+    Mi = random_sim3(rng, E)
+    Mj = Mi @ random_sim3(rng, E, rot=0.05, trans=0.1)
+    Ti = Sim3(*to_parts(Mi))
+    Tj = Sim3(*to_parts(Mj))
+    uv = torch.from_numpy(rng.uniform(0, 600, (E, m, 2)))
+    d = torch.from_numpy(rng.uniform(0.1, 1.0, (E, m)))
+    target = uv + 1.0
+    per_edge = reproject_inv_depth(uv, d, Ti[:, None], Tj[:, None], K_REF, target)
+    idx = torch.arange(E).repeat_interleave(m)
+    gathered = reproject_inv_depth(uv.reshape(-1, 2), d.reshape(-1), Ti[idx], Tj[idx], K_REF.expand(E * m, 4),
+                                   target.reshape(-1, 2))
+    assert per_edge.residual.shape == (E, m, 2) and per_edge.J_Ti.shape == (E, m, 2, 7)
+    for a, b in ((per_edge.residual, gathered.residual), (per_edge.J_Ti, gathered.J_Ti),
+                 (per_edge.J_Tj, gathered.J_Tj), (per_edge.J_d, gathered.J_d)):
+        torch.testing.assert_close(a.reshape(b.shape), b, rtol=1e-12, atol=1e-10)
+    # SE3 poses (no scale attribute) mean scale 1
+    Ti_se3 = SE3(Ti.R, Ti.t)
+    Tj_se3 = SE3(Tj.R, Tj.t)
+    ones = torch.ones(E, dtype=F64)
+    a = reproject_inv_depth(uv, d, Ti_se3[:, None], Tj_se3[:, None], K_REF, target)
+    b = reproject_inv_depth(uv, d, (Ti.R[:, None], Ti.t[:, None], ones[:, None]),
+                            (Tj.R[:, None], Tj.t[:, None], ones[:, None]), K_REF, target)
+    torch.testing.assert_close(a.J_Ti, b.J_Ti)
+
+
+def test_reproject_matches_residual_and_separate_target_intrinsics():
+    rng = np.random.default_rng(7)
+    n = 80
+    Mi = random_sim3(rng, n)
+    Mj = Mi @ random_sim3(rng, n, rot=0.05, trans=0.1)
+    uv = torch.from_numpy(rng.uniform(0, 600, (n, 2)))
+    d = torch.from_numpy(rng.uniform(0.1, 1.0, n))
+    K_j = torch.tensor([300.0, 310.0, 200.0, 150.0], dtype=F64)
+    target = torch.from_numpy(rng.uniform(0, 600, (n, 2)))
+    res = reproject_inv_depth(uv, d, to_parts(Mi), to_parts(Mj), K_REF, target, K_j)
+    uv_j, valid = reproject(uv, d, to_parts(Mi), to_parts(Mj), K_REF, K_j)
+    assert torch.equal(valid, res.valid) and valid.sum() > 60
+    torch.testing.assert_close(uv_j[valid], (res.residual + target)[valid])
+    # the target intrinsics act on the target side only: same normalised coordinates
+    uv_ref, _ = reproject(uv, d, to_parts(Mi), to_parts(Mj), K_REF)
+    xn_ref = (uv_ref - K_REF[2:]) / K_REF[:2]
+    xn_j = (uv_j - K_j[2:]) / K_j[:2]
+    torch.testing.assert_close(xn_j[valid], xn_ref[valid])
+
+
+def test_patch_rows_share_one_depth():
+    rng = np.random.default_rng(8)
+    P, p = 5, 3
+    centres = torch.from_numpy(rng.uniform(50, 550, (P, 2)))
+    offsets = torch.stack(torch.meshgrid(torch.arange(p) - 1.0, torch.arange(p) - 1.0, indexing="ij"), -1).to(F64)
+    uv_patches = centres[:, None, None, :] + offsets.flip(-1)[None]  # (P, p, p, 2) as (u, v)
+    d_patch = torch.from_numpy(rng.uniform(0.2, 1.0, P))
+    uv, d = flatten_patches(uv_patches, d_patch)
+    assert uv.shape == (P * p * p, 2) and d.shape == (P * p * p,)
+    k, a, b = 3, 2, 1
+    torch.testing.assert_close(uv[k * p * p + a * p + b], uv_patches[k, a, b])
+    assert torch.equal(d.reshape(P, p * p), d_patch[:, None].expand(P, p * p))
+    # the patch depth gradient is the sum over its rows: check against a finite difference
+    M = random_sim3(rng, 1)
+    Mj = M @ random_sim3(rng, 1, rot=0.05, trans=0.2)
+    target = uv + 0.5
+    res = residual_fn(uv, d, M[0], Mj[0], target)
+    g = (res.J_d * res.residual).sum(-1).reshape(P, p * p).sum(-1)  # d(0.5 |r|^2)/d(d_patch)
+    eps = 1e-6
+
+    def cost(dp):
+        r = residual_fn(uv, flatten_patches(uv_patches, dp)[1], M[0], Mj[0], target).residual
+        return 0.5 * (r**2).sum(-1).reshape(P, p * p).sum(-1)
+
+    e = torch.full((P,), eps, dtype=F64)
+    g_fd = (cost(d_patch + e) - cost(d_patch - e)) / (2 * eps)
+    torch.testing.assert_close(g, g_fd, rtol=1e-6, atol=1e-6)
+    with pytest.raises(DataError):
+        flatten_patches(uv_patches, d_patch[:-1])
