@@ -20,8 +20,9 @@ PRESET_CLASSES: dict[str, str] = {
     "dataset": "fgslam.io.datasets.common:DatasetConfig",
     "synth": "fgslam.io.synth.presets:SynthConfig",
     "map": "fgslam.map:MapConfig",
+    "bow": "fgslam.loop.bow:BowConfig",
     "patch": "fgslam.slam:SlamConfig",
-    "demo": "fgslam.slam:SlamConfig",
+    "demo": "fgslam.demo:DemoConfig",
 }
 
 
@@ -36,17 +37,19 @@ def available_presets() -> list[str]:
 
 
 def resolve_preset(name_or_path: str | Path) -> Path:
-    """A YAML path as given, or ``configs/<name>.yaml`` for a bare preset name."""
+    """An existing YAML path as given, else the preset ``configs/<name>.yaml`` for a bare name such as
+    ``patch_kitti_mono`` (or ``patch_kitti_mono.yaml``); ConfigError listing the presets otherwise."""
     path = Path(name_or_path)
-    if path.suffix in (".yaml", ".yml") or path.is_file():
-        if not path.is_file():
-            raise ConfigError(f"config file not found: {path}")
+    if path.is_file():
         return path
-    candidate = configs_dir() / f"{name_or_path}.yaml"
-    if candidate.is_file():
-        return candidate
+    if path.parent == Path("."):
+        stem = path.name[: -len(path.suffix)] if path.suffix in (".yaml", ".yml") else path.name
+        candidate = configs_dir() / f"{stem}.yaml"
+        if candidate.is_file():
+            return candidate
     raise ConfigError(
-        f"unknown preset '{name_or_path}' (no file {candidate}); available: {', '.join(available_presets()) or 'none'}"
+        f"config '{name_or_path}': no such file and no preset of that name "
+        f"(presets in {configs_dir()}: {', '.join(available_presets()) or 'none'})"
     )
 
 

@@ -1,0 +1,9 @@
+"""Patch frontend (DPVO / DPV-SLAM family): patch graph, Lucas-Kanade or learned measurements,
+local bundle adjustment over Sim(3) keyframe poses. See :mod:`.frontend`."""
+
+from .config import BAConfig, GraphConfig, LKConfig, PatchConfig, TrackingConfig
+from .frontend import PatchFrontend
+from .source import MeasurementSource, make_source
+
+__all__ = ["BAConfig", "GraphConfig", "LKConfig", "PatchConfig", "PatchFrontend", "TrackingConfig",
+           "MeasurementSource", "make_source"]

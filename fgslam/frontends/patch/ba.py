@@ -1,0 +1,266 @@
+"""The patch graph's visual block: inverse-depth patch reprojections (left and right images) and
+RGB-D depth priors, Schur-reduced in one vectorised pass (no Python loop over edges or frame pairs).
+
+Measurements of :class:`PatchBlock`:
+
+- edge ``n`` (DPV-SLAM eq. 3, patch centre): source pixel ``uv_src[n]`` of frame ``src[n]`` with the
+  inverse depth ``structure[struct_idx[n]]`` of its patch, observed at ``uv_tgt[n]`` in frame
+  ``tgt[n]``'s left image, or, when ``right[n]``, in its right image through the fixed metric
+  extrinsic ``T_CRCL`` (``fgslam.factors.reprojection``'s ``T_CtCj``); residual
+  ``pi(T_WCtgt^-1 T_WCsrc X) - uv_tgt`` in pixels (2 rows), weighted by ``weights[n]``;
+- depth prior ``m`` (RGB-D): ``d - 1 / z_sensor`` (first row; the second has zero weight).
+
+Frames are *local frame indices* ``0 .. F-1``: the first ``k`` are the block's pose slots (gtsam keys
+``keys``, Sim(3) T_WC, tangent ``[w, u, lambda]``, right perturbation); the others are fixed poses
+held by the block (frames outside the optimisation window): they enter residuals but get no Jacobian.
+
+Layout: edges are stored grouped by (source frame, target frame, right) and padded to a common
+length ``L`` (``Q`` groups), so pose-pair quantities are computed once per group and ``J^T W J`` is
+one batched matrix product; padding rows have zero weight. The row order seen by the
+:class:`~fgslam.factors.schur.VisualBlock` machinery is the ``Q * L`` padded edge rows followed by
+the priors. The reduction is exactly :func:`fgslam.factors.schur.schur_reduce`'s (same
+``SchurSystem`` for back-substitution).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ...errors import OptimizationError
+from ...factors.reprojection import ReprojectionConfig, reproject, reproject_inv_depth
+from ...factors.schur import POSE_DIM, BlockConfig, BlockResiduals, SchurSystem, SlotGroups, VisualBlock, torch_threads
+from ...lie import Sim3
+
+
+def _join(parts: list, empty_shape: tuple, dtype) -> torch.Tensor:
+    """Concatenate along dim 0 without a copy when there is a single part."""
+    if len(parts) == 1:
+        return parts[0]
+    if not parts:
+        return torch.zeros(empty_shape, dtype=dtype)
+    return torch.cat(parts)
+
+
+class PatchBlock(VisualBlock):
+    """Patch edges (+ optional right-image edges and depth priors) over variable and fixed frames.
+
+    Args:
+        keys: gtsam keys of the k variable frames (local frames ``0 .. k-1``).
+        fixed_R, fixed_t, fixed_s: (F-k, 3, 3), (F-k, 3), (F-k,) fixed T_WC of local frames ``k .. F-1``.
+        src, tgt: (N,) local frame of each edge's source and target.
+        right: (N,) bool, target is the right image (needs ``K_right`` and ``T_CRCL``).
+        uv_src, uv_tgt: (N, 2) patch centre in the source and observed pixel in the target.
+        weights: (N,) non-negative weights (confidence / sigma^2 times robust weight).
+        struct_idx: (N,) patch of each edge in ``[0, P)``.
+        K: (4,) left intrinsics; ``K_right`` (4,) right intrinsics; ``T_CRCL`` (4, 4) left-to-right.
+        inverse_depth: (P,) initial inverse depths.
+        prior_idx, prior_value, prior_weight: (M,) depth priors ``d[prior_idx] ~ prior_value``.
+    """
+
+    def __init__(
+        self, keys, fixed_R, fixed_t, fixed_s, src, tgt, right, uv_src, uv_tgt, weights, struct_idx,
+        K, inverse_depth, K_right=None, T_CRCL=None, prior_idx=None, prior_value=None, prior_weight=None,
+        config: BlockConfig | None = None, reprojection: ReprojectionConfig | None = None,
+    ):
+        super().__init__()
+        f64 = torch.float64
+        self.keys = tuple(int(k) for k in keys)
+        self.config = config or BlockConfig()
+        self.reprojection = reprojection or ReprojectionConfig()
+        k = len(self.keys)
+        self.fixed_R = torch.as_tensor(fixed_R, dtype=f64).reshape(-1, 3, 3)
+        self.fixed_t = torch.as_tensor(fixed_t, dtype=f64).reshape(-1, 3)
+        self.fixed_s = torch.as_tensor(fixed_s, dtype=f64).reshape(-1)
+        num_frames = k + int(self.fixed_s.shape[0])
+        src = torch.as_tensor(np.asarray(src)).long().reshape(-1)
+        tgt = torch.as_tensor(np.asarray(tgt)).long().reshape(-1)
+        right = torch.as_tensor(np.asarray(right, dtype=bool)).reshape(-1)
+        n = int(src.shape[0])
+        self.num_edges = n
+        if bool(right.any()) and (K_right is None or T_CRCL is None):
+            raise OptimizationError("PatchBlock: right-image edges need K_right and T_CRCL")
+        if n and (int(src.max()) >= num_frames or int(tgt.max()) >= num_frames or int(min(src.min(), tgt.min())) < 0):
+            raise OptimizationError(f"PatchBlock: edge frames must lie in [0, {num_frames})")
+        self.K = torch.as_tensor(K, dtype=f64)
+        self.K_right = None if K_right is None else torch.as_tensor(K_right, dtype=f64)
+        self.T_CRCL = None if T_CRCL is None else torch.as_tensor(np.asarray(T_CRCL), dtype=f64)
+
+        # --- group edges by (src, tgt, right), pad to length L
+        key = right.long() * (num_frames * num_frames) + src * num_frames + tgt
+        order = torch.argsort(key, stable=True)
+        uniq, counts = torch.unique_consecutive(key[order], return_counts=True)
+        q = int(uniq.shape[0])
+        L = int(counts.max()) if q else 0
+        starts = torch.cumsum(counts, 0) - counts
+        rank = torch.arange(n) - torch.repeat_interleave(starts, counts)
+        group = torch.repeat_interleave(torch.arange(q), counts)
+        self.num_groups, self.length = q, L
+        nf2 = max(num_frames, 1) ** 2
+        self.g_right = uniq >= nf2
+        self.g_src = (uniq % nf2) // max(num_frames, 1)
+        self.g_tgt = uniq % max(num_frames, 1)
+        pad_uv = self.K[2:4]
+        self.uv_src = pad_uv.expand(q, L, 2).clone()
+        self.uv_tgt = pad_uv.expand(q, L, 2).clone()
+        self.uv_src[group, rank] = torch.as_tensor(uv_src, dtype=f64)[order]
+        self.uv_tgt[group, rank] = torch.as_tensor(uv_tgt, dtype=f64)[order]
+        edge_w = torch.zeros(q, L, dtype=f64)
+        edge_w[group, rank] = torch.as_tensor(weights, dtype=f64)[order]
+        edge_idx = torch.zeros(q, L, dtype=torch.long)
+        edge_idx[group, rank] = torch.as_tensor(np.asarray(struct_idx)).long()[order]
+        self._row_of_edge = torch.empty(n, dtype=torch.long)  # caller's edge n -> padded row
+        self._row_of_edge[order] = group * L + rank
+        self.num_left_groups = int((~self.g_right).sum())  # groups are sorted: left ones first
+
+        # --- priors
+        if prior_idx is None:
+            prior_idx, prior_value, prior_weight = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+        self.prior_value = torch.as_tensor(prior_value, dtype=f64).reshape(-1)
+        prior_idx = torch.as_tensor(np.asarray(prior_idx)).long().reshape(-1)
+        m = int(prior_idx.shape[0])
+        self.weights = torch.cat([
+            torch.stack([edge_w.reshape(-1), edge_w.reshape(-1)], 1),
+            torch.stack([torch.as_tensor(prior_weight, dtype=f64).reshape(-1), torch.zeros(m, dtype=f64)], 1),
+        ])
+        if bool((self.weights < 0).any()) or not bool(torch.isfinite(self.weights).all()):
+            raise OptimizationError("PatchBlock: weights must be finite and non-negative")
+        self.struct_idx = torch.cat([edge_idx.reshape(-1), prior_idx])
+        # pose slots (fixed frames and priors: the dummy slot k, cropped away)
+        self.g_a = torch.where(self.g_src < k, self.g_src, torch.full_like(self.g_src, k))
+        self.g_b = torch.where(self.g_tgt < k, self.g_tgt, torch.full_like(self.g_tgt, k))
+        row_a = self.g_a.repeat_interleave(L) if q else torch.zeros(0, dtype=torch.long)
+        row_b = self.g_b.repeat_interleave(L) if q else torch.zeros(0, dtype=torch.long)
+        dummy = torch.full((m,), k, dtype=torch.long)
+        self.slots = torch.stack([torch.cat([row_a, dummy]), torch.cat([row_b, dummy])], 1)
+        self.groups = SlotGroups((0, q * L + m), ((k, k),))  # unused: linearize() has its own grouping
+        self._structure = torch.zeros(0, dtype=f64)
+        self.set_structure(torch.as_tensor(inverse_depth, dtype=f64))
+        self.num_invalid = 0
+        self._valid = torch.ones(q * L + m, dtype=torch.bool)
+
+    @property
+    def structure(self) -> torch.Tensor:
+        return self._structure
+
+    def set_structure(self, structure: torch.Tensor) -> None:
+        self._structure = structure.to(torch.float64).clamp_min(self.config.min_structure)
+
+    def poses_from_values(self, values) -> Sim3:
+        if not self.keys:
+            return Sim3.identity((0,))
+        return super().poses_from_values(values)
+
+    def _all_poses(self, poses: Sim3) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        R = torch.cat([poses.R.reshape(-1, 3, 3), self.fixed_R])
+        t = torch.cat([poses.t.reshape(-1, 3), self.fixed_t])
+        s = torch.cat([poses.s.reshape(-1), self.fixed_s])
+        return R, t, s
+
+    def evaluate(self, poses: Sim3, structure: torch.Tensor, jacobians: bool) -> BlockResiduals:
+        f64 = torch.float64
+        R, t, s = self._all_poses(poses)
+        q, L = self.num_groups, self.length
+        m = int(self.prior_value.shape[0])
+        structure = structure.to(f64)
+        d_edge = structure[self.struct_idx[: q * L]].reshape(q, L)
+        parts = []
+        ql = self.num_left_groups
+        for lo, hi, K_t, T_ext in ((0, ql, self.K, None), (ql, q, self.K_right, self.T_CRCL)):
+            if hi <= lo:
+                continue
+            si, ti = self.g_src[lo:hi], self.g_tgt[lo:hi]
+            T_i = (R[si][:, None], t[si][:, None], s[si][:, None])
+            T_j = (R[ti][:, None], t[ti][:, None], s[ti][:, None])
+            if jacobians:
+                res = reproject_inv_depth(self.uv_src[lo:hi], d_edge[lo:hi], T_i, T_j, self.K, self.uv_tgt[lo:hi],
+                                          K_t, T_CtCj=T_ext, config=self.reprojection)
+                parts.append((res.residual, res.valid, res.J_d, res.J_Ti, res.J_Tj))
+            else:
+                uv, ok = reproject(self.uv_src[lo:hi], d_edge[lo:hi], T_i, T_j, self.K, K_t, T_CtCj=T_ext,
+                                   config=self.reprojection)
+                parts.append((torch.where(ok[..., None], uv - self.uv_tgt[lo:hi], torch.zeros((), dtype=f64)), ok))
+        r_e = _join([p[0] for p in parts], (0, L, 2), f64).reshape(-1, 2)
+        valid_e = _join([p[1] for p in parts], (0, L), torch.bool).reshape(-1)
+        r_p = torch.zeros(m, 2, dtype=f64)
+        if m:
+            r_p[:, 0] = structure[self.struct_idx[q * L:]] - self.prior_value
+        r = torch.cat([r_e, r_p])
+        valid = torch.cat([valid_e, torch.ones(m, dtype=torch.bool)])
+        self.num_invalid = int((~valid_e & (self.weights[: q * L, 0] > 0)).sum())
+        self._valid = valid
+        weights = torch.where(valid[:, None], self.weights, torch.zeros((), dtype=f64))
+        if not jacobians:
+            return BlockResiduals(r=r, weights=weights, num_invalid=self.num_invalid)
+        E_p = torch.zeros(m, 2, dtype=f64)
+        E_p[:, 0] = 1.0
+        E = torch.cat([_join([p[2] for p in parts], (0, L, 2), f64).reshape(-1, 2), E_p])
+        # Pose Jacobians of the edge rows w.r.t. source and target, each (q, L, 2, 7), kept on the
+        # block for linearize() (prior rows have none); BlockResiduals.J stays None.
+        self._J_src = _join([p[3] for p in parts], (0, L, 2, POSE_DIM), f64)
+        self._J_tgt = _join([p[4] for p in parts], (0, L, 2, POSE_DIM), f64)
+        return BlockResiduals(r=r, weights=weights, E=E, J=None, num_invalid=self.num_invalid)
+
+    def residuals(self, values) -> tuple[torch.Tensor, torch.Tensor]:
+        """Edge residuals (N, 2) and geometric validity (N,) at ``values``, in the caller's edge order."""
+        with torch_threads(self.config.threads):
+            res = self.evaluate(self.poses_from_values(values), self.structure, jacobians=False)
+        rows = self._row_of_edge
+        return res.r[rows], self._valid[rows]
+
+    def linearize(self, values) -> tuple[tuple[int, ...], np.ndarray, np.ndarray, float]:
+        """Schur-reduced ``(keys, H, g, c)`` as in :meth:`VisualBlock.linearize`, batched over groups."""
+        f64 = torch.float64
+        k = len(self.keys)
+        kk = k + 1
+        d = POSE_DIM
+        q, L = self.num_groups, self.length
+        with torch_threads(self.config.threads):
+            res = self.evaluate(self.poses_from_values(values), self.structure, jacobians=True)
+            W, r, E = res.weights, res.r, res.E
+            ne = q * L
+            # whitened pose Jacobians of the edge rows, fixed frames' columns zeroed: (q, L, 2, 7) each
+            sqrt_w = W.sqrt()
+            sw = sqrt_w[:ne].reshape(q, L, 2)
+            X_i = (sw * (self.g_a < k).to(f64)[:, None, None])[..., None] * self._J_src
+            X_j = (sw * (self.g_b < k).to(f64)[:, None, None])[..., None] * self._J_tgt
+            Xi, Xj = X_i.reshape(q, 2 * L, d), X_j.reshape(q, 2 * L, d)
+            Xit = Xi.transpose(1, 2)
+            H_ii, H_ij, H_jj = torch.bmm(Xit, Xi), torch.bmm(Xit, Xj), torch.bmm(Xj.transpose(1, 2), Xj)
+            pa, pb = self.g_a, self.g_b
+            Hb = torch.zeros(kk * kk, d, d, dtype=f64)
+            Hb.index_add_(0, pa * kk + pa, H_ii)
+            Hb.index_add_(0, pa * kk + pb, H_ij)
+            Hb.index_add_(0, pb * kk + pa, H_ij.transpose(1, 2))
+            Hb.index_add_(0, pb * kk + pb, H_jj)
+            H = Hb.reshape(kk, kk, d, d).permute(0, 2, 1, 3).reshape(kk * d, kk * d)[: k * d, : k * d]
+            sr = sqrt_w * r
+            sr_e = sr[:ne].reshape(q, 1, 2 * L)
+            g = torch.zeros(kk, d, dtype=f64)
+            g.index_add_(0, pa, torch.bmm(sr_e, Xi).reshape(q, d))
+            g.index_add_(0, pb, torch.bmm(sr_e, Xj).reshape(q, d))
+            g = g.reshape(-1)[: k * d]
+            c = float((sr * sr).sum())
+            P = self.num_structs
+            idx = self.struct_idx
+            se = sqrt_w * E
+            C = torch.zeros(P, dtype=f64).index_add_(0, idx, (se * se).sum(1)) + self.config.structure_damping
+            bvec = torch.zeros(P, dtype=f64).index_add_(0, idx, (se * sr).sum(1))
+            se0, se1 = se[:ne, 0].reshape(q, L, 1), se[:ne, 1].reshape(q, L, 1)
+            FE_i = (se0 * X_i[:, :, 0] + se1 * X_i[:, :, 1]).reshape(ne, d)
+            FE_j = (se0 * X_j[:, :, 0] + se1 * X_j[:, :, 1]).reshape(ne, d)
+            row_a, row_b = self.slots[:ne, 0], self.slots[:ne, 1]
+            F = torch.zeros(P * kk, d, dtype=f64)
+            F.index_add_(0, idx[:ne] * kk + row_a, FE_i)
+            F.index_add_(0, idx[:ne] * kk + row_b, FE_j)
+            F = F.reshape(P, kk * d)[:, : k * d]
+            informative = C > self.config.min_information
+            inv_C = torch.where(informative, 1.0 / torch.where(informative, C, torch.ones_like(C)), torch.zeros_like(C))
+            H = H - F.T @ (F * inv_C[:, None])
+            H = 0.5 * (H + H.T)
+            g = g - F.T @ (inv_C * bvec)
+            c = c - float((inv_C * bvec * bvec).sum())
+            if not (torch.isfinite(H).all() and torch.isfinite(g).all() and np.isfinite(c)):
+                raise OptimizationError("PatchBlock: Schur elimination produced non-finite values")
+            self._system = SchurSystem(H=H, g=g, c=c, F=F, b=bvec, inv_C=inv_C)
+        return self.keys, H.numpy(), g.numpy(), c

@@ -1,0 +1,131 @@
+"""Typed configuration of the patch frontend (DPVO / DPV-SLAM family).
+
+``PatchConfig`` is the root; it is the ``patch:`` section of the runner's ``SlamConfig`` and loads
+on its own with ``fgslam.config.load_config(PatchConfig, path, overrides)``. Pixel quantities are
+in pixels of the frames as the dataset delivers them (after resizing); windows are counted in
+frames of the patch graph (kept frames, DPVO's buffer positions).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, Optional
+
+from ...errors import ConfigError
+
+
+@dataclass
+class GraphConfig:
+    """Patch graph (DPV-SLAM section 3.1)."""
+
+    patches_per_frame: int = 96  # K random p x p patches per frame, one inverse depth each
+    patch_size: int = 3  # p: samples per patch side
+    patch_stride: int = 7  # pixels between patch samples: the tracked footprint is p * stride pixels
+    selection: Literal["corners", "random"] = "corners"  # corners: strongest min-eigenvalue pixels spread over a grid; random: uniform (DPVO)
+    selection_grid: list[int] = field(default_factory=lambda: [8, 4])  # cells across x, down y; each cell yields the same share of patches
+    candidate_block: int = 8  # corners: one candidate (local maximum) per block of this many pixels square
+    score_width: int = 640  # corners: response computed on the image resized to at most this width (0: full resolution)
+    border: int = 12  # patch centres keep this many pixels from the image border
+    seed: int = 0  # random generator seed of patch selection
+    patch_lifetime: int = 5  # a patch gets edges to frames at most this many graph frames away
+    removal_window: int = 10  # edges whose source frame is this many graph frames old become inactive
+    optimization_window: int = 6  # latest graph frames whose poses are optimised (older ones fixed)
+    max_inactive_edges: int = 500_000  # bound of the inactive-edge store kept for global optimisation (oldest dropped)
+
+    def validate(self) -> None:
+        if self.patches_per_frame < 8:
+            raise ConfigError(f"patch.graph.patches_per_frame must be >= 8, got {self.patches_per_frame}")
+        if self.patch_size < 1 or self.patch_stride < 1:
+            raise ConfigError("patch.graph.patch_size and patch_stride must be >= 1")
+        if self.patch_lifetime < 1 or self.optimization_window < 2:
+            raise ConfigError("patch.graph.patch_lifetime must be >= 1 and optimization_window >= 2")
+        if self.removal_window <= self.patch_lifetime:
+            raise ConfigError(
+                f"patch.graph.removal_window ({self.removal_window}) must exceed patch_lifetime ({self.patch_lifetime})"
+            )
+        if len(self.selection_grid) != 2 or min(self.selection_grid) < 1:
+            raise ConfigError(f"patch.graph.selection_grid must be two positive ints, got {self.selection_grid}")
+
+
+@dataclass
+class LKConfig:
+    """Built-in pyramidal Lucas-Kanade measurement source (``source: lk``)."""
+
+    scale: float = 0.0  # LK runs on images resized by this factor; 0: automatic, the largest factor <= 1 giving width <= auto_width
+    auto_width: int = 640  # image width (px) the automatic scale aims at
+    levels: int = 3  # pyramid levels above the LK resolution
+    iterations: int = 20  # LK iterations per level
+    epsilon: float = 0.02  # LK stops when the update is below this many pixels
+    min_eigen: float = 1e-4  # cv2 minEigThreshold: windows with less texture are rejected
+    fb_threshold: float = 1.0  # forward-backward error (px) above which a track is rejected
+    fb_sigma: float = 0.5  # forward-backward error (px) at which the confidence halves
+    error_sigma: float = 12.0  # mean absolute intensity error (grey levels) at which the confidence halves
+    min_confidence: float = 0.05  # tracks below this confidence are rejected
+
+
+@dataclass
+class BAConfig:
+    """Local bundle adjustment over the optimisation window."""
+
+    iterations: int = 1  # Levenberg-Marquardt iterations per update round while tracking
+    init_iterations: int = 15  # iterations per update round at initialisation
+    rounds: int = 2  # update rounds per frame: measure (re-track bad edges), then optimise
+    init_rounds: int = 3  # update rounds at initialisation
+    refine_steps: int = 0  # per-patch depth Gauss-Newton steps before/after each BA (LM updates depths jointly anyway)
+    pixel_sigma: float = 1.0  # standard deviation (px) of a full-confidence measurement
+    huber_delta: float = 2.0  # Huber threshold on the whitened residual (sigma units)
+    outlier_threshold: float = 6.0  # edges with a residual above this (px) after BA get zero weight
+    retrack_threshold: float = 2.0  # new edges with a residual above this (px) are re-tracked from the new reprojection
+    min_depth: float = 0.05  # smallest valid depth in a target camera (map units; stereo/RGB-D: metres)
+    depth_prior_sigma: float = 0.05  # RGB-D: relative standard deviation of sensor depth (incl. colour-depth misregistration)
+    depth_min: float = 0.1  # RGB-D: sensor depths at or below this (m) are invalid
+    depth_max: float = 10.0  # RGB-D: sensor depths above this (m) are invalid
+    depth_window: int = 2  # RGB-D: half-size (px) of the window whose median is the patch's sensor depth
+    depth_max_spread: float = 0.1  # RGB-D: (max - min) / median depth in that window above which it is a discontinuity (no prior)
+    stereo_init_steps: int = 5  # stereo: per-patch depth Gauss-Newton steps on the first frame's right-image edges
+    stereo_cross_edges: bool = False  # stereo: also edges into the right images of other frames (else own right image only)
+    threads: int = 1  # torch threads during BA (small dense work: 1 is fastest)
+
+
+@dataclass
+class TrackingConfig:
+    """Initialisation, motion model, keyframes, failure handling."""
+
+    init_min_parallax: float = 6.0  # mono: median rotation-compensated flow (px) needed to initialise
+    init_min_tracks: int = 30  # mono: tracks of the reference patches needed to keep waiting on one reference
+    init_min_frames: int = 3  # mono: frames (reference included) collected before initialising
+    init_max_frames: int = 8  # mono: frames kept in the initialisation window (older ones subsampled)
+    init_ransac_threshold: float = 1.0  # mono: essential-matrix RANSAC threshold (px)
+    init_min_inlier_ratio: float = 0.6  # mono: essential-matrix inlier share needed to initialise
+    motion_damping: float = 0.5  # damped constant velocity: predicted step = damping * last step (DPVO 0.5)
+    keyframe_index: int = 3  # frame this many graph frames before the newest is tested for removal
+    keyframe_threshold: float = 20.0  # mean flow (px) between its neighbours below which it is removed
+    min_valid_edges: int = 24  # fewer valid measurements into a new frame is a tracking failure
+    max_motion_model_frames: int = 30  # consecutive failures after which the map re-initialises
+
+
+@dataclass
+class PatchConfig:
+    """Root configuration of :class:`fgslam.frontends.patch.PatchFrontend`."""
+
+    source: Literal["lk", "learned"] = "lk"  # measurement source: built-in Lucas-Kanade or the DPVO network
+    checkpoint: Optional[str] = None  # learned source: path of the DPVO checkpoint (dpvo.pth)
+    threads: int = 1  # torch threads of the frontend (flow/bookkeeping)
+    graph: GraphConfig = field(default_factory=GraphConfig)
+    lk: LKConfig = field(default_factory=LKConfig)
+    ba: BAConfig = field(default_factory=BAConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+
+    def validate(self) -> None:
+        """Raise ConfigError naming the first inconsistent field."""
+        self.graph.validate()
+        if self.source not in ("lk", "learned"):
+            raise ConfigError(f"patch.source must be 'lk' or 'learned', got {self.source!r}")
+        if self.ba.iterations < 1 or self.ba.rounds < 1 or self.ba.init_iterations < 1 or self.ba.init_rounds < 1:
+            raise ConfigError("patch.ba iterations/rounds must be >= 1")
+        if not 0.0 <= self.tracking.motion_damping <= 1.0:
+            raise ConfigError(f"patch.tracking.motion_damping must be in [0, 1], got {self.tracking.motion_damping}")
+        if not 2 <= self.tracking.init_min_frames <= self.tracking.init_max_frames:
+            raise ConfigError("patch.tracking needs 2 <= init_min_frames <= init_max_frames")
+        if not 1 <= self.tracking.keyframe_index < self.graph.optimization_window:
+            raise ConfigError("patch.tracking.keyframe_index must be in [1, optimization_window)")

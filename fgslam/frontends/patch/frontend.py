@@ -1,0 +1,847 @@
+"""The patch frontend (DPVO / DPV-SLAM family): patch graph, measurement source, local BA, tracking.
+
+Per frame (after initialisation):
+
+1. predict the pose with the damped constant-velocity model ``T_WCn = T_WCn-1 Exp(damping Log(V))``,
+   ``V = T_WCn-2^-1 T_WCn-1`` (DPVO's motion model);
+2. add the frame to the patch graph with K new patches (inverse depth: the sensor's for RGB-D,
+   else the median of the previous frame's patches) and connect it (forward, backward, stereo edges);
+3. ``ba.rounds`` update rounds: measure edges with the source started from their current
+   reprojection (round 1: the new edges; later rounds: new edges that failed or whose residual
+   after BA exceeds ``ba.retrack_threshold``), then Levenberg-Marquardt on the optimisation window
+   through :class:`fgslam.map.SlamMap` with one :class:`~.ba.PatchBlock` (patch depths
+   Schur-eliminated; frames older than the window fixed; each frame's Sim(3) scale held);
+   Huber weights and an outlier cut are refreshed after each round;
+4. too few valid measurements into the frame: tracking failure - the frame leaves the graph and
+   gets the predicted pose (``pose_source = "motion_model"``), counted, never raised;
+5. the frame ``keyframe_index`` positions before the newest is removed when the mean flow between
+   its neighbours is below ``keyframe_threshold`` (its pose kept relative to its older neighbour);
+6. edges past the removal window become inactive (bounded store), frames past every active edge's
+   reach are finalised, source caches past the patch lifetime are released.
+
+Initialisation: monocular waits until the median rotation-compensated flow of tracked reference
+patches exceeds ``init_min_parallax`` and an essential matrix explains the tracks, then builds the
+graph from the buffered frames (poses from the essential matrix, interpolated in between) and
+optimises with the first keyframe fixed and the distance to the last one as world scale; it never
+initialises on a static or purely rotating camera. Stereo and RGB-D initialise on the first frame
+with metric depth (stereo: right-image edges through the calibrated ``T_CLCR``; RGB-D: depth prior).
+
+Poses are Sim(3) ``T_WC`` with the scale held at its initial value 1, so the output trajectory is
+the rigid part ``[R | t]``. Every input frame gets a pose once the map exists (keyframes from the
+map, removed frames relative to a neighbour, frames buffered during initialisation interpolated);
+frames before a successful initialisation are omitted.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from ...errors import ConfigError, OptimizationError
+from ...factors.reprojection import ReprojectionConfig, reproject
+from ...factors.robust import kernel_weight
+from ...factors.schur import BlockConfig, torch_threads
+from ...lie import Sim3
+from ...map import GaugeConfig, MapConfig, SlamMap, pose_key
+from ..base import FrameStatus, Frontend, SensorMode
+from .ba import PatchBlock
+from .config import PatchConfig
+from .graph import GraphFrame, PatchGraph
+from .source import make_source
+
+logger = logging.getLogger(__name__)
+
+
+
+# ---------------------------------------------------------------------------------- helpers
+def _sim3(M: np.ndarray) -> Sim3:
+    return Sim3.from_matrix(torch.as_tensor(np.asarray(M, dtype=np.float64)))
+
+
+def _matrix(T: Sim3) -> np.ndarray:
+    return T.matrix().numpy().astype(np.float64)
+
+
+def _rigid(M: np.ndarray) -> np.ndarray:
+    """Rigid part ``[R | t]`` of a Sim(3) matrix ``[[s R, t], [0, 1]]``."""
+    out = np.array(M, dtype=np.float64, copy=True)
+    s = np.cbrt(np.linalg.det(out[:3, :3]))
+    out[:3, :3] /= s
+    return out
+
+
+def _interp(Ta: np.ndarray, Tb: np.ndarray, alpha: float) -> np.ndarray:
+    """``Ta Exp(alpha Log(Ta^-1 Tb))`` on Sim(3) matrices."""
+    A = _sim3(Ta)
+    rel = (A.inverse() @ _sim3(Tb)).log()
+    return _matrix(A @ Sim3.exp(alpha * rel))
+
+
+def _components(M: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(R, t, s)`` tensors of a batch of Sim(3) matrices (n, 4, 4)."""
+    M = torch.as_tensor(M, dtype=torch.float64)
+    sR = M[..., :3, :3]
+    s = torch.linalg.det(sR).abs().pow(1.0 / 3.0)
+    return sR / s[..., None, None], M[..., :3, 3], s
+
+
+def select_patches(image: np.ndarray, count: int, border: int, grid: list[int], method: str,
+                   rng: np.random.Generator, block: int = 8, score_width: int = 0) -> np.ndarray:
+    """Patch centres (count, 2) float64 in a grey image.
+
+    ``corners``: the strongest local maxima (one per ``block`` x ``block`` pixels) of the min-eigenvalue corner
+    response, an equal share per cell of a ``grid[0] x grid[1]`` grid, topped up with the best
+    remaining ones; ``random``: uniform (DPVO). Centres keep ``border`` pixels from the edges.
+    ``score_width`` > 0: the response is computed on the image resized to at most that width
+    (centres are mapped back to full-resolution pixels).
+    """
+    import cv2
+
+    h, w = image.shape
+    if method == "random":
+        u = rng.uniform(border, w - 1 - border, count)
+        v = rng.uniform(border, h - 1 - border, count)
+        return np.stack([np.round(u), np.round(v)], 1)
+    if 0 < score_width < w:
+        a = score_width / w
+        small = cv2.resize(image, (score_width, max(1, round(h * a))), interpolation=cv2.INTER_AREA)
+        block_s = max(2, round(block * a))
+        border_s = int(np.ceil((border + 0.5) * a))
+        uv = select_patches(small, count, border_s, grid, method, rng, block_s)
+        uv = np.round((uv + 0.5) / a - 0.5)
+        uv[:, 0] = uv[:, 0].clip(border, w - 1 - border)
+        uv[:, 1] = uv[:, 1].clip(border, h - 1 - border)
+        return uv
+    score = cv2.cornerMinEigenVal(image, 3)
+    inner = score[border: h - border, border: w - border]
+    hb, wb = inner.shape[0] // block, inner.shape[1] // block
+    tiles = inner[: hb * block, : wb * block].reshape(hb, block, wb, block).transpose(0, 2, 1, 3).reshape(hb, wb, -1)
+    arg = tiles.argmax(-1)
+    best = np.take_along_axis(tiles, arg[..., None], -1)[..., 0].reshape(-1)
+    by, bx = np.meshgrid(np.arange(hb), np.arange(wb), indexing="ij")
+    v = (by * block + arg // block).reshape(-1) + border
+    u = (bx * block + arg % block).reshape(-1) + border
+    gx, gy = grid
+    cell = (u * gx // w).clip(0, gx - 1) + gx * (v * gy // h).clip(0, gy - 1)
+    # small random jitter breaks ties between equal scores (flat regions)
+    order = np.lexsort((-(best + rng.uniform(0, 1e-9, best.shape)), cell))
+    cell_sorted = cell[order]
+    first = np.searchsorted(cell_sorted, cell_sorted, side="left")
+    rank = np.arange(order.size) - first
+    quota = max(1, count // (gx * gy))
+    chosen = order[rank < quota]
+    chosen = chosen[np.argsort(-best[chosen])][:count]
+    if chosen.size < count:
+        rest = np.setdiff1d(np.argsort(-best), chosen, assume_unique=False)
+        rest = rest[np.argsort(-best[rest])][: count - chosen.size]
+        chosen = np.concatenate([chosen, rest])
+    uv = np.stack([u[chosen], v[chosen]], 1).astype(np.float64)
+    if uv.shape[0] < count:  # tiny image: pad with random centres
+        extra = count - uv.shape[0]
+        uv = np.concatenate([uv, np.stack([rng.uniform(border, w - 1 - border, extra),
+                                            rng.uniform(border, h - 1 - border, extra)], 1).round()])
+    return uv
+
+
+@dataclass
+class _InitState:
+    """Monocular initialisation: a reference frame and the frames buffered since."""
+
+    ref_fid: int
+    ref_frame: object
+    ref_features: object
+    ref_uv: np.ndarray
+    buffer: list = field(default_factory=list)  # (fid, frame, features, tracked uv, valid)
+
+
+class PatchFrontend(Frontend):
+    """DPVO / DPV-SLAM-style patch frontend (see module docstring).
+
+    Args:
+        config: the ``patch`` section (:class:`PatchConfig`; default values when None).
+        calibration: the frames' :class:`fgslam.io.calibration.Calibration` (undistorted pinhole;
+            a right camera and ``T_CLCR`` for stereo); None: taken from the first frame.
+        sensor_mode: ``mono``, ``stereo`` (needs right images) or ``rgbd`` (needs depth).
+        map_config: solver settings for the local bundle adjustment (its iteration count and gauge
+            are set by the frontend); None: :class:`fgslam.map.MapConfig` defaults.
+    """
+
+    name = "patch"
+
+    def __init__(self, config: PatchConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
+                 map_config: MapConfig | None = None):
+        self.config = config or PatchConfig()
+        self.config.validate()
+        if sensor_mode not in ("mono", "stereo", "rgbd"):
+            raise ConfigError(f"sensor mode must be mono, stereo or rgbd, got {sensor_mode!r}")
+        self.sensor_mode = sensor_mode
+        self.map_config = map_config or MapConfig()
+        self.source = make_source(self.config)
+        self.calibration = None
+        if calibration is not None:
+            self._set_calibration(calibration)
+        self.graph = PatchGraph(self.config.graph, self.config.graph.max_inactive_edges)
+        self._rng = np.random.default_rng(self.config.graph.seed)
+        self._initialized = False
+        self._init: _InitState | None = None
+        self._records: dict[int, tuple] = {}  # fid -> pose record (see _resolve)
+        self._inputs: list[tuple[int, float, int]] = []  # (fid, timestamp, index) per input frame
+        self._sources: dict[int, str] = {}
+        self._velocity = np.eye(4)
+        self._last_fid: int | None = None
+        self._lost = 0
+        self._failures = 0
+        self._times = {"flow": 0.0, "ba": 0.0, "bookkeeping": 0.0}
+        self._points: list[tuple[np.ndarray, np.ndarray]] = []  # finalised keyframes' (X_W, colour)
+        self._reproj = ReprojectionConfig(min_depth=self.config.ba.min_depth)
+        self._last_residual = np.zeros(0)
+        self._fid = 0
+        self._finalised = 0  # keyframes that left the graph (pose final)
+        self._keys: dict[int, int] = {}  # fid -> gtsam key cache (bounded to about the graph size)
+
+    # ------------------------------------------------------------------ calibration
+    def _set_calibration(self, calibration) -> None:
+        self.calibration = calibration
+        self.K = torch.as_tensor(np.asarray(calibration.K, dtype=np.float64))
+        self.width, self.height = int(calibration.width), int(calibration.height)
+        self.K_right = None
+        self.T_CRCL = None
+        if self.sensor_mode == "stereo":
+            if calibration.right is None or calibration.T_CLCR is None:
+                raise ConfigError("sensor mode stereo needs a calibration with a right camera and T_CLCR")
+            self.K_right = torch.as_tensor(np.asarray(calibration.right.K, dtype=np.float64))
+            self.T_CRCL = np.linalg.inv(np.asarray(calibration.T_CLCR, dtype=np.float64))
+        half = (self.config.graph.patch_size * self.config.graph.patch_stride) // 2 + 1
+        self._border = max(self.config.graph.border, half)
+
+    def _key(self, fid: int) -> int:
+        """gtsam key of graph frame ``fid`` (``fgslam.map.pose_key``), cached."""
+        key = self._keys.get(fid)
+        if key is None:
+            if len(self._keys) > 4 * (len(self.graph) + 1):
+                self._keys = {f.fid: self._keys[f.fid] for f in self.graph.frames if f.fid in self._keys}
+            key = self._keys[fid] = pose_key(fid)
+        return key
+
+    # ------------------------------------------------------------------ Frontend API
+    def num_keyframes(self) -> int:
+        return len(self.graph) + self._finalised
+
+    def stage_times(self) -> dict[str, float]:
+        return dict(self._times)
+
+    @property
+    def num_failures(self) -> int:
+        """Frames whose pose came from the motion model (tracking failures)."""
+        return self._failures
+
+    def process(self, frame) -> FrameStatus:
+        if self.calibration is None:
+            self._set_calibration(frame.calibration)
+        self._check_frame(frame)
+        fid = self._fid
+        self._fid += 1
+        self._inputs.append((fid, float(frame.timestamp), int(frame.index)))
+        self._records[fid] = None
+        try:
+            with torch_threads(self.config.threads):
+                if not self._initialized:
+                    status = self._initialize(fid, frame)
+                else:
+                    status = self._track(fid, frame)
+        except (OptimizationError, RuntimeError, np.linalg.LinAlgError) as exc:  # numerical trouble (gtsam/torch/numpy): never crash on one frame
+            logger.warning("frame %d: optimisation failed (%s); using the motion model", frame.index, exc)
+            if self.graph.frames and self.graph.frames[-1].fid == fid:
+                self.graph.remove_frame(fid)
+            status = self._fail(fid, frame, f"optimisation failed: {exc}")
+        self._sources[fid] = status.pose_source
+        return status
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        stamps, poses, sources = [], [], []
+        cache: dict[int, np.ndarray | None] = {}
+        for fid, stamp, _ in self._inputs:
+            T = self._resolve(fid, cache)
+            if T is None:
+                continue
+            stamps.append(stamp)
+            poses.append(_rigid(T))
+            sources.append(self._sources.get(fid, "tracked"))
+        if not poses:
+            return np.zeros(0), np.zeros((0, 4, 4)), []
+        return np.array(stamps), np.stack(poses), sources
+
+    def keyframe_points(self) -> tuple[np.ndarray, np.ndarray] | None:
+        chunks = list(self._points) + [self._frame_points(f) for f in self.graph.frames]
+        if not chunks:
+            return None
+        return np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks])
+
+    def finish(self) -> None:
+        logger.info("patch frontend: %d frames, %d keyframes, %d tracking failures",
+                    len(self._inputs), self.num_keyframes(), self._failures)
+
+    # ------------------------------------------------------------------ frames and poses
+    def _check_frame(self, frame) -> None:
+        if frame.image.shape != (self.height, self.width):
+            raise ConfigError(f"frame {frame.index}: image {frame.image.shape} does not match the calibration {self.width}x{self.height}")
+        if self.sensor_mode == "stereo" and frame.image_right is None:
+            raise ConfigError(f"frame {frame.index}: sensor mode stereo but the frame has no right image")
+        if self.sensor_mode == "rgbd" and frame.depth is None:
+            raise ConfigError(f"frame {frame.index}: sensor mode rgbd but the frame has no depth")
+
+    def _resolve(self, fid: int, cache: dict) -> np.ndarray | None:
+        if fid in cache:
+            return cache[fid]
+        rec = self._records.get(fid)
+        T = None
+        if rec is None:
+            T = None
+        elif rec[0] == "graph":
+            T = self.graph.frame(fid).T_WC
+        elif rec[0] == "abs":
+            T = rec[1]
+        elif rec[0] == "rel":
+            ref = self._resolve(rec[1], cache)
+            T = None if ref is None else ref @ rec[2]
+        elif rec[0] == "interp":
+            Ta, Tb = self._resolve(rec[1], cache), self._resolve(rec[2], cache)
+            T = None if Ta is None or Tb is None else _interp(Ta, Tb, rec[3])
+        cache[fid] = T
+        return T
+
+    def _pose_of(self, fid: int) -> np.ndarray | None:
+        return self._resolve(fid, {})
+
+    def _status(self, fid, frame, source, is_keyframe=False, num_valid=0, events=None) -> FrameStatus:
+        T = self._pose_of(fid)
+        return FrameStatus(index=int(frame.index), timestamp=float(frame.timestamp),
+                           T_WC=None if T is None else _rigid(T), pose_source=source,
+                           is_keyframe=is_keyframe, num_valid=int(num_valid), events=list(events or []))
+
+    def _predict(self) -> np.ndarray:
+        """Damped constant-velocity prediction from the last posed frame."""
+        T_last = self._pose_of(self._last_fid)
+        damping = self.config.tracking.motion_damping
+        V = _matrix(Sim3.exp(damping * _sim3(self._velocity).log()))
+        return T_last @ V
+
+    def _update_velocity(self, fid: int) -> None:
+        if self._last_fid is not None:
+            T_prev, T_new = self._pose_of(self._last_fid), self._pose_of(fid)
+            if T_prev is not None and T_new is not None:
+                steps = max(1, fid - self._last_fid)
+                V = np.linalg.inv(T_prev) @ T_new
+                self._velocity = V if steps == 1 else _matrix(Sim3.exp(_sim3(V).log() / steps))
+        self._last_fid = fid
+
+    def _frame_points(self, f: GraphFrame) -> tuple[np.ndarray, np.ndarray]:
+        K = self.K.numpy()
+        ok = f.inv_depth > 0
+        rays = np.stack([(f.uv[:, 0] - K[2]) / K[0], (f.uv[:, 1] - K[3]) / K[1], np.ones(len(f.uv))], 1)
+        X_C = rays[ok] / f.inv_depth[ok, None]
+        X_W = X_C @ f.T_WC[:3, :3].T + f.T_WC[:3, 3]
+        return X_W, f.colour[ok]
+
+    # ------------------------------------------------------------------ graph frames
+    def _sensor_inv_depth(self, frame, uv: np.ndarray) -> np.ndarray:
+        out = np.full(len(uv), np.nan)
+        if self.sensor_mode != "rgbd" or frame.depth is None:
+            return out
+        depth = frame.depth
+        h, w = depth.shape
+        r = self.config.ba.depth_window
+        offs = np.arange(-r, r + 1)
+        us = (uv[:, 0:1].round().astype(int) + offs[None, :]).clip(0, w - 1)
+        vs = (uv[:, 1:2].round().astype(int) + offs[None, :]).clip(0, h - 1)
+        win = depth[vs[:, :, None], us[:, None, :]].reshape(len(uv), -1).astype(np.float64)
+        ba = self.config.ba
+        valid = (win > ba.depth_min) & (win <= ba.depth_max)
+        win = np.where(valid, win, np.nan)
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows: no reading there
+            med = np.nanmedian(win, axis=1)
+            spread = (np.nanmax(win, axis=1) - np.nanmin(win, axis=1)) / med
+        good = (valid.sum(1) > valid.shape[1] // 2) & np.isfinite(med) & (spread < ba.depth_max_spread)
+        out[good] = 1.0 / med[good]
+        return out
+
+    def _new_graph_frame(self, fid: int, frame, T_WC: np.ndarray, features, features_right) -> GraphFrame:
+        gcfg = self.config.graph
+        uv = select_patches(frame.image, gcfg.patches_per_frame, self._border, gcfg.selection_grid, gcfg.selection, self._rng,
+                            gcfg.candidate_block, gcfg.score_width)
+        ui, vi = uv[:, 0].astype(int), uv[:, 1].astype(int)
+        if frame.rgb is not None:
+            colour = frame.rgb[vi, ui].astype(np.uint8)
+        else:
+            colour = np.repeat(frame.image[vi, ui][:, None], 3, 1).astype(np.uint8)
+        sensor = self._sensor_inv_depth(frame, uv)
+        if len(self.graph):
+            prev = self.graph.frames[-1].inv_depth
+            median = float(np.median(prev[prev > 0])) if (prev > 0).any() else 1.0
+        else:
+            median = float(np.nanmedian(sensor)) if np.isfinite(sensor).any() else 1.0
+        inv_depth = np.where(np.isfinite(sensor), sensor, median)
+        return GraphFrame(fid=fid, index=int(frame.index), timestamp=float(frame.timestamp), T_WC=np.array(T_WC, dtype=np.float64),
+                          uv=uv, inv_depth=inv_depth, sensor_inv_depth=sensor, colour=colour,
+                          features=features, features_right=features_right)
+
+    def _prepare(self, frame):
+        t0 = time.perf_counter()
+        feats = self.source.prepare(frame.image)
+        feats_right = self.source.prepare(frame.image_right) if self.sensor_mode == "stereo" else None
+        self._times["flow"] += time.perf_counter() - t0
+        return feats, feats_right
+
+    # ------------------------------------------------------------------ measurement
+    def _predict_edges(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Source pixels (n, 2), current reprojections (n, 2) and validity (n,) of edges ``idx``."""
+        g = self.graph
+        src, tgt, patch, right = g.src[idx], g.tgt[idx], g.patch[idx], g.right[idx]
+        pos_s, pos_t = g.positions(src), g.positions(tgt)
+        uv_all = np.stack([f.uv for f in g.frames])
+        d_all = np.stack([f.inv_depth for f in g.frames])
+        uv_src = uv_all[pos_s, patch]
+        d = d_all[pos_s, patch]
+        R, t, s = _components(np.stack([f.T_WC for f in g.frames]))
+        pred = np.zeros((len(idx), 2))
+        ok = np.zeros(len(idx), bool)
+        for mask, K_t, T_ext in ((~right, self.K, None), (right, self.K_right, self.T_CRCL)):
+            if not mask.any():
+                continue
+            ps, pt = torch.as_tensor(pos_s[mask]), torch.as_tensor(pos_t[mask])
+            uv, valid = reproject(torch.as_tensor(uv_src[mask]), torch.as_tensor(d[mask]), (R[ps], t[ps], s[ps]),
+                                  (R[pt], t[pt], s[pt]), self.K, K_t, T_CtCj=T_ext, config=self._reproj)
+            pred[mask] = uv.numpy()
+            ok[mask] = valid.numpy()
+        margin = 0.5 * self.config.graph.patch_size * self.config.graph.patch_stride
+        inside = (pred[:, 0] >= margin) & (pred[:, 0] <= self.width - 1 - margin) & (pred[:, 1] >= margin) & (pred[:, 1] <= self.height - 1 - margin)
+        return uv_src, pred, ok & inside
+
+    def _measure(self, idx: np.ndarray) -> None:
+        """Measure edges ``idx`` with the source, started from their current reprojection."""
+        if idx.size == 0:
+            return
+        t0 = time.perf_counter()
+        g = self.graph
+        uv_src, pred, ok = self._predict_edges(idx)
+        g.confidence[idx] = 0.0
+        g.robust[idx] = 1.0
+        frames = {f.fid: f for f in g.frames}
+        key = (g.src[idx] * (g.tgt.max() + 1) + g.tgt[idx]) * 2 + g.right[idx]
+        requests, selections = [], []
+        for k in np.unique(key[ok]):
+            sel = np.nonzero(ok & (key == k))[0]
+            e0 = idx[sel[0]]
+            fs, ft = frames[int(g.src[e0])], frames[int(g.tgt[e0])]
+            tgt_feats = ft.features_right if g.right[e0] else ft.features
+            if fs.features is None or tgt_feats is None:
+                continue
+            requests.append((fs.features, tgt_feats, uv_src[sel], pred[sel]))
+            selections.append(idx[sel])
+        for edges, m in zip(selections, self.source.measure_batch(requests)):
+            g.uv[edges] = m.uv
+            g.confidence[edges] = m.confidence
+        self._times["flow"] += time.perf_counter() - t0
+
+    # ------------------------------------------------------------------ bundle adjustment
+    def _optimize(self, iterations: int, init: bool) -> dict:
+        """Local BA over the optimisation window (all graph frames with ``init``); updates poses,
+        depths and robust weights. Returns a small report dict."""
+        t0 = time.perf_counter()
+        g = self.graph
+        cfg = self.config
+        fids = g.fids
+        n = len(fids)
+        K = cfg.graph.patches_per_frame
+        if init:
+            var = fids.copy()
+        else:
+            keep_fixed = 2 if self.sensor_mode == "mono" else 1
+            nvar = max(1, min(cfg.graph.optimization_window, n - keep_fixed))
+            var = fids[n - nvar:]
+        measured = g.confidence > 0
+        touch = measured & (np.isin(g.src, var) | np.isin(g.tgt, var))
+        pkey = g.src * K + g.patch
+        use = measured & np.isin(pkey, np.unique(pkey[touch]))
+        e = np.nonzero(use)[0]
+        self._last_residual = np.full(g.num_edges, np.inf)
+        if e.size == 0:
+            self._times["ba"] += time.perf_counter() - t0
+            return {"edges": 0}
+        used_frames = np.union1d(np.union1d(g.src[e], g.tgt[e]), var)
+        fixed = np.setdiff1d(used_frames, var)
+        order = list(var) + list(fixed)
+        if init and self.sensor_mode == "mono" and len(var) >= 2:
+            # the range gauge acts between the first two keyframes: use the widest baseline
+            order = [var[0], var[-1]] + list(var[1:-1])
+            var_order = order
+        else:
+            var_order = list(var)
+        local_fids = np.array(var_order + list(fixed), dtype=np.int64)
+        sorter = np.argsort(local_fids)
+        src_l = sorter[np.searchsorted(local_fids, g.src[e], sorter=sorter)]
+        tgt_l = sorter[np.searchsorted(local_fids, g.tgt[e], sorter=sorter)]
+        ukeys, struct_idx = np.unique(pkey[e], return_inverse=True)
+        pos_src = g.positions(ukeys // K)
+        d_all = np.stack([f.inv_depth for f in g.frames])
+        uv_all = np.stack([f.uv for f in g.frames])
+        depth0 = d_all[pos_src, ukeys % K]
+        uv_src = uv_all[g.positions(g.src[e]), g.patch[e]]
+        weights = g.confidence[e] * g.robust[e] / cfg.ba.pixel_sigma ** 2
+        prior = {}
+        if self.sensor_mode == "rgbd":
+            sens = np.stack([f.sensor_inv_depth for f in g.frames])[pos_src, ukeys % K]
+            has = np.isfinite(sens) & (sens > 0)
+            prior = dict(prior_idx=np.nonzero(has)[0], prior_value=sens[has],
+                         prior_weight=1.0 / (cfg.ba.depth_prior_sigma * sens[has]) ** 2)
+        fixed_T = g.poses(fixed) if len(fixed) else np.zeros((0, 4, 4))
+        fR, ft, fs = _components(fixed_T)
+        block = PatchBlock(
+            [self._key(int(f)) for f in var_order], fR, ft, fs, src_l, tgt_l, g.right[e], uv_src, g.uv[e], weights,
+            struct_idx, self.K, depth0, K_right=self.K_right, T_CRCL=self.T_CRCL,
+            config=BlockConfig(threads=cfg.ba.threads), reprojection=self._reproj, **prior,
+        )
+        mono_init = init and self.sensor_mode == "mono"
+        gauge = GaugeConfig(fix_anchor=mono_init or len(fixed) == 0, hold_scale=True, world_scale_range=mono_init)
+        mcfg = replace(self.map_config, max_iterations=iterations, refine_steps=cfg.ba.refine_steps,
+                       threads=cfg.ba.threads, gauge=gauge, solver="python_lm")
+        smap = SlamMap(mcfg)
+        for f in var_order:
+            smap.add_keyframe(int(f), _sim3(g.frame(int(f)).T_WC).to_gtsam())
+        smap.add_block(block)
+        report = smap.optimize()
+        # write back poses and depths
+        for f in var_order:
+            g.frame(int(f)).T_WC = _matrix(Sim3.from_gtsam(smap.pose(int(f))))
+        depth = block.structure.numpy()
+        for pos in np.unique(pos_src):
+            sel = pos_src == pos
+            g.frames[pos].inv_depth[ukeys[sel] % K] = depth[sel]
+        # robust weights from the final residuals
+        r, valid = block.residuals(smap.values)
+        rn = torch.linalg.vector_norm(r, dim=1).numpy()
+        e_white = np.sqrt(g.confidence[e]) * rn / cfg.ba.pixel_sigma
+        robust = kernel_weight(torch.as_tensor(e_white), "huber", cfg.ba.huber_delta).numpy()
+        robust = np.where(valid.numpy() & (rn <= cfg.ba.outlier_threshold), robust, 0.0)
+        g.robust[e] = robust
+        self._last_residual[e] = np.where(valid.numpy(), rn, np.inf)
+        self._times["ba"] += time.perf_counter() - t0
+        return {"edges": int(e.size), "initial_cost": report.initial_cost, "final_cost": report.final_cost,
+                "iterations": report.iterations}
+
+    def _rounds(self, new_edges: np.ndarray, rounds: int, iterations: int, init: bool, new_fid: int | None) -> int:
+        """Measure / optimise rounds; returns the number of valid new measurements of ``new_fid``."""
+        g = self.graph
+        to_measure = new_edges
+        valid_new = 0
+        for r in range(rounds):
+            self._measure(to_measure)
+            if new_fid is not None:
+                valid_new = self._valid_into(new_fid)
+                if valid_new < self.config.tracking.min_valid_edges:
+                    return valid_new
+            self._optimize(iterations, init)
+            if r + 1 < rounds:
+                created = np.arange(g.num_edges) if init else np.nonzero(g.created == new_fid)[0]
+                res = self._last_residual[created]
+                redo = (g.confidence[created] <= 0) | (res > self.config.ba.retrack_threshold)
+                to_measure = created[redo]
+        # drop edges that never got a valid measurement
+        t0 = time.perf_counter()
+        g._select(g.confidence > 0)
+        self._times["bookkeeping"] += time.perf_counter() - t0
+        if new_fid is not None:
+            valid_new = self._valid_into(new_fid)
+        return valid_new
+
+    def _valid_into(self, fid: int) -> int:
+        g = self.graph
+        ok = (g.confidence > 0) & (g.robust > 0) & ~g.right
+        return int((ok & ((g.tgt == fid) | (g.src == fid))).sum())
+
+    # ------------------------------------------------------------------ initialisation
+    def _initialize(self, fid: int, frame) -> FrameStatus:
+        if self.sensor_mode in ("stereo", "rgbd"):
+            return self._initialize_metric(fid, frame, np.eye(4) if self._last_fid is None else self._predict())
+        return self._initialize_mono(fid, frame)
+
+    def _initialize_metric(self, fid: int, frame, T_WC: np.ndarray) -> FrameStatus:
+        feats, feats_right = self._prepare(frame)
+        t0 = time.perf_counter()
+        gf = self._new_graph_frame(fid, frame, T_WC, feats, feats_right)
+        self.graph.add_frame(gf)
+        self._records[fid] = ("graph",)
+        self._times["bookkeeping"] += time.perf_counter() - t0
+        if self.sensor_mode == "stereo":
+            idx = self.graph.connect_all(stereo=True)
+            self._measure(idx)
+            ok = self.graph.confidence[idx] > 0
+            self._refine_depths_fixed(idx[ok], self.config.ba.stereo_init_steps)
+            valid = int(ok.sum())
+            self.graph._select(self.graph.confidence > 0)
+        else:
+            valid = int(np.isfinite(gf.sensor_inv_depth).sum())
+        if valid < self.config.tracking.min_valid_edges:
+            self.graph.clear()
+            self._records[fid] = None
+            return self._status(fid, frame, "initializing", events=[f"waiting for depth ({valid} valid patches)"])
+        self._initialized = True
+        self._lost = 0
+        self._update_velocity(fid)
+        return self._status(fid, frame, "tracked", is_keyframe=True, num_valid=valid, events=["initialised"])
+
+    def _refine_depths_fixed(self, idx: np.ndarray, steps: int) -> None:
+        """Per-patch Gauss-Newton on inverse depth with every pose fixed (stereo initial depths)."""
+        if idx.size == 0:
+            return
+        g = self.graph
+        K = self.config.graph.patches_per_frame
+        pkey = g.src[idx] * K + g.patch[idx]
+        ukeys, struct_idx = np.unique(pkey, return_inverse=True)
+        frames_used = np.union1d(g.src[idx], g.tgt[idx])
+        R, t, s = _components(g.poses(frames_used))
+        pos_src = g.positions(ukeys // K)
+        d0 = np.stack([f.inv_depth for f in g.frames])[pos_src, ukeys % K]
+        uv_src = np.stack([f.uv for f in g.frames])[g.positions(g.src[idx]), g.patch[idx]]
+        block = PatchBlock([], R, t, s, np.searchsorted(frames_used, g.src[idx]), np.searchsorted(frames_used, g.tgt[idx]),
+                           g.right[idx], uv_src, g.uv[idx], g.confidence[idx], struct_idx, self.K, d0,
+                           K_right=self.K_right, T_CRCL=self.T_CRCL, reprojection=self._reproj)
+        block.refine_structure(None, steps)
+        depth = block.structure.numpy()
+        for pos in np.unique(pos_src):
+            sel = pos_src == pos
+            g.frames[pos].inv_depth[ukeys[sel] % K] = depth[sel]
+
+    def _initialize_mono(self, fid: int, frame) -> FrameStatus:
+        tcfg = self.config.tracking
+        feats, _ = self._prepare(frame)
+        st = self._init
+        if st is None:
+            uv = select_patches(frame.image, self.config.graph.patches_per_frame, self._border,
+                                self.config.graph.selection_grid, self.config.graph.selection, self._rng,
+                                self.config.graph.candidate_block, self.config.graph.score_width)
+            self._init = _InitState(fid, frame, feats, uv)
+            return self._status(fid, frame, "initializing", events=["initialisation reference"])
+        last_uv = st.buffer[-1][3] if st.buffer else st.ref_uv
+        last_valid = st.buffer[-1][4] if st.buffer else np.ones(len(st.ref_uv), bool)
+        t0 = time.perf_counter()
+        m = self.source.measure(st.ref_features, feats, st.ref_uv, last_uv)
+        self._times["flow"] += time.perf_counter() - t0
+        valid = last_valid & (m.confidence > 0)
+        st.buffer.append((fid, frame, feats, m.uv, valid))
+        if int(valid.sum()) < tcfg.init_min_tracks:
+            # lost the reference: the buffered frames never get a pose; restart from this frame
+            for b in st.buffer[:-1]:
+                self._records[b[0]] = None
+            uv = select_patches(frame.image, self.config.graph.patches_per_frame, self._border,
+                                self.config.graph.selection_grid, self.config.graph.selection, self._rng,
+                                self.config.graph.candidate_block, self.config.graph.score_width)
+            self._init = _InitState(fid, frame, feats, uv)
+            return self._status(fid, frame, "initializing", events=["initialisation reference reset (tracks lost)"])
+        if len(st.buffer) >= tcfg.init_max_frames:
+            # subsample: drop the second-newest frame every other time, interpolated later
+            drop = len(st.buffer) - 2 if len(st.buffer) % 2 else 0
+            dropped = st.buffer.pop(drop)
+            prev = st.ref_fid if drop == 0 else st.buffer[drop - 1][0]
+            nxt = st.buffer[drop][0]
+            alpha = (dropped[1].timestamp - self._stamp(prev)) / max(self._stamp(nxt) - self._stamp(prev), 1e-9)
+            self._records[dropped[0]] = ("interp", prev, nxt, float(alpha))
+        if len(st.buffer) + 1 < tcfg.init_min_frames:
+            return self._status(fid, frame, "initializing", events=["collecting initialisation frames"])
+        ok, T_C0Cn, depths, parallax = self._two_view(st.ref_uv[valid], m.uv[valid])
+        if not ok:
+            return self._status(fid, frame, "initializing", events=[f"waiting for parallax ({parallax:.1f} px)"])
+        return self._build_initial_map(fid, frame, valid, T_C0Cn, depths)
+
+    def _stamp(self, fid: int) -> float:
+        for f, stamp, _ in reversed(self._inputs):
+            if f == fid:
+                return stamp
+        raise KeyError(fid)
+
+    def _two_view(self, uv0: np.ndarray, uv1: np.ndarray):
+        """Essential-matrix test: (ok, T_C0C1 (4, 4) with |t| = 1, inverse depths of uv0 (NaN: none), parallax px)."""
+        import cv2
+
+        tcfg = self.config.tracking
+        flow = np.linalg.norm(uv1 - uv0, axis=1)
+        if np.median(flow) < tcfg.init_min_parallax:
+            return False, None, None, float(np.median(flow))
+        Kmat = np.array([[self.K[0], 0, self.K[2]], [0, self.K[1], self.K[3]], [0, 0, 1]], dtype=np.float64)
+        E, mask = cv2.findEssentialMat(uv0, uv1, Kmat, cv2.RANSAC, 0.999, tcfg.init_ransac_threshold)
+        if E is None or E.shape != (3, 3):
+            return False, None, None, 0.0
+        _, R, t, mask = cv2.recoverPose(E, uv0, uv1, Kmat, mask=mask)
+        inl = mask.reshape(-1) > 0
+        if inl.mean() < tcfg.init_min_inlier_ratio:
+            return False, None, None, 0.0
+        K = self.K.numpy()
+        rays0 = np.stack([(uv0[:, 0] - K[2]) / K[0], (uv0[:, 1] - K[3]) / K[1], np.ones(len(uv0))], 1)
+        rot = rays0 @ R.T
+        uv_rot = np.stack([K[0] * rot[:, 0] / rot[:, 2] + K[2], K[1] * rot[:, 1] / rot[:, 2] + K[3]], 1)
+        parallax = float(np.median(np.linalg.norm(uv1[inl] - uv_rot[inl], axis=1)))
+        if parallax < tcfg.init_min_parallax:
+            return False, None, None, parallax
+        P0 = Kmat @ np.hstack([np.eye(3), np.zeros((3, 1))])
+        P1 = Kmat @ np.hstack([R, t.reshape(3, 1)])
+        Xh = cv2.triangulatePoints(P0, P1, uv0.T.astype(np.float64), uv1.T.astype(np.float64))
+        z0 = Xh[2] / Xh[3]
+        z1 = (R @ (Xh[:3] / Xh[3]) + t.reshape(3, 1))[2]
+        good = inl & (z0 > 0) & (z1 > 0) & np.isfinite(z0)
+        inv_depth = np.where(good, 1.0 / np.where(good, z0, 1.0), np.nan)
+        T_C1C0 = np.eye(4)
+        T_C1C0[:3, :3] = R
+        T_C1C0[:3, 3] = t.reshape(3) / np.linalg.norm(t)
+        inv_depth = inv_depth * np.linalg.norm(t)
+        return True, np.linalg.inv(T_C1C0), inv_depth, parallax
+
+    def _build_initial_map(self, fid: int, frame, valid: np.ndarray, T_C0Cn: np.ndarray, depths: np.ndarray) -> FrameStatus:
+        st = self._init
+        T_W0 = np.eye(4) if self._last_fid is None else self._predict_reference()
+        t_ref, t_last = self._stamp(st.ref_fid), self._stamp(fid)
+        members = [(st.ref_fid, st.ref_frame, st.ref_features)] + [(b[0], b[1], b[2]) for b in st.buffer]
+        T_Wn = T_W0 @ T_C0Cn
+        for mfid, mframe, mfeats in members:
+            alpha = (float(mframe.timestamp) - t_ref) / max(t_last - t_ref, 1e-9)
+            T = _interp(T_W0, T_Wn, alpha) if mfid != st.ref_fid else T_W0
+            gf = self._new_graph_frame(mfid, mframe, T, mfeats, None)
+            if mfid == st.ref_fid:
+                gf.uv = st.ref_uv.copy()
+                d = np.full(len(gf.uv), np.nan)
+                d[np.nonzero(valid)[0]] = depths
+                med = float(np.nanmedian(d)) if np.isfinite(d).any() else 1.0
+                gf.inv_depth = np.where(np.isfinite(d), d, med)
+            else:
+                ref_d = self.graph.frames[0].inv_depth
+                gf.inv_depth[:] = float(np.median(ref_d))
+            self.graph.add_frame(gf)
+            self._records[mfid] = ("graph",)
+        idx = self.graph.connect_all(stereo=False)
+        ba = self.config.ba
+        self._rounds(idx, ba.init_rounds, ba.init_iterations, init=True, new_fid=None)
+        n_valid = int(((self.graph.confidence > 0) & (self.graph.robust > 0)).sum())
+        if n_valid < self.config.tracking.min_valid_edges * len(members):
+            logger.info("initialisation at frame %d rejected (%d valid edges); waiting", frame.index, n_valid)
+            for f in self.graph.clear():
+                self._records[f.fid] = None
+            self._init = None
+            return self._status(fid, frame, "initializing", events=["initialisation rejected"])
+        self._initialized = True
+        self._init = None
+        self._lost = 0
+        self._last_fid = None
+        for mfid, _, _ in members:
+            self._update_velocity(mfid)
+        logger.info("initialised at frame %d with %d frames, %d edges", frame.index, len(members), self.graph.num_edges)
+        return self._status(fid, frame, "tracked", is_keyframe=True, num_valid=n_valid, events=["initialised"])
+
+    def _predict_reference(self) -> np.ndarray:
+        return self._pose_of(self._last_fid)
+
+    # ------------------------------------------------------------------ tracking
+    def _track(self, fid: int, frame) -> FrameStatus:
+        cfg = self.config
+        T_pred = self._predict()
+        feats, feats_right = self._prepare(frame)
+        t0 = time.perf_counter()
+        gf = self._new_graph_frame(fid, frame, T_pred, feats, feats_right)
+        self.graph.add_frame(gf)
+        self._records[fid] = ("graph",)
+        idx = self.graph.connect_new_frame(self.sensor_mode == "stereo", cfg.ba.stereo_cross_edges)
+        self._times["bookkeeping"] += time.perf_counter() - t0
+        valid = self._rounds(idx, cfg.ba.rounds, cfg.ba.iterations, init=False, new_fid=fid)
+        if valid < cfg.tracking.min_valid_edges:
+            self.graph.remove_frame(fid)
+            return self._fail(fid, frame, f"tracking lost: {valid} valid measurements", T_pred)
+        self._lost = 0
+        t0 = time.perf_counter()
+        events = []
+        removed = self._remove_redundant()
+        if removed is not None:
+            events.append(f"keyframe {removed} removed")
+        self._retire()
+        self._update_velocity(fid)
+        self._times["bookkeeping"] += time.perf_counter() - t0
+        return self._status(fid, frame, "tracked", is_keyframe=True, num_valid=valid, events=events)
+
+    def _fail(self, fid: int, frame, reason: str, T_pred: np.ndarray | None = None) -> FrameStatus:
+        self._failures += 1
+        self._lost += 1
+        events = [reason]
+        if self._last_fid is None or not self._initialized:
+            self._records[fid] = None
+            return self._status(fid, frame, "initializing", events=events)
+        if T_pred is None:
+            T_pred = self._predict()
+        ref = self._last_fid
+        self._records[fid] = ("rel", ref, np.linalg.inv(self._pose_of(ref)) @ T_pred)
+        # keep the velocity; the next prediction continues from this frame
+        self._last_fid = fid
+        if self._lost > self.config.tracking.max_motion_model_frames:
+            events.append("re-initialising")
+            self._reset()
+        logger.info("frame %d: %s", frame.index, reason)
+        return self._status(fid, frame, "motion_model", events=events)
+
+    def _reset(self) -> None:
+        """Finalise the graph and start a new initialisation anchored at the last predicted pose."""
+        for f in self.graph.clear():
+            self._records[f.fid] = ("abs", f.T_WC.copy())
+            self._points.append(self._frame_points(f))
+            self._finalised += 1
+        self._initialized = False
+        self._init = None
+        self._lost = 0
+
+    def _remove_redundant(self) -> int | None:
+        """DPVO keyframe removal: drop the frame ``keyframe_index`` positions before the newest when
+        the mean flow between its two neighbours is below ``keyframe_threshold``."""
+        g = self.graph
+        n = len(g) - 1
+        k = n - self.config.tracking.keyframe_index
+        if k < 1 or self.sensor_mode == "mono" and len(g) <= 3:
+            return None
+        a, b = g.frames[k - 1], g.frames[k + 1]
+        flow = 0.5 * (self._mean_flow(a, b) + self._mean_flow(b, a))
+        if flow >= self.config.tracking.keyframe_threshold:
+            return None
+        victim = g.frames[k]
+        self._records[victim.fid] = ("rel", a.fid, np.linalg.inv(a.T_WC) @ victim.T_WC)
+        g.remove_frame(victim.fid)
+        return int(victim.index)
+
+    def _mean_flow(self, a: GraphFrame, b: GraphFrame) -> float:
+        Ra, ta, sa = _components(a.T_WC[None])
+        Rb, tb, sb = _components(b.T_WC[None])
+        uv, ok = reproject(torch.as_tensor(a.uv), torch.as_tensor(a.inv_depth), (Ra[0], ta[0], sa[0]),
+                           (Rb[0], tb[0], sb[0]), self.K, config=self._reproj)
+        ok = ok.numpy()
+        if not ok.any():
+            return float("inf")
+        return float(np.linalg.norm(uv.numpy()[ok] - a.uv[ok], axis=1).mean())
+
+    def _retire(self) -> None:
+        """Deactivate old edges, finalise frames no active edge reaches, release old caches."""
+        g = self.graph
+        gcfg = self.config.graph
+        g.deactivate_old_edges()
+        n = len(g) - 1
+        for f in g.frames[: max(0, n - gcfg.patch_lifetime)]:
+            f.features = None
+            f.features_right = None
+        for f in g.pop_frames_before(n - gcfg.removal_window - gcfg.patch_lifetime):
+            self._records[f.fid] = ("abs", f.T_WC.copy())
+            self._points.append(self._frame_points(f))
+            self._finalised += 1
+
+    # ------------------------------------------------------------------ global optimisation hooks
+    def inactive_edges(self) -> dict:
+        """The bounded store of inactive edges (see :class:`~.graph.InactiveEdges`)."""
+        return self.graph.inactive.arrays()
+

@@ -1,0 +1,98 @@
+"""Measurement sources of the patch frontend: the interface, the learned DPVO slot, the factory.
+
+A source turns an edge (i, k, j) of the patch graph, given the patch centre ``uv_src`` in frame i
+and its current reprojection ``uv_pred`` in frame j, into a target ``uv`` (the BA observation;
+``uv - uv_pred`` is DPVO's residual update Delta_ikj) and a confidence in [0, 1] (DPVO's weight
+w_ikj; 0 marks a rejected measurement). Sources cache per-frame work in the object returned by
+:meth:`MeasurementSource.prepare`, which the frontend keeps only for frames inside the patch lifetime.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ...errors import ConfigError, DataError
+
+if TYPE_CHECKING:
+    from .config import PatchConfig
+
+
+@dataclass
+class Measurement:
+    """``uv`` (n, 2) float64 target pixels, ``confidence`` (n,) in [0, 1] (0: rejected),
+    ``fb_error`` (n,) forward-backward error in pixels (0 where the source has none)."""
+
+    uv: np.ndarray
+    confidence: np.ndarray
+    fb_error: np.ndarray
+
+
+class MeasurementSource(abc.ABC):
+    """Where edge measurements come from (built-in Lucas-Kanade or a learned update operator)."""
+
+    name: str = ""
+
+    @abc.abstractmethod
+    def prepare(self, image: np.ndarray):
+        """Per-frame features of a grey uint8 image (H, W) (pyramids, feature maps...)."""
+
+    @abc.abstractmethod
+    def measure(self, src, tgt, uv_src: np.ndarray, uv_pred: np.ndarray) -> Measurement:
+        """Measure n patches of the frame with features ``src`` in the frame with features ``tgt``.
+
+        ``uv_src`` (n, 2) patch centres in the source image, ``uv_pred`` (n, 2) their current
+        reprojection in the target image (the starting point).
+        """
+
+    def measure_batch(self, requests: list) -> list[Measurement]:
+        """Measure ``[(src, tgt, uv_src, uv_pred), ...]`` (one frame's edges, grouped by frame
+        pair); sources override this to share work between requests."""
+        return [self.measure(*request) for request in requests]
+
+
+class LearnedDPVOSource(MeasurementSource):
+    """Slot of DPVO's learned update operator (correlation features + recurrent update emitting
+    Delta_ikj and w_ikj). It needs the ``dpvo.pth`` checkpoint, which is not shipped with fgslam;
+    without it construction fails with a :class:`DataError` naming the file and ``source: lk``.
+    """
+
+    name = "learned"
+
+    def __init__(self, checkpoint: str | None):
+        if checkpoint is None:
+            raise ConfigError(
+                "patch.source=learned needs patch.checkpoint (path of the DPVO weights dpvo.pth); "
+                "the built-in alternative is patch.source=lk"
+            )
+        path = Path(checkpoint).expanduser()
+        if not path.is_file():
+            raise DataError(
+                f"DPVO checkpoint {path} not found (patch.checkpoint); download dpvo.pth from the DPVO "
+                "project or use the built-in Lucas-Kanade source with patch.source=lk"
+            )
+        raise DataError(
+            f"DPVO checkpoint {path} found, but the learned DPVO update operator is not part of this "
+            "fgslam build yet; use the built-in source with patch.source=lk"
+        )
+
+    def prepare(self, image: np.ndarray):  # pragma: no cover - construction always fails for now
+        raise NotImplementedError
+
+    def measure(self, src, tgt, uv_src, uv_pred):  # pragma: no cover
+        raise NotImplementedError
+
+
+def make_source(config: "PatchConfig") -> MeasurementSource:
+    """The measurement source selected by ``config.source`` (``lk`` or ``learned``)."""
+    if config.source == "lk":
+        from .lk import LKSource
+
+        return LKSource(config.lk, config.graph.patch_size * config.graph.patch_stride)
+    if config.source == "learned":
+        return LearnedDPVOSource(config.checkpoint)
+    raise ConfigError(f"patch.source: unknown source {config.source!r} (expected lk or learned)")

@@ -1,0 +1,141 @@
+"""ORB keypoints and binary descriptors (OpenCV) with an even spread over the image.
+
+Conventions: images are (H, W) grey or (H, W, 3) RGB, uint8 or float in [0, 255]; keypoints are
+pixel coordinates ``uv`` (N, 2) float32 with integer values at pixel centres (OpenCV convention);
+descriptors are (N, 32) uint8 (256-bit rBRIEF). An image without texture yields N = 0 (no error).
+
+Spreading: OpenCV's ORB keeps the strongest FAST corners globally, which piles features onto the
+most contrasted region. Here ORB detects ``oversample * n_features`` corners, the image is divided
+into a ``grid_rows x grid_cols`` grid and every cell keeps its strongest corners up to an equal
+quota (cells with fewer corners give their spare quota to the global ranking), then descriptors are
+computed only for the kept corners.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ConfigError, DataError
+
+logger = logging.getLogger(__name__)
+
+DESCRIPTOR_BYTES = 32  # ORB rBRIEF: 256 bits
+
+
+@dataclass
+class OrbConfig:
+    """ORB extraction tunables."""
+
+    n_features: int = 1000          # keypoints kept per image (upper bound)
+    scale_factor: float = 1.2       # pyramid decimation ratio between levels
+    n_levels: int = 8               # pyramid levels
+    fast_threshold: int = 20        # FAST corner intensity threshold (grey levels)
+    edge_threshold: int = 31        # border (pixels) without keypoints; >= patch_size for descriptors
+    patch_size: int = 31            # rBRIEF patch size (pixels at the keypoint's level)
+    grid_rows: int = 4              # spreading grid; 1 x 1 disables spreading
+    grid_cols: int = 8
+    oversample: float = 3.0         # ORB detects this many times n_features before spreading
+
+    def validate(self) -> None:
+        if self.n_features < 1:
+            raise ConfigError(f"orb.n_features: must be >= 1 (got {self.n_features})")
+        if not self.scale_factor > 1.0:
+            raise ConfigError(f"orb.scale_factor: must be > 1 (got {self.scale_factor})")
+        if self.n_levels < 1 or self.grid_rows < 1 or self.grid_cols < 1:
+            raise ConfigError("orb.n_levels, orb.grid_rows, orb.grid_cols: must be >= 1")
+        if self.oversample < 1.0:
+            raise ConfigError(f"orb.oversample: must be >= 1 (got {self.oversample})")
+        if self.edge_threshold < self.patch_size // 2 + 1:
+            raise ConfigError(f"orb.edge_threshold ({self.edge_threshold}) must be > patch_size / 2 "
+                              f"({self.patch_size / 2})")
+
+
+def to_grey_uint8(image: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 grey image from (H, W) or (H, W, 3|4) uint8 / float [0, 255] input."""
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim == 3:
+        if img.shape[2] == 1:
+            img = img[..., 0]
+        elif img.shape[2] in (3, 4):
+            img = img[..., :3]
+            if img.dtype != np.uint8:
+                img = np.clip(img, 0.0, 255.0).astype(np.float32)
+            img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+        else:
+            raise DataError(f"ORB: image with {img.shape[2]} channels (expected 1, 3 or 4)")
+    if img.ndim != 2:
+        raise DataError(f"ORB: image of shape {image.shape} (expected (H, W) or (H, W, 3))")
+    if img.dtype != np.uint8:
+        img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(img)
+
+
+def spread_keypoints(uv: np.ndarray, response: np.ndarray, width: int, height: int,
+                     n_keep: int, grid_rows: int, grid_cols: int) -> np.ndarray:
+    """Indices of at most ``n_keep`` keypoints spread over a grid: each cell first keeps its
+    strongest ``ceil(n_keep / cells)`` points, then the remaining budget goes to the strongest of the
+    rest. ``uv`` (N, 2) pixels, ``response`` (N,). Returns sorted int64 indices."""
+    n = len(uv)
+    if n <= n_keep:
+        return np.arange(n)
+    col = np.clip((uv[:, 0] * grid_cols / width).astype(np.int64), 0, grid_cols - 1)
+    row = np.clip((uv[:, 1] * grid_rows / height).astype(np.int64), 0, grid_rows - 1)
+    cell = row * grid_cols + col
+    order = np.lexsort((-response, cell))            # by cell, strongest first within a cell
+    cell_sorted = cell[order]
+    first = np.searchsorted(cell_sorted, cell_sorted, side="left")
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n) - first                # rank of each point inside its cell
+    quota = -(-n_keep // (grid_rows * grid_cols))
+    primary = rank < quota
+    chosen = np.flatnonzero(primary)
+    if len(chosen) > n_keep:                          # every cell full: trim weakest of the kept
+        chosen = chosen[np.argsort(-response[chosen], kind="stable")[:n_keep]]
+    elif len(chosen) < n_keep:                        # fill from the strongest of the others
+        rest = np.flatnonzero(~primary)
+        extra = rest[np.argsort(-response[rest], kind="stable")[:n_keep - len(chosen)]]
+        chosen = np.concatenate([chosen, extra])
+    return np.sort(chosen)
+
+
+class OrbExtractor:
+    """Reusable ORB extractor (one ``cv2.ORB`` object); not thread-safe, make one per thread."""
+
+    def __init__(self, cfg: OrbConfig | None = None):
+        import cv2
+
+        self.cfg = cfg or OrbConfig()
+        self.cfg.validate()
+        c = self.cfg
+        n_detect = int(np.ceil(c.n_features * c.oversample))
+        self._orb = cv2.ORB_create(nfeatures=n_detect, scaleFactor=c.scale_factor, nlevels=c.n_levels,
+                                   edgeThreshold=c.edge_threshold, fastThreshold=c.fast_threshold,
+                                   patchSize=c.patch_size)
+
+    def __call__(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(uv (N, 2) float32, descriptors (N, 32) uint8)`` of one image; N = 0 without texture."""
+        grey = to_grey_uint8(image)
+        h, w = grey.shape
+        keypoints = self._orb.detect(grey, None)
+        empty = (np.zeros((0, 2), np.float32), np.zeros((0, DESCRIPTOR_BYTES), np.uint8))
+        if not keypoints:
+            logger.debug("ORB: no keypoints in a %dx%d image", w, h)
+            return empty
+        import cv2
+
+        uv = cv2.KeyPoint_convert(keypoints).reshape(-1, 2)
+        # OpenCV hands keypoints out as Python objects: reading their responses is the one
+        # per-keypoint step (about 1 us each), unavoidable with this API
+        response = np.fromiter((kp.response for kp in keypoints), np.float32, len(keypoints))
+        keep = spread_keypoints(uv, response, w, h, self.cfg.n_features, self.cfg.grid_rows,
+                                self.cfg.grid_cols)
+        keypoints, descriptors = self._orb.compute(grey, [keypoints[i] for i in keep])
+        if descriptors is None or not keypoints:
+            return empty
+        uv = cv2.KeyPoint_convert(keypoints).reshape(-1, 2).astype(np.float32)
+        return uv, np.ascontiguousarray(descriptors, dtype=np.uint8)

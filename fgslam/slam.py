@@ -1,0 +1,646 @@
+"""The SLAM runner: a dataset in, a frontend in the middle, trajectories, a summary and a plot out.
+
+``SlamConfig`` is the root configuration of a run (``configs/patch_*.yaml`` are presets of it);
+:func:`run_slam` drives any :class:`~fgslam.frontends.base.Frontend` over a
+:class:`~fgslam.io.datasets.Dataset` and writes, in ``out_dir``:
+
+- ``trajectory_tum.txt``: ``t tx ty tz qx qy qz qw`` per frame with a pose (camera-to-world ``T_WC``
+  in the estimate's world frame; monocular translations are in the map's arbitrary scale);
+- ``trajectory_kitti.txt`` + ``trajectory_kitti_times.txt``: the same poses as 3x4 rows and their
+  timestamps (seconds);
+- ``summary.json``: frame counts, keyframes, frames/s overall and per stage, failures by kind,
+  skipped frames, the estimate's motion extent, evaluation (ATE with the alignment used, RPE, % of
+  path length) when the dataset has ground truth, the full configuration used, and the error when
+  the run failed;
+- ``trajectory.png``: top view of the (aligned) estimate against the ground truth;
+- ``points.ply`` when ``output.write_ply`` (the frontend's keyframe points, when it has any).
+
+Failure handling: tracking failures are reported by the frontend (``pose_source == "motion_model"``)
+and counted; corrupt frames are skipped by the dataset and counted; a non-finite pose from the
+frontend is dropped and counted. If the frontend (or the dataset) raises mid-run, everything that
+exists is written first (partial trajectory from the frontend, else from the per-frame live
+estimates, and a summary with the error), then a :class:`RunError` (or the dataset's own
+:class:`~fgslam.errors.DataError`) is raised.
+
+Alignment for evaluation (``auto_align``): Sim(3) for monocular runs (scale is unobservable),
+SE(3) for stereo and RGB-D (metric).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import resource
+import time
+from collections import Counter
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+import numpy as np
+
+from .config import to_dict
+from .errors import ConfigError, DataError, EvaluationError, FGSlamError
+from .eval import EvalConfig, EvalResult, evaluate
+from .frontends.base import FrameStatus, Frontend
+from .frontends.patch.config import PatchConfig
+from .io.datasets import Dataset, DatasetConfig, open_dataset
+from .io.trajectory import Trajectory, write_trajectory
+from .map import MapConfig
+
+logger = logging.getLogger(__name__)
+
+SensorName = Literal["mono", "stereo", "rgbd"]
+
+# Output file names (stable: tools and tests read them).
+TUM_FILE = "trajectory_tum.txt"
+KITTI_FILE = "trajectory_kitti.txt"
+KITTI_TIMES_FILE = "trajectory_kitti_times.txt"
+SUMMARY_FILE = "summary.json"
+PLOT_FILE = "trajectory.png"
+PLY_FILE = "points.ply"
+
+BYTES_PER_KIB = 1024  # ru_maxrss is in KiB on Linux
+BYTES_PER_MIB = 1024 * 1024
+MAX_LOGGED_FAILURES = 10  # tracking failures logged one by one before switching to the progress lines
+_WHERE_DATASET = "while reading the dataset"  # error location of a failure inside the dataset iterator
+
+
+class RunError(FGSlamError):
+    """A run stopped because the frontend raised; partial outputs were written before."""
+
+
+@dataclass
+class OutputConfig:
+    """What a run writes besides trajectories and summary."""
+
+    plot: bool = True  # write trajectory.png (top view of estimate vs ground truth)
+    # plot plane; auto: the two axes of largest ground-truth (else estimate) extent
+    plot_plane: Literal["auto", "xy", "xz", "yz"] = "auto"
+    write_ply: bool = False  # write points.ply from the frontend's keyframe points (when it provides them)
+
+
+@dataclass
+class SlamConfig:
+    """Root configuration of ``fgslam run`` (presets: ``configs/patch_*.yaml``)."""
+
+    frontend: Literal["patch", "dense", "pointmap"] = "patch"  # frontend family (dense/pointmap: not implemented yet)
+    sensor: SensorName = "mono"  # mono | stereo (needs right images) | rgbd (needs depth)
+    threads: int = 0  # torch and OpenCV threads for the run (0: leave the library defaults); stages may set their own
+    log_interval_frames: int = 100  # a progress line at least every this many frames
+    log_interval_s: float = 10.0  # ... or every this many seconds, whichever comes first
+    auto_align: bool = True  # evaluation alignment from the sensor (sim3 mono, se3 stereo/rgbd); false: eval.align
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    patch: PatchConfig = field(default_factory=PatchConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+
+    def validate(self) -> None:
+        if self.threads < 0:
+            raise ConfigError(f"threads must be >= 0, got {self.threads}")
+        if self.log_interval_frames < 1 or not self.log_interval_s > 0:
+            raise ConfigError("log_interval_frames must be >= 1 and log_interval_s > 0")
+
+    def alignment(self) -> str:
+        """Alignment used for the ATE: the sensor's (auto) or ``eval.align``."""
+        if not self.auto_align:
+            return self.eval.align
+        return "sim3" if self.sensor == "mono" else "se3"
+
+
+# ----------------------------------------------------------------------------------------- dataset side
+
+
+def dataset_config_for(config: SlamConfig) -> DatasetConfig:
+    """``config.dataset`` with only the streams the run needs switched on (right images for stereo,
+    depth for RGB-D, colour only for PLY colours); a stream the config switched off stays off."""
+    ds = config.dataset
+    return replace(
+        ds,
+        load_right=ds.load_right and config.sensor == "stereo",
+        load_depth=ds.load_depth and config.sensor == "rgbd",
+        load_rgb=ds.load_rgb and config.output.write_ply,
+    )
+
+
+def open_slam_dataset(path: str | Path, config: SlamConfig, fmt: str = "auto") -> Dataset:
+    """Open the dataset at ``path`` for ``config`` and check it has what ``config.sensor`` needs."""
+    dataset = open_dataset(path, fmt, dataset_config_for(config))
+    check_sensor(dataset, config.sensor)
+    return dataset
+
+
+def check_sensor(dataset: Dataset, sensor: str) -> None:
+    """Raise ConfigError when ``dataset`` lacks the images ``sensor`` needs (stereo: right images,
+    rgbd: depth maps)."""
+    where = f"{dataset.root} ({dataset.format})"
+    if sensor == "stereo" and not dataset.has_stereo:
+        why = "dataset.load_right is false" if not dataset.config.load_right else "it has no right camera images"
+        raise ConfigError(
+            f"sensor 'stereo' needs right camera images but {where}: {why}; use sensor=mono or a stereo dataset"
+        )
+    if sensor == "rgbd" and not dataset.has_depth:
+        why = "dataset.load_depth is false" if not dataset.config.load_depth else "it has no depth maps"
+        raise ConfigError(f"sensor 'rgbd' needs depth maps but {where}: {why}; use sensor=mono or an RGB-D dataset")
+    if sensor not in ("mono", "stereo", "rgbd"):
+        raise ConfigError(f"unknown sensor {sensor!r} (expected mono, stereo or rgbd)")
+
+
+# ----------------------------------------------------------------------------------------- summary
+
+
+@dataclass
+class RunSummary:
+    """Everything ``summary.json`` holds (``to_dict()``); times in seconds unless named ``_ms``."""
+
+    out_dir: str
+    dataset: dict[str, Any]
+    frontend: str
+    sensor: str
+    frames_total: int  # frames of the dataset selection
+    frames_read: int  # frames the dataset delivered (not skipped as corrupt)
+    frames_processed: int  # frames the frontend consumed
+    frames_with_pose: int  # poses in the written trajectory
+    keyframes: int
+    pose_sources: dict[str, int]  # final trajectory: tracked / motion_model / ...
+    failures: dict[str, int]  # tracking (motion-model poses), no_pose, skipped_corrupt, nonfinite_pose
+    failure_frames: list[int]  # dataset indices of the frames whose pose came from the motion model
+    skipped_frames: list[dict[str, Any]]  # corrupt frames skipped by the dataset: index and reason
+    events: dict[str, int]  # frontend events by kind (text before the first ':')
+    wall_s: float
+    cpu_s: float  # CPU time (user + system, all threads) of the run: comparable across machine loads
+    fps: float  # frames processed per second of wall time (reading included)
+    fps_frontend: float  # frames per second of frontend time (process + finish)
+    read_s: float  # time spent reading frames from the dataset
+    stage_s: dict[str, float]  # frontend.stage_times()
+    stage_ms_per_frame: dict[str, float]
+    peak_rss_mb: float
+    motion: dict[str, float]  # estimate (own frame and scale): path length, largest distance from the first pose
+    evaluation: Optional[dict[str, Any]]  # None without ground truth
+    outputs: dict[str, str]  # file kind -> path
+    config: dict[str, Any]
+    load_average: list[float]  # os.getloadavg() at the start (shared machines)
+    error: Optional[str] = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+    @property
+    def ate_rmse(self) -> Optional[float]:
+        return None if self.evaluation is None else self.evaluation["ate"]["rmse"]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {name: getattr(self, name) for name in self.__dataclass_fields__}
+
+
+# ----------------------------------------------------------------------------------------- the run
+
+
+class _Progress:
+    """Progress lines on the module logger at most every ``every_frames`` frames or ``every_s`` s."""
+
+    def __init__(self, total: int, every_frames: int, every_s: float, enabled: bool) -> None:
+        self.total, self.every_frames, self.every_s, self.enabled = total, every_frames, every_s, enabled
+        self.t0 = time.perf_counter()
+        self.last_t, self.last_n = self.t0, 0
+
+    def update(self, n: int, keyframes: int, failures: int, force: bool = False) -> None:
+        if not self.enabled:
+            return
+        now = time.perf_counter()
+        if not force and n - self.last_n < self.every_frames and now - self.last_t < self.every_s:
+            return
+        self.last_t, self.last_n = now, n
+        elapsed = now - self.t0
+        fps = n / elapsed if elapsed > 0 else 0.0
+        eta = (self.total - n) / fps if fps > 0 else math.inf
+        eta_txt = f"{eta:.0f} s" if math.isfinite(eta) else "?"
+        logger.info(
+            "frame %d/%d (%.0f%%)  %.1f frames/s  %d keyframes  %d failures  ETA %s",
+            n, self.total, 100.0 * n / max(self.total, 1), fps, keyframes, failures, eta_txt,
+        )
+
+
+@dataclass
+class _RunState:
+    """What the loop accumulates (kept small: one 4x4 pose per frame)."""
+
+    frames_read: int = 0
+    frames_processed: int = 0
+    live_t: list[float] = field(default_factory=list)
+    live_T: list[np.ndarray] = field(default_factory=list)
+    live_source: list[str] = field(default_factory=list)
+    failure_frames: list[int] = field(default_factory=list)
+    nonfinite: int = 0
+    events: Counter = field(default_factory=Counter)
+    read_s: float = 0.0
+    frontend_s: float = 0.0
+    wall_s: float = 0.0
+    cpu_s: float = 0.0
+
+
+def _cpu_seconds() -> float:
+    """User + system CPU time of this process so far (all threads)."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def run_slam(
+    dataset: Dataset,
+    config: SlamConfig,
+    out_dir: str | Path,
+    progress: bool = True,
+    frontend: Optional[Frontend] = None,
+) -> RunSummary:
+    """Run SLAM over ``dataset`` with ``config`` and write the outputs into ``out_dir``.
+
+    Args:
+        dataset: an opened dataset (see :func:`open_slam_dataset`); checked against ``config.sensor``.
+        config: the run configuration.
+        out_dir: output folder (created).
+        progress: log a progress line every ``config.log_interval_frames`` frames / ``log_interval_s`` s.
+        frontend: use this frontend instead of building ``config.frontend`` (tests, custom frontends).
+
+    Returns:
+        The :class:`RunSummary` also written to ``summary.json``.
+
+    Raises:
+        ConfigError: the dataset lacks what the sensor mode needs, or the frontend is not available.
+        RunError: the frontend raised (partial outputs and a summary with the error were written).
+        DataError: the dataset failed mid-run (too many corrupt frames; partial outputs written).
+    """
+    config.validate()
+    check_sensor(dataset, config.sensor)
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DataError(f"{out}: cannot create the output folder: {exc}") from exc
+    if frontend is None:
+        from .frontends import make_frontend
+
+        frontend = make_frontend(config.frontend, config, dataset.calibration, config.sensor)
+    load_average = [round(v, 2) for v in os.getloadavg()]
+    gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
+    state = _RunState()
+    t_start, cpu_start = time.perf_counter(), _cpu_seconds()
+    saved_threads = _set_threads(config.threads)
+    try:
+        error = _loop(dataset, frontend, config, state, progress)
+    finally:
+        _restore_threads(saved_threads)
+    state.wall_s, state.cpu_s = time.perf_counter() - t_start, _cpu_seconds() - cpu_start
+    summary, error = _finalize(dataset, gt, frontend, config, state, out, load_average, error)
+    if error is not None:
+        exc, where = error
+        if isinstance(exc, KeyboardInterrupt) or (isinstance(exc, FGSlamError) and where == _WHERE_DATASET):
+            raise exc
+        if where == _WHERE_DATASET:
+            raise DataError(f"{dataset.root}: reading the dataset failed: {type(exc).__name__}: {exc} "
+                            f"(partial outputs written to {out}, see {SUMMARY_FILE})") from exc
+        raise RunError(
+            f"frontend '{config.frontend}' failed {where}: {type(exc).__name__}: {exc} "
+            f"(partial outputs written to {out}, see {SUMMARY_FILE})"
+        ) from exc
+    return summary
+
+
+def _loop(
+    dataset: Dataset, frontend: Frontend, config: SlamConfig, state: _RunState, progress: bool
+) -> Optional[tuple[BaseException, str]]:
+    """Iterate the dataset through the frontend; returns ``(exception, where)`` instead of raising."""
+    meter = _Progress(len(dataset), config.log_interval_frames, config.log_interval_s, progress)
+    frames = iter(dataset)
+    while True:
+        t0 = time.perf_counter()
+        try:
+            frame = next(frames)
+        except StopIteration:
+            break
+        except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - reported with partial outputs
+            return exc, _WHERE_DATASET
+        t1 = time.perf_counter()
+        state.read_s += t1 - t0
+        state.frames_read += 1
+        try:
+            status = frontend.process(frame)
+        except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - reported with partial outputs
+            state.frontend_s += time.perf_counter() - t1
+            where = f"at frame {frame.index}" + (f" ({frame.path})" if frame.path is not None else "")
+            return exc, where
+        state.frontend_s += time.perf_counter() - t1
+        state.frames_processed += 1
+        _record(status, frame.timestamp, state)
+        meter.update(state.frames_processed, frontend.num_keyframes(), len(state.failure_frames))
+    t0 = time.perf_counter()
+    try:
+        frontend.finish()
+    except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - reported with partial outputs
+        return exc, "in finish() after the last frame"
+    finally:
+        state.frontend_s += time.perf_counter() - t0
+    meter.update(state.frames_processed, frontend.num_keyframes(), len(state.failure_frames), force=True)
+    return None
+
+
+def _record(status: FrameStatus, timestamp: float, state: _RunState) -> None:
+    for event in status.events:
+        state.events[event.split(":", 1)[0].strip()] += 1
+        logger.debug("frame %d: %s", status.index, event)
+    if status.pose_source == "motion_model":
+        state.failure_frames.append(status.index)
+        n = len(state.failure_frames)
+        if n <= MAX_LOGGED_FAILURES:
+            logger.warning(
+                "frame %d: tracking failed (%d valid measurements), pose from the motion model%s",
+                status.index, status.num_valid,
+                "" if n < MAX_LOGGED_FAILURES else " (further failures: progress lines)",
+            )
+    if status.T_WC is None:
+        return
+    T_WC = np.asarray(status.T_WC, dtype=np.float64)
+    if T_WC.shape != (4, 4) or not np.all(np.isfinite(T_WC)):
+        state.nonfinite += 1
+        logger.warning("frame %d: the frontend returned a non-finite or malformed pose; dropped", status.index)
+        return
+    state.live_t.append(float(timestamp))
+    state.live_T.append(T_WC)
+    state.live_source.append(status.pose_source)
+
+
+def _final_trajectory(
+    frontend: Frontend, state: _RunState, notes: list[str], errors: list[tuple[BaseException, str]]
+) -> tuple[Optional[Trajectory], list[str]]:
+    """The frontend's final trajectory (non-finite poses dropped). After an error, or when the
+    frontend cannot give a valid one (then recorded in ``errors``), the live per-frame estimates."""
+    t = T_WC = None
+    sources: list[str] = []
+    if not errors:
+        try:
+            t, T_WC, sources = frontend.trajectory()
+            t = np.asarray(t, dtype=np.float64).reshape(-1)
+            T_WC = np.asarray(T_WC, dtype=np.float64).reshape(-1, 4, 4)
+            sources = [str(s) for s in sources]
+            if not (t.shape[0] == T_WC.shape[0] == len(sources)):
+                raise DataError(f"{t.shape[0]} timestamps, {T_WC.shape[0]} poses, {len(sources)} pose sources")
+        except Exception as exc:  # noqa: BLE001 - recorded; the live estimates are written instead
+            errors.append((exc, "in trajectory()"))
+            t = None
+    if t is None:  # after an error: the live per-frame estimates
+        notes.append("the trajectory holds the live per-frame estimates (the run failed before the final one)")
+        t = np.asarray(state.live_t, dtype=np.float64)
+        T_WC = np.asarray(state.live_T, dtype=np.float64).reshape(-1, 4, 4)
+        sources = list(state.live_source)
+    if t.shape[0] == 0:
+        return None, []
+    ok = np.all(np.isfinite(T_WC), axis=(1, 2)) & np.isfinite(t)
+    if not np.all(ok):
+        state.nonfinite += int((~ok).sum())
+        logger.warning("dropping %d non-finite poses from the final trajectory", int((~ok).sum()))
+        t, T_WC, sources = t[ok], T_WC[ok], [s for s, k in zip(sources, ok) if k]
+        if t.shape[0] == 0:
+            return None, []
+    T_WC = T_WC.copy()
+    T_WC[:, 3, :] = (0.0, 0.0, 0.0, 1.0)
+    try:
+        return Trajectory(t, T_WC), sources
+    except DataError as exc:
+        errors.append((exc, "in trajectory() (invalid poses)"))
+        notes.append(f"the trajectory could not be written: {exc}")
+        return None, []
+
+
+def _motion(traj: Optional[Trajectory]) -> dict[str, float]:
+    if traj is None or len(traj) == 0:
+        return {"path_length": 0.0, "max_distance_from_start": 0.0, "bbox_diagonal": 0.0}
+    p = traj.t_WC
+    return {
+        "path_length": traj.path_length(),
+        "max_distance_from_start": float(np.linalg.norm(p - p[0], axis=1).max()),
+        "bbox_diagonal": float(np.linalg.norm(p.max(axis=0) - p.min(axis=0))),
+    }
+
+
+def _evaluate(gt: Trajectory, est: Trajectory, config: SlamConfig, notes: list[str]) -> Optional[EvalResult]:
+    eval_config = replace(config.eval, align=config.alignment())
+    try:
+        return evaluate(gt, est, eval_config)
+    except EvaluationError as exc:
+        notes.append(f"evaluation failed: {exc}")
+        logger.warning("evaluation failed: %s", exc)
+        return None
+
+
+def _evaluation_dict(result: EvalResult) -> dict[str, Any]:
+    d = result.to_dict()
+    path = result.gt_path_length_m
+    d["ate_rmse_m"] = result.ate.rmse
+    d["ate_percent_of_path"] = 100.0 * result.ate.rmse / path if path > 0 else None
+    aligned = result.aligned_est.t_WC
+    d["aligned_motion"] = {
+        "path_length": result.aligned_est.path_length(),
+        "max_distance_from_start": float(np.linalg.norm(aligned - aligned[0], axis=1).max()),
+    }
+    d["coverage"] = result.n_matched / max(result.n_gt, 1)  # share of ground-truth frames with an estimate
+    return d
+
+
+def _finalize(
+    dataset: Dataset,
+    gt: Optional[Trajectory],
+    frontend: Frontend,
+    config: SlamConfig,
+    state: _RunState,
+    out: Path,
+    load_average: list[float],
+    error: Optional[tuple[BaseException, str]],
+) -> tuple[RunSummary, Optional[tuple[BaseException, str]]]:
+    """Write trajectories, plot, PLY and summary.json. Returns the summary and the first error (the
+    loop's, or one raised by the frontend's end-of-run queries, which never prevents the writing)."""
+    notes: list[str] = []
+    errors: list[tuple[BaseException, str]] = [] if error is None else [error]
+    traj, sources = _final_trajectory(frontend, state, notes, errors)
+    outputs: dict[str, str] = {}
+    if traj is not None:
+        write_trajectory(out / TUM_FILE, traj, "tum")
+        write_trajectory(out / KITTI_FILE, traj, "kitti", out / KITTI_TIMES_FILE)
+        outputs.update(tum=str(out / TUM_FILE), kitti=str(out / KITTI_FILE), kitti_times=str(out / KITTI_TIMES_FILE))
+    else:
+        why = "before the error" if errors else "(the frontend never initialised)"
+        notes.append(f"no frame got a pose {why}: no trajectory files written")
+        logger.warning("no frame got a pose %s: no trajectory written", why)
+
+    result = _evaluate(gt, traj, config, notes) if (gt is not None and traj is not None) else None
+    evaluation = None if result is None else _evaluation_dict(result)
+
+    if config.output.plot and traj is not None:
+        outputs["plot"] = str(_plot(out / PLOT_FILE, gt, traj, result, config))
+    stage_s: dict[str, float] = {}
+    keyframes = -1
+    try:
+        stage_s = {k: float(v) for k, v in frontend.stage_times().items()}
+        keyframes = int(frontend.num_keyframes())
+        if config.output.write_ply:
+            ply = _write_points(out / PLY_FILE, frontend, notes)
+            if ply is not None:
+                outputs["ply"] = str(ply)
+    except Exception as exc:  # noqa: BLE001 - recorded; the summary is still written
+        errors.append((exc, "in its end-of-run queries (stage_times/num_keyframes/keyframe_points)"))
+    n = state.frames_processed
+    frames_with_pose = 0 if traj is None else len(traj)
+    failures = {
+        "tracking": len(state.failure_frames),
+        "no_pose": max(n - frames_with_pose, 0),
+        "skipped_corrupt": len(dataset.skipped_frames),
+        "nonfinite_pose": state.nonfinite,
+    }
+    first_error = errors[0] if errors else None
+    error_text = None if first_error is None else f"{first_error[1]}: {type(first_error[0]).__name__}: {first_error[0]}"
+    outputs["summary"] = str(out / SUMMARY_FILE)
+    summary = RunSummary(
+        out_dir=str(out),
+        dataset={
+            "path": str(dataset.root), "format": dataset.format, "name": dataset.name,
+            "resolution": [dataset.calibration.width, dataset.calibration.height],
+            "rate_hz": dataset.rate, "groundtruth": gt is not None,
+        },
+        frontend=config.frontend,
+        sensor=config.sensor,
+        frames_total=len(dataset),
+        frames_read=state.frames_read,
+        frames_processed=n,
+        frames_with_pose=frames_with_pose,
+        keyframes=keyframes,
+        pose_sources=dict(Counter(sources)),
+        failures=failures,
+        failure_frames=list(state.failure_frames),
+        skipped_frames=[{"index": int(i), "reason": r} for i, r in dataset.skipped_frames],
+        events=dict(state.events),
+        wall_s=state.wall_s,
+        cpu_s=state.cpu_s,
+        fps=n / state.wall_s if state.wall_s > 0 else 0.0,
+        fps_frontend=n / state.frontend_s if state.frontend_s > 0 else 0.0,
+        read_s=state.read_s,
+        stage_s=stage_s,
+        stage_ms_per_frame={k: 1000.0 * v / n for k, v in stage_s.items()} if n else {},
+        peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * BYTES_PER_KIB / BYTES_PER_MIB,
+        motion=_motion(traj),
+        evaluation=evaluation,
+        outputs=outputs,
+        config=to_dict(config),
+        load_average=load_average,
+        error=error_text,
+        notes=notes,
+    )
+    _write_summary(out / SUMMARY_FILE, summary)
+    return summary, first_error
+
+
+def _write_summary(path: Path, summary: RunSummary) -> None:
+    try:
+        path.write_text(json.dumps(summary.to_dict(), indent=2, default=_json_default) + "\n")
+    except OSError as exc:
+        raise DataError(f"{path}: cannot write the run summary: {exc}") from exc
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def _plot(
+    path: Path, gt: Optional[Trajectory], traj: Trajectory, result: Optional[EvalResult], config: SlamConfig
+) -> Path:
+    from .io.plot import plot_trajectories
+
+    est = traj if result is None else result.aligned_est
+    plane = config.output.plot_plane
+    if plane == "auto":
+        plane = _auto_plane(gt if gt is not None else est)
+    if result is not None:
+        title = (f"{config.frontend} {config.sensor}: ATE {result.ate.rmse:.3f} m "
+                 f"({result.align}, {result.n_matched} poses)")
+    else:
+        title = f"{config.frontend} {config.sensor}: estimate ({len(traj)} poses, no ground truth)"
+    return plot_trajectories(path, gt, est, title=title, plane=plane)
+
+
+def _auto_plane(traj: Trajectory) -> str:
+    """The plane of the two axes along which ``traj`` extends most (a top view for ground vehicles
+    and hand-held sequences alike, whatever the world frame's up axis)."""
+    extent = np.ptp(traj.t_WC, axis=0) if len(traj) else np.zeros(3)
+    a, b = sorted(np.argsort(extent)[-2:])
+    return "xyz"[a] + "xyz"[b]
+
+
+def _write_points(path: Path, frontend: Frontend, notes: list[str]) -> Optional[Path]:
+    points = frontend.keyframe_points()
+    if points is None:
+        notes.append(f"output.write_ply: frontend '{frontend.name}' provides no points; no PLY written")
+        return None
+    X_W, colour = points
+    X_W = np.asarray(X_W, dtype=np.float32).reshape(-1, 3)
+    colour = np.asarray(colour, dtype=np.uint8).reshape(-1, 3)
+    keep = np.all(np.isfinite(X_W), axis=1)
+    X_W, colour = X_W[keep], colour[keep]
+    vertex = np.empty(X_W.shape[0], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                            ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for i, name in enumerate("xyz"):
+        vertex[name] = X_W[:, i]
+    for i, name in enumerate(("red", "green", "blue")):
+        vertex[name] = colour[:, i]
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {vertex.shape[0]}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    try:
+        with open(path, "wb") as fh:
+            fh.write(header.encode("ascii"))
+            fh.write(vertex.tobytes())
+    except OSError as exc:
+        raise DataError(f"{path}: cannot write the point cloud: {exc}") from exc
+    return path
+
+
+# ----------------------------------------------------------------------------------------- threads
+
+
+def _set_threads(threads: int) -> Optional[tuple[int, int]]:
+    if threads <= 0:
+        return None
+    import cv2
+    import torch
+
+    saved = (torch.get_num_threads(), cv2.getNumThreads())
+    torch.set_num_threads(threads)
+    cv2.setNumThreads(threads)
+    return saved
+
+
+def _restore_threads(saved: Optional[tuple[int, int]]) -> None:
+    if saved is None:
+        return
+    import cv2
+    import torch
+
+    torch.set_num_threads(saved[0])
+    cv2.setNumThreads(saved[1])
+
+
+def load_slam_config(name_or_path: str | Path | None, overrides: list[str] | tuple[str, ...] = ()) -> SlamConfig:
+    """SlamConfig from a YAML path or preset name (None: defaults) with ``key=value`` overrides."""
+    from .config import load_config
+    from .presets import resolve_preset
+
+    path = None if name_or_path is None else resolve_preset(name_or_path)
+    return load_config(SlamConfig, path, overrides)

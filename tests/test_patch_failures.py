@@ -1,0 +1,111 @@
+"""Patch frontend bad input: blank frames (tracking lost, motion-model poses, counted failures,
+recovery), a static camera (monocular never initialises), a sequence too short to initialise."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from fgslam.eval import EvalConfig, evaluate
+from fgslam.frontends.patch import PatchConfig, PatchFrontend
+from fgslam.io.trajectory import Trajectory
+
+FRAMES = 40
+
+
+def light_config() -> PatchConfig:
+    """A lighter graph than the defaults (keeps the file fast)."""
+    cfg = PatchConfig()
+    cfg.graph.patches_per_frame = 64
+    cfg.graph.patch_lifetime = 5
+    cfg.graph.removal_window = 9
+    cfg.graph.optimization_window = 5
+    cfg.tracking.keyframe_index = 2
+    cfg.tracking.keyframe_threshold = 6.0  # pixels: scaled down with the 200 px wide images
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    from fgslam.io.synth import SynthSequence, write_sequence
+    from fgslam.io.synth.presets import load_synth_config
+
+    cfg = load_synth_config("room-loop", overrides=[f"frames={FRAMES}", "camera.width=200", "camera.height=150", "seed=3"])
+    root = tmp_path_factory.mktemp("room_fail")
+    write_sequence(SynthSequence(cfg), root)
+    return root
+
+
+def frames_of(root, mode):
+    from fgslam.io.datasets import DatasetConfig, open_dataset
+
+    ds = open_dataset(root, config=DatasetConfig(load_right=mode == "stereo", load_depth=mode == "rgbd", load_imu=False))
+    return ds, list(ds)
+
+
+@pytest.mark.parametrize("mode", ["rgbd", "mono"])
+def test_blank_frames_use_motion_model_and_recover(room, mode):
+    ds, frames = frames_of(room, mode)
+    blank = set(range(22, 25))
+    fed = [dataclasses.replace(f, image=np.full_like(f.image, 90)) if f.index in blank else f for f in frames]
+    fe = PatchFrontend(light_config(), sensor_mode=mode)
+    statuses = [fe.process(f) for f in fed]
+    for s in statuses:
+        if s.index in blank:
+            assert s.pose_source == "motion_model" and s.T_WC is not None
+            assert any("tracking lost" in e for e in s.events)
+    assert fe.num_failures == len(blank)
+    assert all(s.pose_source == "tracked" for s in statuses[26:])  # recovered
+    stamps, poses, sources = fe.trajectory()
+    assert sources.count("motion_model") == len(blank)
+    res = evaluate(ds.groundtruth, Trajectory(stamps, poses), EvalConfig(align="se3" if mode == "rgbd" else "sim3"))
+    assert res.ate.rmse < 0.02 * res.gt_path_length_m
+
+
+def test_static_camera_never_initialises_mono(room):
+    _, frames = frames_of(room, "mono")
+    rng = np.random.default_rng(0)
+    still = [
+        dataclasses.replace(frames[0], index=i, timestamp=frames[0].timestamp + 0.05 * i,
+                            image=np.clip(frames[0].image + rng.normal(0, 1.0, frames[0].image.shape), 0, 255).astype(np.uint8))
+        for i in range(25)
+    ]
+    fe = PatchFrontend(light_config(), sensor_mode="mono")
+    statuses = [fe.process(f) for f in still]
+    assert all(s.pose_source == "initializing" and s.T_WC is None for s in statuses)
+    assert fe.trajectory()[1].shape == (0, 4, 4)
+    assert fe.num_keyframes() == 0
+    # the same static input in stereo gives a pose per frame with (almost) no motion
+    _, sframes = frames_of(room, "stereo")
+    fe_s = PatchFrontend(light_config(), sensor_mode="stereo")
+    for i in range(15):
+        fe_s.process(dataclasses.replace(sframes[0], index=i, timestamp=sframes[0].timestamp + 0.05 * i))
+    _, poses, _ = fe_s.trajectory()
+    assert poses.shape[0] == 15
+    assert np.linalg.norm(poses[:, :3, 3] - poses[0, :3, 3], axis=1).max() < 1e-3
+
+
+def test_too_short_sequence_reports_no_poses(room):
+    _, frames = frames_of(room, "mono")
+    fe = PatchFrontend(light_config(), sensor_mode="mono")
+    statuses = [fe.process(f) for f in frames[:2]]
+    assert [s.pose_source for s in statuses] == ["initializing", "initializing"]
+    stamps, poses, sources = fe.trajectory()
+    assert stamps.size == 0 and sources == []
+
+
+def test_long_loss_reinitialises_without_crash(room):
+    ds, frames = frames_of(room, "rgbd")
+    blank = set(range(15, 21))
+    fed = [dataclasses.replace(f, image=np.full_like(f.image, 90)) if f.index in blank else f for f in frames]
+    cfg = light_config()
+    cfg.tracking.max_motion_model_frames = 2
+    fe = PatchFrontend(cfg, sensor_mode="rgbd")
+    statuses = [fe.process(f) for f in fed]
+    assert any("re-initialising" in e for s in statuses for e in s.events)
+    assert fe.num_failures >= 3
+    assert all(s.pose_source == "tracked" for s in statuses[22:])  # a new map continues the trajectory
+    stamps, poses, _ = fe.trajectory()
+    assert np.isfinite(poses).all() and len(stamps) >= len(frames) - len(blank)

@@ -1,0 +1,91 @@
+"""Built-in Lucas-Kanade source: recovers known shifts and warps from a reprojection start,
+flags forward-backward failures, selection of patches."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from fgslam.frontends.patch.config import LKConfig
+from fgslam.frontends.patch.frontend import select_patches
+from fgslam.frontends.patch.lk import LKSource
+
+
+def _texture(h=240, w=320, seed=0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    noise = rng.uniform(0, 255, (h // 4, w // 4)).astype(np.float32)
+    img = cv2.resize(noise, (w, h), interpolation=cv2.INTER_CUBIC)
+    return np.clip(cv2.GaussianBlur(img, (0, 0), 1.0), 0, 255)
+
+
+def _warp(img: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """Image whose pixel x shows img at A^-1 x (A: 2x3 affine mapping source to target pixels)."""
+    return cv2.warpAffine(img, A, (img.shape[1], img.shape[0]), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_recovers_known_shift_from_offset_start(scale):
+    img = _texture()
+    A = np.array([[1.0, 0.0, 7.3], [0.0, 1.0, -4.6]])
+    src, tgt = img.astype(np.uint8), _warp(img, A).astype(np.uint8)
+    lk = LKSource(LKConfig(scale=scale), window=21)
+    rng = np.random.default_rng(1)
+    uv = np.stack([rng.uniform(60, 260, 50), rng.uniform(50, 190, 50)], 1)
+    truth = uv + A[:, 2]
+    pred = truth + rng.uniform(-3, 3, truth.shape)  # a reprojection a few pixels off
+    m = lk.measure(lk.prepare(src), lk.prepare(tgt), uv, pred)
+    ok = m.confidence > 0
+    assert ok.mean() > 0.9
+    err = np.linalg.norm(m.uv[ok] - truth[ok], axis=1)
+    assert np.median(err) < (0.1 if scale == 1.0 else 0.2)
+    # the residual update uv - pred is what DPVO's operator would predict
+    assert np.allclose((m.uv - pred)[ok], (truth - pred)[ok], atol=0.5)
+
+
+def test_recovers_small_rotation_and_zoom():
+    img = _texture(seed=2)
+    A = cv2.getRotationMatrix2D((160, 120), 3.0, 1.04)
+    src, tgt = img.astype(np.uint8), _warp(img, A).astype(np.uint8)
+    lk = LKSource(LKConfig(), window=21)
+    rng = np.random.default_rng(3)
+    uv = np.stack([rng.uniform(70, 250, 60), rng.uniform(60, 180, 60)], 1)
+    truth = uv @ A[:, :2].T + A[:, 2]
+    m = lk.measure(lk.prepare(src), lk.prepare(tgt), uv, uv)
+    ok = m.confidence > 0
+    assert ok.mean() > 0.8
+    assert np.median(np.linalg.norm(m.uv[ok] - truth[ok], axis=1)) < 0.3
+
+
+def test_forward_backward_failures_are_flagged():
+    img = _texture(seed=4).astype(np.uint8)
+    other = _texture(seed=5).astype(np.uint8)  # unrelated image: nothing can be tracked consistently
+    blank = np.full_like(img, 128)
+    lk = LKSource(LKConfig(), window=21)
+    rng = np.random.default_rng(6)
+    uv = np.stack([rng.uniform(40, 280, 80), rng.uniform(40, 200, 80)], 1)
+    m_blank = lk.measure(lk.prepare(img), lk.prepare(blank), uv, uv)
+    assert np.all(m_blank.confidence == 0)
+    m_other = lk.measure(lk.prepare(img), lk.prepare(other), uv, uv + 5.0)
+    assert (m_other.confidence > 0).mean() < 0.2
+    # rejected tracks return the prediction, never NaN
+    assert np.isfinite(m_other.uv).all()
+    # batch API: one result per request, same as single calls
+    ms = lk.measure_batch([(lk.prepare(img), lk.prepare(img), uv, uv + 1.0), (lk.prepare(img), lk.prepare(blank), uv, uv)])
+    assert (ms[0].confidence > 0).mean() > 0.9 and np.all(ms[1].confidence == 0)
+    assert np.median(np.linalg.norm(ms[0].uv - uv, axis=1)) < 0.05
+
+
+def test_select_patches_spread_and_border():
+    img = _texture(seed=7).astype(np.uint8)
+    rng = np.random.default_rng(0)
+    uv = select_patches(img, 96, 12, [8, 4], "corners", rng)
+    assert uv.shape == (96, 2)
+    assert uv[:, 0].min() >= 12 and uv[:, 0].max() <= 320 - 13
+    assert uv[:, 1].min() >= 12 and uv[:, 1].max() <= 240 - 13
+    cells = np.unique((uv[:, 0] * 8 // 320).astype(int) + 8 * (uv[:, 1] * 4 // 240).astype(int))
+    assert cells.size >= 28  # spread over (almost) all 32 cells
+    uv_r = select_patches(img, 96, 12, [8, 4], "random", rng)
+    assert uv_r.shape == (96, 2) and uv_r.min() >= 12
+    # a flat image still yields K centres (LK will reject them)
+    assert select_patches(np.full_like(img, 50), 96, 12, [8, 4], "corners", rng).shape == (96, 2)

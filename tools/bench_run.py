@@ -1,0 +1,182 @@
+"""Benchmark full SLAM runs (``fgslam run``) on the shared real sequences and the synthetic room loop;
+prints one JSON object.
+
+Cases (``--list``): KITTI 00 frames 0-199 monocular; 7-Scenes kitchen 0-599 monocular and RGB-D;
+EuRoC V1_01 micro clip (static camera) monocular and stereo, where the estimated motion extent is
+the figure of merit; synthetic ``room-loop`` monocular, stereo and RGB-D. Each case reports ATE
+(m and % of the ground-truth path, with the alignment used), frames/s overall and of the frontend,
+ms per frame of every frontend stage, keyframes, failures, the estimate's motion extent, peak RSS,
+and whether the issue-4 target is met. Every case runs in its own process (peak RSS per case).
+
+The machine may be shared: the load average before and after each case is recorded.
+
+Usage:
+  OMP_NUM_THREADS=1 .venv/bin/python tools/bench_run.py [--cases kitti00_mono,room_mono] \
+      [--synth-size 640x480] [--synth-frames 401] [--keep-outputs DIR] [-o key=value ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = REPO.parent / "shared" / "data"
+SYNTH = "synthetic room-loop"
+
+# name: (preset, data folder under --data or SYNTH, issue-4 target as (metric, bound, text))
+CASES: dict[str, tuple[str, str, tuple[str, float, str]]] = {
+    "kitti00_mono": ("patch_kitti_mono", "kitti00_0-199",
+                     ("ate_percent_of_path", 1.0, "Sim(3) ATE <= 1% of the 145 m path (aim 0.5%), >= 10 frames/s")),
+    "7scenes_mono": ("patch_7scenes_mono", "7scenes_redkitchen_0-599",
+                     ("ate_rmse_m", 0.05, "monocular Sim(3) ATE <= 0.05 m")),
+    "7scenes_rgbd": ("patch_7scenes_rgbd", "7scenes_redkitchen_0-599",
+                     ("ate_rmse_m", 0.03, "RGB-D SE(3) ATE <= 0.03 m")),
+    "euroc_mono": ("patch_euroc_mono", "euroc_v101_micro",
+                   ("frames_with_pose", 0.0, "static camera: waits for parallax, never initialises a spurious scale")),
+    "euroc_stereo": ("patch_euroc_stereo", "euroc_v101_micro",
+                     ("max_distance_from_start", 0.01, "static camera: <= 0.01 m of estimated motion; >= 20 frames/s")),
+    "room_mono": ("patch_mono", SYNTH, ("ate_percent_of_path", 1.0, "Sim(3) ATE <= 1% of path")),
+    "room_stereo": ("patch_stereo", SYNTH, ("ate_percent_of_path", 0.5, "SE(3) ATE <= 0.5% of path")),
+    "room_rgbd": ("patch_rgbd", SYNTH, ("ate_percent_of_path", 0.5, "SE(3) ATE <= 0.5% of path")),
+}
+# Speed targets of issue 4 (frames/s on the 2-core reference machine), by case.
+FPS_TARGETS = {"kitti00_mono": 10.0, "euroc_stereo": 20.0}
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--cases", default=",".join(CASES), help="comma-separated subset of: " + ", ".join(CASES))
+    p.add_argument("--list", action="store_true", help="list the cases and exit")
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
+    p.add_argument("--synth-size", default="640x480", help="WxH of the synthetic room-loop renders")
+    p.add_argument("--synth-frames", type=int, default=401, help="frames of the synthetic sequence (401: one loop)")
+    p.add_argument("--synth-rate", type=float, default=20.0, help="frame rate (Hz) of the synthetic sequence")
+    p.add_argument("--synth-dir", type=Path, default=Path(tempfile.gettempdir()) / "fgslam_bench_synth",
+                   help="cache folder of the synthetic renders (reused when the scene is the same)")
+    p.add_argument("--keep-outputs", type=Path, default=None, help="write each run's outputs to DIR/<case>")
+    p.add_argument("-o", "--override", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="SlamConfig override applied to every case (repeatable)")
+    p.add_argument("--child", default=None, help=argparse.SUPPRESS)  # internal: run one case in this process
+    return p.parse_args(argv)
+
+
+def synth_root(args: argparse.Namespace) -> Path:
+    """Render (or reuse) the synthetic room-loop sequence; returns its root."""
+    from fgslam.demo import DemoSceneConfig, render_scene
+
+    w, h = (int(v) for v in args.synth_size.lower().split("x"))
+    scene = DemoSceneConfig(preset="room-loop", frames=args.synth_frames, rate_hz=args.synth_rate, width=w, height=h)
+    root = args.synth_dir / f"room-loop_{w}x{h}_{args.synth_frames}_{args.synth_rate:g}hz"
+    render_scene(scene, root)
+    return root
+
+
+def run_case(name: str, args: argparse.Namespace) -> dict:
+    """Run one case in this process and return its result (JSON types)."""
+    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+
+    preset, data, (metric, bound, text) = CASES[name]
+    config = load_slam_config(preset, args.overrides)
+    root = synth_root(args) if data == SYNTH else args.data / data
+    dataset = open_slam_dataset(root, config)
+    out = args.keep_outputs / name if args.keep_outputs else Path(tempfile.mkdtemp(prefix=f"bench_{name}_"))
+    load_before = os.getloadavg()
+    error = None
+    try:
+        s = run_slam(dataset, config, out, progress=False).to_dict()
+    except Exception as exc:  # noqa: BLE001 - the benchmark reports failures instead of stopping
+        error = f"{type(exc).__name__}: {exc}"
+        summary_path = out / "summary.json"
+        if not summary_path.is_file():
+            return {"case": name, "preset": preset, "data": str(root), "error": error}
+        s = json.loads(summary_path.read_text())
+    ev = s["evaluation"] or {}
+    result = {
+        "case": name,
+        "preset": preset,
+        "data": str(root),
+        "resolution": s["dataset"]["resolution"],
+        "frames": s["frames_processed"],
+        "frames_with_pose": s["frames_with_pose"],
+        "keyframes": s["keyframes"],
+        "fps": s["fps"],
+        "fps_frontend": s["fps_frontend"],
+        "stage_ms_per_frame": s["stage_ms_per_frame"],
+        "read_ms_per_frame": 1000.0 * s["read_s"] / max(s["frames_processed"], 1),
+        "wall_s": s["wall_s"],
+        "cpu_s": s["cpu_s"],  # user + system CPU of the run: less sensitive to a shared machine's load
+        "frames_per_cpu_s": s["frames_processed"] / s["cpu_s"] if s["cpu_s"] > 0 else None,
+        "failures": s["failures"],
+        "align": ev.get("align"),
+        "scale": ev.get("scale"),
+        "ate_rmse_m": ev.get("ate_rmse_m"),
+        "ate_percent_of_path": ev.get("ate_percent_of_path"),
+        "gt_path_length_m": ev.get("gt_path_length_m"),
+        "coverage": ev.get("coverage"),
+        "motion": s["motion"],  # estimate units (metres for stereo/RGB-D)
+        "max_distance_from_start": s["motion"]["max_distance_from_start"],
+        "peak_rss_mb": s["peak_rss_mb"],
+        "load_before": [round(v, 2) for v in load_before],
+        "load_after": [round(v, 2) for v in os.getloadavg()],
+        "error": error or s["error"],
+        "outputs": str(out) if args.keep_outputs else None,
+    }
+    value = result.get(metric)
+    target = {"metric": metric, "bound": bound, "text": text, "value": value,
+              "met": value is not None and value <= bound and result["error"] is None}
+    if name in FPS_TARGETS:
+        target["fps_bound"] = FPS_TARGETS[name]
+        target["fps_met"] = result["fps"] >= FPS_TARGETS[name]
+    result["target"] = target
+    return result
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if args.list:
+        for name, (preset, data, (_, _, text)) in CASES.items():
+            print(f"{name:14s} {preset:20s} {data:28s} {text}")
+        return 0
+    if args.child is not None:
+        print(json.dumps(run_case(args.child, args)))
+        return 0
+    names = [n.strip() for n in args.cases.split(",") if n.strip()]
+    unknown = [n for n in names if n not in CASES]
+    if unknown:
+        print(f"unknown case(s): {', '.join(unknown)} (known: {', '.join(CASES)})", file=sys.stderr)
+        return 2
+    if any(CASES[n][1] == SYNTH for n in names):
+        synth_root(args)  # render once, before any timing
+    results = {}
+    t0 = time.perf_counter()
+    base = [a for a in (argv if argv is not None else sys.argv[1:])]
+    for name in names:
+        cmd = [sys.executable, str(Path(__file__).resolve())] + base + ["--child", name]
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+        lines = proc.stdout.strip().splitlines()
+        try:
+            results[name] = json.loads(lines[-1])
+        except (IndexError, json.JSONDecodeError):
+            results[name] = {"case": name, "error": f"exit {proc.returncode}: {proc.stderr.strip()[-2000:]}"}
+    report = {
+        "benchmark": "fgslam run (patch frontend)",
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                    "omp_num_threads": os.environ.get("OMP_NUM_THREADS")},
+        "overrides": args.overrides,
+        "total_s": time.perf_counter() - t0,
+        "cases": results,
+    }
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
