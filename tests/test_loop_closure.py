@@ -297,6 +297,11 @@ def test_correction_apply_and_fold():
     # keyframes outside the snapshot move with the nearest corrected id (ties: the older)
     assert corr.update_for(1)[0] is updates[0] and corr.update_for(4)[0] is updates[5]
     assert corr.update_for(9)[0] is updates[5] and corr.update_for(-3)[0] is updates[0]
+    # rounding errors do not build up over repeated corrections: the result is a similarity
+    T_noisy = old[0] + 1e-6 * rng.normal(size=(4, 4)) * np.r_[1.0, 1.0, 1.0, 0.0][:, None]
+    A = corr.apply_pose(0, T_noisy)[0][:3, :3]
+    A = A / np.cbrt(np.linalg.det(A))
+    np.testing.assert_allclose(A.T @ A, np.eye(3), atol=1e-12)
     # a later keyframe keeps its pose relative to its corrected neighbour
     T_later = old[5] @ _random_sim3(rng)
     moved, _ = corr.apply_pose(7, T_later)

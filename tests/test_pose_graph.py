@@ -172,6 +172,30 @@ def test_isolated_plausible_false_loop_rejected():
     assert _ate(T_gt, res2.T_WC) < 0.1 * _ate(T_gt, T_odom)
 
 
+def test_round_rejecting_every_loop_does_not_crash():
+    """Regression: a chi-square round that rejects every active loop left an empty loop set."""
+    n = 60
+    f64 = dict(dtype=torch.float64)
+    R = torch.eye(3, **f64).expand(n, 3, 3).clone()
+    t = torch.zeros(n, 3, **f64)
+    t[:, 2] = torch.arange(n, **f64)
+    T = Sim3(R, t, torch.ones(n, **f64))
+    twist = Sim3(torch.from_numpy(_rot_y(math.radians(30.0))), torch.zeros(3, **f64), torch.tensor(1.0, **f64))
+    pairs = [(50, 2), (51, 3)]
+    from fgslam.lie import stack
+
+    Z = stack([(T[i].inverse() @ T[j]) @ twist for i, j in pairs])
+    res = optimize_sim3_pose_graph(T, np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs]), Z,
+                                   PoseGraphConfig(min_pairwise_support=0))
+    assert not res.accepted.any()
+    assert torch.allclose(res.T_WC.t, T.t, atol=1e-6)
+
+
+def _rot_y(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
 def test_dependent_poses_and_scale_folding():
     rng = np.random.default_rng(1)
     T_old = Sim3.exp(torch.from_numpy(rng.normal(0, 0.5, (5, 7))))

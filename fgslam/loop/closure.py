@@ -211,7 +211,7 @@ class LoopCorrection:
         """Corrected 4x4 pose of keyframe ``kf_id`` from its current pose ``T_WC`` and the depth
         factor ``s`` (``inv_depth <- inv_depth / s``; 1 without ``fold_scale``)."""
         U, s = self.update_for(kf_id)
-        T_new = U @ np.asarray(T_WC, np.float64)
+        T_new = _project_sim3(U @ np.asarray(T_WC, np.float64))
         if not self.fold_scale:
             return T_new, 1.0
         T_new[:3, :3] /= s                 # keep the old scale: T_new S(s)^-1
@@ -258,6 +258,17 @@ def _as_matrix(T) -> np.ndarray:
 def _sim3_parts(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     s = float(np.cbrt(np.linalg.det(M[:3, :3])))
     return M[:3, :3] / s, M[:3, 3].copy(), s
+
+
+def _project_sim3(M: np.ndarray) -> np.ndarray:
+    """The nearest ``[[s R, t], [0, 1]]`` (R in SO(3) by SVD, s = cbrt(det)): repeated corrections
+    must not let rounding errors grow."""
+    out = np.array(M, dtype=np.float64, copy=True)
+    s = float(np.cbrt(np.linalg.det(out[:3, :3])))
+    U, _, Vt = np.linalg.svd(out[:3, :3] / s)
+    out[:3, :3] = s * (U @ Vt)
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
 
 
 def _sim3_inverse(M: np.ndarray) -> np.ndarray:
@@ -650,7 +661,7 @@ class LoopCloser:
                     logger.info("pose graph: no loop accepted yet (%d verified)", len(loops))
                     return
                 T_new = res.T_WC.matrix().numpy()
-                updates = {k: T_new[i] @ _sim3_inverse(T_old[i]) for i, k in enumerate(ids)}
+                updates = {k: T_new[i] @ np.linalg.inv(T_old[i]) for i, k in enumerate(ids)}
                 scale = {k: float(res.scale_correction[i]) for i, k in enumerate(ids)}
                 self._pending = LoopCorrection(updates, scale, {k: T_new[i] for i, k in enumerate(ids)},
                                                statuses, self.cfg.fold_scale, n_acc, dt)

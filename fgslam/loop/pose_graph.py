@@ -276,6 +276,8 @@ def _smooth_sigmas(T_WC: Sim3, cfg: PoseGraphConfig) -> np.ndarray:
 
 def _loop_groups(loop_i: np.ndarray, loop_j: np.ndarray, members: np.ndarray, window: int) -> list[np.ndarray]:
     """Connected groups of the loops ``members`` whose (oriented) ends are within ``window`` keyframes."""
+    if members.size == 0:
+        return []
     a = np.minimum(loop_i[members], loop_j[members])
     b = np.maximum(loop_i[members], loop_j[members])
     near = (np.abs(a[:, None] - a[None]) <= window) & (np.abs(b[:, None] - b[None]) <= window)
