@@ -26,6 +26,9 @@ from .errors import ConfigError
 
 T = TypeVar("T")
 
+#: Words YAML 1.1 turns into booleans, tried in this order when a Literal field gets a boolean.
+_BOOL_WORDS = {False: ("off", "no", "false"), True: ("on", "yes", "true")}
+
 
 def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
@@ -62,6 +65,9 @@ def _convert(value: Any, tp: Any, key: str, source: str) -> Any:
                 errors.append(str(exc))
         raise fail(f"expected {' or '.join(_type_name(a) for a in args if a is not type(None))}")
     if origin is typing.Literal:
+        if isinstance(value, bool) and not any(isinstance(a, bool) for a in args):
+            # YAML 1.1 reads unquoted off/on/no/yes as booleans: map them back to the option spelled so
+            value = next((a for a in _BOOL_WORDS[value] if a in args), value)
         if value not in args:
             raise fail(f"must be one of {list(args)}")
         return value

@@ -180,6 +180,10 @@ def _batch_index(idx) -> tuple:
 
 
 def _batch_shape(*shapes: torch.Size) -> torch.Size:
+    # Fast path for the common equal-shape case: torch.broadcast_shapes imports sympy on first use
+    # (about 2 s of CPU), which would land inside a SLAM frame loop.
+    if all(shape == shapes[0] for shape in shapes[1:]):
+        return torch.Size(shapes[0])
     return torch.broadcast_shapes(*shapes)
 
 

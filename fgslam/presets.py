@@ -21,6 +21,7 @@ PRESET_CLASSES: dict[str, str] = {
     "synth": "fgslam.io.synth.presets:SynthConfig",
     "map": "fgslam.map:MapConfig",
     "bow": "fgslam.loop.bow:BowConfig",
+    "loop": "fgslam.loop.closure:LoopClosureConfig",
     "patch": "fgslam.slam:SlamConfig",
     "demo": "fgslam.demo:DemoConfig",
 }

@@ -10,7 +10,8 @@
   timestamps (seconds);
 - ``summary.json``: frame counts, keyframes, frames/s overall and per stage, failures by kind,
   skipped frames, the estimate's motion extent, evaluation (ATE with the alignment used, RPE, % of
-  path length) when the dataset has ground truth, the full configuration used, and the error when
+  path length) when the dataset has ground truth, loop closure counts (``loop``, when the frontend
+  runs loop closure: ``Frontend.loop_summary()``), the full configuration used, and the error when
   the run failed;
 - ``trajectory.png``: top view of the (aligned) estimate against the ground truth;
 - ``points.ply`` when ``output.write_ply`` (the frontend's keyframe points, when it has any).
@@ -48,6 +49,7 @@ from .frontends.base import FrameStatus, Frontend
 from .frontends.patch.config import PatchConfig
 from .io.datasets import Dataset, DatasetConfig, open_dataset
 from .io.trajectory import Trajectory, write_trajectory
+from .loop.closure import LoopClosureConfig
 from .map import MapConfig
 
 logger = logging.getLogger(__name__)
@@ -97,8 +99,11 @@ class SlamConfig:
     map: MapConfig = field(default_factory=MapConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    # loop closure (mode off | classical | both; proximity: not in the patch frontend yet); off by default
+    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
 
     def validate(self) -> None:
+        self.loop_closure.validate()
         if self.threads < 0:
             raise ConfigError(f"threads must be >= 0, got {self.threads}")
         if self.log_interval_frames < 1 or not self.log_interval_s > 0:
@@ -185,6 +190,7 @@ class RunSummary:
     load_average: list[float]  # os.getloadavg() at the start (shared machines)
     error: Optional[str] = None
     notes: list[str] = field(default_factory=list)
+    loop: Optional[dict[str, Any]] = None  # frontend.loop_summary(): loop closure counts (None: off)
 
     @property
     def ok(self) -> bool:
@@ -482,15 +488,17 @@ def _finalize(
         outputs["plot"] = str(_plot(out / PLOT_FILE, gt, traj, result, config))
     stage_s: dict[str, float] = {}
     keyframes = -1
+    loop = None
     try:
         stage_s = {k: float(v) for k, v in frontend.stage_times().items()}
         keyframes = int(frontend.num_keyframes())
+        loop = frontend.loop_summary()
         if config.output.write_ply:
             ply = _write_points(out / PLY_FILE, frontend, notes)
             if ply is not None:
                 outputs["ply"] = str(ply)
     except Exception as exc:  # noqa: BLE001 - recorded; the summary is still written
-        errors.append((exc, "in its end-of-run queries (stage_times/num_keyframes/keyframe_points)"))
+        errors.append((exc, "in its end-of-run queries (stage_times/num_keyframes/loop_summary/keyframe_points)"))
     n = state.frames_processed
     frames_with_pose = 0 if traj is None else len(traj)
     failures = {
@@ -536,6 +544,7 @@ def _finalize(
         load_average=load_average,
         error=error_text,
         notes=notes,
+        loop=loop,
     )
     _write_summary(out / SUMMARY_FILE, summary)
     return summary, first_error

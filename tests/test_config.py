@@ -93,6 +93,20 @@ def test_invalid_literal_bool_and_tuple_length(tmp_path):
         load_config(RootConfig, write(tmp_path, "sizes: [1, 2, 3]\n"))
 
 
+@dataclass
+class SwitchConfig:
+    mode: Literal["off", "on", "auto"] = "auto"
+    answer: Literal["yes", "no", "maybe"] = "maybe"
+
+
+def test_yaml_boolean_words_map_back_to_literal_options(tmp_path):
+    cfg = load_config(SwitchConfig, write(tmp_path, "mode: off\nanswer: yes\n"), ["mode=on"])
+    assert cfg.mode == "on" and cfg.answer == "yes"
+    assert load_config(SwitchConfig, None, ["mode=off", "answer=no"]) == SwitchConfig("off", "no")
+    with pytest.raises(ConfigError, match="one of"):
+        load_config(RootConfig, None, ["solver.kind=true"])
+
+
 def test_validate_hook_errors_are_config_errors():
     with pytest.raises(ConfigError, match="iterations must be positive"):
         load_config(RootConfig, None, ["solver.iterations=0"])

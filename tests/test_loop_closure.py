@@ -136,7 +136,7 @@ def _run(street, ids, config: LoopClosureConfig, blank=(), wait=True, pace_s=0.0
 def sync_run(street):
     n = len(street["frames"])
     blank = {street["first_revisit"] + 8}                 # a textureless keyframe in the revisit
-    out = _run(street, list(range(n)), LoopClosureConfig(run_in_thread=False), blank=blank)
+    out = _run(street, list(range(n)), LoopClosureConfig(mode="classical", run_in_thread=False), blank=blank)
     out["blank"] = blank
     return out
 
@@ -188,7 +188,7 @@ def pair_closer(street):
     first = street["first_revisit"]
     ids = list(range(0, 14)) + [100, 101, 102] + list(range(first, first + 14))
     poses = _drifted(street, list(range(len(street["frames"]))))
-    closer = LoopCloser(LoopClosureConfig(run_in_thread=False))
+    closer = LoopCloser(LoopClosureConfig(mode="classical", run_in_thread=False))
     for k in ids:
         closer.add_keyframe(k, float(street["t"][k]), street["images"][k], street["K"], poses[k],
                             neighbours=[k - 1, k + 1])
@@ -254,7 +254,7 @@ def test_relocalisation(street, sync_run):
 
 def test_threaded_equals_synchronous(street, sync_run):
     ids = list(range(len(street["frames"])))
-    run = _run(street, ids, LoopClosureConfig(run_in_thread=True), blank=sync_run["blank"])
+    run = _run(street, ids, LoopClosureConfig(mode="classical", run_in_thread=True), blank=sync_run["blank"])
     assert len(run["corrections"]) == len(sync_run["corrections"]) >= 1
     assert [(l.query_id, l.candidate_id, l.status) for l in run["loops"]] == \
         [(l.query_id, l.candidate_id, l.status) for l in sync_run["loops"]]
@@ -265,7 +265,7 @@ def test_threaded_concurrent_polling_corrects(street):
     """No waiting: the worker lags behind the keyframes, so corrections arrive for snapshots that
     later keyframes are not part of (moved with their nearest corrected keyframe)."""
     ids = list(range(len(street["frames"])))
-    run = _run(street, ids, LoopClosureConfig(run_in_thread=True), wait=False, pace_s=0.01)
+    run = _run(street, ids, LoopClosureConfig(mode="classical", run_in_thread=True), wait=False, pace_s=0.01)
     assert run["corrections"]
     assert any(len(c.T_update) < len(ids) for c in run["corrections"])
     assert _ate(street, ids, run["poses"]) < _ate(street, ids, _drifted(street, ids)) / 5.0

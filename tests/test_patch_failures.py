@@ -9,22 +9,11 @@ import numpy as np
 import pytest
 
 from fgslam.eval import EvalConfig, evaluate
-from fgslam.frontends.patch import PatchConfig, PatchFrontend
+from fgslam.frontends.patch import PatchFrontend
 from fgslam.io.trajectory import Trajectory
+from patch_support import light_patch_config
 
 FRAMES = 40
-
-
-def light_config() -> PatchConfig:
-    """A lighter graph than the defaults (keeps the file fast)."""
-    cfg = PatchConfig()
-    cfg.graph.patches_per_frame = 64
-    cfg.graph.patch_lifetime = 5
-    cfg.graph.removal_window = 9
-    cfg.graph.optimization_window = 5
-    cfg.tracking.keyframe_index = 2
-    cfg.tracking.keyframe_threshold = 6.0  # pixels: scaled down with the 200 px wide images
-    return cfg
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +39,7 @@ def test_blank_frames_use_motion_model_and_recover(room, mode):
     ds, frames = frames_of(room, mode)
     blank = set(range(22, 25))
     fed = [dataclasses.replace(f, image=np.full_like(f.image, 90)) if f.index in blank else f for f in frames]
-    fe = PatchFrontend(light_config(), sensor_mode=mode)
+    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode=mode)
     statuses = [fe.process(f) for f in fed]
     for s in statuses:
         if s.index in blank:
@@ -72,14 +61,14 @@ def test_static_camera_never_initialises_mono(room):
                             image=np.clip(frames[0].image + rng.normal(0, 1.0, frames[0].image.shape), 0, 255).astype(np.uint8))
         for i in range(25)
     ]
-    fe = PatchFrontend(light_config(), sensor_mode="mono")
+    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="mono")
     statuses = [fe.process(f) for f in still]
     assert all(s.pose_source == "initializing" and s.T_WC is None for s in statuses)
     assert fe.trajectory()[1].shape == (0, 4, 4)
     assert fe.num_keyframes() == 0
     # the same static input in stereo gives a pose per frame with (almost) no motion
     _, sframes = frames_of(room, "stereo")
-    fe_s = PatchFrontend(light_config(), sensor_mode="stereo")
+    fe_s = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="stereo")
     for i in range(15):
         fe_s.process(dataclasses.replace(sframes[0], index=i, timestamp=sframes[0].timestamp + 0.05 * i))
     _, poses, _ = fe_s.trajectory()
@@ -89,7 +78,7 @@ def test_static_camera_never_initialises_mono(room):
 
 def test_too_short_sequence_reports_no_poses(room):
     _, frames = frames_of(room, "mono")
-    fe = PatchFrontend(light_config(), sensor_mode="mono")
+    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="mono")
     statuses = [fe.process(f) for f in frames[:2]]
     assert [s.pose_source for s in statuses] == ["initializing", "initializing"]
     stamps, poses, sources = fe.trajectory()
@@ -100,7 +89,7 @@ def test_long_loss_reinitialises_without_crash(room):
     ds, frames = frames_of(room, "rgbd")
     blank = set(range(15, 21))
     fed = [dataclasses.replace(f, image=np.full_like(f.image, 90)) if f.index in blank else f for f in frames]
-    cfg = light_config()
+    cfg = light_patch_config(keyframe_threshold=6.0)
     cfg.tracking.max_motion_model_frames = 2
     fe = PatchFrontend(cfg, sensor_mode="rgbd")
     statuses = [fe.process(f) for f in fed]

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from fgslam.eval import EvalConfig, evaluate
-from fgslam.frontends.patch import PatchConfig, PatchFrontend
+from fgslam.frontends.patch import PatchFrontend
 from fgslam.io.trajectory import Trajectory
+from patch_support import light_patch_config
 
 FRAMES = 48
 FLOOR_M = 0.001  # fixed error floor of a short clip (see module docstring)
@@ -29,17 +30,6 @@ def room(tmp_path_factory):
     return root
 
 
-def light_config() -> PatchConfig:
-    cfg = PatchConfig()
-    cfg.graph.patches_per_frame = 64
-    cfg.graph.patch_lifetime = 5
-    cfg.graph.removal_window = 9
-    cfg.graph.optimization_window = 5
-    cfg.tracking.keyframe_index = 2
-    cfg.tracking.keyframe_threshold = 8.0  # pixels: scaled down with the 320 px wide images
-    return cfg
-
-
 def load(root, mode):
     from fgslam.io.datasets import DatasetConfig, open_dataset
 
@@ -47,7 +37,7 @@ def load(root, mode):
 
 
 def run(ds, mode, config=None, frames=None):
-    fe = PatchFrontend(config or light_config(), sensor_mode=mode)
+    fe = PatchFrontend(config or light_patch_config(), sensor_mode=mode)
     statuses = [fe.process(f) for f in (frames if frames is not None else ds)]
     fe.finish()
     return fe, statuses

@@ -7,7 +7,12 @@ corrected poses after every correction (as a frontend would). Reports the keyfra
 alignment) of the drifted odometry and of the run with loop closure, the loops verified / accepted,
 the per-stage time per keyframe (describe = ORB + BoW, detect, verify, pose graph) and the wall time.
 
-    python tools/bench_loop.py [--stride 4] [--revisit 80] [--threaded]
+``--patch N``: instead, run the patch frontend (mono, ``PatchFrontend`` with its built-in loop
+closure) on the first N frames of the street-loop with ``loop_closure.mode`` classical and off
+(``--no-baseline``: classical only; ``--threaded``: closer in its worker thread, else synchronous);
+reports the ATE (sim3) over all frames of each run, their ratio and the loop counts.
+
+    python tools/bench_loop.py [--stride 4] [--revisit 80] [--threaded] [--patch 1100 [--no-baseline]]
 """
 
 from __future__ import annotations
@@ -37,6 +42,50 @@ def _ate(t, T_gt, T_est) -> float:
     return float(res.ate.rmse)
 
 
+def _patch_run(n_frames: int, baseline: bool = True, threaded: bool = True) -> dict:
+    """The patch frontend (mono, default config) on the first ``n_frames`` of the street-loop with
+    loop closure classical (and, with ``baseline``, off): ATE (sim3) over all frames of each run."""
+    import torch
+
+    from fgslam.frontends.patch import PatchConfig, PatchFrontend
+    from fgslam.io.calibration import Calibration
+    from fgslam.io.frame import Frame
+    from fgslam.io.synth import SynthSequence, default_config
+
+    torch.set_num_threads(1)
+    cfg = default_config("street-loop")
+    seq = SynthSequence(cfg)
+    cal = Calibration(cfg.camera.width, cfg.camera.height, np.array(seq.K))
+    t = np.arange(n_frames) / cfg.camera.rate_hz
+    T_gt = seq.camera_poses(t)
+    t0 = time.perf_counter()
+    images = [np.clip(seq.render_view(T).image, 0, 255).astype(np.uint8) for T in T_gt]
+    out: dict = {"frontend": "patch", "frames": n_frames, "render_s": round(time.perf_counter() - t0, 1)}
+
+    def ate(traj) -> float:
+        ts, T, _ = traj
+        idx = np.round(ts * cfg.camera.rate_hz).astype(int)
+        return round(_ate(ts, T_gt[idx], T), 3)
+
+    for mode in ("classical", "off") if baseline else ("classical",):
+        fe = PatchFrontend(PatchConfig(), cal, "mono",
+                           loop_config=LoopClosureConfig(mode=mode, run_in_thread=threaded))
+        t0 = time.perf_counter()
+        for i in range(n_frames):
+            fe.process(Frame(i, i, float(t[i]), images[i], cal))
+        fe.finish()
+        run = {"wall_s": round(time.perf_counter() - t0, 1), "keyframes": fe.num_keyframes(),
+               "tracking_failures": fe.num_failures, "ate_m": ate(fe.trajectory())}
+        summary = fe.loop_summary()
+        if summary is not None:
+            summary["closer_s"] = {k: round(v, 2) for k, v in summary["closer_s"].items()}
+            run["loop"] = summary
+        out[f"loop_{mode}"] = run
+    if baseline and out["loop_off"]["ate_m"] > 0:
+        out["ate_ratio_with_over_without"] = round(out["loop_classical"]["ate_m"] / out["loop_off"]["ate_m"], 3)
+    return out
+
+
 def main() -> int:
     from fgslam.io.synth import SynthSequence, default_config
 
@@ -47,7 +96,12 @@ def main() -> int:
     ap.add_argument("--heading-drift-deg", type=float, default=15.0, help="heading drift at the end")
     ap.add_argument("--threaded", action="store_true", help="worker thread, polled without waiting")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--patch", type=int, default=0, metavar="N", help="patch frontend on N frames instead")
+    ap.add_argument("--no-baseline", action="store_true", help="--patch: skip the run without loop closure")
     args = ap.parse_args()
+    if args.patch:
+        print(json.dumps(_patch_run(args.patch, baseline=not args.no_baseline, threaded=args.threaded), indent=2))
+        return 0
 
     cfg = default_config("street-loop")
     cfg.seed = args.seed
@@ -75,7 +129,7 @@ def main() -> int:
     for S in steps:
         drifted.append(drifted[-1] @ S)
 
-    closer = LoopCloser(LoopClosureConfig(run_in_thread=args.threaded))
+    closer = LoopCloser(LoopClosureConfig(mode="classical", run_in_thread=args.threaded))
     poses, unit, n_corr = [T_gt[0].copy()], 1.0, 0
     t0 = time.perf_counter()
 

@@ -33,7 +33,8 @@ _PLANNED: dict[str, str] = {
 def _build_patch(config: SlamConfig, calibration: Calibration, sensor_mode: SensorMode) -> Frontend:
     from .patch.frontend import PatchFrontend
 
-    return PatchFrontend(config.patch, calibration, sensor_mode, map_config=config.map)
+    return PatchFrontend(config.patch, calibration, sensor_mode, map_config=config.map,
+                         loop_config=config.loop_closure)
 
 
 _BUILDERS: dict[str, Callable[[SlamConfig, Calibration, SensorMode], Frontend]] = {
@@ -47,8 +48,8 @@ def available_frontends() -> tuple[str, ...]:
 
 
 def make_frontend(name: str, config: SlamConfig, calibration: Calibration, sensor_mode: SensorMode) -> Frontend:
-    """Build frontend family ``name`` from the run's ``config`` (its section ``config.<name>`` and
-    ``config.map``) for images described by ``calibration`` in ``sensor_mode`` (mono|stereo|rgbd).
+    """Build frontend family ``name`` from the run's ``config`` (its section ``config.<name>``,
+    ``config.map`` and ``config.loop_closure``) for images described by ``calibration`` in ``sensor_mode`` (mono|stereo|rgbd).
 
     Raises:
         ConfigError: ``name`` is planned but not implemented yet (``dense``, ``pointmap``) or unknown.

@@ -77,3 +77,8 @@ class Frontend(abc.ABC):
     def keyframe_points(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Optional map points ``(X_W (M, 3) float, colour (M, 3) uint8)`` for PLY export."""
         return None
+
+    def loop_summary(self) -> dict | None:
+        """Optional loop-closure counts for ``summary.json`` (loops verified / accepted, corrections
+        applied, relocalisations, ...); None when the frontend runs no loop closure."""
+        return None

@@ -117,7 +117,7 @@ class LoopClosureConfig:
     """Loop closure switches and tunables (``mode``: the frontend implements ``proximity``, this
     module ``classical``; ``both`` runs both, ``off`` neither)."""
 
-    mode: Literal["off", "proximity", "classical", "both"] = "classical"
+    mode: Literal["off", "proximity", "classical", "both"] = "off"  # loop closure is opt-in
     bow: BowConfig = field(default_factory=BowConfig)
     verification: VerificationConfig = field(default_factory=VerificationConfig)
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
@@ -383,7 +383,7 @@ class LoopCloser:
     """
 
     def __init__(self, config: LoopClosureConfig | None = None, recognizer: PlaceRecognizer | None = None):
-        self.cfg = config or LoopClosureConfig()
+        self.cfg = config or LoopClosureConfig(mode="classical")
         self.cfg.validate()
         self._lock = threading.RLock()
         self._enabled = self.cfg.classical

@@ -138,13 +138,19 @@ class PatchBlock(VisualBlock):
         self.set_structure(torch.as_tensor(inverse_depth, dtype=f64))
         self.num_invalid = 0
         self._valid = torch.ones(q * L + m, dtype=torch.bool)
+        self._memo = None  # (R, t, s, structure, BlockResiduals, valid, has Jacobians) of the last evaluation
 
     @property
     def structure(self) -> torch.Tensor:
         return self._structure
 
+    def clamp_structure(self, structure: torch.Tensor) -> torch.Tensor:
+        """Inverse depths clamped to ``config.min_structure`` (the solver's trial cost then sees the
+        structure it would adopt)."""
+        return structure.to(torch.float64).clamp_min(self.config.min_structure)
+
     def set_structure(self, structure: torch.Tensor) -> None:
-        self._structure = structure.to(torch.float64).clamp_min(self.config.min_structure)
+        self._structure = self.clamp_structure(structure)
 
     def poses_from_values(self, values) -> Sim3:
         if not self.keys:
@@ -158,11 +164,31 @@ class PatchBlock(VisualBlock):
         return R, t, s
 
     def evaluate(self, poses: Sim3, structure: torch.Tensor, jacobians: bool) -> BlockResiduals:
-        f64 = torch.float64
+        """Residuals (see :class:`VisualBlock`) through a one-entry memo of the last evaluation.
+
+        The solver asks for the same state more than once: the initial cost and then the first
+        linearisation (so a fresh block's first evaluation includes the Jacobians), and the last
+        accepted trial's cost and then :meth:`residuals`. A request at the memo's poses and
+        structure is answered from it (a residual-only request also from a Jacobian evaluation).
+        """
         R, t, s = self._all_poses(poses)
+        structure = structure.to(torch.float64)
+        memo = self._memo
+        if memo is None:
+            jacobians = True
+        elif ((memo[6] or not jacobians) and torch.equal(memo[3], structure) and torch.equal(memo[0], R)
+                and torch.equal(memo[1], t) and torch.equal(memo[2], s)):
+            self._valid, self.num_invalid = memo[5], memo[4].num_invalid
+            return memo[4]
+        out = self._evaluate(R, t, s, structure, jacobians)
+        self._memo = (R, t, s, structure.clone(), out, self._valid, jacobians)
+        return out
+
+    def _evaluate(self, R: torch.Tensor, t: torch.Tensor, s: torch.Tensor, structure: torch.Tensor,
+                  jacobians: bool) -> BlockResiduals:
+        f64 = torch.float64
         q, L = self.num_groups, self.length
         m = int(self.prior_value.shape[0])
-        structure = structure.to(f64)
         d_edge = structure[self.struct_idx[: q * L]].reshape(q, L)
         parts = []
         ql = self.num_left_groups

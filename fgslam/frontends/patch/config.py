@@ -85,6 +85,7 @@ class BAConfig:
     stereo_init_steps: int = 5  # stereo: per-patch depth Gauss-Newton steps on the first frame's right-image edges
     stereo_cross_edges: bool = False  # stereo: also edges into the right images of other frames (else own right image only)
     threads: int = 1  # torch threads during BA (small dense work: 1 is fastest)
+    lambda_factor: float = 1000.0  # LM damping multiplier after a rejected step (the pose Hessian dwarfs damping below ~1e4: x10 retries the same step)
 
 
 @dataclass
@@ -123,6 +124,8 @@ class PatchConfig:
             raise ConfigError(f"patch.source must be 'lk' or 'learned', got {self.source!r}")
         if self.ba.iterations < 1 or self.ba.rounds < 1 or self.ba.init_iterations < 1 or self.ba.init_rounds < 1:
             raise ConfigError("patch.ba iterations/rounds must be >= 1")
+        if self.ba.lambda_factor <= 1.0:
+            raise ConfigError(f"patch.ba.lambda_factor must be > 1, got {self.ba.lambda_factor}")
         if not 0.0 <= self.tracking.motion_damping <= 1.0:
             raise ConfigError(f"patch.tracking.motion_damping must be in [0, 1], got {self.tracking.motion_damping}")
         if not 2 <= self.tracking.init_min_frames <= self.tracking.init_max_frames:

@@ -30,6 +30,14 @@ Poses are Sim(3) ``T_WC`` with the scale held at its initial value 1, so the out
 the rigid part ``[R | t]``. Every input frame gets a pose once the map exists (keyframes from the
 map, removed frames relative to a neighbour, frames buffered during initialisation interpolated);
 frames before a successful initialisation are omitted.
+
+Loop closure (``loop_config.mode`` classical or both; :mod:`fgslam.loop.closure`): keyframes that can
+no longer be removed (graph positions below ``len - 1 - keyframe_index``) go to a
+:class:`~fgslam.loop.closure.LoopCloser` with their image and pose; its corrections are applied
+before a frame is tracked (no BA running): graph poses ``T_WC <- U_k T_WC`` with the Sim(3) scale
+folded into patch inverse depths (``d <- d / s_k``), final and relative pose records alike. A lost
+track is relocalised on the keyframe database before a re-initialisation, whose anchor it becomes
+(monocular: the new map gets a scale of its own).
 """
 
 from __future__ import annotations
@@ -46,7 +54,7 @@ from ...errors import ConfigError, OptimizationError
 from ...factors.reprojection import ReprojectionConfig, reproject
 from ...factors.robust import kernel_weight
 from ...factors.schur import BlockConfig, torch_threads
-from ...lie import Sim3
+from ...loop.closure import LoopCloser, LoopClosureConfig, LoopCorrection
 from ...map import GaugeConfig, MapConfig, SlamMap, pose_key
 from ..base import FrameStatus, Frontend, SensorMode
 from .ba import PatchBlock
@@ -59,13 +67,6 @@ logger = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------------- helpers
-def _sim3(M: np.ndarray) -> Sim3:
-    return Sim3.from_matrix(torch.as_tensor(np.asarray(M, dtype=np.float64)))
-
-
-def _matrix(T: Sim3) -> np.ndarray:
-    return T.matrix().numpy().astype(np.float64)
-
 
 def _rigid(M: np.ndarray) -> np.ndarray:
     """Rigid part ``[R | t]`` of a Sim(3) matrix ``[[s R, t], [0, 1]]``."""
@@ -77,9 +78,37 @@ def _rigid(M: np.ndarray) -> np.ndarray:
 
 def _interp(Ta: np.ndarray, Tb: np.ndarray, alpha: float) -> np.ndarray:
     """``Ta Exp(alpha Log(Ta^-1 Tb))`` on Sim(3) matrices."""
-    A = _sim3(Ta)
-    rel = (A.inverse() @ _sim3(Tb)).log()
-    return _matrix(A @ Sim3.exp(alpha * rel))
+    return Ta @ _sim3_power(np.linalg.inv(Ta) @ Tb, alpha)
+
+
+def _sim3_power(M: np.ndarray, alpha: float) -> np.ndarray:
+    """``Exp(alpha Log(M))`` of a Sim(3) matrix, through gtsam's ``Similarity3`` Logmap/Expmap (whose
+    tangent is ``fgslam.lie.Sim3``'s ``[w, u, lambda]``); per-frame motion model without torch."""
+    import gtsam
+
+    return _gtsam_matrix(gtsam.Similarity3.Expmap(alpha * gtsam.Similarity3.Logmap(_gtsam_sim3(M))))
+
+
+def _gtsam_sim3(M: np.ndarray):
+    """``gtsam.Similarity3`` of a Sim(3) matrix ``[[s R, t], [0, 1]]`` (R projected onto SO(3));
+    numpy twin of ``Sim3.from_matrix(M).to_gtsam()`` without the torch round trip (hot path)."""
+    import gtsam
+
+    sR = np.asarray(M, dtype=np.float64)[:3, :3]
+    s = float(np.cbrt(abs(np.linalg.det(sR))))
+    U, _, Vt = np.linalg.svd(sR / s)
+    U[:, 2] *= np.sign(np.linalg.det(U @ Vt))
+    return gtsam.Similarity3(gtsam.Rot3(U @ Vt), np.asarray(M[:3, 3], dtype=np.float64) / s, s)
+
+
+def _gtsam_matrix(S) -> np.ndarray:
+    """Sim(3) matrix ``[[s R, t], [0, 1]]`` of a ``gtsam.Similarity3`` (gtsam acts as ``s (R p + t_g)``,
+    so ``t = s t_g``); numpy twin of ``Sim3.from_gtsam(S).matrix()``."""
+    s = float(S.scale())
+    M = np.eye(4)
+    M[:3, :3] = s * S.rotation().matrix()
+    M[:3, 3] = s * np.asarray(S.translation(), dtype=np.float64)
+    return M
 
 
 def _components(M: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -169,12 +198,14 @@ class PatchFrontend(Frontend):
         sensor_mode: ``mono``, ``stereo`` (needs right images) or ``rgbd`` (needs depth).
         map_config: solver settings for the local bundle adjustment (its iteration count and gauge
             are set by the frontend); None: :class:`fgslam.map.MapConfig` defaults.
+        loop_config: loop closure (:class:`fgslam.loop.closure.LoopClosureConfig`; the frontend runs
+            its ``classical`` part, see :meth:`_loop_poll_and_apply`); None: loop closure off.
     """
 
     name = "patch"
 
     def __init__(self, config: PatchConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
-                 map_config: MapConfig | None = None):
+                 map_config: MapConfig | None = None, loop_config: LoopClosureConfig | None = None):
         self.config = config or PatchConfig()
         self.config.validate()
         if sensor_mode not in ("mono", "stereo", "rgbd"):
@@ -203,6 +234,7 @@ class PatchFrontend(Frontend):
         self._fid = 0
         self._finalised = 0  # keyframes that left the graph (pose final)
         self._keys: dict[int, int] = {}  # fid -> gtsam key cache (bounded to about the graph size)
+        self._loop_init(loop_config)
 
     # ------------------------------------------------------------------ calibration
     def _set_calibration(self, calibration) -> None:
@@ -248,6 +280,8 @@ class PatchFrontend(Frontend):
         self._fid += 1
         self._inputs.append((fid, float(frame.timestamp), int(frame.index)))
         self._records[fid] = None
+        if self._initialized:
+            self._loop_poll_and_apply()  # safe point (no BA running); outside the numerical-trouble guard
         try:
             with torch_threads(self.config.threads):
                 if not self._initialized:
@@ -260,6 +294,8 @@ class PatchFrontend(Frontend):
                 self.graph.remove_frame(fid)
             status = self._fail(fid, frame, f"optimisation failed: {exc}")
         self._sources[fid] = status.pose_source
+        self._loop_keep_image(fid, frame)
+        self._loop_feed_keyframes()
         return status
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -283,6 +319,7 @@ class PatchFrontend(Frontend):
         return np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks])
 
     def finish(self) -> None:
+        self._loop_finish()
         logger.info("patch frontend: %d frames, %d keyframes, %d tracking failures",
                     len(self._inputs), self.num_keyframes(), self._failures)
 
@@ -328,8 +365,7 @@ class PatchFrontend(Frontend):
         """Damped constant-velocity prediction from the last posed frame."""
         T_last = self._pose_of(self._last_fid)
         damping = self.config.tracking.motion_damping
-        V = _matrix(Sim3.exp(damping * _sim3(self._velocity).log()))
-        return T_last @ V
+        return T_last @ _sim3_power(self._velocity, damping)
 
     def _update_velocity(self, fid: int) -> None:
         if self._last_fid is not None:
@@ -337,7 +373,7 @@ class PatchFrontend(Frontend):
             if T_prev is not None and T_new is not None:
                 steps = max(1, fid - self._last_fid)
                 V = np.linalg.inv(T_prev) @ T_new
-                self._velocity = V if steps == 1 else _matrix(Sim3.exp(_sim3(V).log() / steps))
+                self._velocity = V if steps == 1 else _sim3_power(V, 1.0 / steps)
         self._last_fid = fid
 
     def _frame_points(self, f: GraphFrame) -> tuple[np.ndarray, np.ndarray]:
@@ -510,15 +546,15 @@ class PatchFrontend(Frontend):
         mono_init = init and self.sensor_mode == "mono"
         gauge = GaugeConfig(fix_anchor=mono_init or len(fixed) == 0, hold_scale=True, world_scale_range=mono_init)
         mcfg = replace(self.map_config, max_iterations=iterations, refine_steps=cfg.ba.refine_steps,
-                       threads=cfg.ba.threads, gauge=gauge, solver="python_lm")
+                       threads=cfg.ba.threads, gauge=gauge, solver="python_lm", lambda_factor=cfg.ba.lambda_factor)
         smap = SlamMap(mcfg)
         for f in var_order:
-            smap.add_keyframe(int(f), _sim3(g.frame(int(f)).T_WC).to_gtsam())
+            smap.add_keyframe(int(f), _gtsam_sim3(g.frame(int(f)).T_WC))
         smap.add_block(block)
         report = smap.optimize()
         # write back poses and depths
         for f in var_order:
-            g.frame(int(f)).T_WC = _matrix(Sim3.from_gtsam(smap.pose(int(f))))
+            g.frame(int(f)).T_WC = _gtsam_matrix(smap.pose(int(f)))
         depth = block.structure.numpy()
         for pos in np.unique(pos_src):
             sel = pos_src == pos
@@ -783,14 +819,19 @@ class PatchFrontend(Frontend):
         self._records[fid] = ("rel", ref, np.linalg.inv(self._pose_of(ref)) @ T_pred)
         # keep the velocity; the next prediction continues from this frame
         self._last_fid = fid
+        source = "motion_model"
         if self._lost > self.config.tracking.max_motion_model_frames:
+            if self._loop_relocalize(fid, frame) is not None:  # anchor of the re-initialisation
+                events.append("relocalised")
+                source = "relocalized"
             events.append("re-initialising")
             self._reset()
         logger.info("frame %d: %s", frame.index, reason)
-        return self._status(fid, frame, "motion_model", events=events)
+        return self._status(fid, frame, source, events=events)
 
     def _reset(self) -> None:
         """Finalise the graph and start a new initialisation anchored at the last predicted pose."""
+        self._loop_feed_keyframes(all_frames=True)
         for f in self.graph.clear():
             self._records[f.fid] = ("abs", f.T_WC.copy())
             self._points.append(self._frame_points(f))
@@ -845,3 +886,136 @@ class PatchFrontend(Frontend):
         """The bounded store of inactive edges (see :class:`~.graph.InactiveEdges`)."""
         return self.graph.inactive.arrays()
 
+
+    # ------------------------------------------------------------------ loop closure (fgslam.loop.closure)
+    def _loop_init(self, loop_config: LoopClosureConfig | None) -> None:
+        """A :class:`LoopCloser` when ``loop_config.mode`` is ``classical`` or ``both`` (the proximity
+        part is not implemented in this frontend yet: ``proximity`` alone is refused)."""
+        self.loop_config = loop_config if loop_config is not None else LoopClosureConfig()
+        self.loop_config.validate()
+        if self.loop_config.mode == "proximity":
+            raise ConfigError("loop_closure.mode=proximity: the patch frontend has no proximity loop closure yet; "
+                              "use classical (or off)")
+        if self.loop_config.proximity:
+            logger.warning("loop_closure.mode=both: the patch frontend runs the classical part only "
+                           "(proximity loop closure is not implemented yet)")
+        self.closer = LoopCloser(self.loop_config) if self.loop_config.classical else None
+        self._loop_images: dict[int, np.ndarray] = {}  # fid -> image, while the frame may become a loop keyframe
+        self._loop_last_added = -1  # newest fid handed to the closer (ids must increase)
+        self._loop_counts = {"corrections_applied": 0, "keyframes_added": 0, "relocalization_attempts": 0,
+                             "relocalized": 0}
+        if self.closer is not None:
+            self._times["loop"] = 0.0
+
+    def _loop_keep_image(self, fid: int, frame) -> None:
+        """Keep the image of frame ``fid`` while it is in the graph (or buffered for initialisation)."""
+        if self.closer is None:
+            return
+        self._loop_images[fid] = frame.image
+        if self._init is not None:
+            keep = {self._init.ref_fid} | {b[0] for b in self._init.buffer}
+        else:
+            keep = {f.fid for f in self.graph.frames}
+        for old in [k for k in self._loop_images if k not in keep]:
+            del self._loop_images[old]
+
+    def _loop_poll_and_apply(self) -> None:
+        """Apply the closer's newest correction, if any (called where no BA runs)."""
+        if self.closer is None:
+            return
+        t0 = time.perf_counter()
+        self._loop_apply(self.closer.poll())
+        self._times["loop"] += time.perf_counter() - t0
+
+    def _loop_apply(self, corr: LoopCorrection | None) -> None:
+        """Apply a pose-graph correction (``fgslam.loop.closure`` module docstring): graph frames
+        ``T_WC <- U_k T_WC`` with the scale folded into their patch inverse depths (sensor depths stay
+        as measured), final poses (``abs`` records) likewise, poses relative to a reference (``rel``)
+        and the motion model's velocity re-expressed in their reference's folded units; ``interp``
+        records follow their two end poses."""
+        if corr is None:
+            return
+        for f in self.graph.frames:
+            f.T_WC, s = corr.apply_pose(f.fid, f.T_WC)
+            f.inv_depth = f.inv_depth / s
+        for fid, rec in list(self._records.items()):
+            if rec is None:
+                continue
+            if rec[0] == "abs":
+                self._records[fid] = ("abs", corr.apply_pose(fid, rec[1])[0]) + tuple(rec[2:])
+            elif rec[0] == "rel" and corr.fold_scale:
+                T_rel = LoopCorrection.fold_relative(rec[2], corr.update_for(rec[1])[1])
+                self._records[fid] = ("rel", rec[1], T_rel) + tuple(rec[3:])
+        if self._last_fid is not None and corr.fold_scale:
+            self._velocity = LoopCorrection.fold_relative(self._velocity, corr.update_for(self._last_fid)[1])
+        self._loop_counts["corrections_applied"] += 1
+        logger.info("loop correction applied (%d loops accepted, %d keyframes in the pose graph)",
+                    corr.n_accepted, len(corr.T_update))
+
+    def _loop_add(self, positions) -> None:
+        """Hand the graph frames at ``positions`` (poses final or about to be) to the closer, once each."""
+        g = self.graph
+        for p in positions:
+            f = g.frames[p]
+            image = self._loop_images.pop(f.fid, None)
+            if f.fid <= self._loop_last_added or image is None:
+                continue
+            neighbours = [g.frames[q].fid for q in (p - 1, p + 1) if 0 <= q < len(g)]
+            self.closer.add_keyframe(f.fid, f.timestamp, image, self.K.numpy(), f.T_WC, neighbours=neighbours)
+            self._loop_last_added = f.fid
+            self._loop_counts["keyframes_added"] += 1
+
+    def _loop_feed_keyframes(self, all_frames: bool = False) -> None:
+        """Feed keyframes that can no longer be removed (graph positions below
+        ``len - 1 - keyframe_index``; every graph frame with ``all_frames``) and the latest graph poses."""
+        if self.closer is None:
+            return
+        t0 = time.perf_counter()
+        g = self.graph
+        final = len(g) if all_frames else len(g) - 1 - self.config.tracking.keyframe_index
+        self._loop_add(range(max(final, 0)))
+        self.closer.update_poses({f.fid: f.T_WC for f in g.frames})
+        self._times["loop"] += time.perf_counter() - t0
+
+    def _loop_relocalize(self, fid: int, frame) -> np.ndarray | None:
+        """Pose of a lost frame from the closer's keyframe database (``T_WC`` 4x4 in the map's units) or
+        None; on success it becomes frame ``fid``'s pose, the anchor of the re-initialisation."""
+        if self.closer is None:
+            return None
+        t0 = time.perf_counter()
+        self._loop_counts["relocalization_attempts"] += 1
+        found = self.closer.relocalize(frame.image, self.K.numpy())
+        self._times["loop"] += time.perf_counter() - t0
+        if found is None:
+            return None
+        kf_id, T_WC = found
+        self._records[fid] = ("abs", np.asarray(T_WC, dtype=np.float64))
+        self._loop_counts["relocalized"] += 1
+        if self.sensor_mode == "mono":
+            logger.info("frame %d relocalised on keyframe %d; monocular: the re-initialised map starts at this "
+                        "pose but gets a scale of its own (not tied to the old map's)", frame.index, kf_id)
+        else:
+            logger.info("frame %d relocalised on keyframe %d", frame.index, kf_id)
+        return T_WC
+
+    def _loop_finish(self) -> None:
+        """Feed the remaining graph frames, stop the closer and apply its last correction."""
+        if self.closer is None:
+            return
+        self._loop_feed_keyframes(all_frames=True)
+        t0 = time.perf_counter()
+        self.closer.close()
+        self._loop_apply(self.closer.poll())
+        self._times["loop"] += time.perf_counter() - t0
+
+    def loop_summary(self) -> dict | None:
+        if self.closer is None:
+            return None
+        index = {fid: idx for fid, _, idx in self._inputs}
+        loops = self.closer.loops
+        return {"mode": self.loop_config.mode, **self._loop_counts,
+                "verifications": len(self.closer.verifications), "verified_loops": len(loops),
+                "accepted_loops": sum(rec.status == "accepted" for rec in loops),
+                "loop_frames": [[index.get(rec.query_id, -1), index.get(rec.candidate_id, -1), rec.status]
+                                for rec in loops],
+                "closer_s": self.closer.stage_times()}
