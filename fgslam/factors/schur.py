@@ -217,6 +217,19 @@ def schur_reduce(
             for cb, sb in enumerate(group_slots):
                 H[sa * d:(sa + 1) * d, sb * d:(sb + 1) * d] += AtA[ca * d:(ca + 1) * d, cb * d:(cb + 1) * d]
 
+    return eliminate_structure(H, g, c, F, b, C, min_information)
+
+
+def eliminate_structure(
+    H: torch.Tensor, g: torch.Tensor, c: float, F: torch.Tensor, b: torch.Tensor, C: torch.Tensor,
+    min_information: float,
+) -> SchurSystem:
+    """Eliminate scalar structure variables from the joint system ``[[H, F^T], [F, diag(C)]]``.
+
+    ``H (7k, 7k)``, ``g (7k,)``, ``c``: the pose part; ``F (P, 7k)``: pose-structure coupling;
+    ``b (P,)``: structure gradient; ``C (P,)``: structure information. Structures with
+    ``C <= min_information`` carry no information and are left out of the elimination.
+    """
     informative = C > min_information
     inv_C = torch.where(informative, 1.0 / torch.where(informative, C, torch.ones_like(C)), torch.zeros_like(C))
     H = H - F.T @ (F * inv_C[:, None])

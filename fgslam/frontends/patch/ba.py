@@ -29,7 +29,15 @@ import torch
 
 from ...errors import OptimizationError
 from ...factors.reprojection import ReprojectionConfig, reproject, reproject_inv_depth
-from ...factors.schur import POSE_DIM, BlockConfig, BlockResiduals, SchurSystem, SlotGroups, VisualBlock, torch_threads
+from ...factors.schur import (
+    POSE_DIM,
+    BlockConfig,
+    BlockResiduals,
+    SlotGroups,
+    VisualBlock,
+    eliminate_structure,
+    torch_threads,
+)
 from ...lie import Sim3
 
 
@@ -280,13 +288,5 @@ class PatchBlock(VisualBlock):
             F.index_add_(0, idx[:ne] * kk + row_a, FE_i)
             F.index_add_(0, idx[:ne] * kk + row_b, FE_j)
             F = F.reshape(P, kk * d)[:, : k * d]
-            informative = C > self.config.min_information
-            inv_C = torch.where(informative, 1.0 / torch.where(informative, C, torch.ones_like(C)), torch.zeros_like(C))
-            H = H - F.T @ (F * inv_C[:, None])
-            H = 0.5 * (H + H.T)
-            g = g - F.T @ (inv_C * bvec)
-            c = c - float((inv_C * bvec * bvec).sum())
-            if not (torch.isfinite(H).all() and torch.isfinite(g).all() and np.isfinite(c)):
-                raise OptimizationError("PatchBlock: Schur elimination produced non-finite values")
-            self._system = SchurSystem(H=H, g=g, c=c, F=F, b=bvec, inv_C=inv_C)
-        return self.keys, H.numpy(), g.numpy(), c
+            self._system = eliminate_structure(H, g, c, F, bvec, C, self.config.min_information)
+        return self.keys, self._system.H.numpy(), self._system.g.numpy(), self._system.c
