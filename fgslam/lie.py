@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 
 # Below this rotation angle (radians) the trigonometric coefficient functions switch to their Taylor
@@ -554,3 +555,17 @@ def stack(elements: Sequence[SE3] | Sequence[Sim3], dim: int = 0) -> SE3 | Sim3:
 
 __all__ = ["SE3", "Sim3", "skew", "so3_exp", "so3_log", "stack"]
 
+
+
+def sim3_matrix_parts(M: np.ndarray, project: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(R, t, s)`` of one Sim(3) matrix ``[[s R, t], [0, 1]]`` in numpy (for per-frame code that
+    stays out of torch). ``s = cbrt(|det(s R)|)``; with ``project`` the rotation is replaced by the
+    nearest one in SO(3) (SVD), so that repeated compositions do not accumulate rounding errors."""
+    M = np.asarray(M, dtype=np.float64)
+    s = float(np.cbrt(abs(np.linalg.det(M[:3, :3]))))
+    R = M[:3, :3] / s
+    if project:
+        U, _, Vt = np.linalg.svd(R)
+        U[:, 2] *= np.sign(np.linalg.det(U @ Vt))
+        R = U @ Vt
+    return R, M[:3, 3].copy(), s

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.lie import SE3, Sim3, skew, so3_exp, so3_log, stack
+from fgslam.lie import SE3, Sim3, sim3_matrix_parts, skew, so3_exp, so3_log, stack
 
 F64 = torch.float64
 N_RANDOM = 1000
@@ -306,3 +306,21 @@ def test_right_jacobian_matches_augmented_matrix_exponential(G, dof):
     assert torch.allclose(G.right_jacobian(xi), ref, rtol=0, atol=1e-12)
     inv = G.right_jacobian_inv(xi)
     assert torch.allclose(inv @ ref, torch.eye(dof, dtype=F64).expand(60, dof, dof), atol=1e-10)
+
+
+def test_sim3_matrix_parts_matches_sim3_and_projects():
+    """The numpy one-element helper agrees with Sim3, and ``project`` restores a rotation."""
+    gen = torch.Generator().manual_seed(7)
+    xi = torch.randn(20, 7, generator=gen, dtype=torch.float64)
+    T = Sim3.exp(xi)
+    for k in range(20):
+        M = T[k].matrix().numpy()
+        R, t, s = sim3_matrix_parts(M)
+        assert np.allclose(R, T.R[k].numpy(), atol=1e-12)
+        assert np.allclose(t, T.t[k].numpy(), atol=1e-12)
+        assert abs(s - float(T.s[k])) < 1e-12
+        noisy = M.copy()
+        noisy[:3, :3] += 1e-6 * s * np.random.default_rng(k).standard_normal((3, 3))  # relative to the scale
+        R_p, _, _ = sim3_matrix_parts(noisy, project=True)
+        assert np.allclose(R_p @ R_p.T, np.eye(3), atol=1e-12) and np.linalg.det(R_p) > 0
+        assert np.allclose(R_p, T.R[k].numpy(), atol=1e-5)

@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError, DataError, OptimizationError
-from ..lie import Sim3
+from ..lie import Sim3, sim3_matrix_parts
 from .bow import BowConfig, KeyframeFeatures, PlaceRecognizer
 from .pose_graph import PoseGraphConfig, optimize_sim3_pose_graph
 from .sim3_estimation import Sim3RansacConfig, estimate_sim3_ransac
@@ -255,27 +255,12 @@ def _as_matrix(T) -> np.ndarray:
     return M.copy()
 
 
-def _sim3_parts(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    s = float(np.cbrt(np.linalg.det(M[:3, :3])))
-    return M[:3, :3] / s, M[:3, 3].copy(), s
-
-
 def _project_sim3(M: np.ndarray) -> np.ndarray:
-    """The nearest ``[[s R, t], [0, 1]]`` (R in SO(3) by SVD, s = cbrt(det)): repeated corrections
-    must not let rounding errors grow."""
-    out = np.array(M, dtype=np.float64, copy=True)
-    s = float(np.cbrt(np.linalg.det(out[:3, :3])))
-    U, _, Vt = np.linalg.svd(out[:3, :3] / s)
-    out[:3, :3] = s * (U @ Vt)
-    out[3] = (0.0, 0.0, 0.0, 1.0)
-    return out
-
-
-def _sim3_inverse(M: np.ndarray) -> np.ndarray:
-    R, t, s = _sim3_parts(M)
+    """The nearest ``[[s R, t], [0, 1]]`` (R in SO(3)): repeated corrections must not let rounding
+    errors grow."""
+    R, t, s = sim3_matrix_parts(M, project=True)
     out = np.eye(4)
-    out[:3, :3] = R.T / s
-    out[:3, 3] = -R.T @ t / s
+    out[:3, :3], out[:3, 3] = s * R, t
     return out
 
 
@@ -328,7 +313,7 @@ def triangulate_pair(uv_a: np.ndarray, uv_b: np.ndarray, K_a: np.ndarray, K_b: n
     """Midpoint triangulation of matched pixels (N, 2) in cameras a and b, ``T_CaCb`` Sim(3) 4x4.
     Returns ``(X_a (N, 3) in camera a, ok (N,))``: both depths positive, ray angle >=
     ``min_parallax_deg``, reprojection error <= ``max_reprojection_px`` in both images."""
-    R, t, s = _sim3_parts(T_CaCb)
+    R, t, s = sim3_matrix_parts(T_CaCb)
     d_a = _rays(uv_a, K_a)
     d_a /= np.linalg.norm(d_a, axis=1, keepdims=True)
     d_b = _rays(uv_b, K_b) @ R.T
@@ -356,7 +341,7 @@ def epipolar_mask(uv_a: np.ndarray, uv_b: np.ndarray, K_a: np.ndarray, K_b: np.n
                   T_CaCb: np.ndarray, max_px: float) -> np.ndarray:
     """(Na, Nb) bool: pixel pairs within ``max_px`` of each other's epipolar line in both images
     (distances in pixels via each image's fx) under the relative pose ``T_CaCb``."""
-    R, t, _ = _sim3_parts(T_CaCb)
+    R, t, _ = sim3_matrix_parts(T_CaCb)
     tn = np.linalg.norm(t)
     if not tn > 0:
         return np.zeros((len(uv_a), len(uv_b)), bool)
@@ -709,7 +694,7 @@ class LoopCloser:
             if nb is None or nb.features is None or len(nb.features.uv) == 0 or n_id not in poses:
                 continue
             tried += 1
-            T_CaCb = _sim3_inverse(poses[kf.kf_id]) @ poses[n_id]
+            T_CaCb = np.linalg.inv(poses[kf.kf_id]) @ poses[n_id]
             allowed = epipolar_mask(feats.uv[todo], nb.features.uv, kf.K, nb.K, T_CaCb, vc.max_epipolar_px)
             ia, ib = match_descriptors(feats.descriptors[todo], nb.features.descriptors, vc.max_hamming,
                                        vc.ratio, allowed=allowed)

@@ -55,6 +55,7 @@ from ...factors.reprojection import ReprojectionConfig, reproject
 from ...factors.robust import kernel_weight
 from ...factors.schur import BlockConfig, torch_threads
 from ...loop.closure import LoopCloser, LoopClosureConfig, LoopCorrection
+from ...lie import sim3_matrix_parts
 from ...map import GaugeConfig, MapConfig, SlamMap, pose_key
 from ..base import FrameStatus, Frontend, SensorMode
 from .ba import PatchBlock
@@ -71,8 +72,7 @@ logger = logging.getLogger(__name__)
 def _rigid(M: np.ndarray) -> np.ndarray:
     """Rigid part ``[R | t]`` of a Sim(3) matrix ``[[s R, t], [0, 1]]``."""
     out = np.array(M, dtype=np.float64, copy=True)
-    s = np.cbrt(np.linalg.det(out[:3, :3]))
-    out[:3, :3] /= s
+    out[:3, :3] = sim3_matrix_parts(out)[0]
     return out
 
 
@@ -94,11 +94,8 @@ def _gtsam_sim3(M: np.ndarray):
     numpy twin of ``Sim3.from_matrix(M).to_gtsam()`` without the torch round trip (hot path)."""
     import gtsam
 
-    sR = np.asarray(M, dtype=np.float64)[:3, :3]
-    s = float(np.cbrt(abs(np.linalg.det(sR))))
-    U, _, Vt = np.linalg.svd(sR / s)
-    U[:, 2] *= np.sign(np.linalg.det(U @ Vt))
-    return gtsam.Similarity3(gtsam.Rot3(U @ Vt), np.asarray(M[:3, 3], dtype=np.float64) / s, s)
+    R, t, s = sim3_matrix_parts(M, project=True)
+    return gtsam.Similarity3(gtsam.Rot3(R), t / s, s)
 
 
 def _gtsam_matrix(S) -> np.ndarray:
