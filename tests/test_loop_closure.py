@@ -5,7 +5,8 @@ Scene: synthetic street-loop (seed 0, ~600 m per loop, 640x200), keyframes every
 loop and then every 4th frame (offset by 2 frames: the revisit views are 1.2 m off the first ones)
 of the first 8 % of the loop again. Odometry: ground-truth keyframe steps with a growing scale drift
 (x1.8 by the end) and a heading drift (15 deg over the run), continued from the corrected poses after
-every applied correction (as a frontend would)."""
+every applied correction (as a frontend would). Metric odometry (stereo / RGB-D, metric closer): the
+same heading drift and a sideways drift, no scale drift."""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ REVISIT_END = 1080            # last frame (exclusive) of the return stretch
 SCALE_DRIFT_TOTAL = 0.6       # log of the scale drift at the end of the run
 HEADING_DRIFT_DEG = 15.0      # heading drift at the end of the run
 SAME_PLACE_M = 10.0           # a loop (q, c) is true when the ground-truth cameras are this close
+METRIC_LATERAL_DRIFT = 0.02   # metric odometry: sideways drift per metre driven (with the heading drift)
 
 
 # ----------------------------------------------------------------------------------- fixtures
@@ -62,40 +64,45 @@ def street():
     images = [np.clip(seq.render_view(T).image, 0, 255).astype(np.uint8) for T in T_gt]
     n = len(frames)
     rate, yaw = SCALE_DRIFT_TOTAL / n, math.radians(HEADING_DRIFT_DEG) / n
-    steps = []                                   # drifted odometry steps T_Ck-1Ck
+    steps, metric_steps = [], []                 # drifted odometry steps T_Ck-1Ck (mono; metric)
     for k in range(1, n):
         D = np.linalg.inv(T_gt[k - 1]) @ T_gt[k]
         S = np.eye(4)
         S[:3, :3] = _rot_y(yaw) @ D[:3, :3]
+        M = S.copy()
         S[:3, 3] = math.exp(rate * (k - 1)) * D[:3, 3]
+        M[:3, 3] = D[:3, 3] + METRIC_LATERAL_DRIFT * np.linalg.norm(D[:3, 3]) * np.array([1.0, 0.0, 0.0])
         steps.append(S)
+        metric_steps.append(M)
     return dict(seq=seq, K=seq.K, frames=frames, t=t, T_gt=T_gt, images=images, steps=steps,
-                scale_rate=rate, first_revisit=int(np.searchsorted(frames, LOOP_FRAMES)))
+                metric_steps=metric_steps, scale_rate=rate, first_revisit=int(np.searchsorted(frames, LOOP_FRAMES)))
 
 
-def _ate(street, ids, T_WC) -> float:
+def _ate(street, ids, T_WC, align: str = "sim3") -> float:
     t = street["t"][ids]
     res = evaluate(Trajectory(t, street["T_gt"][ids]), Trajectory(t, _rigid(np.stack(T_WC))),
-                   EvalConfig(align="sim3", rpe_delta_meters=None))
+                   EvalConfig(align=align, rpe_delta_meters=None))
     return float(res.ate.rmse)
 
 
-def _drifted(street, ids) -> list[np.ndarray]:
+def _drifted(street, ids, steps_key: str = "steps") -> list[np.ndarray]:
     poses = [street["T_gt"][ids[0]].copy()]
     for a, b in zip(ids[:-1], ids[1:]):
         step = np.eye(4)
         for k in range(a, b):
-            step = step @ street["steps"][k]
+            step = step @ street[steps_key][k]
         poses.append(poses[-1] @ step)
     return poses
 
 
-def _run(street, ids, config: LoopClosureConfig, blank=(), wait=True, pace_s=0.0):
+def _run(street, ids, config: LoopClosureConfig, blank=(), wait=True, pace_s=0.0, metric=False):
     """Feed keyframes ``ids`` (positions in the street fixture) to a closer as a frontend would:
     odometry continues from the corrected poses, corrections are applied when polled (folding the
     scale into the units of the following steps). ``wait``: wait for the worker before each poll;
-    ``pace_s``: sleep between keyframes (a frontend's frame time)."""
-    closer = LoopCloser(config)
+    ``pace_s``: sleep between keyframes (a frontend's frame time); ``metric``: a metric closer on
+    the odometry without scale drift (``metric_steps``)."""
+    closer = LoopCloser(config, metric=metric)
+    steps = street["metric_steps" if metric else "steps"]
     poses: list[np.ndarray] = []
     state = {"unit": 1.0}
     corrections = []
@@ -114,7 +121,7 @@ def _run(street, ids, config: LoopClosureConfig, blank=(), wait=True, pace_s=0.0
         if pos:
             step = np.eye(4)
             for j in range(ids[pos - 1], k):
-                step = step @ street["steps"][j]
+                step = step @ steps[j]
             step[:3, 3] *= state["unit"]
             poses.append(poses[-1] @ step)
         else:
@@ -263,12 +270,68 @@ def test_threaded_equals_synchronous(street, sync_run):
 
 def test_threaded_concurrent_polling_corrects(street):
     """No waiting: the worker lags behind the keyframes, so corrections arrive for snapshots that
-    later keyframes are not part of (moved with their nearest corrected keyframe)."""
+    later keyframes are not part of (moved with their nearest corrected keyframe). A solve after every
+    verified loop (``solve_every=1``) makes the worker lag most."""
     ids = list(range(len(street["frames"])))
-    run = _run(street, ids, LoopClosureConfig(mode="classical", run_in_thread=True), wait=False, pace_s=0.01)
+    cfg = LoopClosureConfig(mode="classical", run_in_thread=True, solve_every=1)
+    run = _run(street, ids, cfg, wait=False, pace_s=0.01)
     assert run["corrections"]
     assert any(len(c.T_update) < len(ids) for c in run["corrections"])
     assert _ate(street, ids, run["poses"]) < _ate(street, ids, _drifted(street, ids)) / 5.0
+
+
+def test_pose_graph_throttled_per_cluster(sync_run):
+    """One return = one loop cluster: the pose graph is solved far less often than loops are verified
+    (test_correction_cuts_keyframe_ate checks the result), and close() solves the last ones."""
+    counts = sync_run["closer"].counts
+    loops = sync_run["loops"]
+    logging.getLogger(__name__).info("%d verified loops, %d pose-graph solves", len(loops), counts["pose_graph_solves"])
+    assert counts["loop_clusters"] == 1
+    assert 1 <= counts["pose_graph_solves"] < len(loops)
+    assert all(l.status != "pending" for l in loops)            # nothing left unsolved
+    assert counts["corrections"] == len(sync_run["corrections"])  # synchronous: each one polled
+
+
+@pytest.fixture(scope="module")
+def metric_run(street):
+    ids = list(range(len(street["frames"])))
+    return _run(street, ids, LoopClosureConfig(mode="classical", run_in_thread=False), metric=True)
+
+
+def test_metric_closer_corrects_rigidly(street, metric_run):
+    """Metric map (stereo / RGB-D): rigid loop measurements, SE(3) corrections, scale kept at 1."""
+    ids = list(range(len(street["frames"])))
+    ate_drift = _ate(street, ids, _drifted(street, ids, "metric_steps"), align="se3")
+    ate_closed = _ate(street, ids, metric_run["poses"], align="se3")
+    logging.getLogger(__name__).info("metric keyframe ATE (SE(3)-aligned): drift %.2f m, closed %.2f m",
+                                     ate_drift, ate_closed)
+    assert ate_drift > 5.0
+    assert ate_closed < ate_drift / 5.0
+    verified = [v for v in metric_run["verifications"] if v.accepted]
+    assert verified and all(np.linalg.det(v.T_CqCc[:3, :3]) == pytest.approx(1.0, abs=1e-12) for v in verified)
+    for v in verified:
+        assert _gt_distance(street, v.query_id, v.candidate_id) < SAME_PLACE_M
+    assert metric_run["corrections"] and any(c.n_accepted >= 2 for c in metric_run["corrections"])
+    for corr in metric_run["corrections"]:
+        assert not corr.fold_scale and all(s == 1.0 for s in corr.scale.values())
+    scales = np.cbrt(np.linalg.det(np.stack(metric_run["poses"])[:, :3, :3]))
+    np.testing.assert_allclose(scales, 1.0, atol=1e-9)
+
+
+def test_metric_relocalisation(street, metric_run):
+    """Relocalisation on a metric map gives the metric pose (no unit rescaling)."""
+    seq = street["seq"]
+    frame = 402                                            # between keyframes 100 and 101
+    T_gt_q = seq.camera_poses(np.array([frame / seq.cfg.camera.rate_hz]))[0]
+    image = np.clip(seq.render_view(T_gt_q).image, 0, 255).astype(np.uint8)
+    found = metric_run["closer"].relocalize(image, street["K"])
+    assert found is not None
+    kf, T_WC = found
+    assert np.cbrt(np.linalg.det(T_WC[:3, :3])) == pytest.approx(1.0, abs=1e-9)
+    rel = np.linalg.inv(metric_run["poses"][kf]) @ T_WC
+    rel_gt = np.linalg.inv(street["T_gt"][kf]) @ T_gt_q
+    assert _rotation_deg(rel[:3, :3].T @ rel_gt[:3, :3]) < 2.0
+    assert np.linalg.norm(rel[:3, 3] - rel_gt[:3, 3]) < 0.5      # metres
 
 
 # ----------------------------------------------------------------------------------- units
@@ -353,6 +416,9 @@ def test_config_switches_and_validation(tmp_path):
         load_config(LoopClosureConfig, None, ["mode=sometimes"])
     with pytest.raises(ConfigError):
         LoopClosureConfig(mode="classical", max_candidates=0).validate()
+    for field in ("solve_every", "cluster_gap"):
+        with pytest.raises(ConfigError, match=field):
+            load_config(LoopClosureConfig, None, [f"{field}=0"])
     for mode in ("off", "proximity"):
         closer = LoopCloser(LoopClosureConfig(mode=mode))
         assert not closer.enabled

@@ -1,6 +1,7 @@
-"""Classical loop closure inside the patch frontend (fgslam.loop.closure through PatchFrontend and the
-runner): a synthetic room-loop clip that goes once round the room and on past its start, run with
-loop closure on (synchronous closer, deterministic) and off.
+"""Loop closure inside the patch frontend: classical (fgslam.loop.closure through PatchFrontend and the
+runner) and proximity (DPV-SLAM 3.2: loop edges + global BA, fgslam.frontends.patch.proximity and
+global_ba), on a synthetic room-loop clip that goes once round the room and on past its start, run
+with loop closure classical / proximity (synchronous, deterministic) and off.
 
 The clip is rendered at 4 Hz so that one loop (20 s) is 81 frames and the file stays fast; the
 default 20 Hz would give the same revisit after 401 frames.
@@ -43,8 +44,8 @@ def room(tmp_path_factory):
     return root, seq
 
 
-def slam_config(mode: str) -> SlamConfig:
-    cfg = SlamConfig(sensor="mono", patch=light_patch_config())
+def slam_config(mode: str, sensor: str = "mono") -> SlamConfig:
+    cfg = SlamConfig(sensor=sensor, patch=light_patch_config())
     cfg.loop_closure = LoopClosureConfig(mode=mode, run_in_thread=False)
     cfg.output.plot = False
     cfg.validate()
@@ -53,10 +54,10 @@ def slam_config(mode: str) -> SlamConfig:
 
 @pytest.fixture(scope="module")
 def runs(room, tmp_path_factory):
-    """summary.json of the runner with loop closure classical and off."""
+    """summary.json of the runner with loop closure classical, off and proximity."""
     root, _ = room
     out = {}
-    for mode in ("classical", "off"):
+    for mode in ("classical", "off", "proximity"):
         cfg = slam_config(mode)
         folder = tmp_path_factory.mktemp(f"run_{mode}")
         run_slam(open_slam_dataset(root, cfg), cfg, folder, progress=False)
@@ -119,7 +120,7 @@ def test_registry_and_presets_pass_the_loop_config(room):
     fe = make_frontend("patch", cfg, ds.calibration, "mono")
     assert fe.closer is not None and fe.loop_config is cfg.loop_closure
     assert make_frontend("patch", SlamConfig(), ds.calibration, "mono").closer is None  # default: off
-    assert load_preset_file("patch_street_loop").loop_closure.mode == "classical"
+    assert load_preset_file("patch_street_loop").loop_closure.mode == "both"
     assert load_preset_file("patch_mono").loop_closure.mode == "off"
     assert config_class_for(Path("loop_street.yaml")) is LoopClosureConfig  # loop_*.yaml presets
 
@@ -139,8 +140,6 @@ def test_bare_yaml_off_selects_mode_off():
 def test_bad_mode_in_the_frontend():
     with pytest.raises(ConfigError, match="mode"):
         PatchFrontend(light_patch_config(), loop_config=LoopClosureConfig(mode="sometimes"))
-    with pytest.raises(ConfigError, match="proximity"):
-        PatchFrontend(light_patch_config(), loop_config=LoopClosureConfig(mode="proximity"))
 
 
 def test_relocalisation_after_a_jump_back(room):
@@ -173,3 +172,160 @@ def test_relocalisation_after_a_jump_back(room):
                for k in range(first_pass - 1) if first_pass_T[k] is not None)
     err = np.linalg.norm(reloc[0].T_WC[:3, 3] - first_pass_T[same_view][:3, 3])
     assert err <= 0.01 * path, f"relocalised {err:.3f} from the first-pass pose (path {path:.3f})"
+
+
+# ----------------------------------------------------------------------------------- proximity
+def _accepted_pairs_are_true_revisits(pairs, seq):
+    T = seq.camera_poses(np.arange(seq.cfg.frames) / RATE_HZ)
+    for q, c in pairs:
+        assert (q - c) / RATE_HZ >= MIN_GAP_S, (q, c)
+        assert np.linalg.norm(T[q][:3, 3] - T[c][:3, 3]) <= REVISIT_M, (q, c)
+
+
+def test_proximity_loop_closed_at_the_return_and_cuts_ate(room, runs):
+    _, seq = room
+    prox, off = runs["proximity"], runs["off"]
+    summary = prox["loop"]["proximity"]
+    assert prox["loop"]["mode"] == "proximity" and "accepted_loops" not in prox["loop"]  # no classical part
+    assert summary["accepted"] >= 1 and summary["global_ba_runs"] >= summary["accepted"]
+    assert summary["queries"] > 0 and summary["stored_keyframes"] > 0 and summary["global_ba_s"] > 0
+    accepted = [(q, c) for q, c, status in summary["loop_frames"] if status == "accepted"]
+    assert len(accepted) == summary["accepted"]
+    _accepted_pairs_are_true_revisits(accepted, seq)
+    ate_prox, ate_off = prox["evaluation"]["ate"]["rmse"], off["evaluation"]["ate"]["rmse"]
+    assert prox["frames_with_pose"] == off["frames_with_pose"]
+    assert ate_prox <= 0.4 * ate_off, f"proximity ATE {ate_prox:.4f} m vs {ate_off:.4f} m without loop closure"
+    assert prox["stage_s"]["proximity"] > 0
+
+
+@pytest.fixture(scope="module")
+def prox_frontend(room):
+    """A PatchFrontend run frame by frame over the clip with proximity loop closure (for its state)."""
+    from fgslam.io.calibration import Calibration
+    from fgslam.io.frame import Frame
+
+    _, seq = room
+    cal = Calibration(seq.cfg.camera.width, seq.cfg.camera.height, np.array(seq.K))
+    fe = PatchFrontend(light_patch_config(), cal, "mono", loop_config=LoopClosureConfig(mode="proximity"))
+    T_gt = seq.camera_poses(np.arange(seq.cfg.frames) / RATE_HZ)
+    for i in range(seq.cfg.frames):
+        image = np.clip(seq.render_view(T_gt[i]).image, 0, 255).astype(np.uint8)
+        fe.process(Frame(i, i, i / RATE_HZ, image, cal))
+    fe.finish()
+    return fe, T_gt
+
+
+def test_proximity_loop_edges_join_the_inactive_store(prox_frontend):
+    fe, _ = prox_frontend
+    store = fe.inactive_edges()
+    first = min(fe._prox_loops, key=lambda rec: rec[0])
+    q_fid, c_fid, status = first
+    assert status == "accepted"
+    loop = (store["src"] == c_fid) | (store["tgt"] == c_fid)
+    loop &= np.abs(store["src"] - store["tgt"]) > fe.config.proximity.min_gap
+    assert loop.sum() >= fe.config.proximity.min_loop_edges
+    assert fe.closer is None and fe.loop_summary()["mode"] == "proximity"
+
+
+def test_wrong_proximity_candidate_is_rejected_by_verification(prox_frontend):
+    """A candidate on the far side of the room (no shared view) gets no verified loop edges."""
+    from fgslam.frontends.patch.proximity import Candidate
+
+    fe, T_gt = prox_frontend
+    q = fe.graph.frames[len(fe.graph) // 2]
+    if q.features is None:  # the newest graph frames keep their source features
+        q = next(f for f in reversed(fe.graph.frames) if f.features is not None)
+    stored = [fid for fid in fe._prox.order if fid in fe._prox]
+    index = {f.fid: f.index for f in list(fe._final.values()) + fe.graph.frames}
+    axis = lambda i: T_gt[i][:3, 2]
+    far = min(stored, key=lambda fid: float(axis(index[fid]) @ axis(q.index)))  # most opposite view
+    assert float(axis(index[far]) @ axis(q.index)) < 0
+    assert fe._prox_measure(q, Candidate(far, 0.0, 0.0, 0.0, 1.0)) is None
+
+
+def test_inconsistent_loop_edges_are_undone(prox_frontend):
+    """Loop edges whose observations are random pixels: the global BA keeps too few of them, so its
+    result is discarded and the map is unchanged."""
+    fe, _ = prox_frontend
+    rng = np.random.default_rng(0)
+    a, b = fe.graph.frames[0], fe.graph.frames[-1]
+    n = fe.config.graph.patches_per_frame
+    fake = {"src": np.full(n, a.fid), "patch": np.arange(n), "tgt": np.full(n, b.fid), "right": np.zeros(n, bool),
+            "uv_src": a.uv.astype(np.float32),
+            "uv": np.stack([rng.uniform(0, fe.width, n), rng.uniform(0, fe.height, n)], 1).astype(np.float32),
+            "confidence": np.ones(n, np.float32), "inv_depth": a.inv_depth.astype(np.float32)}
+    before = {f.fid: f.T_WC.copy() for f in fe.graph.frames}
+    stored = fe.graph.inactive.count
+    assert fe._global_ba(fake) is False
+    assert all(np.array_equal(f.T_WC, before[f.fid]) for f in fe.graph.frames)
+    assert fe.graph.inactive.count == stored
+
+
+def test_rgbd_loop_closure_both_keeps_metric_scale(room, tmp_path):
+    """RGB-D (metric map): classical corrections are SE(3) (metric closer) and the global BA holds
+    every pose scale, so the SE(3)-aligned ATE improves on the run without loop closure."""
+    root, seq = room
+    out = {}
+    for mode in ("off", "both"):
+        cfg = slam_config(mode, sensor="rgbd")
+        run_slam(open_slam_dataset(root, cfg), cfg, tmp_path / mode, progress=False)
+        out[mode] = json.loads((tmp_path / mode / SUMMARY_FILE).read_text())
+    on, off = out["both"], out["off"]
+    assert on["evaluation"]["align"] == off["evaluation"]["align"] == "se3"
+    loop = on["loop"]
+    assert loop["corrections_applied"] > 0 and loop["proximity"]["accepted"] >= 1
+    accepted = [(q, c) for q, c, status in loop["proximity"]["loop_frames"] if status == "accepted"]
+    _accepted_pairs_are_true_revisits(accepted, seq)
+    ate_on, ate_off = on["evaluation"]["ate"]["rmse"], off["evaluation"]["ate"]["rmse"]
+    assert ate_on <= 0.8 * ate_off, f"RGB-D ATE with loop closure {ate_on:.4f} m vs {ate_off:.4f} m without"
+
+
+def test_global_ba_holds_keyframes_known_only_through_loop_edges():
+    from fgslam.frontends.patch.proximity import held_frames
+
+    # frames 0-1 lost their edges (store bound), 2..5 are chained, loop edges join 5 and 0
+    src = np.array([2, 3, 4, 5, 0, 5])
+    tgt = np.array([3, 4, 5, 4, 5, 0])
+    is_loop = np.array([False, False, False, False, True, True])
+    assert held_frames(6, src, tgt, is_loop, gauge=2).tolist() == [True, True, True, True, False, False]
+    assert held_frames(6, src, tgt, is_loop, gauge=1).tolist() == [True, True, True, False, False, False]
+
+
+def test_keyframe_store_bound_order_and_neighbours():
+    from fgslam.frontends.patch.proximity import KeyframeStore
+
+    store = KeyframeStore(capacity=3)
+    for fid in (10, 12, 15, 20, 21):
+        store.add(fid, f"img{fid}")
+    assert store.order == [10, 12, 15, 20, 21] and store.dropped == 2 and store.last == 21
+    assert 10 not in store and 12 not in store and store.get(15) == "img15" and store.get(10) is None
+    assert store.ordinal(20) == 3
+    assert store.neighbours(20, 2) == [15, 21]  # 12 was dropped
+    assert store.neighbours(15, 1) == [20]
+
+
+def test_pose_filter_and_fundamental_check():
+    from fgslam.frontends.patch.proximity import fundamental_inliers, pose_filter
+
+    def yaw(a, t):
+        c, s = np.cos(np.radians(a)), np.sin(np.radians(a))
+        T = np.eye(4)
+        T[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+        T[:3, 3] = t
+        return T
+
+    cands = np.stack([yaw(5, [0.3, 0, 0]), yaw(50, [0.1, 0, 0]), yaw(0, [2.0, 0, 0])])
+    ok, dist, angle = pose_filter(yaw(0, [0, 0, 0]), cands, radius=1.0, max_angle_deg=30)
+    assert ok.tolist() == [True, False, False]
+    assert np.allclose(dist, [0.3, 0.1, 2.0]) and np.allclose(angle, [5, 50, 0])
+    rng = np.random.default_rng(0)
+    X = np.stack([rng.uniform(-2, 2, 200), rng.uniform(-1, 1, 200), rng.uniform(4, 8, 200)], 1)
+    K = np.array([[300, 0, 160], [0, 300, 120], [0, 0, 1.0]])
+    T = yaw(8, [0.4, 0.05, 0.1])
+    X_b = (X - T[:3, 3]) @ T[:3, :3]  # points in camera b (T = T_AB)
+    uv_a = (X @ K.T)[:, :2] / X[:, 2:]
+    uv_b = (X_b @ K.T)[:, :2] / X_b[:, 2:]
+    uv_b[:40] = rng.uniform(0, 320, (40, 2))  # 20 % wrong correspondences
+    inl = fundamental_inliers(uv_a, uv_b, 1.0)
+    assert inl[40:].mean() > 0.95 and inl[:40].mean() < 0.2
+    assert not fundamental_inliers(uv_a[:7], uv_b[:7], 1.0).any()

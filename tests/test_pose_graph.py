@@ -1,11 +1,10 @@
 """Sim(3) pose graph with false-loop rejection (fgslam.loop.pose_graph), incl. KITTI simulated drift."""
 
-import importlib.util
 import math
-import sys
 
 import numpy as np
 import pytest
+from tool_support import load_tool
 import torch
 
 from fgslam.errors import ConfigError
@@ -21,13 +20,9 @@ from fgslam.loop.pose_graph import (
 
 
 @pytest.fixture(scope="module")
-def bench(repo_root):
+def bench():
     """The scenario generator of tools/bench_pose_graph.py (one source for test and benchmark)."""
-    spec = importlib.util.spec_from_file_location("bench_pose_graph", repo_root / "tools" / "bench_pose_graph.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve their module through sys.modules
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("bench_pose_graph")
 
 
 def _circle(n=120, radius=20.0, laps=1.0):
@@ -228,6 +223,8 @@ def test_config_validation():
         optimize_sim3_pose_graph(T, [], [], Sim3.identity((0,)), PoseGraphConfig(robust_kernel="tukey"))
     with pytest.raises(ConfigError):
         optimize_sim3_pose_graph(T, [], [], Sim3.identity((0,)), PoseGraphConfig(consistency_probability=1.0))
+    with pytest.raises(ConfigError, match="hold_scale_sigma"):
+        optimize_sim3_pose_graph(T, [], [], Sim3.identity((0,)), PoseGraphConfig(hold_scale_sigma=0.0), hold_scale=True)
     with pytest.raises(ValueError):
         optimize_sim3_pose_graph(T, [0, 1], [5], Sim3.identity((2,)))
 

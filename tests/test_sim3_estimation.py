@@ -118,3 +118,61 @@ def test_degenerate_samples_skipped_when_most_points_are_collinear():
         assert (T_ab.inverse() @ est.T_ab).log().abs().max() < 1e-6
         n_degenerate += est.n_degenerate
     assert n_degenerate > 0  # degenerate samples were skipped, not fitted
+
+
+# ------------------------------------------------------------------------------ rigid fit (metric maps)
+
+
+def _with_scale(T: Sim3, s: float) -> Sim3:
+    return Sim3(T.R, T.t, torch.tensor(s, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_rigid_fit_on_rigid_data_equals_sim3_fit(seed):
+    rng = np.random.default_rng(seed)
+    T_ab = _with_scale(_random_sim3(rng), 1.0)
+    X_a, X_b, is_inlier = _scene(rng, 200, T_ab, 0.3)
+    est_rigid = estimate_sim3_ransac(X_a, X_b, Sim3RansacConfig(seed=seed), with_scale=False)
+    est_sim3 = estimate_sim3_ransac(X_a, X_b, Sim3RansacConfig(seed=seed))
+    assert est_rigid.success and est_sim3.success, (est_rigid.reason, est_sim3.reason)
+    assert float(est_rigid.T_ab.s) == 1.0  # exactly: no scale estimated
+    assert abs(float(est_sim3.T_ab.s) - 1.0) < 0.01
+    xi = (est_sim3.T_ab.inverse() @ est_rigid.T_ab).log().numpy()
+    assert np.linalg.norm(xi[:3]) < np.radians(0.2) and np.linalg.norm(xi[3:6]) < 0.02
+    assert (T_ab.inverse() @ est_rigid.T_ab).log()[:6].abs().max() < 0.02
+    assert (est_rigid.inlier_mask & is_inlier).sum() >= 0.95 * is_inlier.sum()
+    assert (est_rigid.inlier_mask & ~is_inlier).sum() <= 0.05 * (~is_inlier).sum()
+
+
+def test_rigid_fit_does_not_absorb_scale():
+    rng = np.random.default_rng(4)
+    T_ab = _with_scale(_random_sim3(rng), 1.3)
+    X_a, X_b, _ = _scene(rng, 150, T_ab, 0.0, noise_rel=0.0)
+    # Sim(3): every point fits; rigid: the 30 % scale difference is a residual (relative errors ~0.2 >
+    # 0.05), a rigid motion only fits a thin slice of the points (its translation absorbing the scale
+    # at one depth), never most of them
+    assert estimate_sim3_ransac(X_a, X_b).inlier_ratio == 1.0
+    est = estimate_sim3_ransac(X_a, X_b, with_scale=False)
+    assert est.inlier_ratio < 0.3 and (not est.success or float(est.T_ab.s) == 1.0)
+    # With every point an inlier the rigid fit still keeps s = 1 and recovers the rotation (Umeyama's
+    # rotation does not depend on the scale); its residuals carry the scale difference.
+    cfg = Sim3RansacConfig(error_metric="absolute", inlier_threshold=1e6)
+    est = estimate_sim3_ransac(X_a, X_b, cfg, with_scale=False)
+    assert est.success and float(est.T_ab.s) == 1.0
+    R_err = est.T_ab.R.numpy().T @ T_ab.R.numpy()
+    assert np.degrees(np.arccos(np.clip((np.trace(R_err) - 1) / 2, -1, 1))) < 1e-4
+    assert est.rms_error > 0.1 * np.linalg.norm(X_b - X_b.mean(0), axis=1).mean()
+
+
+def test_rigid_fit_rejects_degenerate_samples():
+    rng = np.random.default_rng(3)
+    T_ab = _with_scale(_random_sim3(rng), 1.0)
+    lam = rng.uniform(-5, 5, 100)
+    X_b = np.array([1.0, 2.0, 10.0]) + lam[:, None] * np.array([0.3, -0.2, 1.0])
+    X_a = T_ab.act(torch.from_numpy(X_b)).numpy()
+    est = estimate_sim3_ransac(X_a, X_b, with_scale=False)
+    assert not est.success and "degenerate" in est.reason
+    assert est.n_degenerate == est.iterations > 0
+    X = np.tile([[1.0, 2.0, 5.0]], (50, 1))
+    est = estimate_sim3_ransac(X, X, with_scale=False)
+    assert not est.success and "degenerate" in est.reason

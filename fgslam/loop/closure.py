@@ -7,10 +7,26 @@ consistency), geometric verification of the best candidates, Sim(3) pose graph o
 Sim(3)s + every verified loop so far, plausibility gate, pairwise consistency, chi-square test), and a
 :class:`LoopCorrection` handed to the frontend through :meth:`LoopCloser.poll`.
 
+Pose-graph throttle: on a return, consecutive keyframes each verify a loop. Loops form clusters (a
+loop whose query comes more than ``LoopClosureConfig.cluster_gap`` described keyframes after the
+previous loop's query starts a new one). While the current cluster has no accepted loop, each new
+loop is solved at once (the first correction of a return is not delayed); afterwards the loops that
+keep arriving are solved at most every ``solve_every`` described keyframes, and at the latest when the
+cluster ends or at :meth:`LoopCloser.close` (then :meth:`LoopCloser.poll` returns the final
+correction). Every solve uses every verified loop so far, so no loop is lost.
+
+Metric mode (``LoopCloser(metric=True)``: stereo, RGB-D): the map's scale is metric and every keyframe
+pose keeps its Sim(3) scale (1), since depth priors and stereo edges are in metres. Verification then
+fits a rigid ``T_CqCc`` (``s = 1``, :func:`~fgslam.loop.sim3_estimation.estimate_sim3_ransac` with
+``with_scale=False``), the pose graph holds every keyframe's scale (``hold_scale``: an SE(3) pose
+graph), and each :class:`LoopCorrection` is SE(3): all ``scale`` are 1 and ``fold_scale`` is False
+(nothing to fold). Relocalisation returns the metric PnP pose in both modes.
+
 Conventions: poses are camera-to-world Sim(3) ``T_WC`` (``X_W = s R X_C + t``, 4x4
 ``[[s R, t], [0, 1]]`` or :class:`fgslam.lie.Sim3`); camera-frame points are in the units of their
 keyframe's pose (``X_C = T_WC^-1 X_W``); intrinsics ``K = (fx, fy, cx, cy)`` of an undistorted
-pinhole image; keyframe ids are the caller's integers, increasing in insertion order.
+pinhole image; keyframe ids are the caller's integers, increasing in insertion order. In metric mode
+every keyframe shares one scale (1), so both keyframes of a loop are in the same (metric) units.
 
 Geometric verification of a pair (query q, candidate c):
 
@@ -19,8 +35,9 @@ Geometric verification of a pair (query q, candidate c):
    (descriptor + epipolar constraint from the current relative pose ``T_CqCn``) and triangulated by
    the midpoint method in camera q (positive depths, minimum parallax, reprojection error bound), the
    same for c; neighbours are tried in order until enough points are triangulated;
-3. ``X_q = T_CqCc X_c`` by RANSAC + Umeyama (:func:`fgslam.loop.sim3_estimation.estimate_sim3_ransac`)
-   on the matches with a 3-D point on both sides; the loop measurement is ``T_CqCc``.
+3. ``X_q = T_CqCc X_c`` by RANSAC + Umeyama (:func:`fgslam.loop.sim3_estimation.estimate_sim3_ransac`;
+   rigid in metric mode) on the matches with a 3-D point on both sides; the loop measurement is
+   ``T_CqCc``.
 
 Too few matches, too few triangulated points (no texture, too little parallax) and degenerate or
 unsupported Sim(3)s reject the pair with a logged reason (:class:`Verification`).
@@ -126,12 +143,17 @@ class LoopClosureConfig:
     max_candidates: int = 2               # accepted BoW candidates verified per query keyframe
     fold_scale: bool = True               # frontend folds the scale correction into depths
     max_pose_graph_retries: int = 3       # recomputations when a correction was applied mid-solve
+    # Pose-graph throttle (module docstring): once a loop cluster has a correction, its further loops
+    # are solved at most every solve_every described keyframes (1: after every verified loop) ...
+    solve_every: int = 5
+    cluster_gap: int = 10                 # ... a loop > this many keyframes after the last one: new cluster
 
     def validate(self) -> None:
         if self.mode not in LOOP_MODES:
             raise ConfigError(f"loop_closure.mode={self.mode!r}: expected one of {', '.join(LOOP_MODES)}")
-        if self.max_candidates < 1 or self.max_pose_graph_retries < 1:
-            raise ConfigError("loop_closure.max_candidates and max_pose_graph_retries must be >= 1")
+        for name in ("max_candidates", "max_pose_graph_retries", "solve_every", "cluster_gap"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"loop_closure.{name}={getattr(self, name)!r}: must be >= 1")
         self.verification.validate()
         self.relocalization.validate()
         self.pose_graph.validate()
@@ -182,7 +204,8 @@ class LoopCorrection:
 
     ``T_update[k]`` = ``T_WC_new_k T_WC_old_k^-1`` (4x4 Sim(3), world frame) for every keyframe of
     the snapshot; ``scale[k]`` = its scale ``s_new_k / s_old_k``; ``T_WC_new[k]`` the corrected
-    pose of the snapshot (before folding). ``loops`` lists every verified loop with its status.
+    pose of the snapshot (before folding). ``loops`` lists every verified loop with its status. From a
+    metric closer every ``scale`` is 1 and ``fold_scale`` is False.
     """
 
     T_update: dict[int, np.ndarray]
@@ -362,14 +385,20 @@ def epipolar_mask(uv_a: np.ndarray, uv_b: np.ndarray, K_a: np.ndarray, K_b: np.n
 class LoopCloser:
     """Classical loop closure + relocalisation beside a frontend (see the module docstring).
 
+    ``metric``: the map has a metric scale (stereo, RGB-D): loops are verified by a rigid fit and the
+    pose graph holds every keyframe's scale, so corrections are SE(3) with nothing to fold (module
+    docstring).
+
     Thread safety: every method may be called from the frontend thread while the worker runs; all
     shared state is behind one lock, and heavy work (ORB, matching, RANSAC, pose graph) runs outside
     it on copies.
     """
 
-    def __init__(self, config: LoopClosureConfig | None = None, recognizer: PlaceRecognizer | None = None):
+    def __init__(self, config: LoopClosureConfig | None = None, recognizer: PlaceRecognizer | None = None,
+                 metric: bool = False):
         self.cfg = config or LoopClosureConfig(mode="classical")
         self.cfg.validate()
+        self.metric = bool(metric)
         self._lock = threading.RLock()
         self._enabled = self.cfg.classical
         self._recognizer = (recognizer or PlaceRecognizer(self.cfg.bow)) if self._enabled else None
@@ -386,6 +415,13 @@ class LoopCloser:
         self._closed = False
         self._error: BaseException | None = None
         self._times = {"describe": 0.0, "detect": 0.0, "verify": 0.0, "pose_graph": 0.0}
+        self._counts = {"pose_graph_solves": 0, "loop_clusters": 0, "corrections": 0}
+        # pose-graph throttle: positions in self._order of the last loop / last solve, index in
+        # self._loops where the current cluster starts, verified loops not solved with yet
+        self._last_loop_pos: int | None = None
+        self._last_solve_pos = -1
+        self._cluster_start = 0
+        self._unsolved = False
         self._worker = None
         if self._enabled and self.cfg.run_in_thread:
             self._worker = threading.Thread(target=self._run, name="fgslam-loop-closer", daemon=True)
@@ -524,13 +560,16 @@ class LoopCloser:
         return not self._queue.unfinished_tasks
 
     def close(self) -> None:
-        """Stop the worker after the queued keyframes (joins the thread)."""
+        """Process the queued keyframes, solve the pose graph with the loops verified since the last
+        solve (the following :meth:`poll` returns that final correction) and stop the worker."""
         with self._lock:
             self._closed = True
         if self._worker is not None:
             self._queue.put(None)
             self._worker.join()
             self._worker = None
+        elif self._enabled and self._error is None:
+            self._solve_unsolved()
         self._raise_worker_error()
 
     # ------------------------------------------------------------------ diagnostics
@@ -546,8 +585,17 @@ class LoopCloser:
             return list(self._log)
 
     def stage_times(self) -> dict[str, float]:
+        """Seconds spent per stage (describe, detect, verify, pose_graph), summed over keyframes."""
         with self._lock:
             return dict(self._times)
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """``pose_graph_solves`` (calls of the pose-graph optimiser, retries included),
+        ``loop_clusters`` (runs of verified loops, see ``LoopClosureConfig.cluster_gap``) and
+        ``corrections`` (corrections queued for :meth:`poll`, superseded ones included)."""
+        with self._lock:
+            return dict(self._counts)
 
     def verify(self, query_id: int, candidate_id: int, bow_score: float = 0.0) -> Verification:
         """Geometric verification of two described keyframes at the current poses (logged)."""
@@ -576,7 +624,8 @@ class LoopCloser:
         while True:
             kf_id = self._queue.get()
             try:
-                if kf_id is None:
+                if kf_id is None:                     # close(): final solve, then stop
+                    self._solve_unsolved()
                     return
                 self._process(kf_id)
             except BaseException as exc:            # surfaced in the frontend thread
@@ -596,21 +645,49 @@ class LoopCloser:
         with self._lock:
             kf.features, kf.image = feats, None
             self._order.append(kf_id)
+            pos = len(self._order) - 1
             result = self._recognizer.detector.process(kf_id, feats.bow, kf.timestamp)
             self._times["describe"] += t1 - t0
             self._times["detect"] += time.perf_counter() - t1
-        if result.status != "accepted":
-            return
-        new_loop = False
-        for cand in result.candidates[: self.cfg.max_candidates]:
-            ver = self.verify(kf_id, cand.kf_id, cand.score)
-            if ver.accepted:
-                with self._lock:
-                    self._loops.append(LoopRecord(kf_id, cand.kf_id, ver.T_CqCc, ver.n_inliers))
-                new_loop = True
-                break
-        if new_loop:
-            self._solve()
+        if result.status == "accepted":
+            for cand in result.candidates[: self.cfg.max_candidates]:
+                ver = self.verify(kf_id, cand.kf_id, cand.score)
+                if ver.accepted:
+                    self._add_loop(pos, LoopRecord(kf_id, cand.kf_id, ver.T_CqCc, ver.n_inliers))
+                    break
+        if self._solve_due(pos):
+            self._solve_unsolved(pos)
+
+    def _add_loop(self, pos: int, loop: LoopRecord) -> None:
+        """Record a verified loop whose query is at position ``pos``; a new cluster when the previous
+        loop's query is more than ``cluster_gap`` keyframes before."""
+        with self._lock:
+            if self._last_loop_pos is None or pos - self._last_loop_pos > self.cfg.cluster_gap:
+                self._counts["loop_clusters"] += 1
+                self._cluster_start = len(self._loops)
+            self._loops.append(loop)
+            self._last_loop_pos = pos
+            self._unsolved = True
+
+    def _solve_due(self, pos: int) -> bool:
+        """Whether the loops not solved with yet are solved at position ``pos``: at once while the
+        current cluster has no accepted loop; else once ``solve_every`` keyframes passed since the last
+        solve or the cluster ended (``cluster_gap`` keyframes without a loop)."""
+        with self._lock:
+            if not self._unsolved:
+                return False
+            corrected = any(l.status == "accepted" for l in self._loops[self._cluster_start:])
+            return (not corrected or pos - self._last_solve_pos >= self.cfg.solve_every
+                    or pos - self._last_loop_pos > self.cfg.cluster_gap)
+
+    def _solve_unsolved(self, pos: int | None = None) -> None:
+        """Solve if verified loops wait for it (``pos``: current position; None: the last one)."""
+        with self._lock:
+            if not self._unsolved:
+                return
+            self._unsolved = False
+            self._last_solve_pos = len(self._order) - 1 if pos is None else pos
+        self._solve()
 
     def _solve(self) -> None:
         """Pose graph over every described keyframe with every verified loop; queues a correction
@@ -625,9 +702,12 @@ class LoopCloser:
             index = {k: i for i, k in enumerate(ids)}
             T_WC = Sim3.from_matrix(torch.from_numpy(T_old))
             Z = Sim3.from_matrix(torch.from_numpy(np.stack([l.T_CqCc for l in loops])))
+            with self._lock:
+                self._counts["pose_graph_solves"] += 1
             try:
                 res = optimize_sim3_pose_graph(T_WC, [index[l.query_id] for l in loops],
-                                               [index[l.candidate_id] for l in loops], Z, self.cfg.pose_graph)
+                                               [index[l.candidate_id] for l in loops], Z, self.cfg.pose_graph,
+                                               hold_scale=self.metric)
             except (OptimizationError, ValueError) as exc:
                 # ValueError: optimize_sim3_pose_graph fails on a round that rejects every loop
                 logger.warning("pose graph over %d keyframes, %d loops failed: %s", len(ids), len(loops), exc)
@@ -649,7 +729,8 @@ class LoopCloser:
                 updates = {k: T_new[i] @ np.linalg.inv(T_old[i]) for i, k in enumerate(ids)}
                 scale = {k: float(res.scale_correction[i]) for i, k in enumerate(ids)}
                 self._pending = LoopCorrection(updates, scale, {k: T_new[i] for i, k in enumerate(ids)},
-                                               statuses, self.cfg.fold_scale, n_acc, dt)
+                                               statuses, self.cfg.fold_scale and not self.metric, n_acc, dt)
+                self._counts["corrections"] += 1
                 logger.info("loop correction ready: %d keyframes, %d/%d loops accepted (%.3f s)",
                             len(ids), n_acc, len(loops), dt)
                 return
@@ -729,9 +810,10 @@ class LoopCloser:
         if n_points < vc.min_points:
             return reject(f"{n_points} matches with 3-D points < {vc.min_points}", n_matches=len(ia),
                           n_points=n_points)
-        est = estimate_sim3_ransac(X_q[ia[both]], X_c[ib[both]], vc.ransac)
+        est = estimate_sim3_ransac(X_q[ia[both]], X_c[ib[both]], vc.ransac, with_scale=not self.metric)
         if not est.success:
-            return reject(f"Sim(3) RANSAC: {est.reason}", n_matches=len(ia), n_points=n_points)
+            group = "SE(3)" if self.metric else "Sim(3)"
+            return reject(f"{group} RANSAC: {est.reason}", n_matches=len(ia), n_points=n_points)
         T = est.T_ab.matrix().detach().to(torch.float64).numpy()
         return Verification(q.kf_id, c.kf_id, True, "verified", len(ia), n_points, est.n_inliers,
                             est.rms_error, T, bow_score)

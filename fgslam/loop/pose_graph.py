@@ -9,7 +9,14 @@ Variables are the keyframe poses ``T_WC_k`` (``fgslam.lie.Sim3``, ``X_W = s R X_
 * loops (eq. 5's second sum): ``BetweenFactorSimilarity3(i, j, T_CiCj)`` for each verified loop
   (``T_CiCj`` from :func:`fgslam.loop.sim3_estimation.estimate_sim3_ransac`, ``X_Ci = T_CiCj X_Cj``),
   sigmas ``loop_sigmas``, wrapped in a robust kernel (``gtsam.noiseModel.Robust``: Huber or Cauchy);
-* gauge: ``PriorFactorSimilarity3`` holding keyframe 0 (all 7 dof) at its current pose.
+* gauge: ``PriorFactorSimilarity3`` holding keyframe 0 (all 7 dof) at its current pose;
+* ``hold_scale`` (metric maps: stereo, RGB-D; :func:`optimize_sim3_pose_graph`): every keyframe keeps
+  its scale, i.e. the graph is an SE(3) pose graph. Each keyframe gets a ``PriorFactorSimilarity3`` at
+  its current pose that constrains only the log-scale (precision 0 on rotation and translation,
+  sigma ``hold_scale_sigma`` on log s), each loop measurement's scale is replaced by the one the held
+  scales imply (``s_j / s_i``: 1 on a metric map; a scale the verification estimated is noise there),
+  and the returned poses carry the input scales exactly (``scale_correction`` is 1). The plausibility
+  gate's and the pairwise check's scale tests then pass trivially.
 
 Residual of a between term: ``r = Log(Z_ij^-1 T_i^-1 T_j)`` (see :mod:`fgslam.factors.sim3`).
 
@@ -99,6 +106,7 @@ class PoseGraphConfig:
     max_readmission_trials: int = 3  # rejected loop groups tried again on the final accepted set
     l2_first_solve: bool = True  # first solve without kernel (every loop is a large residual at the start)
     l2_max_iterations: int = 10  # LM iterations of that warm-start solve
+    hold_scale_sigma: float = 1e-9  # hold_scale: sigma of each keyframe's log-scale prior
 
     def validate(self) -> None:
         """Raise ConfigError naming the first invalid field."""
@@ -108,8 +116,8 @@ class PoseGraphConfig:
                 raise ConfigError(f"PoseGraphConfig.{name}={getattr(self, name)!r}: need 7 finite sigmas > 0")
         if self.robust_kernel not in ("none", "huber", "cauchy"):
             raise ConfigError(f"PoseGraphConfig.robust_kernel={self.robust_kernel!r}: expected none, huber or cauchy")
-        positive = ("prior_sigma", "robust_param", "min_step_fraction", "max_correction_rotation_deg",
-                    "max_correction_translation_fraction", "max_correction_log_scale")
+        positive = ("prior_sigma", "hold_scale_sigma", "robust_param", "min_step_fraction",
+                    "max_correction_rotation_deg", "max_correction_translation_fraction", "max_correction_log_scale")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"PoseGraphConfig.{name}={getattr(self, name)!r}: must be > 0")
@@ -274,6 +282,17 @@ def _smooth_sigmas(T_WC: Sim3, cfg: PoseGraphConfig) -> np.ndarray:
     return factor[:, None] * sig
 
 
+def _held_scale_loops(T_WC: Sim3, loop_i: np.ndarray, loop_j: np.ndarray, T_CiCj: Sim3) -> Sim3:
+    """Loop measurements with the scale the held keyframe scales imply, ``s_j / s_i`` (rotation and
+    translation kept); loops with out-of-range indices keep theirs (the gate rejects them)."""
+    K = T_WC.shape[0]
+    in_range = (loop_i >= 0) & (loop_i < K) & (loop_j >= 0) & (loop_j < K)
+    s = T_WC.s
+    ratio = s[torch.from_numpy(np.where(in_range, loop_j, 0))] / s[torch.from_numpy(np.where(in_range, loop_i, 0))]
+    held = torch.where(torch.from_numpy(in_range), ratio, T_CiCj.s)
+    return Sim3(T_CiCj.R, T_CiCj.t, held)
+
+
 def _loop_groups(loop_i: np.ndarray, loop_j: np.ndarray, members: np.ndarray, window: int) -> list[np.ndarray]:
     """Connected groups of the loops ``members`` whose (oriented) ends are within ``window`` keyframes."""
     if members.size == 0:
@@ -294,7 +313,7 @@ class _LoopGraph:
     """gtsam side of the solve: prior + smoothness built once, loop factors (plain and robust) per
     candidate loop, LM solves on a chosen subset, chi-square of every candidate at a solution."""
 
-    def __init__(self, T_WC: Sim3, loop_i, loop_j, T_CiCj: Sim3, cfg: PoseGraphConfig):
+    def __init__(self, T_WC: Sim3, loop_i, loop_j, T_CiCj: Sim3, cfg: PoseGraphConfig, hold_scale: bool):
         import gtsam
 
         self.gtsam, self.cfg, self.K = gtsam, cfg, T_WC.shape[0]
@@ -305,6 +324,13 @@ class _LoopGraph:
         self.base = gtsam.NonlinearFactorGraph()
         prior_model = gtsam.noiseModel.Isotropic.Sigma(SIM3_DOF, cfg.prior_sigma)
         self.base.add(gtsam.PriorFactorSimilarity3(0, T_WC[0].to_gtsam(), prior_model))
+        if hold_scale:  # log-scale only: zero precision on rotation and translation
+            precisions = np.zeros(SIM3_DOF)
+            precisions[SIM3_DOF - 1] = cfg.hold_scale_sigma**-2
+            scale_model = gtsam.noiseModel.Diagonal.Precisions(precisions)
+            for k, pose in enumerate(T_WC.to_gtsam()):
+                if k > 0:
+                    self.base.add(gtsam.PriorFactorSimilarity3(k, pose, scale_model))
         if self.K > 1:
             keys = np.arange(self.K)
             Z_smooth = T_WC[:-1].inverse() @ T_WC[1:]
@@ -401,15 +427,18 @@ def optimize_sim3_pose_graph(
     loop_j,
     T_CiCj: Sim3,
     config: PoseGraphConfig | None = None,
+    hold_scale: bool = False,
 ) -> PoseGraphResult:
     """Correct keyframe poses ``T_WC`` (K,) with loops ``(loop_i[l], loop_j[l], T_CiCj[l])``.
 
     ``T_CiCj`` (L,) is the measured similarity from keyframe j's camera frame to keyframe i's
     (``X_Ci = T_CiCj X_Cj``; a perfect loop has ``T_CiCj = T_WC_i^-1 T_WC_j``). Loops with bad
-    indices (out of range, i == j) or non-finite / non-positive-scale measurements are rejected as
-    ``invalid``; the other checks are in the module docstring. With no accepted loop the poses come
-    back unchanged. Raises ``OptimizationError`` if gtsam fails or returns non-finite poses,
-    ValueError for inconsistent input shapes, ConfigError for an invalid config.
+    indices (out of range, i == j) or non-finite / non-positive-scale (scale: without ``hold_scale``)
+    measurements are rejected as ``invalid``; the other checks are in the module docstring. With no
+    accepted loop the poses come back unchanged. ``hold_scale`` (metric maps): every keyframe keeps
+    its scale and each loop's measured scale is replaced by ``s_j / s_i`` (module docstring);
+    ``scale_correction`` is then 1. Raises ``OptimizationError`` if gtsam fails or returns non-finite
+    poses, ValueError for inconsistent input shapes, ConfigError for an invalid config.
     """
     from scipy.special import chdtri
 
@@ -428,6 +457,8 @@ def optimize_sim3_pose_graph(
         raise ValueError(f"optimize_sim3_pose_graph: {L} loop_i, {loop_j.size} loop_j, T_CiCj {tuple(T_CiCj.shape)}")
     t_start = time.perf_counter()
     T_CiCj = T_CiCj.to(torch.float64)
+    if hold_scale and L:
+        T_CiCj = _held_scale_loops(T_WC, loop_i, loop_j, T_CiCj)
 
     # 1. validity and plausibility gate
     reasons = ["accepted"] * L
@@ -442,7 +473,7 @@ def optimize_sim3_pose_graph(
                 ok[l] = False
                 logger.warning("loop %d (%d, %d) rejected: %s", l, loop_i[l], loop_j[l], reasons[l])
     cand = np.flatnonzero(ok)
-    lg = _LoopGraph(T_WC, loop_i[cand], loop_j[cand], T_CiCj[torch.from_numpy(cand)], cfg)
+    lg = _LoopGraph(T_WC, loop_i[cand], loop_j[cand], T_CiCj[torch.from_numpy(cand)], cfg, hold_scale)
 
     # 3. robust solves with chi-square rejection (worst first) and re-admission
     chi2_thr = float(chdtri(SIM3_DOF, 1.0 - cfg.consistency_probability))  # chi2(7) quantile
@@ -491,6 +522,10 @@ def optimize_sim3_pose_graph(
     T_new = lg.poses(values)
     if not (torch.isfinite(T_new.matrix()).all() and (T_new.s > 0).all()):
         raise OptimizationError(f"Sim(3) pose graph on {K} keyframes returned non-finite poses")
+    if hold_scale:  # the priors held the scales to ~hold_scale_sigma; hand back the exact ones
+        logger.debug("pose graph (hold_scale): largest |log scale change| %.3g before projection",
+                     float(torch.log(T_new.s / T_WC.s).abs().max()))
+        T_new = Sim3(T_new.R, T_new.t, T_WC.s.clone())
 
     accepted = np.zeros(L, dtype=bool)
     accepted[cand[active]] = True

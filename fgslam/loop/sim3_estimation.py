@@ -5,6 +5,9 @@ matches ``X_b`` (N, 3) triangulated around keyframe b, in camera frame b; each s
 (monocular, arbitrary) scale. Output: the similarity ``T_ab`` (``X_a = s R X_b + t``, the standard
 convention of :class:`fgslam.lie.Sim3`, i.e. ``T_CaCb``) estimated by RANSAC over minimal 3-point
 samples with Umeyama's closed form (:func:`fgslam.eval.umeyama`, with scale), refined on all inliers.
+With ``with_scale=False`` (metric maps: stereo, RGB-D, where both sides are in metres) the fit is
+rigid (Umeyama without scale): ``T_ab`` has ``s = 1`` exactly and a scale difference between the two
+point sets shows as residuals instead of being absorbed.
 
 Inlier test (``Sim3RansacConfig.error_metric``):
 
@@ -126,10 +129,11 @@ def sim3_errors(T_ab: Sim3, X_a: np.ndarray, X_b: np.ndarray, metric: str) -> np
     return np.where(np.isfinite(rel), rel, np.inf)
 
 
-def _fit(X_a: np.ndarray, X_b: np.ndarray) -> Sim3 | None:
-    """Umeyama Sim(3) with X_a = s R X_b + t, or None when it is undetermined or not finite."""
+def _fit(X_a: np.ndarray, X_b: np.ndarray, with_scale: bool) -> Sim3 | None:
+    """Umeyama Sim(3) with X_a = s R X_b + t (s = 1 without ``with_scale``), or None when it is
+    undetermined or not finite."""
     try:
-        al = umeyama(X_b, X_a, with_scale=True)
+        al = umeyama(X_b, X_a, with_scale=with_scale)
     except EvaluationError:
         return None
     if not (np.isfinite(al.R).all() and np.isfinite(al.t).all() and np.isfinite(al.s) and al.s > 0):
@@ -162,8 +166,11 @@ def _failure(n: int, iterations: int, n_degenerate: int, reason: str, **extra) -
     )
 
 
-def estimate_sim3_ransac(X_a, X_b, config: Sim3RansacConfig | None = None) -> Sim3Estimate:
+def estimate_sim3_ransac(X_a, X_b, config: Sim3RansacConfig | None = None, with_scale: bool = True) -> Sim3Estimate:
     """RANSAC + Umeyama Sim(3) ``T_ab`` with ``X_a ~ T_ab X_b`` from matched points (N, 3) each.
+
+    ``with_scale=False``: rigid fit, ``T_ab.s`` is exactly 1 (both sides in the same metric units);
+    minimal samples and degeneracy tests are the same (3 non-collinear points).
 
     ``X_a``/``X_b``: numpy arrays or torch tensors, rows are correspondences; rows with non-finite
     values are ignored (never inliers). Returns a :class:`Sim3Estimate`; ``success`` is False (with a
@@ -200,7 +207,7 @@ def estimate_sim3_ransac(X_a, X_b, config: Sim3RansacConfig | None = None) -> Si
         if is_degenerate:
             n_degenerate += 1
             continue
-        T = _fit(A[sample], B[sample])
+        T = _fit(A[sample], B[sample], with_scale)
         if T is None:
             n_degenerate += 1
             continue
@@ -224,7 +231,7 @@ def estimate_sim3_ransac(X_a, X_b, config: Sim3RansacConfig | None = None) -> Si
     for _ in range(cfg.refine_iterations):
         if _degenerate(A[mask][None], range_a, cfg)[0] or _degenerate(B[mask][None], range_b, cfg)[0]:
             break
-        T_ref = _fit(A[mask], B[mask])
+        T_ref = _fit(A[mask], B[mask], with_scale)
         if T_ref is None:
             break
         mask_ref = sim3_errors(T_ref, A, B, cfg.error_metric) < cfg.inlier_threshold

@@ -106,6 +106,72 @@ class TrackingConfig:
 
 
 @dataclass
+class GlobalBAConfig:
+    """Tunables of :func:`global_bundle_adjustment`."""
+
+    iterations: int = 10  # Levenberg-Marquardt iterations per robust round
+    robust_rounds: int = 2  # rounds, each re-weighting the edges from the previous one's residuals
+    huber_first_round: bool = True  # round 1 Huber-weighted from the initial residuals (no outlier cut); else plain least squares
+    huber_delta: float = 2.0  # Huber threshold on the whitened residual (later rounds)
+    outlier_threshold: float = 6.0  # edges above this many pixels after a round get zero weight
+    lambda_initial: float = 1e-4  # Marquardt damping: H + lambda diag(H)
+    lambda_factor: float = 10.0  # damping multiplier on rejection / divisor on acceptance
+    lambda_max: float = 1e4  # rejected steps pushing lambda above this end the round (at a minimum)
+    relative_tolerance: float = 1e-6  # stop a round when the relative cost decrease falls below this
+    min_structure: float = 1e-6  # inverse depths are clamped to at least this
+    min_information: float = 1e-12  # patches with less information are not updated
+    chunk_edges: int = 200_000  # edges linearised per batch (bounds memory: about 300 bytes per edge)
+    threads: int = 1  # torch threads
+
+    def validate(self) -> None:
+        if self.iterations < 1 or self.robust_rounds < 1 or self.chunk_edges < 1:
+            raise ConfigError("patch.proximity.ba: iterations, robust_rounds and chunk_edges must be >= 1")
+        if not self.lambda_factor > 1 or not self.lambda_initial > 0:
+            raise ConfigError("patch.proximity.ba: lambda_factor must be > 1 and lambda_initial > 0")
+
+
+@dataclass
+class ProximityConfig:
+    """Proximity loop closure (DPV-SLAM section 3.2; on with ``loop_closure.mode`` proximity or both).
+
+    Each keyframe that settles (can no longer be removed) is a query: older keyframes at least
+    ``min_gap`` keyframes back whose current pose is within ``radius`` (in units of the query's median
+    patch depth, so it holds at any monocular scale) and ``max_angle_deg`` of viewing direction, and
+    whose patches reproject into the query with a mean displacement below ``max_flow_px`` (the flow
+    check), are candidates; the best one gets long-range edges (its and its neighbours' patches into
+    the query's neighbourhood and back), measured by the source, verified by a fundamental-matrix
+    RANSAC, then a global bundle adjustment runs over every active, inactive and loop edge.
+    """
+
+    min_gap: int = 30  # keyframes between a query and a candidate at least
+    radius: float = 0.5  # candidate camera centres at most this many median query depths away
+    max_angle_deg: float = 30.0  # angle between the optical axes at most
+    max_flow_px: float = 60.0  # mean reprojected displacement of the candidate's patches in the query at most
+    min_overlap: float = 0.5  # share of the candidate's patches that reproject into the query image at least
+    old_neighbours: int = 1  # keyframes on each side of the candidate whose patches also get loop edges
+    new_neighbours: int = 1  # graph frames on each side of the query that also get loop edges
+    ransac_threshold_px: float = 1.5  # fundamental-matrix RANSAC threshold on the loop measurements
+    min_loop_edges: int = 60  # verified loop measurements needed
+    min_inlier_ratio: float = 0.5  # share of valid loop measurements that must be RANSAC inliers
+    min_ba_inlier_ratio: float = 0.6  # share of loop edges with non-zero weight after the global BA (else undone)
+    cooldown: int = 10  # keyframes after an accepted proximity loop during which no other is searched
+    max_stored_keyframes: int = 5000  # keyframe images kept (PNG in memory) for loop edges; oldest dropped
+    ba: GlobalBAConfig = field(default_factory=GlobalBAConfig)
+
+    def validate(self) -> None:
+        if self.min_gap < 1 or self.min_loop_edges < 8 or self.cooldown < 0 or self.max_stored_keyframes < 1:
+            raise ConfigError("patch.proximity: min_gap >= 1, min_loop_edges >= 8, cooldown >= 0, max_stored_keyframes >= 1")
+        if not (self.radius > 0 and self.max_flow_px > 0 and 0 < self.max_angle_deg <= 180):
+            raise ConfigError("patch.proximity: radius and max_flow_px must be > 0, max_angle_deg in (0, 180]")
+        for name in ("min_overlap", "min_inlier_ratio", "min_ba_inlier_ratio"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ConfigError(f"patch.proximity.{name} must be in [0, 1], got {getattr(self, name)}")
+        if self.old_neighbours < 0 or self.new_neighbours < 0 or not self.ransac_threshold_px > 0:
+            raise ConfigError("patch.proximity: neighbours must be >= 0 and ransac_threshold_px > 0")
+        self.ba.validate()
+
+
+@dataclass
 class PatchConfig:
     """Root configuration of :class:`fgslam.frontends.patch.PatchFrontend`."""
 
@@ -116,10 +182,12 @@ class PatchConfig:
     lk: LKConfig = field(default_factory=LKConfig)
     ba: BAConfig = field(default_factory=BAConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    proximity: ProximityConfig = field(default_factory=ProximityConfig)
 
     def validate(self) -> None:
         """Raise ConfigError naming the first inconsistent field."""
         self.graph.validate()
+        self.proximity.validate()
         if self.source not in ("lk", "learned"):
             raise ConfigError(f"patch.source must be 'lk' or 'learned', got {self.source!r}")
         if self.ba.iterations < 1 or self.ba.rounds < 1 or self.ba.init_iterations < 1 or self.ba.init_rounds < 1:

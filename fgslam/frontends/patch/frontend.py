@@ -38,6 +38,17 @@ before a frame is tracked (no BA running): graph poses ``T_WC <- U_k T_WC`` with
 folded into patch inverse depths (``d <- d / s_k``), final and relative pose records alike. A lost
 track is relocalised on the keyframe database before a re-initialisation, whose anchor it becomes
 (monocular: the new map gets a scale of its own).
+
+Proximity loop closure (``mode`` proximity or both; DPV-SLAM section 3.2, ``patch.proximity``):
+every keyframe that settles is stored (its source features, packed) and becomes a query; the best
+older keyframe that is close in the current estimate (distance, viewing angle, mean reprojected
+displacement of its patches: :mod:`.proximity`) gets long-range edges between its neighbourhood and
+the query's, measured by the source (from the reprojection and from zero motion) and verified by a
+fundamental-matrix RANSAC; then :func:`.global_ba.global_bundle_adjustment` optimises every keyframe
+pose of the current map (held scale; gauge: the oldest one, monocular two) and every patch depth over
+the active, inactive and loop edges. The result is discarded when too few loop edges survive its
+robust weighting; otherwise the loop edges join the inactive store, so later global BAs keep them.
+Finalised keyframes (out of the graph) keep their patches for this (``_final``).
 """
 
 from __future__ import annotations
@@ -60,7 +71,9 @@ from ...map import GaugeConfig, MapConfig, SlamMap, pose_key
 from ..base import FrameStatus, Frontend, SensorMode
 from .ba import PatchBlock
 from .config import PatchConfig
+from .global_ba import GlobalBAProblem, global_bundle_adjustment
 from .graph import GraphFrame, PatchGraph
+from .proximity import Candidate, KeyframeStore, fundamental_inliers, held_frames, pose_filter
 from .source import make_source
 
 logger = logging.getLogger(__name__)
@@ -225,7 +238,8 @@ class PatchFrontend(Frontend):
         self._lost = 0
         self._failures = 0
         self._times = {"flow": 0.0, "ba": 0.0, "bookkeeping": 0.0}
-        self._points: list[tuple[np.ndarray, np.ndarray]] = []  # finalised keyframes' (X_W, colour)
+        self._final: dict[int, GraphFrame] = {}  # finalised keyframes (left the graph; caches released)
+        self._map_start_fid: int | None = None  # first keyframe of the current map (since the last initialisation)
         self._reproj = ReprojectionConfig(min_depth=self.config.ba.min_depth)
         self._last_residual = np.zeros(0)
         self._fid = 0
@@ -293,6 +307,8 @@ class PatchFrontend(Frontend):
         self._sources[fid] = status.pose_source
         self._loop_keep_image(fid, frame)
         self._loop_feed_keyframes()
+        if self._initialized and status.pose_source == "tracked":
+            self._prox_step()
         return status
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -310,7 +326,7 @@ class PatchFrontend(Frontend):
         return np.array(stamps), np.stack(poses), sources
 
     def keyframe_points(self) -> tuple[np.ndarray, np.ndarray] | None:
-        chunks = list(self._points) + [self._frame_points(f) for f in self.graph.frames]
+        chunks = [self._frame_points(f) for f in list(self._final.values()) + self.graph.frames]
         if not chunks:
             return None
         return np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks])
@@ -338,6 +354,8 @@ class PatchFrontend(Frontend):
             T = None
         elif rec[0] == "graph":
             T = self.graph.frame(fid).T_WC
+        elif rec[0] == "final":
+            T = self._final[fid].T_WC
         elif rec[0] == "abs":
             T = rec[1]
         elif rec[0] == "rel":
@@ -625,6 +643,7 @@ class PatchFrontend(Frontend):
             self._records[fid] = None
             return self._status(fid, frame, "initializing", events=[f"waiting for depth ({valid} valid patches)"])
         self._initialized = True
+        self._map_start_fid = fid
         self._lost = 0
         self._update_velocity(fid)
         return self._status(fid, frame, "tracked", is_keyframe=True, num_valid=valid, events=["initialised"])
@@ -766,6 +785,7 @@ class PatchFrontend(Frontend):
             self._init = None
             return self._status(fid, frame, "initializing", events=["initialisation rejected"])
         self._initialized = True
+        self._map_start_fid = self.graph.frames[0].fid
         self._init = None
         self._lost = 0
         self._last_fid = None
@@ -830,9 +850,7 @@ class PatchFrontend(Frontend):
         """Finalise the graph and start a new initialisation anchored at the last predicted pose."""
         self._loop_feed_keyframes(all_frames=True)
         for f in self.graph.clear():
-            self._records[f.fid] = ("abs", f.T_WC.copy())
-            self._points.append(self._frame_points(f))
-            self._finalised += 1
+            self._finalise(f)
         self._initialized = False
         self._init = None
         self._lost = 0
@@ -874,9 +892,15 @@ class PatchFrontend(Frontend):
             f.features = None
             f.features_right = None
         for f in g.pop_frames_before(n - gcfg.removal_window - gcfg.patch_lifetime):
-            self._records[f.fid] = ("abs", f.T_WC.copy())
-            self._points.append(self._frame_points(f))
-            self._finalised += 1
+            self._finalise(f)
+
+    def _finalise(self, f: GraphFrame) -> None:
+        """A keyframe leaves the graph: its pose and patches are kept (global BA, point export)."""
+        f.features = None
+        f.features_right = None
+        self._final[f.fid] = f
+        self._records[f.fid] = ("final",)
+        self._finalised += 1
 
     # ------------------------------------------------------------------ global optimisation hooks
     def inactive_edges(self) -> dict:
@@ -886,17 +910,14 @@ class PatchFrontend(Frontend):
 
     # ------------------------------------------------------------------ loop closure (fgslam.loop.closure)
     def _loop_init(self, loop_config: LoopClosureConfig | None) -> None:
-        """A :class:`LoopCloser` when ``loop_config.mode`` is ``classical`` or ``both`` (the proximity
-        part is not implemented in this frontend yet: ``proximity`` alone is refused)."""
+        """A :class:`LoopCloser` when ``loop_config.mode`` is ``classical`` or ``both``; the proximity
+        state (keyframe store, counters) when it is ``proximity`` or ``both``."""
         self.loop_config = loop_config if loop_config is not None else LoopClosureConfig()
         self.loop_config.validate()
-        if self.loop_config.mode == "proximity":
-            raise ConfigError("loop_closure.mode=proximity: the patch frontend has no proximity loop closure yet; "
-                              "use classical (or off)")
-        if self.loop_config.proximity:
-            logger.warning("loop_closure.mode=both: the patch frontend runs the classical part only "
-                           "(proximity loop closure is not implemented yet)")
-        self.closer = LoopCloser(self.loop_config) if self.loop_config.classical else None
+        # stereo / RGB-D maps are metric (every pose scale 1): loop corrections are then SE(3)
+        metric = self.sensor_mode != "mono"
+        self.closer = LoopCloser(self.loop_config, metric=metric) if self.loop_config.classical else None
+        self._prox_init()
         self._loop_images: dict[int, np.ndarray] = {}  # fid -> image, while the frame may become a loop keyframe
         self._loop_last_added = -1  # newest fid handed to the closer (ids must increase)
         self._loop_counts = {"corrections_applied": 0, "keyframes_added": 0, "relocalization_attempts": 0,
@@ -932,7 +953,7 @@ class PatchFrontend(Frontend):
         records follow their two end poses."""
         if corr is None:
             return
-        for f in self.graph.frames:
+        for f in list(self.graph.frames) + list(self._final.values()):
             f.T_WC, s = corr.apply_pose(f.fid, f.T_WC)
             f.inv_depth = f.inv_depth / s
         for fid, rec in list(self._records.items()):
@@ -1006,13 +1027,262 @@ class PatchFrontend(Frontend):
         self._times["loop"] += time.perf_counter() - t0
 
     def loop_summary(self) -> dict | None:
-        if self.closer is None:
+        if self.closer is None and self._prox is None:
             return None
         index = {fid: idx for fid, _, idx in self._inputs}
-        loops = self.closer.loops
-        return {"mode": self.loop_config.mode, **self._loop_counts,
-                "verifications": len(self.closer.verifications), "verified_loops": len(loops),
-                "accepted_loops": sum(rec.status == "accepted" for rec in loops),
-                "loop_frames": [[index.get(rec.query_id, -1), index.get(rec.candidate_id, -1), rec.status]
-                                for rec in loops],
-                "closer_s": self.closer.stage_times()}
+        out: dict = {"mode": self.loop_config.mode}
+        if self.closer is not None:
+            loops = self.closer.loops
+            out.update({**self._loop_counts,
+                        "verifications": len(self.closer.verifications), "verified_loops": len(loops),
+                        "accepted_loops": sum(rec.status == "accepted" for rec in loops),
+                        "loop_frames": [[index.get(rec.query_id, -1), index.get(rec.candidate_id, -1), rec.status]
+                                        for rec in loops],
+                        "closer_s": self.closer.stage_times(), "closer_counts": self.closer.counts})
+        if self._prox is not None:
+            out["proximity"] = {**self._prox_counts,
+                                "stored_keyframes": len(self._prox.order) - self._prox.dropped,
+                                "loop_frames": [[index.get(q, -1), index.get(c, -1), status]
+                                                for q, c, status in self._prox_loops]}
+        return out
+
+    # ------------------------------------------------------------------ proximity loop closure (DPV-SLAM 3.2)
+    def _prox_init(self) -> None:
+        self._prox: KeyframeStore | None = None
+        if not self.loop_config.proximity:
+            return
+        self._prox = KeyframeStore(self.config.proximity.max_stored_keyframes)
+        self._prox_counts = {"queries": 0, "candidates": 0, "verified": 0, "accepted": 0, "undone": 0,
+                             "global_ba_runs": 0, "global_ba_s": 0.0}
+        self._prox_loops: list[tuple[int, int, str]] = []  # (query fid, candidate fid, status)
+        self._prox_cooldown_until = -1  # keyframe ordinal before which no loop is searched
+        self._times["proximity"] = 0.0
+
+    def _prox_frame(self, fid: int) -> GraphFrame | None:
+        """The keyframe ``fid`` (in the graph or finalised), or None."""
+        f = self._final.get(fid)
+        if f is not None:
+            return f
+        try:
+            return self.graph.frame(fid)
+        except KeyError:
+            return None
+
+    def _prox_step(self) -> None:
+        """Store newly settled keyframes; search a loop for the newest one (module docstring)."""
+        if self._prox is None:
+            return
+        t0 = time.perf_counter()
+        g = self.graph
+        settled = len(g) - 1 - self.config.tracking.keyframe_index
+        query = None
+        for p in range(max(settled, 0)):
+            f = g.frames[p]
+            last = self._prox.last
+            if (last is not None and f.fid <= last) or f.features is None:
+                continue
+            self._prox.add(f.fid, self.source.pack(f.features))
+            query = f
+        if query is not None and self._prox.ordinal(query.fid) >= self._prox_cooldown_until:
+            self._prox_counts["queries"] += 1
+            cand = self._prox_candidate(query)
+            if cand is not None:
+                self._prox_counts["candidates"] += 1
+                self._prox_close(query, cand)
+        self._times["proximity"] += time.perf_counter() - t0
+
+    def _prox_candidate(self, q: GraphFrame) -> Candidate | None:
+        """The best proximity candidate of settled keyframe ``q`` (pose, angle and flow tests), or None."""
+        pc = self.config.proximity
+        store = self._prox
+        limit = store.ordinal(q.fid) - pc.min_gap
+        if limit < 0:
+            return None
+        fids = [fid for fid in store.order[: limit + 1]
+                if fid in store and fid >= (self._map_start_fid or 0)]
+        frames = [f for f in (self._prox_frame(fid) for fid in fids) if f is not None]
+        if not frames:
+            return None
+        good = q.inv_depth > 0
+        if not good.any():
+            return None
+        depth = float(np.median(1.0 / q.inv_depth[good]))
+        T_c = np.stack([f.T_WC for f in frames])
+        ok, dist, angle = pose_filter(q.T_WC, T_c, pc.radius * depth, pc.max_angle_deg)
+        best = None
+        for i in np.nonzero(ok)[0]:
+            f = frames[i]
+            uv, valid = self._reproject_patches(f, q)
+            if valid.mean() < pc.min_overlap:
+                continue
+            flow = float(np.linalg.norm(uv[valid] - f.uv[valid], axis=1).mean())
+            if flow <= pc.max_flow_px and (best is None or flow < best.flow):
+                best = Candidate(f.fid, float(dist[i]), float(angle[i]), flow, float(valid.mean()))
+        return best
+
+    def _reproject_patches(self, a: GraphFrame, b: GraphFrame) -> tuple[np.ndarray, np.ndarray]:
+        """Frame a's patch centres reprojected into frame b's left image at the current poses and
+        depths: (K, 2) pixels and validity (in front, inside the image with the patch margin)."""
+        Ra, ta, sa = _components(a.T_WC[None])
+        Rb, tb, sb = _components(b.T_WC[None])
+        uv, ok = reproject(torch.as_tensor(a.uv), torch.as_tensor(a.inv_depth), (Ra[0], ta[0], sa[0]),
+                           (Rb[0], tb[0], sb[0]), self.K, config=self._reproj)
+        uv, ok = uv.numpy(), ok.numpy()
+        margin = 0.5 * self.config.graph.patch_size * self.config.graph.patch_stride
+        inside = (uv[:, 0] >= margin) & (uv[:, 0] <= self.width - 1 - margin) & (uv[:, 1] >= margin) & (
+            uv[:, 1] <= self.height - 1 - margin)
+        return uv, ok & inside
+
+    def _prox_measure(self, q: GraphFrame, cand: Candidate) -> dict | None:
+        """Loop edges between the candidate's neighbourhood (stored keyframes) and the query's (graph
+        frames with features), measured from two starts (current reprojection and zero motion; the
+        more confident wins) and verified per frame pair by a fundamental-matrix RANSAC. Returns
+        the verified edges as an inactive-edge chunk, or None."""
+        pc = self.config.proximity
+        store = self._prox
+        old = [cand.fid] + store.neighbours(cand.fid, pc.old_neighbours)
+        old = [f for f in (self._prox_frame(fid) for fid in old) if f is not None]
+        pq = self.graph.position(q.fid)
+        new = [f for f in self.graph.frames[max(0, pq - pc.new_neighbours): pq + pc.new_neighbours + 1]
+               if f.features is not None]
+        feats_old = {f.fid: self.source.unpack(store.get(f.fid)) for f in old}
+        groups = []  # (src frame, tgt frame, src feats, tgt feats, pair id)
+        for pair, (o, n) in enumerate((o, n) for o in old for n in new):
+            groups.append((o, n, feats_old[o.fid], n.features, pair))
+            groups.append((n, o, n.features, feats_old[o.fid], pair))
+        requests, starts = [], []
+        for a, b, fa, fb, _ in groups:
+            pred, _ = self._reproject_patches(a, b)
+            requests.append((fa, fb, a.uv, pred))
+            starts.append((fa, fb, a.uv, a.uv.copy()))
+        t0 = time.perf_counter()
+        from_pred = self.source.measure_batch(requests)
+        from_zero = self.source.measure_batch(starts)
+        self._times["flow"] += time.perf_counter() - t0
+        chunks, valid_total, inlier_total = [], 0, 0
+        by_pair: dict[int, list] = {}
+        for (a, b, _, _, pair), m1, m0 in zip(groups, from_pred, from_zero):
+            use0 = m0.confidence > m1.confidence
+            uv = np.where(use0[:, None], m0.uv, m1.uv)
+            conf = np.where(use0, m0.confidence, m1.confidence)
+            by_pair.setdefault(pair, []).append((a, b, uv, conf))
+        for pair, parts in by_pair.items():
+            # one fundamental matrix per frame pair: both directions as (old pixel, new pixel)
+            pts_o, pts_n, owners = [], [], []
+            for k, (a, b, uv, conf) in enumerate(parts):
+                ok = conf > 0
+                if k == 0:
+                    pts_o.append(a.uv[ok]); pts_n.append(uv[ok])
+                else:
+                    pts_o.append(uv[ok]); pts_n.append(a.uv[ok])
+                owners.append(np.nonzero(ok)[0])
+            counts = [len(o) for o in owners]
+            valid_total += sum(counts)
+            inl = fundamental_inliers(np.concatenate(pts_o), np.concatenate(pts_n), pc.ransac_threshold_px)
+            inlier_total += int(inl.sum())
+            offset = 0
+            for (a, b, uv, conf), idx, cnt in zip(parts, owners, counts):
+                keep = idx[inl[offset: offset + cnt]]
+                offset += cnt
+                if keep.size:
+                    chunks.append({"src": np.full(keep.size, a.fid, np.int64), "patch": keep.astype(np.int64),
+                                   "tgt": np.full(keep.size, b.fid, np.int64), "right": np.zeros(keep.size, bool),
+                                   "uv_src": a.uv[keep].astype(np.float32), "uv": uv[keep].astype(np.float32),
+                                   "confidence": conf[keep].astype(np.float32),
+                                   "inv_depth": a.inv_depth[keep].astype(np.float32)})
+        ratio = inlier_total / max(valid_total, 1)
+        if inlier_total < pc.min_loop_edges or ratio < pc.min_inlier_ratio:
+            logger.info("proximity loop %d -> %d rejected: %d verified of %d measured loop edges",
+                        q.index, self._prox_frame(cand.fid).index, inlier_total, valid_total)
+            return None
+        return {key: np.concatenate([c[key] for c in chunks]) for key in chunks[0]}
+
+    def _prox_close(self, q: GraphFrame, cand: Candidate) -> None:
+        """Measure, verify, and close a proximity loop with a global bundle adjustment."""
+        edges = self._prox_measure(q, cand)
+        if edges is None:
+            self._prox_loops.append((q.fid, cand.fid, "rejected: verification"))
+            return
+        self._prox_counts["verified"] += 1
+        accepted = self._global_ba(edges)
+        status = "accepted" if accepted else "undone: loop edges inconsistent after global BA"
+        self._prox_loops.append((q.fid, cand.fid, status))
+        if accepted:
+            self._prox_counts["accepted"] += 1
+            self._prox_cooldown_until = self._prox.ordinal(q.fid) + self.config.proximity.cooldown
+            logger.info("proximity loop closed: frame %d <-> frame %d (%d loop edges, flow %.1f px)",
+                        q.index, self._prox_frame(cand.fid).index, len(edges["src"]), cand.flow)
+        else:
+            self._prox_counts["undone"] += 1
+
+    def _global_ba(self, loop_edges: dict | None = None) -> bool:
+        """Global BA over the current map's keyframes with every active, inactive and (given) loop
+        edge. With loop edges, the result is kept only when at least ``min_ba_inlier_ratio`` of them
+        keep a non-zero weight; kept loop edges join the inactive store. Returns whether it was kept."""
+        pc = self.config.proximity
+        t0 = time.perf_counter()
+        g = self.graph
+        start = self._map_start_fid or 0
+        frames = sorted([f for f in self._final.values() if f.fid >= start] + list(g.frames), key=lambda f: f.fid)
+        fids = np.array([f.fid for f in frames], np.int64)
+        parts = []
+        inactive = g.inactive.arrays()
+        if inactive:
+            parts.append({k: inactive[k] for k in ("src", "patch", "tgt", "right", "uv", "confidence")})
+        active = g.confidence > 0
+        parts.append({"src": g.src[active], "patch": g.patch[active], "tgt": g.tgt[active], "right": g.right[active],
+                      "uv": g.uv[active], "confidence": g.confidence[active]})
+        n_loop = 0
+        if loop_edges is not None:
+            parts.append({k: loop_edges[k] for k in ("src", "patch", "tgt", "right", "uv", "confidence")})
+            n_loop = len(loop_edges["src"])
+        e = {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in parts[0]}
+        is_loop = np.zeros(len(e["src"]), bool)
+        if n_loop:
+            is_loop[-n_loop:] = True
+        known = np.isin(e["src"], fids) & np.isin(e["tgt"], fids) & (e["confidence"] > 0)
+        e = {k: v[known] for k, v in e.items()}
+        is_loop = is_loop[known]
+        src_i, tgt_i = np.searchsorted(fids, e["src"]), np.searchsorted(fids, e["tgt"])
+        Kp = self.config.graph.patches_per_frame
+        ukeys, struct_idx = np.unique(src_i * Kp + e["patch"], return_inverse=True)
+        owner, patch = ukeys // Kp, ukeys % Kp
+        uv_all = np.stack([f.uv for f in frames])
+        d_all = np.stack([f.inv_depth for f in frames])
+        prior = {}
+        if self.sensor_mode == "rgbd":
+            sens = np.stack([f.sensor_inv_depth for f in frames])[owner, patch]
+            has = np.isfinite(sens) & (sens > 0)
+            prior = dict(prior_idx=np.nonzero(has)[0], prior_value=sens[has],
+                         prior_weight=1.0 / (self.config.ba.depth_prior_sigma * sens[has]) ** 2)
+        fixed = held_frames(len(frames), src_i, tgt_i, is_loop, 2 if self.sensor_mode == "mono" else 1)
+        problem = GlobalBAProblem(
+            T_WC=np.stack([f.T_WC for f in frames]), fixed=fixed, src=src_i, tgt=tgt_i, right=e["right"].astype(bool),
+            uv_src=uv_all[src_i, e["patch"]], uv=e["uv"].astype(np.float64),
+            weight=e["confidence"].astype(np.float64) / self.config.ba.pixel_sigma ** 2, struct_idx=struct_idx,
+            inv_depth=d_all[owner, patch], K=self.K.numpy(),
+            K_right=None if self.K_right is None else self.K_right.numpy(), T_CRCL=self.T_CRCL, **prior)
+        with torch_threads(self.config.ba.threads):
+            res = global_bundle_adjustment(problem, pc.ba, self._reproj)
+        self._prox_counts["global_ba_runs"] += 1
+        self._prox_counts["global_ba_s"] += time.perf_counter() - t0
+        if is_loop.any():
+            kept = float((res.robust[is_loop] > 0).mean())
+            if kept < pc.min_ba_inlier_ratio:
+                logger.info("global BA undone: %.0f %% of the loop edges kept a weight (< %.0f %%)",
+                            100 * kept, 100 * pc.min_ba_inlier_ratio)
+                return False
+        for i, f in enumerate(frames):
+            f.T_WC = res.T_WC[i].copy()
+        for pos in np.unique(owner):
+            sel = owner == pos
+            frames[pos].inv_depth = frames[pos].inv_depth.copy()
+            frames[pos].inv_depth[patch[sel]] = res.inv_depth[sel]
+        if n_loop:
+            keep = np.zeros(n_loop, bool)
+            keep[known[-n_loop:]] = res.robust[is_loop] > 0
+            if keep.any():
+                g.inactive.add({k: v[keep] for k, v in loop_edges.items()})
+        if self.closer is not None:
+            self.closer.update_poses({f.fid: f.T_WC for f in frames})
+        return True

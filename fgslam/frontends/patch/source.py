@@ -49,6 +49,14 @@ class MeasurementSource(abc.ABC):
         reprojection in the target image (the starting point).
         """
 
+    def pack(self, features):
+        """A compact copy of per-frame features kept for long-range (loop) edges; default: as is."""
+        return features
+
+    def unpack(self, packed):
+        """Features back from :meth:`pack`."""
+        return packed
+
     def measure_batch(self, requests: list) -> list[Measurement]:
         """Measure ``[(src, tgt, uv_src, uv_pred), ...]`` (one frame's edges, grouped by frame
         pair); sources override this to share work between requests."""
