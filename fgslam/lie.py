@@ -569,3 +569,13 @@ def sim3_matrix_parts(M: np.ndarray, project: bool = False) -> tuple[np.ndarray,
         U[:, 2] *= np.sign(np.linalg.det(U @ Vt))
         R = U @ Vt
     return R, M[:3, 3].copy(), s
+
+
+def sim3_matrix_components(M) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(R (n, 3, 3), t (n, 3), s (n,))`` float64 tensors of a batch of Sim(3) matrices (n, 4, 4)
+    ``[[s R, t], [0, 1]]`` (numpy or torch), ``s = cbrt(|det(s R)|)``, R not re-projected: the cheap
+    batched twin of :func:`sim3_matrix_parts` for matrices kept on the manifold by their producers."""
+    M = torch.as_tensor(M, dtype=torch.float64)
+    sR = M[..., :3, :3]
+    s = torch.linalg.det(sR).abs().pow(1.0 / 3.0)
+    return sR / s[..., None, None], M[..., :3, 3], s

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.lie import SE3, Sim3, sim3_matrix_parts, skew, so3_exp, so3_log, stack
+from fgslam.lie import SE3, Sim3, sim3_matrix_components, sim3_matrix_parts, skew, so3_exp, so3_log, stack
 
 F64 = torch.float64
 N_RANDOM = 1000
@@ -324,3 +324,15 @@ def test_sim3_matrix_parts_matches_sim3_and_projects():
         R_p, _, _ = sim3_matrix_parts(noisy, project=True)
         assert np.allclose(R_p @ R_p.T, np.eye(3), atol=1e-12) and np.linalg.det(R_p) > 0
         assert np.allclose(R_p, T.R[k].numpy(), atol=1e-5)
+
+
+def test_sim3_matrix_components_batched_matches_sim3():
+    """The batched torch helper agrees with Sim3 on numpy and torch input of any batch shape."""
+    gen = torch.Generator().manual_seed(8)
+    T = Sim3.exp(torch.randn(4, 5, 7, generator=gen, dtype=torch.float64))
+    M = T.matrix()
+    for arg in (M, M.numpy()):
+        R, t, s = sim3_matrix_components(arg)
+        assert R.shape == (4, 5, 3, 3) and t.shape == (4, 5, 3) and s.shape == (4, 5)
+        assert torch.allclose(R, T.R, atol=1e-12) and torch.allclose(t, T.t, atol=1e-12)
+        assert torch.allclose(s, T.s, atol=1e-12)

@@ -41,7 +41,7 @@ from ...errors import OptimizationError
 from ...factors.reprojection import ReprojectionConfig, reproject, reproject_inv_depth
 from ...factors.robust import kernel_weight
 from ...factors.schur import torch_threads
-from ...lie import Sim3
+from ...lie import Sim3, sim3_matrix_components
 from .config import GlobalBAConfig
 
 logger = logging.getLogger(__name__)
@@ -179,13 +179,6 @@ def _make_chunk(lo: int, hi: int, src: np.ndarray, tgt: np.ndarray, sidx: np.nda
                   as_t(np.searchsorted(srcs, p_src)), as_t(p_slot))
 
 
-def _pose_parts(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(R, t, s) of (n, 4, 4) Sim(3) matrices."""
-    sR = T[:, :3, :3]
-    s = torch.linalg.det(sR).abs().pow(1.0 / 3.0)
-    return sR / s[:, None, None], T[:, :3, 3], s
-
-
 class _Problem:
     """Evaluation, linearisation and updates of one global BA problem (torch float64)."""
 
@@ -236,7 +229,7 @@ class _Problem:
     # ---------------------------------------------------------------- evaluation
     def _project(self, T: torch.Tensor, d: torch.Tensor, lo: int, hi: int, jacobians: bool):
         """Residuals (n, 2), validity (n,) [and J_d (n, 2), J_i, J_j (n, 2, 6)] of edges lo:hi."""
-        R, t, s = _pose_parts(T)
+        R, t, s = sim3_matrix_components(T)
         si, ti, rt = self.src[lo:hi], self.tgt[lo:hi], self.right[lo:hi]
         uv_s, uv_o, de = self.uv_src[lo:hi], self.uv[lo:hi], d[self.sidx[lo:hi]]
         n = hi - lo
