@@ -121,9 +121,11 @@ class GlobalBAConfig:
     min_structure: float = 1e-6  # inverse depths are clamped to at least this
     min_information: float = 1e-12  # patches with less information are not updated
     chunk_edges: int = 200_000  # edges linearised per batch (bounds memory: about 300 bytes per edge)
-    threads: int = 1  # torch threads
+    threads: int = 0  # torch threads; 0: every core (large batched work, unlike the local BA; tracking waits for it)
 
     def validate(self) -> None:
+        if self.threads < 0:
+            raise ConfigError(f"patch.proximity.ba.threads must be >= 0 (0: every core), got {self.threads}")
         if self.iterations < 1 or self.robust_rounds < 1 or self.chunk_edges < 1:
             raise ConfigError("patch.proximity.ba: iterations, robust_rounds and chunk_edges must be >= 1")
         if not self.lambda_factor > 1 or not self.lambda_initial > 0:

@@ -30,6 +30,7 @@ map: on the street-loop clip the keyframe ATE after the first loop went to 2.2 m
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Optional
@@ -425,7 +426,7 @@ def global_bundle_adjustment(problem: GlobalBAProblem, config: GlobalBAConfig | 
     problem.check()
     start = time.perf_counter()
     reprojection = reprojection or ReprojectionConfig()
-    with torch_threads(cfg.threads):
+    with torch_threads(cfg.threads if cfg.threads > 0 else (os.cpu_count() or 1)):
         prob = _Problem(problem, cfg, reprojection)
         T = torch.as_tensor(np.asarray(problem.T_WC, np.float64)).clone()
         d = torch.as_tensor(np.asarray(problem.inv_depth, np.float64)).clone().clamp_min(cfg.min_structure)

@@ -38,7 +38,6 @@ import numpy as np
 import torch
 
 from ...factors.reprojection import reproject
-from ...factors.schur import torch_threads
 from ...lie import sim3_matrix_components
 from ...loop.closure import LoopCloser, LoopClosureConfig, LoopCorrection
 from .global_ba import GlobalBAProblem, global_bundle_adjustment
@@ -411,8 +410,7 @@ class PatchLoopClosure:
             weight=e["confidence"].astype(np.float64) / self.config.ba.pixel_sigma ** 2, struct_idx=struct_idx,
             inv_depth=d_all[owner, patch], K=self.K.numpy(),
             K_right=None if self.K_right is None else self.K_right.numpy(), T_CRCL=self.T_CRCL, **prior)
-        with torch_threads(self.config.ba.threads):
-            res = global_bundle_adjustment(problem, pc.ba, self._reproj)
+        res = global_bundle_adjustment(problem, pc.ba, self._reproj)
         self._prox_counts["global_ba_runs"] += 1
         self._prox_counts["global_ba_s"] += time.perf_counter() - t0
         if is_loop.any():
