@@ -126,7 +126,6 @@ class _Chunk:
     hi: int
     ns: int  # source frames in the chunk
     S: int  # slots per source frame (padded)
-    src_local: torch.Tensor  # (n,) source frame of each edge, in [0, ns)
     slot_tgt: torch.Tensor  # (n,) slot of each edge's target
     slot_var: torch.Tensor  # (ns, S) variable index of each slot (-1: fixed frame or padding)
     patches: torch.Tensor  # (Pc,) global patch indices owned by the chunk's source frames
@@ -163,21 +162,22 @@ def _make_chunk(lo: int, hi: int, src: np.ndarray, tgt: np.ndarray, sidx: np.nda
     patches, patch_local = np.unique(sidx[lo:hi], return_inverse=True)
     owner = np.zeros(len(patches), np.int64)
     owner[patch_local] = src_local
-    porder = np.argsort(owner, kind="stable")
-    counts = np.bincount(owner, minlength=ns)
-    starts = np.cumsum(counts) - counts
-    rank = np.empty(len(patches), np.int64)
-    rank[porder] = np.arange(len(patches)) - starts[owner[porder]]
-    pcounts = np.bincount(inv, minlength=len(upair))
-    porder2 = np.argsort(inv, kind="stable")
-    pstarts = np.cumsum(pcounts) - pcounts
-    prank = np.empty(len(inv), np.int64)
-    prank[porder2] = np.arange(len(inv)) - pstarts[inv[porder2]]
+    rank, kmax = _rank_in_groups(owner, ns)
+    prank, lmax = _rank_in_groups(inv, len(upair))
     as_t = torch.as_tensor
-    return _Chunk(lo, hi, ns, S, as_t(src_local), as_t(p_slot[inv]), as_t(slot_var), as_t(patches),
-                  as_t(owner), as_t(rank), int(counts.max()) if counts.size else 1, as_t(patch_local),
-                  as_t(inv), as_t(prank), int(pcounts.max()) if pcounts.size else 1,
-                  as_t(np.searchsorted(srcs, p_src)), as_t(p_slot))
+    return _Chunk(lo, hi, ns, S, as_t(p_slot[inv]), as_t(slot_var), as_t(patches), as_t(owner), as_t(rank), kmax,
+                  as_t(patch_local), as_t(inv), as_t(prank), lmax, as_t(np.searchsorted(srcs, p_src)), as_t(p_slot))
+
+
+def _rank_in_groups(group: np.ndarray, num_groups: int) -> tuple[np.ndarray, int]:
+    """Rank of each element within its group (in order of appearance) and the largest group size:
+    the padded layout ``(num_groups, max size)`` of grouped elements."""
+    order = np.argsort(group, kind="stable")
+    counts = np.bincount(group, minlength=num_groups)
+    starts = np.cumsum(counts) - counts
+    rank = np.empty(len(group), np.int64)
+    rank[order] = np.arange(len(group)) - starts[group[order]]
+    return rank, int(counts.max()) if counts.size else 1
 
 
 class _Problem:
