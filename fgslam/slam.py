@@ -99,7 +99,7 @@ class SlamConfig:
     map: MapConfig = field(default_factory=MapConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
-    # loop closure (mode off | classical | both; proximity: not in the patch frontend yet); off by default
+    # loop closure (mode off | proximity | classical | both); off by default
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
 
     def validate(self) -> None:

@@ -329,3 +329,34 @@ def test_pose_filter_and_fundamental_check():
     inl = fundamental_inliers(uv_a, uv_b, 1.0)
     assert inl[40:].mean() > 0.95 and inl[:40].mean() < 0.2
     assert not fundamental_inliers(uv_a[:7], uv_b[:7], 1.0).any()
+
+
+def test_run_report_shows_loop_counts(runs):
+    from fgslam.commands.run import format_report
+
+    classical = format_report(runs["classical"])
+    loop = runs["classical"]["loop"]
+    assert f"classical {loop['accepted_loops']} accepted of {loop['verified_loops']} verified" in classical
+    prox = runs["proximity"]["loop"]["proximity"]
+    assert f"proximity {prox['accepted']} accepted of {prox['candidates']} candidates" in format_report(runs["proximity"])
+    assert "loops:" not in format_report(runs["off"])
+
+
+def test_textureless_proximity_candidate_is_rejected(prox_frontend):
+    """The newest frame's proximity candidate verifies with its real images; with the candidate's
+    (and its neighbours') stored images blank (no texture) no loop edge survives."""
+    from fgslam.frontends.patch.lk import LKFeatures
+
+    fe, _ = prox_frontend
+    q = next(f for f in reversed(fe.graph.frames) if f.features is not None and f.fid in fe._prox)
+    cand = fe._prox_candidate(q)
+    assert cand is not None and fe._prox_measure(q, cand) is not None
+    old = [cand.fid] + fe._prox.neighbours(cand.fid, fe.config.proximity.old_neighbours)
+    saved = {fid: fe._prox.get(fid) for fid in old}
+    for fid, packed in saved.items():
+        real = fe.source.unpack(packed)
+        fe._prox._items[fid] = fe.source.pack(LKFeatures(np.full_like(real.image, 128), real.width, real.height))
+    try:
+        assert fe._prox_measure(q, cand) is None
+    finally:
+        fe._prox._items.update(saved)

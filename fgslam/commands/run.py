@@ -56,6 +56,17 @@ def format_report(s: dict) -> str:
     f = s["failures"]
     lines.append(f"  failures:   {f['tracking']} tracking (motion-model poses), {f['no_pose']} without pose, "
                  f"{f['skipped_corrupt']} corrupt frames skipped")
+    loop = s.get("loop")
+    if loop:
+        parts = []
+        if "accepted_loops" in loop:
+            parts.append(f"classical {loop['accepted_loops']} accepted of {loop['verified_loops']} verified, "
+                         f"{loop['corrections_applied']} corrections, {loop['relocalized']} relocalisations")
+        if "proximity" in loop:
+            p = loop["proximity"]
+            parts.append(f"proximity {p['accepted']} accepted of {p['candidates']} candidates, "
+                         f"{p['global_ba_runs']} global BAs ({p['global_ba_s']:.1f} s)")
+        lines.append(f"  loops:      {'; '.join(parts)} (mode {loop['mode']})")
     ev = s["evaluation"]
     if ev is not None:
         pct = ev["ate_percent_of_path"]
