@@ -148,19 +148,13 @@ def base_bows(recognizer, n_images: int) -> tuple[list, np.ndarray]:
 
 def lap_bows(base: list, n: int, n_words: int, rng: np.random.Generator) -> list:
     """``n`` keyframe vectors: ``base`` repeated in laps, lap c >= 1 with its own word permutation."""
-    from fgslam.loop.bow import BowVector
-
+    relabel_words = _load_tool("bench_retrieval").relabel_words
     out, perm = [], None
     for i in range(n):
         lap, k = divmod(i, len(base))
-        b = base[k]
-        if lap > 0:
-            if k == 0:
-                perm = rng.permutation(n_words)
-            words = perm[b.words]
-            order = np.argsort(words)
-            b = BowVector(words[order].astype(np.int32), b.weights[order], b.n_features)
-        out.append(b)
+        if lap > 0 and k == 0:
+            perm = rng.permutation(n_words)
+        out.append(relabel_words(base[k], perm) if lap > 0 else base[k])
     return out
 
 

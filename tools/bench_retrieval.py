@@ -68,16 +68,19 @@ def synth_sequence(preset: str, frames_factor: float = 1.0):
     return SynthSequence(cfg)
 
 
+def relabel_words(b: BowVector, perm: np.ndarray) -> BowVector:
+    """``b`` with its word ids mapped through the permutation ``perm`` (same weights): a new place
+    with the word statistics of a real image."""
+    words = perm[b.words]
+    order = np.argsort(words)
+    return BowVector(words[order].astype(np.int32), b.weights[order], b.n_features)
+
+
 def permuted_bows(base: list[BowVector], n: int, n_words: int, rng) -> list[BowVector]:
     out = []
     for i in range(n):
         b = base[i % len(base)]
-        if i >= len(base):
-            perm = rng.permutation(n_words)
-            words = perm[b.words]
-            order = np.argsort(words)
-            b = BowVector(words[order].astype(np.int32), b.weights[order], b.n_features)
-        out.append(b)
+        out.append(relabel_words(b, rng.permutation(n_words)) if i >= len(base) else b)
     return out
 
 
