@@ -446,9 +446,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
                                   (R[pt], t[pt], s[pt]), self.K, K_t, T_CtCj=T_ext, config=self._reproj)
             pred[mask] = uv.numpy()
             ok[mask] = valid.numpy()
-        margin = 0.5 * self.config.graph.patch_size * self.config.graph.patch_stride
-        inside = (pred[:, 0] >= margin) & (pred[:, 0] <= self.width - 1 - margin) & (pred[:, 1] >= margin) & (pred[:, 1] <= self.height - 1 - margin)
-        return uv_src, pred, ok & inside
+        return uv_src, pred, ok & self._inside(pred)
 
     def _measure(self, idx: np.ndarray) -> None:
         """Measure edges ``idx`` with the source, started from their current reprojection."""
@@ -849,14 +847,25 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         return int(victim.index)
 
     def _mean_flow(self, a: GraphFrame, b: GraphFrame) -> float:
+        uv, ok = self._reproject_frame(a, b)
+        if not ok.any():
+            return float("inf")
+        return float(np.linalg.norm(uv[ok] - a.uv[ok], axis=1).mean())
+
+    def _reproject_frame(self, a: GraphFrame, b: GraphFrame) -> tuple[np.ndarray, np.ndarray]:
+        """Frame a's patch centres reprojected into frame b's left image at the current poses and
+        depths: (K, 2) pixels and validity (in front of b)."""
         Ra, ta, sa = sim3_matrix_components(a.T_WC[None])
         Rb, tb, sb = sim3_matrix_components(b.T_WC[None])
         uv, ok = reproject(torch.as_tensor(a.uv), torch.as_tensor(a.inv_depth), (Ra[0], ta[0], sa[0]),
                            (Rb[0], tb[0], sb[0]), self.K, config=self._reproj)
-        ok = ok.numpy()
-        if not ok.any():
-            return float("inf")
-        return float(np.linalg.norm(uv.numpy()[ok] - a.uv[ok], axis=1).mean())
+        return uv.numpy(), ok.numpy()
+
+    def _inside(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels (n, 2) whose patch footprint (half ``patch_size * patch_stride``) lies in the image."""
+        margin = 0.5 * self.config.graph.patch_size * self.config.graph.patch_stride
+        return (uv[:, 0] >= margin) & (uv[:, 0] <= self.width - 1 - margin) & (uv[:, 1] >= margin) & (
+            uv[:, 1] <= self.height - 1 - margin)
 
     def _retire(self) -> None:
         """Deactivate old edges, finalise frames no active edge reaches, release old caches."""

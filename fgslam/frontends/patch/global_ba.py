@@ -257,11 +257,7 @@ class _Problem:
             for full, p in zip(out, part):
                 if p is not None:
                     full[sel] = p
-        if out is None:  # no edges
-            return (torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, dtype=torch.bool)) + (
-                (torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, 2, POSE_DOF, dtype=torch.float64),
-                 torch.zeros(0, 2, POSE_DOF, dtype=torch.float64)) if jacobians else (None, None, None))
-        return tuple(out)
+        return tuple(out)  # chunks are never empty: one of the two sides has edges
 
     def weights(self) -> torch.Tensor:
         return self.base_w * self.robust

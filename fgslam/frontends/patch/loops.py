@@ -5,7 +5,7 @@ proximity loop closure with the global bundle adjustment (DPV-SLAM sections 3.3 
 the host's state: ``config`` (:class:`~.config.PatchConfig`), ``graph`` (:class:`~.graph.PatchGraph`),
 ``source``, ``K`` / ``K_right`` / ``T_CRCL`` / ``width`` / ``height``, ``sensor_mode``, ``_reproj``,
 ``_records`` (pose records), ``_final`` (finalised keyframes), ``_inputs``, ``_last_fid``,
-``_velocity``, ``_map_start_fid`` and ``_times``. The host calls ``_loop_init`` once, then per frame
+``_velocity``, ``_map_start_fid``, ``_times`` and the helpers ``_reproject_frame`` / ``_inside``. The host calls ``_loop_init`` once, then per frame
 ``_loop_poll_and_apply`` (before tracking), ``_loop_keep_image``, ``_loop_feed_keyframes`` and
 ``_prox_step`` (after), ``_loop_relocalize`` on a lost track and ``_loop_finish`` at the end.
 
@@ -35,10 +35,7 @@ import logging
 import time
 
 import numpy as np
-import torch
 
-from ...factors.reprojection import reproject
-from ...lie import sim3_matrix_components
 from ...loop.closure import LoopCloser, LoopClosureConfig, LoopCorrection
 from .global_ba import GlobalBAProblem, global_bundle_adjustment
 from .graph import GraphFrame
@@ -271,15 +268,8 @@ class PatchLoopClosure:
     def _reproject_patches(self, a: GraphFrame, b: GraphFrame) -> tuple[np.ndarray, np.ndarray]:
         """Frame a's patch centres reprojected into frame b's left image at the current poses and
         depths: (K, 2) pixels and validity (in front, inside the image with the patch margin)."""
-        Ra, ta, sa = sim3_matrix_components(a.T_WC[None])
-        Rb, tb, sb = sim3_matrix_components(b.T_WC[None])
-        uv, ok = reproject(torch.as_tensor(a.uv), torch.as_tensor(a.inv_depth), (Ra[0], ta[0], sa[0]),
-                           (Rb[0], tb[0], sb[0]), self.K, config=self._reproj)
-        uv, ok = uv.numpy(), ok.numpy()
-        margin = 0.5 * self.config.graph.patch_size * self.config.graph.patch_stride
-        inside = (uv[:, 0] >= margin) & (uv[:, 0] <= self.width - 1 - margin) & (uv[:, 1] >= margin) & (
-            uv[:, 1] <= self.height - 1 - margin)
-        return uv, ok & inside
+        uv, ok = self._reproject_frame(a, b)
+        return uv, ok & self._inside(uv)
 
     def _prox_measure(self, q: GraphFrame, cand: Candidate) -> dict | None:
         """Loop edges between the candidate's neighbourhood (stored keyframes) and the query's (graph
