@@ -5,6 +5,10 @@ in ``configs/`` sets some of them; ``-o section.key=value`` overrides set more. 
 not fit the dataclass (an unknown key, a string where a float belongs, a value outside a ``Literal``)
 is a :class:`~fgslam.errors.ConfigError` naming the key and where it came from.
 
+Numeric fields declare their allowed range with :func:`ranged` (``x: float = ranged(1.0, gt=0)``);
+loading rejects a value outside it, naming the key, before any work starts. A range on a list or
+tuple field applies to each item.
+
 Supported field types: ``bool``, ``int``, ``float``, ``str``, ``pathlib.Path``, ``Literal[...]``,
 ``Optional[T]`` / ``T | None``, ``list[T]``, ``tuple[T, ...]``, ``tuple[T1, T2]``, ``dict[str, T]``
 and nested dataclasses.
@@ -25,6 +29,58 @@ import yaml
 from .errors import ConfigError
 
 T = TypeVar("T")
+
+#: Metadata key under which :func:`ranged` stores a field's :class:`Range`.
+RANGE_KEY = "fgslam_range"
+
+
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """Allowed interval of a numeric config field: ``ge``/``gt`` below, ``le``/``lt`` above (None: open)."""
+
+    ge: float | None = None
+    gt: float | None = None
+    le: float | None = None
+    lt: float | None = None
+
+    def contains(self, value: float) -> bool:
+        if not math.isfinite(value) and not (value == math.inf and self.le is None and self.lt is None):
+            return False
+        return ((self.ge is None or value >= self.ge) and (self.gt is None or value > self.gt)
+                and (self.le is None or value <= self.le) and (self.lt is None or value < self.lt))
+
+    def text(self) -> str:
+        parts = [f"{op} {bound:g}" for op, bound in ((">=", self.ge), (">", self.gt), ("<=", self.le), ("<", self.lt))
+                 if bound is not None]
+        return " and ".join(parts) if parts else "finite"
+
+
+def ranged(default: Any = dataclasses.MISSING, *, ge: float | None = None, gt: float | None = None,
+           le: float | None = None, lt: float | None = None, default_factory: Any = dataclasses.MISSING) -> Any:
+    """A dataclass field with an allowed range: ``pixel_sigma: float = ranged(1.0, gt=0)``.
+
+    Loading (:func:`load_config`, :func:`from_dict`) rejects a value outside the range with a
+    :class:`~fgslam.errors.ConfigError` naming the key; None passes for ``Optional`` fields, and for a
+    list/tuple field every item is checked.
+    """
+    meta = {RANGE_KEY: Range(ge=ge, gt=gt, le=le, lt=lt)}
+    if default_factory is not dataclasses.MISSING:
+        return dataclasses.field(default_factory=default_factory, metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def field_range(f: dataclasses.Field) -> Range | None:
+    """The :class:`Range` a field declared with :func:`ranged`, or None."""
+    return f.metadata.get(RANGE_KEY)
+
+
+def _check_range(value: Any, rng: Range, key: str, source: str) -> None:
+    items = value if isinstance(value, (list, tuple)) else [value]
+    for item in items:
+        if item is None or isinstance(item, bool) or not isinstance(item, (int, float)):
+            continue
+        if not rng.contains(float(item)):
+            raise ConfigError(f"{source}: key '{key}': must be {rng.text()} (got {value!r})")
 
 #: Words YAML 1.1 turns into booleans, tried in this order when a Literal field gets a boolean.
 _BOOL_WORDS = {False: ("off", "no", "false"), True: ("on", "yes", "true")}
@@ -125,6 +181,10 @@ def _build(cls: type[T], data: Mapping[str, Any], source: str, prefix: str = "")
             f"{source}: unknown key '{prefix}{unknown[0]}' (valid keys of {cls.__name__}: {', '.join(sorted(fields))})"
         )
     kwargs = {name: _convert(value, hints[name], prefix + name, source) for name, value in data.items()}
+    for name, value in kwargs.items():
+        rng = field_range(fields[name])
+        if rng is not None:
+            _check_range(value, rng, prefix + name, source)
     try:
         obj = cls(**kwargs)
     except (TypeError, ValueError) as exc:
