@@ -9,7 +9,7 @@ Contents of the optimisation problem:
   handle with :meth:`SlamMap.add_factor`;
 - visual blocks (:class:`fgslam.factors.schur.VisualBlock`), which own their structure and are
   Schur-reduced to dense pose systems at every linearisation (:meth:`SlamMap.add_block`);
-- gauge factors the map maintains itself (DESIGN "Scale gauge"): a 7-dof prior on the anchor
+- gauge factors the map maintains itself (docs/design.md section 4): a 7-dof prior on the anchor
   (oldest) keyframe, optionally a log-scale prior on every keyframe (inverse-depth frontends, where
   each keyframe's scale is a pure gauge) and a range constraint between the first two keyframes
   (monocular world scale).
@@ -49,7 +49,7 @@ def pose_key(kf_id: int) -> int:
 
 @dataclass
 class GaugeConfig:
-    """Gauge freedom handling (DESIGN "Scale gauge")."""
+    """Gauge freedom handling (docs/design.md section 4)."""
 
     # A gauge factor only picks one point on a family of equal-cost solutions, so the optimum meets
     # it exactly whatever its sigma; moderate sigmas keep the system well conditioned and avoid the

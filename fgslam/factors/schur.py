@@ -1,4 +1,4 @@
-"""Schur elimination of scalar structure variables and its GTSAM factor (DESIGN section 3).
+"""Schur elimination of scalar structure variables and its GTSAM factor (docs/design.md section 5).
 
 A *visual block* is a set of weighted measurement residuals that depend on a few keyframe poses
 (the block's *pose slots* ``0..k-1``) and on scalar *structure* variables (one inverse depth per

@@ -23,7 +23,7 @@ if TYPE_CHECKING:  # pragma: no cover - typing only
 #: Every family name a config may give, implemented or not.
 FRONTEND_NAMES: tuple[str, ...] = ("patch", "dense", "pointmap")
 
-# Families that are designed (DESIGN.md section 1) but have no implementation yet.
+# Families that are designed (docs/design.md section 1) but have no implementation yet.
 _PLANNED: dict[str, str] = {
     "dense": "the dense DROID-SLAM family",
     "pointmap": "the MASt3R-SLAM pointmap family",
