@@ -1,5 +1,7 @@
 """Tests of fgslam.io.calibration: Calibration validation/YAML and the OpenCV Undistorter."""
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -208,3 +210,57 @@ def test_calibration_yaml_roundtrip_and_errors(tmp_path):
         Calibration(10, 10, [1, 1, 5, 5], T_BC=T).validate()
     with pytest.raises(DataError, match="does not match the calibration"):
         Calibration(10, 10, [1, 1, 5, 5]).check_image_size(12, 10, "img.png")
+
+
+# ------------------------------------------------------------------ calibrations that cannot be right
+def _folder_with_calibration(root, calib: dict, n=2):
+    root.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        cv2.imwrite(str(root / f"img_{i:04d}.png"), rng.integers(0, 255, (calib["height"], calib["width"]), dtype=np.uint8))
+    (root / "calibration.yaml").write_text(yaml.safe_dump(calib))
+    return root / "calibration.yaml"
+
+
+@pytest.mark.parametrize(
+    "model, coeffs, pattern",
+    [
+        # pincushion so strong that OpenCV's inverse fails: the output would zoom onto the centre
+        ("radtan", [50.0, 0.0, 0.0, 0.0], r"maps the image outside itself: the undistorted image shows only 0\.\d+% of the raw image"),
+        # barrel beyond its turning point inside the image: the image folds onto itself
+        ("radtan", [-1.0, 0.0, 0.0, 0.0], "is not one-to-one over the image: the undistortion folds the image onto itself"),
+        ("equidistant", [-1.0, 0.0, 0.0, 0.0], "OpenCV finds no undistorted camera .*cannot be inverted over the image"),
+    ],
+)
+def test_distortion_that_maps_the_image_outside_itself_is_an_error(tmp_path, model, coeffs, pattern):
+    from fgslam.io.datasets import open_dataset
+
+    calib = {"width": W, "height": H, "intrinsics": K_RAW, "distortion_model": model, "distortion": coeffs}
+    path = _folder_with_calibration(tmp_path / "seq", calib)
+    with pytest.raises(DataError, match=rf"^{re.escape(str(path))}: .*{pattern}"):
+        open_dataset(tmp_path / "seq", "folder")
+    with pytest.raises(DataError, match=pattern):  # also with every source pixel kept
+        Undistorter(Calibration(W, H, K_RAW, model, coeffs).validate(), alpha=1.0)
+
+
+@pytest.mark.parametrize("model, coeffs", [("radtan", RADTAN), ("equidistant", EQUI), ("radtan", [0.3, 0.0, 0.0, 0.0])])
+@pytest.mark.parametrize("alpha", [0.0, 1.0])
+def test_sane_distortions_pass_the_undistortion_checks(model, coeffs, alpha):
+    und = Undistorter(Calibration(W, H, K_RAW, model, coeffs).validate(), alpha=alpha)
+    assert und.calibration.width == W
+
+
+def test_principal_point_outside_the_image_is_an_error(tmp_path):
+    from fgslam.io.datasets import open_dataset
+
+    calib = {"width": 64, "height": 48, "intrinsics": [40.0, 40.0, 500.0, 24.0]}
+    path = _folder_with_calibration(tmp_path / "seq", calib)
+    with pytest.raises(DataError, match=rf"^{re.escape(str(path))}: principal point \(500, 24\) lies outside the 64x48 image"):
+        open_dataset(tmp_path / "seq", "folder")
+    with pytest.raises(DataError, match=r"principal point \(32, -3\) lies outside"):
+        Calibration(64, 48, [40.0, 40.0, 32.0, -3.0]).validate()
+    with pytest.raises(DataError, match=r"right camera\): principal point \(70, 24\)"):
+        Calibration(64, 48, [40.0, 40.0, 32.0, 24.0], right=Calibration(64, 48, [40.0, 40.0, 70.0, 24.0]),
+                    T_CLCR=np.eye(4)).validate("rig")
+    # the extreme pixel centres (and the image border half a pixel beyond them) are inside
+    Calibration(64, 48, [40.0, 40.0, -0.5, 47.5]).validate()

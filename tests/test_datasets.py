@@ -6,6 +6,8 @@ on the real clips in ../shared/data (skipped when absent).
 
 import argparse
 import json
+import logging
+import re
 import tracemalloc
 from pathlib import Path
 
@@ -169,10 +171,10 @@ def write_7scenes(root, n=3, intrinsics=False):
         np.savetxt(root / "camera-intrinsics.txt", np.array([[600.0, 0, 321], [0, 601, 239], [0, 0, 1]]))
 
 
-def write_folder(root, n=5, w=64, h=48, calib_size=None, timestamps=False):
+def write_folder(root, n=5, w=64, h=48, calib_size=None, timestamps=False, ext=".png"):
     root.mkdir(parents=True, exist_ok=True)
     for i in range(n):
-        cv2.imwrite(str(root / f"img_{i:04d}.png"), _texture(h, w, i))
+        cv2.imwrite(str(root / f"img_{i:04d}{ext}"), _texture(h, w, i))
     cw, ch = calib_size or (w, h)
     (root / "calibration.yaml").write_text(yaml.safe_dump(
         {"width": cw, "height": ch, "intrinsics": [40.0, 40.0, cw / 2, ch / 2], "rate_hz": 15}))
@@ -409,6 +411,65 @@ def test_corrupt_frames_are_skipped_and_counted(tmp_path):
     assert len(ds.skipped_frames) == 2
 
 
+def test_truncated_images_are_corrupt_frames(tmp_path):
+    # OpenCV decodes a JPEG cut in half as a half-grey frame (only warning on stderr): it must be
+    # skipped and counted like any corrupt frame, with the reason naming the file
+    write_folder(tmp_path / "seq", n=12, ext=".jpg")
+    cut = tmp_path / "seq" / "img_0005.jpg"
+    cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
+    padded = tmp_path / "seq" / "img_0006.jpg"  # bytes after the end-of-image marker: complete
+    padded.write_bytes(padded.read_bytes() + b"\0" * 16)
+    ds = open_dataset(tmp_path / "seq")
+    frames = list(ds)
+    assert [f.index for f in frames] == [i for i in range(12) if i != 5]
+    assert [i for i, _ in ds.skipped_frames] == [5]
+    assert "img_0005.jpg: truncated JPEG" in ds.skipped_frames[0][1]
+    with pytest.raises(FrameReadError, match=r"img_0005\.jpg: truncated JPEG"):
+        ds[5]
+    write_folder(tmp_path / "png", n=12)
+    cut = tmp_path / "png" / "img_0003.png"
+    cut.write_bytes(cut.read_bytes()[: cut.stat().st_size * 9 // 10])
+    ds = open_dataset(tmp_path / "png")
+    assert len(list(ds)) == 11 and ds.skipped_frames[0][0] == 3
+
+
+def _zero_depth_7scenes(root, n, keep=()):
+    """7-Scenes fixture whose depth maps hold no valid pixel, except frames in ``keep``."""
+    write_7scenes(root, n=n)
+    for i in range(n):
+        if i not in keep:
+            cv2.imwrite(str(root / "seq-01" / f"frame-{i:06d}.depth.png"), np.zeros((480, 640), np.uint16))
+
+
+def test_all_invalid_depth_stream_is_reported_once(tmp_path, caplog):
+    _zero_depth_7scenes(tmp_path / "zero", n=4)
+    with caplog.at_level(logging.INFO, logger="fgslam"):
+        assert len(list(open_dataset(tmp_path / "zero"))) == 4
+    warned = [r for r in caplog.records if r.levelno == logging.WARNING and "RGB-D: no valid depth" in r.getMessage()]
+    assert len(warned) == 1 and "no valid depth in 4 frames" in warned[0].getMessage()
+    # some valid depth: an info line with the count, no warning
+    caplog.clear()
+    _zero_depth_7scenes(tmp_path / "some", n=4, keep=(1,))
+    with caplog.at_level(logging.INFO, logger="fgslam"):
+        list(open_dataset(tmp_path / "some"))
+    lines = [(r.levelno, r.getMessage()) for r in caplog.records if "RGB-D" in r.getMessage()]
+    assert len(lines) == 1 and lines[0][0] == logging.INFO and "no valid depth in 3 of 4 frames" in lines[0][1]
+    caplog.clear()
+    write_7scenes(tmp_path / "valid", n=3)
+    with caplog.at_level(logging.INFO, logger="fgslam"):
+        list(open_dataset(tmp_path / "valid"))
+    assert not [r for r in caplog.records if "RGB-D" in r.getMessage()]
+
+
+def test_all_invalid_depth_is_on_the_console_of_a_run(tmp_path, capsys):
+    from fgslam import cli
+
+    _zero_depth_7scenes(tmp_path / "zero", n=3)
+    rc = cli.main(["run", "patch_7scenes_rgbd", "--data", str(tmp_path / "zero"), "--out", str(tmp_path / "out")])
+    assert rc == 0
+    assert "RGB-D: no valid depth in 3 frames" in capsys.readouterr().err
+
+
 def test_too_many_corrupt_frames_fail(tmp_path):
     write_folder(tmp_path / "seq", n=10)
     for i in range(1, 4):
@@ -442,6 +503,40 @@ def test_calibration_not_matching_image_size(tmp_path):
     with pytest.raises(FrameReadError, match="img_0005.png: image is 64x40"):
         ds[5]
     assert len(list(ds)) == 11 and ds.skipped_frames[0][0] == 5
+
+
+def test_kitti_calib_without_labels(tmp_path, caplog):
+    fx, b = write_kitti(tmp_path / "k", n=3, n_right=3)
+    labelled = (tmp_path / "k" / "calib.txt").read_text().splitlines()
+    rows = [line.split(":", 1)[1].strip() for line in labelled]
+    (tmp_path / "k" / "calib.txt").write_text("\n".join(rows) + "\n")
+    with caplog.at_level(logging.INFO, logger="fgslam"):
+        ds = open_dataset(tmp_path / "k")
+    assert ds.calibration.K[0] == pytest.approx(fx) and ds.calibration.baseline == pytest.approx(b)
+    assert any("no 'P0:' labels; reading the 2 rows in order as P0, P1" in r.getMessage() for r in caplog.records)
+    calib = tmp_path / "k" / "calib.txt"
+    calib.write_text(f"{labelled[0]}\n{rows[1]}\n")  # labels on some lines only
+    with pytest.raises(DataError, match=re.escape(f"{calib}:2: line has no label")):
+        open_dataset(tmp_path / "k")
+    calib.write_text(f"{rows[0]}\n{rows[1]} 7\n")  # malformed unlabelled row
+    with pytest.raises(DataError, match=re.escape(f"{calib}:2: P1 must have 12 values, got 13")):
+        open_dataset(tmp_path / "k")
+    calib.write_text(f"P0 {rows[0]}\n")  # a label without its colon
+    with pytest.raises(DataError, match=re.escape(f"{calib}:1: not a number") + r".*a label needs a colon: 'P0: \.\.\.'"):
+        open_dataset(tmp_path / "k")
+
+
+def test_unsorted_times_name_file_and_line(tmp_path):
+    write_kitti(tmp_path / "k", n=6)
+    times = tmp_path / "k" / "times.txt"
+    times.write_text("0\n0.1\n0.3\n0.2\n0.4\n0.5\n")
+    with pytest.raises(DataError, match=re.escape(f"{times}:4: time 0.2 is not after the previous one (0.3 on line 3)")):
+        open_dataset(tmp_path / "k")
+    write_folder(tmp_path / "f", n=3, timestamps=True)
+    times = tmp_path / "f" / "timestamps.txt"
+    times.write_text("# t\n1.0\n1.0\n2.0\n")
+    with pytest.raises(DataError, match=re.escape(f"{times}:3: time 1.0 is not after")):
+        open_dataset(tmp_path / "f")
 
 
 def test_empty_sequences(tmp_path):

@@ -1,5 +1,7 @@
 """Trajectory dataclass, quaternion conventions and the TUM / KITTI / EuRoC readers and writers."""
 
+import re
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -268,3 +270,51 @@ def test_other_read_errors(tmp_path):
         read_trajectory(poses, "kitti", times)
     with pytest.raises(FormatError, match="only used with the kitti format"):
         read_trajectory(poses, "tum", times)
+
+
+# ---------------------------------------------------------------- repeated stamps and time units
+
+
+def test_repeated_timestamp_is_an_error_only_for_estimates(tmp_path, caplog):
+    path = tmp_path / "est.txt"
+    path.write_text("# t x y z qx qy qz qw\n1.0 0 0 0 0 0 0 1\n1.5 1 0 0 0 0 0 1\n\n1.5 2 0 0 0 0 0 1\n2.0 3 0 0 0 0 0 1\n")
+    with pytest.raises(FormatError, match=re.escape(f"{path}:5: timestamp 1.500000000 repeats the one on line 3")):
+        read_trajectory(path, "tum", unique_timestamps=True)
+    assert len(read_trajectory(path, "tum")) == 4  # ground truth may repeat a rounded stamp (warned)
+    assert "1 repeated timestamp(s), first at line 5" in caplog.text
+    poses = tmp_path / "k.txt"
+    poses.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 1 0 1 0 0 0 0 1 0\n")
+    times = tmp_path / "times.txt"
+    times.write_text("0.5\n0.5\n")
+    with pytest.raises(FormatError, match=re.escape(f"{times}:2: timestamp 0.500000000 repeats the one on line 1")):
+        read_trajectory(poses, "kitti", times, unique_timestamps=True)
+
+
+def test_tum_file_read_as_euroc_is_refused(tmp_path):
+    traj = random_trajectory(np.random.default_rng(5))  # stamps ~1.3e9 s, 30 Hz
+    path = tmp_path / "traj.txt"
+    write_trajectory(path, traj, "tum")
+    with pytest.raises(FormatError, match=re.escape(f"{path}: the euroc format has nanosecond timestamps") +
+                       r".*look like seconds.*probably in the tum format"):
+        read_trajectory(path, "euroc")
+    # stamps starting near 0 (seconds since the start) are refused as well
+    write_trajectory(path, Trajectory(traj.timestamps - traj.timestamps[0], traj.T_WC), "tum")
+    with pytest.raises(FormatError, match="look like seconds"):
+        read_trajectory(path, "euroc")
+    # a real EuRoC file at 1 kHz is fine
+    write_trajectory(path, Trajectory(1.4e9 + 0.001 * np.arange(len(traj)), traj.T_WC), "euroc")
+    assert len(read_trajectory(path, "euroc")) == len(traj)
+
+
+def test_nanosecond_stamps_read_as_seconds_are_refused(tmp_path):
+    path = tmp_path / "traj.txt"
+    path.write_text("1403636579763555584 0 0 0 0 0 0 1\n1403636579813555456 1 0 0 0 0 0 1\n")
+    with pytest.raises(FormatError, match=re.escape(f"{path}:1: timestamp 1.40364e+18 is not plausible in seconds") +
+                       r".*--format euroc"):
+        read_trajectory(path, "tum")
+    poses = tmp_path / "k.txt"
+    poses.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 1 0 1 0 0 0 0 1 0\n")
+    times = tmp_path / "times.txt"
+    times.write_text("1403636579763\n1403636579813\n")  # milliseconds
+    with pytest.raises(FormatError, match=re.escape(f"{times}:1: timestamp 1.40364e+12 is not plausible in seconds")):
+        read_trajectory(poses, "kitti", times)

@@ -2,7 +2,10 @@
 
 Association: pose k with pose k when either file is KITTI without a times file (same length
 required), otherwise nearest timestamps (``--max-diff``, ``--offset``). KITTI t_rel / r_rel are
-reported when the ground truth is in KITTI format (or with ``--kitti-metrics``).
+reported when the ground truth is in KITTI format (or with ``--kitti-metrics``). The estimate must
+have one pose per timestamp (a repeated one is an error naming its line); the ground truth may
+repeat a rounded stamp. ``--plot`` creates the plot's own folder, nothing above it (checked before
+the evaluation); the results are printed even when writing the plot fails.
 """
 
 from __future__ import annotations
@@ -60,16 +63,25 @@ def run(args: argparse.Namespace) -> int:
     kitti_metrics = config.kitti_metrics or args.kitti_metrics or gt_format == "kitti"
     config = dataclasses.replace(config, association=association, kitti_metrics=kitti_metrics)
 
+    if args.plot:
+        from ..io.plot import check_plot_path
+
+        check_plot_path(args.plot)
     gt = read_trajectory(args.gt, gt_format, args.gt_times)
-    est = read_trajectory(args.est, est_format, args.est_times)
+    est = read_trajectory(args.est, est_format, args.est_times, unique_timestamps=True)
     result = evaluate(gt, est, config)
 
+    plot_error = None
     if args.plot:
+        from ..errors import DataError
         from ..io.plot import plot_trajectories
 
         plane = args.plane or ("xz" if gt_format == "kitti" else "xy")
         title = f"ATE {result.ate.rmse:.3f} m ({config.align}, {result.n_matched} poses)"
-        plot_trajectories(args.plot, gt, result.aligned_est, title=title, plane=plane)
+        try:
+            plot_trajectories(args.plot, gt, result.aligned_est, title=title, plane=plane)
+        except DataError as exc:  # the results are still printed, then the error
+            plot_error = exc
 
     if args.json:
         out = {
@@ -79,11 +91,13 @@ def run(args: argparse.Namespace) -> int:
             "est_format": est_format,
             "config": dataclasses.asdict(config),
             **result.to_dict(),
-            "plot": args.plot,
+            "plot": args.plot if plot_error is None else None,
         }
         print(json.dumps(out))
     else:
-        print(_format_text(result, args))
+        print(_format_text(result, args, plot_error is None))
+    if plot_error is not None:
+        raise plot_error
     return 0
 
 
@@ -94,7 +108,7 @@ def _stats_line(label: str, stats) -> str:
     )
 
 
-def _format_text(result, args: argparse.Namespace) -> str:
+def _format_text(result, args: argparse.Namespace, plot_written: bool) -> str:
     lines = [
         f"ground truth: {args.gt} ({result.n_gt} poses, path {result.gt_path_length_m:.2f} m)",
         f"estimate:     {args.est} ({result.n_est} poses), matched {result.n_matched}",
@@ -112,6 +126,6 @@ def _format_text(result, args: argparse.Namespace) -> str:
         lines.append(
             f"KITTI t_rel {k.t_rel_percent:.4f} %  r_rel {k.r_rel_deg_per_100m:.4f} deg/100m  ({k.n_segments} segments)"
         )
-    if args.plot:
+    if args.plot and plot_written:
         lines.append(f"plot:         {args.plot}")
     return "\n".join(lines)

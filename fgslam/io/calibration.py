@@ -48,6 +48,12 @@ DISTORTION_MODELS = ("none", "radtan", "equidistant")
 DISTORTION_SIZES = {"none": (0,), "radtan": (4, 5), "equidistant": (4,)}
 # a pose's bottom row / rotation must be exact to this (files store ~9 significant digits)
 TRANSFORM_TOL = 1e-4
+# Sanity of an undistortion (checked on its remap tables, whatever the model and coefficients):
+# at least this share of the output pixels must sample the raw image, and the output must show at
+# least this share of the raw image's area (sane lenses: 0.8-1.0; a distortion OpenCV cannot invert
+# over the image gives a zoom onto its centre, e.g. k1 = 50: 0.0004).
+UNDISTORT_MIN_VALID_FRACTION = 0.5
+UNDISTORT_MIN_RAW_COVERAGE = 0.25
 
 
 def _as_transform(value: Any, what: str, source: str) -> np.ndarray:
@@ -97,6 +103,12 @@ class Calibration:
             raise DataError(f"{source}: image size must be positive, got {self.width}x{self.height}")
         if self.K.shape != (4,) or not np.all(np.isfinite(self.K)) or self.K[0] <= 0 or self.K[1] <= 0:
             raise DataError(f"{source}: intrinsics must be 4 finite numbers fx, fy, cx, cy with fx, fy > 0, got {self.K.tolist()}")
+        cx, cy = self.K[2], self.K[3]
+        if not (-0.5 <= cx <= self.width - 0.5 and -0.5 <= cy <= self.height - 0.5):
+            raise DataError(
+                f"{source}: principal point ({cx:g}, {cy:g}) lies outside the {self.width}x{self.height} image "
+                f"(intrinsics are [fx, fy, cx, cy] in pixels of this image size)"
+            )
         if self.distortion_model not in DISTORTION_MODELS:
             raise DataError(f"{source}: unknown distortion model {self.distortion_model!r} (expected one of {', '.join(DISTORTION_MODELS)})")
         if self.distortion.size not in DISTORTION_SIZES[self.distortion_model]:
@@ -249,6 +261,12 @@ class Undistorter:
         out_size: ``(width, height)`` to resize to before cropping; None keeps the raw size.
         crop_multiple: centre-crop the (resized) image so that width and height are multiples of
             this (values <= 1 disable cropping).
+        source: what the calibration came from (a file), named in errors.
+
+    Raises:
+        DataError: the calibration cannot be undistorted sanely: OpenCV finds no finite output
+            camera, or the remap tables fold over, sample outside the raw image for most output
+            pixels, or show only a small part of the raw image (see :func:`check_undistortion_map`).
 
     Attributes:
         calibration: calibration of the output images (distortion ``none``).
@@ -265,6 +283,7 @@ class Undistorter:
         alpha: float = 0.0,
         out_size: Optional[tuple[int, int]] = None,
         crop_multiple: int = 1,
+        source: str = "calibration",
     ) -> None:
         import cv2
 
@@ -277,7 +296,7 @@ class Undistorter:
         if stereo and rectify:
             K2, D2 = calib.right.K_matrix(), self._coeffs(calib.right)
             if (calib.right.width, calib.right.height) != size:
-                raise DataError("stereo rectification needs left and right images of the same size")
+                raise DataError(f"{source}: stereo rectification needs left and right images of the same size")
             T_CRCL = np.linalg.inv(calib.T_CLCR)
             R, t = np.ascontiguousarray(T_CRCL[:3, :3]), np.ascontiguousarray(T_CRCL[:3, 3].reshape(3, 1))
             if calib.distortion_model == "equidistant" and calib.right.distortion_model == "equidistant":
@@ -285,7 +304,7 @@ class Undistorter:
                     K1, D1, K2, D2, size, R, t, flags=cv2.CALIB_ZERO_DISPARITY, newImageSize=size, balance=alpha
                 )
             elif "equidistant" in (calib.distortion_model, calib.right.distortion_model):
-                raise DataError("stereo rectification of mixed fisheye / pinhole cameras is not supported")
+                raise DataError(f"{source}: stereo rectification of mixed fisheye / pinhole cameras is not supported")
             else:
                 R1, R2, P1, P2, *_ = cv2.stereoRectify(
                     K1, D1, K2, D2, size, R, t, flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha
@@ -316,7 +335,12 @@ class Undistorter:
                 raise DataError(f"image of {out_w}x{out_h} is smaller than the crop multiple {crop_multiple}")
             x0, y0 = (out_w - cw) // 2, (out_h - ch) // 2
             out = out.cropped(x0, y0, cw, ch)
-        self.calibration = out.validate("output calibration")
+        if not (np.all(np.isfinite(out.K)) and (out.right is None or np.all(np.isfinite(out.right.K)))):
+            raise DataError(
+                f"{source}: OpenCV finds no undistorted camera for distortion {calib.distortion_model} "
+                f"{calib.distortion.tolist()}: the distortion cannot be inverted over the image"
+            )
+        self.calibration = out.validate(f"{source} (undistorted output calibration)")
         self.crop_offset = (x0, y0)
 
         identity = (
@@ -332,9 +356,11 @@ class Undistorter:
             self._maps_right = None
         else:
             self._maps = self._build_maps(calib, R1, out)
+            check_undistortion_map(*self._maps, calib, source)
             self._maps_right = None
             if stereo:
                 self._maps_right = self._build_maps(calib.right, np.eye(3) if R2 is None else R2, out.right)
+                check_undistortion_map(*self._maps_right, calib.right, source + " (right camera)")
         # depth rescaling for the rectification rotation: z_out = z_raw / (R1^T r)_z with r the
         # output ray [(u-cx)/fx, (v-cy)/fy, 1] of each output pixel (1 everywhere when R1 = I)
         self._depth_scale = None
@@ -429,3 +455,43 @@ class Undistorter:
         else:
             res = cv2.undistortPoints(pts, raw.K_matrix(), self._coeffs(raw), R=R, P=out.K_matrix())
         return res.reshape(-1, 2)
+
+
+def check_undistortion_map(map_x: np.ndarray, map_y: np.ndarray, raw: Calibration, source: str) -> None:
+    """Raise DataError naming ``source`` when remap tables (raw pixel of every output pixel) are not
+    those of a sane undistortion: independent of the model, its coefficients and the rectification.
+
+    - Folding: the raw x of consecutive output pixels of a row (raw y down a column) must increase
+      wherever both sample the raw image; a distortion that is not one-to-one over the image (e.g.
+      strong barrel terms beyond their turning point) folds the image onto itself.
+    - Mostly invalid: at least ``UNDISTORT_MIN_VALID_FRACTION`` of the output pixels sample the raw image.
+    - Raw image mapped outside the output: the output border, traced in raw pixels (clipped to the
+      raw image), encloses at least ``UNDISTORT_MIN_RAW_COVERAGE`` of the raw image's area.
+    """
+    w, h = raw.width, raw.height
+    what = f"distortion {raw.distortion_model} {raw.distortion.tolist()} with intrinsics {raw.K.tolist()}"
+    mx, my = np.asarray(map_x, dtype=np.float64), np.asarray(map_y, dtype=np.float64)
+    inside = (mx >= -0.5) & (mx <= w - 0.5) & (my >= -0.5) & (my <= h - 0.5)
+    fold_x = (np.diff(mx, axis=1) <= 0) & inside[:, 1:] & inside[:, :-1]
+    fold_y = (np.diff(my, axis=0) <= 0) & inside[1:] & inside[:-1]
+    if np.any(fold_x) or np.any(fold_y):
+        v, u = np.argwhere(fold_x)[0] if np.any(fold_x) else np.argwhere(fold_y)[0]
+        n = int(fold_x.sum() + fold_y.sum())
+        raise DataError(
+            f"{source}: the {what} is not one-to-one over the image: the undistortion folds the image onto "
+            f"itself ({n} output pixel pairs out of order, first near output pixel ({u}, {v})); check the coefficients"
+        )
+    valid = float(inside.mean())
+    if valid < UNDISTORT_MIN_VALID_FRACTION:
+        raise DataError(
+            f"{source}: the {what} leaves {1 - valid:.0%} of the undistorted image without raw pixels "
+            f"(at most {1 - UNDISTORT_MIN_VALID_FRACTION:.0%} allowed); check the coefficients"
+        )
+    bx = np.clip(np.concatenate([mx[0, :], mx[:, -1], mx[-1, ::-1], mx[::-1, 0]]), -0.5, w - 0.5)
+    by = np.clip(np.concatenate([my[0, :], my[:, -1], my[-1, ::-1], my[::-1, 0]]), -0.5, h - 0.5)
+    coverage = 0.5 * abs(float(np.dot(bx, np.roll(by, -1)) - np.dot(by, np.roll(bx, -1)))) / (w * h)
+    if coverage < UNDISTORT_MIN_RAW_COVERAGE:
+        raise DataError(
+            f"{source}: the {what} maps the image outside itself: the undistorted image shows only "
+            f"{coverage:.2%} of the raw image (at least {UNDISTORT_MIN_RAW_COVERAGE:.0%} expected); check the coefficients"
+        )

@@ -3,6 +3,10 @@
 A plot shows the camera positions ``t_WC`` projected on one plane of the world frame: ``"xz"``
 (top view of camera-convention worlds such as KITTI's, y pointing down), ``"xy"`` (top view of
 z-up worlds such as EuRoC's and TUM's) or ``"yz"``. Axes are equal-scaled, in metres.
+
+Destination folders: the plot's own folder is created when missing (with a log line); a deeper
+missing path is an error naming the first missing folder (a typo in a path never leaves a tree
+of new folders behind). :func:`check_plot_path` checks this before any work is done.
 """
 
 from __future__ import annotations
@@ -20,6 +24,30 @@ FIGURE_SIZE_IN = (7.0, 6.0)  # inches
 FIGURE_DPI = 120
 
 
+def check_plot_path(path_png: str | Path) -> Path:
+    """Check that a plot can go to ``path_png`` (see the module docstring); creates nothing.
+
+    Raises:
+        DataError: ``path_png`` is a folder, its folder is a file, or a folder above its own
+            folder is missing (names the first missing one).
+    """
+    path = Path(path_png)
+    if path.is_dir():
+        raise DataError(f"{path}: is a folder; give the plot's file name (e.g. {path / 'trajectory.png'})")
+    folder = path.parent
+    if folder.exists() and not folder.is_dir():
+        raise DataError(f"{path}: cannot write the plot: {folder} is not a folder")
+    if not folder.exists() and not folder.parent.is_dir():
+        missing = folder
+        while not missing.parent.exists():
+            missing = missing.parent
+        raise DataError(
+            f"{path}: cannot write the plot: folder {missing} does not exist (only the plot's own folder "
+            f"is created; create the folders above it first)"
+        )
+    return path
+
+
 def plot_trajectories(
     path_png: str | Path,
     gt: Trajectory | None,
@@ -33,10 +61,12 @@ def plot_trajectories(
     it on the ground truth. Start points are marked with a circle. Returns the written path.
 
     Raises:
-        DataError: unknown plane, or the file cannot be written.
+        DataError: unknown plane, a destination :func:`check_plot_path` refuses, or the file
+            cannot be written.
     """
     if plane not in PLANES:
         raise DataError(f"plot: unknown plane {plane!r} (expected one of {', '.join(PLANES)})")
+    path = check_plot_path(path_png)
     # Heavy imports stay local: importing fgslam.io must not load matplotlib.
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -58,9 +88,10 @@ def plot_trajectories(
     if title:
         ax.set_title(title)
     fig.tight_layout()
-    path = Path(path_png)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        if not path.parent.exists():
+            path.parent.mkdir()
+            logger.info("created folder %s for the plot", path.parent)
         fig.savefig(path, format="png")
     except OSError as exc:
         raise DataError(f"{path}: cannot write plot: {exc}") from exc

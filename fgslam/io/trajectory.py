@@ -23,6 +23,11 @@ Formats
 
 In every format, lines that are blank or start with ``#`` are skipped; any other line that does not
 parse raises :class:`~fgslam.errors.FormatError` naming the file and the line number.
+
+Time units are checked, since a file read in the wrong format can still parse: stamps in seconds
+(``tum``, KITTI times files) above ``MAX_PLAUSIBLE_SECONDS`` are milli-, micro- or nanoseconds, and
+EuRoC nanosecond stamps whose median interval is below ``MIN_PLAUSIBLE_INTERVAL_S`` are seconds
+(a TUM file read as ``euroc``). Both raise a FormatError naming the file and the likely format.
 """
 
 from __future__ import annotations
@@ -47,6 +52,11 @@ ROTATION_ORTHONORMAL_TOL = 1e-4
 # Quaternions with a norm below this cannot be normalised meaningfully (degenerate input).
 QUATERNION_MIN_NORM = 1e-6
 NS_PER_S = 1_000_000_000  # nanoseconds per second (EuRoC timestamps are integer nanoseconds)
+# Time-unit plausibility (see the module docstring): ~3,170 years in seconds (Unix time is ~1.7e9 s,
+# the same instant in milliseconds ~1.7e12), and a median pose interval of one microsecond (pose
+# streams run at 1 kHz at most; seconds read as nanoseconds give intervals of ~3e-11 s at 30 Hz).
+MAX_PLAUSIBLE_SECONDS = 1e11
+MIN_PLAUSIBLE_INTERVAL_S = 1e-6
 
 
 @dataclass(frozen=True)
@@ -201,7 +211,9 @@ def rotation_to_quaternion_xyzw(R: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------- reading
 
 
-def read_trajectory(path: str | Path, fmt: str, times_path: str | Path | None = None) -> Trajectory:
+def read_trajectory(
+    path: str | Path, fmt: str, times_path: str | Path | None = None, unique_timestamps: bool = False
+) -> Trajectory:
     """Read a trajectory file.
 
     Args:
@@ -209,10 +221,13 @@ def read_trajectory(path: str | Path, fmt: str, times_path: str | Path | None = 
         fmt: ``"tum"``, ``"kitti"`` or ``"euroc"`` (see the module docstring).
         times_path: KITTI only: a file of one timestamp (seconds) per line, one per pose; without
             it KITTI poses get their frame index as timestamp.
+        unique_timestamps: a repeated timestamp is an error (estimates: one pose per instant)
+            instead of a warning (ground truth such as TUM fr2/desk repeats rounded stamps).
 
     Raises:
         FormatError: unknown format, malformed line (names file and line), empty file, bad
-            rotation, decreasing timestamps, times file of the wrong length.
+            rotation, decreasing (or, with ``unique_timestamps``, repeated) timestamps, times file
+            of the wrong length, time stamps implausible for the format's unit.
         DataError: the file cannot be read.
     """
     path = Path(path)
@@ -225,20 +240,24 @@ def read_trajectory(path: str | Path, fmt: str, times_path: str | Path | None = 
         raise FormatError(f"{path}: no poses found")
     line_numbers = [lineno for lineno, _ in rows]
     values = np.array([vals for _, vals in rows], dtype=np.float64)
+    time_path, time_lines = path, line_numbers  # where each timestamp was read (named in errors)
     if fmt == "tum":
         timestamps = values[:, 0]
+        _check_seconds(path, line_numbers, timestamps, "tum")
         t_WC, q_xyzw = values[:, 1:4], values[:, 4:8]
     elif fmt == "euroc":
         timestamps = values[:, 0]
+        _check_nanoseconds(path, timestamps)
         t_WC, q_xyzw = values[:, 1:4], values[:, [5, 6, 7, 4]]
     else:
         T_WC = np.tile(np.eye(4), (values.shape[0], 1, 1))
         T_WC[:, :3, :] = values.reshape(-1, 3, 4)
         if times_path is not None:
-            timestamps = _read_times(Path(times_path), len(rows), path)
+            time_path = Path(times_path)
+            timestamps, time_lines = _read_times(time_path, len(rows), path)
         else:
             timestamps = np.arange(len(rows), dtype=np.float64)
-        return _build(path, line_numbers, timestamps, T_WC)
+        return _build(path, line_numbers, timestamps, T_WC, time_path, time_lines, unique_timestamps)
     norms = np.linalg.norm(q_xyzw, axis=1)
     bad = norms < QUATERNION_MIN_NORM
     if np.any(bad):
@@ -246,23 +265,61 @@ def read_trajectory(path: str | Path, fmt: str, times_path: str | Path | None = 
     T_WC = np.tile(np.eye(4), (values.shape[0], 1, 1))
     T_WC[:, :3, :3] = quaternion_xyzw_to_rotation(q_xyzw)
     T_WC[:, :3, 3] = t_WC
-    return _build(path, line_numbers, timestamps, T_WC)
+    return _build(path, line_numbers, timestamps, T_WC, path, line_numbers, unique_timestamps)
 
 
-def _build(path: Path, line_numbers: list[int], timestamps: np.ndarray, T_WC: np.ndarray) -> Trajectory:
-    """Construct the Trajectory, turning validation failures into FormatErrors that name the line."""
+def _check_seconds(path: Path, line_numbers: list[int], timestamps: np.ndarray, fmt: str) -> None:
+    """FormatError when stamps that should be seconds are too large to be (ms, us or ns)."""
+    big = np.abs(timestamps) > MAX_PLAUSIBLE_SECONDS
+    if np.any(big):
+        i = _first_bad(big)
+        hint = " (the euroc format has nanosecond stamps: --format euroc)" if fmt == "tum" else ""
+        raise FormatError(
+            f"{path}:{line_numbers[i]}: timestamp {timestamps[i]:.6g} is not plausible in seconds as the {fmt} "
+            f"format requires (over {MAX_PLAUSIBLE_SECONDS:.0e} s): milli-, micro- or nanoseconds?{hint}"
+        )
+
+
+def _check_nanoseconds(path: Path, timestamps: np.ndarray) -> None:
+    """FormatError when EuRoC stamps (nanoseconds, already converted to seconds) were seconds."""
+    steps = np.diff(timestamps)
+    steps = steps[steps > 0]
+    if steps.size and np.median(steps) < MIN_PLAUSIBLE_INTERVAL_S:
+        raise FormatError(
+            f"{path}: the euroc format has nanosecond timestamps, but read so the poses are "
+            f"{np.median(steps) * NS_PER_S:.3g} ns apart (median): the stamps look like seconds; "
+            f"the file is probably in the tum format (t tx ty tz qx qy qz qw, t in s): --format tum"
+        )
+
+
+def _build(
+    path: Path,
+    line_numbers: list[int],
+    timestamps: np.ndarray,
+    T_WC: np.ndarray,
+    time_path: Path,
+    time_lines: list[int],
+    unique_timestamps: bool,
+) -> Trajectory:
+    """Construct the Trajectory, turning validation failures into FormatErrors that name the line
+    (of ``path`` for poses, of ``time_path`` / ``time_lines`` for timestamps)."""
     if len(timestamps) > 1:
         step = np.diff(timestamps)
         if np.any(step < 0):
             i = _first_bad(step < 0) + 1
             raise FormatError(
-                f"{path}:{line_numbers[i]}: timestamp {timestamps[i]:.9f} is before the previous one "
+                f"{time_path}:{time_lines[i]}: timestamp {timestamps[i]:.9f} is before the previous one "
                 f"({timestamps[i - 1]:.9f}); timestamps must be sorted"
             )
         repeated = int(np.count_nonzero(step == 0))
         if repeated:
-            logger.warning("%s: %d repeated timestamp(s), first at line %d", path, repeated,
-                           line_numbers[_first_bad(step == 0) + 1])
+            i = _first_bad(step == 0) + 1
+            if unique_timestamps:
+                raise FormatError(
+                    f"{time_path}:{time_lines[i]}: timestamp {timestamps[i]:.9f} repeats the one on line "
+                    f"{time_lines[i - 1]} ({repeated} repeated in all); an estimate needs one pose per timestamp"
+                )
+            logger.warning("%s: %d repeated timestamp(s), first at line %d", time_path, repeated, time_lines[i])
     bad_rot = ~_is_rotation(T_WC[:, :3, :3])
     if np.any(bad_rot):
         raise FormatError(f"{path}:{line_numbers[_first_bad(bad_rot)]}: rotation block is not a rotation matrix")
@@ -324,8 +381,9 @@ def _parse_ns_as_seconds(token: str) -> float:
     return float(token) / NS_PER_S
 
 
-def _read_times(times_path: Path, n_poses: int, poses_path: Path) -> np.ndarray:
-    times = []
+def _read_times(times_path: Path, n_poses: int, poses_path: Path) -> tuple[np.ndarray, list[int]]:
+    """Timestamps (seconds) of a KITTI times file and their 1-based line numbers."""
+    times, lines = [], []
     for lineno, raw in enumerate(_read_lines(times_path), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
@@ -340,9 +398,12 @@ def _read_times(times_path: Path, n_poses: int, poses_path: Path) -> np.ndarray:
         if not np.isfinite(value):
             raise FormatError(f"{times_path}:{lineno}: non-finite timestamp")
         times.append(value)
+        lines.append(lineno)
     if len(times) != n_poses:
         raise FormatError(f"{times_path}: has {len(times)} timestamps but {poses_path} has {n_poses} poses")
-    return np.array(times, dtype=np.float64)
+    out = np.array(times, dtype=np.float64)
+    _check_seconds(times_path, lines, out, "kitti times")
+    return out, lines
 
 
 # --------------------------------------------------------------------------------------------- writing

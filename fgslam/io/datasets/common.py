@@ -11,6 +11,10 @@ and records ``(index, reason)`` in ``dataset.skipped_frames`` (the next frame's 
 starts at the last frame actually yielded). More than ``DatasetConfig.max_skipped_fraction`` of the
 frames skipped raises :class:`~fgslam.errors.DataError`.
 
+Depth: a frame whose depth map has no valid pixel is yielded as it is; at the end of an iteration
+a depth stream without a single valid pixel is reported once with a warning (``RGB-D: no valid
+depth in N frames``), a stream with some empty maps with an info line.
+
 Ground truth: ``dataset.groundtruth`` is a :class:`~fgslam.io.trajectory.Trajectory` of the output
 left camera (after rectification, ``T_WC = T_W_Craw @ T_Craw_Cout``) at the timestamps of the
 dataset's frames that have ground truth; time-stamped ground truth is interpolated (linear position,
@@ -151,14 +155,79 @@ def read_number_table(path: Path, ncols: int, sep: Optional[str] = None, min_col
     return np.asarray(rows, dtype=np.float64).reshape(-1, ncols)
 
 
+def check_increasing(path: Path, values: np.ndarray, line_numbers: list[int], what: str = "timestamp") -> None:
+    """DataError naming ``path`` and the line of the first value not above the previous one."""
+    values = np.asarray(values)
+    if values.size > 1:
+        bad = np.flatnonzero(np.diff(values) <= 0)
+        if bad.size:
+            i = int(bad[0]) + 1
+            raise DataError(
+                f"{path}:{line_numbers[i]}: {what} {values[i]} is not after the previous one ({values[i - 1]} on "
+                f"line {line_numbers[i - 1]}); {what}s must be strictly increasing"
+            )
+
+
+def read_times(path: Path) -> np.ndarray:
+    """A times file: one time (seconds) per line, strictly increasing (errors name file and line)."""
+    times, lines = [], []
+    for lineno, line in read_text_lines(path):
+        tokens = line.split()
+        if len(tokens) != 1:
+            raise DataError(f"{path}:{lineno}: expected one time per line, got {len(tokens)} values")
+        try:
+            value = float(tokens[0])
+        except ValueError as exc:
+            raise DataError(f"{path}:{lineno}: not a number: {exc}") from exc
+        if not np.isfinite(value):
+            raise DataError(f"{path}:{lineno}: non-finite time")
+        times.append(value)
+        lines.append(lineno)
+    out = np.asarray(times, dtype=np.float64)
+    check_increasing(path, out, lines, "time")
+    return out
+
+
+# Markers that end a complete file: JPEG's end-of-image (after the last start-of-scan marker FFDA:
+# entropy-coded data never contains either, so a file cut short has none after its last scan) and
+# the type of PNG's final chunk.
+JPEG_SOI, JPEG_SOS, JPEG_EOI = b"\xff\xd8", b"\xff\xda", b"\xff\xd9"
+PNG_SIGNATURE, PNG_IEND = b"\x89PNG\r\n\x1a\n", b"IEND"
+
+
+def truncation_reason(data: bytes) -> Optional[str]:
+    """Why the bytes of a JPEG or PNG file are cut short (None: complete, or another format).
+
+    Decoders return a partly grey image for a truncated JPEG (with only a warning on stderr), so
+    completeness is checked on the bytes: a JPEG needs an end-of-image marker after its last scan,
+    a PNG its IEND chunk.
+    """
+    if data.startswith(JPEG_SOI):
+        if data.find(JPEG_EOI, max(data.rfind(JPEG_SOS), 0)) < 0:
+            return "truncated JPEG (no end-of-image marker after the last scan)"
+    elif data.startswith(PNG_SIGNATURE):
+        if data.rfind(PNG_IEND) < 0:
+            return "truncated PNG (no IEND chunk)"
+    return None
+
+
 def read_image(path: Path, flags: Optional[int] = None) -> np.ndarray:
-    """``cv2.imread`` that raises FrameReadError (naming the file) instead of returning None."""
+    """Decode an image file with OpenCV; FrameReadError (naming the file) when it is missing,
+    unreadable, truncated (see :func:`truncation_reason`) or not decodable."""
     import cv2
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED if flags is None else flags)
-    if img is None or img.size == 0:
-        reason = "missing file" if not path.exists() else "unreadable or corrupt image"
+    if not path.exists():
+        raise FrameReadError(f"{path}: missing file")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise FrameReadError(f"{path}: cannot read image: {exc}") from exc
+    reason = truncation_reason(data)
+    if reason is not None:
         raise FrameReadError(f"{path}: {reason}")
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED if flags is None else flags) if data else None
+    if img is None or img.size == 0:
+        raise FrameReadError(f"{path}: unreadable or corrupt image")
     return img
 
 
@@ -295,6 +364,7 @@ class Dataset:
             alpha=cfg.undistort_alpha,
             out_size=cfg.output_size(calib.width, calib.height),
             crop_multiple=cfg.crop_multiple,
+            source=self.calibration_source,
         )
         self.calibration = self._undistorter.calibration
         try:
@@ -386,6 +456,7 @@ class Dataset:
         max_skipped = int(self.config.max_skipped_fraction * n)
         recorded = {i for i, _ in self.skipped_frames}
         skipped_now = 0
+        depth_frames = empty_depth = 0
         for i in range(n):
             try:
                 frame = self._frame(i, prev_t)
@@ -402,7 +473,23 @@ class Dataset:
                     ) from exc
                 continue
             prev_t = frame.timestamp
+            if frame.depth is not None:
+                depth_frames += 1
+                empty_depth += not np.any(frame.depth)
             yield frame
+        self._report_empty_depth(depth_frames, empty_depth)
+
+    def _report_empty_depth(self, depth_frames: int, empty_depth: int) -> None:
+        """One log line at the end of an iteration when depth maps had no valid pixel."""
+        if empty_depth == 0:
+            return
+        if empty_depth == depth_frames:
+            logger.warning(
+                "RGB-D: no valid depth in %d frames of %s (every depth map is 0, NaN, infinite or negative "
+                "everywhere): check the depth files and their scale", depth_frames, self.root,
+            )
+        else:
+            logger.info("RGB-D: no valid depth in %d of %d frames of %s", empty_depth, depth_frames, self.root)
 
     # ------------------------------------------------------------ frame assembly
     def _frame(self, index: int, prev_t: Optional[float]) -> Frame:

@@ -31,6 +31,7 @@ from ..trajectory import read_trajectory
 from .common import (
     Dataset,
     DatasetConfig,
+    check_increasing,
     RawFrame,
     interpolate_poses,
     ns_to_seconds,
@@ -57,7 +58,7 @@ def mav0_dir(path: Path) -> Optional[Path]:
 
 def _read_stream(csv: Path) -> tuple[np.ndarray, list[str]]:
     """``(timestamps ns int64, file names)`` of a cam/depth ``data.csv``."""
-    stamps, names = [], []
+    stamps, names, lines = [], [], []
     for lineno, line in read_text_lines(require_file(csv, "stream index")):
         parts = [p.strip() for p in line.split(",")]
         if len(parts) < 2:
@@ -67,9 +68,9 @@ def _read_stream(csv: Path) -> tuple[np.ndarray, list[str]]:
         except ValueError as exc:
             raise DataError(f"{csv}:{lineno}: bad timestamp {parts[0]!r}") from exc
         names.append(parts[1])
+        lines.append(lineno)
     ts = np.asarray(stamps, dtype=np.int64)
-    if ts.size > 1 and np.any(np.diff(ts) <= 0):
-        raise DataError(f"{csv}: timestamps are not strictly increasing")
+    check_increasing(csv, ts, lines)
     return ts, names
 
 
@@ -215,7 +216,7 @@ class EurocDataset(Dataset):
 
 
 def _read_imu(csv: Path) -> ImuSamples:
-    stamps, values = [], []
+    stamps, values, lines = [], [], []
     for lineno, line in read_text_lines(csv):
         parts = line.split(",")
         if len(parts) < 7:
@@ -225,9 +226,9 @@ def _read_imu(csv: Path) -> ImuSamples:
             values.append([float(p) for p in parts[1:7]])
         except ValueError as exc:
             raise DataError(f"{csv}:{lineno}: not a number: {exc}") from exc
+        lines.append(lineno)
     ts = np.asarray(stamps, dtype=np.int64)
-    if ts.size > 1 and np.any(np.diff(ts) <= 0):
-        raise DataError(f"{csv}: IMU timestamps are not strictly increasing")
+    check_increasing(csv, ts, lines, "IMU timestamp")
     vals = np.asarray(values, dtype=np.float64).reshape(-1, 6)
     if not np.all(np.isfinite(vals)):
         raise DataError(f"{csv}: non-finite IMU value at row {int(np.flatnonzero(~np.isfinite(vals).all(1))[0])}")

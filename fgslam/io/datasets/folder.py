@@ -21,7 +21,7 @@ import numpy as np
 from ...errors import DataError
 from ..calibration import Calibration, read_yaml_file
 from ..frame import FrameReadError
-from .common import Dataset, DatasetConfig, RawFrame, read_image, read_number_table, require_dir, require_file
+from .common import Dataset, DatasetConfig, RawFrame, read_image, read_times, require_dir, require_file
 from .kitti import list_images
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg")
@@ -60,11 +60,9 @@ class FolderDataset(Dataset):
         self.raw_calibration, self.calibration_source = calib, source
         times_path = self.root / "timestamps.txt"
         if times_path.is_file():
-            times = read_number_table(times_path, 1)[:, 0]
+            times = read_times(times_path)
             if times.size != len(self._images):
                 raise DataError(f"{times_path}: {times.size} times for {len(self._images)} images")
-            if times.size > 1 and np.any(np.diff(times) <= 0):
-                raise DataError(f"{times_path}: timestamps are not strictly increasing")
         else:
             times = np.arange(len(self._images), dtype=np.float64) / (rate or config.default_rate_hz)
         self.raw_timestamps = times

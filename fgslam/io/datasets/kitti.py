@@ -1,8 +1,9 @@
 """KITTI odometry loader.
 
 Layout: ``SEQ/image_0/NNNNNN.png`` (left grey, required), ``SEQ/image_1/`` (right grey, optional),
-``SEQ/calib.txt`` (``P0: 12 numbers`` ... row-major 3x4 rectified projection matrices),
-``SEQ/times.txt`` (one time in seconds per frame).  Ground truth (3x4 row-major camera-to-world of
+``SEQ/calib.txt`` (``P0: 12 numbers`` ... row-major 3x4 rectified projection matrices; a file
+whose lines carry no labels, as some copies ship it, is read row by row as P0, P1, P2, P3, Tr with
+a log line), ``SEQ/times.txt`` (one time in seconds per frame, strictly increasing).  Ground truth (3x4 row-major camera-to-world of
 the left camera per frame, KITTI format): ``DatasetConfig.groundtruth_file``, else
 ``SEQ/poses.txt``, else ``SEQ/../../poses/<SEQ name>.txt`` (the benchmark's own layout).
 
@@ -21,11 +22,20 @@ import numpy as np
 from ...errors import DataError
 from ..calibration import Calibration
 from ..trajectory import read_trajectory
-from .common import Dataset, DatasetConfig, RawFrame, image_size, read_image, read_number_table, read_text_lines, require_dir, require_file
+from .common import Dataset, DatasetConfig, RawFrame, image_size, read_image, read_text_lines, read_times, require_dir, require_file
 
 logger = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
+CALIB_ROWS = ("P0", "P1", "P2", "P3", "Tr")  # the rows of an odometry calib.txt, in file order
+
+
+def _is_label(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return True
+    return False
 
 
 def list_images(folder: Path) -> list[Path]:
@@ -34,17 +44,38 @@ def list_images(folder: Path) -> list[Path]:
 
 
 def read_kitti_calib(path: Path) -> dict[str, np.ndarray]:
-    """``{"P0": (3, 4), ...}`` from a KITTI ``calib.txt``."""
+    """``{"P0": (3, 4), ...}`` from a KITTI ``calib.txt`` (labelled lines, or unlabelled rows in
+    the order of ``CALIB_ROWS``; see the module docstring)."""
+    lines = read_text_lines(require_file(path, "KITTI calib.txt"))
+    labelled = [":" in line for _, line in lines]
+    if lines and not any(labelled):
+        if len(lines) > len(CALIB_ROWS):
+            raise DataError(
+                f"{path}:{lines[len(CALIB_ROWS)][0]}: no line has a label ('P0: ...') and there are {len(lines)} rows; "
+                f"unlabelled rows are read as {', '.join(CALIB_ROWS)}"
+            )
+        entries = [(lineno, name, line) for (lineno, line), name in zip(lines, CALIB_ROWS)]
+        logger.info("%s: no 'P0:' labels; reading the %d rows in order as %s", path, len(lines),
+                    ", ".join(CALIB_ROWS[: len(lines)]))
+    elif not all(labelled):
+        lineno = lines[labelled.index(False)][0]
+        raise DataError(f"{path}:{lineno}: line has no label ('P0: 12 numbers'); label every line or none")
+    else:
+        entries = []
+        for lineno, line in lines:
+            key, _, rest = line.partition(":")
+            entries.append((lineno, key.strip(), rest))
     out = {}
-    for lineno, line in read_text_lines(require_file(path, "KITTI calib.txt")):
-        key, _, rest = line.partition(":")
+    for lineno, key, rest in entries:
+        tokens = rest.split()
         try:
-            vals = np.array([float(v) for v in rest.split()])
+            vals = np.array([float(v) for v in tokens])
         except ValueError as exc:
-            raise DataError(f"{path}:{lineno}: not a number: {exc}") from exc
+            hint = f" (a label needs a colon: '{tokens[0]}: ...')" if tokens and _is_label(tokens[0]) else ""
+            raise DataError(f"{path}:{lineno}: not a number: {exc}{hint}") from exc
         if vals.size != 12:
-            raise DataError(f"{path}:{lineno}: {key.strip()} must have 12 values, got {vals.size}")
-        out[key.strip()] = vals.reshape(3, 4)
+            raise DataError(f"{path}:{lineno}: {key} must have 12 values, got {vals.size}")
+        out[key] = vals.reshape(3, 4)
     if "P0" not in out:
         raise DataError(f"{path}: no P0 line")
     return out
@@ -65,7 +96,7 @@ class KittiDataset(Dataset):
         P = read_kitti_calib(calib_path)
         self.calibration_source = str(calib_path)
         times_path = require_file(self.root / "times.txt", "KITTI times.txt")
-        times = read_number_table(times_path, 1)[:, 0]
+        times = read_times(times_path)
         if times.size != len(self._left):
             raise DataError(f"{times_path}: {times.size} times for {len(self._left)} images in {self.root / 'image_0'}")
         width, height = image_size(self._left[0])
