@@ -381,27 +381,33 @@ def _parse_ns_as_seconds(token: str) -> float:
     return float(token) / NS_PER_S
 
 
-def _read_times(times_path: Path, n_poses: int, poses_path: Path) -> tuple[np.ndarray, list[int]]:
-    """Timestamps (seconds) of a KITTI times file and their 1-based line numbers."""
+def read_times_file(path: Path) -> tuple[np.ndarray, list[int]]:
+    """A times file (one time per line, seconds; blank and ``#`` lines skipped): the times and their
+    1-based line numbers. Errors name the file and the line."""
     times, lines = [], []
-    for lineno, raw in enumerate(_read_lines(times_path), start=1):
+    for lineno, raw in enumerate(_read_lines(path), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
         tokens = line.split()
         if len(tokens) != 1:
-            raise FormatError(f"{times_path}:{lineno}: expected one timestamp per line, got {len(tokens)} values")
+            raise FormatError(f"{path}:{lineno}: expected one time per line, got {len(tokens)} values")
         try:
             value = float(tokens[0])
         except ValueError as exc:
-            raise FormatError(f"{times_path}:{lineno}: not a number: {exc}") from exc
+            raise FormatError(f"{path}:{lineno}: not a number: {exc}") from exc
         if not np.isfinite(value):
-            raise FormatError(f"{times_path}:{lineno}: non-finite timestamp")
+            raise FormatError(f"{path}:{lineno}: non-finite time")
         times.append(value)
         lines.append(lineno)
-    if len(times) != n_poses:
-        raise FormatError(f"{times_path}: has {len(times)} timestamps but {poses_path} has {n_poses} poses")
-    out = np.array(times, dtype=np.float64)
+    return np.array(times, dtype=np.float64), lines
+
+
+def _read_times(times_path: Path, n_poses: int, poses_path: Path) -> tuple[np.ndarray, list[int]]:
+    """Timestamps (seconds) of a KITTI times file and their 1-based line numbers."""
+    out, lines = read_times_file(times_path)
+    if len(out) != n_poses:
+        raise FormatError(f"{times_path}: has {len(out)} timestamps but {poses_path} has {n_poses} poses")
     _check_seconds(times_path, lines, out, "kitti times")
     return out, lines
 

@@ -34,7 +34,7 @@ import numpy as np
 from ...errors import ConfigError, DataError
 from ..calibration import Calibration, Undistorter
 from ..frame import Frame, FrameReadError, ImuSamples
-from ..trajectory import Trajectory
+from ..trajectory import Trajectory, read_times_file
 
 logger = logging.getLogger(__name__)
 
@@ -170,20 +170,7 @@ def check_increasing(path: Path, values: np.ndarray, line_numbers: list[int], wh
 
 def read_times(path: Path) -> np.ndarray:
     """A times file: one time (seconds) per line, strictly increasing (errors name file and line)."""
-    times, lines = [], []
-    for lineno, line in read_text_lines(path):
-        tokens = line.split()
-        if len(tokens) != 1:
-            raise DataError(f"{path}:{lineno}: expected one time per line, got {len(tokens)} values")
-        try:
-            value = float(tokens[0])
-        except ValueError as exc:
-            raise DataError(f"{path}:{lineno}: not a number: {exc}") from exc
-        if not np.isfinite(value):
-            raise DataError(f"{path}:{lineno}: non-finite time")
-        times.append(value)
-        lines.append(lineno)
-    out = np.asarray(times, dtype=np.float64)
+    out, lines = read_times_file(path)
     check_increasing(path, out, lines, "time")
     return out
 
