@@ -170,7 +170,8 @@ def check_image_size(dataset: Dataset) -> None:
     else:
         how = f"dataset.resize_scale={cfg.resize_scale:g}"
     raise ConfigError(
-        f"{how} gives {width}x{height} images{source} (after cropping to a multiple of {cfg.crop_multiple}); "
+        f"{how} gives {width}x{height} images{source}"
+        f"{f' (after cropping to a multiple of {cfg.crop_multiple})' if cfg.crop_multiple > 1 else ''}; "
         f"both sides must be at least dataset.min_image_side={cfg.min_image_side} pixels"
     )
 
@@ -385,8 +386,8 @@ def run_slam(
         exc, where = error
         if isinstance(exc, KeyboardInterrupt):
             signum = getattr(exc, "signum", signal.SIGINT)
-            raise Interrupted(f"interrupted by {signal.Signals(signum).name} {where}, after "
-                              f"{state.frames_processed} of {len(dataset)} frames ({written})", signum) from exc
+            raise Interrupted(f"interrupted by {signal.Signals(signum).name} {where} ({state.frames_processed} of "
+                              f"{len(dataset)} frames processed; {written})", signum) from exc
         if isinstance(exc, FGSlamError) and where == _WHERE_DATASET:
             raise exc
         if where == _WHERE_DATASET:
@@ -527,7 +528,7 @@ def _final_trajectory(
             errors.append((exc, "in trajectory()"))
             t = None
     if t is None:  # after an error: the live per-frame estimates
-        notes.append("the trajectory holds the live per-frame estimates (the run failed before the final one)")
+        notes.append("the trajectory holds the live per-frame estimates (the run stopped before the final one)")
         t = np.asarray(state.live_t, dtype=np.float64)
         T_WC = np.asarray(state.live_T, dtype=np.float64).reshape(-1, 4, 4)
         sources = list(state.live_source)
