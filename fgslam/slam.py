@@ -380,7 +380,10 @@ def run_slam(
         state.wall_s, state.cpu_s = time.perf_counter() - t_start, _cpu_seconds() - cpu_start
         summary, error = _finalize(dataset, gt, frontend, config, state, out, load_average, error)
     if on_summary is not None:
-        on_summary(summary)
+        try:
+            on_summary(summary)
+        except Exception:  # noqa: BLE001 - a failing report (closed pipe...) never hides the run's own outcome
+            logger.exception("reporting the run summary failed")
     written = _outputs_text(out, summary)
     if error is not None:
         exc, where = error

@@ -55,7 +55,7 @@ class GraphConfig:
                          if border > self.border else "")
             raise ConfigError(
                 f"patch.graph.border={self.border}{footprint} leaves no room for patch centres in the "
-                f"{width}x{height} images: the border must be below {(min(width, height) - 1) // 2} px"
+                f"{width}x{height} images: the border must be at most {(min(width, height) - 1) // 2} px"
             )
 
 
