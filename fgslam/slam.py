@@ -11,8 +11,9 @@
 - ``summary.json``: frame counts, keyframes, frames/s overall and per stage, failures by kind,
   skipped frames, the estimate's motion extent, evaluation (ATE with the alignment used, RPE, % of
   path length) when the dataset has ground truth, loop closure counts (``loop``, when the frontend
-  runs loop closure: ``Frontend.loop_summary()``), the full configuration used, and the error when
-  the run failed;
+  runs loop closure: ``Frontend.loop_summary()``), the full configuration used, the error when
+  the run failed (``interrupted``: the signal that stopped it) and the outputs that could not be
+  written (``output_errors``);
 - ``trajectory.png``: top view of the (aligned) estimate against the ground truth;
 - ``points.ply`` when ``output.write_ply`` (the frontend's keyframe points, when it has any).
 
