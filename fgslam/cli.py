@@ -54,9 +54,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except FGSlamError as exc:
         print(f"fgslam: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("fgslam: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, or fgslam.errors.Interrupted (SIGINT/SIGTERM during a run)
+        print(f"fgslam: {str(exc) or 'interrupted'}", file=sys.stderr)
+        return getattr(exc, "exit_code", 130)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -82,6 +82,18 @@ def _check_range(value: Any, rng: Range, key: str, source: str) -> None:
         if not rng.contains(float(item)):
             raise ConfigError(f"{source}: key '{key}': must be {rng.text()} (got {value!r})")
 
+def check_ranges(obj: Any, prefix: str = "", source: str = "config") -> None:
+    """Check every :func:`ranged` field of the dataclass instance ``obj`` and of its nested sections
+    (for configs built in code, which :func:`load_config` never saw); ConfigError naming the key."""
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        rng = field_range(f)
+        if rng is not None:
+            _check_range(value, rng, prefix + f.name, source)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            check_ranges(value, f"{prefix}{f.name}.", source)
+
+
 #: Words YAML 1.1 turns into booleans, tried in this order when a Literal field gets a boolean.
 _BOOL_WORDS = {False: ("off", "no", "false"), True: ("on", "yes", "true")}
 

@@ -18,8 +18,7 @@ from typing import Literal
 
 import yaml
 
-from .config import load_config, to_dict
-from .errors import ConfigError
+from .config import load_config, ranged, to_dict
 from .io.synth import SynthSequence, write_sequence
 from .io.synth.presets import load_synth_config
 from .presets import configs_dir
@@ -33,19 +32,11 @@ class DemoSceneConfig:
     """The synthetic sequence the demo renders (one loop at 10 Hz: the demo must stay short)."""
 
     preset: Literal["room-loop", "street-loop", "orbit"] = "room-loop"  # synthetic scene and motion
-    frames: int = 201  # rendered frames (room-loop: one loop lasts 20 s: 201 frames at 10 Hz, 401 at 20 Hz)
-    rate_hz: float = 10.0  # camera frame rate (the motion's speed is fixed: a lower rate, larger steps)
-    width: int = 640  # image width (px)
-    height: int = 480  # image height (px)
-    seed: int = 0  # scene layout / texture seed
-
-    def validate(self) -> None:
-        if self.frames < 2:
-            raise ConfigError(f"scene.frames must be >= 2, got {self.frames}")
-        if not self.rate_hz > 0:
-            raise ConfigError(f"scene.rate_hz must be > 0, got {self.rate_hz}")
-        if self.width < 32 or self.height < 32:
-            raise ConfigError(f"scene size {self.width}x{self.height} is too small (>= 32x32)")
+    frames: int = ranged(201, ge=2)  # rendered frames (room-loop: one loop lasts 20 s: 201 frames at 10 Hz, 401 at 20 Hz)
+    rate_hz: float = ranged(10.0, gt=0)  # camera frame rate (the motion's speed is fixed: a lower rate, larger steps)
+    width: int = ranged(640, ge=32)  # image width (px)
+    height: int = ranged(480, ge=32)  # image height (px)
+    seed: int = ranged(0, ge=0)  # scene layout / texture seed
 
 
 @dataclass

@@ -27,3 +27,16 @@ class EvaluationError(FGSlamError):
 
 class OptimizationError(FGSlamError):
     """An optimisation problem that is ill-posed or failed."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """A run stopped by a signal (SIGINT, SIGTERM) after writing its partial outputs.
+
+    A ``KeyboardInterrupt`` (so that ``except Exception`` in library code never swallows it);
+    ``exit_code`` is the shell's ``128 + signal number`` (130 for SIGINT, 143 for SIGTERM).
+    """
+
+    def __init__(self, message: str, signum: int) -> None:
+        super().__init__(message)
+        self.signum = signum
+        self.exit_code = 128 + signum

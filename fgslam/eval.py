@@ -29,6 +29,7 @@ from typing import Literal
 
 import numpy as np
 
+from .config import check_ranges, ranged
 from .errors import ConfigError, EvaluationError
 from .io.trajectory import Trajectory
 
@@ -47,12 +48,12 @@ class EvalConfig:
     """Tunables of :func:`evaluate`."""
 
     association: Literal["timestamp", "index"] = "timestamp"  # nearest one-to-one | index (KITTI, same length)
-    max_time_diff: float = 0.02  # s, largest |t_gt - (t_est + time_offset)| accepted as a match
-    time_offset: float = 0.0  # s, added to the estimate's timestamps before association
+    max_time_diff: float = ranged(0.02, ge=0)  # s, largest |t_gt - (t_est + time_offset)| accepted as a match
+    time_offset: float = ranged(0.0)  # s, added to the estimate's timestamps before association
     align: Literal["se3", "sim3", "none", "first-pose"] = "se3"  # alignment of the estimate to the ground truth
-    align_num_poses: int | None = None  # align on the first n associated poses only (None: all)
-    rpe_delta_frames: int = 1  # frame step of the per-frame RPE
-    rpe_delta_meters: float | None = 1.0  # path distance (m) of the per-distance RPE; None: skip
+    align_num_poses: int | None = ranged(None, ge=1)  # align on the first n associated poses only (None: all)
+    rpe_delta_frames: int = ranged(1, ge=1)  # frame step of the per-frame RPE
+    rpe_delta_meters: float | None = ranged(1.0, gt=0)  # path distance (m) of the per-distance RPE; None: skip
     kitti_metrics: bool = False  # also compute KITTI t_rel / r_rel over the 100..800 m segments
 
     def validate(self) -> None:
@@ -61,16 +62,7 @@ class EvalConfig:
             raise ConfigError(f"EvalConfig.association={self.association!r}: expected one of {ASSOCIATION_METHODS}")
         if self.align not in ALIGN_METHODS:
             raise ConfigError(f"EvalConfig.align={self.align!r}: expected one of {ALIGN_METHODS}")
-        if not self.max_time_diff >= 0:
-            raise ConfigError(f"EvalConfig.max_time_diff={self.max_time_diff!r}: must be >= 0")
-        if not np.isfinite(self.time_offset):
-            raise ConfigError(f"EvalConfig.time_offset={self.time_offset!r}: must be finite")
-        if self.align_num_poses is not None and self.align_num_poses < 1:
-            raise ConfigError(f"EvalConfig.align_num_poses={self.align_num_poses!r}: must be >= 1 or None")
-        if self.rpe_delta_frames < 1:
-            raise ConfigError(f"EvalConfig.rpe_delta_frames={self.rpe_delta_frames!r}: must be >= 1")
-        if self.rpe_delta_meters is not None and not self.rpe_delta_meters > 0:
-            raise ConfigError(f"EvalConfig.rpe_delta_meters={self.rpe_delta_meters!r}: must be > 0 or None")
+        check_ranges(self, "EvalConfig.")
 
 
 # --------------------------------------------------------------------------------------------- association

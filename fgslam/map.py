@@ -33,6 +33,7 @@ from typing import Literal
 
 import numpy as np
 
+from .config import ranged
 from .errors import OptimizationError
 from .factors.schur import POSE_DIM, VisualBlock, torch_threads
 from .lie import Sim3
@@ -57,11 +58,11 @@ class GaugeConfig:
     # factor is invariant along the gauge: with Sim(3) loop constraints that change keyframe scales,
     # turn hold_scale off (pointmap) or fold the correction into the depths and call set_pose().
     fix_anchor: bool = True  # 7-dof prior on the oldest keyframe at its value when it became anchor
-    anchor_sigma: float = 1e-3  # sigma of the anchor prior (tangent units)
+    anchor_sigma: float = ranged(1e-3, gt=0)  # sigma of the anchor prior (tangent units)
     hold_scale: bool = True  # log-scale prior on every keyframe (dense/patch inverse-depth frontends)
-    scale_sigma: float = 1e-3  # sigma of the log-scale priors
+    scale_sigma: float = ranged(1e-3, gt=0)  # sigma of the log-scale priors
     world_scale_range: bool = True  # fix the distance between the first two keyframes (monocular)
-    range_sigma: float = 1e-3  # sigma of that range constraint, relative to the initial distance
+    range_sigma: float = ranged(1e-3, gt=0)  # sigma of that range constraint, relative to the initial distance
 
 
 @dataclass
@@ -69,19 +70,19 @@ class MapConfig:
     """Solver choice and tolerances of :class:`SlamMap`."""
 
     solver: Literal["python_lm", "gtsam_lm", "isam2"] = "python_lm"  # see module docstring
-    max_iterations: int = 30  # LM iterations (python_lm) or outer relinearisations (gtsam_lm, isam2)
-    relative_tolerance: float = 1e-10  # stop when the relative cost decrease falls below this
-    absolute_tolerance: float = 1e-14  # stop when the cost falls below this
-    step_tolerance: float = 1e-12  # stop when the largest tangent step component falls below this
-    lambda_initial: float = 1e-6  # initial LM damping (identity, on the pose tangents)
-    lambda_factor: float = 10.0  # LM damping multiplier on rejection / divisor on acceptance
-    lambda_min: float = 1e-12  # smallest LM damping
-    lambda_max: float = 1e8  # python_lm gives up (converged) when rejected steps push lambda above this
-    refine_steps: int = 2  # structure Gauss-Newton steps at fixed poses before and after optimize()
+    max_iterations: int = ranged(30, ge=1)  # LM iterations (python_lm) or outer relinearisations (gtsam_lm, isam2)
+    relative_tolerance: float = ranged(1e-10, ge=0)  # stop when the relative cost decrease falls below this
+    absolute_tolerance: float = ranged(1e-14, ge=0)  # stop when the cost falls below this
+    step_tolerance: float = ranged(1e-12, ge=0)  # stop when the largest tangent step component falls below this
+    lambda_initial: float = ranged(1e-6, gt=0)  # initial LM damping (identity, on the pose tangents)
+    lambda_factor: float = ranged(10.0, gt=1)  # LM damping multiplier on rejection / divisor on acceptance
+    lambda_min: float = ranged(1e-12, gt=0)  # smallest LM damping
+    lambda_max: float = ranged(1e8, gt=0)  # python_lm gives up (converged) when rejected steps push lambda above this
+    refine_steps: int = ranged(2, ge=0)  # structure Gauss-Newton steps at fixed poses before and after optimize()
     refine_each_iteration: bool = False  # also refine after every accepted step (else: joint updates only)
-    inner_max_iterations: int = 100  # gtsam LM iterations per outer relinearisation (gtsam_lm)
-    max_backtracks: int = 6  # step halvings when an outer gtsam_lm/isam2 step raises the true cost
-    threads: int = 1  # torch threads during optimisation (small dense solves: 1 is fastest)
+    inner_max_iterations: int = ranged(100, ge=1)  # gtsam LM iterations per outer relinearisation (gtsam_lm)
+    max_backtracks: int = ranged(6, ge=0)  # step halvings when an outer gtsam_lm/isam2 step raises the true cost
+    threads: int = ranged(1, ge=0)  # torch threads during optimisation (small dense solves: 1 is fastest)
     gauge: GaugeConfig = field(default_factory=GaugeConfig)
 
 

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from .config import check_ranges, ranged
 from .errors import ConfigError, DataError, FormatError, OptimizationError
 from .io.g2o import PoseGraph, read_g2o, write_g2o
 
@@ -40,13 +41,13 @@ class PGOConfig:
     """Tunables of :func:`optimize_pose_graph` (defaults are gtsam's LM defaults)."""
 
     init: Literal["chordal", "as-is"] = "chordal"  # chordal: InitializePose3 (3-D) / LAGO (2-D); as-is: file poses
-    max_iterations: int = 100  # LM iteration cap
-    relative_error_tol: float = 1e-5  # stop when the relative cost decrease falls below this
-    absolute_error_tol: float = 1e-5  # stop when the absolute cost decrease falls below this
-    error_tol: float = 0.0  # stop when the cost falls below this
-    lambda_initial: float = 1e-5  # initial LM damping
-    lambda_factor: float = 10.0  # damping multiplier on a rejected/accepted step
-    lambda_upper_bound: float = 1e5  # LM gives up when the damping exceeds this
+    max_iterations: int = ranged(100, ge=0)  # LM iteration cap
+    relative_error_tol: float = ranged(1e-5, ge=0)  # stop when the relative cost decrease falls below this
+    absolute_error_tol: float = ranged(1e-5, ge=0)  # stop when the absolute cost decrease falls below this
+    error_tol: float = ranged(0.0, ge=0)  # stop when the cost falls below this
+    lambda_initial: float = ranged(1e-5, gt=0)  # initial LM damping
+    lambda_factor: float = ranged(10.0, gt=1)  # damping multiplier on a rejected/accepted step
+    lambda_upper_bound: float = ranged(1e5, gt=0)  # LM gives up when the damping exceeds this
     linear_solver: Literal["MULTIFRONTAL_CHOLESKY", "MULTIFRONTAL_QR", "SEQUENTIAL_CHOLESKY", "SEQUENTIAL_QR"] = (
         "MULTIFRONTAL_CHOLESKY"  # gtsam linear solver
     )
@@ -55,21 +56,14 @@ class PGOConfig:
     verbosity_lm: Literal[
         "SILENT", "SUMMARY", "TERMINATION", "LAMBDA", "TRYLAMBDA", "TRYCONFIG", "DAMPED", "TRYDELTA"
     ] = "SILENT"  # gtsam LM output
-    prior_variance: float = 1e-6  # variance of every tangent component of the gauge prior
+    prior_variance: float = ranged(1e-6, gt=0)  # variance of every tangent component of the gauge prior
     # Edges whose information matrix is not positive definite: reject the file, or drop them (counted).
     indefinite_information: Literal["error", "drop"] = "error"
 
     def validate(self) -> None:
-        """Raise ConfigError for values gtsam would misbehave on (``load_config`` calls this)."""
-        if self.max_iterations < 0:
-            raise ConfigError(f"max_iterations must be >= 0 (got {self.max_iterations})")
-        for name in ("relative_error_tol", "absolute_error_tol", "error_tol"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"{name} must be >= 0 (got {getattr(self, name)})")
-        if not self.prior_variance > 0:
-            raise ConfigError(f"prior_variance must be > 0 (got {self.prior_variance})")
-        if not self.lambda_factor > 1:
-            raise ConfigError(f"lambda_factor must be > 1 (got {self.lambda_factor})")
+        """Raise ConfigError for values gtsam would misbehave on: a field outside its declared range
+        (for configs built in code; ``load_config`` checks the ranges itself)."""
+        check_ranges(self)
 
 
 @dataclass

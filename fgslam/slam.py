@@ -11,8 +11,9 @@
 - ``summary.json``: frame counts, keyframes, frames/s overall and per stage, failures by kind,
   skipped frames, the estimate's motion extent, evaluation (ATE with the alignment used, RPE, % of
   path length) when the dataset has ground truth, loop closure counts (``loop``, when the frontend
-  runs loop closure: ``Frontend.loop_summary()``), the full configuration used, and the error when
-  the run failed;
+  runs loop closure: ``Frontend.loop_summary()``), the full configuration used, the error when
+  the run failed (``interrupted``: the signal that stopped it) and the outputs that could not be
+  written (``output_errors``);
 - ``trajectory.png``: top view of the (aligned) estimate against the ground truth;
 - ``points.ply`` when ``output.write_ply`` (the frontend's keyframe points, when it has any).
 
@@ -22,6 +23,19 @@ frontend is dropped and counted. If the frontend (or the dataset) raises mid-run
 exists is written first (partial trajectory from the frontend, else from the per-frame live
 estimates, and a summary with the error), then a :class:`RunError` (or the dataset's own
 :class:`~fgslam.errors.DataError`) is raised.
+
+Stopping: SIGINT (Ctrl-C) and, while :func:`run_slam` runs, SIGTERM (batch schedulers, ``timeout``)
+stop the loop at once; the partial outputs and a summary naming the signal are written, then
+:class:`~fgslam.errors.Interrupted` is raised (``exit_code`` 130 / 143). A SIGTERM arriving while the
+outputs are being written is logged and the writing completes. The SIGTERM handler is installed
+only for the duration of the run and the previous one is restored.
+
+Outputs are never lost to one failure: the output folder is checked (created, writable, not the
+dataset folder nor inside it) before any work, and every output (each trajectory format, plot, PLY,
+summary) is written on its own, a file that fails (a plotting error, a full disk) is removed rather
+than left truncated and its error is recorded in ``summary.json`` (``output_errors``); the summary
+is written last, atomically. The caller's ``on_summary`` gets the summary in every case (the console
+report), then :class:`OutputError` is raised when an output could not be written.
 
 Alignment for evaluation (``auto_align``): Sim(3) for monocular runs (scale is unobservable),
 SE(3) for stereo and RGB-D (metric).
@@ -34,16 +48,19 @@ import logging
 import math
 import os
 import resource
+import signal
+import tempfile
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any, Callable, Literal, Optional
 
 import numpy as np
 
-from .config import to_dict
-from .errors import ConfigError, DataError, EvaluationError, FGSlamError
+from .config import check_ranges, ranged, to_dict
+from .errors import ConfigError, DataError, EvaluationError, FGSlamError, Interrupted
 from .eval import EvalConfig, EvalResult, evaluate
 from .frontends.base import FrameStatus, Frontend
 from .frontends.patch.config import PatchConfig
@@ -74,6 +91,10 @@ class RunError(FGSlamError):
     """A run stopped because the frontend raised; partial outputs were written before."""
 
 
+class OutputError(FGSlamError):
+    """An output of a run could not be written (the others and, when possible, summary.json were)."""
+
+
 @dataclass
 class OutputConfig:
     """What a run writes besides trajectories and summary."""
@@ -90,9 +111,9 @@ class SlamConfig:
 
     frontend: Literal["patch", "dense", "pointmap"] = "patch"  # frontend family (dense/pointmap: not implemented yet)
     sensor: SensorName = "mono"  # mono | stereo (needs right images) | rgbd (needs depth)
-    threads: int = 0  # torch and OpenCV threads for the run (0: leave the library defaults); stages may set their own
-    log_interval_frames: int = 100  # a progress line at least every this many frames
-    log_interval_s: float = 10.0  # ... or every this many seconds, whichever comes first
+    threads: int = ranged(0, ge=0)  # torch and OpenCV threads for the run (0: leave the library defaults); stages may set their own
+    log_interval_frames: int = ranged(100, ge=1)  # a progress line at least every this many frames
+    log_interval_s: float = ranged(10.0, gt=0)  # ... or every this many seconds, whichever comes first
     auto_align: bool = True  # evaluation alignment from the sensor (sim3 mono, se3 stereo/rgbd); false: eval.align
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     patch: PatchConfig = field(default_factory=PatchConfig)
@@ -104,10 +125,6 @@ class SlamConfig:
 
     def validate(self) -> None:
         self.loop_closure.validate()
-        if self.threads < 0:
-            raise ConfigError(f"threads must be >= 0, got {self.threads}")
-        if self.log_interval_frames < 1 or not self.log_interval_s > 0:
-            raise ConfigError("log_interval_frames must be >= 1 and log_interval_s > 0")
 
     def alignment(self) -> str:
         """Alignment used for the ATE: the sensor's (auto) or ``eval.align``."""
@@ -132,10 +149,62 @@ def dataset_config_for(config: SlamConfig) -> DatasetConfig:
 
 
 def open_slam_dataset(path: str | Path, config: SlamConfig, fmt: str = "auto") -> Dataset:
-    """Open the dataset at ``path`` for ``config`` and check it has what ``config.sensor`` needs."""
+    """Open the dataset at ``path`` for ``config`` and check it has what ``config.sensor`` needs
+    and images of at least ``dataset.min_image_side`` pixels."""
     dataset = open_dataset(path, fmt, dataset_config_for(config))
     check_sensor(dataset, config.sensor)
+    check_image_size(dataset)
     return dataset
+
+
+def check_image_size(dataset: Dataset) -> None:
+    """Raise ConfigError when the dataset's output images (after resizing and cropping) are smaller
+    than ``dataset.min_image_side`` on a side, naming the resize keys and both sizes."""
+    cfg = dataset.config
+    width, height = int(dataset.calibration.width), int(dataset.calibration.height)
+    if min(width, height) >= cfg.min_image_side:
+        return
+    raw = dataset.raw_calibration
+    source = f" from {raw.width}x{raw.height}" if raw is not None else ""
+    if cfg.resize_width or cfg.resize_height:
+        how = f"dataset.resize_width={cfg.resize_width}, dataset.resize_height={cfg.resize_height}"
+    else:
+        how = f"dataset.resize_scale={cfg.resize_scale:g}"
+    raise ConfigError(
+        f"{how} gives {width}x{height} images{source}"
+        f"{f' (after cropping to a multiple of {cfg.crop_multiple})' if cfg.crop_multiple > 1 else ''}; "
+        f"both sides must be at least dataset.min_image_side={cfg.min_image_side} pixels"
+    )
+
+
+def prepare_output_dir(out_dir: str | Path, data: str | Path | None = None) -> Path:
+    """Create the output folder and check that it is writable, before any work.
+
+    Raises ConfigError when it is the dataset folder ``data`` or inside it (outputs would mix with
+    the input data), DataError when it cannot be created or written (a file in the way, no
+    permission, a read-only or full file system)."""
+    out = Path(out_dir)
+    if data is not None:
+        out_abs, data_abs = out.resolve(), Path(data).resolve()
+        if out_abs == data_abs or data_abs in out_abs.parents:
+            where = "is the dataset folder" if out_abs == data_abs else f"is inside the dataset folder {data}"
+            raise ConfigError(f"output folder {out} {where}: outputs would mix with the input data; "
+                              "choose a folder outside it")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DataError(f"{out}: cannot create the output folder: {exc.strerror or exc}") from exc
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".fgslam-write-test-", dir=out)
+        try:
+            os.write(fd, b"fgslam")
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+            os.unlink(probe)
+    except OSError as exc:
+        raise DataError(f"{out}: the output folder is not writable: {exc.strerror or exc}") from exc
+    return out
 
 
 def check_sensor(dataset: Dataset, sensor: str) -> None:
@@ -191,6 +260,8 @@ class RunSummary:
     error: Optional[str] = None
     notes: list[str] = field(default_factory=list)
     loop: Optional[dict[str, Any]] = None  # frontend.loop_summary(): loop closure counts (None: off)
+    interrupted: Optional[str] = None  # the signal that stopped the run (SIGINT, SIGTERM), None when it ran to the end
+    output_errors: dict[str, str] = field(default_factory=dict)  # output kind -> why it could not be written
 
     @property
     def ok(self) -> bool:
@@ -262,31 +333,36 @@ def run_slam(
     out_dir: str | Path,
     progress: bool = True,
     frontend: Optional[Frontend] = None,
+    on_summary: Optional[Callable[[RunSummary], None]] = None,
 ) -> RunSummary:
     """Run SLAM over ``dataset`` with ``config`` and write the outputs into ``out_dir``.
 
     Args:
         dataset: an opened dataset (see :func:`open_slam_dataset`); checked against ``config.sensor``.
         config: the run configuration.
-        out_dir: output folder (created).
+        out_dir: output folder (created; checked writable and outside the dataset before any work).
         progress: log a progress line every ``config.log_interval_frames`` frames / ``log_interval_s`` s.
         frontend: use this frontend instead of building ``config.frontend`` (tests, custom frontends).
+        on_summary: called with the summary once the outputs are written, also when the run then
+            raises (the command line prints its report there).
 
     Returns:
         The :class:`RunSummary` also written to ``summary.json``.
 
     Raises:
-        ConfigError: the dataset lacks what the sensor mode needs, or the frontend is not available.
+        ConfigError: the dataset lacks what the sensor mode needs, the frontend is not available, or
+            the output folder is the dataset folder or inside it.
         RunError: the frontend raised (partial outputs and a summary with the error were written).
-        DataError: the dataset failed mid-run (too many corrupt frames; partial outputs written).
+        DataError: the dataset failed mid-run (too many corrupt frames; partial outputs written), or
+            the output folder cannot be created or written.
+        Interrupted: SIGINT or SIGTERM stopped the run (partial outputs and summary written).
+        OutputError: an output could not be written (every other one was).
     """
     config.validate()
+    check_ranges(config)
     check_sensor(dataset, config.sensor)
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise DataError(f"{out}: cannot create the output folder: {exc}") from exc
+    check_image_size(dataset)
+    out = prepare_output_dir(out_dir, dataset.root)
     if frontend is None:
         from .frontends import make_frontend
 
@@ -294,63 +370,121 @@ def run_slam(
     load_average = [round(v, 2) for v in os.getloadavg()]
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
     state = _RunState()
-    t_start, cpu_start = time.perf_counter(), _cpu_seconds()
-    saved_threads = _set_threads(config.threads)
-    try:
-        error = _loop(dataset, frontend, config, state, progress)
-    finally:
-        _restore_threads(saved_threads)
-    state.wall_s, state.cpu_s = time.perf_counter() - t_start, _cpu_seconds() - cpu_start
-    summary, error = _finalize(dataset, gt, frontend, config, state, out, load_average, error)
+    with _StopOnSignal((signal.SIGTERM,)) as stopper:
+        t_start, cpu_start = time.perf_counter(), _cpu_seconds()
+        saved_threads = _set_threads(config.threads)
+        try:
+            error = _loop(dataset, frontend, config, state, progress)
+        finally:
+            stopper.finishing = True  # from here on a SIGTERM is logged and the outputs are completed
+            _restore_threads(saved_threads)
+        state.wall_s, state.cpu_s = time.perf_counter() - t_start, _cpu_seconds() - cpu_start
+        summary, error = _finalize(dataset, gt, frontend, config, state, out, load_average, error)
+    if on_summary is not None:
+        try:
+            on_summary(summary)
+        except Exception:  # noqa: BLE001 - a failing report (closed pipe...) never hides the run's own outcome
+            logger.exception("reporting the run summary failed")
+    written = _outputs_text(out, summary)
     if error is not None:
         exc, where = error
-        if isinstance(exc, KeyboardInterrupt) or (isinstance(exc, FGSlamError) and where == _WHERE_DATASET):
+        if isinstance(exc, KeyboardInterrupt):
+            signum = getattr(exc, "signum", signal.SIGINT)
+            raise Interrupted(f"interrupted by {signal.Signals(signum).name} {where} ({state.frames_processed} of "
+                              f"{len(dataset)} frames processed; {written})", signum) from exc
+        if isinstance(exc, FGSlamError) and where == _WHERE_DATASET:
             raise exc
         if where == _WHERE_DATASET:
             raise DataError(f"{dataset.root}: reading the dataset failed: {type(exc).__name__}: {exc} "
-                            f"(partial outputs written to {out}, see {SUMMARY_FILE})") from exc
-        raise RunError(
-            f"frontend '{config.frontend}' failed {where}: {type(exc).__name__}: {exc} "
-            f"(partial outputs written to {out}, see {SUMMARY_FILE})"
-        ) from exc
+                            f"({written})") from exc
+        raise RunError(f"frontend '{config.frontend}' failed {where}: {type(exc).__name__}: {exc} ({written})") from exc
+    if summary.output_errors:
+        raise OutputError(f"the run finished but {written}")
     return summary
+
+
+def _outputs_text(out: Path, summary: RunSummary) -> str:
+    """Where the outputs went, and which could not be written (for error messages)."""
+    errors = summary.output_errors
+    if not errors:
+        return f"partial outputs written to {out}, see {SUMMARY_FILE}" if summary.error else f"outputs in {out}"
+    failed = "; ".join(f"{kind}: {why}" for kind, why in errors.items())
+    kept = ", ".join(sorted(summary.outputs)) or "none"
+    see = "" if "summary" in errors else f", see {SUMMARY_FILE}"
+    return f"could not write {len(errors)} output(s) in {out} ({failed}); written: {kept}{see}"
+
+
+class _StopOnSignal:
+    """While active (a ``with`` block in the main thread), the given signals raise
+    :class:`~fgslam.errors.Interrupted` as Ctrl-C raises ``KeyboardInterrupt``; once ``finishing`` is
+    set, a further one is logged and ignored so that the outputs are completed. The previous
+    handlers are restored on exit (none is installed outside the main thread, where Python cannot)."""
+
+    def __init__(self, signums: tuple[int, ...]) -> None:
+        self.signums = signums
+        self.finishing = False
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> "_StopOnSignal":
+        if threading.current_thread() is not threading.main_thread():
+            logger.debug("not in the main thread: no handler for %s", [signal.Signals(s).name for s in self.signums])
+            return self
+        for signum in self.signums:
+            self._previous[signum] = signal.signal(signum, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if self.finishing:
+            logger.warning("%s received while the outputs are written: completing them first", name)
+            return
+        logger.warning("%s received: stopping the run and writing the partial outputs", name)
+        raise Interrupted(name, signum)
+
+    def __exit__(self, *exc_info: Any) -> None:
+        for signum, previous in self._previous.items():
+            signal.signal(signum, signal.SIG_DFL if previous is None else previous)
+        self._previous.clear()
 
 
 def _loop(
     dataset: Dataset, frontend: Frontend, config: SlamConfig, state: _RunState, progress: bool
 ) -> Optional[tuple[BaseException, str]]:
-    """Iterate the dataset through the frontend; returns ``(exception, where)`` instead of raising."""
+    """Iterate the dataset through the frontend; returns ``(exception, where)`` instead of raising
+    (an exception anywhere, an interrupt included, stops the loop and is returned with its place)."""
     meter = _Progress(len(dataset), config.log_interval_frames, config.log_interval_s, progress)
     frames = iter(dataset)
-    while True:
-        t0 = time.perf_counter()
-        try:
-            frame = next(frames)
-        except StopIteration:
-            break
-        except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - reported with partial outputs
-            return exc, _WHERE_DATASET
-        t1 = time.perf_counter()
-        state.read_s += t1 - t0
-        state.frames_read += 1
-        try:
-            status = frontend.process(frame)
-        except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - reported with partial outputs
-            state.frontend_s += time.perf_counter() - t1
-            where = f"at frame {frame.index}" + (f" ({frame.path})" if frame.path is not None else "")
-            return exc, where
-        state.frontend_s += time.perf_counter() - t1
-        state.frames_processed += 1
-        _record(status, frame.timestamp, state)
-        meter.update(state.frames_processed, frontend.num_keyframes(), len(state.failure_frames))
-    t0 = time.perf_counter()
+    where = _WHERE_DATASET
+    t_frontend = None  # start of the current frontend call (its time is counted even when it raises)
     try:
+        while True:
+            where = _WHERE_DATASET
+            t0 = time.perf_counter()
+            try:
+                frame = next(frames)
+            except StopIteration:
+                break
+            t_frontend = time.perf_counter()
+            state.read_s += t_frontend - t0
+            state.frames_read += 1
+            where = f"at frame {frame.index}" + (f" ({frame.path})" if frame.path is not None else "")
+            status = frontend.process(frame)
+            state.frontend_s += time.perf_counter() - t_frontend
+            t_frontend = None
+            state.frames_processed += 1
+            where = f"after frame {frame.index}"
+            _record(status, frame.timestamp, state)
+            meter.update(state.frames_processed, frontend.num_keyframes(), len(state.failure_frames))
+        where = "in finish() after the last frame"
+        t_frontend = time.perf_counter()
         frontend.finish()
+        state.frontend_s += time.perf_counter() - t_frontend
+        t_frontend = None
+        meter.update(state.frames_processed, frontend.num_keyframes(), len(state.failure_frames), force=True)
     except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - reported with partial outputs
-        return exc, "in finish() after the last frame"
-    finally:
-        state.frontend_s += time.perf_counter() - t0
-    meter.update(state.frames_processed, frontend.num_keyframes(), len(state.failure_frames), force=True)
+        if t_frontend is not None:
+            state.frontend_s += time.perf_counter() - t_frontend
+        return exc, where
     return None
 
 
@@ -398,7 +532,7 @@ def _final_trajectory(
             errors.append((exc, "in trajectory()"))
             t = None
     if t is None:  # after an error: the live per-frame estimates
-        notes.append("the trajectory holds the live per-frame estimates (the run failed before the final one)")
+        notes.append("the trajectory holds the live per-frame estimates (the run stopped before the final one)")
         t = np.asarray(state.live_t, dtype=np.float64)
         T_WC = np.asarray(state.live_T, dtype=np.float64).reshape(-1, 4, 4)
         sources = list(state.live_source)
@@ -466,39 +600,55 @@ def _finalize(
     load_average: list[float],
     error: Optional[tuple[BaseException, str]],
 ) -> tuple[RunSummary, Optional[tuple[BaseException, str]]]:
-    """Write trajectories, plot, PLY and summary.json. Returns the summary and the first error (the
+    """Write trajectories, PLY, plot and summary.json, each on its own (a failing one is recorded in
+    ``output_errors`` and never stops the others). Returns the summary and the first error (the
     loop's, or one raised by the frontend's end-of-run queries, which never prevents the writing)."""
     notes: list[str] = []
     errors: list[tuple[BaseException, str]] = [] if error is None else [error]
     traj, sources = _final_trajectory(frontend, state, notes, errors)
     outputs: dict[str, str] = {}
+    output_errors: dict[str, str] = {}
     if traj is not None:
-        write_trajectory(out / TUM_FILE, traj, "tum")
-        write_trajectory(out / KITTI_FILE, traj, "kitti", out / KITTI_TIMES_FILE)
-        outputs.update(tum=str(out / TUM_FILE), kitti=str(out / KITTI_FILE), kitti_times=str(out / KITTI_TIMES_FILE))
+        _write_output("tum", [out / TUM_FILE], lambda: write_trajectory(out / TUM_FILE, traj, "tum"),
+                      outputs, output_errors)
+        kitti_paths = [out / KITTI_FILE, out / KITTI_TIMES_FILE]
+        if _write_output("kitti", kitti_paths, lambda: write_trajectory(kitti_paths[0], traj, "kitti", kitti_paths[1]),
+                         outputs, output_errors):
+            outputs["kitti_times"] = str(out / KITTI_TIMES_FILE)
     else:
         why = "before the error" if errors else "(the frontend never initialised)"
         notes.append(f"no frame got a pose {why}: no trajectory files written")
         logger.warning("no frame got a pose %s: no trajectory written", why)
 
-    result = _evaluate(gt, traj, config, notes) if (gt is not None and traj is not None) else None
-    evaluation = None if result is None else _evaluation_dict(result)
+    result = evaluation = None
+    if gt is not None and traj is not None:
+        try:
+            result = _evaluate(gt, traj, config, notes)
+            evaluation = None if result is None else _evaluation_dict(result)
+        except Exception as exc:  # noqa: BLE001 - recorded; the outputs are still written
+            result = evaluation = None
+            notes.append(f"evaluation failed: {type(exc).__name__}: {exc}")
+            logger.warning("evaluation failed: %s: %s", type(exc).__name__, exc)
 
-    if config.output.plot and traj is not None:
-        outputs["plot"] = str(_plot(out / PLOT_FILE, gt, traj, result, config))
     stage_s: dict[str, float] = {}
     keyframes = -1
     loop = None
+    points = None
     try:
         stage_s = {k: float(v) for k, v in frontend.stage_times().items()}
         keyframes = int(frontend.num_keyframes())
         loop = frontend.loop_summary()
         if config.output.write_ply:
-            ply = _write_points(out / PLY_FILE, frontend, notes)
-            if ply is not None:
-                outputs["ply"] = str(ply)
+            points = frontend.keyframe_points()
+            if points is None:
+                notes.append(f"output.write_ply: frontend '{frontend.name}' provides no points; no PLY written")
     except Exception as exc:  # noqa: BLE001 - recorded; the summary is still written
         errors.append((exc, "in its end-of-run queries (stage_times/num_keyframes/loop_summary/keyframe_points)"))
+    if points is not None:
+        _write_output("ply", [out / PLY_FILE], lambda: _write_points(out / PLY_FILE, points), outputs, output_errors)
+    if config.output.plot and traj is not None:
+        _write_output("plot", [out / PLOT_FILE], lambda: _plot(out / PLOT_FILE, gt, traj, result, config),
+                      outputs, output_errors)
     n = state.frames_processed
     frames_with_pose = 0 if traj is None else len(traj)
     failures = {
@@ -508,7 +658,12 @@ def _finalize(
         "nonfinite_pose": state.nonfinite,
     }
     first_error = errors[0] if errors else None
-    error_text = None if first_error is None else f"{first_error[1]}: {type(first_error[0]).__name__}: {first_error[0]}"
+    interrupted = error_text = None
+    if first_error is not None and isinstance(first_error[0], KeyboardInterrupt):
+        interrupted = signal.Signals(getattr(first_error[0], "signum", signal.SIGINT)).name
+        error_text = f"interrupted by {interrupted} {first_error[1]}"
+    elif first_error is not None:
+        error_text = f"{first_error[1]}: {type(first_error[0]).__name__}: {first_error[0]}"
     outputs["summary"] = str(out / SUMMARY_FILE)
     summary = RunSummary(
         out_dir=str(out),
@@ -545,16 +700,45 @@ def _finalize(
         error=error_text,
         notes=notes,
         loop=loop,
+        interrupted=interrupted,
+        output_errors=output_errors,
     )
-    _write_summary(out / SUMMARY_FILE, summary)
+    if not _write_output("summary", [out / SUMMARY_FILE], lambda: _write_summary(out / SUMMARY_FILE, summary),
+                         outputs, output_errors):
+        logger.error("%s could not be written; the run summary is only on the console", out / SUMMARY_FILE)
     return summary, first_error
 
 
-def _write_summary(path: Path, summary: RunSummary) -> None:
+def _write_output(kind: str, paths: list[Path], write: Callable[[], Any], outputs: dict[str, str],
+                  output_errors: dict[str, str]) -> bool:
+    """Run ``write`` (which writes ``paths``); on any failure remove what it left (never a truncated
+    file), record the reason under ``kind`` in ``output_errors`` and carry on. True when written."""
     try:
-        path.write_text(json.dumps(summary.to_dict(), indent=2, default=_json_default) + "\n")
-    except OSError as exc:
-        raise DataError(f"{path}: cannot write the run summary: {exc}") from exc
+        write()
+    except Exception as exc:  # noqa: BLE001 - one output's failure never costs the others
+        for path in paths:
+            try:
+                path.unlink(missing_ok=True)
+            except OSError:
+                pass
+        outputs.pop(kind, None)
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        output_errors[kind] = f"{paths[0].name}: {type(exc).__name__}: {why}"
+        logger.error("could not write %s: %s: %s", paths[0], type(exc).__name__, why)
+        return False
+    outputs[kind] = str(paths[0])
+    return True
+
+
+def _write_summary(path: Path, summary: RunSummary) -> None:
+    """summary.json, written to a temporary file and renamed: never a truncated one."""
+    text = json.dumps(summary.to_dict(), indent=2, default=_json_default) + "\n"
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _json_default(obj: Any) -> Any:
@@ -592,11 +776,8 @@ def _auto_plane(traj: Trajectory) -> str:
     return "xyz"[a] + "xyz"[b]
 
 
-def _write_points(path: Path, frontend: Frontend, notes: list[str]) -> Optional[Path]:
-    points = frontend.keyframe_points()
-    if points is None:
-        notes.append(f"output.write_ply: frontend '{frontend.name}' provides no points; no PLY written")
-        return None
+def _write_points(path: Path, points: tuple[np.ndarray, np.ndarray]) -> Path:
+    """Binary little-endian PLY of the finite points ``(X_W (N, 3), colour (N, 3) uint8)``."""
     X_W, colour = points
     X_W = np.asarray(X_W, dtype=np.float32).reshape(-1, 3)
     colour = np.asarray(colour, dtype=np.uint8).reshape(-1, 3)
@@ -612,12 +793,9 @@ def _write_points(path: Path, frontend: Frontend, notes: list[str]) -> Optional[
               f"element vertex {vertex.shape[0]}\n"
               "property float x\nproperty float y\nproperty float z\n"
               "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    try:
-        with open(path, "wb") as fh:
-            fh.write(header.encode("ascii"))
-            fh.write(vertex.tobytes())
-    except OSError as exc:
-        raise DataError(f"{path}: cannot write the point cloud: {exc}") from exc
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(vertex.tobytes())
     return path
 
 

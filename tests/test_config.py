@@ -145,3 +145,127 @@ def test_shipped_presets_load(repo_root):
     assert presets, "configs/ holds no presets"
     for path in presets:
         load_preset_file(path)
+
+
+# --------------------------------------------------------------------------------------- declared ranges
+
+import dataclasses  # noqa: E402
+import importlib  # noqa: E402
+import types  # noqa: E402
+import typing  # noqa: E402
+
+from fgslam.config import check_ranges, field_range, ranged  # noqa: E402
+
+#: Config dataclasses used in code but not reachable from a preset root (factor tunables, vocabulary training).
+EXTRA_CONFIG_CLASSES = (
+    "fgslam.factors.pointmap:PointmapResidualConfig",
+    "fgslam.factors.reprojection:ReprojectionConfig",
+    "fgslam.factors.depth:DepthPriorConfig",
+    "fgslam.factors.robust:RobustConfig",
+    "fgslam.factors.schur:BlockConfig",
+    "fgslam.loop.bow:VocabularyTrainingConfig",
+)
+
+
+def _load_class(target: str) -> type:
+    module, name = target.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def _config_classes() -> list[type]:
+    """Every config dataclass reachable from the preset roots (fgslam/presets.py) and the extras."""
+    from fgslam.presets import PRESET_CLASSES
+
+    seen: list[type] = []
+
+    def walk(cls: type) -> None:
+        if cls in seen:
+            return
+        seen.append(cls)
+        for tp in typing.get_type_hints(cls).values():
+            for t in (tp, *typing.get_args(tp)):
+                if dataclasses.is_dataclass(t):
+                    walk(t)
+
+    for target in (*PRESET_CLASSES.values(), *EXTRA_CONFIG_CLASSES):
+        walk(_load_class(target))
+    return seen
+
+
+def _is_numeric(tp) -> bool:
+    """int / float, Optional of them, list / tuple of them (bool is not numeric)."""
+    if tp in (int, float):
+        return True
+    origin, args = typing.get_origin(tp), [a for a in typing.get_args(tp) if a not in (type(None), Ellipsis)]
+    if origin in (typing.Union, types.UnionType, list, tuple) and args:
+        return all(_is_numeric(a) for a in args)
+    return False
+
+
+def unranged_numeric_fields(cls: type) -> list[str]:
+    hints = typing.get_type_hints(cls)
+    return [f"{cls.__module__}.{cls.__name__}.{f.name}" for f in dataclasses.fields(cls)
+            if _is_numeric(hints[f.name]) and field_range(f) is None]
+
+
+def test_every_numeric_config_field_declares_its_range():
+    classes = _config_classes()
+    assert len(classes) > 30  # the walk reaches the nested sections (patch.*, loop_closure.bow.*, synth presets...)
+    missing = [name for cls in classes for name in unranged_numeric_fields(cls)]
+    assert not missing, f"numeric config fields without ranged(...): {missing}"
+
+
+def test_the_range_walk_catches_a_missing_range():
+    @dataclass
+    class Probe:
+        a: int = 3
+        b: Optional[float] = ranged(None, gt=0)
+        c: list[float] = field(default_factory=lambda: [1.0])
+        d: tuple[int, int] = (1, 2)
+        e: bool = True
+        f: str = "x"
+
+    assert [n.rsplit(".", 1)[1] for n in unranged_numeric_fields(Probe)] == ["a", "c", "d"]
+
+
+def test_every_default_lies_in_its_range():
+    from fgslam.io.synth.presets import PRESET_NAMES, default_config
+
+    for cls in _config_classes():
+        check_ranges(cls(), source=cls.__name__)  # ConfigError naming the field otherwise
+        if hasattr(cls, "validate"):
+            cls().validate()
+    for name in PRESET_NAMES:  # the synthetic presets' own defaults
+        check_ranges(default_config(name), source=f"synth preset {name}")
+
+
+@pytest.mark.parametrize("override, key", [
+    ("patch.ba.pixel_sigma=0", "patch.ba.pixel_sigma"),
+    ("patch.ba.pixel_sigma=-1", "patch.ba.pixel_sigma"),
+    ("patch.lk.levels=-1", "patch.lk.levels"),
+    ("patch.lk.scale=-1", "patch.lk.scale"),
+    ("dataset.resize_scale=0.01", "dataset.resize_scale"),
+    ("patch.graph.border=-1", "patch.graph.border"),
+    ("loop_closure.pose_graph.loop_sigmas=[0.01, 0.01, 0.01, 0.1, 0.1, 0, 0.01]", "loop_closure.pose_graph.loop_sigmas"),
+    ("eval.rpe_delta_meters=-2", "eval.rpe_delta_meters"),
+    ("log_interval_s=0", "log_interval_s"),
+])
+def test_load_slam_config_rejects_out_of_range_values_naming_the_key(override, key):
+    from fgslam.slam import load_slam_config
+
+    with pytest.raises(ConfigError, match=rf"patch_mono.yaml with overrides .*key '{key}': must be "):
+        load_slam_config("patch_mono", [override])
+
+
+def test_ranges_hold_for_configs_built_in_code():
+    from fgslam.frontends.patch.config import BAConfig, PatchConfig
+
+    with pytest.raises(ConfigError, match=r"key 'patch.ba.pixel_sigma': must be > 0"):
+        PatchConfig(ba=BAConfig(pixel_sigma=0.0)).validate()
+
+
+def test_range_text_and_limits():
+    rng = field_range(next(f for f in dataclasses.fields(_load_class("fgslam.io.datasets.common:DatasetConfig"))
+                           if f.name == "max_skipped_fraction"))
+    assert rng.text() == ">= 0 and < 1" and rng.contains(0.0) and not rng.contains(1.0)
+    assert not rng.contains(float("inf")) and not rng.contains(float("nan"))

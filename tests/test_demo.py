@@ -39,13 +39,13 @@ def test_demo_config_overrides_and_errors(tmp_path):
     assert scene.frames == 30 and slam.sensor == "stereo" and slam.patch.ba.iterations == 4
     with pytest.raises(ConfigError, match="unknown key 'render'"):
         load_demo_config(None, ["render.x=1"])
-    with pytest.raises(ConfigError, match="scene.frames must be >= 2"):
+    with pytest.raises(ConfigError, match="key .scene.frames.: must be >= 2"):
         load_demo_config(None, ["scene.frames=1"])
     with pytest.raises(ConfigError, match="slam.*sensor"):
         load_demo_config(None, ["slam.sensor=sonar"])
     bad = tmp_path / "demo.yaml"
     bad.write_text("scene:\n  width: 8\n")
-    with pytest.raises(ConfigError, match="too small"):
+    with pytest.raises(ConfigError, match="key .scene.width.: must be >= 32"):
         load_demo_config(bad)
     assert DemoSceneConfig().frames >= 2
 

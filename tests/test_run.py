@@ -7,6 +7,7 @@ world frame (and scale) plus noise, so the expected ATE and counts are known by 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -450,3 +451,285 @@ def test_cli_run_with_patch_frontend(small_root, tmp_path, capsys, cli_main):
 def test_run_error_is_fgslam_error():
     assert issubclass(RunError, FGSlamError)
     assert issubclass(DataError, FGSlamError)
+
+
+# --------------------------------------------------------------------------------------- stopping (SIGTERM, SIGINT)
+
+
+class SignallingFrontend(FakeFrontend):
+    """A FakeFrontend that sends ``signum`` to its own process while processing frame ``signal_at``
+    and records the SIGTERM handler in force during the run."""
+
+    def __init__(self, *args, signal_at=None, signum=None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.signal_at, self.signum = signal_at, signum
+        self.handler_during_run = None
+
+    def process(self, frame):
+        import os
+        import signal
+
+        self.handler_during_run = signal.getsignal(signal.SIGTERM)
+        if frame.index == self.signal_at:
+            os.kill(os.getpid(), self.signum)
+        return super().process(frame)
+
+
+def test_sigterm_mid_run_writes_partial_outputs_and_restores_the_handler(synth_root, tmp_path):
+    import signal
+
+    from fgslam.errors import Interrupted
+
+    config = _config("sensor=stereo")
+    fe = SignallingFrontend(np.eye(4), 0.0, np.random.default_rng(0), signal_at=7, signum=signal.SIGTERM)
+    before = signal.getsignal(signal.SIGTERM)
+    reported = []
+    with pytest.raises(Interrupted) as info:
+        run_slam(open_slam_dataset(synth_root, config), config, tmp_path / "out", frontend=fe, on_summary=reported.append)
+    assert info.value.exit_code == 143 and info.value.signum == signal.SIGTERM
+    assert "SIGTERM" in str(info.value) and "frame 7" in str(info.value) and "(7 of 16 frames processed" in str(info.value)
+    assert signal.getsignal(signal.SIGTERM) is before  # restored
+    assert fe.handler_during_run is not before  # installed for the run only
+    data = json.loads((tmp_path / "out" / SUMMARY_FILE).read_text())
+    assert data["interrupted"] == "SIGTERM" and data["error"].startswith("interrupted by SIGTERM at frame 7")
+    assert data["frames_processed"] == 7 and not fe.finished
+    assert len(read_trajectory(tmp_path / "out" / TUM_FILE, "tum")) == 5  # frames 2..6
+    assert (tmp_path / "out" / PLOT_FILE).is_file()
+    assert len(reported) == 1 and reported[0].interrupted == "SIGTERM"
+
+
+def test_sigint_mid_run_keeps_exit_code_130(synth_root, tmp_path):
+    import signal
+
+    from fgslam.errors import Interrupted
+
+    config = _config()
+    fe = SignallingFrontend(np.eye(4), 0.0, np.random.default_rng(0), signal_at=9, signum=signal.SIGINT)
+    with pytest.raises(Interrupted) as info:
+        run_slam(open_slam_dataset(synth_root, config), config, tmp_path / "out", frontend=fe)
+    assert info.value.exit_code == 130 and isinstance(info.value, KeyboardInterrupt)
+    data = json.loads((tmp_path / "out" / SUMMARY_FILE).read_text())
+    assert data["interrupted"] == "SIGINT" and data["frames_processed"] == 9
+    assert len(read_trajectory(tmp_path / "out" / TUM_FILE, "tum")) == 7
+
+
+def test_importing_fgslam_installs_no_signal_handler():
+    import subprocess
+    import sys
+
+    code = ("import signal; before = signal.getsignal(signal.SIGTERM); import fgslam.slam, fgslam.cli; "
+            "print(signal.getsignal(signal.SIGTERM) is before)")
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "True"
+
+
+@pytest.fixture(scope="module")
+def long_root(tmp_path_factory) -> Path:
+    """A room-loop sequence long enough that a run is still going when the test signals it."""
+    root = tmp_path_factory.mktemp("long") / "seq"
+    cfg = load_synth_config("room-loop", None, ["frames=120", "camera.width=96", "camera.height=72"])
+    write_sequence(SynthSequence(cfg), root)
+    return root
+
+
+@pytest.mark.parametrize("signame, rc", [("SIGTERM", 143), ("SIGINT", 130)])
+def test_cli_run_killed_mid_run(long_root, tmp_path, signame, rc):
+    """``fgslam run`` in a subprocess gets the signal after a few frames: partial trajectory,
+    summary.json naming the signal, the console report, one clean error line, exit 128 + signal."""
+    import signal
+    import subprocess
+    import sys
+    import threading
+
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "fgslam", "run", "patch_rgbd", "--data", str(long_root), "--out", str(out),
+           "-o", "log_interval_frames=1"]
+    # default dispositions in the child, as from a terminal (a background job of a non-interactive shell ignores SIGINT)
+    defaults = lambda: [signal.signal(s, signal.SIG_DFL) for s in (signal.SIGINT, signal.SIGTERM)]  # noqa: E731
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=defaults)
+    watchdog = threading.Timer(300, proc.kill)  # a hung run fails the test instead of blocking it
+    watchdog.start()
+    try:
+        stderr_lines = []
+        for line in proc.stderr:
+            stderr_lines.append(line)
+            if "frame 4/120" in line:
+                proc.send_signal(getattr(signal, signame))
+                break
+        stdout, rest = proc.communicate()
+    finally:
+        watchdog.cancel()
+    stderr_lines += rest.splitlines(keepends=True)
+    assert proc.returncode == rc, "".join(stderr_lines[-5:])
+    errors = [ln for ln in stderr_lines if ln.startswith("fgslam:")]
+    assert len(errors) == 1 and re.match(rf"fgslam: interrupted by {signame} (at frame|after frame|while reading the dataset)", errors[0])
+    assert "Traceback" not in "".join(stderr_lines)
+    data = json.loads((out / SUMMARY_FILE).read_text())
+    assert data["interrupted"] == signame and 4 <= data["frames_processed"] < 120
+    traj = read_trajectory(out / TUM_FILE, "tum")
+    assert 4 <= len(traj) == data["frames_with_pose"] < 120
+    assert f"interrupted by {signame}" in stdout and "outputs:" in stdout  # the console report still comes
+
+
+# --------------------------------------------------------------------------------------- outputs are never lost
+
+
+def _cli_run(cli_main, data, out, *extra, preset="patch_mono"):
+    return cli_main(["run", preset, "--data", str(data), "--out", str(out), *extra])
+
+
+def _one_error_line(err: str) -> str:
+    """The single ``fgslam: ...`` line of a failed command's stderr (log lines may precede it), which must be the last."""
+    lines = err.splitlines()
+    errors = [ln for ln in lines if ln.startswith("fgslam:")]
+    assert len(errors) == 1 and lines[-1] == errors[0], err
+    assert errors[0].startswith("fgslam: error: "), err
+    return errors[0]
+
+
+def test_failing_plot_leaves_every_other_output(synth_root, tmp_path, monkeypatch):
+    import fgslam.io.plot
+    from fgslam.slam import OutputError
+
+    def broken_plot(*args, **kwargs):
+        raise RuntimeError("matplotlib backend exploded")
+
+    monkeypatch.setattr(fgslam.io.plot, "plot_trajectories", broken_plot)
+    reported = []
+    config = _config("output.write_ply=true")
+    fe = FakeFrontend(np.eye(4), 0.0, np.random.default_rng(0), points=True)
+    with pytest.raises(OutputError, match=r"plot.*matplotlib backend exploded"):
+        run_slam(open_slam_dataset(synth_root, config), config, tmp_path / "out", frontend=fe, on_summary=reported.append)
+    out = tmp_path / "out"
+    for name in (TUM_FILE, KITTI_FILE, KITTI_TIMES_FILE, PLY_FILE, SUMMARY_FILE):
+        assert (out / name).is_file(), name
+    assert not (out / PLOT_FILE).exists()
+    data = json.loads((out / SUMMARY_FILE).read_text())
+    assert "matplotlib backend exploded" in data["output_errors"]["plot"] and "plot" not in data["outputs"]
+    assert data["error"] is None and data["evaluation"]["n_matched"] == N_FRAMES - 2
+    assert reported and reported[0].output_errors == data["output_errors"]
+
+
+def _full_disk(path: Path) -> None:
+    """Make writes to ``path`` fail with ENOSPC: a symlink to /dev/full."""
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full on this system")
+    path.symlink_to("/dev/full")
+
+
+def test_full_disk_on_one_trajectory_leaves_the_others(synth_root, tmp_path):
+    from fgslam.slam import OutputError
+
+    out = tmp_path / "out"
+    out.mkdir()
+    _full_disk(out / TUM_FILE)
+    config = _config()
+    fe = FakeFrontend(np.eye(4), 0.0, np.random.default_rng(0))
+    with pytest.raises(OutputError, match=r"tum.*No space left on device"):
+        run_slam(open_slam_dataset(synth_root, config), config, out, frontend=fe)
+    assert not (out / TUM_FILE).exists() and not (out / TUM_FILE).is_symlink()  # no truncated file left
+    assert len(read_trajectory(out / KITTI_FILE, "kitti", out / KITTI_TIMES_FILE)) == N_FRAMES - 2
+    assert (out / PLOT_FILE).is_file()
+    data = json.loads((out / SUMMARY_FILE).read_text())
+    assert "No space left on device" in data["output_errors"]["tum"] and "tum" not in data["outputs"]
+
+
+def test_full_disk_on_the_summary_still_reports_on_the_console(synth_root, tmp_path, capsys, cli_main):
+    out = tmp_path / "out"
+    out.mkdir()
+    _full_disk(out / (SUMMARY_FILE + ".tmp"))  # the summary is written to a temporary file, then renamed
+    rc = _cli_run(cli_main, synth_root, out, "-o", "dataset.end=4", preset="patch_rgbd")
+    captured = capsys.readouterr()
+    assert rc == 2
+    err = _one_error_line(captured.err)
+    assert "summary" in err and "No space left on device" in err
+    assert "not written: summary" in captured.out and "4 processed of 4" in captured.out  # the report still comes
+    assert not (out / SUMMARY_FILE).exists() and not (out / (SUMMARY_FILE + ".tmp")).exists()
+    assert len(read_trajectory(out / TUM_FILE, "tum")) == 4 and (out / PLOT_FILE).is_file()
+
+
+def test_output_folder_checked_before_any_work(synth_root, tmp_path, capsys, cli_main, monkeypatch):
+    import fgslam.slam
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the dataset was opened before the output folder was checked")
+
+    monkeypatch.setattr(fgslam.slam, "open_slam_dataset", no_work)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    for out in (blocker / "out", blocker):  # under a regular file; a regular file
+        rc = _cli_run(cli_main, synth_root, out)
+        err = capsys.readouterr().err
+        assert rc == 2 and "cannot create the output folder" in _one_error_line(err) and str(out) in err
+
+    def unwritable(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(fgslam.slam.tempfile, "mkstemp", unwritable)
+    rc = _cli_run(cli_main, synth_root, tmp_path / "ro")
+    err = capsys.readouterr().err
+    assert rc == 2 and "not writable: Permission denied" in _one_error_line(err)
+
+
+def test_output_folder_inside_the_dataset_is_refused(synth_root, tmp_path, capsys, cli_main):
+    data = tmp_path / "seq"
+    shutil.copytree(synth_root, data)
+    before = sorted(p.relative_to(data) for p in data.rglob("*"))
+    for out, why in ((data, "is the dataset folder"), (data / "mav0" / "results", "is inside the dataset folder"),
+                     (tmp_path / "seq" / ".." / "seq" / "out", "is inside the dataset folder")):
+        rc = _cli_run(cli_main, data, out)
+        err = capsys.readouterr().err
+        assert rc == 2 and why in _one_error_line(err), err
+    assert sorted(p.relative_to(data) for p in data.rglob("*")) == before  # nothing written into the data
+    with pytest.raises(ConfigError, match="inside the dataset folder"):  # the library checks too
+        config = _config()
+        run_slam(open_slam_dataset(data, config), config, data / "out", frontend=FakeFrontend(np.eye(4), 0.0, None))
+
+
+# --------------------------------------------------------------------------------------- config ranges on the command line
+
+
+@pytest.mark.parametrize("override, key", [
+    ("patch.ba.pixel_sigma=0", "patch.ba.pixel_sigma"),
+    ("patch.ba.pixel_sigma=-1", "patch.ba.pixel_sigma"),
+    ("patch.lk.levels=-1", "patch.lk.levels"),
+    ("patch.lk.scale=-1", "patch.lk.scale"),
+    ("dataset.resize_scale=0.01", "dataset.resize_scale"),
+])
+def test_cli_rejects_out_of_range_values_before_any_work(override, key, synth_root, tmp_path, capsys, cli_main):
+    out = tmp_path / "out"
+    rc = _cli_run(cli_main, synth_root, out, "-o", override)
+    err = capsys.readouterr().err
+    assert rc == 2
+    err = _one_error_line(err)
+    assert f"key '{key}': must be" in err
+    assert not out.exists()  # refused before the output folder was even made
+
+
+def test_cli_rejects_a_border_larger_than_the_image(synth_root, tmp_path, capsys, cli_main, monkeypatch):
+    from fgslam.frontends.patch.frontend import PatchFrontend
+
+    processed = []
+    monkeypatch.setattr(PatchFrontend, "process", lambda self, frame: processed.append(frame.index))
+    rc = _cli_run(cli_main, synth_root, tmp_path / "out", "-o", "patch.graph.border=10000")
+    err = capsys.readouterr().err
+    assert rc == 2
+    err = _one_error_line(err)
+    assert "patch.graph.border=10000" in err and "96x72" in err
+    assert processed == [] and not (tmp_path / "out" / SUMMARY_FILE).exists()
+    # a border that leaves room is accepted (the largest one: 2 * 35 < 72)
+    calib = open_slam_dataset(synth_root, _config()).calibration
+    PatchFrontend(_config("patch.graph.border=35").patch, calib)
+    with pytest.raises(ConfigError, match=r"patch.graph.border=36 .*96x72"):
+        PatchFrontend(_config("patch.graph.border=36").patch, calib)
+
+
+def test_resized_images_keep_a_minimum_size(synth_root, tmp_path, capsys, cli_main):
+    rc = _cli_run(cli_main, synth_root, tmp_path / "out", "-o", "dataset.resize_scale=0.25")
+    err = capsys.readouterr().err
+    assert rc == 2
+    err = _one_error_line(err)
+    assert "dataset.resize_scale=0.25 gives 24x18 images from 96x72;" in err and "dataset.min_image_side=32" in err
+    config = _config("dataset.resize_scale=0.25", "dataset.min_image_side=16")  # the minimum is a config field
+    assert open_slam_dataset(synth_root, config).calibration.width == 24
+    with pytest.raises(ConfigError, match="dataset.resize_width=40, dataset.resize_height=24 gives 40x24"):
+        open_slam_dataset(synth_root, _config("dataset.resize_width=40", "dataset.resize_height=24"))

@@ -28,15 +28,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..slam import load_slam_config, open_slam_dataset, run_slam
+    from ..slam import load_slam_config, open_slam_dataset, prepare_output_dir, run_slam
 
     config = load_slam_config(args.config, args.overrides)
+    prepare_output_dir(args.out, args.data)  # before any work: writable, not the dataset folder nor inside it
     dataset = open_slam_dataset(args.data, config, args.format)
-    summary = run_slam(dataset, config, args.out, progress=not args.no_progress)
-    if args.json:
-        print(json.dumps(summary.to_dict(), default=str))
-        return 0
-    print(format_report(summary.to_dict()))
+
+    def report(summary) -> None:  # also when the run then fails or is interrupted (the error line follows)
+        print(json.dumps(summary.to_dict(), default=str) if args.json else format_report(summary.to_dict()), flush=True)
+
+    run_slam(dataset, config, args.out, progress=not args.no_progress, on_summary=report)
     return 0
 
 
@@ -79,5 +80,9 @@ def format_report(s: dict) -> str:
                      f"{m['max_distance_from_start']:.3f} (estimate units; no ground truth evaluated)")
     for note in s["notes"]:
         lines.append(f"  note:       {note}")
+    if s.get("error"):
+        lines.append(f"  stopped:    {s['error']}")
+    for kind, why in (s.get("output_errors") or {}).items():
+        lines.append(f"  not written: {kind} ({why})")
     lines.append(f"  outputs:    {s['out_dir']} ({', '.join(sorted(s['outputs']))})")
     return "\n".join(lines)

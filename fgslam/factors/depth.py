@@ -22,6 +22,7 @@ from typing import Any
 import torch
 
 from ..camera import StereoRig
+from ..config import ranged
 from .reprojection import ReprojectionConfig, ReprojectionResult, reproject_inv_depth
 
 __all__ = [
@@ -36,9 +37,9 @@ __all__ = [
 class DepthPriorConfig:
     """Tunables of the RGB-D inverse-depth prior (DROID-SLAM section 3.4)."""
 
-    weight: float = 0.05  # weight of (d - 1/z_sensor)^2 relative to a unit-weight pixel residual
-    min_depth: float = 0.1  # sensor depths (metres) at or below this are invalid (0 = "no reading")
-    max_depth: float = math.inf  # sensor depths above this (metres) are invalid (beyond sensor range)
+    weight: float = ranged(0.05, ge=0)  # weight of (d - 1/z_sensor)^2 relative to a unit-weight pixel residual
+    min_depth: float = ranged(0.1, ge=0)  # sensor depths (metres) at or below this are invalid (0 = "no reading")
+    max_depth: float = ranged(math.inf, gt=0)  # sensor depths above this (metres) are invalid (beyond sensor range)
 
 
 @dataclass

@@ -35,7 +35,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..errors import ConfigError, DataError, FormatError
+from ..config import check_ranges, ranged
+from ..errors import DataError, FormatError
 from .features import DESCRIPTOR_BYTES, OrbConfig
 
 logger = logging.getLogger(__name__)
@@ -54,42 +55,32 @@ _INDEX_BUFFER_POSTINGS = 1 << 15              # postings buffered before they jo
 class VocabularyTrainingConfig:
     """Hierarchical k-majority training tunables."""
 
-    branching: int = 10          # children per node (k)
-    depth: int = 5               # levels below the root (L); at most k^L words
-    max_iterations: int = 10     # assign/update rounds of k-majority per node
-    seed: int = 0                # seeding of k-means++ draws
+    branching: int = ranged(10, ge=2)  # children per node (k)
+    depth: int = ranged(5, ge=1)  # levels below the root (L); at most k^L words
+    max_iterations: int = ranged(10, ge=1)  # assign/update rounds of k-majority per node
+    seed: int = ranged(0, ge=0)  # seeding of k-means++ draws
 
     def validate(self) -> None:
-        if self.branching < 2:
-            raise ConfigError(f"vocabulary.branching: must be >= 2 (got {self.branching})")
-        if self.depth < 1:
-            raise ConfigError(f"vocabulary.depth: must be >= 1 (got {self.depth})")
-        if self.max_iterations < 1:
-            raise ConfigError(f"vocabulary.max_iterations: must be >= 1 (got {self.max_iterations})")
+        check_ranges(self, "vocabulary.")
 
 
 @dataclass
 class LoopDetectionConfig:
     """DBoW2-style loop detection thresholds (keyframe counts are database entries)."""
 
-    min_features: int = 50             # keyframes with fewer ORB features neither query nor count
-    min_gap_keyframes: int = 30        # candidates must be at least this many keyframes older
-    min_gap_seconds: float = 0.0       # ... and at least this many seconds older (when timed)
-    max_results: int = 50              # best raw-scored entries examined per query
-    min_prior_score: float = 0.005     # skip the query when s(current, previous kf) is below this
-    min_normalized_score: float = 0.6  # s(current, candidate) / s(current, previous kf) threshold
+    min_features: int = ranged(50, ge=0)  # keyframes with fewer ORB features neither query nor count
+    min_gap_keyframes: int = ranged(30, ge=0)  # candidates must be at least this many keyframes older
+    min_gap_seconds: float = ranged(0.0, ge=0)  # ... and at least this many seconds older (when timed)
+    max_results: int = ranged(50, ge=1)  # best raw-scored entries examined per query
+    min_prior_score: float = ranged(0.005, ge=0, le=1)  # skip the query when s(current, previous kf) is below this
+    min_normalized_score: float = ranged(0.6, ge=0)  # s(current, candidate) / s(current, previous kf) threshold
     # (DBoW2 uses 0.3; 0.6 gave precision 1.0 at recall 0.88-0.97 on held-out synthetic revisits)
-    island_max_gap: int = 3            # candidates at most this many keyframes apart form one island
-    min_consistent: int = 3            # consecutive queries with consistent islands to accept
-    consistency_max_gap: int = 5       # keyframes between islands of consecutive queries
+    island_max_gap: int = ranged(3, ge=0)  # candidates at most this many keyframes apart form one island
+    min_consistent: int = ranged(3, ge=1)  # consecutive queries with consistent islands to accept
+    consistency_max_gap: int = ranged(5, ge=0)  # keyframes between islands of consecutive queries
 
     def validate(self) -> None:
-        for name in ("min_gap_keyframes", "max_results", "island_max_gap", "min_consistent",
-                     "consistency_max_gap"):
-            if getattr(self, name) < (1 if name in ("max_results", "min_consistent") else 0):
-                raise ConfigError(f"detection.{name}: out of range (got {getattr(self, name)})")
-        if self.min_prior_score < 0.0 or self.min_normalized_score < 0.0:
-            raise ConfigError("detection.min_prior_score / min_normalized_score: must be >= 0")
+        check_ranges(self, "detection.")
 
 
 @dataclass

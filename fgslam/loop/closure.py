@@ -66,6 +66,7 @@ from typing import Literal, Sequence
 import numpy as np
 import torch
 
+from ..config import check_ranges, ranged
 from ..errors import ConfigError, DataError, OptimizationError
 from ..lie import Sim3, sim3_matrix_parts
 from .bow import BowConfig, KeyframeFeatures, PlaceRecognizer
@@ -85,26 +86,18 @@ _NO_MATCH = np.iinfo(np.int32).max  # Hamming distance of a missing (masked-out)
 class VerificationConfig:
     """Geometric verification of a retrieved keyframe pair."""
 
-    max_hamming: int = 64                 # ORB match: largest Hamming distance (of 256 bits)
-    ratio: float = 0.8                    # Lowe ratio test: best < ratio x second best
-    min_matches: int = 40                 # ORB matches q <-> c needed before triangulation
-    max_epipolar_px: float = 2.0          # neighbour matches: distance to the epipolar line (pixels)
-    min_parallax_deg: float = 2.0         # triangulation: smallest angle between the two rays
-    max_reprojection_px: float = 2.0      # triangulation: largest reprojection error in either view
-    min_triangulated: int = 30            # matched features with a 3-D point needed per side
-    max_neighbours: int = 4               # neighbours tried per keyframe for triangulation
-    min_points: int = 25                  # q <-> c matches with a 3-D point on both sides
+    max_hamming: int = ranged(64, ge=1, le=256)  # ORB match: largest Hamming distance (of 256 bits)
+    ratio: float = ranged(0.8, gt=0, le=1)  # Lowe ratio test: best < ratio x second best
+    min_matches: int = ranged(40, ge=1)  # ORB matches q <-> c needed before triangulation
+    max_epipolar_px: float = ranged(2.0, gt=0)  # neighbour matches: distance to the epipolar line (pixels)
+    min_parallax_deg: float = ranged(2.0, gt=0, lt=180)  # triangulation: smallest angle between the two rays
+    max_reprojection_px: float = ranged(2.0, gt=0)  # triangulation: largest reprojection error in either view
+    min_triangulated: int = ranged(30, ge=1)  # matched features with a 3-D point needed per side
+    max_neighbours: int = ranged(4, ge=1)  # neighbours tried per keyframe for triangulation
+    min_points: int = ranged(25, ge=1)  # q <-> c matches with a 3-D point on both sides
     ransac: Sim3RansacConfig = field(default_factory=Sim3RansacConfig)
 
     def validate(self) -> None:
-        if not 0 < self.ratio <= 1:
-            raise ConfigError(f"verification.ratio={self.ratio!r}: must be in (0, 1]")
-        for name in ("max_hamming", "min_matches", "min_triangulated", "max_neighbours", "min_points"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"verification.{name}={getattr(self, name)!r}: must be >= 1")
-        for name in ("max_epipolar_px", "min_parallax_deg", "max_reprojection_px"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"verification.{name}={getattr(self, name)!r}: must be > 0")
         self.ransac.validate()
 
 
@@ -112,21 +105,13 @@ class VerificationConfig:
 class RelocalizationConfig:
     """Relocalisation of a lost frame against the keyframe database (stricter than loop detection)."""
 
-    min_score: float = 0.05               # raw DBoW2 L1 score a candidate needs
-    max_candidates: int = 5               # best-scored keyframes verified at most
-    min_matches: int = 50                 # ORB matches image <-> keyframe
-    min_inliers: int = 40                 # PnP RANSAC inliers
-    pnp_reprojection_px: float = 3.0      # PnP RANSAC inlier threshold
-    pnp_iterations: int = 200             # PnP RANSAC hypotheses
-    pnp_confidence: float = 0.999         # PnP RANSAC early-stop confidence
-
-    def validate(self) -> None:
-        if not self.min_score >= 0 or self.max_candidates < 1:
-            raise ConfigError("relocalization.min_score must be >= 0 and max_candidates >= 1")
-        if self.min_matches < 4 or self.min_inliers < 4 or self.pnp_iterations < 1:
-            raise ConfigError("relocalization.min_matches / min_inliers must be >= 4, pnp_iterations >= 1")
-        if not self.pnp_reprojection_px > 0 or not 0 < self.pnp_confidence < 1:
-            raise ConfigError("relocalization.pnp_reprojection_px must be > 0 and pnp_confidence in (0, 1)")
+    min_score: float = ranged(0.05, ge=0, le=1)  # raw DBoW2 L1 score a candidate needs
+    max_candidates: int = ranged(5, ge=1)  # best-scored keyframes verified at most
+    min_matches: int = ranged(50, ge=4)  # ORB matches image <-> keyframe
+    min_inliers: int = ranged(40, ge=4)  # PnP RANSAC inliers
+    pnp_reprojection_px: float = ranged(3.0, gt=0)  # PnP RANSAC inlier threshold
+    pnp_iterations: int = ranged(200, ge=1)  # PnP RANSAC hypotheses
+    pnp_confidence: float = ranged(0.999, gt=0, lt=1)  # PnP RANSAC early-stop confidence
 
 
 @dataclass
@@ -140,22 +125,19 @@ class LoopClosureConfig:
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     relocalization: RelocalizationConfig = field(default_factory=RelocalizationConfig)
     run_in_thread: bool = True            # worker thread; False: synchronous (tests, determinism)
-    max_candidates: int = 2               # accepted BoW candidates verified per query keyframe
+    max_candidates: int = ranged(2, ge=1)  # accepted BoW candidates verified per query keyframe
     fold_scale: bool = True               # frontend folds the scale correction into depths
-    max_pose_graph_retries: int = 3       # recomputations when a correction was applied mid-solve
+    max_pose_graph_retries: int = ranged(3, ge=1)  # recomputations when a correction was applied mid-solve
     # Pose-graph throttle (module docstring): once a loop cluster has a correction, its further loops
     # are solved at most every solve_every described keyframes (1: after every verified loop) ...
-    solve_every: int = 5
-    cluster_gap: int = 10                 # ... a loop > this many keyframes after the last one: new cluster
+    solve_every: int = ranged(5, ge=1)
+    cluster_gap: int = ranged(10, ge=1)  # ... a loop > this many keyframes after the last one: new cluster
 
     def validate(self) -> None:
         if self.mode not in LOOP_MODES:
             raise ConfigError(f"loop_closure.mode={self.mode!r}: expected one of {', '.join(LOOP_MODES)}")
-        for name in ("max_candidates", "max_pose_graph_retries", "solve_every", "cluster_gap"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"loop_closure.{name}={getattr(self, name)!r}: must be >= 1")
+        check_ranges(self, "loop_closure.")
         self.verification.validate()
-        self.relocalization.validate()
         self.pose_graph.validate()
 
     @property

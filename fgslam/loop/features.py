@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..config import check_ranges, ranged
 from ..errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
@@ -29,25 +30,18 @@ DESCRIPTOR_BYTES = 32  # ORB rBRIEF: 256 bits
 class OrbConfig:
     """ORB extraction tunables."""
 
-    n_features: int = 1000          # keypoints kept per image (upper bound)
-    scale_factor: float = 1.2       # pyramid decimation ratio between levels
-    n_levels: int = 8               # pyramid levels
-    fast_threshold: int = 20        # FAST corner intensity threshold (grey levels)
-    edge_threshold: int = 31        # border (pixels) without keypoints; >= patch_size for descriptors
-    patch_size: int = 31            # rBRIEF patch size (pixels at the keypoint's level)
-    grid_rows: int = 4              # spreading grid; 1 x 1 disables spreading
-    grid_cols: int = 8
-    oversample: float = 3.0         # ORB detects this many times n_features before spreading
+    n_features: int = ranged(1000, ge=1)  # keypoints kept per image (upper bound)
+    scale_factor: float = ranged(1.2, gt=1)  # pyramid decimation ratio between levels
+    n_levels: int = ranged(8, ge=1)  # pyramid levels
+    fast_threshold: int = ranged(20, ge=0, le=255)  # FAST corner intensity threshold (grey levels)
+    edge_threshold: int = ranged(31, ge=0)  # border (pixels) without keypoints; >= patch_size for descriptors
+    patch_size: int = ranged(31, ge=2)  # rBRIEF patch size (pixels at the keypoint's level)
+    grid_rows: int = ranged(4, ge=1)  # spreading grid; 1 x 1 disables spreading
+    grid_cols: int = ranged(8, ge=1)
+    oversample: float = ranged(3.0, ge=1)  # ORB detects this many times n_features before spreading
 
     def validate(self) -> None:
-        if self.n_features < 1:
-            raise ConfigError(f"orb.n_features: must be >= 1 (got {self.n_features})")
-        if not self.scale_factor > 1.0:
-            raise ConfigError(f"orb.scale_factor: must be > 1 (got {self.scale_factor})")
-        if self.n_levels < 1 or self.grid_rows < 1 or self.grid_cols < 1:
-            raise ConfigError("orb.n_levels, orb.grid_rows, orb.grid_cols: must be >= 1")
-        if self.oversample < 1.0:
-            raise ConfigError(f"orb.oversample: must be >= 1 (got {self.oversample})")
+        check_ranges(self, "orb.")
         if self.edge_threshold < self.patch_size // 2 + 1:
             raise ConfigError(f"orb.edge_threshold ({self.edge_threshold}) must be > patch_size / 2 "
                               f"({self.patch_size / 2})")

@@ -66,6 +66,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from ..config import check_ranges, ranged
 from ..errors import ConfigError, OptimizationError
 from ..factors.sim3 import SIM3_DOF, make_between_factors, sim3_between_residual
 from ..lie import Sim3
@@ -77,65 +78,45 @@ logger = logging.getLogger(__name__)
 class PoseGraphConfig:
     """Tunables of :func:`optimize_sim3_pose_graph`. Sigmas are in tangent order [w(3), u(3), log s]."""
 
-    smooth_sigmas: tuple[float, ...] = (0.002, 0.002, 0.002, 0.02, 0.02, 0.02, 0.002)  # consecutive keyframes
-    loop_sigmas: tuple[float, ...] = (0.01, 0.01, 0.01, 0.1, 0.1, 0.1, 0.01)  # loop terms (rad, local units, log s)
+    smooth_sigmas: tuple[float, ...] = ranged((0.002, 0.002, 0.002, 0.02, 0.02, 0.02, 0.002), gt=0)  # consecutive keyframes
+    loop_sigmas: tuple[float, ...] = ranged((0.01, 0.01, 0.01, 0.1, 0.1, 0.1, 0.01), gt=0)  # loop terms (rad, local units, log s)
     # Scale each smoothness sigma by sqrt(step / median step) (step = distance between consecutive
     # keyframes): drift accrues per distance travelled, so the correction is spread per distance.
     smooth_sigmas_per_distance: bool = True
-    min_step_fraction: float = 0.1  # floor of step / median step in that scaling (standstill)
-    prior_sigma: float = 1e-6  # gauge prior on keyframe 0, every tangent component
+    min_step_fraction: float = ranged(0.1, gt=0, le=1)  # floor of step / median step in that scaling (standstill)
+    prior_sigma: float = ranged(1e-6, gt=0)  # gauge prior on keyframe 0, every tangent component
     robust_kernel: Literal["none", "huber", "cauchy"] = "huber"  # m-estimator on the loop terms
-    robust_param: float = 1.345  # kernel threshold in whitened units (Huber 95% efficiency constant)
-    max_iterations: int = 100  # LM iterations per solve
-    relative_error_tol: float = 1e-6  # LM stops when the relative cost decrease falls below this
-    absolute_error_tol: float = 1e-9  # LM stops when the absolute cost decrease falls below this
-    consistency_probability: float = 0.9999  # chi2(7) quantile above which a loop is inconsistent
-    max_rounds: int = 8  # solves at most (reject inconsistent loops, re-admit consistent ones, re-solve)
+    robust_param: float = ranged(1.345, gt=0)  # kernel threshold in whitened units (Huber 95% efficiency constant)
+    max_iterations: int = ranged(100, ge=1)  # LM iterations per solve
+    relative_error_tol: float = ranged(1e-6, ge=0)  # LM stops when the relative cost decrease falls below this
+    absolute_error_tol: float = ranged(1e-9, ge=0)  # LM stops when the absolute cost decrease falls below this
+    consistency_probability: float = ranged(0.9999, gt=0, lt=1)  # chi2(7) quantile above which a loop is inconsistent
+    max_rounds: int = ranged(8, ge=1)  # solves at most (reject inconsistent loops, re-admit consistent ones, re-solve)
     # Per round, reject only the inconsistent loops whose chi2 is >= this x the round's largest one
     # (worst first: a false loop distorts its neighbourhood, so true loops there look bad until it goes).
-    rejection_ratio: float = 0.1
-    max_correction_rotation_deg: float = 45.0  # plausibility gate: rotation a loop may correct
-    max_correction_translation_fraction: float = 0.3  # gate: position change / path length between i and j
-    max_correction_log_scale: float = 0.7  # gate: |log| of the scale change a loop may ask for (~x2)
+    rejection_ratio: float = ranged(0.1, ge=0, le=1)
+    max_correction_rotation_deg: float = ranged(45.0, gt=0, le=180)  # plausibility gate: rotation a loop may correct
+    max_correction_translation_fraction: float = ranged(0.3, gt=0)  # gate: position change / path length between i and j
+    max_correction_log_scale: float = ranged(0.7, gt=0)  # gate: |log| of the scale change a loop may ask for (~x2)
     # Pairwise consistency: a loop needs this many consistent partner loops (0 disables the check).
-    min_pairwise_support: int = 1
-    pairwise_window: int = 30  # partners: both ends within this many keyframes of the loop's ends
-    pairwise_sigma_multiple: float = 5.0  # cycle tolerance, in loop sigmas (x sqrt 2: two loops)
-    pairwise_drift_fraction: float = 0.05  # plus this fraction of the odometry path inside the cycle
-    pairwise_drift_rotation_deg: float = 2.0  # plus this rotation (odometry drift inside the cycle)
-    max_readmission_trials: int = 3  # rejected loop groups tried again on the final accepted set
+    min_pairwise_support: int = ranged(1, ge=0)
+    pairwise_window: int = ranged(30, ge=1)  # partners: both ends within this many keyframes of the loop's ends
+    pairwise_sigma_multiple: float = ranged(5.0, ge=0)  # cycle tolerance, in loop sigmas (x sqrt 2: two loops)
+    pairwise_drift_fraction: float = ranged(0.05, ge=0)  # plus this fraction of the odometry path inside the cycle
+    pairwise_drift_rotation_deg: float = ranged(2.0, ge=0, le=180)  # plus this rotation (odometry drift inside the cycle)
+    max_readmission_trials: int = ranged(3, ge=0)  # rejected loop groups tried again on the final accepted set
     l2_first_solve: bool = True  # first solve without kernel (every loop is a large residual at the start)
-    l2_max_iterations: int = 10  # LM iterations of that warm-start solve
-    hold_scale_sigma: float = 1e-9  # hold_scale: sigma of each keyframe's log-scale prior
+    l2_max_iterations: int = ranged(10, ge=1)  # LM iterations of that warm-start solve
+    hold_scale_sigma: float = ranged(1e-9, gt=0)  # hold_scale: sigma of each keyframe's log-scale prior
 
     def validate(self) -> None:
         """Raise ConfigError naming the first invalid field."""
+        check_ranges(self, "PoseGraphConfig.")
         for name in ("smooth_sigmas", "loop_sigmas"):
-            sig = np.asarray(getattr(self, name), dtype=np.float64)
-            if sig.shape != (SIM3_DOF,) or not (np.isfinite(sig).all() and (sig > 0).all()):
+            if len(getattr(self, name)) != SIM3_DOF:
                 raise ConfigError(f"PoseGraphConfig.{name}={getattr(self, name)!r}: need 7 finite sigmas > 0")
         if self.robust_kernel not in ("none", "huber", "cauchy"):
             raise ConfigError(f"PoseGraphConfig.robust_kernel={self.robust_kernel!r}: expected none, huber or cauchy")
-        positive = ("prior_sigma", "hold_scale_sigma", "robust_param", "min_step_fraction",
-                    "max_correction_rotation_deg", "max_correction_translation_fraction", "max_correction_log_scale")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"PoseGraphConfig.{name}={getattr(self, name)!r}: must be > 0")
-        if not 0 <= self.rejection_ratio <= 1:
-            raise ConfigError(f"PoseGraphConfig.rejection_ratio={self.rejection_ratio!r}: must be in [0, 1]")
-        if not 0 < self.consistency_probability < 1:
-            raise ConfigError(f"PoseGraphConfig.consistency_probability={self.consistency_probability!r}: in (0, 1)")
-        if self.max_readmission_trials < 0:
-            raise ConfigError("PoseGraphConfig.max_readmission_trials must be >= 0")
-        if self.min_pairwise_support < 0 or self.pairwise_window < 1:
-            raise ConfigError("PoseGraphConfig.min_pairwise_support must be >= 0 and pairwise_window >= 1")
-        for name in ("pairwise_sigma_multiple", "pairwise_drift_fraction", "pairwise_drift_rotation_deg"):
-            if not getattr(self, name) >= 0:
-                raise ConfigError(f"PoseGraphConfig.{name}={getattr(self, name)!r}: must be >= 0")
-        if self.max_iterations < 1 or self.max_rounds < 1 or self.l2_max_iterations < 1:
-            raise ConfigError("PoseGraphConfig.max_iterations, l2_max_iterations and max_rounds must be >= 1")
-        if self.relative_error_tol < 0 or self.absolute_error_tol < 0:
-            raise ConfigError("PoseGraphConfig error tolerances must be >= 0")
 
 
 @dataclass

@@ -36,6 +36,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from ..config import check_ranges, ranged
 from ..errors import ConfigError, EvaluationError
 from ..eval import umeyama
 from ..lie import Sim3
@@ -50,31 +51,20 @@ class Sim3RansacConfig:
     """Tunables of :func:`estimate_sim3_ransac`."""
 
     error_metric: Literal["relative", "absolute"] = "relative"  # see the module docstring
-    inlier_threshold: float = 0.05  # inlier when the 3-D error (relative: fraction of point range) is below
-    min_inliers: int = 20  # fewer inliers than this: no solution
-    max_iterations: int = 500  # RANSAC hypotheses at most (degenerate samples count)
-    confidence: float = 0.999  # adaptive stop: P(at least one all-inlier sample)
-    min_sample_spread: float = 1e-3  # coincident sample: largest singular value < this x median range
-    min_sample_collinearity: float = 0.05  # collinear sample: sigma_2 / sigma_1 below this
-    refine_iterations: int = 3  # re-fit on all inliers and re-classify, at most this many times
-    seed: int = 0  # random generator seed (reproducible sampling)
+    inlier_threshold: float = ranged(0.05, gt=0)  # inlier when the 3-D error (relative: fraction of point range) is below
+    min_inliers: int = ranged(20, ge=MINIMAL_SAMPLE)  # fewer inliers than this: no solution
+    max_iterations: int = ranged(500, ge=1)  # RANSAC hypotheses at most (degenerate samples count)
+    confidence: float = ranged(0.999, gt=0, lt=1)  # adaptive stop: P(at least one all-inlier sample)
+    min_sample_spread: float = ranged(1e-3, ge=0)  # coincident sample: largest singular value < this x median range
+    min_sample_collinearity: float = ranged(0.05, ge=0, lt=1)  # collinear sample: sigma_2 / sigma_1 below this
+    refine_iterations: int = ranged(3, ge=0)  # re-fit on all inliers and re-classify, at most this many times
+    seed: int = ranged(0, ge=0)  # random generator seed (reproducible sampling)
 
     def validate(self) -> None:
         """Raise ConfigError naming the first invalid field."""
         if self.error_metric not in ("relative", "absolute"):
             raise ConfigError(f"Sim3RansacConfig.error_metric={self.error_metric!r}: expected relative or absolute")
-        if not self.inlier_threshold > 0:
-            raise ConfigError(f"Sim3RansacConfig.inlier_threshold={self.inlier_threshold!r}: must be > 0")
-        if self.min_inliers < MINIMAL_SAMPLE:
-            raise ConfigError(f"Sim3RansacConfig.min_inliers={self.min_inliers!r}: must be >= {MINIMAL_SAMPLE}")
-        if self.max_iterations < 1:
-            raise ConfigError(f"Sim3RansacConfig.max_iterations={self.max_iterations!r}: must be >= 1")
-        if not 0 < self.confidence < 1:
-            raise ConfigError(f"Sim3RansacConfig.confidence={self.confidence!r}: must be in (0, 1)")
-        if not self.min_sample_spread >= 0 or not 0 <= self.min_sample_collinearity < 1:
-            raise ConfigError("Sim3RansacConfig.min_sample_spread must be >= 0 and min_sample_collinearity in [0, 1)")
-        if self.refine_iterations < 0:
-            raise ConfigError(f"Sim3RansacConfig.refine_iterations={self.refine_iterations!r}: must be >= 0")
+        check_ranges(self, "Sim3RansacConfig.")
 
 
 @dataclass

@@ -235,8 +235,8 @@ class PatchFrontend(PatchLoopClosure, Frontend):
                 raise ConfigError("sensor mode stereo needs a calibration with a right camera and T_CLCR")
             self.K_right = torch.as_tensor(np.asarray(calibration.right.K, dtype=np.float64))
             self.T_CRCL = np.linalg.inv(np.asarray(calibration.T_CLCR, dtype=np.float64))
-        half = (self.config.graph.patch_size * self.config.graph.patch_stride) // 2 + 1
-        self._border = max(self.config.graph.border, half)
+        self.config.graph.check_image(self.width, self.height)  # before the first frame: the border must leave room
+        self._border = self.config.graph.effective_border()
 
     def _key(self, fid: int) -> int:
         """gtsam key of graph frame ``fid`` (``fgslam.map.pose_key``), cached."""

@@ -31,6 +31,7 @@ from typing import Iterator, NamedTuple, Optional
 
 import numpy as np
 
+from ...config import check_ranges, ranged
 from ...errors import ConfigError, DataError
 from ..calibration import Calibration, Undistorter
 from ..frame import Frame, FrameReadError, ImuSamples
@@ -45,15 +46,16 @@ NS_PER_S = 1_000_000_000  # nanoseconds per second (EuRoC timestamps are integer
 class DatasetConfig:
     """How a dataset is opened (all loaders). Loadable with ``fgslam.config.load_config``."""
 
-    start: int = 0  # first raw frame index used
-    end: Optional[int] = None  # one past the last raw frame index used (None: to the end)
-    stride: int = 1  # use every stride-th raw frame
+    start: int = ranged(0, ge=0)  # first raw frame index used
+    end: Optional[int] = ranged(None, ge=1)  # one past the last raw frame index used (None: to the end)
+    stride: int = ranged(1, ge=1)  # use every stride-th raw frame
     rectify_stereo: bool = True  # rectify stereo pairs (else undistort each camera on its own)
-    undistort_alpha: float = 0.0  # 0: output has only valid pixels; 1: keeps all source pixels
-    resize_scale: float = 1.0  # scale factor of the output image (ignored when resize_width/height set)
-    resize_width: int = 0  # output width before cropping (0: from resize_height/aspect or scale)
-    resize_height: int = 0  # output height before cropping (0: from resize_width/aspect or scale)
-    crop_multiple: int = 8  # centre-crop output to multiples of this (network frontends need 8); <=1: off
+    undistort_alpha: float = ranged(0.0, ge=0, le=1)  # 0: output has only valid pixels; 1: keeps all source pixels
+    resize_scale: float = ranged(1.0, ge=0.05, le=4)  # scale factor of the output image (ignored when resize_width/height set)
+    resize_width: int = ranged(0, ge=0)  # output width before cropping (0: from resize_height/aspect or scale)
+    resize_height: int = ranged(0, ge=0)  # output height before cropping (0: from resize_width/aspect or scale)
+    crop_multiple: int = ranged(8, ge=0)  # centre-crop output to multiples of this (network frontends need 8); 0 or 1: off
+    min_image_side: int = ranged(32, ge=8)  # a SLAM run needs output images (resized, cropped) at least this many px a side
     load_rgb: bool = True  # also return the RGB image of colour sources
     load_right: bool = True  # read the right image of stereo sources
     load_depth: bool = True  # read depth of RGB-D sources
@@ -62,31 +64,19 @@ class DatasetConfig:
     groundtruth_file: Optional[str] = None  # ground-truth file overriding the default location
     tum_camera: Optional[str] = None  # fr1|fr2|fr3 for TUM RGB-D (None: from the folder name, else fr1)
     sequence: Optional[str] = None  # 7-Scenes sequence folder (None: the first seq-NN)
-    association_max_dt: float = 0.02  # s, TUM rgb/depth association (the benchmark's associate.py)
-    stereo_max_dt: float = 0.001  # s, EuRoC cam0/cam1/depth0 timestamp matching
-    gt_max_gap: float = 0.1  # s, largest ground-truth sample gap a frame pose is interpolated across
-    gt_snap_dt: float = 0.001  # s, a frame this close outside the ground-truth time range snaps to its end
-    max_skipped_fraction: float = 0.1  # iteration fails when more corrupt frames than this fraction
-    default_rate_hz: float = 30.0  # frame rate of image folders without timestamps.txt or rate_hz
+    association_max_dt: float = ranged(0.02, gt=0)  # s, TUM rgb/depth association (the benchmark's associate.py)
+    stereo_max_dt: float = ranged(0.001, gt=0)  # s, EuRoC cam0/cam1/depth0 timestamp matching
+    gt_max_gap: float = ranged(0.1, gt=0)  # s, largest ground-truth sample gap a frame pose is interpolated across
+    gt_snap_dt: float = ranged(0.001, gt=0)  # s, a frame this close outside the ground-truth time range snaps to its end
+    max_skipped_fraction: float = ranged(0.1, ge=0, lt=1)  # iteration fails when more corrupt frames than this fraction
+    default_rate_hz: float = ranged(30.0, gt=0)  # frame rate of image folders without timestamps.txt or rate_hz
 
     def validate(self) -> None:
-        if self.start < 0:
-            raise ConfigError(f"start must be >= 0, got {self.start}")
+        check_ranges(self)
         if self.end is not None and self.end <= self.start:
             raise ConfigError(f"end ({self.end}) must be > start ({self.start})")
-        if self.stride < 1:
-            raise ConfigError(f"stride must be >= 1, got {self.stride}")
-        if self.resize_scale <= 0 or self.resize_width < 0 or self.resize_height < 0:
-            raise ConfigError("resize_scale must be > 0 and resize_width/height >= 0")
-        if not 0.0 <= self.undistort_alpha <= 1.0:
-            raise ConfigError(f"undistort_alpha must be in [0, 1], got {self.undistort_alpha}")
         if self.tum_camera is not None and self.tum_camera not in ("fr1", "fr2", "fr3"):
             raise ConfigError(f"tum_camera must be fr1, fr2 or fr3, got {self.tum_camera!r}")
-        for name in ("association_max_dt", "stereo_max_dt", "gt_max_gap", "gt_snap_dt", "default_rate_hz"):
-            if getattr(self, name) <= 0:
-                raise ConfigError(f"{name} must be > 0")
-        if not 0.0 <= self.max_skipped_fraction < 1.0:
-            raise ConfigError("max_skipped_fraction must be in [0, 1)")
 
     def output_size(self, width: int, height: int) -> tuple[int, int]:
         """Output size before cropping for a raw ``width x height`` image."""

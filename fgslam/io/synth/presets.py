@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ...config import check_ranges, ranged
 from ...errors import ConfigError
 from .imu import ImuConfig
 from .render import RenderConfig
@@ -50,79 +51,79 @@ STYLE_WALL, STYLE_GROUND, STYLE_OBJECT = 0, 1, 2
 class CameraConfig:
     """Rectified stereo pair (same intrinsics) and its mounting on the body (IMU) frame."""
 
-    width: int = 640
-    height: int = 480
-    hfov_deg: float = 90.0              # horizontal field of view; fx = fy = (width / 2) / tan(hfov / 2)
-    rate_hz: float = 20.0
-    baseline: float = 0.11              # metres; cam1 sits at +baseline along the x axis of cam0
-    mount_rpy_deg: list[float] = field(default_factory=lambda: [0.8, -1.5, 1.2])  # small rotation
+    width: int = ranged(640, ge=8)
+    height: int = ranged(480, ge=8)
+    hfov_deg: float = ranged(90.0, gt=0, lt=170)  # horizontal field of view; fx = fy = (width / 2) / tan(hfov / 2)
+    rate_hz: float = ranged(20.0, gt=0)
+    baseline: float = ranged(0.11, gt=0)  # metres; cam1 sits at +baseline along the x axis of cam0
+    mount_rpy_deg: list[float] = ranged(default_factory=lambda: [0.8, -1.5, 1.2], ge=-180, le=180)  # small rotation
     # (roll, pitch, yaw about the camera x, y, z axes) applied after the nominal forward-looking mount
-    t_BS: list[float] = field(default_factory=lambda: [0.06, -0.02, 0.03])  # cam0 origin in body (m)
+    t_BS: list[float] = ranged(default_factory=lambda: [0.06, -0.02, 0.03])  # cam0 origin in body (m)
     colour: bool = False                # write RGB PNGs (per-surface tints) instead of grey
-    depth_scale: float = 1000.0         # depth PNG units per metre (0 = invalid, > 65535 -> 0)
+    depth_scale: float = ranged(1000.0, gt=0)  # depth PNG units per metre (0 = invalid, > 65535 -> 0)
 
 
 @dataclass
 class RoomConfig:
     """room-loop scene and motion."""
 
-    size: list[float] = field(default_factory=lambda: [8.0, 6.0, 3.0])  # room x, y, z extents (m)
-    n_boxes: int = 10                   # furniture boxes
-    box_size_range: list[float] = field(default_factory=lambda: [0.3, 1.4])  # horizontal sizes
-    box_height_range: list[float] = field(default_factory=lambda: [0.3, 2.0])
-    path_radii: list[float] = field(default_factory=lambda: [1.3, 0.9])  # ellipse of the path (m)
-    path_clearance: float = 0.9         # minimum gap between the path ellipse and furniture (m)
-    height: float = 1.4                 # mean body height (m)
-    loop_duration_s: float = 20.0
-    jitter: float = 1.0                 # scale of the hand-held wobble (0: smooth ellipse + turn)
-    wall_density: float = 160.0         # texels per metre
-    box_density: float = 200.0
+    size: list[float] = ranged(default_factory=lambda: [8.0, 6.0, 3.0], gt=0)  # room x, y, z extents (m)
+    n_boxes: int = ranged(10, ge=0)  # furniture boxes
+    box_size_range: list[float] = ranged(default_factory=lambda: [0.3, 1.4], gt=0)  # horizontal sizes
+    box_height_range: list[float] = ranged(default_factory=lambda: [0.3, 2.0], gt=0)
+    path_radii: list[float] = ranged(default_factory=lambda: [1.3, 0.9], gt=0)  # ellipse of the path (m)
+    path_clearance: float = ranged(0.9, ge=0)  # minimum gap between the path ellipse and furniture (m)
+    height: float = ranged(1.4, gt=0)  # mean body height (m)
+    loop_duration_s: float = ranged(20.0, gt=0)
+    jitter: float = ranged(1.0, ge=0)  # scale of the hand-held wobble (0: smooth ellipse + turn)
+    wall_density: float = ranged(160.0, gt=0)  # texels per metre
+    box_density: float = ranged(200.0, gt=0)
 
 
 @dataclass
 class StreetConfig:
     """street-loop scene and motion."""
 
-    half_size: list[float] = field(default_factory=lambda: [100.0, 60.0])  # road centre-line box (m)
-    corner_radius: float = 20.0
-    harmonics: int = 40                 # Fourier harmonics of the road centre line
-    loop_duration_s: float = 100.0
-    jitter: float = 1.0                 # scale of the body bounce / sway
-    camera_height: float = 1.6          # body height above ground (m)
-    road_band: float = 11.0             # half-width of the high-resolution ground band (m)
-    ground_tile: float = 10.0           # size of the ground texture tiles (m)
-    ground_density: float = 24.0
-    far_ground_density: float = 2.0
-    setback: float = 9.0                # facade distance from the road centre line (m)
-    building_width_range: list[float] = field(default_factory=lambda: [10.0, 24.0])
-    building_depth_range: list[float] = field(default_factory=lambda: [8.0, 14.0])
-    building_height_range: list[float] = field(default_factory=lambda: [6.0, 24.0])
-    building_gap_range: list[float] = field(default_factory=lambda: [0.0, 5.0])
-    facade_density: float = 28.0
-    side_density: float = 12.0          # building faces perpendicular to the road
-    back_density: float = 2.0           # faces that never face the road
-    parked_car_prob: float = 0.35       # probability of a parked car per 8 m of kerb
-    kerb_offset: float = 4.8            # parked car centre distance from the centre line (m)
-    pole_spacing: float = 25.0          # mean distance between poles (m)
-    object_density: float = 48.0
+    half_size: list[float] = ranged(default_factory=lambda: [100.0, 60.0], gt=0)  # road centre-line box (m)
+    corner_radius: float = ranged(20.0, gt=0)
+    harmonics: int = ranged(40, ge=1)  # Fourier harmonics of the road centre line
+    loop_duration_s: float = ranged(100.0, gt=0)
+    jitter: float = ranged(1.0, ge=0)  # scale of the body bounce / sway
+    camera_height: float = ranged(1.6, gt=0)  # body height above ground (m)
+    road_band: float = ranged(11.0, gt=0)  # half-width of the high-resolution ground band (m)
+    ground_tile: float = ranged(10.0, gt=0)  # size of the ground texture tiles (m)
+    ground_density: float = ranged(24.0, gt=0)
+    far_ground_density: float = ranged(2.0, gt=0)
+    setback: float = ranged(9.0, gt=0)  # facade distance from the road centre line (m)
+    building_width_range: list[float] = ranged(default_factory=lambda: [10.0, 24.0], gt=0)
+    building_depth_range: list[float] = ranged(default_factory=lambda: [8.0, 14.0], gt=0)
+    building_height_range: list[float] = ranged(default_factory=lambda: [6.0, 24.0], gt=0)
+    building_gap_range: list[float] = ranged(default_factory=lambda: [0.0, 5.0], ge=0)
+    facade_density: float = ranged(28.0, gt=0)
+    side_density: float = ranged(12.0, gt=0)  # building faces perpendicular to the road
+    back_density: float = ranged(2.0, gt=0)  # faces that never face the road
+    parked_car_prob: float = ranged(0.35, ge=0, le=1)  # probability of a parked car per 8 m of kerb
+    kerb_offset: float = ranged(4.8, ge=0)  # parked car centre distance from the centre line (m)
+    pole_spacing: float = ranged(25.0, gt=0)  # mean distance between poles (m)
+    object_density: float = ranged(48.0, gt=0)
 
 
 @dataclass
 class OrbitConfig:
     """orbit scene and motion."""
 
-    hall_size: list[float] = field(default_factory=lambda: [16.0, 16.0, 6.0])
-    n_boxes: int = 8
-    cluster_radius: float = 1.0         # box centres within this radius of the origin (m)
-    box_size_range: list[float] = field(default_factory=lambda: [0.3, 0.9])  # box sides (m)
-    radius: float = 3.5                 # orbit radius (m)
-    height: float = 1.5                 # mean camera height (m)
-    target_height: float = 0.5          # height of the looked-at point (m)
-    loop_duration_s: float = 15.0
-    jitter: float = 1.0                 # scale of the height / pitch oscillation
-    wall_density: float = 40.0
-    floor_density: float = 100.0
-    box_density: float = 200.0
+    hall_size: list[float] = ranged(default_factory=lambda: [16.0, 16.0, 6.0], gt=0)
+    n_boxes: int = ranged(8, ge=0)
+    cluster_radius: float = ranged(1.0, ge=0)  # box centres within this radius of the origin (m)
+    box_size_range: list[float] = ranged(default_factory=lambda: [0.3, 0.9], gt=0)  # box sides (m)
+    radius: float = ranged(3.5, gt=0)  # orbit radius (m)
+    height: float = ranged(1.5, gt=0)  # mean camera height (m)
+    target_height: float = ranged(0.5, ge=0)  # height of the looked-at point (m)
+    loop_duration_s: float = ranged(15.0, gt=0)
+    jitter: float = ranged(1.0, ge=0)  # scale of the height / pitch oscillation
+    wall_density: float = ranged(40.0, gt=0)
+    floor_density: float = ranged(100.0, gt=0)
+    box_density: float = ranged(200.0, gt=0)
 
 
 @dataclass
@@ -130,9 +131,9 @@ class SynthConfig:
     """Everything the generator needs; ``default_config(preset)`` gives the preset's defaults."""
 
     preset: str = "room-loop"
-    frames: int = 401                   # camera frames (default: one loop period + 1)
-    seed: int = 0
-    start_time_ns: int = 1_600_000_000_000_000_000  # timestamp of frame 0
+    frames: int = ranged(401, ge=1)  # camera frames (default: one loop period + 1)
+    seed: int = ranged(0, ge=0)
+    start_time_ns: int = ranged(1_600_000_000_000_000_000, ge=0)  # timestamp of frame 0
     camera: CameraConfig = field(default_factory=CameraConfig)
     imu: ImuConfig = field(default_factory=ImuConfig)
     texture: TextureConfig = field(default_factory=TextureConfig)
@@ -144,15 +145,10 @@ class SynthConfig:
     def validate(self) -> None:
         if self.preset not in PRESET_NAMES:
             raise ConfigError(f"preset: unknown preset '{self.preset}' (valid: {', '.join(PRESET_NAMES)})")
-        if self.frames < 1:
-            raise ConfigError(f"frames: must be >= 1 (got {self.frames})")
-        if self.camera.width < 8 or self.camera.height < 8:
-            raise ConfigError(f"camera: image size {self.camera.width}x{self.camera.height} is too small")
+        check_ranges(self)
         if 1e9 / self.camera.rate_hz != round(1e9 / self.camera.rate_hz) or \
                 1e9 / self.imu.rate_hz != round(1e9 / self.imu.rate_hz):
             raise ConfigError("camera.rate_hz / imu.rate_hz: periods must be whole nanoseconds")
-        if not 0 < self.camera.hfov_deg < 170:
-            raise ConfigError(f"camera.hfov_deg: must be in (0, 170) (got {self.camera.hfov_deg})")
 
     def loop_duration_s(self) -> float:
         return {"room-loop": self.room.loop_duration_s, "street-loop": self.street.loop_duration_s,

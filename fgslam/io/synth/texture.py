@@ -11,11 +11,12 @@ atlas; :class:`TextureAtlas` holds per (quad, level) offsets, shapes and texels 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from ...config import ranged
 from ...errors import ConfigError
 from .scene import SceneArrays
 
@@ -32,22 +33,22 @@ _NORMALISED_STD = 0.25  # standard deviation of a texture after normalisation (v
 class TextureConfig:
     """Tunables of the procedural textures (lengths in metres on the surface)."""
 
-    noise_cells_m: list[float] = field(default_factory=lambda: [1.6, 0.7, 0.3, 0.12, 0.05, 0.02])
-    noise_persistence: float = 0.75     # amplitude ratio between successive (finer) octaves
-    blobs_per_m2: float = 1.5           # random filled ellipses / rectangles per square metre
-    blob_size_m: tuple[float, float] = (0.04, 0.45)  # range of blob half-axes
-    lines_per_m2: float = 0.8           # random line segments per square metre
-    text_per_m2: float = 0.6            # random glyph strings per square metre
-    text_height_m: tuple[float, float] = (0.04, 0.25)  # range of glyph heights
-    contrast: float = 0.8               # final grey range fraction of [0, 255] before shading
-    light_dir_W: tuple[float, float, float] = (0.35, 0.55, 0.76)  # directional light (normalised)
-    ambient: float = 0.55               # shading = ambient + (1 - ambient) * max(0, n . l)
-    max_texture_side: int = 4096        # texels; the density of a quad is lowered to fit
-    max_levels: int = 7                 # mip levels at most (level 0 = full resolution)
-    min_level_side: int = 4             # stop the pyramid before a side gets smaller than this
-    colour_saturation: float = 0.35     # spread of per-quad RGB tints when colour is rendered
+    noise_cells_m: list[float] = ranged(default_factory=lambda: [1.6, 0.7, 0.3, 0.12, 0.05, 0.02], gt=0)
+    noise_persistence: float = ranged(0.75, gt=0, le=1)  # amplitude ratio between successive (finer) octaves
+    blobs_per_m2: float = ranged(1.5, ge=0)  # random filled ellipses / rectangles per square metre
+    blob_size_m: tuple[float, float] = ranged((0.04, 0.45), gt=0)  # range of blob half-axes
+    lines_per_m2: float = ranged(0.8, ge=0)  # random line segments per square metre
+    text_per_m2: float = ranged(0.6, ge=0)  # random glyph strings per square metre
+    text_height_m: tuple[float, float] = ranged((0.04, 0.25), gt=0)  # range of glyph heights
+    contrast: float = ranged(0.8, ge=0, le=1)  # final grey range fraction of [0, 255] before shading
+    light_dir_W: tuple[float, float, float] = ranged((0.35, 0.55, 0.76))  # directional light (normalised)
+    ambient: float = ranged(0.55, ge=0, le=1)  # shading = ambient + (1 - ambient) * max(0, n . l)
+    max_texture_side: int = ranged(4096, ge=1)  # texels; the density of a quad is lowered to fit
+    max_levels: int = ranged(7, ge=1)  # mip levels at most (level 0 = full resolution)
+    min_level_side: int = ranged(4, ge=1)  # stop the pyramid before a side gets smaller than this
+    colour_saturation: float = ranged(0.35, ge=0, le=1)  # spread of per-quad RGB tints when colour is rendered
     # multiplier of the mark counts (blobs, lines, text) per style: wall, ground, small object
-    style_mark_scale: list[float] = field(default_factory=lambda: [1.0, 1.0, 4.0])
+    style_mark_scale: list[float] = ranged(default_factory=lambda: [1.0, 1.0, 4.0], ge=0)
 
 
 @dataclass(frozen=True)
