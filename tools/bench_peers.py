@@ -93,6 +93,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--synth-dir", type=Path, default=Path(tempfile.gettempdir()) / "fgslam_bench_synth",
                    help="cache folder of the synthetic highway clip (reused when the scene is the same)")
     p.add_argument("--highway-frames", type=int, default=201, help="frames of the highway clip (10 Hz)")
+    p.add_argument("--highway-seed", type=int, default=0, help="scene layout / texture seed of the highway clip")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds after which one run is stopped")
     p.add_argument("--keep-outputs", type=Path, default=None, help="write every run's outputs under DIR")
     p.add_argument("-o", "--override", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -137,8 +138,8 @@ def highway_root(args: argparse.Namespace) -> Path:
 
     cam = default_config("highway").camera
     scene = DemoSceneConfig(preset="highway", frames=args.highway_frames, rate_hz=cam.rate_hz, width=cam.width,
-                            height=cam.height)
-    root = args.synth_dir / f"highway_{cam.width}x{cam.height}_{args.highway_frames}_{cam.rate_hz:g}hz"
+                            height=cam.height, seed=args.highway_seed)
+    root = args.synth_dir / f"highway_{cam.width}x{cam.height}_{args.highway_frames}_{cam.rate_hz:g}hz_seed{args.highway_seed}"
     render_scene(scene, root)
     return root
 
