@@ -212,6 +212,8 @@ def test_whole_run_with_fake_peer_and_fake_fgslam(bench, shared_data, tmp_path, 
     assert 0.25 < r["common"]["ate_fgslam_m"] < 0.31
     assert r["common"]["ate_orbslam3_m"] < 1e-6
     assert r["ratios"]["fps_fgslam_over_orbslam3"] == pytest.approx(19.0 / 9.5)
+    assert r["fgslam"]["frames_per_cpu_s"] == pytest.approx(20.0) and r["orbslam3"]["frames_per_cpu_s"] == 50.0
+    assert r["ratios"]["frames_per_cpu_s_fgslam_over_orbslam3"] == pytest.approx(0.4)
     assert r["ratios"]["ate_fgslam_over_orbslam3"] == pytest.approx(r["common"]["ate_fgslam_m"] / r["common"]["ate_orbslam3_m"])
     # the peer got a KITTI-layout view of the stored images, linked, with stamps from 0
     view = tmp_path / "out" / "kitti00_mono" / "peer_view"

@@ -19,7 +19,8 @@ times (``fgslam run PRESET``, one process each). Both trajectories are mapped to
 timestamps and evaluated by fgslam's evaluator against the same ground truth, with the same
 alignment (Sim(3) monocular, SE(3) RGB-D), over **only the frames both posed**, for every pair of
 runs; medians are reported, with each system's ATE over all its own posed frames, frames posed,
-frames/s (ORB-SLAM3's paced figure is capped at the camera rate), CPU seconds and the ratios
+frames/s (ORB-SLAM3's paced figure is capped at the camera rate), CPU seconds, frames per CPU
+second (all threads; less sensitive to a shared machine's load than frames/s) and the ratios
 fgslam / ORB-SLAM3 (ATE below 1 and frames/s above 1 favour fgslam). The machine may be shared:
 the load average is recorded around every run.
 
@@ -348,17 +349,22 @@ def compare(gt, align: str, max_time_diff: float, fg_runs: list[dict], peer_runs
         "path_m": _median(p["path_m"] for p in good),
         "pairs": pairs,
     }
+    def per_cpu(runs: list[dict]) -> Optional[float]:  # frames per CPU second: less sensitive to a shared machine
+        return _median(r["frames"] / r["cpu_s"] for r in runs if r.get("frames") and r.get("cpu_s"))
+
     fg_fps, pe_fps = _median(r.get("fps") for r in fg), _median(r.get("fps") for r in pe)
+    fg_cpu, pe_cpu = per_cpu(fg), per_cpu(pe)
     return {
-        "fgslam": {"posed": _median(r.get("posed") for r in fg), "fps": fg_fps,
+        "fgslam": {"posed": _median(r.get("posed") for r in fg), "fps": fg_fps, "frames_per_cpu_s": fg_cpu,
                    "cpu_s": _median(r.get("cpu_s") for r in fg), "ate_own_m": _median(r["ate_own_m"] for r in fg),
                    "runs": fg},
-        "orbslam3": {"posed": _median(r.get("posed") for r in pe), "fps": pe_fps,
+        "orbslam3": {"posed": _median(r.get("posed") for r in pe), "fps": pe_fps, "frames_per_cpu_s": pe_cpu,
                      "cpu_s": _median(r.get("cpu_s") for r in pe), "ate_own_m": _median(r["ate_own_m"] for r in pe),
                      "runs": pe},
         "common": common,
         "ratios": {"ate_fgslam_over_orbslam3": _ratio(common["ate_fgslam_m"], common["ate_orbslam3_m"]),
-                   "fps_fgslam_over_orbslam3": _ratio(fg_fps, pe_fps)},
+                   "fps_fgslam_over_orbslam3": _ratio(fg_fps, pe_fps),
+                   "frames_per_cpu_s_fgslam_over_orbslam3": _ratio(fg_cpu, pe_cpu)},
     }
 
 
