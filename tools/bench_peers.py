@@ -327,13 +327,13 @@ def _ratio(a: Optional[float], b: Optional[float]) -> Optional[float]:
 
 def compare(gt, align: str, max_time_diff: float, fg_runs: list[dict], peer_runs: list[dict]) -> dict:
     """Per-system medians, every (fgslam run, peer run) pair's common-frame ATE, their medians and ratios."""
-    def public(r: dict, key: str) -> dict:
+    def public(r: dict) -> dict:
         d = {k: v for k, v in r.items() if k != "trajectory"}
         d["ate_own_m"] = own_ate(gt, r.get("trajectory"), align, max_time_diff)
         return d
 
-    fg = [public(r, "fgslam") for r in fg_runs]
-    pe = [public(r, "peer") for r in peer_runs]
+    fg = [public(r) for r in fg_runs]
+    pe = [public(r) for r in peer_runs]
     pairs = []
     for i, a in enumerate(fg_runs):
         for j, b in enumerate(peer_runs):
