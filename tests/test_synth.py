@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import filecmp
+import json
 from pathlib import Path
 
 import cv2
@@ -11,7 +12,7 @@ import pytest
 
 from fgslam.io.synth import SynthSequence, write_sequence
 from fgslam.io.synth.imu import ImuConfig, simulate_imu, specific_force
-from fgslam.io.synth.presets import build_scene, build_trajectory, load_synth_config
+from fgslam.io.synth.presets import build_scene, build_trajectory, highway_centre_line, load_synth_config
 from fgslam.io.synth.sequence import camera_mount
 from fgslam.io.synth.trajectory import AnalyticTrajectory, Fourier1D
 from fgslam.io.synth.writer import continuous_quaternions, depth_to_png16, rotation_to_quaternion_wxyz
@@ -166,7 +167,7 @@ def test_textures_have_trackable_corners(room_seq):
 # ------------------------------------------------------------------------------ IMU
 
 def test_trajectory_derivatives_match_finite_differences():
-    for preset in ("room-loop", "street-loop", "orbit"):
+    for preset in ("room-loop", "street-loop", "orbit", "highway"):
         cfg = _config(preset)
         traj = build_trajectory(cfg)
         t = np.linspace(0.3, cfg.loop_duration_s() - 0.3, 7)
@@ -256,6 +257,80 @@ def test_street_camera_height_and_clearance_from_buildings():
     assert np.linalg.norm(c[:, None] - closest, axis=-1).min() > 1.5
 
 
+# cheap highway: few texels, short lookahead (tests that do not look at image quality)
+LOW_RES_HIGHWAY = ["highway.ground_density=2", "highway.far_ground_density=0.2", "highway.object_density=4",
+                   "highway.building_density=1", "highway.hill_density=0.2", "highway.lookahead=120"]
+
+
+def test_highway_speed_rate_and_gentle_road():
+    cfg = _config("highway")
+    assert cfg.camera.rate_hz == 10.0 and cfg.frames == 201
+    traj = build_trajectory(cfg)
+    st = traj.sample(np.arange(cfg.frames) / cfg.camera.rate_hz)
+    speed = np.linalg.norm(st.v_WB, axis=1)
+    assert np.all((speed >= 25.0) & (speed <= 30.0))
+    step = np.linalg.norm(np.diff(st.p_WB, axis=0), axis=1)
+    assert np.all((step >= 2.0) & (step <= 3.0))                 # 2-3 m between frames
+    length = step.sum()
+    assert np.linalg.norm(st.p_WB[-1] - st.p_WB[0]) > 0.95 * length  # straight-ish, open road
+    # gently curved: horizontal curvature |v x a| / |v|^3 corresponds to a radius above 300 m, not straight
+    v, a = st.v_WB[:, :2], st.a_WB[:, :2]
+    curvature = np.abs(v[:, 0] * a[:, 1] - v[:, 1] * a[:, 0]) / np.linalg.norm(v, axis=1) ** 3
+    assert 1 / 2000.0 < curvature.max() < 1 / 300.0
+    # the camera rides at the configured height, looking along the road
+    T_WC = st.T_WB() @ camera_mount(cfg.camera)
+    assert np.all(np.abs(T_WC[:, 2, 3] - cfg.highway.camera_height) < 0.05)
+    forward = T_WC[:-1, :3, 2]
+    assert np.all(np.einsum("ni,ni->n", forward, np.diff(st.p_WB, axis=0)) > 0.99 * step)
+    # faster speed, same rate: longer steps (the speed is what the config says)
+    fast = build_trajectory(_config("highway", "highway.speed=30")).sample(np.array([0.0, 0.1])).p_WB
+    assert np.linalg.norm(fast[1] - fast[0]) == pytest.approx(3.0, rel=0.02)
+
+
+def test_highway_scene_sparse_roadside_far_structure_and_deterministic():
+    cfg = _config("highway", *LOW_RES_HIGHWAY)
+    sc = build_scene(cfg, np.random.default_rng(3)).arrays()
+    again = build_scene(cfg, np.random.default_rng(3)).arrays()
+    other = build_scene(cfg, np.random.default_rng(4)).arrays()
+    np.testing.assert_array_equal(sc.origins, again.origins)
+    assert len(other) != len(sc) or not np.array_equal(other.origins, sc.origins)
+    upright = np.abs(sc.normals[:, 2]) < 0.5
+    centre = sc.origins + 0.5 * (sc.axes_u * sc.sizes[:, :1] + sc.axes_v * sc.sizes[:, 1:])
+    y_road, _ = highway_centre_line(cfg.highway, centre[:, 0])
+    lateral = np.abs(centre[:, 1] - y_road)
+    # nothing upright stands on the carriageway; roadside objects within 15 m, far ones beyond 50 m
+    assert lateral[upright].min() > cfg.highway.rail_offset - 0.5
+    near = upright & (lateral < 15.0)
+    assert near.sum() > 50
+    assert (upright & (lateral > 50.0)).sum() > 10 and (upright & (lateral > 300.0)).sum() > 4
+    # the road covers the frames' path and the lookahead
+    x_last = cfg.highway.speed * (cfg.frames - 1) / cfg.camera.rate_hz
+    ground = sc.normals[:, 2] > 0.9
+    assert sc.origins[ground, 0].min() <= -cfg.highway.behind + 1e-6
+    assert (sc.origins[ground, 0] + sc.sizes[ground, 0]).max() >= x_last + cfg.highway.lookahead - 1e-6
+
+
+def test_highway_flow_is_large_at_the_border_and_small_at_the_centre():
+    seq = SynthSequence(_config("highway", "frames=3", "camera.width=160", "camera.height=50", *LOW_RES_HIGHWAY))
+    fr0 = seq.frame(0)
+    T_C1C0 = np.linalg.inv(seq.camera_poses(np.array([0.1]))[0]) @ fr0.T_WC0
+    fx, fy, cx, cy = seq.K
+    H, W = fr0.depth0.shape
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    z = fr0.depth0.astype(np.float64)
+    ok = z > 0
+    X = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1)[ok]
+    X1 = X @ T_C1C0[:3, :3].T + T_C1C0[:3, 3]
+    flow = np.full(z.shape, np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        flow[ok] = np.hypot(fx * X1[:, 0] / X1[:, 2] + cx - u[ok], fy * X1[:, 1] / X1[:, 2] + cy - v[ok])
+    r = np.hypot((u - cx) / W, (v - cy) / H)
+    centre, border = ok & (r < 0.1), ok & (r > 0.4)
+    assert np.nanmedian(flow[centre]) < 2.0 and np.nanmedian(flow[border]) > 8.0
+    # ground truth written like the other presets: stereo and depth
+    assert fr0.image1.shape == fr0.image0.shape and ok.mean() > 0.5
+
+
 def test_orbit_looks_at_the_cluster():
     seq = SynthSequence(_config("orbit", "camera.width=64", "camera.height=48", "orbit.wall_density=10",
                                 "orbit.floor_density=20", "orbit.box_density=30"))
@@ -285,6 +360,23 @@ def test_quaternion_conversion_round_trip():
     qc = continuous_quaternions(q)
     assert np.all(np.einsum("ni,ni->n", qc[1:], qc[:-1]) >= 0)
     np.testing.assert_allclose(np.abs(np.einsum("ni,ni->n", qc, q)), 1.0, atol=1e-12)
+
+
+def test_cli_writes_the_highway_preset(tmp_path, capsys):
+    from fgslam.cli import main
+    from fgslam.io.datasets import EurocDataset
+    from fgslam.io.datasets.common import DatasetConfig
+
+    out = tmp_path / "hw"
+    rc = main(["synth", "--preset", "highway", "--out", str(out), "--frames", "3", "--width", "64", "--height", "24",
+               "--json", *sum((["-o", o] for o in LOW_RES_HIGHWAY), [])])
+    assert rc == 0
+    assert json.loads(capsys.readouterr().out)["preset"] == "highway"
+    ds = EurocDataset(out, DatasetConfig(crop_multiple=1, rectify_stereo=False))
+    assert len(ds) == 3 and ds.has_stereo and ds.has_depth and ds.has_imu
+    np.testing.assert_allclose(np.diff(ds.timestamps), 0.1, atol=1e-6)  # float64 s at 1.6e9 s
+    step = np.linalg.norm(np.diff(ds.groundtruth.t_WC, axis=0), axis=1)
+    assert np.all((step > 2.6) & (step < 2.8))  # 27 m/s at 10 Hz
 
 
 def test_cli_output_round_trips_through_euroc_loader(tmp_path):

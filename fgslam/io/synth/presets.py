@@ -9,6 +9,11 @@ Presets:
   ``camera_height`` with a forward-looking camera at 10 Hz; the road is a smooth Fourier fit of a
   rounded rectangle traversed once per ``loop_duration_s`` (default 1,001 frames, ~600 m).
 - ``orbit``: camera circling a cluster of boxes in a hall, always looking at the cluster centre.
+- ``highway``: fast forward drive (``speed`` m/s, 10 Hz: 2-3 m between frames) along a gently
+  curved road (one lateral S-bend over ``duration_s``), sparse roadside structure (guard rails,
+  lamp poles, sign boards) and distant buildings and hills, so that the optical flow is large near
+  the image border and small at the centre. The road does not close: the scene is built to cover
+  the configured number of frames plus ``lookahead`` metres.
 
 Changing ``frames`` truncates or extends (periodically) the motion, it does not change its speed.
 """
@@ -27,7 +32,7 @@ from .scene import Scene
 from .texture import TextureConfig
 from .trajectory import AnalyticTrajectory, Fourier1D, closed_curve_fourier, rounded_rectangle
 
-PRESET_NAMES = ("room-loop", "street-loop", "orbit")
+PRESET_NAMES = ("room-loop", "street-loop", "orbit", "highway")
 
 _ROAD_SAMPLES = 8192  # arc-length samples of the rounded rectangle fitted by the Fourier road
 _GROUND_LINE_SAMPLES = 2048  # samples of the road centre line for choosing ground tiles
@@ -127,6 +132,46 @@ class OrbitConfig:
 
 
 @dataclass
+class HighwayConfig:
+    """highway scene and motion (x along the road at t = 0, y left, metres)."""
+
+    speed: float = ranged(27.0, gt=0)  # forward speed along x (m/s); the bend adds a little
+    duration_s: float = ranged(20.0, gt=0)  # period of the lateral bend (default frame count: one period + 1)
+    bend_amplitude: float = ranged(12.0, ge=0)  # lateral offset of the S-bend, y = A (1 - cos(2 pi t / duration)) (m)
+    jitter: float = ranged(1.0, ge=0)  # scale of the body bounce / sway
+    camera_height: float = ranged(1.6, gt=0)  # body height above the road (m)
+    lookahead: float = ranged(300.0, ge=0)  # road and roadside continue this far beyond the last frame (m)
+    behind: float = ranged(30.0, ge=0)  # ... and start this far behind the first (m)
+    road_band: float = ranged(12.0, gt=0)  # half-width of the high-resolution ground band (m)
+    ground_tile: float = ranged(10.0, gt=0)  # size of the ground texture tiles (m)
+    ground_density: float = ranged(16.0, gt=0)  # texels per metre of the road band
+    far_ground_density: float = ranged(1.0, gt=0)  # texels per metre of the ground beyond the band
+    far_ground_margin: float = ranged(600.0, gt=0)  # the coarse ground extends this far around the road (m)
+    rail_offset: float = ranged(7.5, gt=0)  # guard rails' distance from the road centre line (m)
+    rail_size: list[float] = ranged(default_factory=lambda: [0.3, 0.8], gt=0)  # rail (width, height) (m)
+    rail_segment: float = ranged(12.0, gt=0)  # length of a straight rail segment (m)
+    rail_gap_prob: float = ranged(0.25, ge=0, le=1)  # probability that a segment is left out
+    pole_offset: float = ranged(9.5, gt=0)  # lamp poles' distance from the centre line (m)
+    pole_spacing: float = ranged(45.0, gt=0)  # mean distance between poles on each side (m)
+    pole_size: list[float] = ranged(default_factory=lambda: [0.3, 0.3, 9.0], gt=0)  # pole box (m)
+    sign_spacing: float = ranged(160.0, gt=0)  # mean distance between sign boards on each side (m)
+    sign_offset: float = ranged(11.0, gt=0)  # sign boards' distance from the centre line (m)
+    sign_size: list[float] = ranged(default_factory=lambda: [4.5, 0.2, 2.5], gt=0)  # board (along x, thick, height) (m)
+    sign_height: float = ranged(4.0, ge=0)  # bottom edge of a sign board above the road (m)
+    building_distance: list[float] = ranged(default_factory=lambda: [60.0, 220.0], gt=0)  # lateral range of building centres (m)
+    building_spacing: float = ranged(100.0, gt=0)  # mean distance between buildings on each side (m)
+    building_size_range: list[float] = ranged(default_factory=lambda: [12.0, 40.0], gt=0)  # horizontal sides (m)
+    building_height_range: list[float] = ranged(default_factory=lambda: [8.0, 35.0], gt=0)
+    hill_distance: list[float] = ranged(default_factory=lambda: [350.0, 700.0], gt=0)  # lateral / ahead range of hill centres (m)
+    hill_spacing: float = ranged(250.0, gt=0)  # mean distance between hills on each side (m)
+    hill_size_range: list[float] = ranged(default_factory=lambda: [200.0, 500.0], gt=0)  # hill widths (m)
+    hill_height_range: list[float] = ranged(default_factory=lambda: [40.0, 140.0], gt=0)
+    object_density: float = ranged(48.0, gt=0)  # texels per metre of rails, poles, signs
+    building_density: float = ranged(6.0, gt=0)
+    hill_density: float = ranged(2.0, gt=0)
+
+
+@dataclass
 class SynthConfig:
     """Everything the generator needs; ``default_config(preset)`` gives the preset's defaults."""
 
@@ -141,6 +186,7 @@ class SynthConfig:
     room: RoomConfig = field(default_factory=RoomConfig)
     street: StreetConfig = field(default_factory=StreetConfig)
     orbit: OrbitConfig = field(default_factory=OrbitConfig)
+    highway: HighwayConfig = field(default_factory=HighwayConfig)
 
     def validate(self) -> None:
         if self.preset not in PRESET_NAMES:
@@ -152,7 +198,7 @@ class SynthConfig:
 
     def loop_duration_s(self) -> float:
         return {"room-loop": self.room.loop_duration_s, "street-loop": self.street.loop_duration_s,
-                "orbit": self.orbit.loop_duration_s}[self.preset]
+                "orbit": self.orbit.loop_duration_s, "highway": self.highway.duration_s}[self.preset]
 
 
 def default_config(preset: str) -> SynthConfig:
@@ -160,7 +206,7 @@ def default_config(preset: str) -> SynthConfig:
     if preset not in PRESET_NAMES:
         raise ConfigError(f"unknown preset '{preset}' (valid: {', '.join(PRESET_NAMES)})")
     cfg = SynthConfig(preset=preset)
-    if preset == "street-loop":
+    if preset in ("street-loop", "highway"):
         cfg.camera = CameraConfig(width=640, height=200, hfov_deg=82.0, rate_hz=10.0, baseline=0.54)
     elif preset == "orbit":
         cfg.camera = CameraConfig(hfov_deg=70.0)
@@ -299,11 +345,103 @@ def _build_orbit(cfg: OrbitConfig, rng: np.random.Generator) -> Scene:
     return scene
 
 
+def highway_centre_line(hc: HighwayConfig, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lateral position y (m) and heading (rad) of the highway's centre line at ``x`` (m): the body
+    path of the ``highway`` trajectory, ``y = A (1 - cos(2 pi x / (speed * duration)))``."""
+    x = np.asarray(x, np.float64)
+    k = 2.0 * np.pi / (hc.speed * hc.duration_s)
+    y = hc.bend_amplitude * (1.0 - np.cos(k * x))
+    heading = np.arctan(hc.bend_amplitude * k * np.sin(k * x))
+    return y, heading
+
+
+def _highway_extent(cfg: SynthConfig) -> tuple[float, float]:
+    """x range (m) the highway scene covers: the frames' path plus ``behind`` / ``lookahead``."""
+    hc = cfg.highway
+    x_last = hc.speed * (cfg.frames - 1) / cfg.camera.rate_hz
+    return -hc.behind, x_last + hc.lookahead
+
+
+def _spaced(rng: np.random.Generator, x0: float, x1: float, spacing: float) -> list[float]:
+    """Positions from ``x0`` to ``x1`` at random gaps of 0.5-1.5 x ``spacing``."""
+    out, x = [], x0 + rng.uniform(0.0, spacing)
+    while x < x1:
+        out.append(x)
+        x += rng.uniform(0.5, 1.5) * spacing
+    return out
+
+
+def _build_highway(cfg: SynthConfig, rng: np.random.Generator) -> Scene:
+    hc = cfg.highway
+    scene = Scene()
+    x_start, x_end = _highway_extent(cfg)
+    m = hc.far_ground_margin
+    y_lo, y_hi = -m, 2.0 * hc.bend_amplitude + m
+    scene.add_quad((x_start - m, y_lo, -0.05), (1, 0, 0), (0, 1, 0), x_end - x_start + 2 * m, y_hi - y_lo,
+                   density=hc.far_ground_density, style=STYLE_GROUND)
+    # high-resolution ground tiles within road_band of the centre line
+    tile = hc.ground_tile
+    for x0 in np.arange(x_start, x_end, tile):
+        yc, _ = highway_centre_line(hc, np.linspace(x0, x0 + tile, 5))
+        lo = np.floor((yc.min() - hc.road_band) / tile) * tile
+        for y0 in np.arange(lo, yc.max() + hc.road_band, tile):
+            scene.add_quad((x0, y0, 0.0), (1, 0, 0), (0, 1, 0), tile, tile, density=hc.ground_density,
+                           style=STYLE_GROUND)
+
+    def roadside(x: float, offset: float, sign: float) -> tuple[np.ndarray, float]:
+        y, heading = highway_centre_line(hc, np.array(x))
+        normal = np.array([-np.sin(heading), np.cos(heading)])  # left of the direction of travel
+        return np.array([x, float(y)]) + sign * offset * normal, float(heading)
+
+    rail_w, rail_h = hc.rail_size
+    pole = hc.pole_size
+    sign_w, sign_t, sign_h = hc.sign_size
+    for side in (1.0, -1.0):
+        for x0 in np.arange(x_start, x_end, hc.rail_segment):  # guard rail segments, some left out
+            if rng.random() < hc.rail_gap_prob:
+                continue
+            c, yaw = roadside(x0 + hc.rail_segment / 2, hc.rail_offset, side)
+            scene.add_box((c[0], c[1], rail_h / 2), (hc.rail_segment / np.cos(yaw), rail_w, rail_h), yaw,
+                          density=hc.object_density, style=STYLE_OBJECT, faces=("+x", "-x", "+y", "-y", "+z"))
+        for x in _spaced(rng, x_start, x_end, hc.pole_spacing):  # lamp poles
+            c, yaw = roadside(x, hc.pole_offset, side)
+            scene.add_box((c[0], c[1], pole[2] / 2), pole, yaw, density=hc.object_density,
+                          style=STYLE_OBJECT, faces=("+x", "-x", "+y", "-y"))
+        for x in _spaced(rng, x_start, x_end, hc.sign_spacing):  # sign boards facing the traffic, on a post
+            c, yaw = roadside(x, hc.sign_offset, side)
+            scene.add_box((c[0], c[1], hc.sign_height + sign_h / 2), (sign_t, sign_w, sign_h), yaw,
+                          density=hc.object_density, style=STYLE_OBJECT, faces=("+x", "-x", "+y", "-y", "+z"))
+            scene.add_box((c[0], c[1], hc.sign_height / 2), (pole[0], pole[1], hc.sign_height), yaw,
+                          density=hc.object_density, style=STYLE_OBJECT, faces=("+x", "-x", "+y", "-y"))
+        for x in _spaced(rng, x_start, x_end, hc.building_spacing):  # distant buildings
+            c, yaw = roadside(x, rng.uniform(*hc.building_distance), side)
+            w, d = rng.uniform(*hc.building_size_range, size=2)
+            h = rng.uniform(*hc.building_height_range)
+            scene.add_box((c[0], c[1], h / 2), (w, d, h), yaw + rng.uniform(-0.5, 0.5), density=hc.building_density,
+                          style=STYLE_WALL, faces=("+x", "-x", "+y", "-y"))
+        for x in _spaced(rng, x_start, x_end + hc.hill_distance[1], hc.hill_spacing):  # hills on the sides
+            c, yaw = roadside(x, rng.uniform(*hc.hill_distance), side)
+            w, h = rng.uniform(*hc.hill_size_range), rng.uniform(*hc.hill_height_range)
+            scene.add_box((c[0], c[1], h / 2), (w, 0.5 * w, h), yaw + rng.uniform(-0.3, 0.3),
+                          density=hc.hill_density, style=STYLE_WALL, faces=("+x", "-x", "+y", "-y"))
+    # hills across the road beyond its end: far structure at the centre of the image
+    y_end, _ = highway_centre_line(hc, np.array(x_end))
+    y = float(y_end) - hc.hill_distance[1]
+    while y < float(y_end) + hc.hill_distance[1]:
+        w, h = rng.uniform(*hc.hill_size_range), rng.uniform(*hc.hill_height_range)
+        x = x_end + rng.uniform(*hc.hill_distance)
+        scene.add_box((x, y + w / 2, h / 2), (0.5 * w, w, h), rng.uniform(-0.3, 0.3), density=hc.hill_density,
+                      style=STYLE_WALL, faces=("+x", "-x", "+y", "-y"))
+        y += w
+    return scene
+
+
 def build_scene(cfg: SynthConfig, rng: np.random.Generator) -> Scene:
     """Scene of the preset ``cfg.preset`` (random layout drawn from ``rng``)."""
     builders = {"room-loop": lambda: _build_room(cfg.room, rng),
                 "street-loop": lambda: _build_street(cfg.street, rng),
-                "orbit": lambda: _build_orbit(cfg.orbit, rng)}
+                "orbit": lambda: _build_orbit(cfg.orbit, rng),
+                "highway": lambda: _build_highway(cfg, rng)}
     return builders[cfg.preset]()
 
 
@@ -324,6 +462,8 @@ _ROOM_YAW_OFFSET = 0.5 * np.pi + 0.6  # rad: view direction relative to the radi
 _ROOM_MEAN_PITCH = 0.1                # rad, slightly looking down (positive pitch = nose down)
 _STREET_WOBBLE = {"z_sin": {37: 0.01, 54: 0.006}, "pitch_sin": {18: 0.006, 44: 0.004},
                   "roll_cos": {7: 0.004, 33: 0.006}}
+_HIGHWAY_WOBBLE = {"z_sin": {23: 0.01, 31: 0.005}, "pitch_sin": {9: 0.004, 27: 0.003},
+                   "roll_cos": {5: 0.003, 17: 0.004}}
 _ORBIT_WOBBLE = {"xy_radial": {3: 0.1}, "z_sin": {2: 0.3}, "yaw_sin": {3: 0.05}, "pitch_sin": {2: 0.06}}
 
 
@@ -364,6 +504,17 @@ def build_trajectory(cfg: SynthConfig) -> AnalyticTrajectory:
         return AnalyticTrajectory(
             x=fx, y=fy,
             z=Fourier1D(T, c0=sc.camera_height - cfg.camera.t_BS[2], sin_coeffs=_coeffs(w["z_sin"], j)),
+            yaw=None, pitch=Fourier1D(T, sin_coeffs=_coeffs(w["pitch_sin"], j)),
+            roll=Fourier1D(T, cos_coeffs=_coeffs(w["roll_cos"], j)),
+        )
+    if cfg.preset == "highway":
+        hc, w = cfg.highway, _HIGHWAY_WOBBLE
+        j = hc.jitter
+        # y(t) = A (1 - cos(2 pi t / T)) with x = speed t: the centre line of highway_centre_line
+        return AnalyticTrajectory(
+            x=Fourier1D(T, rate=hc.speed),
+            y=Fourier1D(T, c0=hc.bend_amplitude, cos_coeffs=(-hc.bend_amplitude,)),
+            z=Fourier1D(T, c0=hc.camera_height - cfg.camera.t_BS[2], sin_coeffs=_coeffs(w["z_sin"], j)),
             yaw=None, pitch=Fourier1D(T, sin_coeffs=_coeffs(w["pitch_sin"], j)),
             roll=Fourier1D(T, cos_coeffs=_coeffs(w["roll_cos"], j)),
         )
