@@ -136,3 +136,35 @@ def test_failed_initial_optimisation_resets_cleanly(room, monkeypatch):
     assert stamps[0] >= frames[failed[0].index].timestamp  # frames of the failed attempt got no pose
     res = evaluate(ds.groundtruth, Trajectory(stamps, poses), EvalConfig(align="sim3"))
     assert res.ate.rmse < 0.02 * res.gt_path_length_m
+
+
+@pytest.fixture(scope="module")
+def room_stop(tmp_path_factory):
+    """The room clip with a stop: at rest from frame 15 to 25 (0.25 s ramps before and after)."""
+    from fgslam.io.synth import SynthSequence, write_sequence
+    from fgslam.io.synth.presets import load_synth_config
+
+    cfg = load_synth_config("room-loop", overrides=[f"frames={FRAMES}", "camera.width=200", "camera.height=150", "seed=3",
+                                                    "stop_frame=15", "stop_frames=10", "stop_ramp_s=0.25"])
+    root = tmp_path_factory.mktemp("room_stop")
+    write_sequence(SynthSequence(cfg), root)
+    return root
+
+
+@pytest.mark.parametrize("mode", ["mono", "stereo", "rgbd"])
+def test_synthetic_stop_and_go(room_stop, mode):
+    """While the camera stands still no keyframe is added and the pose holds; tracking goes on after."""
+    ds, frames = frames_of(room_stop, mode)
+    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode=mode)
+    statuses = [fe.process(f) for f in frames]
+    assert fe.num_failures == 0
+    rest = statuses[16:26]  # frames 15-25 are at rest; frame 15 may still become the keyframe they refer to
+    assert all(s.pose_source == "tracked" and not s.is_keyframe and "stationary" in s.events for s in rest)
+    assert all(s.pose_source == "tracked" for s in statuses[26:])
+    assert statuses[-1].is_keyframe
+    stamps, poses, _ = fe.trajectory()
+    t = poses[:, :3, 3]
+    res = evaluate(ds.groundtruth, Trajectory(stamps, poses), EvalConfig(align="se3" if mode != "mono" else "sim3"))
+    assert res.ate.rmse < 0.02 * res.gt_path_length_m
+    scale = res.alignment.s
+    assert scale * np.linalg.norm(t[16:26] - t[15], axis=1).max() < 1e-3  # held within 1 mm

@@ -3,7 +3,10 @@
 Per frame (after initialisation):
 
 1. predict the pose with the damped constant-velocity model ``T_WCn = T_WCn-1 Exp(damping Log(V))``,
-   ``V = T_WCn-2^-1 T_WCn-1`` (DPVO's motion model);
+   ``V = T_WCn-2^-1 T_WCn-1`` (DPVO's motion model); motion filter (DROID-SLAM's): the newest
+   keyframe's patches are measured in the frame first (these edges are reused in step 3); a median
+   flow below ``motion_filter_flow`` means a stationary camera: the frame stays out of the graph, takes
+   that keyframe's pose (placed later by its share of the next keyframe's flow), the velocity is reset;
 2. add the frame to the patch graph with K new patches (inverse depth: the sensor's for RGB-D,
    else the median of the previous frame's patches) and connect it (forward, backward, stereo edges);
 3. ``ba.rounds`` update rounds: measure edges with the source started from their current
@@ -12,8 +15,10 @@ Per frame (after initialisation):
    through :class:`fgslam.map.SlamMap` with one :class:`~.ba.PatchBlock` (patch depths
    Schur-eliminated; frames older than the window fixed; each frame's Sim(3) scale held);
    Huber weights and an outlier cut are refreshed after each round;
-4. too few valid measurements into the frame: tracking failure - the frame leaves the graph and
-   gets the predicted pose (``pose_source = "motion_model"``), counted, never raised;
+4. too few valid measurements into the frame, or less than ``min_inlier_ratio`` of them BA inliers
+   (motion the map's own reprojections contradict): tracking failure - the frame leaves the graph,
+   the window's poses and depths are restored, the frame gets the predicted pose
+   (``pose_source = "motion_model"``), counted, never raised;
 5. the frame ``keyframe_index`` positions before the newest is removed when the mean flow between
    its neighbours is below ``keyframe_threshold`` (its pose kept relative to its older neighbour);
 6. edges past the removal window become inactive (bounded store), frames past every active edge's
