@@ -426,10 +426,10 @@ class PatchFrontend(PatchLoopClosure, Frontend):
                           uv=uv, inv_depth=inv_depth, sensor_inv_depth=sensor, colour=colour,
                           features=features, features_right=features_right)
 
-    def _prepare(self, frame):
+    def _prepare(self, frame, left: bool = True, right: bool = True):
         t0 = time.perf_counter()
-        feats = self.source.prepare(frame.image)
-        feats_right = self.source.prepare(frame.image_right) if self.sensor_mode == "stereo" else None
+        feats = self.source.prepare(frame.image) if left else None
+        feats_right = self.source.prepare(frame.image_right) if right and self.sensor_mode == "stereo" else None
         self._times["flow"] += time.perf_counter() - t0
         return feats, feats_right
 
@@ -796,11 +796,12 @@ class PatchFrontend(PatchLoopClosure, Frontend):
     def _track(self, fid: int, frame) -> FrameStatus:
         cfg = self.config
         T_pred = self._predict()
-        feats, feats_right = self._prepare(frame)
+        feats, _ = self._prepare(frame, right=False)
         last = self.graph.frames[-1]
         flow, kf_uv, kf_conf = self._keyframe_flow(last, feats, T_pred)
         if flow < cfg.tracking.motion_filter_flow:
             return self._stationary(fid, frame, last.fid, flow, int((kf_conf > 0).sum()))
+        _, feats_right = self._prepare(frame, left=False)  # stereo: the right image only for a moving frame
         t0 = time.perf_counter()
         gf = self._new_graph_frame(fid, frame, T_pred, feats, feats_right)
         self.graph.add_frame(gf)
