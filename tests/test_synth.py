@@ -426,3 +426,70 @@ def test_colour_output_and_room_clearance_over_the_loop(tmp_path):
     for T_WC in seq.camera_poses(seq.frame_times()[::10]):
         depth = seq.render_view(T_WC).depth
         assert (depth > 0.3).all() and depth.max() < np.linalg.norm(full.room.size)
+
+
+# ------------------------------------------------------------------------------ stop-and-go
+
+@pytest.mark.parametrize("preset", ["room-loop", "street-loop", "orbit"])
+def test_stop_and_go_holds_still_then_moves_on(preset):
+    """``stop_frame``/``stop_frames``: constant pose, zero velocity and angular rate during the stop,
+    the IMU reads gravity only; derivatives stay consistent through the ramps (chain rule of the
+    time warp); afterwards the motion resumes where it stopped, delayed by the stop plus one ramp."""
+    cfg = _config(preset, "stop_frame=60", "stop_frames=20", "stop_ramp_s=1.0")
+    plain = build_trajectory(_config(preset))
+    traj = build_trajectory(cfg)
+    rate = cfg.camera.rate_hz
+    t0, dur, ramp = 60 / rate, 20 / rate, 1.0
+    rest = traj.sample(t0 + np.linspace(0.0, dur, 9))
+    np.testing.assert_allclose(rest.p_WB, np.repeat(rest.p_WB[:1], 9, 0), atol=1e-12)
+    np.testing.assert_allclose(rest.R_WB, np.repeat(rest.R_WB[:1], 9, 0), atol=1e-12)
+    np.testing.assert_allclose(rest.v_WB, 0.0, atol=1e-12)
+    np.testing.assert_allclose(rest.a_WB, 0.0, atol=1e-12)
+    np.testing.assert_allclose(rest.w_B, 0.0, atol=1e-12)
+    imu = simulate_imu(rest, ImuConfig(), np.random.default_rng(0))
+    np.testing.assert_allclose(imu.gyro_true, 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", rest.R_WB, imu.accel_true), [[0, 0, cfg.imu.gravity]] * 9,
+                               atol=1e-9)
+    # the frames of the sequence during the stop have one pose; before the stop nothing changed
+    seq_t = np.arange(cfg.frames) / rate
+    T = traj.sample(seq_t).T_WB()
+    still = (seq_t >= t0) & (seq_t <= t0 + dur)
+    assert still.sum() == 21
+    np.testing.assert_allclose(T[still], np.repeat(T[still][:1], still.sum(), 0), atol=1e-12)
+    early = seq_t <= t0 - ramp
+    np.testing.assert_allclose(T[early], plain.sample(seq_t[early]).T_WB(), atol=1e-12)
+    moving_before = np.linalg.norm(plain.sample(np.array([t0])).v_WB)
+    assert moving_before > 0.1  # a real stop: the body was moving there
+    late = np.array([t0 + dur + ramp, t0 + dur + ramp + 2.0])
+    np.testing.assert_allclose(traj.sample(late).T_WB(), plain.sample(late - dur - ramp).T_WB(), atol=1e-9)
+    # derivatives through the ramps and the stop, against central differences
+    t = np.concatenate([t0 - ramp + np.array([0.1, 0.5, 0.9]) * ramp, [t0 + 0.5 * dur],
+                        t0 + dur + np.array([0.1, 0.5, 0.9]) * ramp])
+    h = 1e-5
+    s, sp, sm = traj.sample(t), traj.sample(t + h), traj.sample(t - h)
+    np.testing.assert_allclose((sp.p_WB - sm.p_WB) / (2 * h), s.v_WB, atol=1e-5)
+    np.testing.assert_allclose((sp.v_WB - sm.v_WB) / (2 * h), s.a_WB, atol=1e-4)
+    for k in range(len(t)):
+        np.testing.assert_allclose(_so3_log(sm.R_WB[k].T @ sp.R_WB[k]) / (2 * h), s.w_B[k], atol=1e-5)
+
+
+def test_stop_and_go_noise_free_imu_integrates_through_the_stop():
+    """Integrating the noise-free IMU across deceleration, rest and acceleration reproduces the pose."""
+    cfg = _config("street-loop", "stop_frame=100", "stop_frames=20", "stop_ramp_s=1.5")
+    traj = build_trajectory(cfg)
+    dt = 1.0 / cfg.imu.rate_hz
+    t = 8.0 + np.arange(int(round(6.0 / dt)) + 1) * dt  # 8 s to 14 s: ramp, 2 s at rest, ramp
+    st = traj.sample(t)
+    imu = simulate_imu(st, ImuConfig(), np.random.default_rng(0))
+    g_W = np.array([0.0, 0.0, -cfg.imu.gravity])
+    R, v, p = st.R_WB[0].copy(), st.v_WB[0].copy(), st.p_WB[0].copy()
+    for k in range(len(t) - 1):
+        R_next = R @ _so3_exp(0.5 * (imu.gyro_true[k] + imu.gyro_true[k + 1]) * dt)
+        a0, a1 = R @ imu.accel_true[k] + g_W, R_next @ imu.accel_true[k + 1] + g_W
+        p = p + v * dt + (a0 / 3 + a1 / 6) * dt * dt
+        v = v + 0.5 * (a0 + a1) * dt
+        R = R_next
+    assert np.linalg.norm(st.p_WB[-1] - st.p_WB[0]) > 5.0  # it did move
+    assert np.linalg.norm(p - st.p_WB[-1]) < 5e-3
+    assert np.linalg.norm(v - st.v_WB[-1]) < 2e-3
+    assert np.linalg.norm(_so3_log(R.T @ st.R_WB[-1])) < 1e-4

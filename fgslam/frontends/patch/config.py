@@ -115,6 +115,8 @@ class TrackingConfig:
     keyframe_threshold: float = ranged(20.0, ge=0)  # mean flow (px) between its neighbours below which it is removed
     min_valid_edges: int = ranged(24, ge=3)  # fewer valid measurements into a new frame is a tracking failure
     max_motion_model_frames: int = ranged(30, ge=1)  # consecutive failures after which the map re-initialises
+    motion_filter_flow: float = ranged(1.0, ge=0)  # median flow (px) of the newest keyframe's patches into a new frame below which the frame is stationary: not added to the graph, posed from that keyframe (0: off)
+    min_inlier_ratio: float = ranged(0.5, ge=0, le=1)  # share of a new frame's measurements that must be BA inliers; fewer: motion its own reprojections contradict, a tracking failure
 
 
 @dataclass

@@ -3,7 +3,10 @@
 Per frame (after initialisation):
 
 1. predict the pose with the damped constant-velocity model ``T_WCn = T_WCn-1 Exp(damping Log(V))``,
-   ``V = T_WCn-2^-1 T_WCn-1`` (DPVO's motion model);
+   ``V = T_WCn-2^-1 T_WCn-1`` (DPVO's motion model); motion filter (DROID-SLAM's): the newest
+   keyframe's patches are measured in the frame first (these edges are reused in step 3); a median
+   flow below ``motion_filter_flow`` means a stationary camera: the frame stays out of the graph, takes
+   that keyframe's pose (placed later by its share of the next keyframe's flow), the velocity is reset;
 2. add the frame to the patch graph with K new patches (inverse depth: the sensor's for RGB-D,
    else the median of the previous frame's patches) and connect it (forward, backward, stereo edges);
 3. ``ba.rounds`` update rounds: measure edges with the source started from their current
@@ -12,8 +15,10 @@ Per frame (after initialisation):
    through :class:`fgslam.map.SlamMap` with one :class:`~.ba.PatchBlock` (patch depths
    Schur-eliminated; frames older than the window fixed; each frame's Sim(3) scale held);
    Huber weights and an outlier cut are refreshed after each round;
-4. too few valid measurements into the frame: tracking failure - the frame leaves the graph and
-   gets the predicted pose (``pose_source = "motion_model"``), counted, never raised;
+4. too few valid measurements into the frame, or less than ``min_inlier_ratio`` of them BA inliers
+   (motion the map's own reprojections contradict): tracking failure - the frame leaves the graph,
+   the window's poses and depths are restored, the frame gets the predicted pose
+   (``pose_source = "motion_model"``), counted, never raised;
 5. the frame ``keyframe_index`` positions before the newest is removed when the mean flow between
    its neighbours is below ``keyframe_threshold`` (its pose kept relative to its older neighbour);
 6. edges past the removal window become inactive (bounded store), frames past every active edge's
@@ -221,6 +226,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         self._fid = 0
         self._finalised = 0  # keyframes that left the graph (pose final)
         self._keys: dict[int, int] = {}  # fid -> gtsam key cache (bounded to about the graph size)
+        self._still: list[tuple[int, int, float]] = []  # stationary frames since the newest keyframe: (fid, keyframe fid, flow px)
         self._loop_init(loop_config)
 
     # ------------------------------------------------------------------ calibration
@@ -277,7 +283,9 @@ class PatchFrontend(PatchLoopClosure, Frontend):
                     status = self._track(fid, frame)
         except (OptimizationError, RuntimeError, np.linalg.LinAlgError) as exc:  # numerical trouble (gtsam/torch/numpy): never crash on one frame
             logger.warning("frame %d: optimisation failed (%s); using the motion model", frame.index, exc)
-            if self.graph.frames and self.graph.frames[-1].fid == fid:
+            if not self._initialized:
+                self._abandon_initialisation()
+            elif self.graph.frames and self.graph.frames[-1].fid == fid:
                 self.graph.remove_frame(fid)
             status = self._fail(fid, frame, f"optimisation failed: {exc}")
         self._sources[fid] = status.pose_source
@@ -418,10 +426,10 @@ class PatchFrontend(PatchLoopClosure, Frontend):
                           uv=uv, inv_depth=inv_depth, sensor_inv_depth=sensor, colour=colour,
                           features=features, features_right=features_right)
 
-    def _prepare(self, frame):
+    def _prepare(self, frame, left: bool = True, right: bool = True):
         t0 = time.perf_counter()
-        feats = self.source.prepare(frame.image)
-        feats_right = self.source.prepare(frame.image_right) if self.sensor_mode == "stereo" else None
+        feats = self.source.prepare(frame.image) if left else None
+        feats_right = self.source.prepare(frame.image_right) if right and self.sensor_mode == "stereo" else None
         self._times["flow"] += time.perf_counter() - t0
         return feats, feats_right
 
@@ -560,10 +568,12 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         return {"edges": int(e.size), "initial_cost": report.initial_cost, "final_cost": report.final_cost,
                 "iterations": report.iterations}
 
-    def _rounds(self, new_edges: np.ndarray, rounds: int, iterations: int, init: bool, new_fid: int | None) -> int:
-        """Measure / optimise rounds; returns the number of valid new measurements of ``new_fid``."""
+    def _rounds(self, new_edges: np.ndarray, rounds: int, iterations: int, init: bool, new_fid: int | None,
+                premeasured: np.ndarray | None = None) -> int:
+        """Measure / optimise rounds; returns the number of valid new measurements of ``new_fid``.
+        ``premeasured``: new edges already measured (skipped in the first round)."""
         g = self.graph
-        to_measure = new_edges
+        to_measure = new_edges if premeasured is None else np.setdiff1d(new_edges, premeasured)
         valid_new = 0
         for r in range(rounds):
             self._measure(to_measure)
@@ -621,6 +631,17 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         self._lost = 0
         self._update_velocity(fid)
         return self._status(fid, frame, "tracked", is_keyframe=True, num_valid=valid, events=["initialised"])
+
+    def _abandon_initialisation(self) -> None:
+        """After a failed initialisation: the frames it put in the graph (or buffered) get no pose and
+        leave; the next frame starts a new initialisation (keyframes of an earlier map stay final)."""
+        for f in self.graph.clear():
+            self._records[f.fid] = None
+        if self._init is not None:
+            for b in [(self._init.ref_fid,)] + self._init.buffer:
+                self._records[b[0]] = None
+        self._init = None
+        self._still = []
 
     def _refine_depths_fixed(self, idx: np.ndarray, steps: int) -> None:
         """Per-patch Gauss-Newton on inverse depth with every pose fixed (stereo initial depths)."""
@@ -775,20 +796,34 @@ class PatchFrontend(PatchLoopClosure, Frontend):
     def _track(self, fid: int, frame) -> FrameStatus:
         cfg = self.config
         T_pred = self._predict()
-        feats, feats_right = self._prepare(frame)
+        feats, _ = self._prepare(frame, right=False)
+        last = self.graph.frames[-1]
+        flow, kf_uv, kf_conf = self._keyframe_flow(last, feats, T_pred)
+        if flow < cfg.tracking.motion_filter_flow:
+            return self._stationary(fid, frame, last.fid, flow, int((kf_conf > 0).sum()))
+        _, feats_right = self._prepare(frame, left=False)  # stereo: the right image only for a moving frame
         t0 = time.perf_counter()
         gf = self._new_graph_frame(fid, frame, T_pred, feats, feats_right)
         self.graph.add_frame(gf)
         self._records[fid] = ("graph",)
         idx = self.graph.connect_new_frame(self.sensor_mode == "stereo", cfg.ba.stereo_cross_edges)
+        g = self.graph
+        done = idx[(g.src[idx] == last.fid) & (g.tgt[idx] == fid) & ~g.right[idx]]  # measured by the motion filter
+        g.uv[done] = kf_uv[g.patch[done]]
+        g.confidence[done] = kf_conf[g.patch[done]]
+        saved = [(f.T_WC.copy(), f.inv_depth.copy()) for f in g.frames[:-1]], g.robust[: g.num_edges - len(idx)].copy()
         self._times["bookkeeping"] += time.perf_counter() - t0
-        valid = self._rounds(idx, cfg.ba.rounds, cfg.ba.iterations, init=False, new_fid=fid)
-        if valid < cfg.tracking.min_valid_edges:
-            self.graph.remove_frame(fid)
-            return self._fail(fid, frame, f"tracking lost: {valid} valid measurements", T_pred)
+        valid = self._rounds(idx, cfg.ba.rounds, cfg.ba.iterations, init=False, new_fid=fid, premeasured=done)
+        ratio = self._inlier_ratio(fid)
+        if valid < cfg.tracking.min_valid_edges or ratio < cfg.tracking.min_inlier_ratio:
+            self._drop_new_frame(fid, saved)
+            reason = (f"tracking lost: {valid} valid measurements" if valid < cfg.tracking.min_valid_edges else
+                      f"implausible motion: {ratio:.0%} of the measurements are inliers after BA")
+            return self._fail(fid, frame, reason, T_pred)
         self._lost = 0
         t0 = time.perf_counter()
         events = []
+        self._place_still(fid, flow)
         removed = self._remove_redundant()
         if removed is not None:
             events.append(f"keyframe {removed} removed")
@@ -797,7 +832,67 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         self._times["bookkeeping"] += time.perf_counter() - t0
         return self._status(fid, frame, "tracked", is_keyframe=True, num_valid=valid, events=events)
 
+    def _inlier_ratio(self, fid: int) -> float:
+        """Share of the measured left-image edges into and from frame ``fid`` that the last BA kept
+        as inliers (non-zero robust weight); 1 when there are none."""
+        g = self.graph
+        new = ((g.tgt == fid) | (g.src == fid)) & ~g.right & (g.confidence > 0)
+        n = int(new.sum())
+        return float((g.robust[new] > 0).sum()) / n if n else 1.0
+
+    def _drop_new_frame(self, fid: int, saved) -> None:
+        """A rejected new frame leaves the graph, and the window gets back the poses, depths and
+        robust weights it had before that frame's BA."""
+        g = self.graph
+        g.remove_frame(fid)
+        frames, robust = saved
+        if len(frames) == len(g.frames) and robust.shape == g.robust.shape:
+            for f, (T_WC, inv_depth) in zip(g.frames, frames):
+                f.T_WC, f.inv_depth = T_WC, inv_depth
+            g.robust = robust
+
+    def _keyframe_flow(self, last: GraphFrame, feats, T_WC: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """Motion filter measurement: the newest keyframe's patches measured in the new frame (features
+        ``feats``, predicted pose ``T_WC``) from their reprojection, as the first BA round would (these
+        edges are not measured again). Returns (median flow px of the valid tracks, or inf with fewer
+        than ``min_valid_edges`` of them; target pixels (K, 2); confidences (K,))."""
+        t0 = time.perf_counter()
+        K = len(last.uv)
+        uv = np.full((K, 2), np.nan)
+        conf = np.zeros(K)
+        pred, ok = self._reproject_to(last, T_WC)
+        ok &= self._inside(pred)
+        if ok.any() and last.features is not None:
+            m = self.source.measure(last.features, feats, last.uv[ok], pred[ok])
+            uv[ok] = m.uv
+            conf[ok] = m.confidence
+        self._times["flow"] += time.perf_counter() - t0
+        good = conf > 0
+        if good.sum() < self.config.tracking.min_valid_edges:
+            return float("inf"), uv, conf
+        return float(np.median(np.linalg.norm(uv[good] - last.uv[good], axis=1))), uv, conf
+
+    def _stationary(self, fid: int, frame, kf_fid: int, flow: float, n_valid: int) -> FrameStatus:
+        """A frame whose image barely moved from the newest keyframe's: it does not enter the graph
+        (no keyframe, no BA; depths and scale stay untouched) and takes the keyframe's pose until the
+        next keyframe places it by its flow (:meth:`_place_still`); the motion model restarts from rest."""
+        self._records[fid] = ("rel", kf_fid, np.eye(4))
+        self._still.append((fid, kf_fid, flow))
+        self._velocity = np.eye(4)
+        self._last_fid = fid
+        self._lost = 0
+        return self._status(fid, frame, "tracked", num_valid=n_valid, events=["stationary"])
+
+    def _place_still(self, fid: int, flow: float) -> None:
+        """Stationary frames since the previous keyframe get a pose between it and the new keyframe
+        ``fid``, interpolated by their flow relative to the new keyframe's (``flow`` px)."""
+        for still_fid, kf_fid, still_flow in self._still:
+            alpha = min(still_flow / flow, 1.0) if np.isfinite(flow) and flow > 0 else 0.0
+            self._records[still_fid] = ("interp", kf_fid, fid, float(alpha))
+        self._still = []
+
     def _fail(self, fid: int, frame, reason: str, T_pred: np.ndarray | None = None) -> FrameStatus:
+        self._still = []  # stationary frames keep their keyframe's pose
         self._failures += 1
         self._lost += 1
         events = [reason]
@@ -828,6 +923,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         self._initialized = False
         self._init = None
         self._lost = 0
+        self._still = []
 
     def _remove_redundant(self) -> int | None:
         """DPVO keyframe removal: drop the frame ``keyframe_index`` positions before the newest when
@@ -855,8 +951,12 @@ class PatchFrontend(PatchLoopClosure, Frontend):
     def _reproject_frame(self, a: GraphFrame, b: GraphFrame) -> tuple[np.ndarray, np.ndarray]:
         """Frame a's patch centres reprojected into frame b's left image at the current poses and
         depths: (K, 2) pixels and validity (in front of b)."""
+        return self._reproject_to(a, b.T_WC)
+
+    def _reproject_to(self, a: GraphFrame, T_WCb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Frame a's patch centres reprojected into a left image at pose ``T_WCb`` (see :meth:`_reproject_frame`)."""
         Ra, ta, sa = sim3_matrix_components(a.T_WC[None])
-        Rb, tb, sb = sim3_matrix_components(b.T_WC[None])
+        Rb, tb, sb = sim3_matrix_components(T_WCb[None])
         uv, ok = reproject(torch.as_tensor(a.uv), torch.as_tensor(a.inv_depth), (Ra[0], ta[0], sa[0]),
                            (Rb[0], tb[0], sb[0]), self.K, config=self._reproj)
         return uv.numpy(), ok.numpy()

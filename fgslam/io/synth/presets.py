@@ -20,7 +20,7 @@ Changing ``frames`` truncates or extends (periodically) the motion, it does not 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -30,7 +30,7 @@ from .imu import ImuConfig
 from .render import RenderConfig
 from .scene import Scene
 from .texture import TextureConfig
-from .trajectory import AnalyticTrajectory, Fourier1D, closed_curve_fourier, rounded_rectangle
+from .trajectory import AnalyticTrajectory, Fourier1D, TimeWarp, closed_curve_fourier, rounded_rectangle
 
 PRESET_NAMES = ("room-loop", "street-loop", "orbit", "highway")
 
@@ -187,6 +187,9 @@ class SynthConfig:
     street: StreetConfig = field(default_factory=StreetConfig)
     orbit: OrbitConfig = field(default_factory=OrbitConfig)
     highway: HighwayConfig = field(default_factory=HighwayConfig)
+    stop_frame: int = ranged(0, ge=0)  # stop-and-go: camera frame at which the body comes to rest (any preset)
+    stop_frames: int = ranged(0, ge=0)  # stop-and-go: frames the body stays at rest (0: no stop); the motion after it is delayed
+    stop_ramp_s: float = ranged(1.0, gt=0)  # stop-and-go: seconds of smooth deceleration before and acceleration after the stop
 
     def validate(self) -> None:
         if self.preset not in PRESET_NAMES:
@@ -480,7 +483,17 @@ def _coeffs(terms: dict[int, float], scale: float = 1.0, base: dict[int, float] 
 
 
 def build_trajectory(cfg: SynthConfig) -> AnalyticTrajectory:
-    """Body trajectory of the preset (deterministic; period = the preset's loop duration)."""
+    """Body trajectory of the preset (deterministic; period = the preset's loop duration), with the
+    stop of ``stop_frame`` / ``stop_frames`` / ``stop_ramp_s`` as a time warp when ``stop_frames > 0``."""
+    trajectory = _preset_trajectory(cfg)
+    if cfg.stop_frames == 0:
+        return trajectory
+    rate = cfg.camera.rate_hz
+    return replace(trajectory, warp=TimeWarp(start=cfg.stop_frame / rate, duration=cfg.stop_frames / rate,
+                                             ramp=cfg.stop_ramp_s))
+
+
+def _preset_trajectory(cfg: SynthConfig) -> AnalyticTrajectory:
     T = cfg.loop_duration_s()
     turn = 2 * np.pi / T  # one full turn of yaw per loop
     if cfg.preset == "room-loop":

@@ -11,6 +11,12 @@ Rx(roll)`` (positive pitch = nose down). The yaw can instead follow the horizont
 travel (``yaw = atan2(vy, vx)``, car-like). Angular rates use the exact ZYX kinematics
 ``w_B = [roll' - yaw' sin(pitch), pitch' cos(roll) + yaw' cos(pitch) sin(roll),
 -pitch' sin(roll) + yaw' cos(pitch) cos(roll)]``.
+
+A :class:`TimeWarp` makes the body stop and go on: the series are evaluated at a warped time
+``tau(t)`` whose rate ``tau'`` ramps smoothly (smoothstep, so accelerations stay continuous) from 1
+to 0, stays 0 during the stop and ramps back; velocities, accelerations and angular rates follow by
+the chain rule (``v = p_tau tau'``, ``a = p_tau,tau tau'^2 + p_tau tau''``), so poses, stereo, depth
+and IMU stay consistent, and at rest the IMU reads gravity only.
 """
 
 from __future__ import annotations
@@ -53,6 +59,32 @@ class Fourier1D:
             df = df + kw * (-a * s + b * c)
             ddf = ddf - kw * kw * (a * c + b * s)
         return f, df, ddf
+
+
+@dataclass(frozen=True)
+class TimeWarp:
+    """Stop-and-go time warp: the body decelerates during ``[start - ramp, start]``, stands still
+    for ``duration`` seconds, accelerates during ``[start + duration, start + duration + ramp]`` and
+    then moves on along the path where it stopped (the motion after the stop is delayed by
+    ``duration + ramp``)."""
+
+    start: float  # seconds: the body is at rest from here
+    duration: float  # seconds at rest
+    ramp: float  # seconds of deceleration (and of acceleration)
+
+    def evaluate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Warped time ``tau``, ``dtau/dt`` and ``d2tau/dt2`` at times ``t``."""
+        t = np.asarray(t, np.float64)
+        r, t0, t1 = self.ramp, self.start - self.ramp, self.start + self.duration
+        x = np.clip((t - t0) / r, 0.0, 1.0)  # deceleration progress
+        y = np.clip((t - t1) / r, 0.0, 1.0)  # acceleration progress
+        # rate 1 - S(x) + S(y) with the smoothstep S(u) = 3u^2 - 2u^3, whose integral is u^3 - u^4 / 2
+        tau = np.minimum(t, t0) + r * (x - (x ** 3 - x ** 4 / 2)) + r * (y ** 3 - y ** 4 / 2) + np.maximum(t - t1 - r, 0.0)
+        dtau = 1.0 - (3 * x ** 2 - 2 * x ** 3) + (3 * y ** 2 - 2 * y ** 3)
+        inside_x = (t > t0) & (t < t0 + r)
+        inside_y = (t > t1) & (t < t1 + r)
+        ddtau = (np.where(inside_x, -(6 * x - 6 * x ** 2), 0.0) + np.where(inside_y, 6 * y - 6 * y ** 2, 0.0)) / r
+        return tau, dtau, ddtau
 
 
 @dataclass(frozen=True)
@@ -103,19 +135,28 @@ class AnalyticTrajectory:
     yaw: Fourier1D | None
     pitch: Fourier1D
     roll: Fourier1D
+    warp: TimeWarp | None = None  # stop-and-go (None: the series' own time)
 
     def sample(self, t: np.ndarray) -> BodyState:
         t = np.asarray(t, np.float64)
-        px, vx, ax = self.x.evaluate(t)
-        py, vy, ay = self.y.evaluate(t)
-        pz, vz, az = self.z.evaluate(t)
+        if self.warp is None:
+            tau, dtau, ddtau = t, np.ones_like(t), np.zeros_like(t)
+        else:
+            tau, dtau, ddtau = self.warp.evaluate(t)
+        # derivatives with respect to tau, then the chain rule to t
+        px, vx, ax = self.x.evaluate(tau)
+        py, vy, ay = self.y.evaluate(tau)
+        pz, vz, az = self.z.evaluate(tau)
         if self.yaw is None:
             yaw = np.arctan2(vy, vx)
             dyaw = (vx * ay - vy * ax) / (vx * vx + vy * vy)
         else:
-            yaw, dyaw, _ = self.yaw.evaluate(t)
-        pitch, dpitch, _ = self.pitch.evaluate(t)
-        roll, droll, _ = self.roll.evaluate(t)
+            yaw, dyaw, _ = self.yaw.evaluate(tau)
+        pitch, dpitch, _ = self.pitch.evaluate(tau)
+        roll, droll, _ = self.roll.evaluate(tau)
+        dyaw, dpitch, droll = dyaw * dtau, dpitch * dtau, droll * dtau
+        ax, ay, az = (ax * dtau ** 2 + vx * ddtau, ay * dtau ** 2 + vy * ddtau, az * dtau ** 2 + vz * ddtau)
+        vx, vy, vz = vx * dtau, vy * dtau, vz * dtau
         w_B = np.stack([
             droll - dyaw * np.sin(pitch),
             dpitch * np.cos(roll) + dyaw * np.cos(pitch) * np.sin(roll),
