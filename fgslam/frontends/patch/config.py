@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
+from ...config import ranged
 from ...errors import ConfigError
 
 
@@ -86,6 +87,9 @@ class BAConfig:
     stereo_cross_edges: bool = False  # stereo: also edges into the right images of other frames (else own right image only)
     threads: int = 1  # torch threads during BA (small dense work: 1 is fastest)
     lambda_factor: float = 1000.0  # LM damping multiplier after a rejected step (the pose Hessian dwarfs damping below ~1e4: x10 retries the same step)
+    depth_model: Literal["prior", "observation"] = "prior"  # RGB-D: prior on each patch's inverse depth in its source frame (DROID-SLAM), or sensor depth as a measurement of every observation, source and targets (ORB-SLAM3 RGB-D: virtual right-camera pixel u - f b / z)
+    depth_noise: Literal["relative", "inverse"] = "relative"  # RGB-D: relative: sigma_d = depth_prior_sigma * d (sigma_z grows with z); inverse: sigma_d = depth_prior_sigma in 1/m (sigma_z grows with z^2, Kinect)
+    depth_virtual_baseline: float = ranged(0.08, gt=0)  # RGB-D observation model: baseline (m) of the virtual right camera (sets the pixel scale of the depth rows)
 
 
 @dataclass
@@ -194,6 +198,9 @@ class PatchConfig:
             raise ConfigError(f"patch.source must be 'lk' or 'learned', got {self.source!r}")
         if self.ba.iterations < 1 or self.ba.rounds < 1 or self.ba.init_iterations < 1 or self.ba.init_rounds < 1:
             raise ConfigError("patch.ba iterations/rounds must be >= 1")
+        if self.ba.depth_model not in ("prior", "observation") or self.ba.depth_noise not in ("relative", "inverse"):
+            raise ConfigError(f"patch.ba.depth_model must be prior|observation and depth_noise relative|inverse, "
+                              f"got {self.ba.depth_model!r}, {self.ba.depth_noise!r}")
         if self.ba.lambda_factor <= 1.0:
             raise ConfigError(f"patch.ba.lambda_factor must be > 1, got {self.ba.lambda_factor}")
         if not 0.0 <= self.tracking.motion_damping <= 1.0:

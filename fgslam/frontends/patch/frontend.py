@@ -377,10 +377,14 @@ class PatchFrontend(PatchLoopClosure, Frontend):
 
     # ------------------------------------------------------------------ graph frames
     def _sensor_inv_depth(self, frame, uv: np.ndarray) -> np.ndarray:
-        out = np.full(len(uv), np.nan)
         if self.sensor_mode != "rgbd" or frame.depth is None:
-            return out
-        depth = frame.depth
+            return np.full(len(uv), np.nan)
+        return self._depth_lookup(frame.depth, uv)
+
+    def _depth_lookup(self, depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """Inverse sensor depth (n,) at pixels uv (n, 2): median of the valid readings in a window,
+        NaN where most are invalid or the window spans a depth discontinuity."""
+        out = np.full(len(uv), np.nan)
         h, w = depth.shape
         r = self.config.ba.depth_window
         offs = np.arange(-r, r + 1)
@@ -414,9 +418,10 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         else:
             median = float(np.nanmedian(sensor)) if np.isfinite(sensor).any() else 1.0
         inv_depth = np.where(np.isfinite(sensor), sensor, median)
+        keep_depth = self.sensor_mode == "rgbd" and self.config.ba.depth_model == "observation"
         return GraphFrame(fid=fid, index=int(frame.index), timestamp=float(frame.timestamp), T_WC=np.array(T_WC, dtype=np.float64),
                           uv=uv, inv_depth=inv_depth, sensor_inv_depth=sensor, colour=colour,
-                          features=features, features_right=features_right)
+                          features=features, features_right=features_right, depth=frame.depth if keep_depth else None)
 
     def _prepare(self, frame):
         t0 = time.perf_counter()
@@ -520,16 +525,21 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         uv_src = uv_all[g.positions(g.src[e]), g.patch[e]]
         weights = g.confidence[e] * g.robust[e] / cfg.ba.pixel_sigma ** 2
         prior = {}
+        right, uv_tgt, K_right, T_CRCL = g.right[e], g.uv[e], self.K_right, self.T_CRCL
         if self.sensor_mode == "rgbd":
             sens = np.stack([f.sensor_inv_depth for f in g.frames])[pos_src, ukeys % K]
             has = np.isfinite(sens) & (sens > 0)
-            prior = dict(prior_idx=np.nonzero(has)[0], prior_value=sens[has],
-                         prior_weight=1.0 / (cfg.ba.depth_prior_sigma * sens[has]) ** 2)
+            if cfg.ba.depth_model == "prior":
+                prior = dict(prior_idx=np.nonzero(has)[0], prior_value=sens[has],
+                             prior_weight=1.0 / self._inv_depth_sigma(sens[has]) ** 2)
+            else:
+                obs = self._depth_observations(e, src_l, tgt_l, uv_src, struct_idx, sens, has, pos_src, ukeys % K)
+                src_l, tgt_l, right, uv_src, uv_tgt, weights, struct_idx, K_right, T_CRCL = obs(weights)
         fixed_T = g.poses(fixed) if len(fixed) else np.zeros((0, 4, 4))
         fR, ft, fs = sim3_matrix_components(fixed_T)
         block = PatchBlock(
-            [self._key(int(f)) for f in var_order], fR, ft, fs, src_l, tgt_l, g.right[e], uv_src, g.uv[e], weights,
-            struct_idx, self.K, depth0, K_right=self.K_right, T_CRCL=self.T_CRCL,
+            [self._key(int(f)) for f in var_order], fR, ft, fs, src_l, tgt_l, right, uv_src, uv_tgt, weights,
+            struct_idx, self.K, depth0, K_right=K_right, T_CRCL=T_CRCL,
             config=BlockConfig(threads=cfg.ba.threads), reprojection=self._reproj, **prior,
         )
         mono_init = init and self.sensor_mode == "mono"
@@ -552,8 +562,9 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         for pos in np.unique(pos_src):
             sel = pos_src == pos
             g.frames[pos].inv_depth[ukeys[sel] % K] = depth[sel]
-        # robust weights from the final residuals
+        # robust weights from the final residuals (the edges' own rows come first in the block)
         r, valid = block.residuals(smap.values)
+        r, valid = r[: e.size], valid[: e.size]
         rn = torch.linalg.vector_norm(r, dim=1).numpy()
         e_white = np.sqrt(g.confidence[e]) * rn / cfg.ba.pixel_sigma
         robust = kernel_weight(torch.as_tensor(e_white), "huber", cfg.ba.huber_delta).numpy()
@@ -563,6 +574,66 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         self._times["ba"] += time.perf_counter() - t0
         return {"edges": int(e.size), "initial_cost": report.initial_cost, "final_cost": report.final_cost,
                 "iterations": report.iterations}
+
+    def _inv_depth_sigma(self, inv_depth: np.ndarray) -> np.ndarray:
+        """Standard deviation of sensor inverse depths (1/m) under ``ba.depth_noise``."""
+        ba = self.config.ba
+        if ba.depth_noise == "inverse":
+            return np.full(np.shape(inv_depth), ba.depth_prior_sigma)
+        return ba.depth_prior_sigma * np.asarray(inv_depth)
+
+    def _depth_observations(self, e, src_l, tgt_l, uv_src, struct_idx, sens, has, pos_src, patch):
+        """RGB-D observation model (ORB-SLAM3's RGB-D mode): every observation with a sensor depth
+        also observes a virtual right camera ``depth_virtual_baseline`` to the right, at
+        ``u_R = u - f b / z`` (the u row only; v would repeat the left image's). Sources observe
+        themselves there (a pose-free inverse-depth term), targets at the measured pixel with the
+        target frame's own depth reading. The edge arrays of the block are extended with these
+        rows through the calibrated stereo term; returns a function of the left-edge weights that
+        gives ``(src, tgt, right, uv_src, uv_tgt, weights, struct_idx, K_right, T_CRCL)``."""
+        g = self.graph
+        ba = self.config.ba
+        fx = float(self.K[0])
+        b = ba.depth_virtual_baseline
+        T_CRCL = np.eye(4)
+        T_CRCL[0, 3] = -b
+        tgt_frames = g.frames
+        pos_t = g.positions(g.tgt[e])
+        d_tgt = np.full(e.size, np.nan)
+        left = ~g.right[e]
+        for pos in np.unique(pos_t[left]):
+            depth = tgt_frames[pos].depth
+            if depth is None:
+                continue
+            sel = np.nonzero(left & (pos_t == pos))[0]
+            d_tgt[sel] = self._depth_lookup(depth, g.uv[e][sel])
+        ok_t = np.isfinite(d_tgt) & (d_tgt > 0)
+        # source self-observations: one per patch with a reading
+        ps = np.nonzero(has)[0]
+        first = np.zeros(len(sens), np.int64)
+        first[struct_idx[::-1]] = np.arange(e.size)[::-1]  # an edge of each patch (its source frame)
+        src_self = src_l[first[ps]]
+        uv_self = uv_src[first[ps]]
+        uv_self_R = uv_self - np.stack([fx * b * sens[ps], np.zeros(ps.size)], 1)
+        uv_t = g.uv[e][ok_t]
+        uv_t_R = uv_t - np.stack([fx * b * d_tgt[ok_t], np.zeros(int(ok_t.sum()))], 1)
+        sigma_px2 = ba.pixel_sigma ** 2
+
+        def build(weights):
+            w_t = weights[ok_t]
+            conf = g.confidence[e][ok_t]
+            # u_R row: pixel noise of the left observation plus the depth noise in pixels
+            var_t = sigma_px2 / np.maximum(conf, 1e-12) + (fx * b * self._inv_depth_sigma(d_tgt[ok_t])) ** 2
+            w_R_t = np.where(w_t > 0, (w_t * sigma_px2 / np.maximum(conf, 1e-12)) / var_t, 0.0)
+            var_s = sigma_px2 + (fx * b * self._inv_depth_sigma(sens[ps])) ** 2
+            w_all = np.concatenate([np.stack([weights, weights], 1),
+                                    np.stack([1.0 / var_s, np.zeros(ps.size)], 1),
+                                    np.stack([w_R_t, np.zeros(w_R_t.size)], 1)])
+            n_self, n_t = ps.size, int(ok_t.sum())
+            return (np.concatenate([src_l, src_self, src_l[ok_t]]), np.concatenate([tgt_l, src_self, tgt_l[ok_t]]),
+                    np.concatenate([g.right[e], np.ones(n_self + n_t, bool)]),
+                    np.concatenate([uv_src, uv_self, uv_src[ok_t]]), np.concatenate([g.uv[e], uv_self_R, uv_t_R]),
+                    w_all, np.concatenate([struct_idx, ps, struct_idx[ok_t]]), self.K, T_CRCL)
+        return build
 
     def _rounds(self, new_edges: np.ndarray, rounds: int, iterations: int, init: bool, new_fid: int | None) -> int:
         """Measure / optimise rounds; returns the number of valid new measurements of ``new_fid``."""
@@ -887,6 +958,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         """A keyframe leaves the graph: its pose and patches are kept (global BA, point export)."""
         f.features = None
         f.features_right = None
+        f.depth = None
         self._final[f.fid] = f
         self._records[f.fid] = ("final",)
         self._finalised += 1
