@@ -1,4 +1,4 @@
-"""RGB-D patch frontend: the scale stays exactly 1 in metric modes, per-row edge weights of
+"""RGB-D patch frontend: the scale stays exactly 1, per-row edge weights of
 PatchBlock, the virtual right-camera convention of the depth-observation model
 (``patch.ba.depth_model: observation``), and that model end to end on a short synthetic
 room-loop clip (same bound as tests/test_patch_frontend.py: 0.5 % of the path + 1 mm)."""
@@ -58,7 +58,7 @@ def _values(poses):
     return values
 
 
-def test_metric_scale_stays_one(room):
+def test_rgbd_scale_stays_one(room):
     """Every keyframe scale is exactly 1 in RGB-D mode (the per-BA soft scale hold used to let it
     drift from BA to BA: 0.87 after 200 frames of 7-Scenes with a 1 % depth prior)."""
     cfg = light_patch_config()
