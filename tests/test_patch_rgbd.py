@@ -146,3 +146,14 @@ def test_depth_observation_model_accuracy(room, noise):
     assert est == pytest.approx(path, rel=0.02)
     # depth maps are released when frames leave the graph
     assert all(f.depth is None for f in fe._final.values())
+
+
+@pytest.mark.parametrize("field,value", [("depth_model", "measurement"), ("depth_noise", "quadratic")])
+def test_depth_model_names_are_checked(field, value):
+    from fgslam.errors import ConfigError
+
+    cfg = light_patch_config()
+    setattr(cfg.ba, field, value)
+    with pytest.raises(ConfigError, match=f"patch.ba.depth_model must be prior\\|observation"):
+        PatchFrontend(cfg, sensor_mode="rgbd")
+
