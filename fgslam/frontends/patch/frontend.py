@@ -533,8 +533,8 @@ class PatchFrontend(PatchLoopClosure, Frontend):
                 prior = dict(prior_idx=np.nonzero(has)[0], prior_value=sens[has],
                              prior_weight=1.0 / self._inv_depth_sigma(sens[has]) ** 2)
             else:
-                obs = self._depth_observations(e, src_l, tgt_l, uv_src, struct_idx, sens, has, pos_src, ukeys % K)
-                src_l, tgt_l, right, uv_src, uv_tgt, weights, struct_idx, K_right, T_CRCL = obs(weights)
+                src_l, tgt_l, right, uv_src, uv_tgt, weights, struct_idx, K_right, T_CRCL = self._depth_observations(
+                    e, src_l, tgt_l, uv_src, struct_idx, weights, sens, has)
         fixed_T = g.poses(fixed) if len(fixed) else np.zeros((0, 4, 4))
         fR, ft, fs = sim3_matrix_components(fixed_T)
         block = PatchBlock(
@@ -585,26 +585,25 @@ class PatchFrontend(PatchLoopClosure, Frontend):
             return np.full(np.shape(inv_depth), ba.depth_prior_sigma)
         return ba.depth_prior_sigma * np.asarray(inv_depth)
 
-    def _depth_observations(self, e, src_l, tgt_l, uv_src, struct_idx, sens, has, pos_src, patch):
+    def _depth_observations(self, e, src_l, tgt_l, uv_src, struct_idx, weights, sens, has):
         """RGB-D observation model (ORB-SLAM3's RGB-D mode): every observation with a sensor depth
         also observes a virtual right camera ``depth_virtual_baseline`` to the right, at
         ``u_R = u - f b / z`` (the u row only; v would repeat the left image's). Sources observe
         themselves there (a pose-free inverse-depth term), targets at the measured pixel with the
-        target frame's own depth reading. The edge arrays of the block are extended with these
-        rows through the calibrated stereo term; returns a function of the left-edge weights that
-        gives ``(src, tgt, right, uv_src, uv_tgt, weights, struct_idx, K_right, T_CRCL)``."""
+        target frame's own depth reading. Returns the block's edge arrays (edges ``e`` first, in
+        their order) extended with these rows, which go through the calibrated stereo residual:
+        ``(src, tgt, right, uv_src, uv_tgt, weights (n, 2), struct_idx, K_right, T_CRCL)``."""
         g = self.graph
         ba = self.config.ba
         fx = float(self.K[0])
         b = ba.depth_virtual_baseline
         T_CRCL = np.eye(4)
         T_CRCL[0, 3] = -b
-        tgt_frames = g.frames
         pos_t = g.positions(g.tgt[e])
         d_tgt = np.full(e.size, np.nan)
         left = ~g.right[e]
         for pos in np.unique(pos_t[left]):
-            depth = tgt_frames[pos].depth
+            depth = g.frames[pos].depth
             if depth is None:
                 continue
             sel = np.nonzero(left & (pos_t == pos))[0]
@@ -620,23 +619,21 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         uv_t = g.uv[e][ok_t]
         uv_t_R = uv_t - np.stack([fx * b * d_tgt[ok_t], np.zeros(int(ok_t.sum()))], 1)
         sigma_px2 = ba.pixel_sigma ** 2
-
-        def build(weights):
-            w_t = weights[ok_t]
-            conf = g.confidence[e][ok_t]
-            # u_R row: pixel noise of the left observation plus the depth noise in pixels
-            var_t = sigma_px2 / np.maximum(conf, 1e-12) + (fx * b * self._inv_depth_sigma(d_tgt[ok_t])) ** 2
-            w_R_t = np.where(w_t > 0, (w_t * sigma_px2 / np.maximum(conf, 1e-12)) / var_t, 0.0)
-            var_s = sigma_px2 + (fx * b * self._inv_depth_sigma(sens[ps])) ** 2
-            w_all = np.concatenate([np.stack([weights, weights], 1),
-                                    np.stack([1.0 / var_s, np.zeros(ps.size)], 1),
-                                    np.stack([w_R_t, np.zeros(w_R_t.size)], 1)])
-            n_self, n_t = ps.size, int(ok_t.sum())
-            return (np.concatenate([src_l, src_self, src_l[ok_t]]), np.concatenate([tgt_l, src_self, tgt_l[ok_t]]),
-                    np.concatenate([g.right[e], np.ones(n_self + n_t, bool)]),
-                    np.concatenate([uv_src, uv_self, uv_src[ok_t]]), np.concatenate([g.uv[e], uv_self_R, uv_t_R]),
-                    w_all, np.concatenate([struct_idx, ps, struct_idx[ok_t]]), self.K, T_CRCL)
-        return build
+        # u_R rows: the left observation's pixel variance (sigma^2 / confidence, times its robust
+        # weight) plus the depth noise in pixels; sources: a full-confidence pixel plus depth noise
+        w_t, conf = weights[ok_t], g.confidence[e][ok_t]
+        m = (w_t > 0) & (conf > 0)
+        px_var = sigma_px2 / conf[m]
+        w_R_t = np.zeros(w_t.size)
+        w_R_t[m] = w_t[m] * px_var / (px_var + (fx * b * self._inv_depth_sigma(d_tgt[ok_t][m])) ** 2)
+        var_s = sigma_px2 + (fx * b * self._inv_depth_sigma(sens[ps])) ** 2
+        w_all = np.concatenate([np.stack([weights, weights], 1), np.stack([1.0 / var_s, np.zeros(ps.size)], 1),
+                                np.stack([w_R_t, np.zeros(w_R_t.size)], 1)])
+        n_new = ps.size + int(ok_t.sum())
+        return (np.concatenate([src_l, src_self, src_l[ok_t]]), np.concatenate([tgt_l, src_self, tgt_l[ok_t]]),
+                np.concatenate([g.right[e], np.ones(n_new, bool)]),
+                np.concatenate([uv_src, uv_self, uv_src[ok_t]]), np.concatenate([g.uv[e], uv_self_R, uv_t_R]),
+                w_all, np.concatenate([struct_idx, ps, struct_idx[ok_t]]), self.K, T_CRCL)
 
     def _rounds(self, new_edges: np.ndarray, rounds: int, iterations: int, init: bool, new_fid: int | None) -> int:
         """Measure / optimise rounds; returns the number of valid new measurements of ``new_fid``."""
