@@ -78,7 +78,7 @@ class BAConfig:
     outlier_threshold: float = 6.0  # edges with a residual above this (px) after BA get zero weight
     retrack_threshold: float = 2.0  # new edges with a residual above this (px) are re-tracked from the new reprojection
     min_depth: float = 0.05  # smallest valid depth in a target camera (map units; stereo/RGB-D: metres)
-    depth_prior_sigma: float = 0.05  # RGB-D: relative standard deviation of sensor depth (incl. colour-depth misregistration)
+    depth_prior_sigma: float = 0.05  # RGB-D: sensor-depth noise, relative (depth_noise: relative) or in 1/m of inverse depth (inverse)
     depth_min: float = 0.1  # RGB-D: sensor depths at or below this (m) are invalid
     depth_max: float = 10.0  # RGB-D: sensor depths above this (m) are invalid
     depth_window: int = 2  # RGB-D: half-size (px) of the window whose median is the patch's sensor depth

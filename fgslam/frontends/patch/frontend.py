@@ -24,7 +24,9 @@ patches exceeds ``init_min_parallax`` and an essential matrix explains the track
 graph from the buffered frames (poses from the essential matrix, interpolated in between) and
 optimises with the first keyframe fixed and the distance to the last one as world scale; it never
 initialises on a static or purely rotating camera. Stereo and RGB-D initialise on the first frame
-with metric depth (stereo: right-image edges through the calibrated ``T_CLCR``; RGB-D: depth prior).
+with metric depth (stereo: right-image edges through the calibrated ``T_CLCR``; RGB-D: depth prior,
+or with ``ba.depth_model: observation`` the sensor depth of every observation as a virtual
+right-camera pixel). RGB-D poses are written back rigid (scale exactly 1) after each BA.
 
 Poses are Sim(3) ``T_WC`` with the scale held at its initial value 1, so the output trajectory is
 the rigid part ``[R | t]``. Every input frame gets a pose once the map exists (keyframes from the
