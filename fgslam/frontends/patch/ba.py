@@ -59,7 +59,8 @@ class PatchBlock(VisualBlock):
         src, tgt: (N,) local frame of each edge's source and target.
         right: (N,) bool, target is the right image (needs ``K_right`` and ``T_CRCL``).
         uv_src, uv_tgt: (N, 2) patch centre in the source and observed pixel in the target.
-        weights: (N,) non-negative weights (confidence / sigma^2 times robust weight).
+        weights: (N,) non-negative weights (confidence / sigma^2 times robust weight), or (N, 2): one
+            per residual row (u, v).
         struct_idx: (N,) patch of each edge in ``[0, P)``.
         K: (4,) left intrinsics; ``K_right`` (4,) right intrinsics; ``T_CRCL`` (4, 4) left-to-right.
         inverse_depth: (P,) initial inverse depths.
@@ -113,8 +114,9 @@ class PatchBlock(VisualBlock):
         self.uv_tgt = pad_uv.expand(q, L, 2).clone()
         self.uv_src[group, rank] = torch.as_tensor(uv_src, dtype=f64)[order]
         self.uv_tgt[group, rank] = torch.as_tensor(uv_tgt, dtype=f64)[order]
-        edge_w = torch.zeros(q, L, dtype=f64)
-        edge_w[group, rank] = torch.as_tensor(weights, dtype=f64)[order]
+        edge_w = torch.zeros(q, L, 2, dtype=f64)
+        w_in = torch.as_tensor(np.asarray(weights), dtype=f64)
+        edge_w[group, rank] = (w_in[:, None].expand(-1, 2) if w_in.dim() == 1 else w_in)[order]
         edge_idx = torch.zeros(q, L, dtype=torch.long)
         edge_idx[group, rank] = torch.as_tensor(np.asarray(struct_idx)).long()[order]
         self._row_of_edge = torch.empty(n, dtype=torch.long)  # caller's edge n -> padded row
@@ -128,7 +130,7 @@ class PatchBlock(VisualBlock):
         prior_idx = torch.as_tensor(np.asarray(prior_idx)).long().reshape(-1)
         m = int(prior_idx.shape[0])
         self.weights = torch.cat([
-            torch.stack([edge_w.reshape(-1), edge_w.reshape(-1)], 1),
+            edge_w.reshape(-1, 2),
             torch.stack([torch.as_tensor(prior_weight, dtype=f64).reshape(-1), torch.zeros(m, dtype=f64)], 1),
         ])
         if bool((self.weights < 0).any()) or not bool(torch.isfinite(self.weights).all()):

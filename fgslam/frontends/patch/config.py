@@ -89,7 +89,7 @@ class BAConfig:
     outlier_threshold: float = ranged(6.0, gt=0)  # edges with a residual above this (px) after BA get zero weight
     retrack_threshold: float = ranged(2.0, ge=0)  # new edges with a residual above this (px) are re-tracked from the new reprojection
     min_depth: float = ranged(0.05, gt=0)  # smallest valid depth in a target camera (map units; stereo/RGB-D: metres)
-    depth_prior_sigma: float = ranged(0.05, gt=0)  # RGB-D: relative standard deviation of sensor depth (incl. colour-depth misregistration)
+    depth_prior_sigma: float = ranged(0.05, gt=0)  # RGB-D: sensor-depth noise, relative (depth_noise: relative) or in 1/m of inverse depth (inverse)
     depth_min: float = ranged(0.1, ge=0)  # RGB-D: sensor depths at or below this (m) are invalid
     depth_max: float = ranged(10.0, gt=0)  # RGB-D: sensor depths above this (m) are invalid
     depth_window: int = ranged(2, ge=0)  # RGB-D: half-size (px) of the window whose median is the patch's sensor depth
@@ -98,6 +98,9 @@ class BAConfig:
     stereo_cross_edges: bool = False  # stereo: also edges into the right images of other frames (else own right image only)
     threads: int = ranged(1, ge=0)  # torch threads during BA (small dense work: 1 is fastest)
     lambda_factor: float = ranged(1000.0, gt=1)  # LM damping multiplier after a rejected step (the pose Hessian dwarfs damping below ~1e4: x10 retries the same step)
+    depth_model: Literal["prior", "observation"] = "prior"  # RGB-D: prior on each patch's inverse depth in its source frame (DROID-SLAM), or sensor depth as a measurement of every observation, source and targets (ORB-SLAM3 RGB-D: virtual right-camera pixel u - f b / z)
+    depth_noise: Literal["relative", "inverse"] = "relative"  # RGB-D: relative: sigma_d = depth_prior_sigma * d (sigma_z grows with z); inverse: sigma_d = depth_prior_sigma in 1/m (sigma_z grows with z^2, Kinect)
+    depth_virtual_baseline: float = ranged(0.08, gt=0)  # RGB-D observation model: baseline (m) of the virtual right camera (sets the pixel scale of the depth rows)
 
 
 @dataclass
@@ -189,6 +192,9 @@ class PatchConfig:
         self.graph.validate()
         if self.source not in ("lk", "learned"):
             raise ConfigError(f"patch.source must be 'lk' or 'learned', got {self.source!r}")
+        if self.ba.depth_model not in ("prior", "observation") or self.ba.depth_noise not in ("relative", "inverse"):
+            raise ConfigError(f"patch.ba.depth_model must be prior|observation and depth_noise relative|inverse, "
+                              f"got {self.ba.depth_model!r}, {self.ba.depth_noise!r}")
         if not self.ba.depth_max > self.ba.depth_min:
             raise ConfigError(f"patch.ba.depth_max ({self.ba.depth_max}) must exceed depth_min ({self.ba.depth_min})")
         if not self.tracking.init_min_frames <= self.tracking.init_max_frames:

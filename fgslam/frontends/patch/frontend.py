@@ -29,7 +29,9 @@ patches exceeds ``init_min_parallax`` and an essential matrix explains the track
 graph from the buffered frames (poses from the essential matrix, interpolated in between) and
 optimises with the first keyframe fixed and the distance to the last one as world scale; it never
 initialises on a static or purely rotating camera. Stereo and RGB-D initialise on the first frame
-with metric depth (stereo: right-image edges through the calibrated ``T_CLCR``; RGB-D: depth prior).
+with metric depth (stereo: right-image edges through the calibrated ``T_CLCR``; RGB-D: depth prior,
+or with ``ba.depth_model: observation`` the sensor depth of every observation as a virtual
+right-camera pixel). RGB-D poses are written back rigid (scale exactly 1) after each BA.
 
 Poses are Sim(3) ``T_WC`` with the scale held at its initial value 1, so the output trajectory is
 the rigid part ``[R | t]``. Every input frame gets a pose once the map exists (keyframes from the
@@ -385,10 +387,14 @@ class PatchFrontend(PatchLoopClosure, Frontend):
 
     # ------------------------------------------------------------------ graph frames
     def _sensor_inv_depth(self, frame, uv: np.ndarray) -> np.ndarray:
-        out = np.full(len(uv), np.nan)
         if self.sensor_mode != "rgbd" or frame.depth is None:
-            return out
-        depth = frame.depth
+            return np.full(len(uv), np.nan)
+        return self._depth_lookup(frame.depth, uv)
+
+    def _depth_lookup(self, depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """Inverse sensor depth (n,) at pixels uv (n, 2): median of the valid readings in a window,
+        NaN where most are invalid or the window spans a depth discontinuity."""
+        out = np.full(len(uv), np.nan)
         h, w = depth.shape
         r = self.config.ba.depth_window
         offs = np.arange(-r, r + 1)
@@ -422,9 +428,10 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         else:
             median = float(np.nanmedian(sensor)) if np.isfinite(sensor).any() else 1.0
         inv_depth = np.where(np.isfinite(sensor), sensor, median)
+        keep_depth = self.sensor_mode == "rgbd" and self.config.ba.depth_model == "observation"
         return GraphFrame(fid=fid, index=int(frame.index), timestamp=float(frame.timestamp), T_WC=np.array(T_WC, dtype=np.float64),
                           uv=uv, inv_depth=inv_depth, sensor_inv_depth=sensor, colour=colour,
-                          features=features, features_right=features_right)
+                          features=features, features_right=features_right, depth=frame.depth if keep_depth else None)
 
     def _prepare(self, frame, left: bool = True, right: bool = True):
         t0 = time.perf_counter()
@@ -528,16 +535,21 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         uv_src = uv_all[g.positions(g.src[e]), g.patch[e]]
         weights = g.confidence[e] * g.robust[e] / cfg.ba.pixel_sigma ** 2
         prior = {}
+        right, uv_tgt, K_right, T_CRCL = g.right[e], g.uv[e], self.K_right, self.T_CRCL
         if self.sensor_mode == "rgbd":
             sens = np.stack([f.sensor_inv_depth for f in g.frames])[pos_src, ukeys % K]
             has = np.isfinite(sens) & (sens > 0)
-            prior = dict(prior_idx=np.nonzero(has)[0], prior_value=sens[has],
-                         prior_weight=1.0 / (cfg.ba.depth_prior_sigma * sens[has]) ** 2)
+            if cfg.ba.depth_model == "prior":
+                prior = dict(prior_idx=np.nonzero(has)[0], prior_value=sens[has],
+                             prior_weight=1.0 / self._inv_depth_sigma(sens[has]) ** 2)
+            else:
+                src_l, tgt_l, right, uv_src, uv_tgt, weights, struct_idx, K_right, T_CRCL = self._depth_observations(
+                    e, src_l, tgt_l, uv_src, struct_idx, weights, sens, has)
         fixed_T = g.poses(fixed) if len(fixed) else np.zeros((0, 4, 4))
         fR, ft, fs = sim3_matrix_components(fixed_T)
         block = PatchBlock(
-            [self._key(int(f)) for f in var_order], fR, ft, fs, src_l, tgt_l, g.right[e], uv_src, g.uv[e], weights,
-            struct_idx, self.K, depth0, K_right=self.K_right, T_CRCL=self.T_CRCL,
+            [self._key(int(f)) for f in var_order], fR, ft, fs, src_l, tgt_l, right, uv_src, uv_tgt, weights,
+            struct_idx, self.K, depth0, K_right=K_right, T_CRCL=T_CRCL,
             config=BlockConfig(threads=cfg.ba.threads), reprojection=self._reproj, **prior,
         )
         mono_init = init and self.sensor_mode == "mono"
@@ -549,15 +561,23 @@ class PatchFrontend(PatchLoopClosure, Frontend):
             smap.add_keyframe(int(f), _gtsam_sim3(g.frame(int(f)).T_WC))
         smap.add_block(block)
         report = smap.optimize()
-        # write back poses and depths
+        # write back poses and depths; RGB-D keeps every scale at exactly 1: its depth priors act on
+        # inverse depths in the source camera and observe no Sim(3) scale, and the scale prior only
+        # holds each BA near its starting scale, so written-back scales drifted from BA to BA
+        # (7-Scenes: s fell to 0.87 within 200 frames and the trajectory shrank; see README). Stereo
+        # observes the scale through the metric baseline (resetting it there moved the EuRoC static
+        # clip by 2.6 mm instead of 0.8 mm).
+        rigid = self.sensor_mode == "rgbd"
         for f in var_order:
-            g.frame(int(f)).T_WC = _gtsam_matrix(smap.pose(int(f)))
+            T_WC = _gtsam_matrix(smap.pose(int(f)))
+            g.frame(int(f)).T_WC = _rigid(T_WC) if rigid else T_WC
         depth = block.structure.numpy()
         for pos in np.unique(pos_src):
             sel = pos_src == pos
             g.frames[pos].inv_depth[ukeys[sel] % K] = depth[sel]
-        # robust weights from the final residuals
+        # robust weights from the final residuals (the edges' own rows come first in the block)
         r, valid = block.residuals(smap.values)
+        r, valid = r[: e.size], valid[: e.size]
         rn = torch.linalg.vector_norm(r, dim=1).numpy()
         e_white = np.sqrt(g.confidence[e]) * rn / cfg.ba.pixel_sigma
         robust = kernel_weight(torch.as_tensor(e_white), "huber", cfg.ba.huber_delta).numpy()
@@ -567,6 +587,63 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         self._times["ba"] += time.perf_counter() - t0
         return {"edges": int(e.size), "initial_cost": report.initial_cost, "final_cost": report.final_cost,
                 "iterations": report.iterations}
+
+    def _inv_depth_sigma(self, inv_depth: np.ndarray) -> np.ndarray:
+        """Standard deviation of sensor inverse depths (1/m) under ``ba.depth_noise``."""
+        ba = self.config.ba
+        if ba.depth_noise == "inverse":
+            return np.full(np.shape(inv_depth), ba.depth_prior_sigma)
+        return ba.depth_prior_sigma * np.asarray(inv_depth)
+
+    def _depth_observations(self, e, src_l, tgt_l, uv_src, struct_idx, weights, sens, has):
+        """RGB-D observation model (ORB-SLAM3's RGB-D mode): every observation with a sensor depth
+        also observes a virtual right camera ``depth_virtual_baseline`` to the right, at
+        ``u_R = u - f b / z`` (the u row only; v would repeat the left image's). Sources observe
+        themselves there (a pose-free inverse-depth term), targets at the measured pixel with the
+        target frame's own depth reading. Returns the block's edge arrays (edges ``e`` first, in
+        their order) extended with these rows, which go through the calibrated stereo residual:
+        ``(src, tgt, right, uv_src, uv_tgt, weights (n, 2), struct_idx, K_right, T_CRCL)``."""
+        g = self.graph
+        ba = self.config.ba
+        fx = float(self.K[0])
+        b = ba.depth_virtual_baseline
+        T_CRCL = np.eye(4)
+        T_CRCL[0, 3] = -b
+        pos_t = g.positions(g.tgt[e])
+        d_tgt = np.full(e.size, np.nan)
+        left = ~g.right[e]
+        for pos in np.unique(pos_t[left]):
+            depth = g.frames[pos].depth
+            if depth is None:
+                continue
+            sel = np.nonzero(left & (pos_t == pos))[0]
+            d_tgt[sel] = self._depth_lookup(depth, g.uv[e][sel])
+        ok_t = np.isfinite(d_tgt) & (d_tgt > 0)
+        # source self-observations: one per patch with a reading
+        ps = np.nonzero(has)[0]
+        first = np.zeros(len(sens), np.int64)
+        first[struct_idx[::-1]] = np.arange(e.size)[::-1]  # an edge of each patch (its source frame)
+        src_self = src_l[first[ps]]
+        uv_self = uv_src[first[ps]]
+        uv_self_R = uv_self - np.stack([fx * b * sens[ps], np.zeros(ps.size)], 1)
+        uv_t = g.uv[e][ok_t]
+        uv_t_R = uv_t - np.stack([fx * b * d_tgt[ok_t], np.zeros(int(ok_t.sum()))], 1)
+        sigma_px2 = ba.pixel_sigma ** 2
+        # u_R rows: the left observation's pixel variance (sigma^2 / confidence, times its robust
+        # weight) plus the depth noise in pixels; sources: a full-confidence pixel plus depth noise
+        w_t, conf = weights[ok_t], g.confidence[e][ok_t]
+        m = (w_t > 0) & (conf > 0)
+        px_var = sigma_px2 / conf[m]
+        w_R_t = np.zeros(w_t.size)
+        w_R_t[m] = w_t[m] * px_var / (px_var + (fx * b * self._inv_depth_sigma(d_tgt[ok_t][m])) ** 2)
+        var_s = sigma_px2 + (fx * b * self._inv_depth_sigma(sens[ps])) ** 2
+        w_all = np.concatenate([np.stack([weights, weights], 1), np.stack([1.0 / var_s, np.zeros(ps.size)], 1),
+                                np.stack([w_R_t, np.zeros(w_R_t.size)], 1)])
+        n_new = ps.size + int(ok_t.sum())
+        return (np.concatenate([src_l, src_self, src_l[ok_t]]), np.concatenate([tgt_l, src_self, tgt_l[ok_t]]),
+                np.concatenate([g.right[e], np.ones(n_new, bool)]),
+                np.concatenate([uv_src, uv_self, uv_src[ok_t]]), np.concatenate([g.uv[e], uv_self_R, uv_t_R]),
+                w_all, np.concatenate([struct_idx, ps, struct_idx[ok_t]]), self.K, T_CRCL)
 
     def _rounds(self, new_edges: np.ndarray, rounds: int, iterations: int, init: bool, new_fid: int | None,
                 premeasured: np.ndarray | None = None) -> int:
@@ -983,6 +1060,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         """A keyframe leaves the graph: its pose and patches are kept (global BA, point export)."""
         f.features = None
         f.features_right = None
+        f.depth = None
         self._final[f.fid] = f
         self._records[f.fid] = ("final",)
         self._finalised += 1

@@ -38,6 +38,7 @@ class GraphFrame:
         sensor_inv_depth: (K,) float64 inverse sensor depth at the patch centre (NaN: none).
         colour: (K, 3) uint8 colour of the patch centres (for point export).
         features, features_right: the measurement source's per-frame cache (None once released).
+        depth: (H, W) sensor depth map in metres (RGB-D observation model only; None once released).
     """
 
     fid: int
@@ -50,6 +51,7 @@ class GraphFrame:
     colour: np.ndarray
     features: Any = None
     features_right: Any = None
+    depth: Any = None
 
 
 @dataclass
