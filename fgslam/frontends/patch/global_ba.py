@@ -596,6 +596,7 @@ def global_bundle_adjustment(problem: GlobalBAProblem, config: GlobalBAConfig | 
                             improved = True
                             break
                     lam *= cfg.lambda_factor
+                system = None  # freed before the next linearisation builds its own (peak memory)
                 if not improved:
                     break
                 decrease = cost - new_cost
