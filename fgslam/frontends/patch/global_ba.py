@@ -10,15 +10,23 @@ when ``right``), residual ``pi(T_CtCj T_WCtgt^-1 T_WCsrc X(uv_src, d)) - uv`` in
 ``weight * robust``. RGB-D priors ``d[prior_idx] ~ prior_value``. Frames flagged ``fixed`` are the
 gauge (monocular: at least two, which also fix the map's scale).
 
-Why a solver of its own rather than :class:`fgslam.map.SlamMap` with one
-:class:`~.ba.PatchBlock`: that block's reduced system is dense over all its frames (7F x 7F), fine
-for a local window and impossible for thousands of keyframes. Here the Schur complement is taken
-*per source frame*: a patch touches only its source frame and the frames it is observed in, so
-each source frame ``i`` contributes a dense ``(6 S_i)^2`` block over its slots (itself and its
-targets, ``S_i`` about ``2 * patch_lifetime + 1``), computed for all frames at once with batched
-products, and the global system ``sum_i`` of those blocks is sparse (banded plus loop couplings).
-It is solved by a sparse LU (SciPy SuperLU in symmetric mode, minimum-degree ordering) inside Levenberg-Marquardt with
-Marquardt's scaled damping ``H + lambda diag(H)``; depths are back-substituted per patch.
+Why not :class:`fgslam.map.SlamMap` with one :class:`~.ba.PatchBlock`: that block's reduced
+system is dense over all its frames (7F x 7F), fine for a local window and impossible for
+thousands of keyframes. Here the Schur complement is taken *per source frame*: a patch touches
+only its source frame and the frames it is observed in, so each source frame ``i`` contributes a
+dense ``(6 S_i)^2`` block over its slots (itself and its targets, ``S_i`` about
+``2 * patch_lifetime + 1``), computed for all frames at once with batched products, and the global
+system ``sum_i`` of those blocks is sparse (banded plus loop couplings). Levenberg-Marquardt with
+Marquardt's scaled damping ``H + lambda diag(H)`` solves it with ``config.linear_solver``:
+
+- ``gtsam`` (default): one ``gtsam.HessianFactor`` per source frame over its variable slots (from
+  the compressed Jacobian, :func:`fgslam.factors.schur.to_gaussian_factor`), the damping as unary
+  factors beside them, GTSAM's multifrontal Cholesky in a METIS ordering;
+- ``superlu``: the blocks summed per pose pair into one sparse matrix, SciPy's SuperLU in
+  symmetric mode with a minimum-degree ordering.
+
+Both give the same step (tests: 1e-9 relative); the README's scaling table gives both side by
+side. Depths are back-substituted per patch.
 
 Robustness: ``robust_rounds`` rounds, each re-weighting the edges with Huber weights of the residuals
 at its start; the first one cuts no edge (loop edges start with large residuals and must act before
