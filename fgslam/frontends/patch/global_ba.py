@@ -37,6 +37,7 @@ map: on the street-loop clip the keyframe ATE after the first loop went to 2.2 m
 
 from __future__ import annotations
 
+import abc
 import logging
 import os
 import time
@@ -399,7 +400,7 @@ def damping_diagonal(diag: np.ndarray, lam: float) -> np.ndarray:
     return lam * scale + (scale - diag).clip(min=0.0)
 
 
-class _ReducedSystem:
+class _ReducedSystem(abc.ABC):
     """The reduced camera system ``H dx = -g`` over the V variable poses, assembled from the source
     frames' dense blocks and solved with damping ``H + diag(damping_diagonal(diag H, lam))``.
 
@@ -419,16 +420,21 @@ class _ReducedSystem:
         self.g.index_add_(0, rows, gloc.reshape(ns * S, POSE_DOF))
         self.diag.index_add_(0, rows, torch.diagonal(Hloc, dim1=1, dim2=2).reshape(ns * S, POSE_DOF))
 
+    @abc.abstractmethod
     def add_sources(self, slot_var: torch.Tensor, Hloc: torch.Tensor, gloc: torch.Tensor) -> None:
-        raise NotImplementedError
+        """Add one chunk of source frames (class docstring)."""
 
     def finish(self) -> None:
         self.g_np = self.g[: self.V].reshape(-1).numpy()
         self.diag_np = self.diag[: self.V].reshape(-1).numpy()
 
+    @abc.abstractmethod
     def solve(self, lam: float) -> np.ndarray:
         """dx (6V,) of ``(H + diag(damping)) dx = -g``; raises RuntimeError when singular."""
-        raise NotImplementedError
+
+    @abc.abstractmethod
+    def dense(self) -> tuple[np.ndarray, np.ndarray]:
+        """(H (6V, 6V), g (6V,)) as dense arrays (small problems, tests)."""
 
 
 class _SuperLUSystem(_ReducedSystem):
