@@ -89,10 +89,16 @@ def make_problem(rng, frames=8, patches=24, lifetime=3, stereo=False, priors=Fal
     return prob, T_true, d_true
 
 
+SOLVERS = ["gtsam", "superlu"]
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
 @pytest.mark.parametrize("stereo,priors", [(False, False), (True, True)])
-def test_sparse_reduction_equals_dense_patch_block(stereo, priors):
-    """H and g of the per-source-frame reduction equal PatchBlock's dense Schur complement (scale
-    rows dropped), at a perturbed state with fixed frames, several chunks and right edges."""
+def test_sparse_reduction_equals_dense_patch_block(stereo, priors, solver):
+    """H and g of the per-source-frame reduction, as each linear solver assembles them (GTSAM: one
+    factor per source frame; SuperLU: summed pair blocks), equal PatchBlock's dense Schur
+    complement (scale rows dropped), at a perturbed state with fixed frames, several chunks and
+    right edges."""
     import gtsam
 
     rng = np.random.default_rng(3)
@@ -100,15 +106,12 @@ def test_sparse_reduction_equals_dense_patch_block(stereo, priors):
     T0 = np.stack([_perturb(T, rng, 0.01, 0.02) for T in T_true])
     d0 = d_true * rng.uniform(0.8, 1.2, d_true.shape)
     rep = ReprojectionConfig(min_depth=0.05)
-    cfg = GlobalBAConfig(chunk_edges=150)  # several chunks
+    cfg = GlobalBAConfig(chunk_edges=150, linear_solver=solver)  # several chunks
     p = _Problem(prob, cfg, rep)
     assert len(p.chunks) > 2
-    upair, Hsum, g = p.linearize(torch.as_tensor(T0), torch.as_tensor(d0))
+    system = p.linearize(torch.as_tensor(T0), torch.as_tensor(d0), p.new_system())
     V = p.V
-    H_sparse = np.zeros((6 * V, 6 * V))
-    for pair, blk in zip(upair.numpy(), Hsum.numpy()):
-        a, b = divmod(int(pair), V)
-        H_sparse[6 * a:6 * a + 6, 6 * b:6 * b + 6] = blk
+    H_sparse, g_sparse = system.dense()
     var = np.nonzero(~prob.fixed)[0]
     fixed = np.nonzero(prob.fixed)[0]
     local = np.empty(len(T0), np.int64)
@@ -130,7 +133,7 @@ def test_sparse_reduction_equals_dense_patch_block(stereo, priors):
     H_ref, g_ref = H_dense[np.ix_(keep, keep)], g_dense[keep]
     scale = np.abs(H_ref).max()
     assert np.abs(H_sparse - H_ref).max() <= 1e-9 * scale
-    assert np.abs(g.numpy() - g_ref).max() <= 1e-9 * np.abs(g_ref).max()
+    assert np.abs(g_sparse - g_ref).max() <= 1e-9 * np.abs(g_ref).max()
     # back-substitution agrees as well
     dx = rng.normal(0, 1e-3, (V, 6))
     dd = p.back_substitute(torch.as_tensor(dx))
@@ -139,7 +142,8 @@ def test_sparse_reduction_equals_dense_patch_block(stereo, priors):
     assert np.allclose(dd.numpy(), dd_ref, atol=1e-9 * max(1.0, np.abs(dd_ref).max()))
 
 
-def test_recovers_the_truth_from_perturbed_poses_and_depths():
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_recovers_the_truth_from_perturbed_poses_and_depths(solver):
     rng = np.random.default_rng(0)
     prob, T_true, d_true = make_problem(rng, frames=10, patches=30)
     T0 = T_true.copy()
@@ -147,7 +151,8 @@ def test_recovers_the_truth_from_perturbed_poses_and_depths():
         T0[i] = _perturb(T_true[i], rng, 0.01, 0.03)
     prob.T_WC = T0
     prob.inv_depth = d_true * rng.uniform(0.85, 1.15, d_true.shape)
-    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=30, robust_rounds=1, relative_tolerance=1e-14))
+    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=30, robust_rounds=1, relative_tolerance=1e-14,
+                                                        linear_solver=solver))
     assert res.initial_cost > 1.0
     assert res.final_cost < 1e-10 * res.initial_cost
     assert np.abs(res.T_WC - T_true).max() < 1e-6
@@ -157,7 +162,8 @@ def test_recovers_the_truth_from_perturbed_poses_and_depths():
     assert res.num_variables == 8 and res.num_edges == len(prob.src)
 
 
-def test_outliers_get_zero_weight_and_do_not_bias_the_result():
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_outliers_get_zero_weight_and_do_not_bias_the_result(solver):
     rng = np.random.default_rng(1)
     prob, T_true, d_true = make_problem(rng, frames=10, patches=30, noise=0.3)
     bad = rng.choice(len(prob.src), len(prob.src) // 20, replace=False)
@@ -167,18 +173,20 @@ def test_outliers_get_zero_weight_and_do_not_bias_the_result():
     for i in range(2, len(T0)):
         T0[i] = _perturb(T_true[i], rng, 0.005, 0.02)
     prob.T_WC = T0
-    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=15, robust_rounds=3))
+    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=15, robust_rounds=3, linear_solver=solver))
     assert (res.robust[bad] == 0).mean() > 0.95
     good = np.setdiff1d(np.arange(len(prob.src)), bad)
     assert (res.robust[good] > 0).mean() > 0.98
     err = np.linalg.norm(res.T_WC[:, :3, 3] - T_true[:, :3, 3], axis=1).max()
     assert err < 0.01
     # plain least squares (one round, no kernel) is visibly biased by the same outliers
-    plain = global_bundle_adjustment(prob, GlobalBAConfig(iterations=15, robust_rounds=1, huber_first_round=False))
+    plain = global_bundle_adjustment(prob, GlobalBAConfig(iterations=15, robust_rounds=1, huber_first_round=False,
+                                                          linear_solver=solver))
     assert np.linalg.norm(plain.T_WC[:, :3, 3] - T_true[:, :3, 3], axis=1).max() > 2 * err
 
 
-def test_loop_edges_close_a_drifted_circle():
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_loop_edges_close_a_drifted_circle(solver):
     """A circle whose poses carry accumulated drift: local edges alone keep it, loop edges between
     the last and the first frames pull it back to the truth."""
     rng = np.random.default_rng(2)
@@ -191,7 +199,7 @@ def test_loop_edges_close_a_drifted_circle():
         T0[i] = T0[i - 1] @ drift @ np.linalg.inv(T_true[i - 1]) @ T_true[i]
     prob.T_WC = T0
     before = np.linalg.norm(T0[:, :3, 3] - T_true[:, :3, 3], axis=1).max()
-    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=20, robust_rounds=2))
+    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=20, robust_rounds=2, linear_solver=solver))
     after = np.linalg.norm(res.T_WC[:, :3, 3] - T_true[:, :3, 3], axis=1).max()
     assert before > 0.5
     assert after < 0.05 * before
@@ -217,9 +225,43 @@ def test_bad_input_is_rejected():
         global_bundle_adjustment(GlobalBAProblem(**{**prob.__dict__, "right": np.ones_like(prob.right)}))
 
 
-def test_everything_fixed_or_no_edges_returns_the_input():
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_everything_fixed_or_no_edges_returns_the_input(solver):
     rng = np.random.default_rng(5)
     prob, T_true, d_true = make_problem(rng, frames=4, patches=8)
     prob.fixed[:] = True
-    res = global_bundle_adjustment(prob)
+    res = global_bundle_adjustment(prob, GlobalBAConfig(linear_solver=solver))
     assert np.array_equal(res.T_WC, T_true) and res.num_variables == 0
+
+
+@pytest.mark.parametrize("stereo", [False, True])
+@pytest.mark.parametrize("frames,lifetime,loops", [(8, 3, ()), (40, 4, ((38, 2), (39, 5), (30, 0)))])
+def test_gtsam_and_superlu_give_the_same_damped_step(frames, lifetime, loops, stereo):
+    """Both linear solvers solve the same linearised system to the same LM step, at small and
+    large damping, on a small and a medium problem (loop edges, a fixed frame inside some source
+    frames' slots, padded slots), mono and stereo."""
+    rng = np.random.default_rng(11)
+    prob, T_true, d_true = make_problem(rng, frames=frames, patches=20, lifetime=lifetime, stereo=stereo,
+                                        circle=bool(loops), loop_pairs=loops, noise=0.3)
+    T0 = np.stack([T if f else _perturb(T, rng, 0.01, 0.02) for T, f in zip(T_true, prob.fixed)])
+    d0 = torch.as_tensor(d_true * rng.uniform(0.8, 1.2, d_true.shape))
+    steps = {}
+    for solver in SOLVERS:
+        p = _Problem(prob, GlobalBAConfig(chunk_edges=400, linear_solver=solver), ReprojectionConfig(min_depth=0.05))
+        system = p.linearize(torch.as_tensor(T0), d0, p.new_system())
+        steps[solver] = [system.solve(lam) for lam in (1e-6, 1e-4, 1e-1, 10.0)]
+    for dx_g, dx_s in zip(steps["gtsam"], steps["superlu"]):
+        assert np.abs(dx_g).max() > 1e-6  # a real step
+        assert np.abs(dx_g - dx_s).max() <= 1e-9 * np.abs(dx_s).max()
+    # damping acts: the steps shrink as lambda grows
+    norms = [np.linalg.norm(dx) for dx in steps["gtsam"]]
+    assert norms[0] > norms[2] > norms[3]
+
+
+def test_unknown_linear_solver_is_a_config_error():
+    from fgslam.errors import ConfigError
+
+    rng = np.random.default_rng(4)
+    prob, _, _ = make_problem(rng, frames=4, patches=8)
+    with pytest.raises(ConfigError, match="linear_solver"):
+        global_bundle_adjustment(prob, GlobalBAConfig(linear_solver="cholmod"))

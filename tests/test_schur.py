@@ -117,7 +117,7 @@ def test_factorize_psd_reproduces_singular_quadratic(seed):
         assert np.sum((A @ x + b) ** 2) + e**2 == pytest.approx(x @ H @ x + 2 * g @ x + c, rel=1e-9)
 
 
-@pytest.mark.parametrize("kind,k", [("hessian", 4), ("hessian", 1), ("jacobian", 3), ("jacobian", 2)])
+@pytest.mark.parametrize("kind,k", [("hessian", 4), ("hessian", 1), ("jacobian", 3), ("jacobian", 2), ("jacobian", 5)])
 def test_gtsam_factor_error_equals_reduced_cost(kind, k):
     p = random_problem(5, k=k, n=40)
     sys_ = schur_reduce(p["r"], p["J"], p["slots"], p["E"], p["idx"], p["w"], p["k"], p["P"])
@@ -131,6 +131,26 @@ def test_gtsam_factor_error_equals_reduced_cost(kind, k):
         for i, key in enumerate(keys):
             vv.insert(key, dx[D * i:D * i + D])
         assert factor.error(vv) == pytest.approx(0.5 * sys_.model(torch.as_tensor(dx)), rel=1e-9)
+
+
+@pytest.mark.parametrize("kind", ["hessian", "jacobian"])
+def test_gtsam_factor_without_constant_differs_by_a_constant(kind):
+    """``c=None`` (the global BA's per-source factors): the same quadratic without its constant."""
+    k = 4
+    p = random_problem(6, k=k, n=40)
+    sys_ = schur_reduce(p["r"], p["J"], p["slots"], p["E"], p["idx"], p["w"], p["k"], p["P"])
+    keys = list(range(k))
+    factor = to_gaussian_factor(keys, sys_.H.numpy(), sys_.g.numpy(), None, kind=kind)
+    rng = np.random.default_rng(8)
+    offsets = []
+    for _ in range(3):
+        dx = rng.standard_normal(k * D)
+        vv = gtsam.VectorValues()
+        for i, key in enumerate(keys):
+            vv.insert(key, dx[D * i:D * i + D])
+        offsets.append(0.5 * sys_.model(torch.as_tensor(dx)) - factor.error(vv))
+    np.testing.assert_allclose(offsets, offsets[0], rtol=1e-9)
+    assert offsets[0] > 0  # the left-out part: 0.5 (c - b^T b) >= 0
 
 
 # ---------------------------------------------------------------------------------------------- blocks

@@ -22,6 +22,9 @@ Parts (``--parts``), each measured at every N of ``--keyframes`` (default 100 10
   Each N runs in a child process (unless ``--in-process``) watched for ``--ba-timeout-s`` and
   ``--ba-memory-gb`` of resident memory; a child that is stopped or fails is recorded, not fatal.
   ``--ba-option iterations=1 --ba-option robust_rounds=1`` (GlobalBAConfig fields) times one step.
+  ``--ba-solvers gtsam superlu`` runs every size once per linear solver (``linear_solver``),
+  interleaved, and adds ``side_by_side``: seconds, LM steps (= solves), linearisations, solve time
+  per step, system construction time per linearisation, peak memory and final RMS per solver.
 
 Every entry carries ``os.getloadavg()`` before and after it (the machine is shared). Progress goes
 to stderr.
@@ -379,10 +382,16 @@ def bench_global_ba(n: int, seed: int, cfg: BAScenarioConfig, threads: int = 1, 
     inv_depth = np.asarray(res.inv_depth, dtype=np.float64)
     robust = np.asarray(res.robust, dtype=np.float64)
     iterations = int(res.iterations)
+    timings = dict(getattr(res, "timings", {}))
+    linearizations = int(getattr(res, "linearizations", 0))
     entry.update(
         wall_s=round(wall_s, 3), seconds=round(float(res.seconds), 3), iterations=iterations,
         seconds_per_iteration=round(float(res.seconds) / iterations, 4) if iterations else None,
-        timings_s={k: round(float(v), 3) for k, v in getattr(res, "timings", {}).items()},
+        linear_solver=getattr(res, "linear_solver", ""), linearizations=linearizations,
+        solve_s_per_step=round(timings["solve"] / iterations, 4) if iterations and "solve" in timings else None,
+        construct_s_per_linearization=(round(timings["construct"] / linearizations, 4)
+                                       if linearizations and "construct" in timings else None),
+        timings_s={k: round(float(v), 3) for k, v in timings.items()},
         initial_cost=float(res.initial_cost), final_cost=float(res.final_cost),
         rms_px_final=round(reprojection_rms(scn, T_WC, inv_depth), 4),
         rms_px_final_inliers=round(reprojection_rms(scn, T_WC, inv_depth, robust), 4),
@@ -438,21 +447,38 @@ def run_global_ba_isolated(n: int, seed: int, threads: int, timeout_s: float, me
             "stderr_tail": err[-2000:], "load_average_before": load_before, "load_average_after": _loadavg()}
 
 
+SIDE_BY_SIDE_KEYS = ("status", "seconds", "iterations", "linearizations", "solve_s_per_step",
+                     "construct_s_per_linearization", "peak_rss_gb", "rms_px_final", "final_cost",
+                     "load_average_before", "load_average_after")
+
+
 def run_global_ba(sizes: list[int], seed: int, in_process: bool, threads: int, timeout_s: float,
-                  memory_gb: float, ba_options: dict | None = None) -> dict:
+                  memory_gb: float, ba_options: dict | None = None, solvers: list[str] | None = None) -> dict:
+    """Every size in ``sizes``; with ``solvers`` (``GlobalBAConfig.linear_solver`` values) each size
+    runs once per solver, interleaved (all solvers at one size before the next size), and
+    ``side_by_side`` lists the key figures per size and solver."""
     cfg = BAScenarioConfig()
     entries = []
     for n in sizes:
-        logger.info("global_ba: %d keyframes", n)
-        if not in_process:
-            entries.append(run_global_ba_isolated(n, seed, threads, timeout_s, memory_gb, ba_options))
-            continue
-        try:
-            entries.append(bench_global_ba(n, seed, cfg, threads, ba_options))
-        except Exception as exc:  # recorded in the JSON: a failure at one size is a result too
-            logger.exception("global_ba: %d keyframes failed", n)
-            entries.append({"keyframes": n, "status": f"{type(exc).__name__}: {exc}", "peak_rss_gb": _peak_rss_gb()})
-    return {"scenario": asdict(cfg), "ba_options": ba_options or {}, "sizes": entries}
+        for solver in solvers or [None]:
+            options = dict(ba_options or {}, **({} if solver is None else {"linear_solver": solver}))
+            logger.info("global_ba: %d keyframes%s", n, "" if solver is None else f", {solver}")
+            if not in_process:
+                entry = run_global_ba_isolated(n, seed, threads, timeout_s, memory_gb, options)
+            else:
+                try:
+                    entry = bench_global_ba(n, seed, cfg, threads, options)
+                except Exception as exc:  # recorded in the JSON: a failure at one size is a result too
+                    logger.exception("global_ba: %d keyframes failed", n)
+                    entry = {"keyframes": n, "status": f"{type(exc).__name__}: {exc}", "peak_rss_gb": _peak_rss_gb()}
+            if solver is not None:
+                entry.setdefault("linear_solver", solver)
+            entries.append(entry)
+    out = {"scenario": asdict(cfg), "ba_options": ba_options or {}, "sizes": entries}
+    if solvers:
+        out["side_by_side"] = [{"keyframes": e["keyframes"], "linear_solver": e["linear_solver"],
+                                **{k: e[k] for k in SIDE_BY_SIDE_KEYS if k in e}} for e in entries]
+    return out
 
 
 # ------------------------------------------------------------------------------------------ main
@@ -470,6 +496,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ba-memory-gb", type=float, default=6.0, help="global BA: stop a size above this resident memory")
     ap.add_argument("--ba-option", action="append", default=[], metavar="KEY=VALUE",
                     help="global BA: a GlobalBAConfig field (value parsed as YAML), e.g. iterations=1")
+    ap.add_argument("--ba-solvers", nargs="+", choices=("gtsam", "superlu"), default=None,
+                    help="global BA: run each size once per linear solver, interleaved (default: the config's)")
     ap.add_argument("--in-process", action="store_true", help="global BA in this process (no limits)")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)
@@ -500,7 +528,7 @@ def main(argv: list[str] | None = None) -> int:
                             "sizes": [bench_pose_graph(n, args.seed, lap_cfg, args.loop_every) for n in args.keyframes]}
         else:
             report[part] = run_global_ba(args.keyframes, args.seed, args.in_process, args.threads,
-                                         args.ba_timeout_s, args.ba_memory_gb, ba_options)
+                                         args.ba_timeout_s, args.ba_memory_gb, ba_options, args.ba_solvers)
         report[part]["part_wall_s"] = round(time.perf_counter() - t0, 2)
     report["load_average_end"] = _loadavg()
     print(json.dumps(report, indent=2))

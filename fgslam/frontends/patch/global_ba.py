@@ -10,15 +10,23 @@ when ``right``), residual ``pi(T_CtCj T_WCtgt^-1 T_WCsrc X(uv_src, d)) - uv`` in
 ``weight * robust``. RGB-D priors ``d[prior_idx] ~ prior_value``. Frames flagged ``fixed`` are the
 gauge (monocular: at least two, which also fix the map's scale).
 
-Why a solver of its own rather than :class:`fgslam.map.SlamMap` with one
-:class:`~.ba.PatchBlock`: that block's reduced system is dense over all its frames (7F x 7F), fine
-for a local window and impossible for thousands of keyframes. Here the Schur complement is taken
-*per source frame*: a patch touches only its source frame and the frames it is observed in, so
-each source frame ``i`` contributes a dense ``(6 S_i)^2`` block over its slots (itself and its
-targets, ``S_i`` about ``2 * patch_lifetime + 1``), computed for all frames at once with batched
-products, and the global system ``sum_i`` of those blocks is sparse (banded plus loop couplings).
-It is solved by a sparse LU (SciPy SuperLU in symmetric mode, minimum-degree ordering) inside Levenberg-Marquardt with
-Marquardt's scaled damping ``H + lambda diag(H)``; depths are back-substituted per patch.
+Why not :class:`fgslam.map.SlamMap` with one :class:`~.ba.PatchBlock`: that block's reduced
+system is dense over all its frames (7F x 7F), fine for a local window and impossible for
+thousands of keyframes. Here the Schur complement is taken *per source frame*: a patch touches
+only its source frame and the frames it is observed in, so each source frame ``i`` contributes a
+dense ``(6 S_i)^2`` block over its slots (itself and its targets, ``S_i`` about
+``2 * patch_lifetime + 1``), computed for all frames at once with batched products, and the global
+system ``sum_i`` of those blocks is sparse (banded plus loop couplings). Levenberg-Marquardt with
+Marquardt's scaled damping ``H + lambda diag(H)`` solves it with ``config.linear_solver``:
+
+- ``gtsam`` (default): one ``gtsam.HessianFactor`` per source frame over its variable slots (from
+  the compressed Jacobian, :func:`fgslam.factors.schur.to_gaussian_factor`), the damping as unary
+  factors beside them, GTSAM's multifrontal Cholesky in a METIS ordering;
+- ``superlu``: the blocks summed per pose pair into one sparse matrix, SciPy's SuperLU in
+  symmetric mode with a minimum-degree ordering.
+
+Both give the same step (tests: 1e-9 relative); the README's scaling table gives both side by
+side. Depths are back-substituted per patch.
 
 Robustness: ``robust_rounds`` rounds, each re-weighting the edges with Huber weights of the residuals
 at its start; the first one cuts no edge (loop edges start with large residuals and must act before
@@ -29,6 +37,7 @@ map: on the street-loop clip the keyframe ATE after the first loop went to 2.2 m
 
 from __future__ import annotations
 
+import abc
 import logging
 import os
 import time
@@ -38,10 +47,10 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ...errors import OptimizationError
+from ...errors import ConfigError, OptimizationError
 from ...factors.reprojection import ReprojectionConfig, reproject, reproject_inv_depth
 from ...factors.robust import kernel_weight
-from ...factors.schur import torch_threads
+from ...factors.schur import to_gaussian_factor, torch_threads
 from ...lie import Sim3, sim3_matrix_components
 from .config import GlobalBAConfig
 
@@ -113,7 +122,9 @@ class GlobalBAResult:
     seconds: float
     num_edges: int
     num_variables: int  # optimised poses
-    timings: dict = field(default_factory=dict)  # seconds per stage (linearise, solve, evaluate)
+    timings: dict = field(default_factory=dict)  # seconds per stage (linearize, construct, solve, evaluate)
+    linearizations: int = 0  # systems built (each solved once per LM step, accepted or rejected)
+    linear_solver: str = ""  # GlobalBAConfig.linear_solver that solved them
 
 
 # ------------------------------------------------------------------------------------------------
@@ -225,7 +236,17 @@ class _Problem:
             self.prior_w = torch.as_tensor(np.asarray(prob.prior_weight, np.float64))
         else:
             self.prior_idx = None
-        self.timings = {"linearize": 0.0, "solve": 0.0, "evaluate": 0.0}
+        self.timings = {"linearize": 0.0, "construct": 0.0, "solve": 0.0, "evaluate": 0.0}
+        self.linearizations = 0
+        self._ordering: list = []  # GTSAM's elimination ordering, once per problem
+
+    def new_system(self) -> "_ReducedSystem":
+        """An empty reduced system of the configured linear solver (``cfg.linear_solver``)."""
+        if self.cfg.linear_solver == "gtsam":
+            return _GtsamSystem(self.V, self._ordering)
+        if self.cfg.linear_solver == "superlu":
+            return _SuperLUSystem(self.V)
+        raise ConfigError(f"patch.proximity.ba.linear_solver: unknown solver {self.cfg.linear_solver!r} (gtsam, superlu)")
 
     # ---------------------------------------------------------------- evaluation
     def _project(self, T: torch.Tensor, d: torch.Tensor, lo: int, hi: int, jacobians: bool):
@@ -284,20 +305,20 @@ class _Problem:
         return norms, valid
 
     # ---------------------------------------------------------------- linearisation
-    def linearize(self, T: torch.Tensor, d: torch.Tensor):
-        """Reduced system over the variable poses: ``(pairs, blocks, g)`` with ``pairs`` (B,) =
-        ``a * V + b`` of the nonzero (6, 6) blocks ``H_ab`` and ``g`` (6V,); the model is
-        ``dx^T H dx + 2 g^T dx + c`` (twice the cost). Keeps what back-substitution needs."""
+    def linearize(self, T: torch.Tensor, d: torch.Tensor, system: "_ReducedSystem") -> "_ReducedSystem":
+        """Reduced system over the variable poses, handed to ``system`` one chunk of source frames
+        at a time (:meth:`_ReducedSystem.add_sources`: each source frame's dense ``Hloc``, ``gloc``
+        over its slots); the model is ``dx^T H dx + 2 g^T dx + c`` (twice the cost). Keeps what
+        back-substitution needs. Returns ``system``, finished."""
         t0 = time.perf_counter()
         f64 = torch.float64
-        D, V = POSE_DOF, max(self.V, 1)
+        D = POSE_DOF
+        t_system = 0.0  # time spent building the solver's system (timed apart as "construct")
         w_all = self.weights()
         C = torch.zeros(self.P, dtype=f64)
         b = torch.zeros(self.P, dtype=f64)
         FE_i = torch.zeros(self.n, D, dtype=f64)  # per edge: E^T W J_src and E^T W J_tgt
         FE_j = torch.zeros(self.n, D, dtype=f64)
-        g = torch.zeros(V + 1, D, dtype=f64)  # row V: fixed frames / padding (dropped)
-        pair_parts, block_parts = [], []
         prior_C = torch.zeros(self.P, dtype=f64)
         prior_b = torch.zeros(self.P, dtype=f64)
         if self.prior_idx is not None:
@@ -348,25 +369,19 @@ class _Problem:
             Hloc = Hs.reshape(ns, S, S, D, D).permute(0, 1, 3, 2, 4).reshape(ns, S * D, S * D)
             Hloc = Hloc - torch.bmm(Fpad.transpose(1, 2), Fw)
             gloc = gs.reshape(ns, S * D) - torch.bmm(bw[:, None, :], Fpad)[:, 0]
-            sv = c.slot_var
-            g.index_add_(0, torch.where(sv >= 0, sv, V).reshape(-1), gloc.reshape(ns * S, D))
-            va = sv[:, :, None].expand(ns, S, S)
-            vb = sv[:, None, :].expand(ns, S, S)
-            keep = (va >= 0) & (vb >= 0)
-            blocks = Hloc.reshape(ns, S, D, S, D).permute(0, 1, 3, 2, 4)[keep]
-            upair, pinv = torch.unique(va[keep] * V + vb[keep], return_inverse=True)
-            pair_parts.append(upair)
-            block_parts.append(torch.zeros(upair.shape[0], D, D, dtype=f64).index_add_(0, pinv, blocks))
+            t1 = time.perf_counter()
+            system.add_sources(c.slot_var, Hloc, gloc)
+            t_system += time.perf_counter() - t1
         informative = C > self.cfg.min_information
         inv_C = torch.where(informative, 1.0 / torch.where(informative, C, torch.ones_like(C)), torch.zeros_like(C))
         self._back = (FE_i, FE_j, inv_C, b)
-        if pair_parts:
-            upair, pinv = torch.unique(torch.cat(pair_parts), return_inverse=True)
-            Hsum = torch.zeros(upair.shape[0], D, D, dtype=f64).index_add_(0, pinv, torch.cat(block_parts))
-        else:
-            upair, Hsum = torch.zeros(0, dtype=torch.long), torch.zeros(0, D, D, dtype=f64)
-        self.timings["linearize"] += time.perf_counter() - t0
-        return upair, Hsum, g[: self.V].reshape(-1)
+        t1 = time.perf_counter()
+        system.finish()
+        t_system += time.perf_counter() - t1
+        self.timings["construct"] += t_system
+        self.linearizations += 1
+        self.timings["linearize"] += time.perf_counter() - t0 - t_system
+        return system
 
     def back_substitute(self, dx: torch.Tensor) -> torch.Tensor:
         """Inverse-depth update (P,) for the pose update ``dx`` (V, 6) at the last linearisation:
@@ -378,25 +393,166 @@ class _Problem:
         return -inv_C * (b + Fdx)
 
 
-def _solve(upair: torch.Tensor, Hsum: torch.Tensor, g: torch.Tensor, V: int, lam: float) -> np.ndarray:
-    """Solve ``(H + lam diag(H)) dx = -g`` with SciPy's sparse LU (symmetric mode)."""
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import splu
+def damping_diagonal(diag: np.ndarray, lam: float) -> np.ndarray:
+    """Marquardt's scaled damping added to the diagonal of H: ``lam * scale + (scale - diag)^+`` with
+    ``scale = max(diag, eps * max(max diag, 1))`` (a zero diagonal entry gets a tiny floor)."""
+    scale = np.maximum(diag, np.finfo(float).eps * max(float(diag.max(initial=0.0)), 1.0))
+    return lam * scale + (scale - diag).clip(min=0.0)
 
-    D = POSE_DOF
-    a = (upair // max(V, 1)).numpy()
-    bb = (upair % max(V, 1)).numpy()
-    rows = (a[:, None, None] * D + np.arange(D)[None, :, None]).repeat(D, 2).reshape(-1)
-    cols = (bb[:, None, None] * D + np.arange(D)[None, None, :]).repeat(D, 1).reshape(-1)
-    H = sp.csc_matrix((Hsum.numpy().reshape(-1), (rows, cols)), shape=(V * D, V * D))
-    diag = H.diagonal()
-    scale = np.maximum(diag, np.finfo(float).eps * max(float(diag.max()), 1.0))
-    H = H + sp.diags(lam * scale + (scale - diag).clip(min=0.0))
-    # the damped H is symmetric positive definite: symmetric mode with a minimum-degree ordering of
-    # A^T + A and no off-diagonal pivoting keeps the fill near a Cholesky factor's (measured at 5,000
-    # keyframes: 18 M nonzeros and ~2 s, against 93 M and ~34 s with the default COLAMD)
-    lu = splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
-    return -lu.solve(g.numpy())
+
+class _ReducedSystem(abc.ABC):
+    """The reduced camera system ``H dx = -g`` over the V variable poses, assembled from the source
+    frames' dense blocks and solved with damping ``H + diag(damping_diagonal(diag H, lam))``.
+
+    :meth:`add_sources` receives one chunk: ``slot_var`` (ns, S) variable index of each slot (-1:
+    fixed frame or padding, dropped), ``Hloc`` (ns, 6S, 6S), ``gloc`` (ns, 6S). :meth:`finish`
+    closes the assembly; :meth:`solve` may then run several times (rejected LM steps) on the same
+    assembly."""
+
+    def __init__(self, V: int):
+        self.V = V
+        self.diag = torch.zeros(V + 1, POSE_DOF, dtype=torch.float64)  # row V: fixed / padding
+        self.g = torch.zeros(V + 1, POSE_DOF, dtype=torch.float64)
+
+    def _accumulate(self, slot_var: torch.Tensor, Hloc: torch.Tensor, gloc: torch.Tensor) -> None:
+        ns, S = slot_var.shape
+        rows = torch.where(slot_var >= 0, slot_var, self.V).reshape(-1)
+        self.g.index_add_(0, rows, gloc.reshape(ns * S, POSE_DOF))
+        self.diag.index_add_(0, rows, torch.diagonal(Hloc, dim1=1, dim2=2).reshape(ns * S, POSE_DOF))
+
+    @abc.abstractmethod
+    def add_sources(self, slot_var: torch.Tensor, Hloc: torch.Tensor, gloc: torch.Tensor) -> None:
+        """Add one chunk of source frames (class docstring)."""
+
+    def finish(self) -> None:
+        self.g_np = self.g[: self.V].reshape(-1).numpy()
+        self.diag_np = self.diag[: self.V].reshape(-1).numpy()
+
+    @abc.abstractmethod
+    def solve(self, lam: float) -> np.ndarray:
+        """dx (6V,) of ``(H + diag(damping)) dx = -g``; raises RuntimeError when singular."""
+
+    @abc.abstractmethod
+    def dense(self) -> tuple[np.ndarray, np.ndarray]:
+        """(H (6V, 6V), g (6V,)) as dense arrays (small problems, tests)."""
+
+
+class _SuperLUSystem(_ReducedSystem):
+    """Pair blocks ``H_ab`` summed over the source frames into one sparse matrix, factorised by
+    SciPy's SuperLU in symmetric mode with a minimum-degree ordering."""
+
+    def __init__(self, V: int):
+        super().__init__(V)
+        self._pairs: list[torch.Tensor] = []
+        self._blocks: list[torch.Tensor] = []
+
+    def add_sources(self, slot_var: torch.Tensor, Hloc: torch.Tensor, gloc: torch.Tensor) -> None:
+        self._accumulate(slot_var, Hloc, gloc)
+        D, V = POSE_DOF, max(self.V, 1)
+        ns, S = slot_var.shape
+        va = slot_var[:, :, None].expand(ns, S, S)
+        vb = slot_var[:, None, :].expand(ns, S, S)
+        keep = (va >= 0) & (vb >= 0)
+        blocks = Hloc.reshape(ns, S, D, S, D).permute(0, 1, 3, 2, 4)[keep]
+        upair, pinv = torch.unique(va[keep] * V + vb[keep], return_inverse=True)
+        self._pairs.append(upair)
+        self._blocks.append(torch.zeros(upair.shape[0], D, D, dtype=torch.float64).index_add_(0, pinv, blocks))
+
+    def finish(self) -> None:
+        import scipy.sparse as sp
+
+        super().finish()
+        D, V = POSE_DOF, max(self.V, 1)
+        if self._pairs:
+            upair, pinv = torch.unique(torch.cat(self._pairs), return_inverse=True)
+            Hsum = torch.zeros(upair.shape[0], D, D, dtype=torch.float64).index_add_(0, pinv, torch.cat(self._blocks))
+        else:
+            upair, Hsum = torch.zeros(0, dtype=torch.long), torch.zeros(0, D, D, dtype=torch.float64)
+        self._pairs, self._blocks = [], []
+        a = (upair // V).numpy()
+        bb = (upair % V).numpy()
+        rows = (a[:, None, None] * D + np.arange(D)[None, :, None]).repeat(D, 2).reshape(-1)
+        cols = (bb[:, None, None] * D + np.arange(D)[None, None, :]).repeat(D, 1).reshape(-1)
+        self.H = sp.csc_matrix((Hsum.numpy().reshape(-1), (rows, cols)), shape=(self.V * D, self.V * D))
+
+    def solve(self, lam: float) -> np.ndarray:
+        import scipy.sparse as sp
+        from scipy.sparse.linalg import splu
+
+        H = self.H + sp.diags(damping_diagonal(self.diag_np, lam))
+        # the damped H is symmetric positive definite: symmetric mode with a minimum-degree ordering of
+        # A^T + A and no off-diagonal pivoting keeps the fill near a Cholesky factor's (measured at 5,000
+        # keyframes: 18 M nonzeros and ~2 s, against 93 M and ~34 s with the default COLAMD)
+        lu = splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+        return -lu.solve(self.g_np)
+
+    def dense(self) -> tuple[np.ndarray, np.ndarray]:
+        """(H (6V, 6V), g (6V,)) as dense arrays (small problems, tests)."""
+        return self.H.toarray(), self.g_np.copy()
+
+
+class _GtsamSystem(_ReducedSystem):
+    """One ``gtsam.HessianFactor`` per source frame over the pose keys of its variable slots (key =
+    variable index), built from the source's compressed Jacobian
+    (:func:`fgslam.factors.schur.to_gaussian_factor`), in a ``gtsam.GaussianFactorGraph`` that a
+    solve never copies: the damping is a second graph of unary factors (a rejected LM step
+    re-solves without rebuilding the blocks). GTSAM eliminates the union: multifrontal Cholesky
+    (``EliminatePreferCholesky``) in a METIS ordering, computed at the first solve and kept in
+    ``ordering`` (a one-element list shared by every linearisation of one problem: the factors'
+    keys never change)."""
+
+    def __init__(self, V: int, ordering: list):
+        import gtsam
+
+        super().__init__(V)
+        self.graph = gtsam.GaussianFactorGraph()
+        self._ordering = ordering
+
+    def add_sources(self, slot_var: torch.Tensor, Hloc: torch.Tensor, gloc: torch.Tensor) -> None:
+        self._accumulate(slot_var, Hloc, gloc)
+        D = POSE_DOF
+        sv, H, g = slot_var.numpy(), Hloc.numpy(), gloc.numpy()
+        for i in range(sv.shape[0]):
+            slots = np.flatnonzero(sv[i] >= 0)
+            k = len(slots)
+            if k == 0:
+                continue
+            if slots[-1] == k - 1:  # variable slots lead (dropped ones are padding): no gather
+                H_i, g_i = H[i, :D * k, :D * k], g[i, :D * k]
+            else:
+                idx = (slots[:, None] * D + np.arange(D)).reshape(-1)
+                H_i, g_i = H[i][np.ix_(idx, idx)], g[i, idx]
+            self.graph.push_back(to_gaussian_factor(sv[i, slots].tolist(), H_i, g_i, None, dim=D))
+
+    def _damped(self, lam: float):
+        import gtsam
+
+        D = POSE_DOF
+        damping = damping_diagonal(self.diag_np, lam).reshape(self.V, D)
+        graph = gtsam.GaussianFactorGraph()
+        graph.push_back(self.graph)  # shares the block factors
+        zero = np.zeros(D)
+        for key in range(self.V):
+            graph.push_back(gtsam.HessianFactor(key, np.diag(damping[key]), zero, 0.0))
+        return graph
+
+    def solve(self, lam: float) -> np.ndarray:
+        import gtsam
+
+        graph = self._damped(lam)
+        if not self._ordering:
+            self._ordering.append(gtsam.Ordering.MetisGaussianFactorGraph(graph))
+        return np.asarray(graph.optimize(self._ordering[0]).vector())  # keys 0..V-1 in order
+
+    def dense(self) -> tuple[np.ndarray, np.ndarray]:
+        """(H (6V, 6V), g (6V,)) as dense arrays (small problems, tests)."""
+        import gtsam
+
+        ordering = gtsam.Ordering()
+        for key in range(self.V):
+            ordering.push_back(key)
+        H, eta = self.graph.hessian(ordering)
+        return np.asarray(H), -np.asarray(eta)  # gtsam's information vector is -g
 
 
 def _retract(T: torch.Tensor, frames: np.ndarray, dx: torch.Tensor) -> torch.Tensor:
@@ -436,14 +592,14 @@ def global_bundle_adjustment(problem: GlobalBAProblem, config: GlobalBAConfig | 
             for _ in range(cfg.iterations):
                 if prob.V == 0 or prob.n == 0:
                     break
-                upair, Hsum, g = prob.linearize(T, d)
+                system = prob.linearize(T, d, prob.new_system())
                 improved = False
                 while lam <= cfg.lambda_max:
                     steps += 1
                     t0 = time.perf_counter()
                     try:
-                        dx = torch.as_tensor(_solve(upair, Hsum, g, prob.V, lam)).reshape(prob.V, POSE_DOF)
-                    except RuntimeError:  # singular factor (SuperLU): more damping
+                        dx = torch.as_tensor(system.solve(lam)).reshape(prob.V, POSE_DOF)
+                    except RuntimeError:  # singular factor (SuperLU) or indeterminate system (GTSAM): more damping
                         dx = None
                     prob.timings["solve"] += time.perf_counter() - t0
                     if dx is not None and bool(torch.isfinite(dx).all()):
@@ -454,6 +610,7 @@ def global_bundle_adjustment(problem: GlobalBAProblem, config: GlobalBAConfig | 
                             improved = True
                             break
                     lam *= cfg.lambda_factor
+                system = None  # freed before the next linearisation builds its own (peak memory)
                 if not improved:
                     break
                 decrease = cost - new_cost
@@ -474,7 +631,8 @@ def global_bundle_adjustment(problem: GlobalBAProblem, config: GlobalBAConfig | 
                 prob.V, int((torch.bincount(prob.sidx, minlength=prob.P) > 0).sum()), prob.n, initial_cost, final_cost, steps, seconds)
     return GlobalBAResult(T_WC=T.numpy(), inv_depth=d.numpy(), robust=final_robust.numpy()[inv_order],
                           residual=residual, initial_cost=initial_cost, final_cost=final_cost, iterations=steps,
-                          seconds=seconds, num_edges=prob.n, num_variables=prob.V, timings=dict(prob.timings))
+                          seconds=seconds, num_edges=prob.n, num_variables=prob.V, timings=dict(prob.timings),
+                          linearizations=prob.linearizations, linear_solver=cfg.linear_solver)
 
 
 def _robust_weights(prob: _Problem, T: torch.Tensor, d: torch.Tensor, cfg: GlobalBAConfig,
