@@ -98,6 +98,7 @@ class BAConfig:
     stereo_cross_edges: bool = False  # stereo: also edges into the right images of other frames (else own right image only)
     threads: int = ranged(1, ge=0)  # torch threads during BA (small dense work: 1 is fastest)
     lambda_factor: float = ranged(1000.0, gt=1)  # LM damping multiplier after a rejected step (the pose Hessian dwarfs damping below ~1e4: x10 retries the same step)
+    measured_huber: bool = False  # a fresh measurement enters the next BA Huber-weighted by its distance from the reprojection it was measured from (else at full weight until that BA's residuals weigh it)
 
 
 @dataclass

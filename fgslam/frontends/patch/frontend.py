@@ -456,8 +456,9 @@ class PatchFrontend(PatchLoopClosure, Frontend):
             ok[mask] = valid.numpy()
         return uv_src, pred, ok & self._inside(pred)
 
-    def _measure(self, idx: np.ndarray) -> None:
-        """Measure edges ``idx`` with the source, started from their current reprojection."""
+    def _measure(self, idx: np.ndarray, huber: bool = False) -> None:
+        """Measure edges ``idx`` with the source, started from their current reprojection; ``huber``:
+        their robust weights from the distance to it (:meth:`_huber_from`), else 1."""
         if idx.size == 0:
             return
         t0 = time.perf_counter()
@@ -480,7 +481,19 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         for edges, m in zip(selections, self.source.measure_batch(requests)):
             g.uv[edges] = m.uv
             g.confidence[edges] = m.confidence
+        if huber:
+            self._huber_from(idx, pred)
         self._times["flow"] += time.perf_counter() - t0
+
+    def _huber_from(self, idx: np.ndarray, pred: np.ndarray) -> None:
+        """``ba.measured_huber``: robust weights of freshly measured edges ``idx`` from their distance to
+        the reprojections ``pred`` (n, 2) they were measured from: a track far from where the current
+        estimate puts it (a wrong lock, an occlusion edge) enters the next BA with a Huber weight
+        instead of full weight, so one LM step cannot follow a few gross outliers."""
+        g = self.graph
+        r = np.nan_to_num(np.linalg.norm(g.uv[idx] - pred, axis=1), nan=0.0)
+        white = np.sqrt(g.confidence[idx]) * r / self.config.ba.pixel_sigma
+        g.robust[idx] = kernel_weight(torch.as_tensor(white), "huber", self.config.ba.huber_delta).numpy()
 
     # ------------------------------------------------------------------ bundle adjustment
     def _optimize(self, iterations: int, init: bool) -> dict:
@@ -576,7 +589,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         to_measure = new_edges if premeasured is None else np.setdiff1d(new_edges, premeasured)
         valid_new = 0
         for r in range(rounds):
-            self._measure(to_measure)
+            self._measure(to_measure, huber=not init and self.config.ba.measured_huber)
             if new_fid is not None:
                 valid_new = self._valid_into(new_fid)
                 if valid_new < self.config.tracking.min_valid_edges:
@@ -798,7 +811,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         T_pred = self._predict()
         feats, _ = self._prepare(frame, right=False)
         last = self.graph.frames[-1]
-        flow, kf_uv, kf_conf = self._keyframe_flow(last, feats, T_pred)
+        flow, kf_uv, kf_conf, kf_pred = self._keyframe_flow(last, feats, T_pred)
         if flow < cfg.tracking.motion_filter_flow:
             return self._stationary(fid, frame, last.fid, flow, int((kf_conf > 0).sum()))
         _, feats_right = self._prepare(frame, left=False)  # stereo: the right image only for a moving frame
@@ -811,6 +824,8 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         done = idx[(g.src[idx] == last.fid) & (g.tgt[idx] == fid) & ~g.right[idx]]  # measured by the motion filter
         g.uv[done] = kf_uv[g.patch[done]]
         g.confidence[done] = kf_conf[g.patch[done]]
+        if cfg.ba.measured_huber:
+            self._huber_from(done, kf_pred[g.patch[done]])
         saved = [(f.T_WC.copy(), f.inv_depth.copy()) for f in g.frames[:-1]], g.robust[: g.num_edges - len(idx)].copy()
         self._times["bookkeeping"] += time.perf_counter() - t0
         valid = self._rounds(idx, cfg.ba.rounds, cfg.ba.iterations, init=False, new_fid=fid, premeasured=done)
@@ -851,11 +866,12 @@ class PatchFrontend(PatchLoopClosure, Frontend):
                 f.T_WC, f.inv_depth = T_WC, inv_depth
             g.robust = robust
 
-    def _keyframe_flow(self, last: GraphFrame, feats, T_WC: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    def _keyframe_flow(self, last: GraphFrame, feats, T_WC: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         """Motion filter measurement: the newest keyframe's patches measured in the new frame (features
         ``feats``, predicted pose ``T_WC``) from their reprojection, as the first BA round would (these
         edges are not measured again). Returns (median flow px of the valid tracks, or inf with fewer
-        than ``min_valid_edges`` of them; target pixels (K, 2); confidences (K,))."""
+        than ``min_valid_edges`` of them; target pixels (K, 2); confidences (K,); the reprojections
+        they were measured from (K, 2))."""
         t0 = time.perf_counter()
         K = len(last.uv)
         uv = np.full((K, 2), np.nan)
@@ -869,8 +885,8 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         self._times["flow"] += time.perf_counter() - t0
         good = conf > 0
         if good.sum() < self.config.tracking.min_valid_edges:
-            return float("inf"), uv, conf
-        return float(np.median(np.linalg.norm(uv[good] - last.uv[good], axis=1))), uv, conf
+            return float("inf"), uv, conf, pred
+        return float(np.median(np.linalg.norm(uv[good] - last.uv[good], axis=1))), uv, conf, pred
 
     def _stationary(self, fid: int, frame, kf_fid: int, flow: float, n_valid: int) -> FrameStatus:
         """A frame whose image barely moved from the newest keyframe's: it does not enter the graph
