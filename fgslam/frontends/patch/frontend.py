@@ -418,6 +418,8 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         sensor = self._sensor_inv_depth(frame, uv)
         if len(self.graph):
             prev = self.graph.frames[-1].inv_depth
+            if self.config.tracking.median_of_measured:
+                prev = self._measured_inv_depths(self.graph.frames[-1])
             median = float(np.median(prev[prev > 0])) if (prev > 0).any() else 1.0
         else:
             median = float(np.nanmedian(sensor)) if np.isfinite(sensor).any() else 1.0
@@ -425,6 +427,16 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         return GraphFrame(fid=fid, index=int(frame.index), timestamp=float(frame.timestamp), T_WC=np.array(T_WC, dtype=np.float64),
                           uv=uv, inv_depth=inv_depth, sensor_inv_depth=sensor, colour=colour,
                           features=features, features_right=features_right)
+
+    def _measured_inv_depths(self, f: GraphFrame) -> np.ndarray:
+        """Inverse depths of graph frame ``f``'s patches that have a BA-inlier measurement (source ``f``);
+        all of them when fewer than ``tracking.min_measured_patches`` have one. The others still
+        hold the value they were created with, which would otherwise become the median forever."""
+        g = self.graph
+        seen = np.zeros(len(f.inv_depth), bool)
+        seen[g.patch[(g.confidence > 0) & (g.robust > 0) & (g.src == f.fid)]] = True
+        measured = f.inv_depth[seen & (f.inv_depth > 0)]
+        return measured if len(measured) >= self.config.tracking.min_measured_patches else f.inv_depth
 
     def _prepare(self, frame, left: bool = True, right: bool = True):
         t0 = time.perf_counter()
