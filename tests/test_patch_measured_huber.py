@@ -92,3 +92,29 @@ def test_kitti_mono_with_measured_huber(shared_data, tmp_path):
     summary = run_slam(open_slam_dataset(shared_data / "kitti00_0-199", cfg), cfg, tmp_path / "out", progress=False)
     assert summary.frames_with_pose == 200
     assert summary.evaluation["ate_rmse_m"] < 0.42
+
+
+# ------------------------------------------------------------------ tracking.median_of_measured
+
+@pytest.mark.parametrize("measured_only, n_measured, expected", [(True, 3, 0.5), (False, 3, 0.07), (True, 2, 0.07)])
+def test_new_patch_depth_is_the_median_of_the_measured_patches(measured_only, n_measured, expected):
+    """The previous frame: its first ``n_measured`` patches have a BA-inlier measurement at inverse
+    depth 0.5, the other ones still hold their initial 0.07 (the median of all of them). With the
+    setting the new patches get 0.5; with fewer measured patches than ``min_measured_patches`` (3),
+    or without the setting, 0.07."""
+    from types import SimpleNamespace
+
+    fe = _frontend(False)
+    fe.config.tracking.median_of_measured = measured_only
+    fe.config.tracking.min_measured_patches = 3
+    g = fe.graph
+    prev = g.frames[-1]
+    prev.inv_depth[:] = 0.07
+    prev.inv_depth[:n_measured] = 0.5
+    idx = g.add_edges(np.full(K, prev.fid), np.arange(K), np.zeros(K, np.int64), np.zeros(K, bool))
+    g.confidence[idx[:n_measured]] = 1.0
+    g.robust[idx] = 1.0  # unmeasured edges: confidence 0 (a robust weight alone does not count)
+    image = np.random.default_rng(0).integers(0, 255, (240, 320)).astype(np.uint8)
+    frame = SimpleNamespace(image=image, rgb=None, depth=None, index=2, timestamp=0.2)
+    gf = fe._new_graph_frame(2, frame, np.eye(4), None, None)
+    np.testing.assert_allclose(gf.inv_depth, expected)
