@@ -8,11 +8,13 @@ Per frame (after initialisation):
    flow below ``motion_filter_flow`` means a stationary camera: the frame stays out of the graph, takes
    that keyframe's pose (placed later by its share of the next keyframe's flow), the velocity is reset;
 2. add the frame to the patch graph with K new patches (inverse depth: the sensor's for RGB-D,
-   else the median of the previous frame's patches) and connect it (forward, backward, stereo edges);
+   else the median of the previous frame's patches, with ``tracking.median_of_measured`` of those
+   with a BA-inlier measurement) and connect it (forward, backward, stereo edges);
 3. ``ba.rounds`` update rounds: measure edges with the source started from their current
    reprojection (round 1: the new edges; later rounds: new edges that failed or whose residual
-   after BA exceeds ``ba.retrack_threshold``), then Levenberg-Marquardt on the optimisation window
-   through :class:`fgslam.map.SlamMap` with one :class:`~.ba.PatchBlock` (patch depths
+   after BA exceeds ``ba.retrack_threshold``; with ``ba.measured_huber`` each fresh measurement
+   Huber-weighted by its distance from the reprojection it started from), then
+   Levenberg-Marquardt on the optimisation window through :class:`fgslam.map.SlamMap` with one :class:`~.ba.PatchBlock` (patch depths
    Schur-eliminated; frames older than the window fixed; each frame's Sim(3) scale held);
    Huber weights and an outlier cut are refreshed after each round;
 4. too few valid measurements into the frame, or less than ``min_inlier_ratio`` of them BA inliers
