@@ -15,8 +15,8 @@ Per frame (after initialisation):
    after BA exceeds ``ba.retrack_threshold``; with ``ba.measured_huber`` each fresh measurement
    Huber-weighted by its distance from the reprojection it started from), then
    Levenberg-Marquardt on the optimisation window through :class:`fgslam.map.SlamMap` with one
-   :class:`~.ba.PatchBlock` (patch depths Schur-eliminated; frames older than the window fixed; each frame's Sim(3) scale held);
-   Huber weights and an outlier cut are refreshed after each round;
+   :class:`~.ba.PatchBlock` (patch depths Schur-eliminated; frames older than the window fixed;
+   each frame's Sim(3) scale held); Huber weights and an outlier cut are refreshed after each round;
 4. too few valid measurements into the frame, or less than ``min_inlier_ratio`` of them BA inliers
    (motion the map's own reprojections contradict): tracking failure - the frame leaves the graph,
    the window's poses and depths are restored, the frame gets the predicted pose
