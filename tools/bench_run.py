@@ -96,6 +96,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("-o", "--override", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="SlamConfig override applied to every case (repeatable)")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)  # internal: run one case in this process
+    # internal: sequences the parent rendered (children, the baseline's included, reuse them as they are)
+    p.add_argument("--rendered", action="append", default=[], help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
 
@@ -124,6 +126,9 @@ def street_root(args: argparse.Namespace) -> Path:
 
 
 def case_root(case: Case, args: argparse.Namespace) -> Path:
+    rendered = dict(item.split("=", 1) for item in args.rendered)
+    if case.data in rendered:
+        return Path(rendered[case.data])
     if case.data == SYNTH:
         return synth_root(args)
     if case.data == STREET:
@@ -211,16 +216,17 @@ def main(argv=None) -> int:
     if unknown:
         print(f"unknown case(s): {', '.join(unknown)} (known: {', '.join(CASES)})", file=sys.stderr)
         return 2
+    base = [a for a in (argv if argv is not None else sys.argv[1:])]
+    # render once, before any timing; children (the baseline's too) read these folders as they are
     if any(CASES[n].data == SYNTH for n in names):
-        synth_root(args)  # render once, before any timing
+        base += ["--rendered", f"{SYNTH}={synth_root(args)}"]
     if any(CASES[n].data == STREET for n in names):
-        street_root(args)
+        base += ["--rendered", f"{STREET}={street_root(args)}"]
     if args.baseline is not None and not (args.baseline / "fgslam" / "__init__.py").is_file():
         print(f"--baseline {args.baseline}: not an fgslam source tree (no fgslam/__init__.py)", file=sys.stderr)
         return 2
     results = {}
     t0 = time.perf_counter()
-    base = [a for a in (argv if argv is not None else sys.argv[1:])]
     for name in names:
         new = _child(name, base, None)
         if args.baseline is None:

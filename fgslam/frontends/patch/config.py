@@ -101,6 +101,7 @@ class BAConfig:
     depth_model: Literal["prior", "observation"] = "prior"  # RGB-D: prior on each patch's inverse depth in its source frame (DROID-SLAM), or sensor depth as a measurement of every observation, source and targets (ORB-SLAM3 RGB-D: virtual right-camera pixel u - f b / z)
     depth_noise: Literal["relative", "inverse"] = "relative"  # RGB-D: relative: sigma_d = depth_prior_sigma * d (sigma_z grows with z); inverse: sigma_d = depth_prior_sigma in 1/m (sigma_z grows with z^2, Kinect)
     depth_virtual_baseline: float = ranged(0.08, gt=0)  # RGB-D observation model: baseline (m) of the virtual right camera (sets the pixel scale of the depth rows)
+    measured_huber: bool = False  # a fresh measurement enters the next BA Huber-weighted by its distance from the reprojection it was measured from (else at full weight until that BA's residuals weigh it)
 
 
 @dataclass
@@ -120,6 +121,8 @@ class TrackingConfig:
     max_motion_model_frames: int = ranged(30, ge=1)  # consecutive failures after which the map re-initialises
     motion_filter_flow: float = ranged(1.0, ge=0)  # median flow (px) of the newest keyframe's patches into a new frame below which the frame is stationary: not added to the graph, posed from that keyframe (0: off)
     min_inlier_ratio: float = ranged(0.5, ge=0, le=1)  # share of a new frame's measurements that must be BA inliers; fewer: motion its own reprojections contradict, a tracking failure
+    median_of_measured: bool = False  # mono: new patches get the median inverse depth of the previous frame's patches that have a BA-inlier measurement (else of all of them: the unmeasured ones keep their initial value, which then stays the median)
+    min_measured_patches: int = ranged(8, ge=1)  # median_of_measured: fewer measured patches than this: the median of all of them
 
 
 @dataclass

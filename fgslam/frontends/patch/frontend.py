@@ -8,13 +8,15 @@ Per frame (after initialisation):
    flow below ``motion_filter_flow`` means a stationary camera: the frame stays out of the graph, takes
    that keyframe's pose (placed later by its share of the next keyframe's flow), the velocity is reset;
 2. add the frame to the patch graph with K new patches (inverse depth: the sensor's for RGB-D,
-   else the median of the previous frame's patches) and connect it (forward, backward, stereo edges);
+   else the median of the previous frame's patches, with ``tracking.median_of_measured`` of those
+   with a BA-inlier measurement) and connect it (forward, backward, stereo edges);
 3. ``ba.rounds`` update rounds: measure edges with the source started from their current
    reprojection (round 1: the new edges; later rounds: new edges that failed or whose residual
-   after BA exceeds ``ba.retrack_threshold``), then Levenberg-Marquardt on the optimisation window
-   through :class:`fgslam.map.SlamMap` with one :class:`~.ba.PatchBlock` (patch depths
-   Schur-eliminated; frames older than the window fixed; each frame's Sim(3) scale held);
-   Huber weights and an outlier cut are refreshed after each round;
+   after BA exceeds ``ba.retrack_threshold``; with ``ba.measured_huber`` each fresh measurement
+   Huber-weighted by its distance from the reprojection it started from), then
+   Levenberg-Marquardt on the optimisation window through :class:`fgslam.map.SlamMap` with one
+   :class:`~.ba.PatchBlock` (patch depths Schur-eliminated; frames older than the window fixed;
+   each frame's Sim(3) scale held); Huber weights and an outlier cut are refreshed after each round;
 4. too few valid measurements into the frame, or less than ``min_inlier_ratio`` of them BA inliers
    (motion the map's own reprojections contradict): tracking failure - the frame leaves the graph,
    the window's poses and depths are restored, the frame gets the predicted pose
@@ -424,6 +426,8 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         sensor = self._sensor_inv_depth(frame, uv)
         if len(self.graph):
             prev = self.graph.frames[-1].inv_depth
+            if self.config.tracking.median_of_measured:
+                prev = self._measured_inv_depths(self.graph.frames[-1])
             median = float(np.median(prev[prev > 0])) if (prev > 0).any() else 1.0
         else:
             median = float(np.nanmedian(sensor)) if np.isfinite(sensor).any() else 1.0
@@ -432,6 +436,16 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         return GraphFrame(fid=fid, index=int(frame.index), timestamp=float(frame.timestamp), T_WC=np.array(T_WC, dtype=np.float64),
                           uv=uv, inv_depth=inv_depth, sensor_inv_depth=sensor, colour=colour,
                           features=features, features_right=features_right, depth=frame.depth if keep_depth else None)
+
+    def _measured_inv_depths(self, f: GraphFrame) -> np.ndarray:
+        """Inverse depths of graph frame ``f``'s patches that have a BA-inlier measurement (source ``f``);
+        all of them when fewer than ``tracking.min_measured_patches`` have one. The others still
+        hold the value they were created with, which would otherwise become the median forever."""
+        g = self.graph
+        seen = np.zeros(len(f.inv_depth), bool)
+        seen[g.patch[(g.confidence > 0) & (g.robust > 0) & (g.src == f.fid)]] = True
+        measured = f.inv_depth[seen & (f.inv_depth > 0)]
+        return measured if len(measured) >= self.config.tracking.min_measured_patches else f.inv_depth
 
     def _prepare(self, frame, left: bool = True, right: bool = True):
         t0 = time.perf_counter()
@@ -463,8 +477,9 @@ class PatchFrontend(PatchLoopClosure, Frontend):
             ok[mask] = valid.numpy()
         return uv_src, pred, ok & self._inside(pred)
 
-    def _measure(self, idx: np.ndarray) -> None:
-        """Measure edges ``idx`` with the source, started from their current reprojection."""
+    def _measure(self, idx: np.ndarray, huber: bool = False) -> None:
+        """Measure edges ``idx`` with the source, started from their current reprojection; ``huber``:
+        their robust weights from the distance to it (:meth:`_huber_from`), else 1."""
         if idx.size == 0:
             return
         t0 = time.perf_counter()
@@ -487,7 +502,19 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         for edges, m in zip(selections, self.source.measure_batch(requests)):
             g.uv[edges] = m.uv
             g.confidence[edges] = m.confidence
+        if huber:
+            self._huber_from(idx, pred)
         self._times["flow"] += time.perf_counter() - t0
+
+    def _huber_from(self, idx: np.ndarray, pred: np.ndarray) -> None:
+        """``ba.measured_huber``: robust weights of freshly measured edges ``idx`` from their distance to
+        the reprojections ``pred`` (n, 2) they were measured from: a track far from where the current
+        estimate puts it (a wrong lock, an occlusion edge) enters the next BA with a Huber weight
+        instead of full weight, so one LM step cannot follow a few gross outliers."""
+        g = self.graph
+        r = np.nan_to_num(np.linalg.norm(g.uv[idx] - pred, axis=1), nan=0.0)
+        white = np.sqrt(g.confidence[idx]) * r / self.config.ba.pixel_sigma
+        g.robust[idx] = kernel_weight(torch.as_tensor(white), "huber", self.config.ba.huber_delta).numpy()
 
     # ------------------------------------------------------------------ bundle adjustment
     def _optimize(self, iterations: int, init: bool) -> dict:
@@ -653,7 +680,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         to_measure = new_edges if premeasured is None else np.setdiff1d(new_edges, premeasured)
         valid_new = 0
         for r in range(rounds):
-            self._measure(to_measure)
+            self._measure(to_measure, huber=not init and self.config.ba.measured_huber)
             if new_fid is not None:
                 valid_new = self._valid_into(new_fid)
                 if valid_new < self.config.tracking.min_valid_edges:
@@ -875,7 +902,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         T_pred = self._predict()
         feats, _ = self._prepare(frame, right=False)
         last = self.graph.frames[-1]
-        flow, kf_uv, kf_conf = self._keyframe_flow(last, feats, T_pred)
+        flow, kf_uv, kf_conf, kf_pred = self._keyframe_flow(last, feats, T_pred)
         if flow < cfg.tracking.motion_filter_flow:
             return self._stationary(fid, frame, last.fid, flow, int((kf_conf > 0).sum()))
         _, feats_right = self._prepare(frame, left=False)  # stereo: the right image only for a moving frame
@@ -888,6 +915,8 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         done = idx[(g.src[idx] == last.fid) & (g.tgt[idx] == fid) & ~g.right[idx]]  # measured by the motion filter
         g.uv[done] = kf_uv[g.patch[done]]
         g.confidence[done] = kf_conf[g.patch[done]]
+        if cfg.ba.measured_huber:
+            self._huber_from(done, kf_pred[g.patch[done]])
         saved = [(f.T_WC.copy(), f.inv_depth.copy()) for f in g.frames[:-1]], g.robust[: g.num_edges - len(idx)].copy()
         self._times["bookkeeping"] += time.perf_counter() - t0
         valid = self._rounds(idx, cfg.ba.rounds, cfg.ba.iterations, init=False, new_fid=fid, premeasured=done)
@@ -928,11 +957,12 @@ class PatchFrontend(PatchLoopClosure, Frontend):
                 f.T_WC, f.inv_depth = T_WC, inv_depth
             g.robust = robust
 
-    def _keyframe_flow(self, last: GraphFrame, feats, T_WC: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    def _keyframe_flow(self, last: GraphFrame, feats, T_WC: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         """Motion filter measurement: the newest keyframe's patches measured in the new frame (features
         ``feats``, predicted pose ``T_WC``) from their reprojection, as the first BA round would (these
         edges are not measured again). Returns (median flow px of the valid tracks, or inf with fewer
-        than ``min_valid_edges`` of them; target pixels (K, 2); confidences (K,))."""
+        than ``min_valid_edges`` of them; target pixels (K, 2); confidences (K,); the reprojections
+        they were measured from (K, 2))."""
         t0 = time.perf_counter()
         K = len(last.uv)
         uv = np.full((K, 2), np.nan)
@@ -946,8 +976,8 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         self._times["flow"] += time.perf_counter() - t0
         good = conf > 0
         if good.sum() < self.config.tracking.min_valid_edges:
-            return float("inf"), uv, conf
-        return float(np.median(np.linalg.norm(uv[good] - last.uv[good], axis=1))), uv, conf
+            return float("inf"), uv, conf, pred
+        return float(np.median(np.linalg.norm(uv[good] - last.uv[good], axis=1))), uv, conf, pred
 
     def _stationary(self, fid: int, frame, kf_fid: int, flow: float, n_valid: int) -> FrameStatus:
         """A frame whose image barely moved from the newest keyframe's: it does not enter the graph
