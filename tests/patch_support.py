@@ -17,3 +17,22 @@ def light_patch_config(keyframe_threshold: float = 8.0) -> PatchConfig:
     cfg.tracking.keyframe_index = 2
     cfg.tracking.keyframe_threshold = keyframe_threshold
     return cfg
+
+
+def render_room(tmp_path_factory, name: str, overrides: list[str]):
+    """Render a synthetic room-loop clip (``load_synth_config`` overrides) into a fresh temp folder."""
+    from fgslam.io.synth import SynthSequence, write_sequence
+    from fgslam.io.synth.presets import load_synth_config
+
+    root = tmp_path_factory.mktemp(name)
+    write_sequence(SynthSequence(load_synth_config("room-loop", overrides=overrides)), root)
+    return root
+
+
+def open_frames(root, mode: str):
+    """The dataset at ``root`` opened for sensor ``mode`` (right images for stereo, depth for RGB-D)
+    and its frames as a list."""
+    from fgslam.io.datasets import DatasetConfig, open_dataset
+
+    ds = open_dataset(root, config=DatasetConfig(load_right=mode == "stereo", load_depth=mode == "rgbd", load_imu=False))
+    return ds, list(ds)

@@ -11,32 +11,19 @@ import pytest
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.io.trajectory import Trajectory
-from patch_support import light_patch_config
+from patch_support import light_patch_config, open_frames, render_room
 
 FRAMES = 40
 
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
-    from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
-
-    cfg = load_synth_config("room-loop", overrides=[f"frames={FRAMES}", "camera.width=200", "camera.height=150", "seed=3"])
-    root = tmp_path_factory.mktemp("room_fail")
-    write_sequence(SynthSequence(cfg), root)
-    return root
-
-
-def frames_of(root, mode):
-    from fgslam.io.datasets import DatasetConfig, open_dataset
-
-    ds = open_dataset(root, config=DatasetConfig(load_right=mode == "stereo", load_depth=mode == "rgbd", load_imu=False))
-    return ds, list(ds)
+    return render_room(tmp_path_factory, "room_fail", [f"frames={FRAMES}", "camera.width=200", "camera.height=150", "seed=3"])
 
 
 @pytest.mark.parametrize("mode", ["rgbd", "mono"])
 def test_blank_frames_use_motion_model_and_recover(room, mode):
-    ds, frames = frames_of(room, mode)
+    ds, frames = open_frames(room, mode)
     blank = set(range(22, 25))
     fed = [dataclasses.replace(f, image=np.full_like(f.image, 90)) if f.index in blank else f for f in frames]
     fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode=mode)
@@ -54,7 +41,7 @@ def test_blank_frames_use_motion_model_and_recover(room, mode):
 
 
 def test_static_camera_never_initialises_mono(room):
-    _, frames = frames_of(room, "mono")
+    _, frames = open_frames(room, "mono")
     rng = np.random.default_rng(0)
     still = [
         dataclasses.replace(frames[0], index=i, timestamp=frames[0].timestamp + 0.05 * i,
@@ -67,7 +54,7 @@ def test_static_camera_never_initialises_mono(room):
     assert fe.trajectory()[1].shape == (0, 4, 4)
     assert fe.num_keyframes() == 0
     # the same static input in stereo gives a pose per frame with (almost) no motion
-    _, sframes = frames_of(room, "stereo")
+    _, sframes = open_frames(room, "stereo")
     fe_s = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="stereo")
     for i in range(15):
         fe_s.process(dataclasses.replace(sframes[0], index=i, timestamp=sframes[0].timestamp + 0.05 * i))
@@ -77,7 +64,7 @@ def test_static_camera_never_initialises_mono(room):
 
 
 def test_too_short_sequence_reports_no_poses(room):
-    _, frames = frames_of(room, "mono")
+    _, frames = open_frames(room, "mono")
     fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="mono")
     statuses = [fe.process(f) for f in frames[:2]]
     assert [s.pose_source for s in statuses] == ["initializing", "initializing"]
@@ -86,7 +73,7 @@ def test_too_short_sequence_reports_no_poses(room):
 
 
 def test_long_loss_reinitialises_without_crash(room):
-    ds, frames = frames_of(room, "rgbd")
+    ds, frames = open_frames(room, "rgbd")
     blank = set(range(15, 21))
     fed = [dataclasses.replace(f, image=np.full_like(f.image, 90)) if f.index in blank else f for f in frames]
     cfg = light_patch_config(keyframe_threshold=6.0)

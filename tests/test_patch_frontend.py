@@ -13,7 +13,7 @@ import pytest
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.io.trajectory import Trajectory
-from patch_support import light_patch_config
+from patch_support import light_patch_config, render_room
 
 FRAMES = 48
 FLOOR_M = 0.001  # fixed error floor of a short clip (see module docstring)
@@ -21,13 +21,7 @@ FLOOR_M = 0.001  # fixed error floor of a short clip (see module docstring)
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
-    from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
-
-    cfg = load_synth_config("room-loop", overrides=[f"frames={FRAMES}", "camera.width=320", "camera.height=240"])
-    root = tmp_path_factory.mktemp("room")
-    write_sequence(SynthSequence(cfg), root)
-    return root
+    return render_room(tmp_path_factory, "room", [f"frames={FRAMES}", "camera.width=320", "camera.height=240"])
 
 
 def load(root, mode):

@@ -13,7 +13,7 @@ from fgslam.errors import OptimizationError
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.io.trajectory import Trajectory
-from patch_support import light_patch_config
+from patch_support import light_patch_config, open_frames, render_room
 
 
 # ------------------------------------------------------------------ KITTI stop-and-go (real data)
@@ -94,26 +94,13 @@ FRAMES = 40
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
-    from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
-
-    cfg = load_synth_config("room-loop", overrides=[f"frames={FRAMES}", "camera.width=200", "camera.height=150", "seed=3"])
-    root = tmp_path_factory.mktemp("room_motion")
-    write_sequence(SynthSequence(cfg), root)
-    return root
-
-
-def frames_of(root, mode):
-    from fgslam.io.datasets import DatasetConfig, open_dataset
-
-    ds = open_dataset(root, config=DatasetConfig(load_right=mode == "stereo", load_depth=mode == "rgbd", load_imu=False))
-    return ds, list(ds)
+    return render_room(tmp_path_factory, "room_motion", [f"frames={FRAMES}", "camera.width=200", "camera.height=150", "seed=3"])
 
 
 def test_failed_initial_optimisation_resets_cleanly(room, monkeypatch):
     """A mono initialisation whose map optimisation raises leaves no frames in the graph: the next
     initialisation succeeds (before the fix: "frame ids must increase" at a later frame)."""
-    ds, frames = frames_of(room, "mono")
+    ds, frames = open_frames(room, "mono")
     fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="mono")
     optimize = PatchFrontend._optimize
     calls = {"failed": 0}
@@ -141,20 +128,14 @@ def test_failed_initial_optimisation_resets_cleanly(room, monkeypatch):
 @pytest.fixture(scope="module")
 def room_stop(tmp_path_factory):
     """The room clip with a stop: at rest from frame 15 to 25 (0.25 s ramps before and after)."""
-    from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
-
-    cfg = load_synth_config("room-loop", overrides=[f"frames={FRAMES}", "camera.width=200", "camera.height=150", "seed=3",
-                                                    "stop_frame=15", "stop_frames=10", "stop_ramp_s=0.25"])
-    root = tmp_path_factory.mktemp("room_stop")
-    write_sequence(SynthSequence(cfg), root)
-    return root
+    return render_room(tmp_path_factory, "room_stop", [f"frames={FRAMES}", "camera.width=200", "camera.height=150", "seed=3",
+                                                         "stop_frame=15", "stop_frames=10", "stop_ramp_s=0.25"])
 
 
 @pytest.mark.parametrize("mode", ["mono", "stereo", "rgbd"])
 def test_synthetic_stop_and_go(room_stop, mode):
     """While the camera stands still no keyframe is added and the pose holds; tracking goes on after."""
-    ds, frames = frames_of(room_stop, mode)
+    ds, frames = open_frames(room_stop, mode)
     fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode=mode)
     statuses = [fe.process(f) for f in frames]
     assert fe.num_failures == 0

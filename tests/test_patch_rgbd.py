@@ -15,7 +15,7 @@ from fgslam.frontends.patch.ba import PatchBlock
 from fgslam.io.trajectory import Trajectory
 from fgslam.lie import Sim3, sim3_matrix_parts, so3_exp
 from fgslam.map import pose_key
-from patch_support import light_patch_config
+from patch_support import light_patch_config, render_room
 
 FRAMES = 48
 K = torch.tensor([200.0, 200.0, 160.0, 120.0], dtype=torch.float64)
@@ -23,13 +23,7 @@ K = torch.tensor([200.0, 200.0, 160.0, 120.0], dtype=torch.float64)
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
-    from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
-
-    cfg = load_synth_config("room-loop", overrides=[f"frames={FRAMES}", "camera.width=320", "camera.height=240"])
-    root = tmp_path_factory.mktemp("room")
-    write_sequence(SynthSequence(cfg), root)
-    return root
+    return render_room(tmp_path_factory, "room", [f"frames={FRAMES}", "camera.width=320", "camera.height=240"])
 
 
 def _run(root, config):
