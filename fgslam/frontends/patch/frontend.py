@@ -513,8 +513,13 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         instead of full weight, so one LM step cannot follow a few gross outliers."""
         g = self.graph
         r = np.nan_to_num(np.linalg.norm(g.uv[idx] - pred, axis=1), nan=0.0)
-        white = np.sqrt(g.confidence[idx]) * r / self.config.ba.pixel_sigma
-        g.robust[idx] = kernel_weight(torch.as_tensor(white), "huber", self.config.ba.huber_delta).numpy()
+        g.robust[idx] = self._huber_weights(g.confidence[idx], r)
+
+    def _huber_weights(self, confidence: np.ndarray, residual_px: np.ndarray) -> np.ndarray:
+        """Huber weights (``ba.huber_delta``) of pixel residual norms whitened by ``ba.pixel_sigma``
+        and the measurements' confidences."""
+        white = np.sqrt(confidence) * residual_px / self.config.ba.pixel_sigma
+        return kernel_weight(torch.as_tensor(white), "huber", self.config.ba.huber_delta).numpy()
 
     # ------------------------------------------------------------------ bundle adjustment
     def _optimize(self, iterations: int, init: bool) -> dict:
@@ -606,9 +611,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         r, valid = block.residuals(smap.values)
         r, valid = r[: e.size], valid[: e.size]
         rn = torch.linalg.vector_norm(r, dim=1).numpy()
-        e_white = np.sqrt(g.confidence[e]) * rn / cfg.ba.pixel_sigma
-        robust = kernel_weight(torch.as_tensor(e_white), "huber", cfg.ba.huber_delta).numpy()
-        robust = np.where(valid.numpy() & (rn <= cfg.ba.outlier_threshold), robust, 0.0)
+        robust = np.where(valid.numpy() & (rn <= cfg.ba.outlier_threshold), self._huber_weights(g.confidence[e], rn), 0.0)
         g.robust[e] = robust
         self._last_residual[e] = np.where(valid.numpy(), rn, np.inf)
         self._times["ba"] += time.perf_counter() - t0
