@@ -82,6 +82,7 @@ def _check_range(value: Any, rng: Range, key: str, source: str) -> None:
         if not rng.contains(float(item)):
             raise ConfigError(f"{source}: key '{key}': must be {rng.text()} (got {value!r})")
 
+
 def check_ranges(obj: Any, prefix: str = "", source: str = "config") -> None:
     """Check every :func:`ranged` field of the dataclass instance ``obj`` and of its nested sections
     (for configs built in code, which :func:`load_config` never saw); ConfigError naming the key."""
