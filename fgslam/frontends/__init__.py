@@ -36,6 +36,10 @@ class FrontendFamily:
     config: Optional[str] = None  # "module:Class" of its section dataclass; None: planned, no section yet
     builder: Optional[str] = None  # "module:callable": builder(section, calibration, sensor_mode, **services)
 
+    def __post_init__(self) -> None:
+        if self.builder is not None and self.config is None:
+            raise ValueError(f"frontend family '{self.name}': a builder needs a config section class")
+
     @property
     def implemented(self) -> bool:
         return self.builder is not None
