@@ -1,7 +1,7 @@
 """Typed configuration: dataclasses loaded from YAML with command-line overrides.
 
 Every tunable of fgslam lives in a dataclass field (defaults plus a one-line comment). A YAML file
-in ``configs/`` sets some of them; ``-o section.key=value`` overrides set more. Anything that does
+in ``fgslam/configs/`` (the presets) sets some of them; ``-o section.key=value`` overrides set more. Anything that does
 not fit the dataclass (an unknown key, a string where a float belongs, a value outside a ``Literal``)
 is a :class:`~fgslam.errors.ConfigError` naming the key and where it came from.
 
@@ -17,10 +17,11 @@ and nested dataclasses.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import math
 import types
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -93,6 +94,56 @@ def check_ranges(obj: Any, prefix: str = "", source: str = "config") -> None:
             _check_range(value, rng, prefix + f.name, source)
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             check_ranges(value, f"{prefix}{f.name}.", source)
+
+
+def import_object(target: str, what: str = "") -> Any:
+    """The object a ``"package.module:Name"`` path names (imported on demand).
+
+    ConfigError saying ``what`` it is for (a config key, a registry entry) when the path is malformed,
+    the module does not import or has no such name."""
+    where = f"{what}: " if what else ""
+    module_name, sep, attr = target.partition(":")
+    if not sep or not module_name or not attr:
+        raise ConfigError(f"{where}'{target}' is not of the form 'package.module:Name'")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ConfigError(f"{where}cannot import module '{module_name}' of '{target}': {exc}") from exc
+    obj = module
+    for part in attr.split("."):
+        if not hasattr(obj, part):
+            raise ConfigError(f"{where}'{target}': module '{module_name}' has no attribute '{attr}'")
+        obj = getattr(obj, part)
+    return obj
+
+
+def with_sections(sections: Callable[[], Mapping[str, type]], after: str) -> Callable[[type[T]], type[T]]:
+    """Class decorator, placed below ``@dataclass``: adds one section field ``name: cls`` (default
+    ``cls()``) per entry of ``sections()`` to the class, right after its field ``after``, so that
+    a registry (the frontend families) rather than the class body says which sections exist.
+
+    ``@dataclass`` then treats them as ordinary fields: YAML keys, ``-o name.key=value`` overrides,
+    :func:`to_dict` and :func:`check_ranges` see them like any section written in the class body."""
+
+    def add(cls: type[T]) -> type[T]:
+        own = dict(cls.__dict__.get("__annotations__", {}))
+        if after not in own:
+            raise TypeError(f"{cls.__name__}: with_sections(after={after!r}): no such field")
+        added = dict(sections())
+        clash = sorted(set(added) & set(own))
+        if clash:
+            raise TypeError(f"{cls.__name__}: section {clash[0]!r} is both a field and a registered section")
+        annotations: dict[str, Any] = {}
+        for name, tp in own.items():
+            annotations[name] = tp
+            if name == after:
+                annotations.update(added)
+        cls.__annotations__ = annotations
+        for name, section in added.items():
+            setattr(cls, name, dataclasses.field(default_factory=section))
+        return cls
+
+    return add
 
 
 #: Words YAML 1.1 turns into booleans, tried in this order when a Literal field gets a boolean.

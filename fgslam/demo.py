@@ -1,7 +1,7 @@
 """The demo: render a synthetic ``room-loop`` sequence, run the default SLAM configuration (patch
 frontend, monocular) on it, evaluate against the exact ground truth and report.
 
-Configuration: :class:`DemoConfig`, preset ``configs/demo.yaml``, with two sections: ``scene``
+Configuration: :class:`DemoConfig`, preset ``fgslam/configs/demo.yaml``, with two sections: ``scene``
 (:class:`DemoSceneConfig`: what is rendered) and ``slam`` (a :class:`fgslam.slam.SlamConfig`: what
 is run). ``-o scene.frames=200`` / ``-o slam.patch.ba.iterations=3`` override.
 
@@ -24,7 +24,7 @@ from .io.synth.presets import load_synth_config
 from .presets import configs_dir
 from .slam import SlamConfig, open_slam_dataset, run_slam
 
-PRESET_NAME = "demo"  # configs/demo.yaml
+PRESET_NAME = "demo"  # fgslam/configs/demo.yaml
 
 
 @dataclass
@@ -41,14 +41,14 @@ class DemoSceneConfig:
 
 @dataclass
 class DemoConfig:
-    """``configs/demo.yaml``: the scene rendered and the SLAM configuration run on it."""
+    """``fgslam/configs/demo.yaml``: the scene rendered and the SLAM configuration run on it."""
 
     scene: DemoSceneConfig = field(default_factory=DemoSceneConfig)
     slam: SlamConfig = field(default_factory=SlamConfig)
 
 
 def load_demo_config(path=None, overrides=()) -> DemoConfig:
-    """DemoConfig from a YAML file (None: ``configs/demo.yaml`` when it exists, else the defaults)."""
+    """DemoConfig from a YAML file (None: the preset ``fgslam/configs/demo.yaml`` when it exists, else the defaults)."""
     if path is None:
         default = configs_dir() / f"{PRESET_NAME}.yaml"
         path = default if default.is_file() else None

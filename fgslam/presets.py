@@ -1,19 +1,26 @@
-"""YAML presets in the repository's ``configs/`` folder and the config class each one fills.
+"""YAML presets shipped inside the package (``fgslam/configs/``) and the config class each one fills.
 
 A preset is named by its file stem; the part before the first ``_`` says which dataclass it
-configures (``pgo.yaml`` -> ``PGOConfig``, ``patch_kitti_mono.yaml`` -> ``SlamConfig``...).
-Commands accept either a path to a YAML file or a bare preset name resolved here.
+configures (``pgo.yaml`` -> ``PGOConfig``, ``patch_kitti_mono.yaml`` -> ``SlamConfig``: every
+frontend family's name selects the run config). Commands accept either a path to a YAML file or a
+bare preset name resolved here. The presets are package data, found through
+:mod:`importlib.resources`, so an installed (non-editable) fgslam finds them as well as a checkout.
 """
 
 from __future__ import annotations
 
-import importlib
+from importlib import resources
 from pathlib import Path
 
-from .config import load_config
+from .config import import_object, load_config
 from .errors import ConfigError
 
-#: Preset stem prefix -> "module:Class" of the dataclass it configures.
+#: Package (and folder inside it) holding the preset YAML files.
+PRESETS_PACKAGE = "fgslam"
+PRESETS_FOLDER = "configs"
+
+#: Preset stem prefix -> "module:Class" of the dataclass it configures (besides the frontend
+#: families' names, which all select :data:`RUN_CONFIG_CLASS`).
 PRESET_CLASSES: dict[str, str] = {
     "pgo": "fgslam.pgo:PGOConfig",
     "eval": "fgslam.eval:EvalConfig",
@@ -22,14 +29,19 @@ PRESET_CLASSES: dict[str, str] = {
     "map": "fgslam.map:MapConfig",
     "bow": "fgslam.loop.bow:BowConfig",
     "loop": "fgslam.loop.closure:LoopClosureConfig",
-    "patch": "fgslam.slam:SlamConfig",
     "demo": "fgslam.demo:DemoConfig",
 }
 
+#: The run config every frontend family's presets (``<family>_*.yaml``) fill.
+RUN_CONFIG_CLASS = "fgslam.slam:SlamConfig"
+
 
 def configs_dir() -> Path:
-    """The ``configs/`` folder next to the package (a source checkout or editable install)."""
-    return Path(__file__).resolve().parent.parent / "configs"
+    """The folder of the shipped presets, ``fgslam/configs/`` inside the installed package."""
+    folder = resources.files(PRESETS_PACKAGE).joinpath(PRESETS_FOLDER)
+    if not isinstance(folder, Path):  # a zipped install: the presets are not files on disk
+        raise ConfigError(f"the presets ({folder}) are not files on disk; install fgslam unzipped")
+    return folder
 
 
 def available_presets() -> list[str]:
@@ -38,7 +50,7 @@ def available_presets() -> list[str]:
 
 
 def resolve_preset(name_or_path: str | Path) -> Path:
-    """An existing YAML path as given, else the preset ``configs/<name>.yaml`` for a bare name such as
+    """An existing YAML path as given, else the preset ``fgslam/configs/<name>.yaml`` for a bare name such as
     ``patch_kitti_mono`` (or ``patch_kitti_mono.yaml``); ConfigError listing the presets otherwise."""
     path = Path(name_or_path)
     if path.is_file():
@@ -56,12 +68,14 @@ def resolve_preset(name_or_path: str | Path) -> Path:
 
 def config_class_for(path: Path) -> type:
     """The dataclass a preset file configures, from its stem prefix."""
+    from .frontends import FRONTEND_NAMES
+
     prefix = path.stem.split("_", 1)[0]
-    target = PRESET_CLASSES.get(prefix)
+    target = PRESET_CLASSES.get(prefix) or (RUN_CONFIG_CLASS if prefix in FRONTEND_NAMES else None)
     if target is None:
-        raise ConfigError(f"{path}: no config class known for preset prefix '{prefix}' ({', '.join(PRESET_CLASSES)})")
-    module_name, class_name = target.split(":")
-    return getattr(importlib.import_module(module_name), class_name)
+        known = sorted(set(PRESET_CLASSES) | set(FRONTEND_NAMES))
+        raise ConfigError(f"{path}: no config class known for preset prefix '{prefix}' ({', '.join(known)})")
+    return import_object(target, f"preset prefix '{prefix}'")
 
 
 def load_preset_file(path: str | Path, overrides=()):

@@ -1,6 +1,6 @@
 """The SLAM runner: a dataset in, a frontend in the middle, trajectories, a summary and a plot out.
 
-``SlamConfig`` is the root configuration of a run (``configs/patch_*.yaml`` are presets of it);
+``SlamConfig`` is the root configuration of a run (``fgslam/configs/patch_*.yaml`` are presets of it);
 :func:`run_slam` drives any :class:`~fgslam.frontends.base.Frontend` over a
 :class:`~fgslam.io.datasets.Dataset` and writes, in ``out_dir``:
 
@@ -59,11 +59,11 @@ from typing import Any, Callable, Literal, Optional
 
 import numpy as np
 
-from .config import check_ranges, ranged, to_dict
+from .config import check_ranges, ranged, to_dict, with_sections
 from .errors import ConfigError, DataError, EvaluationError, FGSlamError, Interrupted
 from .eval import EvalConfig, EvalResult, evaluate
+from .frontends import FRONTEND_NAMES, family_config_classes
 from .frontends.base import FrameStatus, Frontend
-from .frontends.patch.config import PatchConfig
 from .io.datasets import Dataset, DatasetConfig, open_dataset
 from .io.trajectory import Trajectory, write_trajectory
 from .loop.closure import LoopClosureConfig
@@ -106,17 +106,22 @@ class OutputConfig:
 
 
 @dataclass
+@with_sections(family_config_classes, after="dataset")
 class SlamConfig:
-    """Root configuration of ``fgslam run`` (presets: ``configs/patch_*.yaml``)."""
+    """Root configuration of ``fgslam run`` (presets: ``fgslam/configs/patch_*.yaml``).
 
-    frontend: Literal["patch", "dense", "pointmap"] = "patch"  # frontend family (dense/pointmap: not implemented yet)
+    Besides the fields below it has one section per frontend family that has a config class, named
+    after the family and placed after ``dataset`` (``patch: PatchConfig``): they come from the
+    registry :data:`fgslam.frontends.FAMILIES`, so a new family needs no edit here."""
+
+    frontend: Literal[FRONTEND_NAMES] = "patch"  # frontend family (dense/pointmap: not implemented yet)
     sensor: SensorName = "mono"  # mono | stereo (needs right images) | rgbd (needs depth)
     threads: int = ranged(0, ge=0)  # torch and OpenCV threads for the run (0: leave the library defaults); stages may set their own
     log_interval_frames: int = ranged(100, ge=1)  # a progress line at least every this many frames
     log_interval_s: float = ranged(10.0, gt=0)  # ... or every this many seconds, whichever comes first
     auto_align: bool = True  # evaluation alignment from the sensor (sim3 mono, se3 stereo/rgbd); false: eval.align
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
-    patch: PatchConfig = field(default_factory=PatchConfig)
+    # (here: one section per frontend family, e.g. patch: PatchConfig, from the frontend registry)
     map: MapConfig = field(default_factory=MapConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
@@ -125,6 +130,15 @@ class SlamConfig:
 
     def validate(self) -> None:
         self.loop_closure.validate()
+
+    def family_section(self, name: str | None = None) -> Any:
+        """The config section of frontend family ``name`` (default: ``frontend``); None for a family
+        without one (planned families)."""
+        return getattr(self, name or self.frontend, None)
+
+    def frontend_services(self) -> dict[str, Any]:
+        """What the runner hands every frontend builder besides its own section (keyword arguments)."""
+        return {"map_config": self.map, "loop_config": self.loop_closure}
 
     def alignment(self) -> str:
         """Alignment used for the ATE: the sensor's (auto) or ``eval.align``."""

@@ -137,14 +137,38 @@ def test_to_dict_round_trip():
     assert from_dict(RootConfig, to_dict(cfg)) == cfg
 
 
-def test_shipped_presets_load(repo_root):
-    """Every YAML preset in configs/ names a module config class and loads without error."""
-    from fgslam.presets import load_preset_file
+def test_shipped_presets_load_from_the_package_data():
+    """The presets are package data: importlib.resources lists them under fgslam/configs/, and each
+    names a module config class, loads by its bare name and passes its range and validate checks."""
+    from importlib import resources
 
-    presets = sorted((repo_root / "configs").glob("*.yaml"))
-    assert presets, "configs/ holds no presets"
-    for path in presets:
-        load_preset_file(path)
+    from fgslam.presets import available_presets, load_preset_file
+
+    listed = sorted(p.name[: -len(".yaml")] for p in resources.files("fgslam").joinpath("configs").iterdir()
+                    if p.name.endswith(".yaml"))
+    for needed in ("patch_kitti_mono", "patch_mono", "patch_stereo", "patch_rgbd", "demo", "pgo", "eval",
+                   "dataset", "synth", "map"):
+        assert needed in listed
+    assert available_presets() == listed
+    for name in listed:
+        config = load_preset_file(name)
+        check_ranges(config, source=name)
+        if hasattr(config, "validate"):
+            config.validate()
+
+
+def test_pyproject_ships_every_preset(repo_root):
+    """Every file under fgslam/configs/ matches a package-data pattern of pyproject.toml, so a wheel
+    (a non-editable install) carries it."""
+    import glob
+
+    tomllib = pytest.importorskip("tomllib")
+    patterns = tomllib.loads((repo_root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["fgslam"]
+    package = repo_root / "fgslam"
+    shipped = {Path(p) for pattern in patterns for p in glob.glob(pattern, root_dir=package, recursive=True)}
+    presets = {p.relative_to(package) for p in (package / "configs").rglob("*") if p.is_file()}
+    assert presets
+    assert not presets - shipped, f"presets missing from [tool.setuptools.package-data]: {sorted(presets - shipped)}"
 
 
 # --------------------------------------------------------------------------------------- declared ranges
@@ -174,7 +198,7 @@ def _load_class(target: str) -> type:
 
 def _config_classes() -> list[type]:
     """Every config dataclass reachable from the preset roots (fgslam/presets.py) and the extras."""
-    from fgslam.presets import PRESET_CLASSES
+    from fgslam.presets import PRESET_CLASSES, RUN_CONFIG_CLASS
 
     seen: list[type] = []
 
@@ -187,7 +211,7 @@ def _config_classes() -> list[type]:
                 if dataclasses.is_dataclass(t):
                     walk(t)
 
-    for target in (*PRESET_CLASSES.values(), *EXTRA_CONFIG_CLASSES):
+    for target in (*PRESET_CLASSES.values(), RUN_CONFIG_CLASS, *EXTRA_CONFIG_CLASSES):
         walk(_load_class(target))
     return seen
 
@@ -274,3 +298,43 @@ def test_range_text_and_limits():
                            if f.name == "max_skipped_fraction"))
     assert rng.text() == ">= 0 and < 1" and rng.contains(0.0) and not rng.contains(1.0)
     assert not rng.contains(float("inf")) and not rng.contains(float("nan"))
+
+
+# --------------------------------------------------------------------------------------- registered sections
+
+
+def test_with_sections_adds_registered_sections_after_a_field():
+    from fgslam.config import with_sections
+
+    @dataclass
+    class Extra:
+        rate: float = ranged(2.0, gt=0)
+
+    @dataclass
+    @with_sections(lambda: {"extra": Extra, "solver": SolverSection}, after="name")
+    class Root:
+        name: str = "root"
+        tail: int = ranged(1, ge=0)
+
+    assert [f.name for f in dataclasses.fields(Root)] == ["name", "extra", "solver", "tail"]
+    cfg = load_config(Root, None, ["extra.rate=3", "solver.iterations=4"])
+    assert cfg.extra == Extra(3.0) and cfg.solver.iterations == 4 and Root().extra is not Root().extra
+    assert from_dict(Root, to_dict(cfg)) == cfg
+    with pytest.raises(ConfigError, match=r"key 'extra.rate': must be > 0"):
+        load_config(Root, None, ["extra.rate=0"])
+    with pytest.raises(ConfigError, match="unknown key 'extra.nope'"):
+        load_config(Root, None, ["extra.nope=1"])
+    with pytest.raises(TypeError, match="'name' is both a field and a registered section"):
+        with_sections(lambda: {"name": Extra}, after="tail")(type("Clash", (), {"__annotations__": {"name": str, "tail": int}}))
+    with pytest.raises(TypeError, match="no such field"):
+        with_sections(lambda: {"extra": Extra}, after="missing")(type("NoAnchor", (), {"__annotations__": {"name": str}}))
+
+
+def test_import_object_errors_name_what_it_is_for():
+    from fgslam.config import import_object
+
+    assert import_object("fgslam.config:import_object") is import_object
+    for target, why in (("fgslam.config.import_object", "not of the form"), ("fgslam.nonexistent:X", "cannot import"),
+                        ("fgslam.config:Nothing", "has no attribute 'Nothing'")):
+        with pytest.raises(ConfigError, match=f"factors\\[0\\].class: .*{why}"):
+            import_object(target, "factors[0].class")

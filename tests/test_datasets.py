@@ -642,7 +642,7 @@ def _info(argv):
 
 
 def test_dataset_config_yaml(repo_root, tmp_path):
-    cfg = load_config(DatasetConfig, repo_root / "configs" / "dataset.yaml", ["stride=2", "end=10"])
+    cfg = load_config(DatasetConfig, repo_root / "fgslam" / "configs" / "dataset.yaml", ["stride=2", "end=10"])
     assert cfg.stride == 2 and cfg.end == 10 and cfg.crop_multiple == DatasetConfig().crop_multiple
     write_folder(tmp_path / "f", n=12)
     assert len(open_dataset(tmp_path / "f", config=cfg)) == 5

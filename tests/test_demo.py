@@ -25,11 +25,11 @@ def cli_main(monkeypatch):
 
 
 def test_demo_config_file_loads():
-    config = load_demo_config(REPO / "configs" / "demo.yaml")
+    config = load_demo_config(REPO / "fgslam" / "configs" / "demo.yaml")
     assert isinstance(config, DemoConfig)
     assert config.scene.preset == "room-loop"
     assert config.slam.frontend == "patch" and config.slam.sensor == "mono"
-    # the default (no path) is the repository's configs/demo.yaml
+    # the default (no path) is the package's fgslam/configs/demo.yaml
     assert load_demo_config(None) == config
 
 

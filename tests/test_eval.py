@@ -511,4 +511,4 @@ def test_cli_results_are_printed_when_the_plot_fails(run_cli, tmp_path, capsys, 
 def test_shipped_config_matches_the_defaults(repo_root):
     from fgslam.config import load_config
 
-    assert load_config(EvalConfig, repo_root / "configs" / "eval.yaml") == EvalConfig()
+    assert load_config(EvalConfig, repo_root / "fgslam" / "configs" / "eval.yaml") == EvalConfig()

@@ -259,7 +259,7 @@ def test_map_bookkeeping_remove_keyframe_drops_factors_blocks_and_moves_anchor()
 def test_map_config_preset_loads_with_overrides(repo_root):
     from fgslam.config import load_config
 
-    cfg = load_config(MapConfig, repo_root / "configs" / "map.yaml", ["solver=isam2", "gauge.hold_scale=false"])
+    cfg = load_config(MapConfig, repo_root / "fgslam" / "configs" / "map.yaml", ["solver=isam2", "gauge.hold_scale=false"])
     assert cfg.solver == "isam2" and cfg.gauge.hold_scale is False
     assert cfg.gauge.anchor_sigma == GaugeConfig().anchor_sigma and cfg.max_iterations == MapConfig().max_iterations
 

@@ -205,8 +205,8 @@ def test_every_allowed_option_is_accepted_by_gtsam(field_name):
 
 
 def test_config_yaml_matches_defaults_and_validates(repo_root):
-    assert load_config(PGOConfig, repo_root / "configs" / "pgo.yaml") == PGOConfig()
-    cfg = load_config(PGOConfig, repo_root / "configs" / "pgo.yaml", ["max_iterations=7", "init=as-is"])
+    assert load_config(PGOConfig, repo_root / "fgslam" / "configs" / "pgo.yaml") == PGOConfig()
+    cfg = load_config(PGOConfig, repo_root / "fgslam" / "configs" / "pgo.yaml", ["max_iterations=7", "init=as-is"])
     assert (cfg.max_iterations, cfg.init) == (7, "as-is")
     with pytest.raises(ConfigError, match="init"):
         load_config(PGOConfig, None, ["init=spectral"])
@@ -287,7 +287,7 @@ def run_cli(argv: list[str]) -> int:
 def test_cli_json(tmp_path, shared_data, capsys, repo_root):
     out = tmp_path / "opt.g2o"
     src = shared_data / "g2o" / "tinyGrid3D.g2o"
-    argv = ["pgo", str(src), "--out", str(out), "--json", "--config", str(repo_root / "configs" / "pgo.yaml")]
+    argv = ["pgo", str(src), "--out", str(out), "--json", "--config", str(repo_root / "fgslam" / "configs" / "pgo.yaml")]
     code = run_cli(argv + ["--init", "as-is", "-o", "max_iterations=50"])
     assert code == 0
     report = json.loads(capsys.readouterr().out)

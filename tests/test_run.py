@@ -362,7 +362,7 @@ def test_registry_import_is_lazy():
 
 
 def _preset_files() -> list[Path]:
-    return sorted((REPO / "configs").glob("patch_*.yaml"))
+    return sorted((REPO / "fgslam" / "configs").glob("patch_*.yaml"))
 
 
 def test_presets_exist():
@@ -382,14 +382,14 @@ def test_preset_loads(path):
 
 
 def test_preset_resolution(tmp_path):
-    assert resolve_preset("patch_kitti_mono") == REPO / "configs" / "patch_kitti_mono.yaml"
-    assert resolve_preset("patch_kitti_mono.yaml") == REPO / "configs" / "patch_kitti_mono.yaml"
+    assert resolve_preset("patch_kitti_mono") == REPO / "fgslam" / "configs" / "patch_kitti_mono.yaml"
+    assert resolve_preset("patch_kitti_mono.yaml") == REPO / "fgslam" / "configs" / "patch_kitti_mono.yaml"
     own = tmp_path / "mine.yaml"
     own.write_text("sensor: stereo\n")
     assert load_slam_config(own).sensor == "stereo"
     with pytest.raises(ConfigError, match="no preset of that name.*patch_kitti_mono"):
         resolve_preset("patch_nonexistent")
-    assert configs_dir() == REPO / "configs"
+    assert configs_dir() == REPO / "fgslam" / "configs"
 
 
 def test_overrides_on_preset():

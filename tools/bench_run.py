@@ -92,7 +92,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="cache folder of the synthetic renders (reused when the scene is the same)")
     p.add_argument("--keep-outputs", type=Path, default=None, help="write each run's outputs to DIR/<case>")
     p.add_argument("--baseline", type=Path, default=None,
-                   help="fgslam source tree to run side by side (its fgslam/ package and configs/), e.g. a git worktree of main")
+                   help="fgslam source tree to run side by side (its fgslam/ package and presets), e.g. a git worktree of main")
     p.add_argument("-o", "--override", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="SlamConfig override applied to every case (repeatable)")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)  # internal: run one case in this process

@@ -14,7 +14,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default=DEFAULT_OUT, metavar="DIR", help=f"output folder (default: ./{DEFAULT_OUT})")
     parser.add_argument("--frames", type=int, default=None, metavar="N",
                         help="frames to render and run (default: the config's, one loop)")
-    parser.add_argument("--config", default=None, metavar="YAML", help="demo config (default: configs/demo.yaml)")
+    parser.add_argument("--config", default=None, metavar="YAML", help="demo config (default: the preset fgslam/configs/demo.yaml)")
     parser.add_argument("-o", "--override", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override, e.g. -o scene.width=640 -o slam.sensor=stereo (repeatable)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the report")

@@ -37,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--delta-frames", type=int, help="frame step of the per-frame RPE")
     parser.add_argument("--delta-m", type=float, help="distance (m) of the per-distance RPE")
     parser.add_argument("--kitti-metrics", action="store_true", help="report KITTI t_rel/r_rel for non-KITTI GT")
-    add_config_arguments(parser, "EvalConfig", "configs/eval.yaml")
+    add_config_arguments(parser, "EvalConfig", "fgslam/configs/eval.yaml")
     parser.add_argument("--plot", metavar="PNG", help="write a top-view plot of GT and the aligned EST")
     parser.add_argument("--plane", choices=_PLANES, help="plot plane (default: xz for KITTI, else xy)")
 

@@ -15,7 +15,7 @@ FORMAT_CHOICES = ("auto", "tum", "euroc", "kitti", "tartanair", "7scenes", "fold
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("path", help="dataset folder (or video file)")
     parser.add_argument("--format", default="auto", choices=FORMAT_CHOICES, help="loader (default: detect from the layout)")
-    add_config_arguments(parser, "DatasetConfig", "configs/dataset.yaml")
+    add_config_arguments(parser, "DatasetConfig", "fgslam/configs/dataset.yaml")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -16,7 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--init", choices=("chordal", "as-is"), default=None, help="initialisation (default: the config's, chordal)"
     )
-    add_config_arguments(parser, "PGOConfig", "configs/pgo.yaml")
+    add_config_arguments(parser, "PGOConfig", "fgslam/configs/pgo.yaml")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,7 +1,7 @@
 """``fgslam run CONFIG --data PATH --out DIR``: run SLAM on a dataset and write trajectories,
 ``summary.json`` and ``trajectory.png`` (see :mod:`fgslam.slam`).
 
-CONFIG is a YAML file or the name of a preset in the repository's ``configs/`` folder
+CONFIG is a YAML file or the name of a preset shipped in the package's ``fgslam/configs/`` folder
 (``patch_kitti_mono``, ``patch_7scenes_rgbd``, ``patch_euroc_stereo``, ...). ``-o key=value``
 overrides any SlamConfig field, e.g. ``-o sensor=stereo -o dataset.end=200 -o patch.ba.iterations=3``.
 """

@@ -19,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=int, default=None, help="image width in pixels")
     parser.add_argument("--height", type=int, default=None, help="image height in pixels")
     parser.add_argument("--colour", action="store_true", help="write RGB images instead of grey")
-    add_config_arguments(parser, "SynthConfig", "configs/synth.yaml")
+    add_config_arguments(parser, "SynthConfig", "fgslam/configs/synth.yaml")
 
 
 def run(args: argparse.Namespace) -> int:

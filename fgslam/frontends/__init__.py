@@ -1,70 +1,113 @@
 """Frontend families and their registry.
 
-``make_frontend(name, config, calibration, sensor_mode)`` builds the frontend a
-:class:`fgslam.slam.SlamConfig` names (``config.frontend``). Each family is imported only when it
-is built, so importing :mod:`fgslam.frontends` stays cheap and a family's heavy dependencies are
-loaded only by the runs that use it.
+:data:`FAMILIES` is the one list of frontend families. An entry names the family (the value of a
+run config's ``frontend:`` key and the name of its config section), its config dataclass and its
+builder, both as lazy ``"module:attr"`` paths. Adding a family is one entry here: the runner's
+``SlamConfig`` gets a section named after each family that has a config class (see
+:func:`family_config_classes`), and presets named ``<family>_*.yaml`` load into it.
+
+A builder is called as ``builder(section, calibration, sensor_mode, **services)``: the family's own
+config section, the camera calibration, ``mono | stereo | rgbd``, and the run's shared services
+(today ``map_config`` and ``loop_config``) as keywords. The registry knows nothing of the runner
+(:mod:`fgslam.slam` imports this module, never the reverse), and each family is imported only when
+its config class or builder is first needed, so importing :mod:`fgslam.frontends` stays cheap.
 
 Families: ``patch`` (DPVO / DPV-SLAM, issue 4) is implemented; ``dense`` (DROID-SLAM) and
-``pointmap`` (MASt3R-SLAM) are planned and raise a :class:`~fgslam.errors.ConfigError` that says so.
+``pointmap`` (MASt3R-SLAM) are planned (no config section, no builder yet) and raise a
+:class:`~fgslam.errors.ConfigError` that says so.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable
+from dataclasses import dataclass
+from typing import Any, Optional
 
+from ..config import import_object
 from ..errors import ConfigError
 from .base import FrameStatus, Frontend, PoseSource, SensorMode
 
-if TYPE_CHECKING:  # pragma: no cover - typing only
-    from ..io.calibration import Calibration
-    from ..slam import SlamConfig
+
+@dataclass(frozen=True)
+class FrontendFamily:
+    """One registry entry: a frontend family, its config section class and its builder."""
+
+    name: str  # frontend: <name> in a run config, and the name of its config section
+    title: str  # what it is, for messages ("the DPVO / DPV-SLAM patch family")
+    config: Optional[str] = None  # "module:Class" of its section dataclass; None: planned, no section yet
+    builder: Optional[str] = None  # "module:callable": builder(section, calibration, sensor_mode, **services)
+
+    def __post_init__(self) -> None:
+        if self.builder is not None and self.config is None:
+            raise ValueError(f"frontend family '{self.name}': a builder needs a config section class")
+
+    @property
+    def implemented(self) -> bool:
+        return self.builder is not None
+
+
+#: Every family a config may name, implemented or planned (docs/design.md section 1).
+FAMILIES: tuple[FrontendFamily, ...] = (
+    FrontendFamily("patch", "the DPVO / DPV-SLAM patch family",
+                   config="fgslam.frontends.patch.config:PatchConfig",
+                   builder="fgslam.frontends.patch.frontend:PatchFrontend"),
+    FrontendFamily("dense", "the dense DROID-SLAM family"),
+    FrontendFamily("pointmap", "the MASt3R-SLAM pointmap family"),
+)
 
 #: Every family name a config may give, implemented or not.
-FRONTEND_NAMES: tuple[str, ...] = ("patch", "dense", "pointmap")
-
-# Families that are designed (docs/design.md section 1) but have no implementation yet.
-_PLANNED: dict[str, str] = {
-    "dense": "the dense DROID-SLAM family",
-    "pointmap": "the MASt3R-SLAM pointmap family",
-}
-
-
-def _build_patch(config: SlamConfig, calibration: Calibration, sensor_mode: SensorMode) -> Frontend:
-    from .patch.frontend import PatchFrontend
-
-    return PatchFrontend(config.patch, calibration, sensor_mode, map_config=config.map,
-                         loop_config=config.loop_closure)
-
-
-_BUILDERS: dict[str, Callable[[SlamConfig, Calibration, SensorMode], Frontend]] = {
-    "patch": _build_patch,
-}
+FRONTEND_NAMES: tuple[str, ...] = tuple(f.name for f in FAMILIES)
 
 
 def available_frontends() -> tuple[str, ...]:
     """Names :func:`make_frontend` can build."""
-    return tuple(_BUILDERS)
+    return tuple(f.name for f in FAMILIES if f.implemented)
 
 
-def make_frontend(name: str, config: SlamConfig, calibration: Calibration, sensor_mode: SensorMode) -> Frontend:
-    """Build frontend family ``name`` from the run's ``config`` (its section ``config.<name>``,
-    ``config.map`` and ``config.loop_closure``) for images described by ``calibration`` in ``sensor_mode`` (mono|stereo|rgbd).
-
-    Raises:
-        ConfigError: ``name`` is planned but not implemented yet (``dense``, ``pointmap``) or unknown.
-    """
-    builder = _BUILDERS.get(name)
-    if builder is not None:
-        return builder(config, calibration, sensor_mode)
-    if name in _PLANNED:
-        raise ConfigError(
-            f"frontend '{name}' ({_PLANNED[name]}) is not implemented yet: it has no issue of its own so far "
-            f"(the patch frontend of issue 4 is the one available); set frontend: patch"
-        )
+def frontend_family(name: str) -> FrontendFamily:
+    """The registry entry of family ``name``; ConfigError naming the known ones otherwise."""
+    for family in FAMILIES:
+        if family.name == name:
+            return family
     raise ConfigError(f"unknown frontend '{name}' (known: {', '.join(FRONTEND_NAMES)}; implemented: "
                       f"{', '.join(available_frontends())})")
 
 
-__all__ = ["FRONTEND_NAMES", "FrameStatus", "Frontend", "PoseSource", "SensorMode", "available_frontends",
-           "make_frontend"]
+def family_config_classes() -> dict[str, type]:
+    """Family name -> its config section dataclass, for every family that has one (imports them)."""
+    return {f.name: import_object(f.config, f"frontend family '{f.name}' config") for f in FAMILIES
+            if f.config is not None}
+
+
+def make_frontend(name: str, config: Any, calibration: Any, sensor_mode: SensorMode, **services: Any) -> Frontend:
+    """Build frontend family ``name`` for images described by ``calibration`` in ``sensor_mode``
+    (mono | stereo | rgbd).
+
+    ``config`` is the family's own section (an instance of its config class, or None for its
+    defaults) or a root config holding the family sections, such as :class:`fgslam.slam.SlamConfig`:
+    any object with ``family_section(name)`` and ``frontend_services()``, whose services are then
+    passed too. Keyword ``services`` (``map_config``, ``loop_config``, ...) go to the builder and win
+    over the root config's.
+
+    Raises:
+        ConfigError: ``name`` is planned but not implemented yet (``dense``, ``pointmap``) or unknown.
+    """
+    family = frontend_family(name)
+    if not family.implemented:
+        raise ConfigError(
+            f"frontend '{name}' ({family.title}) is not implemented yet: it has no issue of its own so far "
+            f"(the patch frontend of issue 4 is the one available); set frontend: patch"
+        )
+    section_class = import_object(family.config, f"frontend family '{name}' config")
+    section = config
+    if config is not None and not isinstance(config, section_class):
+        if not (hasattr(config, "family_section") and hasattr(config, "frontend_services")):
+            raise TypeError(f"make_frontend('{name}', ...): config must be a {section_class.__name__}, None, or a "
+                            f"root config with family_section() and frontend_services(), got {type(config).__name__}")
+        services = {**config.frontend_services(), **services}
+        section = config.family_section(name)
+    builder = import_object(family.builder, f"frontend family '{name}' builder")
+    return builder(section, calibration, sensor_mode, **services)
+
+
+__all__ = ["FAMILIES", "FRONTEND_NAMES", "FrameStatus", "Frontend", "FrontendFamily", "PoseSource", "SensorMode",
+           "available_frontends", "family_config_classes", "frontend_family", "make_frontend"]
