@@ -44,8 +44,16 @@ from ..backend.blocks import LinearPiece
 from ..lie import Sim3
 from .depth import DepthPriorConfig, depth_prior
 from .reprojection import ReprojectionConfig
-from .schur import POSE_DIM, BlockConfig, BlockResiduals, InverseDepthBlock, SlotGroups, VisualBlock, schur_reduce
-from .schur import torch_threads
+from .schur import (
+    POSE_DIM,
+    BlockConfig,
+    BlockResiduals,
+    InverseDepthBlock,
+    SlotGroups,
+    VisualBlock,
+    schur_reduce,
+    torch_threads,
+)
 
 logger = logging.getLogger(__name__)
 
