@@ -164,6 +164,12 @@ def test_schur_reduced_system_equals_explicit_elimination_with_per_pixel_damping
     for n, key in enumerate(block.keys):
         delta.insert(key, dx[n * D:(n + 1) * D])
     np.testing.assert_allclose(block.back_substitute(delta).numpy(), dd, rtol=1e-8, atol=1e-12)
+    # a key missing from the update is held fixed (window solves): the same as a zero update
+    partial = gtsam.VectorValues()
+    partial.insert(block.keys[0], dx[:D])
+    dx_fixed = np.concatenate([dx[:D], np.zeros(2 * D)])
+    np.testing.assert_allclose(block.back_substitute(partial).numpy(),
+                               -np.linalg.solve(Hdd, gd + Hxd.T @ dx_fixed), rtol=1e-8, atol=1e-12)
     # the damping really is per pixel: a constant eta gives another system
     flat = DenseSourceBlock(DenseKeyframe(keys[1], depths[1] * 1.1, sensor_depth=sensor), edges, K8,
                             DenseBlockConfig(block=BlockConfig(structure_damping=float(eta.mean()))))

@@ -241,6 +241,15 @@ class DenseSourceBlock(VisualBlock):
         return BlockResiduals(r=r, weights=weights, E=E, J=[torch.cat([Jc, J0]) for Jc in flow.J],
                               num_invalid=flow.num_invalid)
 
+    def back_substitute(self, delta) -> torch.Tensor:
+        """Depth update (P,) for the pose update ``delta`` at the last linearisation point: a
+        ``gtsam.VectorValues`` (keys it lacks are held fixed: zero update, as in a window solve) or a
+        ``(7 k,)`` array over ``self.keys``."""
+        if not isinstance(delta, (np.ndarray, torch.Tensor)):
+            zero = np.zeros(POSE_DIM)
+            delta = np.concatenate([np.asarray(delta.at(key)) if delta.exists(key) else zero for key in self.keys])
+        return super().back_substitute(delta)
+
     def linearize(self, values) -> list[LinearPiece]:
         """One :class:`LinearPiece` over ``self.keys``: the Schur-reduced system with the per-pixel
         damping ``eta`` in the depth block (DROID eq. 5)."""
