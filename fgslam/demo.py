@@ -31,7 +31,7 @@ PRESET_NAME = "demo"  # fgslam/configs/demo.yaml
 class DemoSceneConfig:
     """The synthetic sequence the demo renders (one loop at 10 Hz: the demo must stay short)."""
 
-    preset: Literal["room-loop", "street-loop", "orbit", "highway"] = "room-loop"  # synthetic scene and motion
+    preset: Literal["room-loop", "street-loop", "orbit", "highway", "low-texture"] = "room-loop"  # synthetic scene and motion
     frames: int = ranged(201, ge=2)  # rendered frames (room-loop: one loop lasts 20 s: 201 frames at 10 Hz, 401 at 20 Hz)
     rate_hz: float = ranged(10.0, gt=0)  # camera frame rate (the motion's speed is fixed: a lower rate, larger steps)
     width: int = ranged(640, ge=32)  # image width (px)

@@ -187,6 +187,8 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.factors.depth:DepthPriorConfig",
     "fgslam.factors.robust:RobustConfig",
     "fgslam.factors.schur:BlockConfig",
+    "fgslam.factors.dense:DenseBlockConfig",
+    "fgslam.frontends.dense.source:DenseSourceConfig",
     "fgslam.loop.bow:VocabularyTrainingConfig",
 )
 

@@ -11,7 +11,7 @@ HELP = "generate a synthetic EuRoC-layout sequence (stereo, depth, IMU, exact gr
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", default=None, choices=("room-loop", "street-loop", "orbit", "highway"),
+    parser.add_argument("--preset", default=None, choices=("room-loop", "street-loop", "orbit", "highway", "low-texture"),
                         help="scene and motion preset (default: the config's, room-loop)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output sequence root (DIR/mav0/...)")
     parser.add_argument("--frames", type=int, default=None, help="number of frames (default: one loop + 1)")

@@ -8,6 +8,10 @@ Presets:
 - ``street-loop``: KITTI-like drive around a city block (facades, ground, parked cars, poles) at
   ``camera_height`` with a forward-looking camera at 10 Hz; the road is a smooth Fourier fit of a
   rounded rectangle traversed once per ``loop_duration_s`` (default 1,001 frames, ~600 m).
+- ``low-texture``: the ``room-loop`` motion in a room of large uniform surfaces (plain walls and
+  ceiling, a floor of tiles with faint grout lines, doors with a darker frame and a handle, a few
+  plain cabinets): white walls and corridors with few corners, where sparse patches starve and
+  dense methods are meant to keep tracking.
 - ``orbit``: camera circling a cluster of boxes in a hall, always looking at the cluster centre.
 - ``highway``: fast forward drive (``speed`` m/s, 10 Hz: 2-3 m between frames) along a gently
   curved road (one lateral S-bend over ``duration_s``), sparse roadside structure (guard rails,
@@ -29,10 +33,10 @@ from ...errors import ConfigError
 from .imu import ImuConfig
 from .render import RenderConfig
 from .scene import Scene
-from .texture import TextureConfig
+from .texture import STYLE_DOOR, STYLE_PLAIN, STYLE_TILES, TextureConfig
 from .trajectory import AnalyticTrajectory, Fourier1D, TimeWarp, closed_curve_fourier, rounded_rectangle
 
-PRESET_NAMES = ("room-loop", "street-loop", "orbit", "highway")
+PRESET_NAMES = ("room-loop", "street-loop", "orbit", "highway", "low-texture")
 
 _ROAD_SAMPLES = 8192  # arc-length samples of the rounded rectangle fitted by the Fourier road
 _GROUND_LINE_SAMPLES = 2048  # samples of the road centre line for choosing ground tiles
@@ -83,6 +87,21 @@ class RoomConfig:
     jitter: float = ranged(1.0, ge=0)  # scale of the hand-held wobble (0: smooth ellipse + turn)
     wall_density: float = ranged(160.0, gt=0)  # texels per metre
     box_density: float = ranged(200.0, gt=0)
+
+
+@dataclass
+class LowTextureConfig(RoomConfig):
+    """low-texture scene (the room-loop motion and room fields, plain styles) and its doors."""
+
+    n_boxes: int = ranged(3, ge=0)  # plain cabinets
+    box_size_range: list[float] = ranged(default_factory=lambda: [0.5, 1.2], gt=0)
+    box_height_range: list[float] = ranged(default_factory=lambda: [0.8, 1.8], gt=0)
+    wall_density: float = ranged(100.0, gt=0)  # texels per metre (grout lines need ~1 texel)
+    box_density: float = ranged(60.0, gt=0)
+    n_doors: int = ranged(5, ge=0)  # doors on the walls
+    door_size: list[float] = ranged(default_factory=lambda: [0.9, 2.05], gt=0)  # width, height (m)
+    door_margin: float = ranged(0.4, ge=0)  # minimum distance of a door from a wall corner and from another door (m)
+    door_offset: float = ranged(0.003, gt=0)  # the door leaf stands this far in front of its wall (m)
 
 
 @dataclass
@@ -184,6 +203,7 @@ class SynthConfig:
     texture: TextureConfig = field(default_factory=TextureConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     room: RoomConfig = field(default_factory=RoomConfig)
+    low_texture: LowTextureConfig = field(default_factory=LowTextureConfig)
     street: StreetConfig = field(default_factory=StreetConfig)
     orbit: OrbitConfig = field(default_factory=OrbitConfig)
     highway: HighwayConfig = field(default_factory=HighwayConfig)
@@ -195,12 +215,16 @@ class SynthConfig:
         if self.preset not in PRESET_NAMES:
             raise ConfigError(f"preset: unknown preset '{self.preset}' (valid: {', '.join(PRESET_NAMES)})")
         check_ranges(self)
+        if len(self.texture.plain.albedo) != 3:
+            raise ConfigError("texture.plain.albedo: expected 3 albedos (plain, tiles, door), "
+                              f"got {len(self.texture.plain.albedo)}")
         if 1e9 / self.camera.rate_hz != round(1e9 / self.camera.rate_hz) or \
                 1e9 / self.imu.rate_hz != round(1e9 / self.imu.rate_hz):
             raise ConfigError("camera.rate_hz / imu.rate_hz: periods must be whole nanoseconds")
 
     def loop_duration_s(self) -> float:
-        return {"room-loop": self.room.loop_duration_s, "street-loop": self.street.loop_duration_s,
+        return {"room-loop": self.room.loop_duration_s, "low-texture": self.low_texture.loop_duration_s,
+                "street-loop": self.street.loop_duration_s,
                 "orbit": self.orbit.loop_duration_s, "highway": self.highway.duration_s}[self.preset]
 
 
@@ -219,7 +243,8 @@ def default_config(preset: str) -> SynthConfig:
 
 # ----------------------------------------------------------------------------------- scenes
 
-def _room_box(scene: Scene, size, density: float, style: int, center=(0.0, 0.0)) -> None:
+def _room_box(scene: Scene, size, density: float, style: int, center=(0.0, 0.0),
+              floor_style: int = STYLE_GROUND) -> None:
     """Inward-facing room (walls, floor, ceiling) of ``size = (x, y, z)``, floor at z = 0."""
     sx, sy, sz = size
     x0, x1 = center[0] - sx / 2, center[0] + sx / 2
@@ -229,13 +254,14 @@ def _room_box(scene: Scene, size, density: float, style: int, center=(0.0, 0.0))
     scene.add_quad((x0, y1, 0), (1, 0, 0), ez, sx, sz, density=density, style=style)   # y1, faces -y
     scene.add_quad((x1, y1, 0), (0, -1, 0), ez, sy, sz, density=density, style=style)  # x1, faces -x
     scene.add_quad((x0, y0, 0), (0, 1, 0), ez, sy, sz, density=density, style=style)   # x0, faces +x
-    scene.add_quad((x0, y0, 0), (1, 0, 0), (0, 1, 0), sx, sy, density=density, style=STYLE_GROUND)
+    scene.add_quad((x0, y0, 0), (1, 0, 0), (0, 1, 0), sx, sy, density=density, style=floor_style)
     scene.add_quad((x0, y1, sz), (1, 0, 0), (0, -1, 0), sx, sy, density=density, style=style)
 
 
-def _build_room(cfg: RoomConfig, rng: np.random.Generator) -> Scene:
+def _build_room(cfg: RoomConfig, rng: np.random.Generator, wall_style: int = STYLE_WALL,
+                floor_style: int = STYLE_GROUND, box_style: int = STYLE_OBJECT) -> Scene:
     scene = Scene()
-    _room_box(scene, cfg.size, cfg.wall_density, STYLE_WALL)
+    _room_box(scene, cfg.size, cfg.wall_density, wall_style, floor_style=floor_style)
     sx, sy, _ = cfg.size
     rx, ry = cfg.path_radii
     placed = 0
@@ -251,7 +277,33 @@ def _build_room(cfg: RoomConfig, rng: np.random.Generator) -> Scene:
         if (x / (rx + m)) ** 2 + (y / (ry + m)) ** 2 < 1.0:
             continue
         scene.add_box((x, y, h / 2), (w, d, h), rng.uniform(0, np.pi), density=cfg.box_density,
-                      style=STYLE_OBJECT, faces=("+x", "-x", "+y", "-y", "+z"))
+                      style=box_style, faces=("+x", "-x", "+y", "-y", "+z"))
+        placed += 1
+    return scene
+
+
+def _build_low_texture(cfg: LowTextureConfig, rng: np.random.Generator) -> Scene:
+    """The room of :func:`_build_room` in plain styles, plus ``n_doors`` doors: quads just in front
+    of the walls (the walls are those of :func:`_room_box`: origin corner, u along the wall)."""
+    scene = _build_room(cfg, rng, wall_style=STYLE_PLAIN, floor_style=STYLE_TILES, box_style=STYLE_PLAIN)
+    walls = scene.arrays()
+    door_w, door_h = cfg.door_size
+    taken: list[list[tuple[float, float]]] = [[] for _ in range(4)]  # door intervals along each wall
+    placed = 0
+    for _ in range(1000 * max(cfg.n_doors, 1)):
+        if placed == cfg.n_doors:
+            break
+        wall = int(rng.integers(0, 4))  # the first four quads of _room_box are the walls
+        length = walls.sizes[wall, 0]
+        if length < door_w + 2 * cfg.door_margin:
+            continue
+        s0 = rng.uniform(cfg.door_margin, length - cfg.door_margin - door_w)
+        if any(s0 < b + cfg.door_margin and a < s0 + door_w + cfg.door_margin for a, b in taken[wall]):
+            continue
+        taken[wall].append((s0, s0 + door_w))
+        origin = walls.origins[wall] + s0 * walls.axes_u[wall] + cfg.door_offset * walls.normals[wall]
+        scene.add_quad(origin, walls.axes_u[wall], walls.axes_v[wall], door_w, door_h,
+                       density=cfg.wall_density, style=STYLE_DOOR)
         placed += 1
     return scene
 
@@ -442,6 +494,7 @@ def _build_highway(cfg: SynthConfig, rng: np.random.Generator) -> Scene:
 def build_scene(cfg: SynthConfig, rng: np.random.Generator) -> Scene:
     """Scene of the preset ``cfg.preset`` (random layout drawn from ``rng``)."""
     builders = {"room-loop": lambda: _build_room(cfg.room, rng),
+                "low-texture": lambda: _build_low_texture(cfg.low_texture, rng),
                 "street-loop": lambda: _build_street(cfg.street, rng),
                 "orbit": lambda: _build_orbit(cfg.orbit, rng),
                 "highway": lambda: _build_highway(cfg, rng)}
@@ -496,8 +549,8 @@ def build_trajectory(cfg: SynthConfig) -> AnalyticTrajectory:
 def _preset_trajectory(cfg: SynthConfig) -> AnalyticTrajectory:
     T = cfg.loop_duration_s()
     turn = 2 * np.pi / T  # one full turn of yaw per loop
-    if cfg.preset == "room-loop":
-        rc, w = cfg.room, _ROOM_WOBBLE
+    if cfg.preset in ("room-loop", "low-texture"):
+        rc, w = (cfg.room if cfg.preset == "room-loop" else cfg.low_texture), _ROOM_WOBBLE
         j = rc.jitter
         rx, ry = rc.path_radii
         return AnalyticTrajectory(

@@ -7,11 +7,15 @@ shading factor of the quad baked in (the light is directional and fixed in the w
 view-independent and brightness constancy holds exactly). Every quad gets its own random texture, so
 places can be recognised. Textures are stored as uint8 mip pyramids (``cv2.pyrDown``) in one flat
 atlas; :class:`TextureAtlas` holds per (quad, level) offsets, shapes and texels per metre.
+
+Low-texture styles (:data:`PLAIN_STYLES`: plain paint, floor tiles, doors) are the opposite: a
+uniform albedo with faint smooth noise, plus faint grout lines on a regular grid (tiles) or a door
+leaf with a darker frame band and a handle (doors). They are not normalised to a fixed contrast.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -27,6 +31,28 @@ _HERSHEY_HEIGHT_PX = 22.0  # height in pixels of FONT_HERSHEY_SIMPLEX capitals a
 _LINE_LENGTH_M = (0.1, 1.0)  # range of line segment lengths
 _LINE_WIDTH_M = (0.005, 0.03)  # range of line widths
 _NORMALISED_STD = 0.25  # standard deviation of a texture after normalisation (values in [0, 1])
+
+# texture styles beyond the textured ones of TextureConfig.style_mark_scale (0 wall, 1 ground, 2 object)
+STYLE_PLAIN, STYLE_TILES, STYLE_DOOR = 3, 4, 5
+PLAIN_STYLES = (STYLE_PLAIN, STYLE_TILES, STYLE_DOOR)
+
+
+@dataclass
+class PlainTextureConfig:
+    """Low-texture styles (plain paint, tiles, doors): albedos in [0, 1] before contrast and shading."""
+
+    albedo: list[float] = ranged(default_factory=lambda: [0.92, 0.8, 0.45], ge=0, le=1)  # plain, tiles, door
+    noise: float = ranged(0.01, ge=0, le=1)  # std of the faint smooth noise (fraction of the grey range)
+    noise_cell_m: float = ranged(0.3, gt=0)  # cell size of that noise (one octave: no fine detail)
+    tile_size_m: float = ranged(0.6, gt=0)  # floor tile side
+    tile_line_width_m: float = ranged(0.008, gt=0)  # grout line width
+    tile_line_depth: float = ranged(0.1, ge=0, le=1)  # grout darkening (fraction of the albedo): faint
+    door_frame_m: float = ranged(0.06, ge=0)  # width of the door's frame band along its border
+    door_frame_depth: float = ranged(0.25, ge=0, le=1)  # darkening of the frame band (fraction of the albedo)
+    handle_size_m: list[float] = ranged(default_factory=lambda: [0.12, 0.03], gt=0)  # handle (width, height)
+    handle_position_m: list[float] = ranged(default_factory=lambda: [0.12, 1.0], ge=0)  # handle centre from the
+    # door's far edge (along u) and from its bottom (along v)
+    handle_albedo: float = ranged(0.1, ge=0, le=1)
 
 
 @dataclass
@@ -49,6 +75,9 @@ class TextureConfig:
     colour_saturation: float = ranged(0.35, ge=0, le=1)  # spread of per-quad RGB tints when colour is rendered
     # multiplier of the mark counts (blobs, lines, text) per style: wall, ground, small object
     style_mark_scale: list[float] = ranged(default_factory=lambda: [1.0, 1.0, 4.0], ge=0)
+    plain: PlainTextureConfig = field(default_factory=PlainTextureConfig)  # low-texture styles
+
+
 
 
 @dataclass(frozen=True)
@@ -145,6 +174,37 @@ def make_texture(size_m: tuple[float, float], density: float, cfg: TextureConfig
     return np.clip(img, 0.0, 1.0)
 
 
+def make_plain_texture(size_m: tuple[float, float], density: float, style: int, cfg: PlainTextureConfig,
+                       rng: np.random.Generator) -> np.ndarray:
+    """Low-texture surface in [0, 1] (float32, (H, W)) of style ``style`` in :data:`PLAIN_STYLES`
+    (module docstring); rows run along the quad's v axis (t), columns along u (s)."""
+    su, sv = size_m
+    w = max(4, int(np.ceil(su * density)))
+    h = max(4, int(np.ceil(sv * density)))
+    albedo = cfg.albedo[PLAIN_STYLES.index(style)]
+    noise_cfg = TextureConfig(noise_cells_m=[cfg.noise_cell_m])
+    noise = _value_noise((h, w), 1.0 / density, noise_cfg, rng)
+    noise = (noise - noise.mean()) / max(float(noise.std()), 1e-6)
+    img = np.full((h, w), albedo, np.float32) * (1.0 + cfg.noise * noise)
+    s = (np.arange(w) + 0.5) / density  # texel centres in metres
+    t = (np.arange(h) + 0.5) / density
+    if style == STYLE_TILES:
+        def grout(x: np.ndarray) -> np.ndarray:  # coverage of a grout line at the tile borders
+            d = np.abs(x - cfg.tile_size_m * np.round(x / cfg.tile_size_m))
+            return np.clip(0.5 + (0.5 * cfg.tile_line_width_m - d) * density, 0.0, 1.0)
+
+        line = np.maximum(grout(t)[:, None], grout(s)[None, :])
+        img *= (1.0 - cfg.tile_line_depth * line).astype(np.float32)
+    elif style == STYLE_DOOR:
+        edge = np.minimum(np.minimum(s, su - s)[None, :], np.minimum(t, sv - t)[:, None])
+        img *= np.where(edge < cfg.door_frame_m, np.float32(1.0 - cfg.door_frame_depth), np.float32(1.0))
+        hw, hh = cfg.handle_size_m
+        hu, hv = su - cfg.handle_position_m[0], cfg.handle_position_m[1]
+        handle = (np.abs(s - hu) < hw / 2)[None, :] & (np.abs(t - hv) < hh / 2)[:, None]
+        img[handle] = cfg.handle_albedo
+    return np.clip(img, 0.0, 1.0)
+
+
 def build_atlas(scene: SceneArrays, cfg: TextureConfig, rng: np.random.Generator) -> TextureAtlas:
     """Generate, shade and mip-map the texture of every quad into one atlas."""
     n_q = len(scene)
@@ -162,9 +222,12 @@ def build_atlas(scene: SceneArrays, cfg: TextureConfig, rng: np.random.Generator
         su, sv = scene.sizes[q]
         density = min(scene.densities[q], cfg.max_texture_side / max(su, sv))
         style = int(scene.styles[q])
-        if not 0 <= style < len(cfg.style_mark_scale):
+        if style in PLAIN_STYLES:
+            tex = make_plain_texture((su, sv), density, style, cfg.plain, rng)
+        elif not 0 <= style < len(cfg.style_mark_scale):
             raise ConfigError(f"texture.style_mark_scale: no entry for style {style} of quad {q}")
-        tex = make_texture((su, sv), density, cfg, rng, cfg.style_mark_scale[style])
+        else:
+            tex = make_texture((su, sv), density, cfg, rng, cfg.style_mark_scale[style])
         ndotl = float(scene.normals[q] @ light)
         if scene.two_sided[q]:
             ndotl = abs(ndotl)
