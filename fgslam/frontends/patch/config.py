@@ -13,6 +13,7 @@ from typing import Literal, Optional
 
 from ...config import check_ranges, ranged
 from ...errors import ConfigError
+from ...factors.depth import DepthPriorConfig
 
 
 @dataclass
@@ -102,6 +103,11 @@ class BAConfig:
     depth_noise: Literal["relative", "inverse"] = "relative"  # RGB-D: relative: sigma_d = depth_prior_sigma * d (sigma_z grows with z); inverse: sigma_d = depth_prior_sigma in 1/m (sigma_z grows with z^2, Kinect)
     depth_virtual_baseline: float = ranged(0.08, gt=0)  # RGB-D observation model: baseline (m) of the virtual right camera (sets the pixel scale of the depth rows)
     measured_huber: bool = False  # a fresh measurement enters the next BA Huber-weighted by its distance from the reprojection it was measured from (else at full weight until that BA's residuals weigh it)
+
+    def depth_noise_model(self) -> DepthPriorConfig:
+        """RGB-D: the sensor inverse-depth noise model (``depth_prior_sigma``, ``depth_noise``) of the
+        local and the global bundle adjustment (:mod:`fgslam.factors.depth`)."""
+        return DepthPriorConfig(sigma=self.depth_prior_sigma, noise=self.depth_noise)
 
 
 @dataclass
