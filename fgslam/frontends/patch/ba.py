@@ -16,7 +16,9 @@ held by the block (frames outside the optimisation window): they enter residuals
 
 Layout: edges are stored grouped by (source frame, target frame, right) and padded to a common
 length ``L`` (``Q`` groups), so pose-pair quantities are computed once per group and ``J^T W J`` is
-one batched matrix product; padding rows have zero weight. The row order seen by the
+one batched matrix product; padding rows have zero weight. Left-image groups come first, so
+:func:`~fgslam.factors.reprojection.reproject_edges` evaluates each image side on a contiguous
+slice. Depth priors go through :func:`fgslam.factors.depth.depth_prior`. The row order seen by the
 :class:`~fgslam.factors.schur.VisualBlock` machinery is the ``Q * L`` padded edge rows followed by
 the priors. The reduction is exactly :func:`fgslam.factors.schur.schur_reduce`'s (same
 ``SchurSystem`` for back-substitution).
