@@ -122,7 +122,9 @@ class DepthPriorResult:
         return int(self.valid.numel() - int(self.valid.sum()))
 
 
-def depth_prior(inv_depth: torch.Tensor, prior_value: torch.Tensor, prior_weight: torch.Tensor | float) -> DepthPriorResult:
+def depth_prior(
+    inv_depth: torch.Tensor, prior_value: torch.Tensor, prior_weight: torch.Tensor | float
+) -> DepthPriorResult:
     """RGB-D term of DROID-SLAM section 3.4: the inverse-depth variable's distance to the sensor's.
 
     Args:
