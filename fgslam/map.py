@@ -35,6 +35,7 @@ import numpy as np
 
 from .config import ranged
 from .errors import OptimizationError
+from .factors.range import range_factor
 from .factors.schur import POSE_DIM, VisualBlock, torch_threads
 from .lie import Sim3
 
@@ -100,28 +101,8 @@ class OptimizeReport:
 
 def _range_factor(key_a: int, key_b: int, distance: float, sigma: float):
     """Factor on ``| c_b - c_a | = distance`` for camera centres ``c = s * translation()`` of two
-    Similarity3 (the world-frame origin of each camera). One Python factor per map: cheap."""
-    import gtsam
-
-    def error(this, values, jacobians):
-        T_a = values.atSimilarity3(key_a)
-        T_b = values.atSimilarity3(key_b)
-        c_a = T_a.scale() * np.asarray(T_a.translation())
-        c_b = T_b.scale() * np.asarray(T_b.translation())
-        diff = c_b - c_a
-        dist = float(np.linalg.norm(diff))
-        if jacobians is not None:
-            unit = diff / max(dist, np.finfo(float).tiny)
-            # d c / d xi = s R [0, I, 0] (right perturbation: only the u block moves the centre)
-            J_a = np.zeros((1, POSE_DIM))
-            J_b = np.zeros((1, POSE_DIM))
-            J_a[0, 3:6] = -unit @ (T_a.scale() * T_a.rotation().matrix())
-            J_b[0, 3:6] = unit @ (T_b.scale() * T_b.rotation().matrix())
-            jacobians[0] = J_a
-            jacobians[1] = J_b
-        return np.array([dist - distance])
-
-    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, sigma), [key_a, key_b], error)
+    Similarity3 (:func:`fgslam.factors.range.range_factor`)."""
+    return range_factor(key_a, key_b, distance, sigma)
 
 
 class SlamMap:

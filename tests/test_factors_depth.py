@@ -1,6 +1,5 @@
-"""RGB-D inverse-depth prior and calibrated stereo term."""
-
-import math
+"""RGB-D inverse-depth prior (noise models, selection, residual and Jacobian, and its use by the
+patch frontend's local and global BA) and calibrated stereo term."""
 
 import gtsam
 import numpy as np
@@ -8,7 +7,8 @@ import pytest
 import torch
 
 from fgslam.camera import PinholeCamera, StereoRig
-from fgslam.factors.depth import DepthPriorConfig, depth_prior, reproject_stereo
+from fgslam.errors import ConfigError
+from fgslam.factors.depth import DepthPriorConfig, depth_prior, depth_priors, inv_depth_sigma, reproject_stereo
 from fgslam.factors.reprojection import ReprojectionConfig
 
 F64 = torch.float64
@@ -46,31 +46,109 @@ def make_rig(rng) -> StereoRig:
 
 
 # ---------------------------------------------------------------- depth prior
+def test_noise_models():
+    sens = np.array([0.1, 0.5, 2.0])
+    rel = inv_depth_sigma(sens, DepthPriorConfig(sigma=0.01, noise="relative"))
+    inv = inv_depth_sigma(sens, DepthPriorConfig(sigma=0.005, noise="inverse"))
+    np.testing.assert_array_equal(rel, 0.01 * sens)  # sigma_z = 1 % of z: sigma_d = 1 % of d
+    np.testing.assert_array_equal(inv, np.full(3, 0.005))  # constant in 1/m: sigma_z = 0.005 z^2
+    # torch in, torch out (same numbers)
+    rel_t = inv_depth_sigma(torch.from_numpy(sens), DepthPriorConfig(sigma=0.01, noise="relative"))
+    inv_t = inv_depth_sigma(torch.from_numpy(sens), DepthPriorConfig(sigma=0.005, noise="inverse"))
+    assert isinstance(rel_t, torch.Tensor) and isinstance(inv_t, torch.Tensor)
+    np.testing.assert_array_equal(rel_t.numpy(), rel)
+    np.testing.assert_array_equal(inv_t.numpy(), inv)
+    with pytest.raises(ConfigError, match="relative\\|inverse"):
+        inv_depth_sigma(sens, DepthPriorConfig(noise="quadratic"))
+
+
+@pytest.mark.parametrize("noise,sigma", [("relative", 0.01), ("inverse", 0.005)])
+def test_depth_priors_select_readings_and_weight_them_by_the_noise_model(noise, sigma):
+    sens = np.array([0.5, np.nan, 0.25, 0.0, np.inf, -1.0, 2.0])
+    pri = depth_priors(sens, DepthPriorConfig(sigma=sigma, noise=noise))
+    assert pri.idx.tolist() == [0, 2, 6]
+    np.testing.assert_array_equal(pri.value, sens[[0, 2, 6]])
+    expected_sigma = sigma * sens[[0, 2, 6]] if noise == "relative" else np.full(3, sigma)
+    np.testing.assert_allclose(pri.weight, 1.0 / expected_sigma ** 2, rtol=1e-15)
+    kw = pri.kwargs()
+    assert set(kw) == {"prior_idx", "prior_value", "prior_weight"} and kw["prior_weight"] is pri.weight
+
+
 def test_depth_prior_residual_weights_and_invalid_readings():
-    d = torch.tensor([0.5, 0.2, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, float("nan")], dtype=F64)
-    z = torch.tensor([2.0, 4.0, 0.0, float("nan"), float("inf"), -1.0, 0.05, 20.0, 1.0], dtype=torch.float32)
-    cfg = DepthPriorConfig(weight=0.3, min_depth=0.1, max_depth=10.0)
-    res = depth_prior(d, z, cfg)
-    assert res.valid.tolist() == [True, True] + [False] * 7
-    assert res.n_invalid == 7
+    d = torch.tensor([0.5, 0.2, 1.0, 1.0, 1.0, 1.0, float("nan")], dtype=F64)
+    sens = torch.tensor([0.5, 0.25, 0.0, float("nan"), float("inf"), -1.0, 1.0], dtype=torch.float32)
+    w = torch.tensor([3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0], dtype=F64)
+    res = depth_prior(d, sens, w)
+    assert res.valid.tolist() == [True, True] + [False] * 5
+    assert res.n_invalid == 5
     torch.testing.assert_close(res.residual[:2], torch.tensor([0.5 - 0.5, 0.2 - 0.25], dtype=F64))
-    assert res.weight.tolist() == [0.3, 0.3] + [0.0] * 7
-    assert res.J_d.tolist() == [1.0, 1.0] + [0.0] * 7
+    assert res.weight.tolist() == [3.0, 4.0] + [0.0] * 5
+    assert res.J_d.tolist() == [1.0, 1.0] + [0.0] * 5
     for x in (res.residual, res.weight, res.J_d):
         assert torch.isfinite(x).all() and x.dtype == F64
-    # no far limit by default
-    assert depth_prior(d[:1], torch.tensor([1e4]), DepthPriorConfig()).valid.all()
-    assert math.isinf(DepthPriorConfig().max_depth)
+    # a scalar weight broadcasts
+    assert depth_prior(d, sens, 2.0).weight.tolist() == [2.0, 2.0] + [0.0] * 5
 
 
 def test_depth_prior_jacobian_is_derivative_of_residual():
     rng = np.random.default_rng(0)
     d = torch.from_numpy(rng.uniform(0.01, 5.0, 100))
-    z = torch.from_numpy(rng.uniform(0.2, 8.0, 100))
-    res = depth_prior(d, z)
+    sens = torch.from_numpy(1.0 / rng.uniform(0.2, 8.0, 100))
+    res = depth_prior(d, sens, 1.0)
     h = 1e-6
-    fd = (depth_prior(d + h, z).residual - depth_prior(d - h, z).residual) / (2 * h)
+    fd = (depth_prior(d + h, sens, 1.0).residual - depth_prior(d - h, sens, 1.0).residual) / (2 * h)
     torch.testing.assert_close(res.J_d, fd, rtol=1e-7, atol=1e-7)
+
+
+def _prior_cost(d, pri):
+    r = depth_prior(torch.from_numpy(d[pri.idx]), torch.from_numpy(pri.value), torch.from_numpy(pri.weight))
+    return 0.5 * float((r.weight * r.residual ** 2).sum())
+
+
+@pytest.mark.parametrize("noise,sigma", [("relative", 0.01), ("inverse", 0.005)])
+def test_local_and_global_ba_carry_the_same_prior_cost_and_information(noise, sigma):
+    """The local BA's block (PatchBlock) and the global BA's problem evaluate the priors through
+    depth_prior: with no edge weight, their cost is the priors' cost, and the structure's
+    information is the prior weight (the global BA's depth step solves the prior exactly)."""
+    rng = np.random.default_rng(5)
+    P = 12
+    d = rng.uniform(0.2, 1.0, P)
+    sens = d * np.exp(rng.normal(0.0, 0.05, P))
+    sens[[2, 7]] = np.nan
+    pri = depth_priors(sens, DepthPriorConfig(sigma=sigma, noise=noise))
+    expected = _prior_cost(d, pri)
+    assert expected > 0
+
+    # local: two frames, one zero-weight edge per patch
+    import gtsam
+
+    from fgslam.frontends.patch.ba import PatchBlock
+    from fgslam.frontends.patch.config import GlobalBAConfig
+    from fgslam.frontends.patch.global_ba import GlobalBAProblem, global_bundle_adjustment
+    from fgslam.map import pose_key
+
+    K = np.array([200.0, 200.0, 160.0, 120.0])
+    uv = rng.uniform([40, 30], [280, 210], (P, 2))
+    T = np.stack([np.eye(4), np.eye(4)])
+    T[1, 0, 3] = 0.1
+    block = PatchBlock([pose_key(0), pose_key(1)], torch.zeros(0, 3, 3), torch.zeros(0, 3), torch.zeros(0),
+                       np.zeros(P, np.int64), np.ones(P, np.int64), np.zeros(P, bool), uv, uv, np.zeros(P),
+                       np.arange(P), torch.as_tensor(K), d, **pri.kwargs())
+    values = gtsam.Values()
+    for i in range(2):
+        values.insert(pose_key(i), gtsam.Similarity3(gtsam.Rot3(), T[i, :3, 3], 1.0))
+    assert block.cost(values) == pytest.approx(expected, rel=1e-12)
+
+    # global: the same patches, one pose free; zero edge weights leave the priors alone
+    prob = GlobalBAProblem(T_WC=T, fixed=np.array([True, False]), src=np.zeros(P, np.int64), tgt=np.ones(P, np.int64),
+                           right=np.zeros(P, bool), uv_src=uv, uv=uv, weight=np.zeros(P), struct_idx=np.arange(P),
+                           inv_depth=d, K=K, **pri.kwargs())
+    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=1, robust_rounds=1))
+    assert res.initial_cost == pytest.approx(expected, rel=1e-12)
+    # one Gauss-Newton step on the prior rows lands the depths on the readings (no reading: unchanged)
+    target = d.copy()
+    target[pri.idx] = pri.value
+    np.testing.assert_allclose(res.inv_depth, target, rtol=1e-9)
 
 
 # ---------------------------------------------------------------- stereo
@@ -220,6 +298,8 @@ def test_stereo_scale_means_world_units_per_metre(s):
 def test_configs_load_from_overrides():
     from fgslam.config import load_config
 
-    cfg = load_config(DepthPriorConfig, None, ["weight=0.2", "max_depth=.inf", "min_depth=0.3"])
-    assert (cfg.weight, cfg.min_depth) == (0.2, 0.3) and math.isinf(cfg.max_depth)
+    cfg = load_config(DepthPriorConfig, None, ["sigma=0.2", "noise=inverse"])
+    assert (cfg.sigma, cfg.noise) == (0.2, "inverse")
+    with pytest.raises(ConfigError, match="sigma"):
+        load_config(DepthPriorConfig, None, ["sigma=0"])
     assert load_config(ReprojectionConfig, None, ["min_depth=0.05"]).min_depth == 0.05

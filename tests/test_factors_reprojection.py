@@ -10,6 +10,7 @@ from fgslam.factors.reprojection import (
     ReprojectionConfig,
     flatten_patches,
     reproject,
+    reproject_edges,
     reproject_inv_depth,
 )
 from fgslam.lie import SE3, Sim3
@@ -342,3 +343,97 @@ def test_patch_rows_share_one_depth():
     torch.testing.assert_close(g, g_fd, rtol=1e-6, atol=1e-6)
     with pytest.raises(DataError):
         flatten_patches(uv_patches, d_patch[:-1])
+
+
+# ---------------------------------------------------------------- left / right split
+K_RIGHT = torch.tensor([415.0, 405.0, 322.0, 236.0], dtype=F64)
+
+
+def _rig_extrinsic() -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = gtsam.Rot3.Expmap(np.array([0.01, -0.02, 0.005])).matrix()
+    T[:3, 3] = [-0.11, 0.003, 0.002]  # T_CRCL: the right camera 11 cm to the right of the left
+    return T
+
+
+def _edges(rng, n):
+    Mi = random_sim3(rng, n)
+    Mj = Mi @ random_sim3(rng, n, rot=0.05, trans=0.1, log_s=0.1)
+    uv = torch.from_numpy(rng.uniform(50, 550, (n, 2)))
+    d = torch.from_numpy(rng.uniform(0.1, 1.0, n))
+    return Mi, Mj, uv, d, uv + torch.from_numpy(rng.normal(size=(n, 2)))
+
+
+@pytest.mark.parametrize("layout", ["mixed", "sorted", "left", "right"])
+def test_reproject_edges_splits_left_and_right_like_separate_calls(layout):
+    rng = np.random.default_rng(11)
+    n = 60
+    Mi, Mj, uv, d, target = _edges(rng, n)
+    right = {"mixed": rng.random(n) < 0.4, "sorted": np.arange(n) >= 35, "left": np.zeros(n, bool),
+             "right": np.ones(n, bool)}[layout]
+    right_t = torch.from_numpy(right)
+    T_CRCL = _rig_extrinsic()
+    Ti, Tj = to_parts(Mi), to_parts(Mj)
+    res = reproject_edges(uv, d, Ti, Tj, K_REF, target, right=right_t, K_right=K_RIGHT, T_CRCL=T_CRCL, config=CONFIG)
+    uv_pred, valid = reproject_edges(uv, d, Ti, Tj, K_REF, right=right_t, K_right=K_RIGHT, T_CRCL=T_CRCL, config=CONFIG)
+    assert res.valid.sum() > 50
+    for mask, K_t, T_ext in ((~right, K_REF, None), (right, K_RIGHT, T_CRCL)):
+        if not mask.any():
+            continue
+        m = torch.from_numpy(mask)
+        parts_i, parts_j = tuple(x[m] for x in Ti), tuple(x[m] for x in Tj)
+        ref = reproject_inv_depth(uv[m], d[m], parts_i, parts_j, K_REF, target[m], K_t, T_CtCj=T_ext, config=CONFIG)
+        for name in ("residual", "J_Ti", "J_Tj", "J_d", "valid"):
+            assert torch.equal(getattr(res, name)[m], getattr(ref, name)), name
+        ref_uv, ref_valid = reproject(uv[m], d[m], parts_i, parts_j, K_REF, K_t, T_CtCj=T_ext, config=CONFIG)
+        assert torch.equal(uv_pred[m], ref_uv) and torch.equal(valid[m], ref_valid)
+    # no split at all: the plain left-image functions
+    if layout == "left":
+        assert torch.equal(reproject_edges(uv, d, Ti, Tj, K_REF, target, config=CONFIG).residual, res.residual)
+    # right edges observe the metric baseline: a different prediction than the left image's
+    if right.any():
+        left_pred, _ = reproject(uv, d, Ti, Tj, K_REF, config=CONFIG)
+        assert (uv_pred[right_t] - left_pred[right_t]).abs().max() > 1.0
+
+
+def test_reproject_edges_jacobians_match_finite_differences_on_a_mixed_batch():
+    rng = np.random.default_rng(12)
+    n = 40
+    Mi, Mj, uv, d, target = _edges(rng, n)
+    right = torch.from_numpy(rng.random(n) < 0.5)
+    sides = dict(right=right, K_right=K_RIGHT, T_CRCL=_rig_extrinsic(), config=CONFIG)
+
+    def fn(Mi_, Mj_, d_):
+        return reproject_edges(uv, d_, to_parts(Mi_), to_parts(Mj_), K_REF, target, **sides)
+
+    res = fn(Mi, Mj, d)
+    ok = res.valid.clone()
+    eps = 1e-6
+    J_Ti, J_Tj = np.zeros((n, 2, 7)), np.zeros((n, 2, 7))
+    for k in range(7):
+        e = np.zeros(7)
+        e[k] = eps
+        Ep, Em = sim3_exp_gtsam(e), sim3_exp_gtsam(-e)
+        for J, plus, minus in ((J_Ti, (Mi @ Ep, Mj), (Mi @ Em, Mj)), (J_Tj, (Mi, Mj @ Ep), (Mi, Mj @ Em))):
+            rp, rm = fn(*plus, d), fn(*minus, d)
+            ok &= rp.valid & rm.valid
+            J[:, :, k] = ((rp.residual - rm.residual) / (2 * eps)).numpy()
+    rp, rm = fn(Mi, Mj, d + eps), fn(Mi, Mj, d - eps)
+    ok &= rp.valid & rm.valid
+    J_d = ((rp.residual - rm.residual) / (2 * eps)).numpy()
+    ok = ok.numpy()
+    assert ok.sum() > 30 and ok[right.numpy()].sum() > 10
+    kinds = np.where(right.numpy(), "right", "left")
+    assert_jacobian_close(res.J_Ti.numpy()[ok], J_Ti[ok], kinds[ok], "J_Ti")
+    assert_jacobian_close(res.J_Tj.numpy()[ok], J_Tj[ok], kinds[ok], "J_Tj")
+    assert_jacobian_close(res.J_d.numpy()[ok], J_d[ok], kinds[ok], "J_d")
+
+
+def test_reproject_edges_needs_the_right_camera_for_right_edges():
+    rng = np.random.default_rng(13)
+    Mi, Mj, uv, d, target = _edges(rng, 4)
+    right = torch.tensor([False, True, False, False])
+    with pytest.raises(DataError, match="K_right and T_CRCL"):
+        reproject_edges(uv, d, to_parts(Mi), to_parts(Mj), K_REF, target, right=right)
+    # all-left batches need neither
+    reproject_edges(uv, d, to_parts(Mi), to_parts(Mj), K_REF, target, right=torch.zeros(4, dtype=torch.bool))

@@ -26,10 +26,14 @@ def room(tmp_path_factory):
     return render_room(tmp_path_factory, "room", [f"frames={FRAMES}", "camera.width=320", "camera.height=240"])
 
 
-def _run(root, config):
+def _open(root):
     from fgslam.io.datasets import DatasetConfig, open_dataset
 
-    ds = open_dataset(root, config=DatasetConfig(load_right=False, load_depth=True, load_imu=False))
+    return open_dataset(root, config=DatasetConfig(load_right=False, load_depth=True, load_imu=False))
+
+
+def _run(root, config):
+    ds = _open(root)
     fe = PatchFrontend(config, sensor_mode="rgbd")
     for frame in ds:
         fe.process(frame)
@@ -151,3 +155,32 @@ def test_depth_model_names_are_checked(field, value):
     with pytest.raises(ConfigError, match=f"patch.ba.depth_model must be prior\\|observation"):
         PatchFrontend(cfg, sensor_mode="rgbd")
 
+
+
+@pytest.mark.parametrize("noise,sigma", [("relative", 0.01), ("inverse", 0.005)])
+def test_global_ba_depth_priors_follow_the_noise_model(room, noise, sigma, monkeypatch):
+    """The global BA weights its depth priors by ``ba.depth_noise`` like the local BA (it used the
+    relative model whatever the setting: with ``inverse``, weights off by z^2, 25x too strong at 5 m)."""
+    import fgslam.frontends.patch.loops as loops
+
+    cfg = light_patch_config()
+    cfg.ba.depth_noise = noise
+    cfg.ba.depth_prior_sigma = sigma
+    fe = PatchFrontend(cfg, sensor_mode="rgbd")
+    for i, frame in enumerate(_open(room)):
+        fe.process(frame)
+        if i >= 12:
+            break
+    problems = []
+
+    def capture(problem, *args, **kwargs):
+        problems.append(problem)
+        raise RuntimeError("captured")
+
+    monkeypatch.setattr(loops, "global_bundle_adjustment", capture)
+    with pytest.raises(RuntimeError, match="captured"):
+        fe._global_ba()
+    prob = problems[0]
+    assert len(prob.prior_idx) >= 20
+    sigma_d = sigma * prob.prior_value if noise == "relative" else np.full(len(prob.prior_value), sigma)
+    np.testing.assert_allclose(prob.prior_weight, 1.0 / sigma_d ** 2, rtol=1e-12)

@@ -104,8 +104,9 @@ def factor_kernels(n: int, repeat: int) -> dict:
         out["sim3_between_ns"] = f"unavailable: {exc}"
     try:
         depth = importlib.import_module("fgslam.factors.depth")
-        z = 1.0 / d
-        out["depth_prior_ns"] = best_time(lambda: depth.depth_prior(d, z), repeat) / n * 1e9
+        sensor = 1.01 * d  # sensor inverse depths 1 % off
+        weight = torch.ones_like(d)
+        out["depth_prior_ns"] = best_time(lambda: depth.depth_prior(d, sensor, weight), repeat) / n * 1e9
     except (ImportError, AttributeError) as exc:
         out["depth_prior_ns"] = f"unavailable: {exc}"
     try:

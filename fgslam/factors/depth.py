@@ -9,49 +9,106 @@ free ``s`` the stereo term still is consistent: its Jacobian w.r.t. the target k
 ``lambda`` is non-zero (a metric baseline observes scale), and intra-keyframe stereo
 (left and right image of the same keyframe) depends on ``d`` only.
 
+RGB-D prior: the one implementation of the sensor noise model (:func:`inv_depth_sigma`, relative
+or inverse), of the priors' selection and weights (:func:`depth_priors`) and of their residual and
+Jacobian (:func:`depth_prior`); the patch frontend's local (``frontends/patch/ba.py``) and global
+(``frontends/patch/global_ba.py``) bundle adjustments both use it.
+
 Tangent conventions as in ``fgslam.factors.reprojection``: right perturbation, gtsam Similarity3
 order ``[w, u, lambda]``.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
+import numpy as np
 import torch
 
 from ..camera import StereoRig
 from ..config import ranged
+from ..errors import ConfigError
 from .reprojection import ReprojectionConfig, ReprojectionResult, reproject_inv_depth
 
 __all__ = [
     "DepthPriorConfig",
     "DepthPriorResult",
+    "DepthPriors",
     "depth_prior",
+    "depth_priors",
+    "inv_depth_sigma",
     "reproject_stereo",
 ]
 
 
 @dataclass
 class DepthPriorConfig:
-    """Tunables of the RGB-D inverse-depth prior (DROID-SLAM section 3.4)."""
+    """Noise model of sensor inverse depths (the RGB-D prior of DROID-SLAM section 3.4, and the
+    depth rows of the patch frontend's observation model). The patch frontend fills it from
+    ``patch.ba.depth_prior_sigma`` and ``patch.ba.depth_noise``."""
 
-    weight: float = ranged(0.05, ge=0)  # weight of (d - 1/z_sensor)^2 relative to a unit-weight pixel residual
-    min_depth: float = ranged(0.1, ge=0)  # sensor depths (metres) at or below this are invalid (0 = "no reading")
-    max_depth: float = ranged(math.inf, gt=0)  # sensor depths above this (metres) are invalid (beyond sensor range)
+    sigma: float = ranged(0.05, gt=0)  # relative (noise: relative) or in 1/m of inverse depth (noise: inverse)
+    noise: Literal["relative", "inverse"] = "relative"  # relative: sigma_d = sigma * d_sensor (sigma_z grows with z); inverse: sigma_d = sigma (sigma_z grows with z^2, Kinect)
+
+
+def inv_depth_sigma(sensor_inv_depth, config: DepthPriorConfig):
+    """Standard deviation (1/m) of sensor inverse depths ``sensor_inv_depth`` (numpy array or torch
+    tensor, any shape; same type back) under ``config.noise``."""
+    if config.noise == "inverse":
+        if isinstance(sensor_inv_depth, torch.Tensor):
+            return torch.full_like(sensor_inv_depth, config.sigma)
+        return np.full(np.shape(sensor_inv_depth), config.sigma)
+    if config.noise == "relative":
+        if isinstance(sensor_inv_depth, torch.Tensor):
+            return config.sigma * sensor_inv_depth
+        return config.sigma * np.asarray(sensor_inv_depth)
+    raise ConfigError(f"depth noise model must be relative|inverse, got {config.noise!r}")
+
+
+@dataclass
+class DepthPriors:
+    """Inverse-depth priors ``d[idx] ~ value`` of ``M`` patches with weights ``1 / sigma_d^2``.
+
+    Attributes:
+        idx: ``(M,)`` int64 patch (structure) index of each prior.
+        value: ``(M,)`` sensor inverse depth (1/m), finite and positive.
+        weight: ``(M,)`` ``1 / inv_depth_sigma(value)^2``.
+    """
+
+    idx: np.ndarray
+    value: np.ndarray
+    weight: np.ndarray
+
+    def kwargs(self) -> dict:
+        """``prior_idx``, ``prior_value``, ``prior_weight`` (the keyword arguments of the patch
+        frontend's local and global bundle adjustments)."""
+        return dict(prior_idx=self.idx, prior_value=self.value, prior_weight=self.weight)
+
+
+def depth_priors(sensor_inv_depth: np.ndarray, config: DepthPriorConfig) -> DepthPriors:
+    """The priors of the patches with a sensor reading.
+
+    Args:
+        sensor_inv_depth: ``(P,)`` sensor inverse depth of each patch (NaN, inf or ``<= 0``: none).
+        config: noise model.
+    """
+    sens = np.asarray(sensor_inv_depth, dtype=np.float64)
+    has = np.isfinite(sens) & (sens > 0)
+    value = sens[has]
+    return DepthPriors(idx=np.nonzero(has)[0], value=value, weight=1.0 / inv_depth_sigma(value, config) ** 2)
 
 
 @dataclass
 class DepthPriorResult:
-    """Inverse-depth prior for ``N`` (any batch shape ``...``) pixels.
+    """Inverse-depth prior for ``N`` (any batch shape ``...``) patches.
 
     Attributes:
-        residual: ``(...)`` ``d - 1 / z_sensor``; zero where invalid.
-        weight: ``(...)`` ``config.weight`` where the sensor reading is valid, else 0.
+        residual: ``(...)`` ``d - d_sensor``; zero where invalid.
+        weight: ``(...)`` the prior's weight where valid, else 0.
         J_d: ``(...)`` d(residual)/dd: 1 where valid, else 0.
         valid: ``(...)`` bool.
-    The cost of a row is ``weight * residual^2``.
+    The cost of a row is ``0.5 * weight * residual^2``.
     """
 
     residual: torch.Tensor
@@ -66,28 +123,27 @@ class DepthPriorResult:
 
 
 def depth_prior(
-    inv_depth: torch.Tensor, sensor_depth: torch.Tensor, config: DepthPriorConfig | None = None
+    inv_depth: torch.Tensor, prior_value: torch.Tensor, prior_weight: torch.Tensor | float
 ) -> DepthPriorResult:
-    """RGB-D term of DROID-SLAM section 3.4: penalise the inverse-depth variable's distance to the sensor.
+    """RGB-D term of DROID-SLAM section 3.4: the inverse-depth variable's distance to the sensor's.
 
     Args:
-        inv_depth: ``(...)`` inverse-depth variables ``d`` of a keyframe's pixels (metric, 1/m).
-        sensor_depth: ``(...)`` sensor z-depth in metres at the same pixels (0, NaN, inf, negative or
-            outside ``[min_depth, max_depth]``: no reading).
-        config: weight and valid sensor range.
+        inv_depth: ``(...)`` inverse-depth variables ``d`` of a keyframe's patches (metric, 1/m).
+        prior_value: ``(...)`` sensor inverse depths at the same patches (NaN, inf or ``<= 0``: no
+            reading, the row is invalid).
+        prior_weight: ``(...)`` or scalar weight, ``1 / sigma_d^2`` (:func:`depth_priors`).
 
     Returns:
-        :class:`DepthPriorResult` with residual ``d - 1 / z_sensor``.
+        :class:`DepthPriorResult` with residual ``d - prior_value``.
     """
-    config = config or DepthPriorConfig()
-    z = sensor_depth.to(inv_depth.dtype)
-    valid = torch.isfinite(z) & (z > config.min_depth) & (z <= config.max_depth) & torch.isfinite(inv_depth)
+    value = torch.as_tensor(prior_value, dtype=inv_depth.dtype, device=inv_depth.device)
+    valid = torch.isfinite(value) & (value > 0) & torch.isfinite(inv_depth)
     one = torch.ones((), dtype=inv_depth.dtype, device=inv_depth.device)
     zero = torch.zeros((), dtype=inv_depth.dtype, device=inv_depth.device)
-    inv_z = 1.0 / torch.where(valid, z, one)
-    residual = torch.where(valid, inv_depth - inv_z, zero)
-    weight = torch.where(valid, config.weight * one, zero)
-    return DepthPriorResult(residual=residual, weight=weight, J_d=torch.where(valid, one, zero), valid=valid)
+    weight = torch.as_tensor(prior_weight, dtype=inv_depth.dtype, device=inv_depth.device)
+    residual = torch.where(valid, inv_depth - value, zero)
+    return DepthPriorResult(residual=residual, weight=torch.where(valid, weight, zero),
+                            J_d=torch.where(valid, one, zero), valid=valid)
 
 
 def reproject_stereo(

@@ -61,6 +61,7 @@ __all__ = [
     "flatten_patches",
     "pose_components",
     "reproject",
+    "reproject_edges",
     "reproject_inv_depth",
 ]
 
@@ -293,6 +294,82 @@ def reproject_inv_depth(
     J_Ti, J_Tj, J_d = jac
     residual = _zero(uv - uv_target, valid, 1)
     return ReprojectionResult(residual=residual, J_Ti=J_Ti, J_Tj=J_Tj, J_d=J_d, valid=valid)
+
+
+def reproject_edges(
+    uv_i: torch.Tensor,
+    inv_depth: torch.Tensor,
+    T_WCi: Any,
+    T_WCj: Any,
+    K: torch.Tensor,
+    uv_target: torch.Tensor | None = None,
+    *,
+    right: torch.Tensor | None = None,
+    K_right: torch.Tensor | None = None,
+    T_CRCL: Any = None,
+    config: ReprojectionConfig | None = None,
+) -> ReprojectionResult | tuple[torch.Tensor, torch.Tensor]:
+    """Edges into the left image of keyframe ``j`` or, where ``right``, into its right image: the
+    one place that splits a batch of edges by image side.
+
+    A left edge is observed with the left intrinsics ``K``; a right edge with ``K_right`` through
+    the rig's fixed metric left-to-right extrinsic ``T_CRCL`` (:func:`reproject_inv_depth`'s
+    ``T_CtCj``). The source pixels are always in the left image (intrinsics ``K``).
+
+    Args:
+        uv_i, inv_depth, T_WCi, T_WCj: as :func:`reproject`, every one with the same leading batch
+            dimension ``B`` (poses as ``(R, t, s)`` tuples or Sim3/SE3-like objects; trailing batch
+            dimensions broadcast as usual).
+        K: ``(4,)`` left intrinsics, shared by all edges.
+        uv_target: ``(B, ..., 2)`` observed pixels; None: predictions only, no Jacobians.
+        right: ``(B,)`` bool, the edge's target is the right image (None: all left).
+        K_right: ``(4,)`` right intrinsics; ``T_CRCL`` ``(4, 4)`` left-to-right extrinsic (needed
+            when any edge is a right edge).
+        config: validity threshold.
+
+    Returns:
+        with ``uv_target``: :class:`ReprojectionResult` (as :func:`reproject_inv_depth`); without:
+        ``(uv_j, valid)`` (as :func:`reproject`). Rows keep the input order; a batch with one
+        image side only (or sorted left edges first) is evaluated without gathers.
+    """
+    B = int(uv_i.shape[0])
+    right = None if right is None else torch.as_tensor(right, dtype=torch.bool, device=uv_i.device)
+    n_right = 0 if right is None else int(right.sum())
+    if n_right and (K_right is None or T_CRCL is None):
+        raise DataError("reproject_edges: right-image edges need K_right and T_CRCL")
+
+    def side(sel, K_t: torch.Tensor, T_ext: Any) -> tuple:
+        Ti = tuple(x[sel] for x in pose_components(T_WCi))
+        Tj = tuple(x[sel] for x in pose_components(T_WCj))
+        if uv_target is None:
+            return reproject(uv_i[sel], inv_depth[sel], Ti, Tj, K, K_t, T_CtCj=T_ext, config=config)
+        res = reproject_inv_depth(uv_i[sel], inv_depth[sel], Ti, Tj, K, uv_target[sel], K_t, T_CtCj=T_ext,
+                                  config=config)
+        return res.residual, res.J_Ti, res.J_Tj, res.J_d, res.valid
+
+    def packed(parts: tuple):
+        if uv_target is None:
+            return parts
+        return ReprojectionResult(*parts)
+
+    everything = slice(None)
+    if n_right == 0:
+        return packed(side(everything, K, None))
+    if n_right == B:
+        return packed(side(everything, K_right, T_CRCL))
+    n_left = B - n_right
+    if not bool(right[:n_left].any()):  # left edges first: contiguous slices, joined
+        left_parts = side(slice(0, n_left), K, None)
+        right_parts = side(slice(n_left, B), K_right, T_CRCL)
+        return packed(tuple(torch.cat([a, b]) for a, b in zip(left_parts, right_parts)))
+    out = None
+    for mask, K_t, T_ext in ((~right, K, None), (right, K_right, T_CRCL)):
+        parts = side(mask, K_t, T_ext)
+        if out is None:
+            out = [torch.zeros((B,) + tuple(p.shape[1:]), dtype=p.dtype, device=p.device) for p in parts]
+        for full, p in zip(out, parts):
+            full[mask] = p
+    return packed(tuple(out))
 
 
 def flatten_patches(uv_patches: torch.Tensor, inv_depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -16,7 +16,9 @@ held by the block (frames outside the optimisation window): they enter residuals
 
 Layout: edges are stored grouped by (source frame, target frame, right) and padded to a common
 length ``L`` (``Q`` groups), so pose-pair quantities are computed once per group and ``J^T W J`` is
-one batched matrix product; padding rows have zero weight. The row order seen by the
+one batched matrix product; padding rows have zero weight. Left-image groups come first, so
+:func:`~fgslam.factors.reprojection.reproject_edges` evaluates each image side on a contiguous
+slice. Depth priors go through :func:`fgslam.factors.depth.depth_prior`. The row order seen by the
 :class:`~fgslam.factors.schur.VisualBlock` machinery is the ``Q * L`` padded edge rows followed by
 the priors. The reduction is exactly :func:`fgslam.factors.schur.schur_reduce`'s (same
 ``SchurSystem`` for back-substitution).
@@ -28,7 +30,8 @@ import numpy as np
 import torch
 
 from ...errors import OptimizationError
-from ...factors.reprojection import ReprojectionConfig, reproject, reproject_inv_depth
+from ...factors.depth import depth_prior
+from ...factors.reprojection import ReprojectionConfig, reproject_edges
 from ...factors.schur import (
     POSE_DIM,
     BlockConfig,
@@ -39,15 +42,6 @@ from ...factors.schur import (
     torch_threads,
 )
 from ...lie import Sim3
-
-
-def _join(parts: list, empty_shape: tuple, dtype) -> torch.Tensor:
-    """Concatenate along dim 0 without a copy when there is a single part."""
-    if len(parts) == 1:
-        return parts[0]
-    if not parts:
-        return torch.zeros(empty_shape, dtype=dtype)
-    return torch.cat(parts)
 
 
 class PatchBlock(VisualBlock):
@@ -121,7 +115,6 @@ class PatchBlock(VisualBlock):
         edge_idx[group, rank] = torch.as_tensor(np.asarray(struct_idx)).long()[order]
         self._row_of_edge = torch.empty(n, dtype=torch.long)  # caller's edge n -> padded row
         self._row_of_edge[order] = group * L + rank
-        self.num_left_groups = int((~self.g_right).sum())  # groups are sorted: left ones first
 
         # --- priors
         if prior_idx is None:
@@ -200,41 +193,34 @@ class PatchBlock(VisualBlock):
         q, L = self.num_groups, self.length
         m = int(self.prior_value.shape[0])
         d_edge = structure[self.struct_idx[: q * L]].reshape(q, L)
-        parts = []
-        ql = self.num_left_groups
-        for lo, hi, K_t, T_ext in ((0, ql, self.K, None), (ql, q, self.K_right, self.T_CRCL)):
-            if hi <= lo:
-                continue
-            si, ti = self.g_src[lo:hi], self.g_tgt[lo:hi]
-            T_i = (R[si][:, None], t[si][:, None], s[si][:, None])
-            T_j = (R[ti][:, None], t[ti][:, None], s[ti][:, None])
-            if jacobians:
-                res = reproject_inv_depth(self.uv_src[lo:hi], d_edge[lo:hi], T_i, T_j, self.K, self.uv_tgt[lo:hi],
-                                          K_t, T_CtCj=T_ext, config=self.reprojection)
-                parts.append((res.residual, res.valid, res.J_d, res.J_Ti, res.J_Tj))
-            else:
-                uv, ok = reproject(self.uv_src[lo:hi], d_edge[lo:hi], T_i, T_j, self.K, K_t, T_CtCj=T_ext,
-                                   config=self.reprojection)
-                parts.append((torch.where(ok[..., None], uv - self.uv_tgt[lo:hi], torch.zeros((), dtype=f64)), ok))
-        r_e = _join([p[0] for p in parts], (0, L, 2), f64).reshape(-1, 2)
-        valid_e = _join([p[1] for p in parts], (0, L), torch.bool).reshape(-1)
+        si, ti = self.g_src, self.g_tgt
+        T_i = (R[si][:, None], t[si][:, None], s[si][:, None])
+        T_j = (R[ti][:, None], t[ti][:, None], s[ti][:, None])
+        sides = dict(right=self.g_right, K_right=self.K_right, T_CRCL=self.T_CRCL, config=self.reprojection)
+        if jacobians:
+            res = reproject_edges(self.uv_src, d_edge, T_i, T_j, self.K, self.uv_tgt, **sides)
+            r_e, valid_e = res.residual.reshape(-1, 2), res.valid.reshape(-1)
+        else:
+            uv, ok = reproject_edges(self.uv_src, d_edge, T_i, T_j, self.K, **sides)
+            r_e = torch.where(ok[..., None], uv - self.uv_tgt, torch.zeros((), dtype=f64)).reshape(-1, 2)
+            valid_e = ok.reshape(-1)
+        # depth priors: first row d - d_sensor (weighted at construction), second row unused
+        prior = depth_prior(structure[self.struct_idx[q * L:]], self.prior_value, self.weights[q * L:, 0])
         r_p = torch.zeros(m, 2, dtype=f64)
-        if m:
-            r_p[:, 0] = structure[self.struct_idx[q * L:]] - self.prior_value
+        r_p[:, 0] = prior.residual
         r = torch.cat([r_e, r_p])
-        valid = torch.cat([valid_e, torch.ones(m, dtype=torch.bool)])
+        valid = torch.cat([valid_e, prior.valid])
         self.num_invalid = int((~valid_e & (self.weights[: q * L, 0] > 0)).sum())
         self._valid = valid
         weights = torch.where(valid[:, None], self.weights, torch.zeros((), dtype=f64))
         if not jacobians:
             return BlockResiduals(r=r, weights=weights, num_invalid=self.num_invalid)
         E_p = torch.zeros(m, 2, dtype=f64)
-        E_p[:, 0] = 1.0
-        E = torch.cat([_join([p[2] for p in parts], (0, L, 2), f64).reshape(-1, 2), E_p])
+        E_p[:, 0] = prior.J_d
+        E = torch.cat([res.J_d.reshape(-1, 2), E_p])
         # Pose Jacobians of the edge rows w.r.t. source and target, each (q, L, 2, 7), kept on the
         # block for linearize() (prior rows have none); BlockResiduals.J stays None.
-        self._J_src = _join([p[3] for p in parts], (0, L, 2, POSE_DIM), f64)
-        self._J_tgt = _join([p[4] for p in parts], (0, L, 2, POSE_DIM), f64)
+        self._J_src, self._J_tgt = res.J_Ti, res.J_Tj
         return BlockResiduals(r=r, weights=weights, E=E, J=None, num_invalid=self.num_invalid)
 
     def residuals(self, values) -> tuple[torch.Tensor, torch.Tensor]:

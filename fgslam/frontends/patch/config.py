@@ -13,6 +13,7 @@ from typing import Literal, Optional
 
 from ...config import check_ranges, ranged
 from ...errors import ConfigError
+from ...factors.depth import DepthPriorConfig
 
 
 @dataclass
@@ -99,9 +100,14 @@ class BAConfig:
     threads: int = ranged(1, ge=0)  # torch threads during BA (small dense work: 1 is fastest)
     lambda_factor: float = ranged(1000.0, gt=1)  # LM damping multiplier after a rejected step (the pose Hessian dwarfs damping below ~1e4: x10 retries the same step)
     depth_model: Literal["prior", "observation"] = "prior"  # RGB-D: prior on each patch's inverse depth in its source frame (DROID-SLAM), or sensor depth as a measurement of every observation, source and targets (ORB-SLAM3 RGB-D: virtual right-camera pixel u - f b / z)
-    depth_noise: Literal["relative", "inverse"] = "relative"  # RGB-D: relative: sigma_d = depth_prior_sigma * d (sigma_z grows with z); inverse: sigma_d = depth_prior_sigma in 1/m (sigma_z grows with z^2, Kinect)
+    depth_noise: Literal["relative", "inverse"] = "relative"  # RGB-D (local and global BA): relative: sigma_d = depth_prior_sigma * d (sigma_z grows with z); inverse: sigma_d = depth_prior_sigma in 1/m (sigma_z grows with z^2, Kinect)
     depth_virtual_baseline: float = ranged(0.08, gt=0)  # RGB-D observation model: baseline (m) of the virtual right camera (sets the pixel scale of the depth rows)
     measured_huber: bool = False  # a fresh measurement enters the next BA Huber-weighted by its distance from the reprojection it was measured from (else at full weight until that BA's residuals weigh it)
+
+    def depth_noise_model(self) -> DepthPriorConfig:
+        """RGB-D: the sensor inverse-depth noise model (``depth_prior_sigma``, ``depth_noise``) of the
+        local and the global bundle adjustment (:mod:`fgslam.factors.depth`)."""
+        return DepthPriorConfig(sigma=self.depth_prior_sigma, noise=self.depth_noise)
 
 
 @dataclass

@@ -56,7 +56,8 @@ import numpy as np
 import torch
 
 from ...errors import ConfigError, OptimizationError
-from ...factors.reprojection import ReprojectionConfig, reproject
+from ...factors.depth import depth_priors, inv_depth_sigma
+from ...factors.reprojection import ReprojectionConfig, reproject, reproject_edges
 from ...factors.robust import kernel_weight
 from ...factors.schur import BlockConfig, torch_threads
 from ...loop.closure import LoopClosureConfig
@@ -465,17 +466,12 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         uv_src = uv_all[pos_s, patch]
         d = d_all[pos_s, patch]
         R, t, s = sim3_matrix_components(np.stack([f.T_WC for f in g.frames]))
-        pred = np.zeros((len(idx), 2))
-        ok = np.zeros(len(idx), bool)
-        for mask, K_t, T_ext in ((~right, self.K, None), (right, self.K_right, self.T_CRCL)):
-            if not mask.any():
-                continue
-            ps, pt = torch.as_tensor(pos_s[mask]), torch.as_tensor(pos_t[mask])
-            uv, valid = reproject(torch.as_tensor(uv_src[mask]), torch.as_tensor(d[mask]), (R[ps], t[ps], s[ps]),
-                                  (R[pt], t[pt], s[pt]), self.K, K_t, T_CtCj=T_ext, config=self._reproj)
-            pred[mask] = uv.numpy()
-            ok[mask] = valid.numpy()
-        return uv_src, pred, ok & self._inside(pred)
+        ps, pt = torch.as_tensor(pos_s), torch.as_tensor(pos_t)
+        uv, valid = reproject_edges(torch.as_tensor(uv_src), torch.as_tensor(d), (R[ps], t[ps], s[ps]),
+                                    (R[pt], t[pt], s[pt]), self.K, right=torch.as_tensor(right), K_right=self.K_right,
+                                    T_CRCL=self.T_CRCL, config=self._reproj)
+        pred = uv.numpy()
+        return uv_src, pred, valid.numpy() & self._inside(pred)
 
     def _measure(self, idx: np.ndarray, huber: bool = False) -> None:
         """Measure edges ``idx`` with the source, started from their current reprojection; ``huber``:
@@ -572,8 +568,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
             sens = np.stack([f.sensor_inv_depth for f in g.frames])[pos_src, ukeys % K]
             has = np.isfinite(sens) & (sens > 0)
             if cfg.ba.depth_model == "prior":
-                prior = dict(prior_idx=np.nonzero(has)[0], prior_value=sens[has],
-                             prior_weight=1.0 / self._inv_depth_sigma(sens[has]) ** 2)
+                prior = depth_priors(sens, cfg.ba.depth_noise_model()).kwargs()
             else:
                 src_l, tgt_l, right, uv_src, uv_tgt, weights, struct_idx, K_right, T_CRCL = self._depth_observations(
                     e, src_l, tgt_l, uv_src, struct_idx, weights, sens, has)
@@ -620,10 +615,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
 
     def _inv_depth_sigma(self, inv_depth: np.ndarray) -> np.ndarray:
         """Standard deviation of sensor inverse depths (1/m) under ``ba.depth_noise``."""
-        ba = self.config.ba
-        if ba.depth_noise == "inverse":
-            return np.full(np.shape(inv_depth), ba.depth_prior_sigma)
-        return ba.depth_prior_sigma * np.asarray(inv_depth)
+        return inv_depth_sigma(inv_depth, self.config.ba.depth_noise_model())
 
     def _depth_observations(self, e, src_l, tgt_l, uv_src, struct_idx, weights, sens, has):
         """RGB-D observation model (ORB-SLAM3's RGB-D mode): every observation with a sensor depth

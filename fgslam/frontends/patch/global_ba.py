@@ -48,7 +48,8 @@ import numpy as np
 import torch
 
 from ...errors import ConfigError, OptimizationError
-from ...factors.reprojection import ReprojectionConfig, reproject, reproject_inv_depth
+from ...factors.depth import depth_prior
+from ...factors.reprojection import ReprojectionConfig, reproject_edges
 from ...factors.robust import kernel_weight
 from ...factors.schur import to_gaussian_factor, torch_threads
 from ...lie import Sim3, sim3_matrix_components
@@ -252,33 +253,15 @@ class _Problem:
     def _project(self, T: torch.Tensor, d: torch.Tensor, lo: int, hi: int, jacobians: bool):
         """Residuals (n, 2), validity (n,) [and J_d (n, 2), J_i, J_j (n, 2, 6)] of edges lo:hi."""
         R, t, s = sim3_matrix_components(T)
-        si, ti, rt = self.src[lo:hi], self.tgt[lo:hi], self.right[lo:hi]
+        si, ti = self.src[lo:hi], self.tgt[lo:hi]
         uv_s, uv_o, de = self.uv_src[lo:hi], self.uv[lo:hi], d[self.sidx[lo:hi]]
-        n = hi - lo
-        out = None  # (r, ok, J_d, J_i, J_j), allocated when both image sides occur
-        for mask, K_t, T_ext in ((~rt, self.K, None), (rt, self.K_right, self.T_CRCL)):
-            count = int(mask.sum())
-            if count == 0:
-                continue
-            sel = slice(None) if count == n else mask  # one image side only (mono, RGB-D): no gathers
-            a, b = si[sel], ti[sel]
-            Ti, Tj = (R[a], t[a], s[a]), (R[b], t[b], s[b])
-            if jacobians:
-                res = reproject_inv_depth(uv_s[sel], de[sel], Ti, Tj, self.K, uv_o[sel], K_t, T_CtCj=T_ext,
-                                          config=self.reprojection)
-                part = (res.residual, res.valid, res.J_d, res.J_Ti[..., :POSE_DOF], res.J_Tj[..., :POSE_DOF])
-            else:
-                uv, valid = reproject(uv_s[sel], de[sel], Ti, Tj, self.K, K_t, T_CtCj=T_ext, config=self.reprojection)
-                part = (torch.where(valid[:, None], uv - uv_o[sel], torch.zeros((), dtype=torch.float64)), valid,
-                        None, None, None)
-            if count == n:
-                return part
-            if out is None:
-                out = [None if p is None else torch.zeros((n,) + tuple(p.shape[1:]), dtype=p.dtype) for p in part]
-            for full, p in zip(out, part):
-                if p is not None:
-                    full[sel] = p
-        return tuple(out)  # chunks are never empty: one of the two sides has edges
+        Ti, Tj = (R[si], t[si], s[si]), (R[ti], t[ti], s[ti])
+        sides = dict(right=self.right[lo:hi], K_right=self.K_right, T_CRCL=self.T_CRCL, config=self.reprojection)
+        if jacobians:
+            res = reproject_edges(uv_s, de, Ti, Tj, self.K, uv_o, **sides)
+            return res.residual, res.valid, res.J_d, res.J_Ti[..., :POSE_DOF], res.J_Tj[..., :POSE_DOF]
+        uv, valid = reproject_edges(uv_s, de, Ti, Tj, self.K, **sides)
+        return torch.where(valid[:, None], uv - uv_o, torch.zeros((), dtype=torch.float64)), valid, None, None, None
 
     def weights(self) -> torch.Tensor:
         return self.base_w * self.robust
@@ -292,7 +275,8 @@ class _Problem:
             r, ok, *_ = self._project(T, d, c.lo, c.hi, jacobians=False)
             total += float((w_all[c.lo:c.hi] * ok * (r * r).sum(1)).sum())
         if self.prior_idx is not None:
-            total += float((self.prior_w * (d[self.prior_idx] - self.prior_value) ** 2).sum())
+            prior = depth_prior(d[self.prior_idx], self.prior_value, self.prior_w)
+            total += float((prior.weight * prior.residual ** 2).sum())
         self.timings["evaluate"] += time.perf_counter() - t0
         return 0.5 * total
 
@@ -322,8 +306,9 @@ class _Problem:
         prior_C = torch.zeros(self.P, dtype=f64)
         prior_b = torch.zeros(self.P, dtype=f64)
         if self.prior_idx is not None:
-            prior_C.index_add_(0, self.prior_idx, self.prior_w)
-            prior_b.index_add_(0, self.prior_idx, self.prior_w * (d[self.prior_idx] - self.prior_value))
+            prior = depth_prior(d[self.prior_idx], self.prior_value, self.prior_w)
+            prior_C.index_add_(0, self.prior_idx, prior.weight * prior.J_d ** 2)
+            prior_b.index_add_(0, self.prior_idx, prior.weight * prior.J_d * prior.residual)
         for c in self.chunks:
             lo, hi, S, ns = c.lo, c.hi, c.S, c.ns
             r, ok, Jd, Ji, Jj = self._project(T, d, lo, hi, jacobians=True)

@@ -36,6 +36,7 @@ import time
 
 import numpy as np
 
+from ...factors.depth import depth_priors
 from ...loop.closure import LoopCloser, LoopClosureConfig, LoopCorrection
 from .global_ba import GlobalBAProblem, global_bundle_adjustment
 from .graph import GraphFrame
@@ -390,9 +391,7 @@ class PatchLoopClosure:
         prior = {}
         if self.sensor_mode == "rgbd":
             sens = np.stack([f.sensor_inv_depth for f in frames])[owner, patch]
-            has = np.isfinite(sens) & (sens > 0)
-            prior = dict(prior_idx=np.nonzero(has)[0], prior_value=sens[has],
-                         prior_weight=1.0 / (self.config.ba.depth_prior_sigma * sens[has]) ** 2)
+            prior = depth_priors(sens, self.config.ba.depth_noise_model()).kwargs()
         fixed = held_frames(len(frames), src_i, tgt_i, is_loop, 2 if self.sensor_mode == "mono" else 1)
         problem = GlobalBAProblem(
             T_WC=np.stack([f.T_WC for f in frames]), fixed=fixed, src=src_i, tgt=tgt_i, right=e["right"].astype(bool),
