@@ -234,7 +234,7 @@ def test_source_block_and_lm_recover_poses_and_depths_from_renders(room):
     keys = [pose_key(k) for k in ids]
     pairs = [(a, b) for a in range(3) for b in range(3) if a != b]
     depths = [np.full_like(d, np.median(d)) for d in invd]
-    config = DenseBlockConfig(depth_prior=DepthPriorConfig(weight=1.0))
+    config = DenseBlockConfig(depth_prior=DepthPriorConfig(sigma=1.0, noise="inverse"))
     for _ in range(3):
         fields = np.stack([induced(room, depths[a], est[a], est[b]) for a, b in pairs])
         revs = src.revise([(ids[a], ids[b]) for a, b in pairs], fields)

@@ -146,7 +146,10 @@ def test_schur_reduced_system_equals_explicit_elimination_with_per_pixel_damping
         e.uv_target = e.uv_target + torch.as_tensor(rng.normal(0, 0.3, e.uv_target.shape))
     eta = rng.uniform(0.01, 2.0, (H_MAP, W_MAP))
     sensor = 1.0 / depths[1] * 1.02
-    block = DenseSourceBlock(DenseKeyframe(keys[1], depths[1] * 1.1, sensor_depth=sensor, damping=eta), edges, K8)
+    # a weak prior (weight 1/16, like a unit-weight pixel's share) so that the per-pixel damping shows
+    weak = DepthPriorConfig(sigma=4.0, noise="inverse")
+    block = DenseSourceBlock(DenseKeyframe(keys[1], depths[1] * 1.1, sensor_depth=sensor, damping=eta), edges, K8,
+                             DenseBlockConfig(depth_prior=weak))
     assert block.keys == (keys[1], keys[0], keys[2])
     noisy = [p.retract(torch.as_tensor(rng.normal(0, 0.01, 7))) for p in poses]
     values = values_of(noisy, keys)
@@ -172,7 +175,7 @@ def test_schur_reduced_system_equals_explicit_elimination_with_per_pixel_damping
                                -np.linalg.solve(Hdd, gd + Hxd.T @ dx_fixed), rtol=1e-8, atol=1e-12)
     # the damping really is per pixel: a constant eta gives another system
     flat = DenseSourceBlock(DenseKeyframe(keys[1], depths[1] * 1.1, sensor_depth=sensor), edges, K8,
-                            DenseBlockConfig(block=BlockConfig(structure_damping=float(eta.mean()))))
+                            DenseBlockConfig(block=BlockConfig(structure_damping=float(eta.mean())), depth_prior=weak))
     assert np.abs(flat.linearize(values)[0].H - piece.H).max() > 1e-6 * scale
 
 
@@ -250,7 +253,7 @@ def test_lm_reaches_ground_truth_rgbd_three_keyframes():
     edges = exact_edges(poses, depths, ALL_PAIRS, keys, weight_seed=7)
     noisy, maps = perturbed(poses, depths, 8)
     kfs = [DenseKeyframe(keys[k], maps[k], sensor_depth=1.0 / depths[k]) for k in range(3)]
-    block = DenseBlock(kfs, edges, K8, DenseBlockConfig(depth_prior=DepthPriorConfig(weight=1.0)))
+    block = DenseBlock(kfs, edges, K8, DenseBlockConfig(depth_prior=DepthPriorConfig(sigma=1.0, noise="inverse")))
     start_scale = [p.s for p in noisy]
     problem, report = solve(block, gauge_graph(noisy, keys), values_of(noisy, keys))
     assert report.initial_cost > 1.0 and report.final_cost < 1e-12, report

@@ -42,7 +42,7 @@ import torch
 
 from ..backend.blocks import LinearPiece
 from ..lie import Sim3
-from .depth import DepthPriorConfig, depth_prior
+from .depth import DepthPriorConfig, depth_prior, depth_priors
 from .reprojection import ReprojectionConfig
 from .schur import (
     POSE_DIM,
@@ -145,14 +145,19 @@ class DenseSourceBlock(VisualBlock):
         )
         # RGB-D prior rows: the pixels whose sensor depth is valid (fixed for the keyframe)
         self._prior_idx = torch.zeros(0, dtype=torch.long)
-        self._prior_depth = torch.zeros(0, dtype=torch.float64)
+        self._prior_value = torch.zeros(0, dtype=torch.float64)
+        self._prior_weight = torch.zeros(0, dtype=torch.float64)
         if keyframe.sensor_depth is not None:
             z = _tensor(keyframe.sensor_depth)
             if tuple(z.shape) != self.shape:
                 raise ValueError(f"sensor_depth shape {tuple(z.shape)} differs from the map's {self.shape}")
-            valid = depth_prior(d0.reshape(-1), z.reshape(-1), self.dense_config.depth_prior).valid
-            self._prior_idx = torch.nonzero(valid).reshape(-1)
-            self._prior_depth = z.reshape(-1)[self._prior_idx]
+            z = z.reshape(-1).to(torch.float64)
+            reading = torch.isfinite(z) & (z > 0)  # 0, NaN, inf, negative: no reading
+            inv_z = torch.where(reading, 1.0 / torch.where(reading, z, torch.ones_like(z)), torch.full_like(z, float("nan")))
+            priors = depth_priors(inv_z.numpy(), self.dense_config.depth_prior)
+            self._prior_idx = torch.as_tensor(priors.idx, dtype=torch.long)
+            self._prior_value = torch.as_tensor(priors.value, dtype=torch.float64)
+            self._prior_weight = torch.as_tensor(priors.weight, dtype=torch.float64)
         n_prior = int(self._prior_idx.numel())
         self.slots = torch.cat([self._flow.slots, torch.zeros(n_prior, 2, dtype=torch.long)])
         self.struct_idx = torch.cat([self._flow.struct_idx, self._prior_idx])
@@ -230,7 +235,7 @@ class DenseSourceBlock(VisualBlock):
         if n_prior == 0:
             return flow
         dtype = torch.float64
-        prior = depth_prior(structure.to(dtype)[self._prior_idx], self._prior_depth, self.dense_config.depth_prior)
+        prior = depth_prior(structure.to(dtype)[self._prior_idx], self._prior_value, self._prior_weight)
         zero = torch.zeros(n_prior, dtype=dtype)
         r = torch.cat([flow.r, torch.stack((prior.residual, zero), -1)])
         weights = torch.cat([flow.weights, torch.stack((prior.weight, zero), -1)])
