@@ -53,10 +53,10 @@ def _bench_pose_graph():
     return sys.modules[name]
 
 
-def build_kitti_pose_graph(gt_T_WC: np.ndarray, seed: int = 0):
+def build_kitti_pose_graph(gt_T_WC: np.ndarray, seed: int = 0, frame_dt_s: float = 1.0 / KITTI_FRAME_RATE_HZ):
     """``(graph, initial, info)``: the Sim(3) pose graph of the module docstring on ground truth
-    ``gt_T_WC`` (N, 4, 4) (every pose a keyframe), as a ``gtsam.NonlinearFactorGraph`` and the
-    drifted ``gtsam.Values``."""
+    ``gt_T_WC`` (N, 4, 4) (every pose a keyframe, ``frame_dt_s`` apart), as a
+    ``gtsam.NonlinearFactorGraph`` and the drifted ``gtsam.Values``."""
     import gtsam
 
     from fgslam.factors.sim3 import SIM3_DOF, make_between_factors
@@ -64,7 +64,7 @@ def build_kitti_pose_graph(gt_T_WC: np.ndarray, seed: int = 0):
 
     bench = _bench_pose_graph()
     sim = bench.DriftSimConfig(stride=1, false_loop_fraction=0.0, seed=seed)
-    scn = bench.simulate_kitti_drift(gt_T_WC, sim, 1.0 / KITTI_FRAME_RATE_HZ)
+    scn = bench.simulate_kitti_drift(gt_T_WC, sim, frame_dt_s)
     pg = PoseGraphConfig()
     T = scn.T_WC_odom
     K = T.shape[0]
@@ -113,9 +113,9 @@ def _timed(fn, *args):
 
 
 def run(gt_T_WC: np.ndarray, repeats: int, max_iterations: int, relative_tolerance: float,
-        absolute_tolerance: float, seed: int = 0) -> dict:
+        absolute_tolerance: float, seed: int = 0, frame_dt_s: float = 1.0 / KITTI_FRAME_RATE_HZ) -> dict:
     """Both solvers on the graph of ``gt_T_WC``; the JSON-ready comparison."""
-    graph, initial, info = build_kitti_pose_graph(gt_T_WC, seed)
+    graph, initial, info = build_kitti_pose_graph(gt_T_WC, seed, frame_dt_s)
     args = (graph, initial, max_iterations, relative_tolerance, absolute_tolerance)
     best = {"gtsam": None, "fgslam": None}
     for _ in range(repeats):
@@ -144,6 +144,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=TOOLS_DIR.parent.parent / "shared" / "data")
     ap.add_argument("--poses", type=int, default=0, help="first N poses of 00 (0: all 4,541)")
+    ap.add_argument("--stride", type=int, default=1, help="every stride-th pose a keyframe (a smaller graph with the same loops)")
     ap.add_argument("--repeats", type=int, default=3, help="alternating runs per solver; the fastest is reported")
     ap.add_argument("--max-iterations", type=int, default=100)
     ap.add_argument("--relative-tolerance", type=float, default=1e-5, help="GTSAM's default")
@@ -155,8 +156,10 @@ def main() -> None:
     gt = read_trajectory(args.data / "kitti_gt" / "00.txt", "kitti").T_WC
     if args.poses > 0:
         gt = gt[: args.poses]
+    gt = gt[:: args.stride]
     load_start = os.getloadavg()[0]
-    out = run(gt, args.repeats, args.max_iterations, args.relative_tolerance, args.absolute_tolerance, args.seed)
+    out = run(gt, args.repeats, args.max_iterations, args.relative_tolerance, args.absolute_tolerance, args.seed,
+              args.stride / KITTI_FRAME_RATE_HZ)
     out.update(load_average_1min_start=load_start, load_average_1min_end=os.getloadavg()[0], cpu_count=os.cpu_count())
     print(json.dumps(out, indent=2))
 
