@@ -69,7 +69,8 @@ def build_kitti_pose_graph(gt_T_WC: np.ndarray, seed: int = 0, frame_dt_s: float
     T = scn.T_WC_odom
     K = T.shape[0]
     graph = gtsam.NonlinearFactorGraph()
-    graph.add(gtsam.PriorFactorSimilarity3(0, T[0].to_gtsam(), gtsam.noiseModel.Isotropic.Sigma(SIM3_DOF, pg.prior_sigma)))
+    prior_model = gtsam.noiseModel.Isotropic.Sigma(SIM3_DOF, pg.prior_sigma)
+    graph.add(gtsam.PriorFactorSimilarity3(0, T[0].to_gtsam(), prior_model))
     keys = np.arange(K)
     for f in make_between_factors(keys[:-1], keys[1:], T[:-1].inverse() @ T[1:], sigmas=smooth_sigmas(T, pg)):
         graph.add(f)
@@ -144,7 +145,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=TOOLS_DIR.parent.parent / "shared" / "data")
     ap.add_argument("--poses", type=int, default=0, help="first N poses of 00 (0: all 4,541)")
-    ap.add_argument("--stride", type=int, default=1, help="every stride-th pose a keyframe (a smaller graph with the same loops)")
+    ap.add_argument("--stride", type=int, default=1,
+                    help="every stride-th pose a keyframe (a smaller graph with the same loops)")
     ap.add_argument("--repeats", type=int, default=3, help="alternating runs per solver; the fastest is reported")
     ap.add_argument("--max-iterations", type=int, default=100)
     ap.add_argument("--relative-tolerance", type=float, default=1e-5, help="GTSAM's default")

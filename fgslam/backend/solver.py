@@ -21,8 +21,9 @@ With a ``propose`` step provider (iSAM2) the step comes from the provider once p
 step that raises the cost is halved up to ``max_backtracks`` times instead.
 
 Stopping: the cost falls below ``absolute_tolerance``, the decrease below
-``absolute_decrease_tolerance`` or, relative to the cost, below ``relative_tolerance``, the largest step component below ``step_tolerance``, the damping above
-``lambda_max`` without an accepted step (a minimum within tolerance), or ``max_iterations``.
+``absolute_decrease_tolerance`` or, relative to the cost, below ``relative_tolerance``, the largest
+step component below ``step_tolerance``, the damping above ``lambda_max`` without an accepted step
+(a minimum within tolerance), or ``max_iterations``.
 """
 
 from __future__ import annotations
