@@ -179,6 +179,7 @@ def levenberg_marquardt(problem: LMProblem, settings: LMSettings, propose: Calla
     damper = _Damper(settings.damping, problem) if propose is None else None
     for it in range(1, settings.max_iterations + 1):
         report.iterations = it
+        gfg = None  # the previous linearisation is freed before the next one is built (peak memory)
         t0 = time.perf_counter()
         gfg = problem.linearize()
         timings["linearize"] += time.perf_counter() - t0
