@@ -1,4 +1,5 @@
-"""Pose-graph optimisation of g2o graphs (SE(2) and SE(3)) with gtsam's Levenberg-Marquardt.
+"""Pose-graph optimisation of g2o graphs (SE(2) and SE(3)) with the backend's one Levenberg-Marquardt
+loop (:func:`fgslam.backend.solver.levenberg_marquardt` on gtsam factors, gtsam's LM defaults).
 
 Conventions:
 
@@ -23,6 +24,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from .backend.solver import LMSettings, NonlinearProblem, levenberg_marquardt
 from .config import check_ranges, ranged
 from .errors import ConfigError, DataError, FormatError, OptimizationError
 from .io.g2o import PoseGraph, read_g2o, write_g2o
@@ -38,7 +40,9 @@ _G2O_TO_GTSAM_SE3 = np.array([3, 4, 5, 0, 1, 2])
 
 @dataclass
 class PGOConfig:
-    """Tunables of :func:`optimize_pose_graph` (defaults are gtsam's LM defaults)."""
+    """Tunables of :func:`optimize_pose_graph` (defaults are gtsam's LM defaults). The LM loop is the
+    backend's (multifrontal Cholesky elimination, identity damping); :func:`lm_params` gives gtsam's
+    own LM the same settings (benchmarks, tests)."""
 
     init: Literal["chordal", "as-is"] = "chordal"  # chordal: InitializePose3 (3-D) / LAGO (2-D); as-is: file poses
     max_iterations: int = ranged(100, ge=0)  # LM iteration cap
@@ -48,14 +52,7 @@ class PGOConfig:
     lambda_initial: float = ranged(1e-5, gt=0)  # initial LM damping
     lambda_factor: float = ranged(10.0, gt=1)  # damping multiplier on a rejected/accepted step
     lambda_upper_bound: float = ranged(1e5, gt=0)  # LM gives up when the damping exceeds this
-    linear_solver: Literal["MULTIFRONTAL_CHOLESKY", "MULTIFRONTAL_QR", "SEQUENTIAL_CHOLESKY", "SEQUENTIAL_QR"] = (
-        "MULTIFRONTAL_CHOLESKY"  # gtsam linear solver
-    )
-    ordering: Literal["COLAMD", "METIS"] = "COLAMD"  # elimination ordering (gtsam accepts these two by name)
-    verbosity: Literal["SILENT", "TERMINATION", "ERROR", "VALUES", "DELTA", "LINEAR"] = "SILENT"  # gtsam output
-    verbosity_lm: Literal[
-        "SILENT", "SUMMARY", "TERMINATION", "LAMBDA", "TRYLAMBDA", "TRYCONFIG", "DAMPED", "TRYDELTA"
-    ] = "SILENT"  # gtsam LM output
+    ordering: Literal["COLAMD", "METIS"] = "COLAMD"  # elimination ordering
     prior_variance: float = ranged(1e-6, gt=0)  # variance of every tangent component of the gauge prior
     # Edges whose information matrix is not positive definite: reject the file, or drop them (counted).
     indefinite_information: Literal["error", "drop"] = "error"
@@ -75,8 +72,8 @@ class PGOResult:
             rows in ``graph.ids`` order).
         initial_cost: gtsam cost at the initial estimate (after initialisation).
         final_cost: gtsam cost at the optimum.
-        iterations: LM iterations performed.
-        converged: gtsam's convergence test held at the last iteration (not stopped by the iteration cap).
+        iterations: LM iterations performed (accepted steps).
+        converged: a stopping test held (tolerances, or no descent at any damping), not the iteration cap.
         init_time_s: seconds spent building the graph and initialising.
         read_time_s: seconds spent reading the file (0 when the graph did not come from a file).
         optimize_time_s: seconds spent in LM.
@@ -262,7 +259,7 @@ def diagonalised_pose2_graph(factors: gtsam.NonlinearFactorGraph) -> gtsam.Nonli
 
 
 def lm_params(config: PGOConfig) -> gtsam.LevenbergMarquardtParams:
-    """gtsam LM parameters from the config."""
+    """gtsam's own LM parameters with the settings of :func:`lm_settings` (side-by-side benchmarks)."""
     import gtsam
 
     params = gtsam.LevenbergMarquardtParams()
@@ -273,17 +270,34 @@ def lm_params(config: PGOConfig) -> gtsam.LevenbergMarquardtParams:
     params.setlambdaInitial(config.lambda_initial)
     params.setlambdaFactor(config.lambda_factor)
     params.setlambdaUpperBound(config.lambda_upper_bound)
-    params.setLinearSolverType(config.linear_solver)
     params.setOrderingType(config.ordering)
-    params.setVerbosity(config.verbosity)
-    params.setVerbosityLM(config.verbosity_lm)
     return params
 
 
-def optimize_pose_graph(graph: PoseGraph, config: PGOConfig | None = None) -> PGOResult:
-    """Initialise and optimise ``graph`` with gtsam's LM; returns costs, timings and optimised poses."""
-    import gtsam
+def lm_settings(config: PGOConfig):
+    """The backend LM loop's settings from the config."""
+    return LMSettings(
+        max_iterations=config.max_iterations, lambda_initial=config.lambda_initial,
+        lambda_factor=config.lambda_factor, lambda_max=config.lambda_upper_bound,
+        relative_tolerance=config.relative_error_tol, absolute_tolerance=config.error_tol,
+        absolute_decrease_tolerance=config.absolute_error_tol, ordering=config.ordering.lower(),
+    )
 
+
+class _RecordingProblem(NonlinearProblem):
+    """A :class:`~fgslam.backend.solver.NonlinearProblem` that records the cost after each accepted step."""
+
+    def __init__(self, graph, values):
+        super().__init__(graph, values)
+        self.history: list[float] = []
+
+    def accept(self, state, cost: float) -> float:
+        self.history.append(float(cost))
+        return super().accept(state, cost)
+
+
+def optimize_pose_graph(graph: PoseGraph, config: PGOConfig | None = None) -> PGOResult:
+    """Initialise and optimise ``graph`` with the backend's LM loop; returns costs, timings and optimised poses."""
     config = config or PGOConfig()
     config.validate()
     t0 = time.perf_counter()
@@ -297,21 +311,17 @@ def optimize_pose_graph(graph: PoseGraph, config: PGOConfig | None = None) -> PG
         raise OptimizationError(f"{graph.source}: initial cost is not finite ({initial_cost})")
     t1 = time.perf_counter()
 
-    params = lm_params(config)
-    history: list[tuple[float, float]] = []  # (cost before, cost after) of each LM iteration
-    params.iterationHook = lambda _it, before, after: history.append((before, after))
-    optimizer = gtsam.LevenbergMarquardtOptimizer(factors, initial, params)
+    problem = _RecordingProblem(factors, initial)
     try:
-        values = optimizer.optimize()
+        report = levenberg_marquardt(problem, lm_settings(config))
     except RuntimeError as exc:
         raise OptimizationError(f"{graph.source}: Levenberg-Marquardt failed: {exc}") from exc
     t2 = time.perf_counter()
+    values = problem.values
     final_cost = factors.error(values)
-    iterations = optimizer.iterations()
-    if history:  # gtsam's own stopping test on the last iteration (False when stopped by the cap)
-        converged = bool(gtsam.checkConvergence(params, *history[-1]))
-    else:  # no iteration: gtsam returns at once when the initial cost is below error_tol
-        converged = initial_cost <= config.error_tol
+    iterations = len(problem.history)
+    # no iteration at all (max_iterations 0): converged only when the start is already below error_tol
+    converged = report.converged or (report.iterations == 0 and initial_cost <= config.error_tol)
     converged = converged and math.isfinite(final_cost)
 
     poses = np.stack([pose_from_gtsam(graph.dim, _at(values, graph.dim, vid)) for vid in graph.ids.tolist()])
@@ -327,7 +337,7 @@ def optimize_pose_graph(graph: PoseGraph, config: PGOConfig | None = None) -> PG
         init_time_s=t1 - t0,
         optimize_time_s=t2 - t1,
         dropped_edges=dropped,
-        cost_history=[after for _, after in history],
+        cost_history=list(problem.history),
     )
 
 

@@ -92,13 +92,13 @@ def test_ba_problem_is_consistent(bench):
     assert bench.reprojection_rms(scn, scn.T_WC, scn.inv_depth) > 3 * cfg.pixel_noise_px
 
 
-@pytest.mark.parametrize("solver", ["gtsam", "superlu"])
-def test_global_ba_part_in_process(bench, solver):
+def test_global_ba_part_in_process(bench):
     pytest.importorskip("fgslam.frontends.patch.global_ba")
-    entry = bench.bench_global_ba(110, 0, _small_ba(bench), ba_options={"linear_solver": solver})
+    entry = bench.bench_global_ba(110, 0, _small_ba(bench))
     json.dumps(entry)
-    assert entry["linear_solver"] == solver
-    assert entry["edges"] > 0 and entry["iterations"] > 0
+    assert entry["linear_solver"] == "gtsam"
+    assert entry["edges"] > 0 and entry["iterations"] >= entry["linearizations"] >= 1
+    assert entry["cpu_s"] > 0 and entry["solve_s_per_step"] > 0 and entry["construct_s_per_linearization"] > 0
     assert entry["rms_px_final"] < entry["rms_px_start"]
     assert entry["rms_px_final_inliers"] < 2 * entry["pixel_noise_px"]
 
@@ -121,20 +121,3 @@ def test_main_prints_one_json_document(bench, capsys):
     assert "load_average_end" in report and report["cpu_count"] >= 1
 
 
-def test_global_ba_solvers_side_by_side(bench, capsys):
-    """``--ba-solvers``: each size once per linear solver, interleaved; both reach the same result."""
-    argv = ["--keyframes", "60", "70", "--parts", "global_ba", "--in-process", "--ba-solvers", "gtsam", "superlu",
-            "--ba-option", "iterations=2", "--ba-option", "robust_rounds=1"]
-    assert bench.main(argv) == 0
-    report = json.loads(capsys.readouterr().out)["global_ba"]
-    rows = report["side_by_side"]
-    assert [(r["keyframes"], r["linear_solver"]) for r in rows] == [(60, "gtsam"), (60, "superlu"),
-                                                                     (70, "gtsam"), (70, "superlu")]
-    for e in report["sizes"]:
-        assert e["config"]["linear_solver"] == e["linear_solver"]
-        assert e["linearizations"] >= 1 and e["iterations"] >= e["linearizations"]
-        assert e["solve_s_per_step"] > 0 and e["construct_s_per_linearization"] > 0
-    for g, s in zip(rows[::2], rows[1::2]):
-        assert g["iterations"] == s["iterations"]
-        assert g["final_cost"] == pytest.approx(s["final_cost"], rel=1e-8)
-        assert g["rms_px_final"] == pytest.approx(s["rms_px_final"], rel=1e-6)

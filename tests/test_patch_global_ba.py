@@ -89,14 +89,10 @@ def make_problem(rng, frames=8, patches=24, lifetime=3, stereo=False, priors=Fal
     return prob, T_true, d_true
 
 
-SOLVERS = ["gtsam", "superlu"]
-
-
-@pytest.mark.parametrize("solver", SOLVERS)
 @pytest.mark.parametrize("stereo,priors", [(False, False), (True, True)])
-def test_sparse_reduction_equals_dense_patch_block(stereo, priors, solver):
-    """H and g of the per-source-frame reduction, as each linear solver assembles them (GTSAM: one
-    factor per source frame; SuperLU: summed pair blocks), equal PatchBlock's dense Schur
+def test_sparse_reduction_equals_dense_patch_block(stereo, priors):
+    """H and g of the per-source-frame reduction (one GTSAM factor per source frame, the structure
+    eliminated by schur.py's batched elimination) equal PatchBlock's dense Schur
     complement (scale rows dropped), at a perturbed state with fixed frames, several chunks and
     right edges."""
     import gtsam
@@ -106,10 +102,10 @@ def test_sparse_reduction_equals_dense_patch_block(stereo, priors, solver):
     T0 = np.stack([_perturb(T, rng, 0.01, 0.02) for T in T_true])
     d0 = d_true * rng.uniform(0.8, 1.2, d_true.shape)
     rep = ReprojectionConfig(min_depth=0.05)
-    cfg = GlobalBAConfig(chunk_edges=150, linear_solver=solver)  # several chunks
+    cfg = GlobalBAConfig(chunk_edges=150)  # several chunks
     p = _Problem(prob, cfg, rep)
     assert len(p.chunks) > 2
-    system = p.linearize(torch.as_tensor(T0), torch.as_tensor(d0), p.new_system())
+    system = p.linearize(torch.as_tensor(T0), torch.as_tensor(d0))
     V = p.V
     H_sparse, g_sparse = system.dense()
     var = np.nonzero(~prob.fixed)[0]
@@ -142,8 +138,7 @@ def test_sparse_reduction_equals_dense_patch_block(stereo, priors, solver):
     assert np.allclose(dd.numpy(), dd_ref, atol=1e-9 * max(1.0, np.abs(dd_ref).max()))
 
 
-@pytest.mark.parametrize("solver", SOLVERS)
-def test_recovers_the_truth_from_perturbed_poses_and_depths(solver):
+def test_recovers_the_truth_from_perturbed_poses_and_depths():
     rng = np.random.default_rng(0)
     prob, T_true, d_true = make_problem(rng, frames=10, patches=30)
     T0 = T_true.copy()
@@ -151,8 +146,7 @@ def test_recovers_the_truth_from_perturbed_poses_and_depths(solver):
         T0[i] = _perturb(T_true[i], rng, 0.01, 0.03)
     prob.T_WC = T0
     prob.inv_depth = d_true * rng.uniform(0.85, 1.15, d_true.shape)
-    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=30, robust_rounds=1, relative_tolerance=1e-14,
-                                                        linear_solver=solver))
+    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=30, robust_rounds=1, relative_tolerance=1e-14))
     assert res.initial_cost > 1.0
     assert res.final_cost < 1e-10 * res.initial_cost
     assert np.abs(res.T_WC - T_true).max() < 1e-6
@@ -162,8 +156,7 @@ def test_recovers_the_truth_from_perturbed_poses_and_depths(solver):
     assert res.num_variables == 8 and res.num_edges == len(prob.src)
 
 
-@pytest.mark.parametrize("solver", SOLVERS)
-def test_outliers_get_zero_weight_and_do_not_bias_the_result(solver):
+def test_outliers_get_zero_weight_and_do_not_bias_the_result():
     rng = np.random.default_rng(1)
     prob, T_true, d_true = make_problem(rng, frames=10, patches=30, noise=0.3)
     bad = rng.choice(len(prob.src), len(prob.src) // 20, replace=False)
@@ -173,20 +166,18 @@ def test_outliers_get_zero_weight_and_do_not_bias_the_result(solver):
     for i in range(2, len(T0)):
         T0[i] = _perturb(T_true[i], rng, 0.005, 0.02)
     prob.T_WC = T0
-    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=15, robust_rounds=3, linear_solver=solver))
+    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=15, robust_rounds=3))
     assert (res.robust[bad] == 0).mean() > 0.95
     good = np.setdiff1d(np.arange(len(prob.src)), bad)
     assert (res.robust[good] > 0).mean() > 0.98
     err = np.linalg.norm(res.T_WC[:, :3, 3] - T_true[:, :3, 3], axis=1).max()
     assert err < 0.01
     # plain least squares (one round, no kernel) is visibly biased by the same outliers
-    plain = global_bundle_adjustment(prob, GlobalBAConfig(iterations=15, robust_rounds=1, huber_first_round=False,
-                                                          linear_solver=solver))
+    plain = global_bundle_adjustment(prob, GlobalBAConfig(iterations=15, robust_rounds=1, huber_first_round=False))
     assert np.linalg.norm(plain.T_WC[:, :3, 3] - T_true[:, :3, 3], axis=1).max() > 2 * err
 
 
-@pytest.mark.parametrize("solver", SOLVERS)
-def test_loop_edges_close_a_drifted_circle(solver):
+def test_loop_edges_close_a_drifted_circle():
     """A circle whose poses carry accumulated drift: local edges alone keep it, loop edges between
     the last and the first frames pull it back to the truth."""
     rng = np.random.default_rng(2)
@@ -199,7 +190,7 @@ def test_loop_edges_close_a_drifted_circle(solver):
         T0[i] = T0[i - 1] @ drift @ np.linalg.inv(T_true[i - 1]) @ T_true[i]
     prob.T_WC = T0
     before = np.linalg.norm(T0[:, :3, 3] - T_true[:, :3, 3], axis=1).max()
-    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=20, robust_rounds=2, linear_solver=solver))
+    res = global_bundle_adjustment(prob, GlobalBAConfig(iterations=20, robust_rounds=2))
     after = np.linalg.norm(res.T_WC[:, :3, 3] - T_true[:, :3, 3], axis=1).max()
     assert before > 0.5
     assert after < 0.05 * before
@@ -225,43 +216,57 @@ def test_bad_input_is_rejected():
         global_bundle_adjustment(GlobalBAProblem(**{**prob.__dict__, "right": np.ones_like(prob.right)}))
 
 
-@pytest.mark.parametrize("solver", SOLVERS)
-def test_everything_fixed_or_no_edges_returns_the_input(solver):
+def test_everything_fixed_or_no_edges_returns_the_input():
     rng = np.random.default_rng(5)
     prob, T_true, d_true = make_problem(rng, frames=4, patches=8)
     prob.fixed[:] = True
-    res = global_bundle_adjustment(prob, GlobalBAConfig(linear_solver=solver))
+    res = global_bundle_adjustment(prob, GlobalBAConfig())
     assert np.array_equal(res.T_WC, T_true) and res.num_variables == 0
 
 
 @pytest.mark.parametrize("stereo", [False, True])
 @pytest.mark.parametrize("frames,lifetime,loops", [(8, 3, ()), (40, 4, ((38, 2), (39, 5), (30, 0)))])
-def test_gtsam_and_superlu_give_the_same_damped_step(frames, lifetime, loops, stereo):
-    """Both linear solvers solve the same linearised system to the same LM step, at small and
-    large damping, on a small and a medium problem (loop edges, a fixed frame inside some source
-    frames' slots, padded slots), mono and stereo."""
+def test_lm_loop_steps_solve_the_marquardt_damped_system(frames, lifetime, loops, stereo):
+    """The backend's LM loop on the global BA's factors (one per source frame) takes the step
+    ``-(H + diag(damping_diagonal(diag H, lambda)))^-1 g`` of the explicit reduced system at every
+    damping it tries, on a small and a medium problem (loop edges, a fixed frame inside some
+    source frames' slots, padded slots), mono and stereo."""
+    from fgslam.backend.solver import LMSettings, damping_diagonal, levenberg_marquardt
+
     rng = np.random.default_rng(11)
     prob, T_true, d_true = make_problem(rng, frames=frames, patches=20, lifetime=lifetime, stereo=stereo,
                                         circle=bool(loops), loop_pairs=loops, noise=0.3)
     T0 = np.stack([T if f else _perturb(T, rng, 0.01, 0.02) for T, f in zip(T_true, prob.fixed)])
     d0 = torch.as_tensor(d_true * rng.uniform(0.8, 1.2, d_true.shape))
-    steps = {}
-    for solver in SOLVERS:
-        p = _Problem(prob, GlobalBAConfig(chunk_edges=400, linear_solver=solver), ReprojectionConfig(min_depth=0.05))
-        system = p.linearize(torch.as_tensor(T0), d0, p.new_system())
-        steps[solver] = [system.solve(lam) for lam in (1e-6, 1e-4, 1e-1, 10.0)]
-    for dx_g, dx_s in zip(steps["gtsam"], steps["superlu"]):
-        assert np.abs(dx_g).max() > 1e-6  # a real step
-        assert np.abs(dx_g - dx_s).max() <= 1e-9 * np.abs(dx_s).max()
+    p = _Problem(prob, GlobalBAConfig(chunk_edges=400), ReprojectionConfig(min_depth=0.05))
+    system = p.linearize(torch.as_tensor(T0), d0)
+    H, g = system.dense()
+
+    class Rejecting:  # every step rejected: one solve per damping, lambda 1e-6 .. 1e1
+        steps = []
+
+        def cost(self):
+            return 1.0
+
+        def linearize(self):
+            return system.graph
+
+        def hessian_diagonal(self):
+            return system.hessian_diagonal()
+
+        def trial(self, delta):
+            self.steps.append(np.asarray(delta.vector()))
+            return float("inf"), None
+
+    problem = Rejecting()
+    settings = LMSettings(max_iterations=1, lambda_initial=1e-6, lambda_factor=10.0, lambda_max=10.0,
+                          damping="marquardt", ordering="metis")
+    levenberg_marquardt(problem, settings)
+    assert len(problem.steps) == 8
+    for lam, dx in zip(1e-6 * 10.0 ** np.arange(8), problem.steps):
+        expected = -np.linalg.solve(H + np.diag(damping_diagonal(np.diag(H), lam)), g)
+        assert np.abs(expected).max() > 1e-6  # a real step
+        assert np.abs(dx - expected).max() <= 1e-9 * np.abs(expected).max()
     # damping acts: the steps shrink as lambda grows
-    norms = [np.linalg.norm(dx) for dx in steps["gtsam"]]
-    assert norms[0] > norms[2] > norms[3]
-
-
-def test_unknown_linear_solver_is_a_config_error():
-    from fgslam.errors import ConfigError
-
-    rng = np.random.default_rng(4)
-    prob, _, _ = make_problem(rng, frames=4, patches=8)
-    with pytest.raises(ConfigError, match="linear_solver"):
-        global_bundle_adjustment(prob, GlobalBAConfig(linear_solver="cholmod"))
+    norms = [np.linalg.norm(dx) for dx in problem.steps]
+    assert norms[0] > norms[5] > norms[7]

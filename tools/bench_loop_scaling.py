@@ -22,9 +22,9 @@ Parts (``--parts``), each measured at every N of ``--keyframes`` (default 100 10
   Each N runs in a child process (unless ``--in-process``) watched for ``--ba-timeout-s`` and
   ``--ba-memory-gb`` of resident memory; a child that is stopped or fails is recorded, not fatal.
   ``--ba-option iterations=1 --ba-option robust_rounds=1`` (GlobalBAConfig fields) times one step.
-  ``--ba-solvers gtsam superlu`` runs every size once per linear solver (``linear_solver``),
-  interleaved, and adds ``side_by_side``: seconds, LM steps (= solves), linearisations, solve time
-  per step, system construction time per linearisation, peak memory and final RMS per solver.
+  Each entry has the seconds and process CPU seconds (``cpu_s``: comparable under load), LM steps
+  (= damped solves), linearisations, solve time per step (GTSAM elimination and damping), factor
+  construction time per linearisation, the time per stage, peak memory and the final RMS.
 
 Every entry carries ``os.getloadavg()`` before and after it (the machine is shared). Progress goes
 to stderr.
@@ -374,9 +374,9 @@ def bench_global_ba(n: int, seed: int, cfg: BAScenarioConfig, threads: int = 1, 
              "config": asdict(ba_cfg)}
     logger.info("global_ba: %d keyframes, %d edges: solving", n, scn.src.size)
     entry["load_average_before"] = _loadavg()
-    t0 = time.perf_counter()
+    c0, t0 = time.process_time(), time.perf_counter()
     res = global_bundle_adjustment(problem, ba_cfg)
-    wall_s = time.perf_counter() - t0
+    wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
     entry["load_average_after"] = _loadavg()
     T_WC = np.asarray(res.T_WC, dtype=np.float64)
     inv_depth = np.asarray(res.inv_depth, dtype=np.float64)
@@ -385,7 +385,7 @@ def bench_global_ba(n: int, seed: int, cfg: BAScenarioConfig, threads: int = 1, 
     timings = dict(getattr(res, "timings", {}))
     linearizations = int(getattr(res, "linearizations", 0))
     entry.update(
-        wall_s=round(wall_s, 3), seconds=round(float(res.seconds), 3), iterations=iterations,
+        wall_s=round(wall_s, 3), cpu_s=round(cpu_s, 3), seconds=round(float(res.seconds), 3), iterations=iterations,
         seconds_per_iteration=round(float(res.seconds) / iterations, 4) if iterations else None,
         linear_solver=getattr(res, "linear_solver", ""), linearizations=linearizations,
         solve_s_per_step=round(timings["solve"] / iterations, 4) if iterations and "solve" in timings else None,
@@ -447,38 +447,23 @@ def run_global_ba_isolated(n: int, seed: int, threads: int, timeout_s: float, me
             "stderr_tail": err[-2000:], "load_average_before": load_before, "load_average_after": _loadavg()}
 
 
-SIDE_BY_SIDE_KEYS = ("status", "seconds", "iterations", "linearizations", "solve_s_per_step",
-                     "construct_s_per_linearization", "peak_rss_gb", "rms_px_final", "final_cost",
-                     "load_average_before", "load_average_after")
-
-
 def run_global_ba(sizes: list[int], seed: int, in_process: bool, threads: int, timeout_s: float,
-                  memory_gb: float, ba_options: dict | None = None, solvers: list[str] | None = None) -> dict:
-    """Every size in ``sizes``; with ``solvers`` (``GlobalBAConfig.linear_solver`` values) each size
-    runs once per solver, interleaved (all solvers at one size before the next size), and
-    ``side_by_side`` lists the key figures per size and solver."""
+                  memory_gb: float, ba_options: dict | None = None) -> dict:
+    """Every size in ``sizes``."""
     cfg = BAScenarioConfig()
     entries = []
     for n in sizes:
-        for solver in solvers or [None]:
-            options = dict(ba_options or {}, **({} if solver is None else {"linear_solver": solver}))
-            logger.info("global_ba: %d keyframes%s", n, "" if solver is None else f", {solver}")
-            if not in_process:
-                entry = run_global_ba_isolated(n, seed, threads, timeout_s, memory_gb, options)
-            else:
-                try:
-                    entry = bench_global_ba(n, seed, cfg, threads, options)
-                except Exception as exc:  # recorded in the JSON: a failure at one size is a result too
-                    logger.exception("global_ba: %d keyframes failed", n)
-                    entry = {"keyframes": n, "status": f"{type(exc).__name__}: {exc}", "peak_rss_gb": _peak_rss_gb()}
-            if solver is not None:
-                entry.setdefault("linear_solver", solver)
-            entries.append(entry)
-    out = {"scenario": asdict(cfg), "ba_options": ba_options or {}, "sizes": entries}
-    if solvers:
-        out["side_by_side"] = [{"keyframes": e["keyframes"], "linear_solver": e["linear_solver"],
-                                **{k: e[k] for k in SIDE_BY_SIDE_KEYS if k in e}} for e in entries]
-    return out
+        logger.info("global_ba: %d keyframes", n)
+        if not in_process:
+            entry = run_global_ba_isolated(n, seed, threads, timeout_s, memory_gb, ba_options)
+        else:
+            try:
+                entry = bench_global_ba(n, seed, cfg, threads, ba_options)
+            except Exception as exc:  # recorded in the JSON: a failure at one size is a result too
+                logger.exception("global_ba: %d keyframes failed", n)
+                entry = {"keyframes": n, "status": f"{type(exc).__name__}: {exc}", "peak_rss_gb": _peak_rss_gb()}
+        entries.append(entry)
+    return {"scenario": asdict(cfg), "ba_options": ba_options or {}, "sizes": entries}
 
 
 # ------------------------------------------------------------------------------------------ main
@@ -496,8 +481,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ba-memory-gb", type=float, default=6.0, help="global BA: stop a size above this resident memory")
     ap.add_argument("--ba-option", action="append", default=[], metavar="KEY=VALUE",
                     help="global BA: a GlobalBAConfig field (value parsed as YAML), e.g. iterations=1")
-    ap.add_argument("--ba-solvers", nargs="+", choices=("gtsam", "superlu"), default=None,
-                    help="global BA: run each size once per linear solver, interleaved (default: the config's)")
     ap.add_argument("--in-process", action="store_true", help="global BA in this process (no limits)")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)
@@ -528,7 +511,7 @@ def main(argv: list[str] | None = None) -> int:
                             "sizes": [bench_pose_graph(n, args.seed, lap_cfg, args.loop_every) for n in args.keyframes]}
         else:
             report[part] = run_global_ba(args.keyframes, args.seed, args.in_process, args.threads,
-                                         args.ba_timeout_s, args.ba_memory_gb, ba_options, args.ba_solvers)
+                                         args.ba_timeout_s, args.ba_memory_gb, ba_options)
         report[part]["part_wall_s"] = round(time.perf_counter() - t0, 2)
     report["load_average_end"] = _loadavg()
     print(json.dumps(report, indent=2))

@@ -13,7 +13,7 @@ of the corrected keyframes, loop statistics and solve time; then solve time agai
 keyframes (KITTI 00 resampled to 100, 1,000 and 5,000 keyframes). ``aliasing`` repeats each sequence
 with false loops in clusters of 3 consistent ones (perceptual aliasing: they pass the pairwise check).
 Solve time = the whole ``optimize_sim3_pose_graph`` call (gate, checks, graph building, every LM
-solve); ``lm_time_s`` = time inside gtsam's LM. The machine is shared: its load average is recorded.
+solve); ``lm_time_s`` = time inside the LM solves. The machine is shared: its load average is recorded.
 
     OMP_NUM_THREADS=1 .venv/bin/python tools/bench_pose_graph.py [--data ../shared/data] [--repeats 3]
 """

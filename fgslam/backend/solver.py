@@ -20,9 +20,10 @@ the same linearisation. Damping (``damping``):
 With a ``propose`` step provider (iSAM2) the step comes from the provider once per iteration and a
 step that raises the cost is halved up to ``max_backtracks`` times instead.
 
-Stopping: the cost falls below ``absolute_tolerance``, the relative decrease below
-``relative_tolerance``, the largest step component below ``step_tolerance``, the damping above
-``lambda_max`` without an accepted step (a minimum within tolerance), or ``max_iterations``.
+Stopping: the cost falls below ``absolute_tolerance``, the decrease below
+``absolute_decrease_tolerance`` or, relative to the cost, below ``relative_tolerance``, the largest
+step component below ``step_tolerance``, the damping above ``lambda_max`` without an accepted step
+(a minimum within tolerance), or ``max_iterations``.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ class LMSettings:
     lambda_min: float = 1e-12
     relative_tolerance: float = 0.0
     absolute_tolerance: float = 0.0
+    absolute_decrease_tolerance: float = 0.0  # stop when the cost decrease falls below this (GTSAM's absoluteErrorTol)
     step_tolerance: float = 0.0
     damping: Literal["identity", "marquardt"] = "identity"
     ordering: Literal["colamd", "metis"] = "colamd"
@@ -93,39 +95,62 @@ def damping_diagonal(diag: np.ndarray, lam: float) -> np.ndarray:
 
 
 class _Damper:
-    """Damping factors for the variables of one linearisation (their dimensions and diagonal)."""
+    """Unary damping factors ``gtsam.HessianFactor(key, diag(damping), 0, 0)`` for the variables of
+    one problem. Their keys and dimensions are taken once, at the first linearisation (a problem's
+    keys do not change between linearisations); each damped solve then costs one constructor call
+    per key, with the diagonal blocks of all keys of one dimension built as one array."""
 
-    def __init__(self, gfg, mode: str, problem):
-        if mode == "marquardt":
-            if not hasattr(problem, "hessian_diagonal"):
-                raise TypeError("Marquardt damping needs the problem's hessian_diagonal()")
-            diag = problem.hessian_diagonal()
-            self.keys = list(diag)
-            self.diags = [np.asarray(diag[k], dtype=np.float64) for k in self.keys]
-            self.flat = np.concatenate(self.diags) if self.diags else np.zeros(0)
-        else:
-            zero = gfg.gradientAtZero()  # dimensions of the linearisation's variables
-            self.keys = [int(k) for k in gfg.keyVector()]
-            self.diags = [np.zeros(int(zero.dim(k))) for k in self.keys]
+    def __init__(self, mode: str, problem):
+        if mode == "marquardt" and not hasattr(problem, "hessian_diagonal"):
+            raise TypeError("Marquardt damping needs the problem's hessian_diagonal()")
         self.mode = mode
+        self.problem = problem
+        self.keys: list[int] | None = None
+        self.flat = np.zeros(0)  # Marquardt: diag(H) of the last linearisation, keys in self.keys order
+
+    def _layout(self, keys: list[int], dims: list[int]) -> None:
+        self.keys = keys
+        dims_arr = np.asarray(dims, dtype=np.int64)
+        self.offsets = np.concatenate([[0], np.cumsum(dims_arr)])[:-1]
+        self.by_dim = {int(d): np.flatnonzero(dims_arr == d) for d in np.unique(dims_arr)}
+
+    def linearized(self, gfg) -> None:
+        """Take what the damping of a new linearisation ``gfg`` needs (the layout at the first)."""
+        if self.mode == "marquardt":
+            diag = self.problem.hessian_diagonal()
+            if self.keys is None:
+                keys = list(diag)
+                self._layout(keys, [int(np.size(diag[k])) for k in keys])
+            self.flat = (np.concatenate([np.asarray(diag[k], dtype=np.float64).ravel() for k in self.keys])
+                         if self.keys else np.zeros(0))
+        elif self.keys is None:
+            zero = gfg.gradientAtZero()  # dimensions of the linearisation's variables
+            keys = [int(k) for k in gfg.keyVector()]
+            self._layout(keys, [int(zero.dim(k)) for k in keys])
 
     def damped(self, gfg, lam: float):
         import gtsam
 
         out = gtsam.GaussianFactorGraph()
         out.push_back(gfg)  # shares the linearised factors
+        push, hessian, keys = out.push_back, gtsam.HessianFactor, self.keys
         if self.mode == "identity":
-            values = [np.full(d.size, lam) for d in self.diags]
-        else:
-            flat = damping_diagonal(self.flat, lam)
-            values = np.split(flat, np.cumsum([d.size for d in self.diags])[:-1]) if self.diags else []
-        for key, dvec in zip(self.keys, values):
-            out.push_back(gtsam.HessianFactor(key, np.diag(dvec), np.zeros(dvec.size), 0.0))
+            for d, idx in self.by_dim.items():
+                G, zero = lam * np.eye(d), np.zeros(d)  # copied by each factor
+                for i in idx.tolist():
+                    push(hessian(keys[i], G, zero, 0.0))
+            return out
+        flat = damping_diagonal(self.flat, lam)
+        for d, idx in self.by_dim.items():
+            blocks = np.zeros((idx.size, d, d))
+            blocks[:, np.arange(d), np.arange(d)] = flat[self.offsets[idx][:, None] + np.arange(d)]
+            zero = np.zeros(d)
+            for i, G in zip(idx.tolist(), blocks):
+                push(hessian(keys[i], G, zero, 0.0))
         return out
 
 
-def _max_abs(delta) -> float:
-    vec = np.asarray(delta.vector())
+def _max_abs(vec: np.ndarray) -> float:
     return float(np.abs(vec).max()) if vec.size else 0.0
 
 
@@ -151,8 +176,10 @@ def levenberg_marquardt(problem: LMProblem, settings: LMSettings, propose: Calla
     report = LMReport(cost, cost, 0, 0, False, settings.lambda_initial)
     timings = report.timings
     lam = settings.lambda_initial
+    damper = _Damper(settings.damping, problem) if propose is None else None
     for it in range(1, settings.max_iterations + 1):
         report.iterations = it
+        gfg = None  # the previous linearisation is freed before the next one is built (peak memory)
         t0 = time.perf_counter()
         gfg = problem.linearize()
         timings["linearize"] += time.perf_counter() - t0
@@ -167,11 +194,11 @@ def levenberg_marquardt(problem: LMProblem, settings: LMSettings, propose: Calla
                 trial_cost, state = problem.trial(delta)
                 timings["evaluate"] += time.perf_counter() - t0
                 if np.isfinite(trial_cost) and trial_cost <= cost:
-                    accepted = (delta, trial_cost, state)
+                    accepted = (np.asarray(delta.vector()), trial_cost, state)
                     break
                 delta = delta.scale(0.5)
         else:
-            damper = _Damper(gfg, settings.damping, problem)
+            damper.linearized(gfg)
             while lam <= settings.lambda_max:
                 report.solves += 1
                 t0 = time.perf_counter()
@@ -180,23 +207,24 @@ def levenberg_marquardt(problem: LMProblem, settings: LMSettings, propose: Calla
                 except RuntimeError:  # indeterminate system: more damping
                     delta = None
                 timings["solve"] += time.perf_counter() - t0
-                if delta is not None and np.isfinite(np.asarray(delta.vector())).all():
+                if delta is not None and np.isfinite(vec := np.asarray(delta.vector())).all():
                     t0 = time.perf_counter()
                     trial_cost, state = problem.trial(delta)
                     timings["evaluate"] += time.perf_counter() - t0
                     if np.isfinite(trial_cost) and trial_cost <= cost:
-                        accepted = (delta, trial_cost, state)
+                        accepted = (vec, trial_cost, state)
                         lam = max(lam / settings.lambda_factor, settings.lambda_min)
                         break
                 lam *= settings.lambda_factor
         if accepted is None:  # no descent along the step at any damping: a minimum within tolerance
             report.converged = True
             break
-        delta, trial_cost, state = accepted
+        step, trial_cost, state = accepted
         new_cost = float(problem.accept(state, trial_cost))
         done = (new_cost <= settings.absolute_tolerance
+                or abs(cost - new_cost) <= settings.absolute_decrease_tolerance
                 or abs(cost - new_cost) <= settings.relative_tolerance * max(cost, np.finfo(float).tiny)
-                or _max_abs(delta) <= settings.step_tolerance)
+                or _max_abs(step) <= settings.step_tolerance)
         cost = new_cost
         if done:
             report.converged = True

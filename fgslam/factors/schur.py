@@ -128,7 +128,7 @@ class SchurSystem:
 
     H: torch.Tensor
     g: torch.Tensor
-    c: float
+    c: float | torch.Tensor  # (B,) tensor for a batch (eliminate_structure)
     F: torch.Tensor
     b: torch.Tensor
     inv_C: torch.Tensor
@@ -223,8 +223,14 @@ def schur_reduce(
     return eliminate_structure(H, g, c, F, b, C, min_information)
 
 
+def information_inverse(C: torch.Tensor, min_information: float) -> torch.Tensor:
+    """``1 / C`` where a structure carries information (``C > min_information``), else 0 (left out)."""
+    informative = C > min_information
+    return torch.where(informative, 1.0 / torch.where(informative, C, torch.ones_like(C)), torch.zeros_like(C))
+
+
 def eliminate_structure(
-    H: torch.Tensor, g: torch.Tensor, c: float, F: torch.Tensor, b: torch.Tensor, C: torch.Tensor,
+    H: torch.Tensor, g: torch.Tensor, c, F: torch.Tensor, b: torch.Tensor, C: torch.Tensor,
     min_information: float,
 ) -> SchurSystem:
     """Eliminate scalar structure variables from the joint system ``[[H, F^T], [F, diag(C)]]``.
@@ -232,14 +238,22 @@ def eliminate_structure(
     ``H (7k, 7k)``, ``g (7k,)``, ``c``: the pose part; ``F (P, 7k)``: pose-structure coupling;
     ``b (P,)``: structure gradient; ``C (P,)``: structure information. Structures with
     ``C <= min_information`` carry no information and are left out of the elimination.
+
+    Batched: with leading batch dimensions on every tensor (``H (B, n, n)``, ``g (B, n)``,
+    ``F (B, P, n)``, ``b (B, P)``, ``C (B, P)``, ``c`` a float or ``(B,)``) each system is
+    eliminated on its own (the global BA: one per source keyframe, structures padded with ``C = 0``);
+    ``c`` is then returned as a ``(B,)`` tensor.
     """
-    informative = C > min_information
-    inv_C = torch.where(informative, 1.0 / torch.where(informative, C, torch.ones_like(C)), torch.zeros_like(C))
-    H = H - F.T @ (F * inv_C[:, None])
-    H = 0.5 * (H + H.T)
-    g = g - F.T @ (inv_C * b)
-    c = c - float((inv_C * b * b).sum())
-    if not (torch.isfinite(H).all() and torch.isfinite(g).all() and np.isfinite(c)):
+    inv_C = information_inverse(C, min_information)
+    Ft = F.transpose(-1, -2)
+    H = H - Ft @ (F * inv_C[..., None])
+    H = 0.5 * (H + H.transpose(-1, -2))
+    g = g - (Ft @ (inv_C * b)[..., None])[..., 0]
+    c = c - (inv_C * b * b).sum(-1)
+    if H.dim() == 2:
+        c = float(c)
+    finite = bool(torch.isfinite(H).all()) and bool(torch.isfinite(g).all())
+    if not (finite and bool(np.isfinite(np.asarray(c, dtype=np.float64)).all())):
         raise OptimizationError("Schur elimination produced non-finite values (NaN/inf in residuals or Jacobians)")
     return SchurSystem(H=H, g=g, c=c, F=F, b=b, inv_C=inv_C)
 

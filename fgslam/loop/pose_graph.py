@@ -1,7 +1,8 @@
 """Sim(3) pose-graph loop correction (DPV-SLAM sec. 3.3, eqs. 5-7) with false-loop rejection.
 
 Variables are the keyframe poses ``T_WC_k`` (``fgslam.lie.Sim3``, ``X_W = s R X_C + t``), gtsam key
-``k`` = keyframe index. Terms (all gtsam built-ins, solved by gtsam's LevenbergMarquardtOptimizer):
+``k`` = keyframe index. Terms (all gtsam built-ins, solved by the backend's one Levenberg-Marquardt
+loop, :func:`fgslam.backend.solver.levenberg_marquardt`, with GTSAM's LM defaults):
 
 * smoothness (eq. 5's first sum): ``BetweenFactorSimilarity3(k, k+1, T_WC_k^-1 T_WC_k+1)`` from the
   poses *before* the correction, sigmas ``smooth_sigmas`` (tangent [w(3) rad, u(3), log s]; u is in
@@ -90,6 +91,9 @@ class PoseGraphConfig:
     max_iterations: int = ranged(100, ge=1)  # LM iterations per solve
     relative_error_tol: float = ranged(1e-6, ge=0)  # LM stops when the relative cost decrease falls below this
     absolute_error_tol: float = ranged(1e-9, ge=0)  # LM stops when the absolute cost decrease falls below this
+    lambda_initial: float = ranged(1e-5, gt=0)  # initial LM damping (GTSAM's default)
+    lambda_factor: float = ranged(10.0, gt=1)  # LM damping multiplier on a rejected / accepted step
+    lambda_max: float = ranged(1e5, gt=0)  # LM stops (no descent at any damping) above this
     consistency_probability: float = ranged(0.9999, gt=0, lt=1)  # chi2(7) quantile above which a loop is inconsistent
     max_rounds: int = ranged(8, ge=1)  # solves at most (reject inconsistent loops, re-admit consistent ones, re-solve)
     # Per round, reject only the inconsistent loops whose chi2 is >= this x the round's largest one
@@ -155,7 +159,7 @@ class PoseGraphResult:
     initial_error: float
     final_error: float
     solve_time_s: float  # wall time of the whole call: gate, graph building, all LM solves, checks
-    lm_time_s: float  # wall time inside gtsam's LM (all rounds)
+    lm_time_s: float  # wall time inside the LM solves (all rounds)
 
     @property
     def n_rejected(self) -> int:
@@ -251,7 +255,7 @@ def _robust_model(gtsam, sigmas: np.ndarray, cfg: PoseGraphConfig):
     return gtsam.noiseModel.Robust.Create(kernel[cfg.robust_kernel].Create(cfg.robust_param), base)
 
 
-def _smooth_sigmas(T_WC: Sim3, cfg: PoseGraphConfig) -> np.ndarray:
+def smooth_sigmas(T_WC: Sim3, cfg: PoseGraphConfig) -> np.ndarray:
     """(K-1, 7) sigmas of the smoothness terms (see ``PoseGraphConfig.smooth_sigmas_per_distance``)."""
     sig = np.asarray(cfg.smooth_sigmas, dtype=np.float64)
     t = T_WC.t.detach().numpy()
@@ -292,7 +296,8 @@ def _loop_groups(loop_i: np.ndarray, loop_j: np.ndarray, members: np.ndarray, wi
 
 class _LoopGraph:
     """gtsam side of the solve: prior + smoothness built once, loop factors (plain and robust) per
-    candidate loop, LM solves on a chosen subset, chi-square of every candidate at a solution."""
+    candidate loop, LM solves (the backend's loop on GTSAM factors) on a chosen subset, chi-square of
+    every candidate at a solution."""
 
     def __init__(self, T_WC: Sim3, loop_i, loop_j, T_CiCj: Sim3, cfg: PoseGraphConfig, hold_scale: bool):
         import gtsam
@@ -315,7 +320,7 @@ class _LoopGraph:
         if self.K > 1:
             keys = np.arange(self.K)
             Z_smooth = T_WC[:-1].inverse() @ T_WC[1:]
-            for f in make_between_factors(keys[:-1], keys[1:], Z_smooth, sigmas=_smooth_sigmas(T_WC, cfg)):
+            for f in make_between_factors(keys[:-1], keys[1:], Z_smooth, sigmas=smooth_sigmas(T_WC, cfg)):
                 self.base.add(f)
         Z = T_CiCj.to_gtsam() if loop_i.size else []
         self.factors = {}
@@ -330,23 +335,26 @@ class _LoopGraph:
 
     def solve(self, active: np.ndarray, start, robust: bool = True, max_iterations: int | None = None):
         """LM on prior + smoothness + the ``active`` loops from ``start``; returns (graph, values)."""
+        from ..backend.solver import LMSettings, NonlinearProblem, levenberg_marquardt
+
         gtsam, cfg = self.gtsam, self.cfg
         graph = gtsam.NonlinearFactorGraph(self.base)
         for c in np.flatnonzero(active):
             graph.add(self.factors[robust][c])
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(cfg.max_iterations if max_iterations is None else max_iterations)
-        params.setRelativeErrorTol(cfg.relative_error_tol)
-        params.setAbsoluteErrorTol(cfg.absolute_error_tol)
+        settings = LMSettings(
+            max_iterations=cfg.max_iterations if max_iterations is None else max_iterations,
+            lambda_initial=cfg.lambda_initial, lambda_factor=cfg.lambda_factor, lambda_max=cfg.lambda_max,
+            relative_tolerance=cfg.relative_error_tol, absolute_decrease_tolerance=cfg.absolute_error_tol,
+        )
+        problem = NonlinearProblem(graph, start)
         t0 = time.perf_counter()
         try:
-            opt = gtsam.LevenbergMarquardtOptimizer(graph, start, params)
-            values = opt.optimize()
+            report = levenberg_marquardt(problem, settings)
         except RuntimeError as exc:
-            raise OptimizationError(f"Sim(3) pose graph: gtsam LM failed on {self.K} keyframes: {exc}") from exc
+            raise OptimizationError(f"Sim(3) pose graph: LM failed on {self.K} keyframes: {exc}") from exc
         self.lm_time_s += time.perf_counter() - t0
-        self.iterations += opt.iterations()
-        return graph, values
+        self.iterations += report.iterations
+        return graph, problem.values
 
     def poses(self, values) -> Sim3:
         return Sim3.from_gtsam([values.atSimilarity3(k) for k in range(self.K)])

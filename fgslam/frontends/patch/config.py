@@ -148,7 +148,6 @@ class GlobalBAConfig:
     min_information: float = ranged(1e-12, ge=0)  # patches with less information are not updated
     chunk_edges: int = ranged(200_000, ge=1)  # edges linearised per batch (bounds memory: about 300 bytes per edge)
     threads: int = ranged(0, ge=0)  # torch threads; 0: every core (large batched work, unlike the local BA; tracking waits for it)
-    linear_solver: Literal["gtsam", "superlu"] = "gtsam"  # reduced camera system: GTSAM multifrontal Cholesky on one factor per source keyframe, or SciPy SuperLU on the summed matrix (README: global BA scaling)
 
     def validate(self) -> None:
         check_ranges(self, "patch.proximity.ba.")

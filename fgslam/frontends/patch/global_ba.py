@@ -15,18 +15,14 @@ system is dense over all its frames (7F x 7F), fine for a local window and impos
 thousands of keyframes. Here the Schur complement is taken *per source frame*: a patch touches
 only its source frame and the frames it is observed in, so each source frame ``i`` contributes a
 dense ``(6 S_i)^2`` block over its slots (itself and its targets, ``S_i`` about
-``2 * patch_lifetime + 1``), computed for all frames at once with batched products, and the global
-system ``sum_i`` of those blocks is sparse (banded plus loop couplings). Levenberg-Marquardt with
-Marquardt's scaled damping ``H + lambda diag(H)`` solves it with ``config.linear_solver``:
-
-- ``gtsam`` (default): one ``gtsam.HessianFactor`` per source frame over its variable slots (from
-  the compressed Jacobian, :func:`fgslam.factors.schur.to_gaussian_factor`), the damping as unary
-  factors beside them, GTSAM's multifrontal Cholesky in a METIS ordering;
-- ``superlu``: the blocks summed per pose pair into one sparse matrix, SciPy's SuperLU in
-  symmetric mode with a minimum-degree ordering.
-
-Both give the same step (tests: 1e-9 relative); the README's scaling table gives both side by
-side. Depths are back-substituted per patch.
+``2 * patch_lifetime + 1``), computed for all frames at once with batched products and the
+batched Schur elimination of :func:`fgslam.factors.schur.eliminate_structure`, and the global
+system ``sum_i`` of those blocks is sparse (banded plus loop couplings). It is solved by the
+backend's one Levenberg-Marquardt loop (:func:`fgslam.backend.solver.levenberg_marquardt`):
+one ``gtsam.HessianFactor`` per source frame over its variable slots (from the compressed
+Jacobian, :func:`fgslam.factors.schur.to_gaussian_factor`), Marquardt's scaled damping
+``H + lambda diag(H)`` as unary factors beside them, GTSAM's multifrontal Cholesky in a METIS
+ordering computed once per problem. Depths are back-substituted per patch in each trial step.
 
 Robustness: ``robust_rounds`` rounds, each re-weighting the edges with Huber weights of the residuals
 at its start; the first one cuts no edge (loop edges start with large residuals and must act before
@@ -37,7 +33,6 @@ map: on the street-loop clip the keyframe ATE after the first loop went to 2.2 m
 
 from __future__ import annotations
 
-import abc
 import logging
 import os
 import time
@@ -47,11 +42,12 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ...errors import ConfigError, OptimizationError
+from ...backend.solver import LMSettings, levenberg_marquardt
+from ...errors import OptimizationError
 from ...factors.depth import depth_prior
 from ...factors.reprojection import ReprojectionConfig, reproject_edges
 from ...factors.robust import kernel_weight
-from ...factors.schur import to_gaussian_factor, torch_threads
+from ...factors.schur import eliminate_structure, information_inverse, to_gaussian_factor, torch_threads
 from ...lie import Sim3, sim3_matrix_components
 from .config import GlobalBAConfig
 
@@ -125,7 +121,7 @@ class GlobalBAResult:
     num_variables: int  # optimised poses
     timings: dict = field(default_factory=dict)  # seconds per stage (linearize, construct, solve, evaluate)
     linearizations: int = 0  # systems built (each solved once per LM step, accepted or rejected)
-    linear_solver: str = ""  # GlobalBAConfig.linear_solver that solved them
+    linear_solver: str = "gtsam"  # what solved them: GTSAM's multifrontal Cholesky (the only one)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -239,15 +235,7 @@ class _Problem:
             self.prior_idx = None
         self.timings = {"linearize": 0.0, "construct": 0.0, "solve": 0.0, "evaluate": 0.0}
         self.linearizations = 0
-        self._ordering: list = []  # GTSAM's elimination ordering, once per problem
-
-    def new_system(self) -> "_ReducedSystem":
-        """An empty reduced system of the configured linear solver (``cfg.linear_solver``)."""
-        if self.cfg.linear_solver == "gtsam":
-            return _GtsamSystem(self.V, self._ordering)
-        if self.cfg.linear_solver == "superlu":
-            return _SuperLUSystem(self.V)
-        raise ConfigError(f"patch.proximity.ba.linear_solver: unknown solver {self.cfg.linear_solver!r} (gtsam, superlu)")
+        self.ordering: list = []  # GTSAM's elimination ordering, computed once per problem (the LM loop's cache)
 
     # ---------------------------------------------------------------- evaluation
     def _project(self, T: torch.Tensor, d: torch.Tensor, lo: int, hi: int, jacobians: bool):
@@ -289,15 +277,15 @@ class _Problem:
         return norms, valid
 
     # ---------------------------------------------------------------- linearisation
-    def linearize(self, T: torch.Tensor, d: torch.Tensor, system: "_ReducedSystem") -> "_ReducedSystem":
-        """Reduced system over the variable poses, handed to ``system`` one chunk of source frames
-        at a time (:meth:`_ReducedSystem.add_sources`: each source frame's dense ``Hloc``, ``gloc``
-        over its slots); the model is ``dx^T H dx + 2 g^T dx + c`` (twice the cost). Keeps what
-        back-substitution needs. Returns ``system``, finished."""
+    def linearize(self, T: torch.Tensor, d: torch.Tensor) -> "_ReducedSystem":
+        """Reduced system over the variable poses, one factor per source frame (each source
+        frame's dense ``Hloc``, ``gloc`` over its slots, :meth:`_ReducedSystem.add_sources`); the
+        model is ``dx^T H dx + 2 g^T dx + c`` (twice the cost). Keeps what back-substitution needs."""
         t0 = time.perf_counter()
         f64 = torch.float64
         D = POSE_DOF
-        t_system = 0.0  # time spent building the solver's system (timed apart as "construct")
+        t_system = 0.0  # time spent building the GTSAM factors (timed apart as "construct")
+        system = _ReducedSystem(self.V)
         w_all = self.weights()
         C = torch.zeros(self.P, dtype=f64)
         b = torch.zeros(self.P, dtype=f64)
@@ -343,26 +331,20 @@ class _Problem:
             Fp = torch.zeros(Pc * S, D, dtype=f64)
             Fp.index_add_(0, pl * S, fi)
             Fp.index_add_(0, pl * S + c.slot_tgt, fj)
-            informative = Cc > self.cfg.min_information
-            inv_C = torch.where(informative, 1.0 / torch.where(informative, Cc, torch.ones_like(Cc)), torch.zeros_like(Cc))
+            # per source frame: its patches' structure eliminated from its slots' block (one batch)
             Fpad = torch.zeros(ns, c.Kmax, S * D, dtype=f64)
             Fpad[c.owner, c.rank] = Fp.reshape(Pc, S * D)
-            Fw = torch.zeros_like(Fpad)
-            Fw[c.owner, c.rank] = Fp.reshape(Pc, S * D) * inv_C[:, None]
-            bw = torch.zeros(ns, c.Kmax, dtype=f64)
-            bw[c.owner, c.rank] = bc * inv_C
+            Cpad = torch.zeros(ns, c.Kmax, dtype=f64)  # padding: no information, left out
+            Cpad[c.owner, c.rank] = Cc
+            bpad = torch.zeros(ns, c.Kmax, dtype=f64)
+            bpad[c.owner, c.rank] = bc
             Hloc = Hs.reshape(ns, S, S, D, D).permute(0, 1, 3, 2, 4).reshape(ns, S * D, S * D)
-            Hloc = Hloc - torch.bmm(Fpad.transpose(1, 2), Fw)
-            gloc = gs.reshape(ns, S * D) - torch.bmm(bw[:, None, :], Fpad)[:, 0]
+            reduced = eliminate_structure(Hloc, gs.reshape(ns, S * D), 0.0, Fpad, bpad, Cpad, self.cfg.min_information)
             t1 = time.perf_counter()
-            system.add_sources(c.slot_var, Hloc, gloc)
+            system.add_sources(c.slot_var, reduced.H, reduced.g)
             t_system += time.perf_counter() - t1
-        informative = C > self.cfg.min_information
-        inv_C = torch.where(informative, 1.0 / torch.where(informative, C, torch.ones_like(C)), torch.zeros_like(C))
+        inv_C = information_inverse(C, self.cfg.min_information)
         self._back = (FE_i, FE_j, inv_C, b)
-        t1 = time.perf_counter()
-        system.finish()
-        t_system += time.perf_counter() - t1
         self.timings["construct"] += t_system
         self.linearizations += 1
         self.timings["linearize"] += time.perf_counter() - t0 - t_system
@@ -378,126 +360,30 @@ class _Problem:
         return -inv_C * (b + Fdx)
 
 
-def damping_diagonal(diag: np.ndarray, lam: float) -> np.ndarray:
-    """Marquardt's scaled damping added to the diagonal of H: ``lam * scale + (scale - diag)^+`` with
-    ``scale = max(diag, eps * max(max diag, 1))`` (a zero diagonal entry gets a tiny floor)."""
-    scale = np.maximum(diag, np.finfo(float).eps * max(float(diag.max(initial=0.0)), 1.0))
-    return lam * scale + (scale - diag).clip(min=0.0)
-
-
-class _ReducedSystem(abc.ABC):
-    """The reduced camera system ``H dx = -g`` over the V variable poses, assembled from the source
-    frames' dense blocks and solved with damping ``H + diag(damping_diagonal(diag H, lam))``.
+class _ReducedSystem:
+    """The reduced camera system ``H dx = -g`` over the V variable poses (gtsam key = variable
+    index) as one ``gtsam.HessianFactor`` per source frame over the keys of its variable slots,
+    built from the source's compressed Jacobian (:func:`fgslam.factors.schur.to_gaussian_factor`)
+    in a ``gtsam.GaussianFactorGraph``, and the diagonal of H (Marquardt damping).
 
     :meth:`add_sources` receives one chunk: ``slot_var`` (ns, S) variable index of each slot (-1:
-    fixed frame or padding, dropped), ``Hloc`` (ns, 6S, 6S), ``gloc`` (ns, 6S). :meth:`finish`
-    closes the assembly; :meth:`solve` may then run several times (rejected LM steps) on the same
-    assembly."""
+    fixed frame or padding, dropped), ``Hloc`` (ns, 6S, 6S), ``gloc`` (ns, 6S)."""
 
     def __init__(self, V: int):
-        self.V = V
-        self.diag = torch.zeros(V + 1, POSE_DOF, dtype=torch.float64)  # row V: fixed / padding
-        self.g = torch.zeros(V + 1, POSE_DOF, dtype=torch.float64)
-
-    def _accumulate(self, slot_var: torch.Tensor, Hloc: torch.Tensor, gloc: torch.Tensor) -> None:
-        ns, S = slot_var.shape
-        rows = torch.where(slot_var >= 0, slot_var, self.V).reshape(-1)
-        self.g.index_add_(0, rows, gloc.reshape(ns * S, POSE_DOF))
-        self.diag.index_add_(0, rows, torch.diagonal(Hloc, dim1=1, dim2=2).reshape(ns * S, POSE_DOF))
-
-    @abc.abstractmethod
-    def add_sources(self, slot_var: torch.Tensor, Hloc: torch.Tensor, gloc: torch.Tensor) -> None:
-        """Add one chunk of source frames (class docstring)."""
-
-    def finish(self) -> None:
-        self.g_np = self.g[: self.V].reshape(-1).numpy()
-        self.diag_np = self.diag[: self.V].reshape(-1).numpy()
-
-    @abc.abstractmethod
-    def solve(self, lam: float) -> np.ndarray:
-        """dx (6V,) of ``(H + diag(damping)) dx = -g``; raises RuntimeError when singular."""
-
-    @abc.abstractmethod
-    def dense(self) -> tuple[np.ndarray, np.ndarray]:
-        """(H (6V, 6V), g (6V,)) as dense arrays (small problems, tests)."""
-
-
-class _SuperLUSystem(_ReducedSystem):
-    """Pair blocks ``H_ab`` summed over the source frames into one sparse matrix, factorised by
-    SciPy's SuperLU in symmetric mode with a minimum-degree ordering."""
-
-    def __init__(self, V: int):
-        super().__init__(V)
-        self._pairs: list[torch.Tensor] = []
-        self._blocks: list[torch.Tensor] = []
-
-    def add_sources(self, slot_var: torch.Tensor, Hloc: torch.Tensor, gloc: torch.Tensor) -> None:
-        self._accumulate(slot_var, Hloc, gloc)
-        D, V = POSE_DOF, max(self.V, 1)
-        ns, S = slot_var.shape
-        va = slot_var[:, :, None].expand(ns, S, S)
-        vb = slot_var[:, None, :].expand(ns, S, S)
-        keep = (va >= 0) & (vb >= 0)
-        blocks = Hloc.reshape(ns, S, D, S, D).permute(0, 1, 3, 2, 4)[keep]
-        upair, pinv = torch.unique(va[keep] * V + vb[keep], return_inverse=True)
-        self._pairs.append(upair)
-        self._blocks.append(torch.zeros(upair.shape[0], D, D, dtype=torch.float64).index_add_(0, pinv, blocks))
-
-    def finish(self) -> None:
-        import scipy.sparse as sp
-
-        super().finish()
-        D, V = POSE_DOF, max(self.V, 1)
-        if self._pairs:
-            upair, pinv = torch.unique(torch.cat(self._pairs), return_inverse=True)
-            Hsum = torch.zeros(upair.shape[0], D, D, dtype=torch.float64).index_add_(0, pinv, torch.cat(self._blocks))
-        else:
-            upair, Hsum = torch.zeros(0, dtype=torch.long), torch.zeros(0, D, D, dtype=torch.float64)
-        self._pairs, self._blocks = [], []
-        a = (upair // V).numpy()
-        bb = (upair % V).numpy()
-        rows = (a[:, None, None] * D + np.arange(D)[None, :, None]).repeat(D, 2).reshape(-1)
-        cols = (bb[:, None, None] * D + np.arange(D)[None, None, :]).repeat(D, 1).reshape(-1)
-        self.H = sp.csc_matrix((Hsum.numpy().reshape(-1), (rows, cols)), shape=(self.V * D, self.V * D))
-
-    def solve(self, lam: float) -> np.ndarray:
-        import scipy.sparse as sp
-        from scipy.sparse.linalg import splu
-
-        H = self.H + sp.diags(damping_diagonal(self.diag_np, lam))
-        # the damped H is symmetric positive definite: symmetric mode with a minimum-degree ordering of
-        # A^T + A and no off-diagonal pivoting keeps the fill near a Cholesky factor's (measured at 5,000
-        # keyframes: 18 M nonzeros and ~2 s, against 93 M and ~34 s with the default COLAMD)
-        lu = splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
-        return -lu.solve(self.g_np)
-
-    def dense(self) -> tuple[np.ndarray, np.ndarray]:
-        """(H (6V, 6V), g (6V,)) as dense arrays (small problems, tests)."""
-        return self.H.toarray(), self.g_np.copy()
-
-
-class _GtsamSystem(_ReducedSystem):
-    """One ``gtsam.HessianFactor`` per source frame over the pose keys of its variable slots (key =
-    variable index), built from the source's compressed Jacobian
-    (:func:`fgslam.factors.schur.to_gaussian_factor`), in a ``gtsam.GaussianFactorGraph`` that a
-    solve never copies: the damping is a second graph of unary factors (a rejected LM step
-    re-solves without rebuilding the blocks). GTSAM eliminates the union: multifrontal Cholesky
-    (``EliminatePreferCholesky``) in a METIS ordering, computed at the first solve and kept in
-    ``ordering`` (a one-element list shared by every linearisation of one problem: the factors'
-    keys never change)."""
-
-    def __init__(self, V: int, ordering: list):
         import gtsam
 
-        super().__init__(V)
+        self.V = V
         self.graph = gtsam.GaussianFactorGraph()
-        self._ordering = ordering
+        self.diag = torch.zeros(V + 1, POSE_DOF, dtype=torch.float64)  # row V: fixed / padding
 
     def add_sources(self, slot_var: torch.Tensor, Hloc: torch.Tensor, gloc: torch.Tensor) -> None:
-        self._accumulate(slot_var, Hloc, gloc)
+        """Add one chunk of source frames (class docstring)."""
         D = POSE_DOF
+        ns, S = slot_var.shape
+        rows = torch.where(slot_var >= 0, slot_var, self.V).reshape(-1)
+        self.diag.index_add_(0, rows, torch.diagonal(Hloc, dim1=1, dim2=2).reshape(ns * S, D))
         sv, H, g = slot_var.numpy(), Hloc.numpy(), gloc.numpy()
-        for i in range(sv.shape[0]):
+        for i in range(ns):
             slots = np.flatnonzero(sv[i] >= 0)
             k = len(slots)
             if k == 0:
@@ -509,25 +395,10 @@ class _GtsamSystem(_ReducedSystem):
                 H_i, g_i = H[i][np.ix_(idx, idx)], g[i, idx]
             self.graph.push_back(to_gaussian_factor(sv[i, slots].tolist(), H_i, g_i, None, dim=D))
 
-    def _damped(self, lam: float):
-        import gtsam
-
-        D = POSE_DOF
-        damping = damping_diagonal(self.diag_np, lam).reshape(self.V, D)
-        graph = gtsam.GaussianFactorGraph()
-        graph.push_back(self.graph)  # shares the block factors
-        zero = np.zeros(D)
-        for key in range(self.V):
-            graph.push_back(gtsam.HessianFactor(key, np.diag(damping[key]), zero, 0.0))
-        return graph
-
-    def solve(self, lam: float) -> np.ndarray:
-        import gtsam
-
-        graph = self._damped(lam)
-        if not self._ordering:
-            self._ordering.append(gtsam.Ordering.MetisGaussianFactorGraph(graph))
-        return np.asarray(graph.optimize(self._ordering[0]).vector())  # keys 0..V-1 in order
+    def hessian_diagonal(self) -> dict[int, np.ndarray]:
+        """``{key: diag(H) of its 6 rows}`` (the LM loop's Marquardt damping)."""
+        diag = self.diag[: self.V].numpy()
+        return dict(enumerate(diag))
 
     def dense(self) -> tuple[np.ndarray, np.ndarray]:
         """(H (6V, 6V), g (6V,)) as dense arrays (small problems, tests)."""
@@ -538,6 +409,38 @@ class _GtsamSystem(_ReducedSystem):
             ordering.push_back(key)
         H, eta = self.graph.hessian(ordering)
         return np.asarray(H), -np.asarray(eta)  # gtsam's information vector is -g
+
+
+class _LMProblem:
+    """The global BA as a problem of the backend's LM loop: state ``(T (F, 4, 4), d (P,))``; a step
+    ``delta`` (keys 0..V-1, 6 each) retracts the variable poses and back-substitutes the depths."""
+
+    def __init__(self, prob: _Problem, T: torch.Tensor, d: torch.Tensor):
+        self.prob, self.T, self.d = prob, T, d
+        self.system: _ReducedSystem | None = None
+
+    def cost(self) -> float:
+        return self.prob.cost(self.T, self.d)
+
+    def linearize(self):
+        self.system = None  # freed before the next linearisation builds its own (peak memory)
+        self.system = self.prob.linearize(self.T, self.d)
+        return self.system.graph
+
+    def hessian_diagonal(self) -> dict[int, np.ndarray]:
+        return self.system.hessian_diagonal()
+
+    def trial(self, delta) -> tuple[float, object]:
+        prob = self.prob
+        dx = torch.as_tensor(np.asarray(delta.vector())).reshape(prob.V, POSE_DOF)  # keys 0..V-1 in order
+        T_new = _retract(self.T, prob.var_frames, dx)
+        d_new = (self.d + prob.back_substitute(dx)).clamp_min(prob.cfg.min_structure)
+        new_cost = prob.cost(T_new, d_new) if bool(torch.isfinite(d_new).all()) else float("inf")
+        return new_cost, (T_new, d_new)
+
+    def accept(self, state, cost: float) -> float:
+        self.T, self.d = state
+        return cost
 
 
 def _retract(T: torch.Tensor, frames: np.ndarray, dx: torch.Tensor) -> torch.Tensor:
@@ -569,40 +472,20 @@ def global_bundle_adjustment(problem: GlobalBAProblem, config: GlobalBAConfig | 
         d = torch.as_tensor(np.asarray(problem.inv_depth, np.float64)).clone().clamp_min(cfg.min_structure)
         initial_cost = prob.cost(T, d, prob.base_w)
         steps = 0
+        settings = LMSettings(max_iterations=cfg.iterations, lambda_initial=cfg.lambda_initial,
+                              lambda_factor=cfg.lambda_factor, lambda_max=cfg.lambda_max,
+                              relative_tolerance=cfg.relative_tolerance, damping="marquardt", ordering="metis")
         for round_ in range(cfg.robust_rounds):
             if round_ > 0 or cfg.huber_first_round:
                 prob.robust = _robust_weights(prob, T, d, cfg, cut=round_ > 0)
-            cost = prob.cost(T, d)
-            lam = cfg.lambda_initial
-            for _ in range(cfg.iterations):
-                if prob.V == 0 or prob.n == 0:
-                    break
-                system = prob.linearize(T, d, prob.new_system())
-                improved = False
-                while lam <= cfg.lambda_max:
-                    steps += 1
-                    t0 = time.perf_counter()
-                    try:
-                        dx = torch.as_tensor(system.solve(lam)).reshape(prob.V, POSE_DOF)
-                    except RuntimeError:  # singular factor (SuperLU) or indeterminate system (GTSAM): more damping
-                        dx = None
-                    prob.timings["solve"] += time.perf_counter() - t0
-                    if dx is not None and bool(torch.isfinite(dx).all()):
-                        T_new = _retract(T, prob.var_frames, dx)
-                        d_new = (d + prob.back_substitute(dx)).clamp_min(cfg.min_structure)
-                        new_cost = prob.cost(T_new, d_new) if bool(torch.isfinite(d_new).all()) else float("inf")
-                        if np.isfinite(new_cost) and new_cost <= cost:
-                            improved = True
-                            break
-                    lam *= cfg.lambda_factor
-                system = None  # freed before the next linearisation builds its own (peak memory)
-                if not improved:
-                    break
-                decrease = cost - new_cost
-                T, d, cost = T_new, d_new, new_cost
-                lam = max(lam / cfg.lambda_factor, 1e-12)
-                if decrease <= cfg.relative_tolerance * max(cost, np.finfo(float).tiny):
-                    break
+            if prob.V == 0 or prob.n == 0:
+                continue
+            lm = _LMProblem(prob, T, d)
+            report = levenberg_marquardt(lm, settings, ordering_cache=prob.ordering)
+            lm.system = None
+            T, d = lm.T, lm.d
+            steps += report.solves
+            prob.timings["solve"] += report.timings["solve"]
         norms, valid = prob.residual_norms(T, d)
         final_robust = prob.robust if cfg.robust_rounds > 1 else _robust_weights(prob, T, d, cfg)
         inlier = final_robust > 0
@@ -617,7 +500,7 @@ def global_bundle_adjustment(problem: GlobalBAProblem, config: GlobalBAConfig | 
     return GlobalBAResult(T_WC=T.numpy(), inv_depth=d.numpy(), robust=final_robust.numpy()[inv_order],
                           residual=residual, initial_cost=initial_cost, final_cost=final_cost, iterations=steps,
                           seconds=seconds, num_edges=prob.n, num_variables=prob.V, timings=dict(prob.timings),
-                          linearizations=prob.linearizations, linear_solver=cfg.linear_solver)
+                          linearizations=prob.linearizations)
 
 
 def _robust_weights(prob: _Problem, T: torch.Tensor, d: torch.Tensor, cfg: GlobalBAConfig,
