@@ -55,8 +55,9 @@ class MatchingConfig:
     step_tolerance: float = ranged(1e-3, ge=0)  # px: a pixel whose step is below this has converged
     max_distance: float = ranged(0.1, gt=0)  # matched points further apart than this times the query's norm are invalid
     max_ray_error: float = ranged(0.02, gt=0)  # final unit-ray error (~rad) above this: invalid (ray left the image)
-    refine_radius: int = ranged(2, ge=0)  # px: descriptor search window radius around the LM solution (0: no refinement)
-    refine_dilations: list[int] = ranged(default_factory=lambda: [1], ge=1)  # window spacings, coarse to fine
+    refine_radius: int = ranged(1, ge=0)  # px: descriptor search window radius around the LM solution (0: no refinement)
+    refine_dilations: list[int] = ranged(default_factory=lambda: [4, 2, 1], ge=1)  # window spacings, coarse to fine
+    # (radius 1 at spacings 4, 2, 1 reaches 7 px with 27 candidates: measured in tools/bench_pointmap.py)
     threads: int = ranged(1, ge=0)  # torch intra-op threads while matching (0: torch's setting); 1: measured
     # 10x faster than 2 threads on the loaded 2-core machine (tools/bench_pointmap.py)
 
@@ -110,7 +111,7 @@ class RayImage:
         if X.ndim != 3 or X.shape[0] < 2 or X.shape[1] < 2:
             raise DataError(f"pointmap matching: the reference pointmap must be (H, W, 3), H, W >= 2; got {tuple(X.shape)}")
         self.H, self.W = int(X.shape[0]), int(X.shape[1])
-        ok = torch.isfinite(X).all(-1)
+        ok = torch.isfinite(X.sum(-1))
         if confidence is not None:
             C = torch.as_tensor(np.asarray(confidence) if not isinstance(confidence, Tensor) else confidence)
             ok &= torch.isfinite(C) & (C > min_confidence)
@@ -122,17 +123,15 @@ class RayImage:
         self.rays = rays.reshape(-1, 3).T.contiguous()  # (3, H W): channel rows for index_select
         self.points = X.reshape(-1, 3).contiguous()
 
-    def sample(self, uv: Tensor, with_jacobian: bool = True):
-        """Bilinear ray ``(3, N)`` at ``uv (N, 2)`` (clamped inside the image) and its derivatives along
-        u and v (``(3, N)`` each): one gather of the four corners."""
+    def sample(self, u: Tensor, v: Tensor):
+        """Bilinear ray ``(3, N)`` at pixels ``(u, v)`` (each ``(N,)``, inside the image) and its
+        derivatives along u and v (``(3, N)`` each): one gather of the four corners."""
         W, H = self.W, self.H
-        u = uv[:, 0].clamp(0, W - 1)
-        v = uv[:, 1].clamp(0, H - 1)
         u0 = u.floor().clamp_(max=W - 2)
         v0 = v.floor().clamp_(max=H - 2)
         fu = u - u0
         fv = v - v0
-        idx = v0.to(torch.int64) * W + u0.to(torch.int64)
+        idx = (v0 * W + u0).to(torch.int64)
         corners = self.rays.index_select(1, torch.cat((idx, idx + 1, idx + W, idx + W + 1)))
         c00, c01, c10, c11 = corners.view(3, 4, -1).unbind(1)
         d_top = c01 - c00
@@ -140,14 +139,12 @@ class RayImage:
         top = c00 + fu * d_top
         dv = (c10 + fu * d_bottom) - top
         ray = top + fv * dv
-        if not with_jacobian:
-            return ray
         du = d_top + fv * (d_bottom - d_top)
         return ray, du, dv
 
 
 def _rays(X: Tensor) -> tuple[Tensor, Tensor]:
-    ok = torch.isfinite(X).all(-1)
+    ok = torch.isfinite(X.sum(-1))  # (a NaN or inf coordinate makes the sum non-finite; 10x faster than all(-1))
     X = torch.where(ok[:, None], X, torch.zeros((), dtype=X.dtype))
     norm = torch.linalg.vector_norm(X, dim=-1, keepdim=True)
     ok &= norm[:, 0] > 0
@@ -155,63 +152,67 @@ def _rays(X: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _lm(ref: RayImage, target: Tensor, uv: Tensor, cfg: MatchingConfig) -> tuple[Tensor, Tensor]:
-    """Per-pixel LM on ``|ray_i(uv) - target|^2`` (``target (3, N)``); returns the solution and its
-    squared ray error. Converged pixels leave the active set (most do after a step or two when warm
-    started), so later iterations cost only what is still moving."""
-    W, H = ref.W, ref.H
-    uv = uv.clone()
-    ray, du, dv = ref.sample(uv)
+    """Per-pixel LM on ``|ray_i(uv) - target|^2`` (``target (3, N)``, ``uv (N, 2)`` inside the image);
+    returns the solution ``(N, 2)`` and its squared ray error. Converged pixels leave the active set
+    (most do after a step or two when warm started), so later iterations cost only what still moves."""
+    W1, H1 = float(ref.W - 1), float(ref.H - 1)
+    u_all, v_all = uv[:, 0].contiguous(), uv[:, 1].contiguous()
+    ray, du, dv = ref.sample(u_all, v_all)
     r = ray - target
-    cost = (r * r).sum(0)
-    active = torch.arange(uv.shape[0])
-    lam = torch.full((uv.shape[0],), cfg.lambda_initial, dtype=uv.dtype)
-    a_uv, a_r, a_du, a_dv, a_cost, a_lam, a_target = uv, r, du, dv, cost, lam, target
+    cost_all = (r * r).sum(0)
+    u, v, cost, tgt = u_all, v_all, cost_all, target
+    lam = torch.full_like(u, cfg.lambda_initial)
+    active = None  # None: every pixel
     for it in range(cfg.max_iterations):
-        a = (a_du * a_du).sum(0)
-        b = (a_du * a_dv).sum(0)
-        c = (a_dv * a_dv).sum(0)
-        gu = (a_du * a_r).sum(0)
-        gv = (a_dv * a_r).sum(0)
-        a_d = a * (1 + a_lam) + 1e-12
-        c_d = c * (1 + a_lam) + 1e-12
-        det = a_d * c_d - b * b
-        step = torch.stack(((b * gv - c_d * gu) / det, (b * gu - a_d * gv) / det), -1)
-        new_uv = a_uv + step
-        new_uv[:, 0].clamp_(0, W - 1)
-        new_uv[:, 1].clamp_(0, H - 1)
-        moving = (new_uv - a_uv).abs().amax(-1) > cfg.step_tolerance
-        new_ray, new_du, new_dv = ref.sample(new_uv)
-        new_r = new_ray - a_target
+        a = (du * du).sum(0)
+        b = (du * dv).sum(0)
+        c = (dv * dv).sum(0)
+        gu = (du * r).sum(0)
+        gv = (dv * r).sum(0)
+        damp = 1 + lam
+        a_d = a * damp + 1e-12
+        c_d = c * damp + 1e-12
+        inv_det = 1.0 / (a_d * c_d - b * b)
+        new_u = (u + (b * gv - c_d * gu) * inv_det).clamp_(0, W1)
+        new_v = (v + (b * gu - a_d * gv) * inv_det).clamp_(0, H1)
+        moving = torch.maximum((new_u - u).abs(), (new_v - v).abs()) > cfg.step_tolerance
+        new_ray, new_du, new_dv = ref.sample(new_u, new_v)
+        new_r = new_ray - tgt
         new_cost = (new_r * new_r).sum(0)
-        better = new_cost < a_cost
-        a_uv = torch.where(better[:, None], new_uv, a_uv)
-        a_r = torch.where(better, new_r, a_r)
-        a_du = torch.where(better, new_du, a_du)
-        a_dv = torch.where(better, new_dv, a_dv)
-        a_cost = torch.where(better, new_cost, a_cost)
-        a_lam = torch.where(better, a_lam / cfg.lambda_factor, a_lam * cfg.lambda_factor)
-        if active.numel() == uv.shape[0]:
-            uv, cost = a_uv, a_cost
+        better = new_cost < cost
+        u = torch.where(better, new_u, u)
+        v = torch.where(better, new_v, v)
+        r = torch.where(better, new_r, r)
+        du = torch.where(better, new_du, du)
+        dv = torch.where(better, new_dv, dv)
+        cost = torch.where(better, new_cost, cost)
+        lam = torch.where(better, lam / cfg.lambda_factor, lam * cfg.lambda_factor)
+        if active is None:
+            u_all, v_all, cost_all = u, v, cost
         else:
-            uv[active] = a_uv
-            cost[active] = a_cost
+            u_all[active] = u
+            v_all[active] = v
+            cost_all[active] = cost
         if it + 1 == cfg.max_iterations:
             break
         keep = moving.nonzero().squeeze(1)
         if keep.numel() == 0:
             break
-        if keep.numel() < active.numel():
-            if active.numel() == uv.shape[0]:
-                uv, cost = uv.clone(), cost.clone()
-            active = active[keep]
-            a_uv, a_cost, a_lam = a_uv[keep], a_cost[keep], a_lam[keep]
-            a_r, a_du, a_dv, a_target = a_r[:, keep], a_du[:, keep], a_dv[:, keep], a_target[:, keep]
-    return uv, cost
+        if 2 * keep.numel() <= u.numel():  # compact when half has converged (indexing costs as much as a step)
+            if active is None:
+                u_all, v_all, cost_all = u_all.clone(), v_all.clone(), cost_all.clone()
+                active = keep
+            else:
+                active = active[keep]
+            u, v, cost, lam = u[keep], v[keep], cost[keep], lam[keep]
+            r, du, dv, tgt = r[:, keep], du[:, keep], dv[:, keep], tgt[:, keep]
+    return torch.stack((u_all, v_all), -1), cost_all
 
 
 def _refine(index: Tensor, D_i: Tensor, D_j: Tensor, H: int, W: int, radius: int, dilation: int) -> tuple[Tensor, Tensor]:
-    """Best descriptor match within the window around each flat reference index (all queries at once).
-    ``D_i (H W, d)``, ``D_j (N, d)``."""
+    """Best descriptor match within the ``(2 radius + 1)^2`` window (spacing ``dilation``) around each flat
+    reference index, one candidate offset at a time over all queries (measured: gathering every
+    candidate at once is 2-3x slower, memory bound). ``D_i (H W, d)``, ``D_j (N, d)``."""
     u0 = index % W
     v0 = index // W
     best = torch.full((index.shape[0],), -torch.inf, dtype=D_i.dtype)
