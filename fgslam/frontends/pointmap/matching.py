@@ -172,9 +172,10 @@ def _lm(ref: RayImage, target: Tensor, uv: Tensor, cfg: MatchingConfig) -> tuple
         damp = 1 + lam
         a_d = a * damp + 1e-12
         c_d = c * damp + 1e-12
-        inv_det = 1.0 / (a_d * c_d - b * b)
-        new_u = (u + (b * gv - c_d * gu) * inv_det).clamp_(0, W1)
-        new_v = (v + (b * gu - a_d * gv) * inv_det).clamp_(0, H1)
+        inv_det = 1.0 / (a_d * c_d - b * b).clamp_(min=1e-30)  # >= 0 up to rounding (Cauchy-Schwarz)
+        # a degenerate step (flat or missing ray image: 0 * inf) is no step
+        new_u = (u + torch.nan_to_num_((b * gv - c_d * gu) * inv_det, 0.0, 0.0, 0.0)).clamp_(0, W1)
+        new_v = (v + torch.nan_to_num_((b * gu - a_d * gv) * inv_det, 0.0, 0.0, 0.0)).clamp_(0, H1)
         moving = torch.maximum((new_u - u).abs(), (new_v - v).abs()) > cfg.step_tolerance
         new_ray, new_du, new_dv = ref.sample(new_u, new_v)
         new_r = new_ray - tgt
