@@ -58,6 +58,8 @@ class MatchingConfig:
     refine_radius: int = ranged(1, ge=0)  # px: descriptor search window radius around the LM solution (0: no refinement)
     refine_dilations: list[int] = ranged(default_factory=lambda: [4, 2, 1], ge=1)  # window spacings, coarse to fine
     # (radius 1 at spacings 4, 2, 1 reaches 7 px with 27 candidates: measured in tools/bench_pointmap.py)
+    compile: bool = False  # fuse the LM step and the refinement with torch.compile (needs a C++ compiler;
+    # compiles once per process, ~25 s under load; measured 2.5x less CPU per match: tools/bench_pointmap.py --compile)
     threads: int = ranged(1, ge=0)  # torch intra-op threads while matching (0: torch's setting); 1: measured
     # 10x faster than 2 threads on the loaded 2-core machine (tools/bench_pointmap.py)
 
@@ -125,22 +127,28 @@ class RayImage:
 
     def sample(self, u: Tensor, v: Tensor):
         """Bilinear ray ``(3, N)`` at pixels ``(u, v)`` (each ``(N,)``, inside the image) and its
-        derivatives along u and v (``(3, N)`` each): one gather of the four corners."""
-        W, H = self.W, self.H
-        u0 = u.floor().clamp_(max=W - 2)
-        v0 = v.floor().clamp_(max=H - 2)
-        fu = u - u0
-        fv = v - v0
-        idx = (v0 * W + u0).to(torch.int64)
-        corners = self.rays.index_select(1, torch.cat((idx, idx + 1, idx + W, idx + W + 1)))
-        c00, c01, c10, c11 = corners.view(3, 4, -1).unbind(1)
-        d_top = c01 - c00
-        d_bottom = c11 - c10
-        top = c00 + fu * d_top
-        dv = (c10 + fu * d_bottom) - top
-        ray = top + fv * dv
-        du = d_top + fv * (d_bottom - d_top)
-        return ray, du, dv
+        derivatives along u and v (``(3, N)`` each)."""
+        return _sample(self.rays, self.W, u, v)
+
+
+def _sample(rays: Tensor, W: int, u: Tensor, v: Tensor):
+    """Bilinear ray image ``rays (3, H W)`` at ``(u, v)`` and its exact derivatives: one gather of the
+    four corners."""
+    H = rays.shape[1] // W
+    u0 = u.floor().clamp_(max=W - 2)
+    v0 = v.floor().clamp_(max=H - 2)
+    fu = u - u0
+    fv = v - v0
+    idx = (v0 * W + u0).to(torch.int64)
+    corners = rays.index_select(1, torch.cat((idx, idx + 1, idx + W, idx + W + 1)))
+    c00, c01, c10, c11 = corners.view(3, 4, -1).unbind(1)
+    d_top = c01 - c00
+    d_bottom = c11 - c10
+    top = c00 + fu * d_top
+    dv = (c10 + fu * d_bottom) - top
+    ray = top + fv * dv
+    du = d_top + fv * (d_bottom - d_top)
+    return ray, du, dv
 
 
 def _rays(X: Tensor) -> tuple[Tensor, Tensor]:
@@ -151,11 +159,50 @@ def _rays(X: Tensor) -> tuple[Tensor, Tensor]:
     return (X / norm.clamp_min(1e-30)).T.contiguous(), ok
 
 
-def _lm(ref: RayImage, target: Tensor, uv: Tensor, cfg: MatchingConfig) -> tuple[Tensor, Tensor]:
+def _lm_step(rays: Tensor, W: int, u: Tensor, v: Tensor, r: Tensor, du: Tensor, dv: Tensor, cost: Tensor,
+             lam: Tensor, tgt: Tensor, lambda_factor: float, step_tolerance: float):
+    """One damped Gauss-Newton step per pixel, kept where it lowers the ray error (else more damping)."""
+    W1, H1 = float(W - 1), float(rays.shape[1] // W - 1)
+    a = (du * du).sum(0)
+    b = (du * dv).sum(0)
+    c = (dv * dv).sum(0)
+    gu = (du * r).sum(0)
+    gv = (dv * r).sum(0)
+    damp = 1 + lam
+    a_d = a * damp + 1e-12
+    c_d = c * damp + 1e-12
+    inv_det = 1.0 / (a_d * c_d - b * b).clamp(min=1e-30)  # >= 0 up to rounding (Cauchy-Schwarz)
+    # a degenerate step (flat or missing ray image: 0 * inf) is no step
+    new_u = (u + torch.nan_to_num((b * gv - c_d * gu) * inv_det, 0.0, 0.0, 0.0)).clamp(0, W1)
+    new_v = (v + torch.nan_to_num((b * gu - a_d * gv) * inv_det, 0.0, 0.0, 0.0)).clamp(0, H1)
+    moving = torch.maximum((new_u - u).abs(), (new_v - v).abs()) > step_tolerance
+    new_ray, new_du, new_dv = _sample(rays, W, new_u, new_v)
+    new_r = new_ray - tgt
+    new_cost = (new_r * new_r).sum(0)
+    better = new_cost < cost
+    return (torch.where(better, new_u, u), torch.where(better, new_v, v), torch.where(better, new_r, r),
+            torch.where(better, new_du, du), torch.where(better, new_dv, dv), torch.where(better, new_cost, cost),
+            torch.where(better, lam / lambda_factor, lam * lambda_factor), moving)
+
+
+_KERNELS: dict[str, object] = {}
+
+
+def _kernels(compiled: bool):
+    """``(lm_step, refine_all)``: eager, or compiled once per process by ``torch.compile`` (fused loops;
+    falls back to eager with a warning when compilation is unavailable)."""
+    if not compiled or _KERNELS.get("failed"):
+        return _lm_step, _refine_all
+    if "lm_step" not in _KERNELS:
+        _KERNELS["lm_step"] = torch.compile(_lm_step, dynamic=True)
+        _KERNELS["refine_all"] = torch.compile(_refine_all, dynamic=True)
+    return _KERNELS["lm_step"], _KERNELS["refine_all"]
+
+
+def _lm(ref: RayImage, target: Tensor, uv: Tensor, cfg: MatchingConfig, lm_step=_lm_step) -> tuple[Tensor, Tensor]:
     """Per-pixel LM on ``|ray_i(uv) - target|^2`` (``target (3, N)``, ``uv (N, 2)`` inside the image);
     returns the solution ``(N, 2)`` and its squared ray error. Converged pixels leave the active set
     (most do after a step or two when warm started), so later iterations cost only what still moves."""
-    W1, H1 = float(ref.W - 1), float(ref.H - 1)
     u_all, v_all = uv[:, 0].contiguous(), uv[:, 1].contiguous()
     ray, du, dv = ref.sample(u_all, v_all)
     r = ray - target
@@ -164,30 +211,8 @@ def _lm(ref: RayImage, target: Tensor, uv: Tensor, cfg: MatchingConfig) -> tuple
     lam = torch.full_like(u, cfg.lambda_initial)
     active = None  # None: every pixel
     for it in range(cfg.max_iterations):
-        a = (du * du).sum(0)
-        b = (du * dv).sum(0)
-        c = (dv * dv).sum(0)
-        gu = (du * r).sum(0)
-        gv = (dv * r).sum(0)
-        damp = 1 + lam
-        a_d = a * damp + 1e-12
-        c_d = c * damp + 1e-12
-        inv_det = 1.0 / (a_d * c_d - b * b).clamp_(min=1e-30)  # >= 0 up to rounding (Cauchy-Schwarz)
-        # a degenerate step (flat or missing ray image: 0 * inf) is no step
-        new_u = (u + torch.nan_to_num_((b * gv - c_d * gu) * inv_det, 0.0, 0.0, 0.0)).clamp_(0, W1)
-        new_v = (v + torch.nan_to_num_((b * gu - a_d * gv) * inv_det, 0.0, 0.0, 0.0)).clamp_(0, H1)
-        moving = torch.maximum((new_u - u).abs(), (new_v - v).abs()) > cfg.step_tolerance
-        new_ray, new_du, new_dv = ref.sample(new_u, new_v)
-        new_r = new_ray - tgt
-        new_cost = (new_r * new_r).sum(0)
-        better = new_cost < cost
-        u = torch.where(better, new_u, u)
-        v = torch.where(better, new_v, v)
-        r = torch.where(better, new_r, r)
-        du = torch.where(better, new_du, du)
-        dv = torch.where(better, new_dv, dv)
-        cost = torch.where(better, new_cost, cost)
-        lam = torch.where(better, lam / cfg.lambda_factor, lam * cfg.lambda_factor)
+        u, v, r, du, dv, cost, lam, moving = lm_step(ref.rays, ref.W, u, v, r, du, dv, cost, lam, tgt,
+                                                      cfg.lambda_factor, cfg.step_tolerance)
         if active is None:
             u_all, v_all, cost_all = u, v, cost
         else:
@@ -227,6 +252,14 @@ def _refine(index: Tensor, D_i: Tensor, D_j: Tensor, H: int, W: int, radius: int
             best = torch.where(better, score, best)
             best_index = torch.where(better, cand, best_index)
     return best_index, best
+
+
+def _refine_all(index: Tensor, D_i: Tensor, D_j: Tensor, H: int, W: int, radius: int,
+                dilations: tuple[int, ...]) -> tuple[Tensor, Tensor]:
+    score = torch.full((index.shape[0],), float("nan"))
+    for dilation in dilations:
+        index, score = _refine(index, D_i, D_j, H, W, radius, dilation)
+    return index, score
 
 
 def match_pointmaps(
@@ -270,7 +303,16 @@ def match_pointmaps(
                     uv[bad] = identity[bad]
         uv[:, 0].clamp_(0, W - 1)
         uv[:, 1].clamp_(0, H - 1)
-        uv_lm, cost = _lm(reference, target, uv, cfg)
+        lm_step, refine_all = _kernels(cfg.compile)
+        try:
+            uv_lm, cost = _lm(reference, target, uv, cfg, lm_step)
+        except Exception as exc:  # torch.compile unavailable here (no compiler, unsupported platform)
+            if lm_step is _lm_step:
+                raise
+            logger.warning("pointmap matching: torch.compile failed (%s); matching runs eagerly", exc)
+            _KERNELS["failed"] = True
+            lm_step, refine_all = _kernels(False)
+            uv_lm, cost = _lm(reference, target, uv, cfg, lm_step)
         ray_error = cost.sqrt()
         index = uv_lm.round().to(torch.int64)
         index = index[:, 1] * W + index[:, 0]
@@ -287,8 +329,7 @@ def match_pointmaps(
             Dj = Dj.reshape(N, -1)
             if Di.shape[1] != Dj.shape[1]:
                 raise DataError(f"pointmap matching: descriptor sizes differ ({Di.shape[1]} vs {Dj.shape[1]})")
-            for dilation in cfg.refine_dilations:
-                index, score = _refine(index, Di, Dj, H, W, cfg.refine_radius, dilation)
+            index, score = refine_all(index, Di, Dj, H, W, cfg.refine_radius, tuple(cfg.refine_dilations))
             valid &= reference.valid[index]
         uv_int = torch.stack(((index % W).to(torch.float32), (index // W).to(torch.float32)), -1)
     n_valid = int(valid.sum())
