@@ -116,3 +116,23 @@ def test_matches_of_the_sources_own_pointmaps(scene, kind):
     assert valid.mean() > 0.5
     err = np.linalg.norm(m.uv.numpy() - uv_true, axis=-1)[valid & visible]
     assert np.median(err) < 0.6 and np.percentile(err, 90) < 1.5
+
+
+def test_compile_failure_falls_back_to_eager_matching(scene, monkeypatch, caplog):
+    """matching.compile with a torch.compile that cannot build kernels: one warning, the eager result."""
+    from fgslam.frontends.pointmap import matching
+
+    *_, pair, _, _, _, _ = scene
+
+    def broken_compile(fn, **kw):
+        def run(*args):
+            raise RuntimeError("no C++ compiler")
+        return run
+
+    monkeypatch.setattr(matching, "_KERNELS", {})
+    monkeypatch.setattr(matching.torch, "compile", broken_compile)
+    eager = _match(pair)
+    with caplog.at_level("WARNING"):
+        compiled = _match(pair, config=MatchingConfig(compile=True))
+    assert caplog.text.count("torch.compile failed") == 1
+    assert torch.equal(compiled.index, eager.index) and torch.equal(compiled.valid, eager.valid)

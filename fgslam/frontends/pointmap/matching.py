@@ -185,21 +185,29 @@ def _lm_step(rays: Tensor, W: int, u: Tensor, v: Tensor, r: Tensor, du: Tensor, 
             torch.where(better, lam / lambda_factor, lam * lambda_factor), moving)
 
 
-_KERNELS: dict[str, object] = {}
+_KERNELS: dict[str, object] = {}  # torch.compile'd kernels, made on first use ("failed": compilation unavailable)
 
 
-def _kernels(compiled: bool):
-    """``(lm_step, refine_all)``: eager, or compiled once per process by ``torch.compile`` (fused loops;
-    falls back to eager with a warning when compilation is unavailable)."""
+def _call(name: str, compiled: bool, *args):
+    """Run kernel ``name`` (``lm_step`` or ``refine_all``) eagerly, or compiled once per process by
+    ``torch.compile`` (fused loops); when compilation fails (no C++ compiler, unsupported platform) it
+    warns once and every later call runs eagerly."""
+    eager = {"lm_step": _lm_step, "refine_all": _refine_all}[name]
     if not compiled or _KERNELS.get("failed"):
-        return _lm_step, _refine_all
-    if "lm_step" not in _KERNELS:
-        _KERNELS["lm_step"] = torch.compile(_lm_step, dynamic=True)
-        _KERNELS["refine_all"] = torch.compile(_refine_all, dynamic=True)
-    return _KERNELS["lm_step"], _KERNELS["refine_all"]
+        return eager(*args)
+    fn = _KERNELS.get(name)
+    if fn is None:
+        fn = _KERNELS[name] = torch.compile(eager, dynamic=True)
+    try:
+        return fn(*args)
+    except Exception as exc:  # noqa: BLE001 - any compiler failure: the eager kernel computes the same
+        logger.warning("pointmap matching: torch.compile failed (%s: %s); matching runs eagerly",
+                       type(exc).__name__, exc)
+        _KERNELS["failed"] = True
+        return eager(*args)
 
 
-def _lm(ref: RayImage, target: Tensor, uv: Tensor, cfg: MatchingConfig, lm_step=_lm_step) -> tuple[Tensor, Tensor]:
+def _lm(ref: RayImage, target: Tensor, uv: Tensor, cfg: MatchingConfig) -> tuple[Tensor, Tensor]:
     """Per-pixel LM on ``|ray_i(uv) - target|^2`` (``target (3, N)``, ``uv (N, 2)`` inside the image);
     returns the solution ``(N, 2)`` and its squared ray error. Converged pixels leave the active set
     (most do after a step or two when warm started), so later iterations cost only what still moves."""
@@ -211,8 +219,8 @@ def _lm(ref: RayImage, target: Tensor, uv: Tensor, cfg: MatchingConfig, lm_step=
     lam = torch.full_like(u, cfg.lambda_initial)
     active = None  # None: every pixel
     for it in range(cfg.max_iterations):
-        u, v, r, du, dv, cost, lam, moving = lm_step(ref.rays, ref.W, u, v, r, du, dv, cost, lam, tgt,
-                                                      cfg.lambda_factor, cfg.step_tolerance)
+        u, v, r, du, dv, cost, lam, moving = _call("lm_step", cfg.compile, ref.rays, ref.W, u, v, r, du, dv, cost,
+                                                   lam, tgt, cfg.lambda_factor, cfg.step_tolerance)
         if active is None:
             u_all, v_all, cost_all = u, v, cost
         else:
@@ -303,16 +311,7 @@ def match_pointmaps(
                     uv[bad] = identity[bad]
         uv[:, 0].clamp_(0, W - 1)
         uv[:, 1].clamp_(0, H - 1)
-        lm_step, refine_all = _kernels(cfg.compile)
-        try:
-            uv_lm, cost = _lm(reference, target, uv, cfg, lm_step)
-        except Exception as exc:  # torch.compile unavailable here (no compiler, unsupported platform)
-            if lm_step is _lm_step:
-                raise
-            logger.warning("pointmap matching: torch.compile failed (%s); matching runs eagerly", exc)
-            _KERNELS["failed"] = True
-            lm_step, refine_all = _kernels(False)
-            uv_lm, cost = _lm(reference, target, uv, cfg, lm_step)
+        uv_lm, cost = _lm(reference, target, uv, cfg)
         ray_error = cost.sqrt()
         index = uv_lm.round().to(torch.int64)
         index = index[:, 1] * W + index[:, 0]
@@ -329,7 +328,8 @@ def match_pointmaps(
             Dj = Dj.reshape(N, -1)
             if Di.shape[1] != Dj.shape[1]:
                 raise DataError(f"pointmap matching: descriptor sizes differ ({Di.shape[1]} vs {Dj.shape[1]})")
-            index, score = refine_all(index, Di, Dj, H, W, cfg.refine_radius, tuple(cfg.refine_dilations))
+            index, score = _call("refine_all", cfg.compile, index, Di, Dj, H, W, cfg.refine_radius,
+                                 tuple(cfg.refine_dilations))
             valid &= reference.valid[index]
         uv_int = torch.stack(((index % W).to(torch.float32), (index // W).to(torch.float32)), -1)
     n_valid = int(valid.sum())
