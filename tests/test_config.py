@@ -189,6 +189,9 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.factors.schur:BlockConfig",
     "fgslam.factors.dense:DenseBlockConfig",
     "fgslam.frontends.dense.source:DenseSourceConfig",
+    "fgslam.factors.pointmap_block:PointmapBlockConfig",
+    "fgslam.frontends.pointmap.source:PointmapSourceConfig",
+    "fgslam.frontends.pointmap.matching:MatchingConfig",
     "fgslam.loop.bow:VocabularyTrainingConfig",
 )
 

@@ -1,0 +1,179 @@
+"""The pointmap family's pose-only block: matched pointmaps between keyframes over their Sim(3) keys.
+
+MASt3R-SLAM section 3.5 (eqs. 6-8, 10-11): an edge ``(i, j)`` of the keyframe graph carries N matches,
+each pairing the canonical point ``X_j^j`` of a pixel of keyframe j with the canonical point ``X_i^i`` of
+its match in keyframe i and a match confidence ``q``. With ``T_CiCj = T_WCi^-1 T_WCj`` the residuals are
+those of :mod:`fgslam.factors.pointmap` (reference ``k = i``, frame ``f = j``):
+
+- ``ray`` mode: ray rows ``psi(T_CiCj X_j^j) - psi(X_i^i)`` (3) and the weak distance row (1)
+  (:func:`~fgslam.factors.pointmap.ray_dist_residuals`), for uncalibrated / generic cameras;
+- ``calibrated`` mode: pixel rows ``pi(T_CiCj X_j^j) - uv_i`` (2) and the log-depth row (1)
+  (:func:`~fgslam.factors.pointmap.calibrated_residuals`), which needs the matched pixels ``uv_i``.
+
+Their Jacobians w.r.t. the relative pose are chained to the two global poses by
+:func:`~fgslam.factors.pointmap.relative_to_global`. Weighting (eq. 6): each row group (the ray 3-vector
+and the distance row; the pixel 2-vector and the log-depth row) is whitened by ``sqrt(q) / sigma``
+(the residual config) and robustified by the kernel of ``robust`` (Huber by default) applied to the
+group's whitened norm ``e``: the cost is ``sum rho(e)`` and the IRLS weight ``w(e) = rho'(e) / e``
+(:mod:`fgslam.factors.robust`), so that ``g`` is the exact gradient of the cost and ``H`` its
+Gauss-Newton Hessian.
+
+The block has no structure (``has_structure = False``): every edge's N matches are summed into one
+:class:`~fgslam.backend.blocks.LinearPiece` over its two keys (14 x 14; GTSAM's factor from it has at
+most 15 rows: :func:`fgslam.factors.schur.to_gaussian_factor`), which is the per-edge block compressed to
+a few rows of MASt3R-SLAM's second-order backend.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import torch
+
+from ..backend.blocks import LinearPiece
+from ..config import ranged
+from ..errors import DataError
+from ..lie import Sim3
+from .pointmap import PointmapResidualConfig, calibrated_residuals, ray_dist_residuals, relative_to_global
+from .robust import RobustConfig, kernel_cost, kernel_weight
+from .schur import POSE_DIM, torch_threads
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["PointmapBlock", "PointmapBlockConfig", "PointmapEdge"]
+
+# row groups of each mode: (ray 3-vector, distance) / (pixel 2-vector, log depth)
+_GROUPS = {"ray": ((0, 3), (3, 4)), "calibrated": ((0, 2), (2, 3))}
+
+
+@dataclass
+class PointmapBlockConfig:
+    """Residuals, weighting and threads of the pointmap blocks."""
+
+    mode: Literal["ray", "calibrated"] = "ray"  # ray + distance rows, or pixel + log-depth rows (needs K and uv_i)
+    residual: PointmapResidualConfig = field(default_factory=PointmapResidualConfig)
+    robust: RobustConfig = field(default_factory=RobustConfig)  # kernel on each row group's whitened norm; min_confidence drops matches
+    threads: int = ranged(1, ge=0)  # torch intra-op threads while linearising (0: torch's setting)
+
+
+@dataclass
+class PointmapEdge:
+    """Matches of one edge (module docstring): ``key_i`` the reference keyframe (whose pixels are matched),
+    ``key_j`` the other; ``X_i_in_i`` / ``X_j_in_j`` ``(N, 3)`` the matched canonical points; ``weight``
+    ``(N,)`` the match confidences q >= 0 (None: 1); ``uv_i`` ``(N, 2)`` the matched pixels of i
+    (calibrated mode)."""
+
+    key_i: int
+    key_j: int
+    X_i_in_i: np.ndarray | torch.Tensor
+    X_j_in_j: np.ndarray | torch.Tensor
+    weight: np.ndarray | torch.Tensor | None = None
+    uv_i: np.ndarray | torch.Tensor | None = None
+
+
+def _tensor(x, shape_tail: tuple[int, ...], n: int | None, what: str) -> torch.Tensor:
+    t = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x, dtype=torch.float64)
+    if t.shape[1:] != shape_tail or (n is not None and t.shape[0] != n) or t.ndim != 1 + len(shape_tail):
+        raise DataError(f"pointmap block: {what} has shape {tuple(t.shape)}, expected ({n if n is not None else 'N'}"
+                        f"{''.join(', ' + str(s) for s in shape_tail)})")
+    return t
+
+
+class _Edge:
+    def __init__(self, edge: PointmapEdge, config: PointmapBlockConfig):
+        self.key_i, self.key_j = int(edge.key_i), int(edge.key_j)
+        if self.key_i == self.key_j:
+            raise DataError(f"pointmap block: an edge joins key {self.key_i} to itself")
+        self.X_i = _tensor(edge.X_i_in_i, (3,), None, "X_i_in_i")
+        n = self.X_i.shape[0]
+        self.X_j = _tensor(edge.X_j_in_j, (3,), n, "X_j_in_j")
+        self.weight = torch.ones(n, dtype=torch.float64) if edge.weight is None else _tensor(edge.weight, (), n, "weight")
+        self.weight = torch.where(torch.isfinite(self.weight) & (self.weight >= config.robust.min_confidence),
+                                  self.weight, torch.zeros((), dtype=torch.float64))
+        if bool((self.weight < 0).any()):
+            raise DataError("pointmap block: match weights must be >= 0")
+        self.uv_i = None
+        if config.mode == "calibrated":
+            if edge.uv_i is None:
+                raise DataError("pointmap block: calibrated mode needs the matched pixels uv_i of every edge")
+            self.uv_i = _tensor(edge.uv_i, (2,), n, "uv_i")
+
+
+class PointmapBlock:
+    """Pose-only block of pointmap edges (module docstring): the backend's block contract
+    (:class:`fgslam.backend.blocks.Block`) with ``has_structure = False``; one linear piece per edge."""
+
+    has_structure = False
+
+    def __init__(self, edges: Sequence[PointmapEdge], config: PointmapBlockConfig | None = None, K=None):
+        self.config = config or PointmapBlockConfig()
+        if self.config.mode not in _GROUPS:
+            raise DataError(f"pointmap block: unknown mode {self.config.mode!r} (expected ray or calibrated)")
+        if self.config.mode == "calibrated" and K is None:
+            raise DataError("pointmap block: calibrated mode needs the intrinsics K = [fx, fy, cx, cy]")
+        self.K = None if K is None else torch.as_tensor(np.asarray(K, np.float64))
+        self.edges = [_Edge(e, self.config) for e in edges]
+        keys: list[int] = []
+        for e in self.edges:
+            keys.extend(k for k in (e.key_i, e.key_j) if k not in keys)
+        self.keys = tuple(keys)
+
+    # ------------------------------------------------------------------ evaluation
+    def _poses(self, values) -> dict[int, Sim3]:
+        poses = Sim3.from_gtsam([values.atSimilarity3(key) for key in self.keys])
+        return {key: poses[n] for n, key in enumerate(self.keys)}
+
+    def _residuals(self, edge: _Edge, T_CiCj: Sim3):
+        cfg = self.config
+        if cfg.mode == "ray":
+            return ray_dist_residuals(T_CiCj, edge.X_j, edge.X_i, edge.weight, cfg.residual)
+        return calibrated_residuals(T_CiCj, edge.X_j, edge.X_i, edge.uv_i, self.K, edge.weight, cfg.residual)
+
+    def _edge_terms(self, edge: _Edge, poses: dict[int, Sim3], jacobians: bool):
+        """Whitened residuals ``(N, m)``, per-group whitened norms, kernel costs and weights, and (with
+        ``jacobians``) the whitened Jacobian ``(N, m, 14)`` over ``(key_i, key_j)``."""
+        T_CiCj = poses[edge.key_i].inverse() @ poses[edge.key_j]
+        res = self._residuals(edge, T_CiCj)
+        e, Jw = res.whitened()
+        rb = self.config.robust
+        norms = torch.stack([torch.linalg.vector_norm(e[:, a:b], dim=-1) for a, b in _GROUPS[self.config.mode]], -1)
+        cost = kernel_cost(norms, rb.kind, rb.delta)
+        w = kernel_weight(norms, rb.kind, rb.delta)
+        J = None
+        if jacobians:
+            J_i, J_j = relative_to_global(Jw, T_CiCj)
+            J = torch.cat((J_i, J_j), -1)
+        return e, cost, w, J
+
+    def whitened_residuals(self, values) -> list[torch.Tensor]:
+        """Per edge the whitened residuals ``(N, m)`` at ``values`` (before the robust kernel)."""
+        with torch_threads(self.config.threads):
+            poses = self._poses(values)
+            return [self._edge_terms(edge, poses, False)[0] for edge in self.edges]
+
+    def cost(self, values, structure=None) -> float:
+        """GTSAM-convention cost ``sum rho(e)`` over every edge's row groups at ``values`` (no structure)."""
+        with torch_threads(self.config.threads):
+            poses = self._poses(values)
+            return float(sum(float(self._edge_terms(edge, poses, False)[1].sum()) for edge in self.edges))
+
+    def linearize(self, values) -> list[LinearPiece]:
+        """One :class:`LinearPiece` per edge over ``(key_i, key_j)``: ``H = J^T W J``, ``g = J^T W e`` (IRLS
+        weights ``W`` of the kernel per row group), ``c = 2 cost``."""
+        pieces = []
+        with torch_threads(self.config.threads):
+            poses = self._poses(values)
+            for edge in self.edges:
+                e, cost, w, J = self._edge_terms(edge, poses, True)
+                row_w = torch.cat([w[:, n:n + 1].expand(-1, b - a)
+                                   for n, (a, b) in enumerate(_GROUPS[self.config.mode])], -1)
+                Jr = J.reshape(-1, 2 * POSE_DIM)
+                wr = row_w.reshape(-1)
+                H = Jr.T @ (wr[:, None] * Jr)
+                g = Jr.T @ (wr * e.reshape(-1))
+                pieces.append(LinearPiece((edge.key_i, edge.key_j), H.numpy(), g.numpy(), 2.0 * float(cost.sum())))
+        return pieces
