@@ -59,6 +59,7 @@ from typing import Any, Callable, Literal, Optional
 
 import numpy as np
 
+from .backend.config import BackendConfig
 from .config import check_ranges, ranged, to_dict, with_sections
 from .errors import ConfigError, DataError, EvaluationError, FGSlamError, Interrupted
 from .eval import EvalConfig, EvalResult, evaluate
@@ -67,7 +68,6 @@ from .frontends.base import FrameStatus, Frontend
 from .io.datasets import Dataset, DatasetConfig, open_dataset
 from .io.trajectory import Trajectory, write_trajectory
 from .loop.closure import LoopClosureConfig
-from .map import MapConfig
 
 logger = logging.getLogger(__name__)
 
@@ -122,7 +122,7 @@ class SlamConfig:
     auto_align: bool = True  # evaluation alignment from the sensor (sim3 mono, se3 stereo/rgbd); false: eval.align
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     # (here: one section per frontend family, e.g. patch: PatchConfig, from the frontend registry)
-    map: MapConfig = field(default_factory=MapConfig)
+    map: BackendConfig = field(default_factory=BackendConfig)  # the run's backend (fgslam/backend)
     eval: EvalConfig = field(default_factory=EvalConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     # loop closure (mode off | proximity | classical | both); off by default
@@ -378,9 +378,11 @@ def run_slam(
     check_image_size(dataset)
     out = prepare_output_dir(out_dir, dataset.root)
     if frontend is None:
+        from .backend import Backend
         from .frontends import make_frontend
 
-        frontend = make_frontend(config.frontend, config, dataset.calibration, config.sensor)
+        backend = Backend(config.map)  # one per run, fed by the frontend
+        frontend = make_frontend(config.frontend, config, dataset.calibration, config.sensor, backend=backend)
     load_average = [round(v, 2) for v in os.getloadavg()]
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
     state = _RunState()

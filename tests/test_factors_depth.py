@@ -125,7 +125,7 @@ def test_local_and_global_ba_carry_the_same_prior_cost_and_information(noise, si
     from fgslam.frontends.patch.ba import PatchBlock
     from fgslam.frontends.patch.config import GlobalBAConfig
     from fgslam.frontends.patch.global_ba import GlobalBAProblem, global_bundle_adjustment
-    from fgslam.map import pose_key
+    from fgslam.backend.keys import pose_key
 
     K = np.array([200.0, 200.0, 160.0, 120.0])
     uv = rng.uniform([40, 30], [280, 210], (P, 2))

@@ -26,6 +26,10 @@ class LinearPiece:
     g: np.ndarray
     c: float
 
+    def __iter__(self):
+        """``keys, H, g, c = piece``."""
+        return iter((self.keys, self.H, self.g, self.c))
+
 
 @runtime_checkable
 class Block(Protocol):

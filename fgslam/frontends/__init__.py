@@ -8,7 +8,7 @@ builder, both as lazy ``"module:attr"`` paths. Adding a family is one entry here
 
 A builder is called as ``builder(section, calibration, sensor_mode, **services)``: the family's own
 config section, the camera calibration, ``mono | stereo | rgbd``, and the run's shared services
-(today ``map_config`` and ``loop_config``) as keywords. The registry knows nothing of the runner
+(today ``map_config``, ``loop_config`` and the run's ``backend``) as keywords. The registry knows nothing of the runner
 (:mod:`fgslam.slam` imports this module, never the reverse), and each family is imported only when
 its config class or builder is first needed, so importing :mod:`fgslam.frontends` stays cheap.
 

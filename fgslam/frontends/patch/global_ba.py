@@ -10,7 +10,7 @@ when ``right``), residual ``pi(T_CtCj T_WCtgt^-1 T_WCsrc X(uv_src, d)) - uv`` in
 ``weight * robust``. RGB-D priors ``d[prior_idx] ~ prior_value``. Frames flagged ``fixed`` are the
 gauge (monocular: at least two, which also fix the map's scale).
 
-Why not :class:`fgslam.map.SlamMap` with one :class:`~.ba.PatchBlock`: that block's reduced
+Why not one :class:`~.ba.PatchBlock` through :meth:`fgslam.backend.Backend.optimize_window`: that block's reduced
 system is dense over all its frames (7F x 7F), fine for a local window and impossible for
 thousands of keyframes. Here the Schur complement is taken *per source frame*: a patch touches
 only its source frame and the frames it is observed in, so each source frame ``i`` contributes a
