@@ -122,9 +122,14 @@ class SlamConfig:
     output: OutputConfig = field(default_factory=OutputConfig)
     # loop closure (mode off | proximity | classical | both); off by default
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    # user factor plugins, [{class: "package.module:ClassName", options: {...}}] (fgslam/backend/plugins.py)
+    factors: list[dict[str, Any]] = field(default_factory=list)
 
     def validate(self) -> None:
+        from .backend.plugins import validate_factor_entries
+
         self.loop_closure.validate()
+        validate_factor_entries(self.factors)
 
     def alignment(self) -> str:
         """Alignment used for the ATE: the sensor's (auto) or ``eval.align``."""

@@ -5,7 +5,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from fgslam.factors.planar import planar_factor, planar_residual, tilt_basis, unit_up
+from fgslam.factors.planar import fit_plane, planar_factor, planar_residual, plane_of_keyframe, tilt_basis, unit_up
 from fgslam.factors.position import camera_centre, position_noise, position_prior_factor, position_residual
 
 
@@ -115,51 +115,81 @@ def test_planar_residual_zero_on_the_plane_and_measures_height_and_tilt():
     # world z up; a forward-looking camera: x_C = -y_W, y_C = -z_W, z_C = x_W
     R0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
     ref = gtsam.Similarity3(gtsam.Rot3(R0), np.array([0.0, 0.0, 1.5]), 1.0)
+    n, d = plane_of_keyframe(ref, up)
+    np.testing.assert_allclose(n, [0, 0, 1], atol=1e-12)
+    assert d == pytest.approx(-1.5)
     yaw = gtsam.Rot3.Rz(0.7).matrix()
     on_plane = gtsam.Similarity3(gtsam.Rot3(yaw @ R0), np.array([12.0, -4.0, 0.75]), 2.0)  # centre (24, -8, 1.5)
-    r, _, _ = planar_residual(ref, on_plane, up)
-    np.testing.assert_allclose(r, 0.0, atol=1e-12)
+    np.testing.assert_allclose(planar_residual(on_plane, n, d, up)[0], 0.0, atol=1e-12)
     lifted = gtsam.Similarity3(gtsam.Rot3(yaw @ R0), np.array([12.0, -4.0, 0.85]), 2.0)  # 0.2 higher
-    assert planar_residual(ref, lifted, up)[0][0] == pytest.approx(0.2)
+    assert planar_residual(lifted, n, d, up)[0][0] == pytest.approx(0.2)
     pitch = 0.05  # about the camera x axis: the ground normal seen by the camera leans along z
     tilted = gtsam.Similarity3(gtsam.Rot3(yaw @ R0 @ gtsam.Rot3.Rx(pitch).matrix()), np.array([12.0, -4.0, 0.75]), 2.0)
-    r = planar_residual(ref, tilted, up)[0]
+    r = planar_residual(tilted, n, d, up)[0]
     assert abs(r[1]) == pytest.approx(np.sin(pitch), rel=1e-9) and abs(r[2]) < 1e-12
     roll = 0.03  # about the camera z axis: the normal leans along x
     rolled = gtsam.Similarity3(gtsam.Rot3(yaw @ R0 @ gtsam.Rot3.Rz(roll).matrix()), np.array([12.0, -4.0, 0.75]), 2.0)
-    r = planar_residual(ref, rolled, up)[0]
+    r = planar_residual(rolled, n, d, up)[0]
     assert abs(r[2]) == pytest.approx(np.sin(roll), rel=1e-9) and abs(r[1]) < 1e-12
 
 
 @pytest.mark.parametrize("up", [[0, -1, 0], [0.2, -1.0, 0.1], [0, 0, 1]])
-def test_planar_jacobians_match_finite_differences(up):
+def test_planar_jacobian_matches_finite_differences(up):
     rng = np.random.default_rng(4)
     a = unit_up(up)
     for _ in range(20):
-        T_ref, T_k = random_similarity(rng), random_similarity(rng)
-        r, J_ref, J_k = planar_residual(T_ref, T_k, a)
-        num_ref = numeric_jacobian(lambda X: planar_residual(X, T_k, a)[0], T_ref)
-        num_k = numeric_jacobian(lambda X: planar_residual(T_ref, X, a)[0], T_k)
-        scale = max(1.0, np.abs(num_ref).max(), np.abs(num_k).max())
-        np.testing.assert_allclose(J_ref, num_ref, atol=1e-7 * scale)
-        np.testing.assert_allclose(J_k, num_k, atol=1e-7 * scale)
+        T = random_similarity(rng)
+        n, d = unit_up(rng.normal(size=3)), float(rng.normal(scale=3.0))
+        r, J = planar_residual(T, n, d, a)
+        num = numeric_jacobian(lambda X: planar_residual(X, n, d, a)[0], T)
+        np.testing.assert_allclose(J, num, atol=1e-7 * max(1.0, np.abs(num).max()))
+        assert np.all(J[0, :3] == 0) and np.all(J[1:, 3:] == 0)
+
+
+def test_fit_plane_recovers_the_plane_of_noisy_level_keyframes():
+    """Keyframes on a tilted camera plane with a wobble of their attitude and height: the fit finds the
+    plane to well below the wobble (it averages), where a single keyframe's plane is off by its wobble."""
+    rng = np.random.default_rng(6)
+    up = unit_up([0.02, -1.0, 0.03])  # a mount with small roll and pitch
+    R_tilt = gtsam.Rot3.Expmap(np.array([0.1, -0.05, 0.0])).matrix()  # the ground plane's attitude in the world
+    # camera attitude: a level camera has up_C along the plane normal: R_WC up = n_true
+    n_true = R_tilt @ np.array([0.0, 0.0, 1.0])
+    d_true = -2.0
+    # a level camera maps its up axis onto the plane normal: R_level up = n_true
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(up, z)
+    R_level = R_tilt @ gtsam.Rot3.AxisAngle(axis / np.linalg.norm(axis), np.arccos(up @ z)).matrix()
+    centres, rotations = [], []
+    for k in range(200):
+        yaw = gtsam.Rot3.AxisAngle(n_true, rng.uniform(-np.pi, np.pi)).matrix()
+        R = yaw @ R_level @ gtsam.Rot3.Expmap(rng.normal(scale=0.01, size=3)).matrix()
+        np.testing.assert_allclose(yaw @ R_level @ up, n_true, atol=1e-9)
+        in_plane = rng.normal(scale=50.0, size=3)
+        in_plane -= (in_plane @ n_true) * n_true
+        centres.append(in_plane - d_true * n_true + rng.normal(scale=0.02) * n_true)
+        rotations.append(R)
+    n, d = fit_plane(np.array(centres), np.array(rotations), up, height_sigma=0.02, tilt_sigma=0.01)
+    assert np.degrees(np.arccos(min(1.0, n @ n_true))) < 0.01
+    assert d == pytest.approx(d_true, abs=0.01)
+    n1, _ = plane_of_keyframe(gtsam.Similarity3(gtsam.Rot3(rotations[0]), centres[0], 1.0), up)
+    assert np.degrees(np.arccos(min(1.0, n1 @ n_true))) > 0.05  # one keyframe: off by its wobble
 
 
 def test_planar_factor_whitens_and_linearises():
     rng = np.random.default_rng(5)
-    T_ref, T_k = random_similarity(rng), random_similarity(rng)
+    T = random_similarity(rng)
     up = [0.0, -1.0, 0.0]
-    factor = planar_factor(1, 2, up, height_sigma=0.05, tilt_sigma=0.01)
+    n, d = unit_up([0.1, 0.2, 1.0]), 0.7
+    factor = planar_factor(2, n, d, up, height_sigma=0.05, tilt_sigma=0.01)
     values = gtsam.Values()
-    values.insert(1, T_ref)
-    values.insert(2, T_k)
-    r, J_ref, J_k = planar_residual(T_ref, T_k, unit_up(up))
+    values.insert(2, T)
+    r, J = planar_residual(T, n, d, unit_up(up))
     sig = np.array([0.05, 0.01, 0.01])
     assert factor.error(values) == pytest.approx(0.5 * np.sum((r / sig) ** 2), rel=1e-12)
     A, b = factor.linearize(values).jacobian()
-    np.testing.assert_allclose(A, np.hstack([J_ref, J_k]) / sig[:, None], atol=1e-9)
+    np.testing.assert_allclose(A, J / sig[:, None], atol=1e-9)
     np.testing.assert_allclose(b, -r / sig, atol=1e-12)
-    with pytest.raises(ValueError, match="same key"):
-        planar_factor(3, 3, up, 0.05, 0.01)
     with pytest.raises(ValueError, match="sigmas"):
-        planar_factor(1, 2, up, 0.0, 0.01)
+        planar_factor(1, n, d, up, 0.0, 0.01)
+    with pytest.raises(ValueError, match="offset"):
+        planar_factor(1, n, float("nan"), up, 0.05, 0.01)

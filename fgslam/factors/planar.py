@@ -1,27 +1,28 @@
 """Planar-motion constraint of a ground vehicle: camera height and roll/pitch relative to the ground.
 
-A camera rigidly mounted on a vehicle that drives on a plane keeps a constant height above that
-plane and a constant attitude across it; only the heading and the position in the plane change.
-The plane is given by a reference keyframe ``T_ref`` (``gtsam.Similarity3``, ``X_W = s (R X_C + t)``):
-its camera's up axis ``up_C`` (unit, camera coordinates; ``(0, -1, 0)`` for a forward-looking
-camera with y pointing down) is the ground normal ``n_W = R_ref up_C``, and the plane passes at the
-reference camera's height. For keyframe ``T_k`` (centre ``c = s t``) the residual is::
+A camera rigidly mounted on a vehicle that drives on a plane keeps a constant height above it and
+a constant attitude across it; only the heading and the position in the plane change. The
+constraint uses the *camera plane* ``n_W . x + d = 0``: the plane parallel to the ground (unit normal
+``n_W``, world frame, pointing up) in which the camera centre moves. With the camera's up axis
+``up_C`` (unit, camera coordinates: the ground normal as the mounted camera sees it; ``(0, -1, 0)``
+for a level forward-looking camera with y down), the residual of keyframe ``T_WC``
+(``gtsam.Similarity3``, ``X_W = s (R X_C + t)``, centre ``c = s t``) is::
 
-    r = [ n_W . (c_k - c_ref),        height of camera k above camera ref's, along the normal
-          B^T R_k^T n_W ]             the normal seen by camera k, across its up axis     (3,)
+    r = [ n_W . c + d,            height of the camera above the camera plane (world units)
+          B^T R^T n_W ]           the plane's normal seen by the camera, across its up axis     (3,)
 
 ``B`` (3, 2) is an orthonormal basis of the plane orthogonal to ``up_C`` (:func:`tilt_basis`), so the
-last two components are the sines of camera k's tilt (pitch- and roll-like) relative to the
-reference; all three are zero when k drives on the reference's plane with its attitude. The height
-is in world units (metres once the map is metric); the residual is invariant to a common Sim(3)
-motion of both keyframes except for the scale of the height.
+last two components are the sines of the camera's tilt (pitch- and roll-like) relative to the
+plane, and ``|B^T v|^2 = 1 - (up_C . v)^2`` for the unit ``v = R^T n_W``.
 
-Jacobians for right perturbations ``T <- T Exp([w, u, lambda])`` (gtsam's ``Similarity3.retract``),
-exact at the linearisation point: ``dc/du = s R``, ``d(R a)/dw = -R [a]x``, ``d(R^T b)/dw = [R^T b]x``::
+Jacobian for right perturbations ``T <- T Exp([w, u, lambda])`` (gtsam's ``Similarity3.retract``),
+exact at the linearisation point (``dc/du = s R``, ``d(R^T n)/dw = [R^T n]x``)::
 
-    d height / d w_ref = -(c_k - c_ref)^T R_ref [up_C]x     d height / d u_ref = -s_ref up_C^T
-    d height / d u_k   =  s_k n_W^T R_k
-    d tilt   / d w_ref = -B^T R_k^T R_ref [up_C]x           d tilt   / d w_k   =  B^T [v]x,  v = R_k^T n_W
+    dr/d[w, u, lambda] = [[0,           s n_W^T R, 0],
+                          [B^T [v]x,    0,         0]]      v = R^T n_W
+
+:func:`fit_plane` gives the camera plane that best fits a set of keyframes under the same
+residuals (closed form), :func:`plane_of_keyframe` the plane of a single keyframe.
 """
 
 from __future__ import annotations
@@ -60,27 +61,45 @@ def tilt_basis(up_C: np.ndarray) -> np.ndarray:
     return np.stack([b1, np.cross(up_C, b1)], axis=1)
 
 
-def planar_residual(T_ref, T_k, up_C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Residual (3,) ``[height, tilt_1, tilt_2]`` of keyframe ``T_k`` relative to the ground plane of
-    ``T_ref`` (both ``gtsam.Similarity3``; ``up_C`` unit) and its Jacobians (3, 7) w.r.t. the right
-    perturbations of ``T_ref`` and ``T_k``."""
+def planar_residual(T_WC, n_W: np.ndarray, d: float, up_C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Residual (3,) ``[height, tilt_1, tilt_2]`` of keyframe ``T_WC`` (``gtsam.Similarity3``) relative to
+    the camera plane ``n_W . x + d = 0`` (``n_W``, ``up_C`` unit) and its Jacobian (3, 7) for right
+    perturbations ``[w, u, lambda]``."""
     up = np.asarray(up_C, dtype=np.float64)
+    n = np.asarray(n_W, dtype=np.float64)
     B = tilt_basis(up)
-    R_ref, R_k = T_ref.rotation().matrix(), T_k.rotation().matrix()
-    s_ref, s_k = float(T_ref.scale()), float(T_k.scale())
-    c_ref, c_k = camera_centre(T_ref), camera_centre(T_k)
-    n_W = R_ref @ up
-    v = R_k.T @ n_W
-    r = np.concatenate([[n_W @ (c_k - c_ref)], B.T @ v])
-    J_ref = np.zeros((PLANAR_DIM, POSE_DOF))
-    J_k = np.zeros((PLANAR_DIM, POSE_DOF))
-    up_x = _skew(up)
-    J_ref[0, 0:3] = -(c_k - c_ref) @ R_ref @ up_x
-    J_ref[0, 3:6] = -s_ref * up
-    J_k[0, 3:6] = s_k * (n_W @ R_k)
-    J_ref[1:, 0:3] = -B.T @ R_k.T @ R_ref @ up_x
-    J_k[1:, 0:3] = B.T @ _skew(v)
-    return r, J_ref, J_k
+    R = T_WC.rotation().matrix()
+    v = R.T @ n
+    r = np.concatenate([[n @ camera_centre(T_WC) + d], B.T @ v])
+    J = np.zeros((PLANAR_DIM, POSE_DOF))
+    J[0, 3:6] = float(T_WC.scale()) * (n @ R)
+    J[1:, 0:3] = B.T @ _skew(v)
+    return r, J
+
+
+def plane_of_keyframe(T_WC, up_C: np.ndarray) -> tuple[np.ndarray, float]:
+    """The camera plane ``(n_W, d)`` of one keyframe: normal ``R up_C`` through its centre."""
+    n = T_WC.rotation().matrix() @ np.asarray(up_C, dtype=np.float64)
+    return n, float(-n @ camera_centre(T_WC))
+
+
+def fit_plane(centres: np.ndarray, R_WC: np.ndarray, up_C: np.ndarray, height_sigma: float,
+              tilt_sigma: float) -> tuple[np.ndarray, float]:
+    """Camera plane ``(n_W, d)`` minimising the whitened planar residuals of N keyframes (centres
+    (N, 3), rotations (N, 3, 3)) with the keyframes held fixed. Closed form: with ``a_k = R_k up_C``
+    and ``d = -n . mean(c)``, the cost is ``n^T (C / sh^2 - A / st^2) n + const`` (``C`` the centres'
+    scatter, ``A = sum a_k a_k^T``, using ``|B^T R^T n|^2 = 1 - (a . n)^2``), minimised by the
+    eigenvector of the smallest eigenvalue, signed along ``sum a_k``."""
+    c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    a = np.asarray(R_WC, dtype=np.float64).reshape(-1, 3, 3) @ np.asarray(up_C, dtype=np.float64)
+    c_mean = c.mean(axis=0)
+    dc = c - c_mean
+    M = dc.T @ dc / height_sigma ** 2 - a.T @ a / tilt_sigma ** 2
+    _, vectors = np.linalg.eigh(M)
+    n = vectors[:, 0]
+    if n @ a.sum(axis=0) < 0:
+        n = -n
+    return n, float(-n @ c_mean)
 
 
 def planar_noise(height_sigma: float, tilt_sigma: float):
@@ -94,21 +113,21 @@ def planar_noise(height_sigma: float, tilt_sigma: float):
     return gtsam.noiseModel.Diagonal.Sigmas(sig)
 
 
-def planar_factor(key_ref: int, key_k: int, up_C: Sequence[float], height_sigma: float, tilt_sigma: float):
-    """``gtsam.CustomFactor`` on two Similarity3 keys: keyframe ``key_k`` on the ground plane of
-    ``key_ref`` with its attitude across the plane (see the module docstring)."""
+def planar_factor(key: int, n_W: np.ndarray, d: float, up_C: Sequence[float], height_sigma: float,
+                  tilt_sigma: float):
+    """``gtsam.CustomFactor`` on the Similarity3 at ``key``: the camera on the camera plane
+    ``n_W . x + d = 0`` with its up axis ``up_C`` along the plane's normal (module docstring)."""
     import gtsam
 
     up = unit_up(up_C)
-    if int(key_ref) == int(key_k):
-        raise ValueError(f"planar factor: reference and keyframe are the same key {key_k}")
+    n = unit_up(n_W)
+    if not np.isfinite(d):
+        raise ValueError(f"planar factor on key {key}: non-finite plane offset {d!r}")
 
     def error(this, values, jacobians):
-        keys = this.keys()
-        r, J_ref, J_k = planar_residual(values.atSimilarity3(keys[0]), values.atSimilarity3(keys[1]), up)
+        r, J = planar_residual(values.atSimilarity3(this.keys()[0]), n, float(d), up)
         if jacobians is not None:
-            jacobians[0] = J_ref
-            jacobians[1] = J_k
+            jacobians[0] = J
         return r
 
-    return gtsam.CustomFactor(planar_noise(height_sigma, tilt_sigma), [int(key_ref), int(key_k)], error)
+    return gtsam.CustomFactor(planar_noise(height_sigma, tilt_sigma), [int(key)], error)
