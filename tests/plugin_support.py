@@ -73,10 +73,11 @@ class DriftingOdometry:
     def __init__(self, backend, t: np.ndarray, T_WC: np.ndarray, rng: np.random.Generator, *,
                  rot_sigma: float = 0.002, trans_sigma: float = 0.01, scale_drift: float = 0.0,
                  window: int = 5, iterations: int = 3, factor_sigmas: np.ndarray | None = None,
-                 first_pose: np.ndarray | None = None, initial_scale: float = 1.0) -> None:
+                 first_pose: np.ndarray | None = None, initial_scale: float = 1.0, plugins=()) -> None:
         self.backend, self.t, self.T_WC, self.rng = backend, t, T_WC, rng
         self.rot_sigma, self.trans_sigma, self.scale_drift = rot_sigma, trans_sigma, scale_drift
         self.window, self.iterations = window, iterations
+        self.plugins = [p for p in plugins if callable(getattr(p, "poll", None))]
         self.sigmas = (np.array([rot_sigma] * 3 + [trans_sigma] * 3 + [1e-3]) if factor_sigmas is None
                        else np.asarray(factor_sigmas, dtype=np.float64))
         self.Z: dict[tuple[int, int], np.ndarray] = {}
@@ -103,10 +104,12 @@ class DriftingOdometry:
             return
         Z = self.measure(k - 1, k)
         self.Z[(k - 1, k)] = Z
-        b.add_keyframe(k, b.pose_matrix(k - 1) @ Z, float(self.t[k]))  # plugins may correct the map in here
+        b.add_keyframe(k, b.pose_matrix(k - 1) @ Z, float(self.t[k]))
         self._add_factor(k - 1, k)
         free = [kf for kf in b.keyframe_ids[-self.window:]]
         b.optimize_window(free, self.iterations)
+        for plugin in self.plugins:  # the safe point after a frame
+            plugin.poll(b)
 
     def _add_factor(self, i: int, j: int) -> None:
         factor = gtsam.BetweenFactorSimilarity3(self.backend.pose_key(i) if hasattr(self.backend, "pose_key")

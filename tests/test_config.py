@@ -164,6 +164,8 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.factors.robust:RobustConfig",
     "fgslam.factors.schur:BlockConfig",
     "fgslam.loop.bow:VocabularyTrainingConfig",
+    "fgslam.backend.plugins:PositionPriorOptions",
+    "fgslam.backend.plugins:PlanarMotionOptions",
 )
 
 

@@ -223,7 +223,7 @@ def run_position_drive(tmp_path, preset, use_plugin, seed=0, scale_drift=0.02, *
                                                                          "max_dt": 0.2, **options}}])
         attach_plugins(plugins, backend, timestamps=t)
     odometry = DriftingOdometry(backend, t, T_true, np.random.default_rng(seed + 1), scale_drift=scale_drift,
-                                first_pose=np.eye(4), initial_scale=0.3)
+                                first_pose=np.eye(4), initial_scale=0.3, plugins=plugins)
     odometry.run()
     finish_plugins(plugins, backend)
     est = np.array([backend.pose_matrix(k) for k in range(len(t))])

@@ -16,7 +16,13 @@ exists: a plugin typically registers ``backend.on_keyframe(callback)`` (``callba
 key)`` after each new keyframe) and adds GTSAM factors with ``backend.add_factor(factor, owner=key)``
 (an :class:`~fgslam.errors.OptimizationError` naming the key when a factor uses a key the backend
 does not hold). Optional methods: ``check_run(timestamps)`` (the run's frame times, before the first
-frame: refuse data that cannot apply) and ``finish(backend)`` (after the last frame).
+frame: refuse data that cannot apply), ``poll(backend)`` (the safe point after every frame, where a
+plugin may move the map: on_keyframe callbacks run inside a frontend's frame) and
+``finish(backend)`` (after the last frame).
+
+A plugin moves the map with :func:`apply_correction` (a ``PoseCorrection``, as loop closure does):
+through ``backend.apply_correction`` when the backend offers it, which lets the contributors fold
+the correction into their structure; otherwise by setting every keyframe pose.
 
 Two built-in plugins:
 
@@ -129,6 +135,14 @@ def attach_plugins(plugins: Sequence[Any], backend: Any, timestamps: Optional[np
         plugin.attach(backend)
 
 
+def poll_plugins(plugins: Sequence[Any], backend: Any) -> None:
+    """At the frontend's safe point after each frame: ``poll(backend)`` of each plugin that has it."""
+    for plugin in plugins:
+        poll = getattr(plugin, "poll", None)
+        if callable(poll):
+            poll(backend)
+
+
 def finish_plugins(plugins: Sequence[Any], backend: Any) -> None:
     """After the last frame: ``finish(backend)`` of each plugin that has it."""
     for plugin in plugins:
@@ -194,7 +208,7 @@ class PositionPriorOptions:
 
     file: Optional[Path] = None  # positions file, 't x y z' per line (seconds on the dataset's clock, metres); required
     sigma: Union[float, list[float]] = ranged(1.0, gt=0)  # metres: one (isotropic) or a list of three (x, y, z)
-    time_offset: float = 0.0  # seconds added to the file's times to put them on the dataset's clock
+    time_offset: float = ranged(0.0)  # seconds added to the file's times to put them on the dataset's clock
     max_dt: float = ranged(0.1, gt=0)  # s: a sample becomes a prior on the keyframe nearest in time when that close
     huber_k: Optional[float] = ranged(None, gt=0)  # whitened Huber threshold against outlier fixes (null: Gaussian)
     min_samples: int = ranged(10, ge=3)  # samples matched to keyframes before the map is aligned to the positions
@@ -278,18 +292,24 @@ class PositionPrior:
                     "aligned" if self.aligned else "never aligned (too few or too little spread samples)",
                     self.corrections)
 
+    def poll(self, backend: Any) -> None:
+        """Safe point (after a frame, no optimisation running): align the map once the samples allow
+        it, then a pose-graph correction after every ``correct_every`` new priors."""
+        if not self.aligned:
+            self._try_align()
+        elif self.options.correct_every and self._since_correction >= self.options.correct_every:
+            self.correct()
+
     # -- matching samples to keyframes
     def _on_keyframe(self, kf_id: int, timestamp: float, key: int) -> None:
+        """Inside the backend's add_keyframe (a frontend mid-frame): only match samples and add priors;
+        anything that moves the map waits for :meth:`poll`."""
         self._kf_ids.append(int(kf_id))
         self._kf_times.append(float(timestamp))
         self._kf_keys[int(kf_id)] = int(key)
         self._match_samples(float(timestamp))
-        if not self.aligned:
-            self._try_align()
-        else:
+        if self.aligned:
             self._add_priors()
-            if self.options.correct_every and self._since_correction >= self.options.correct_every:
-                self.correct()
 
     def _match_samples(self, t_now: float) -> None:
         """Match every sample up to ``t_now`` (all keyframes before it are known) to its nearest keyframe."""
@@ -373,7 +393,7 @@ class PlanarMotionOptions:
 
     # the ground normal in camera coordinates (the camera's up axis): (0, -1, 0) for a level
     # forward-looking camera with y down; include the mount's pitch and roll (calibrated)
-    up_axis: list[float] = dataclasses.field(default_factory=lambda: [0.0, -1.0, 0.0])
+    up_axis: list[float] = ranged(default_factory=lambda: [0.0, -1.0, 0.0])  # finite; not all zero (checked)
     height_sigma: float = ranged(0.05, gt=0)  # world units (metres in a metric map): camera height above the plane
     tilt_sigma: float = ranged(0.01, gt=0)  # rad (sine of the angle): roll and pitch across the plane
     refit_every: int = ranged(10, ge=1)  # new keyframes between two fits of the plane to every keyframe
