@@ -216,6 +216,7 @@ class PositionPriorOptions:
     # m: second principal standard deviation before aligning: a straight path leaves the rotation about it open
     min_lateral_spread: float = ranged(3.0, ge=0)
     correct_every: int = ranged(10, ge=0)  # a pose-graph correction after every this many new priors (0: only at the end)
+    align_scale: bool = True  # the alignment estimates the map's scale (monocular); false: rigid (stereo, RGB-D maps)
 
 
 class PositionPrior:
@@ -288,9 +289,13 @@ class PositionPrior:
         if self.aligned:
             self._add_priors()
             self.correct()
-        logger.info("%s: %d position priors, %s, %d pose-graph corrections", self.key, len(self._handles),
-                    "aligned" if self.aligned else "never aligned (too few or too little spread samples)",
-                    self.corrections)
+        if not self.aligned:
+            logger.warning("%s: the map was never aligned to the positions (%d samples matched to keyframes; "
+                           "options min_samples %d, min_spread %g m, min_lateral_spread %g m): no position priors",
+                           self.key, len(self._matched), self.options.min_samples, self.options.min_spread,
+                           self.options.min_lateral_spread)
+            return
+        logger.info("%s: %d position priors, %d pose-graph corrections", self.key, len(self._handles), self.corrections)
 
     def poll(self, backend: Any) -> None:
         """Safe point (after a frame, no optimisation running): align the map once the samples allow
@@ -347,7 +352,7 @@ class PositionPrior:
             return False
         if np.linalg.svd(centres - centres.mean(axis=0), compute_uv=False)[0] <= 0:
             return False
-        a = umeyama(centres, positions, with_scale=True)
+        a = umeyama(centres, positions, with_scale=self.options.align_scale)
         U = np.eye(4)
         U[:3, :3] = a.s * a.R
         U[:3, 3] = a.t
