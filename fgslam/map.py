@@ -336,7 +336,7 @@ class SlamMap:
         constant = 0.0
         d = POSE_DIM
         for block in self._blocks.values():
-            keys, H, g, c = block.linearize(values)
+            keys, H, g, c = block.linearize(values)[0]
             constant += c
             for a, ka in enumerate(keys):
                 sa = slice(d * a, d * a + d)
@@ -477,7 +477,7 @@ class SlamMap:
 
         out = gtsam.NonlinearFactorGraph()
         for block in self._blocks.values():
-            keys, H, g, c = block.linearize(values)
+            keys, H, g, c = block.linearize(values)[0]
             lin_point = gtsam.Values()
             for key in keys:
                 lin_point.insert(key, values.atSimilarity3(key))

@@ -128,7 +128,7 @@ def test_sparse_reduction_equals_dense_patch_block(stereo, priors, solver):
     values = gtsam.Values()
     for f, key in zip(var, keys):
         values.insert(key, Sim3.from_matrix(torch.as_tensor(T0[f])).to_gtsam())
-    _, H_dense, g_dense, _ = block.linearize(values)
+    _, H_dense, g_dense, _ = block.linearize(values)[0]
     keep = np.concatenate([np.arange(7 * i, 7 * i + 6) for i in range(V)])
     H_ref, g_ref = H_dense[np.ix_(keep, keep)], g_dense[keep]
     scale = np.abs(H_ref).max()

@@ -80,8 +80,8 @@ def test_per_row_weights():
     one = PatchBlock(*args, w, np.arange(n), K, d)
     two = PatchBlock(*args, np.stack([w, w], 1), np.arange(n), K, d)
     u_only = PatchBlock(*args, np.stack([w, np.zeros(n)], 1), np.arange(n), K, d)
-    _, H1, g1, c1 = one.linearize(values)
-    _, H2, g2, c2 = two.linearize(values)
+    _, H1, g1, c1 = one.linearize(values)[0]
+    _, H2, g2, c2 = two.linearize(values)[0]
     np.testing.assert_allclose(H2, H1, rtol=1e-12)
     np.testing.assert_allclose(g2, g1, rtol=1e-12)
     r, valid = one.residuals(values)

@@ -196,7 +196,7 @@ def test_block_gradient_matches_finite_differences_at_optimal_structure(patch):
     block, values = small_block(0, patch=patch)
     cost_refined = block.refine_structure(values)
     assert cost_refined == pytest.approx(block.cost(values), rel=1e-12)
-    keys, H, g, c = block.linearize(values)
+    keys, H, g, c = block.linearize(values)[0]
     # at the optimal structure the reduced constant is the cost and the reduced gradient is the
     # partial gradient of the cost in the poses (envelope theorem): check against central differences
     assert 0.5 * c == pytest.approx(block.cost(values), rel=1e-8)
@@ -220,7 +220,7 @@ def test_block_gradient_matches_finite_differences_at_optimal_structure(patch):
 def test_block_back_substitution_predicts_joint_gauss_newton_structure():
     block, values = small_block(1, noise=0.0)
     block.refine_structure(values, steps=30)  # optimal structure at the linearisation point
-    keys, H, g, c = block.linearize(values)
+    keys, H, g, c = block.linearize(values)[0]
     dx = 1e-4 * np.random.default_rng(0).standard_normal(len(keys) * D)
     vv = gtsam.VectorValues()
     for a, key in enumerate(keys):
@@ -235,7 +235,7 @@ def test_block_back_substitution_predicts_joint_gauss_newton_structure():
 def test_block_zero_weights_and_invalid_rows_are_counted_not_nan():
     block, values = small_block(2)
     block.uv_source[:3] = torch.nan  # degenerate measurements
-    keys, H, g, c = block.linearize(values)
+    keys, H, g, c = block.linearize(values)[0]
     assert np.isfinite(H).all() and np.isfinite(g).all() and np.isfinite(c)
     assert block.num_invalid == 3
     assert np.isfinite(block.cost(values))
@@ -244,9 +244,9 @@ def test_block_zero_weights_and_invalid_rows_are_counted_not_nan():
 def test_block_per_edge_and_per_row_evaluation_agree():
     block, values = small_block(3, patch=True)
     block.config.per_edge_min_rows = 0  # one reprojection call per edge
-    keys, H_edge, g_edge, c_edge = block.linearize(values)
+    keys, H_edge, g_edge, c_edge = block.linearize(values)[0]
     block.config.per_edge_min_rows = 10**9  # one call with per-row poses
-    _, H_row, g_row, c_row = block.linearize(values)
+    _, H_row, g_row, c_row = block.linearize(values)[0]
     np.testing.assert_allclose(H_edge, H_row, rtol=1e-10, atol=1e-10 * np.abs(H_row).max())
     np.testing.assert_allclose(g_edge, g_row, rtol=1e-10, atol=1e-10 * np.abs(g_row).max())
     assert c_edge == pytest.approx(c_row, rel=1e-12)

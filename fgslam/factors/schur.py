@@ -31,10 +31,10 @@ from it. The 4.3.0 wheel's JacobianFactor and HessianFactor constructors take at
 cost above.
 
 Blocks: :class:`VisualBlock` owns measurements and structure and offers ``linearize(values) ->
-(keys, H, g, c)``, ``back_substitute(delta)``, ``cost(values)`` and ``refine_structure(values)``
+[LinearPiece(keys, H, g, c)]`` (:class:`fgslam.backend.blocks.Block`), ``back_substitute(delta)``, ``cost(values)`` and ``refine_structure(values)``
 (``values``: a ``gtsam.Values`` of Similarity3 T_WC). :class:`InverseDepthBlock` implements it with
 ``fgslam.factors.reprojection``; a frontend builds one block per source keyframe (its inverse-depth
-map or patches, with all outgoing edges) and hands it to ``fgslam.map.SlamMap.add_block``::
+map or patches, with all outgoing edges) and hands it to ``fgslam.backend.Backend.set_blocks``::
 
     block = InverseDepthBlock(keys=[pose_key(i), pose_key(j1), pose_key(j2)],
                               source_slot=zeros, target_slot=slot_of_each_row, uv_source=uv_i,
@@ -54,6 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..backend.blocks import LinearPiece
 from ..config import ranged
 from ..errors import OptimizationError
 from ..lie import Sim3
@@ -401,6 +402,7 @@ class VisualBlock(abc.ABC):
     """
 
     keys: tuple[int, ...]
+    has_structure = True  # fgslam.backend.blocks.Block: the structure is eliminated in linearize()
     slots: torch.Tensor  # (N, S) pose slots of each measurement
     struct_idx: torch.Tensor  # (N,) structure of each measurement
     groups: SlotGroups
@@ -437,9 +439,9 @@ class VisualBlock(abc.ABC):
         """The block's poses (k,) from a ``gtsam.Values`` holding Similarity3 at ``self.keys``."""
         return Sim3.from_gtsam([values.atSimilarity3(key) for key in self.keys])
 
-    def linearize(self, values) -> tuple[tuple[int, ...], np.ndarray, np.ndarray, float]:
-        """``(keys, H, g, c)`` of the Schur-reduced system at ``values`` and the current structure;
-        the reduced GTSAM-convention cost model is ``0.5 (dx^T H dx + 2 g^T dx + c)``."""
+    def linearize(self, values) -> list[LinearPiece]:
+        """``[LinearPiece(keys, H, g, c)]``: the Schur-reduced system at ``values`` and the current
+        structure; the reduced GTSAM-convention cost model is ``0.5 (dx^T H dx + 2 g^T dx + c)``."""
         with torch_threads(self.config.threads):
             res = self.evaluate(self.poses_from_values(values), self.structure, jacobians=True)
             self._system = schur_reduce(
@@ -447,7 +449,7 @@ class VisualBlock(abc.ABC):
                 self.num_structs, self.config.structure_damping, self.groups, self.config.min_information,
             )
         sys_ = self._system
-        return self.keys, sys_.H.numpy(), sys_.g.numpy(), sys_.c
+        return [LinearPiece(self.keys, sys_.H.numpy(), sys_.g.numpy(), sys_.c)]
 
     def back_substitute(self, delta) -> torch.Tensor:
         """Structure update (P,) for the pose update ``delta`` (gtsam.VectorValues or (7k,) array)

@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ...backend.blocks import LinearPiece
 from ...errors import OptimizationError
 from ...factors.reprojection import ReprojectionConfig, reproject, reproject_inv_depth
 from ...factors.schur import (
@@ -244,8 +245,8 @@ class PatchBlock(VisualBlock):
         rows = self._row_of_edge
         return res.r[rows], self._valid[rows]
 
-    def linearize(self, values) -> tuple[tuple[int, ...], np.ndarray, np.ndarray, float]:
-        """Schur-reduced ``(keys, H, g, c)`` as in :meth:`VisualBlock.linearize`, batched over groups."""
+    def linearize(self, values) -> list[LinearPiece]:
+        """Schur-reduced ``[LinearPiece(keys, H, g, c)]`` as in :meth:`VisualBlock.linearize`, batched over groups."""
         f64 = torch.float64
         k = len(self.keys)
         kk = k + 1
@@ -291,4 +292,4 @@ class PatchBlock(VisualBlock):
             F.index_add_(0, idx[:ne] * kk + row_b, FE_j)
             F = F.reshape(P, kk * d)[:, : k * d]
             self._system = eliminate_structure(H, g, c, F, bvec, C, self.config.min_information)
-        return self.keys, self._system.H.numpy(), self._system.g.numpy(), self._system.c
+        return [LinearPiece(self.keys, self._system.H.numpy(), self._system.g.numpy(), self._system.c)]

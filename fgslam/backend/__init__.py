@@ -1,0 +1,29 @@
+"""The persistent GTSAM backend that every frontend feeds (docs/design.md section 1).
+
+Modules: :mod:`.keys` (gtsam keys of keyframe poses and other variables), :mod:`.blocks` (the
+contract of a frontend's measurement blocks), :mod:`.solver` (the one Levenberg-Marquardt loop),
+:mod:`.config` (``BackendConfig``, the ``map`` section), :mod:`.graph` (``Backend``).
+Importing this package imports no gtsam or torch (each module imports them where used; the names
+below are resolved lazily).
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "Backend": ".graph", "OptimizeReport": ".graph",
+    "BackendConfig": ".config", "GaugeConfig": ".config", "WindowConfig": ".config",
+    "Block": ".blocks", "LinearPiece": ".blocks",
+    "pose_key": ".keys", "key_name": ".keys",
+}
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(module, __name__), name)
+
+
+__all__ = sorted(_EXPORTS)

@@ -1,0 +1,62 @@
+"""The contract of a measurement block that a frontend hands to the backend.
+
+A block owns its measurements (and, for inverse-depth frontends, their structure, eliminated by a
+Schur complement when linearised: docs/design.md section 3) and touches a set of pose keys. The
+backend adds the blocks' linear pieces to the linearised GTSAM graph, so two contributors may add
+blocks on the same keys. A pose-only block (the pointmap family's ray factors) has no structure.
+
+:class:`fgslam.factors.schur.VisualBlock` satisfies :class:`Block` with structure.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+@dataclass
+class LinearPiece:
+    """One Gaussian contribution in GTSAM's cost convention: ``0.5 (dx^T H dx + 2 g^T dx + c)`` over
+    the tangents of ``keys`` (in order, each of its variable's dimension)."""
+
+    keys: tuple[int, ...]
+    H: np.ndarray
+    g: np.ndarray
+    c: float
+
+    def __iter__(self):
+        """``keys, H, g, c = piece``."""
+        return iter((self.keys, self.H, self.g, self.c))
+
+
+@runtime_checkable
+class Block(Protocol):
+    """A contributor's measurement block (module docstring)."""
+
+    keys: tuple[int, ...]  # pose keys it touches (all must exist in the backend)
+    has_structure: bool  # False: a pose-only block
+
+    def linearize(self, values) -> list[LinearPiece]:
+        """Linear pieces at ``values`` (one for a window block, many for a global one)."""
+
+    def cost(self, values, structure=None) -> float:
+        """GTSAM-convention cost at ``values`` (and ``structure``, default: the current one)."""
+
+
+@runtime_checkable
+class StructureBlock(Block, Protocol):
+    """A block with its own structure, eliminated in :meth:`linearize`."""
+
+    @property
+    def structure(self): ...
+
+    def set_structure(self, structure) -> None: ...
+
+    def clamp_structure(self, structure): ...
+
+    def back_substitute(self, delta):
+        """Structure update for the pose update ``delta`` at the last linearisation point."""
+
+    def refine_structure(self, values, steps: int | None = None) -> float: ...
