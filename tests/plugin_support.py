@@ -9,22 +9,12 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
+from fgslam.backend.config import BackendConfig
+from fgslam.backend.graph import Backend, as_similarity3
+from fgslam.backend.keys import pose_key
 from fgslam.io.synth.presets import build_trajectory, default_config
 from fgslam.io.synth.sequence import camera_mount
 from fgslam.loop.closure import LoopCorrection
-
-
-def sim3_to_gtsam(T: np.ndarray) -> gtsam.Similarity3:
-    """4x4 ``[[s R, t], [0, 1]]`` -> gtsam.Similarity3 (``X -> s (R X + t / s)``)."""
-    s = float(np.cbrt(np.linalg.det(T[:3, :3])))
-    return gtsam.Similarity3(gtsam.Rot3(T[:3, :3] / s), T[:3, 3] / s, s)
-
-
-def gtsam_to_sim3(S: gtsam.Similarity3) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = S.scale() * S.rotation().matrix()
-    T[:3, 3] = S.scale() * np.asarray(S.translation())
-    return T
 
 
 def drive(preset: str = "street-loop", seconds: float | None = None, keyframe_dt: float = 0.3,
@@ -112,9 +102,7 @@ class DriftingOdometry:
             plugin.poll(b)
 
     def _add_factor(self, i: int, j: int) -> None:
-        factor = gtsam.BetweenFactorSimilarity3(self.backend.pose_key(i) if hasattr(self.backend, "pose_key")
-                                                else gtsam.symbol("x", i),
-                                                gtsam.symbol("x", j), sim3_to_gtsam(self.Z[(i, j)]),
+        factor = gtsam.BetweenFactorSimilarity3(pose_key(i), pose_key(j), as_similarity3(self.Z[(i, j)]),
                                                 gtsam.noiseModel.Diagonal.Sigmas(self.sigmas))
         self.handles[(i, j)] = self.backend.add_factor(factor, owner=self.name)
 
@@ -145,84 +133,15 @@ def ate_se3(T_est: np.ndarray, T_true: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((aligned - T_true[:, :3, 3]) ** 2, axis=1))))
 
 
-class GraphBackend:
-    """Stand-in for :class:`fgslam.backend.graph.Backend` (until it is merged) over plain gtsam graphs,
-    with the part of BACKEND_SPEC.md's interface that the plugins use: keyframes with timestamps and
-    callbacks, factors by handle and owner (unknown keys: OptimizationError naming the key), an anchor
-    gauge prior, windowed / global optimisation with gtsam's LM (keys outside the window held by a
-    tight prior), the Sim(3) pose-graph correction and corrections applied to contributors."""
+class CorrectingBackend(Backend):
+    """The backend with what the runner does around it for corrections: contributors registered with
+    :meth:`add_contributor` hear every correction applied with :meth:`apply_correction` (poses set
+    from ``correction.apply_pose``, then ``contributor.apply_correction``), as the loop service does
+    at a frontend's safe point."""
 
-    ANCHOR_SIGMA = 1e-3
-    FIXED_SIGMA = 1e-7
-    PGC_SIGMAS = np.array([1e-2] * 3 + [1e-1] * 3 + [1e-2])
-
-    def __init__(self) -> None:
-        self.values = gtsam.Values()
-        self.times: dict[int, float] = {}
-        self.factors: dict[int, tuple[object, str, tuple[int, ...]]] = {}
-        self.callbacks: list = []
+    def __init__(self, config: BackendConfig | None = None) -> None:
+        super().__init__(config)
         self.contributors: list = []
-        self.anchor: int | None = None
-        self._anchor_pose = None
-        self._next = 0
-
-    def pose_key(self, kf_id: int) -> int:
-        return gtsam.symbol("x", kf_id)
-
-    @property
-    def keyframe_ids(self) -> list[int]:
-        return sorted(self.times)
-
-    def has_keyframe(self, kf_id: int) -> bool:
-        return kf_id in self.times
-
-    def timestamp(self, kf_id: int) -> float:
-        return self.times[kf_id]
-
-    def add_keyframe(self, kf_id: int, T_WC: np.ndarray, timestamp: float) -> int:
-        key = self.pose_key(kf_id)
-        self.values.insert(key, sim3_to_gtsam(np.asarray(T_WC)))
-        self.times[kf_id] = float(timestamp)
-        if self.anchor is None and len(self.times) == 1:
-            self.set_gauge(anchor=kf_id)
-        for callback in list(self.callbacks):
-            callback(kf_id, float(timestamp), key)
-        return key
-
-    def on_keyframe(self, callback) -> None:
-        self.callbacks.append(callback)
-
-    def set_gauge(self, anchor: int | None = None, scale_pair=None) -> None:
-        self.anchor = anchor
-        self._anchor_pose = None if anchor is None else self.pose(anchor)
-
-    def pose(self, kf_id: int) -> gtsam.Similarity3:
-        return self.values.atSimilarity3(self.pose_key(kf_id))
-
-    def pose_matrix(self, kf_id: int) -> np.ndarray:
-        return gtsam_to_sim3(self.pose(kf_id))
-
-    def set_pose(self, kf_id: int, T_WC: np.ndarray) -> None:
-        self.values.update(self.pose_key(kf_id), sim3_to_gtsam(np.asarray(T_WC)))
-        if kf_id == self.anchor:
-            self._anchor_pose = self.pose(kf_id)
-
-    def add_factor(self, factor, owner: str = "user") -> int:
-        from fgslam.errors import OptimizationError
-
-        keys = tuple(int(k) for k in factor.keys())
-        for key in keys:
-            if not self.values.exists(key):
-                raise OptimizationError(f"factor of '{owner}' on unknown key {gtsam.DefaultKeyFormatter(key)}")
-        self._next += 1
-        self.factors[self._next] = (factor, owner, keys)
-        return self._next
-
-    def remove_factor(self, handle: int) -> None:
-        del self.factors[handle]
-
-    def factor_handles(self, owner: str) -> list[int]:
-        return [h for h, (_, o, _) in self.factors.items() if o == owner]
 
     def add_contributor(self, contributor) -> None:
         self.contributors.append(contributor)
@@ -233,59 +152,3 @@ class GraphBackend:
             self.set_pose(kf_id, T_new)
         for contributor in self.contributors:
             contributor.apply_correction(correction)
-
-    def _solve(self, graph, keys: set[int], iterations: int) -> None:
-        initial = gtsam.Values()
-        for key in keys:
-            initial.insert(key, self.values.atSimilarity3(key))
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(iterations)
-        result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
-        for key in keys:
-            self.values.update(key, result.atSimilarity3(key))
-
-    def _gauge_graph(self, graph, keys: set[int]) -> None:
-        if self.anchor is not None and self.pose_key(self.anchor) in keys:
-            graph.add(gtsam.PriorFactorSimilarity3(self.pose_key(self.anchor), self._anchor_pose,
-                                                   gtsam.noiseModel.Isotropic.Sigma(7, self.ANCHOR_SIGMA)))
-
-    def optimize_window(self, free_kf_ids, iterations: int) -> None:
-        free = {self.pose_key(k) for k in free_kf_ids}
-        graph = gtsam.NonlinearFactorGraph()
-        keys: set[int] = set()
-        for factor, _, fkeys in self.factors.values():
-            if free & set(fkeys):
-                graph.add(factor)
-                keys |= set(fkeys)
-        for key in keys - free:
-            graph.add(gtsam.PriorFactorSimilarity3(key, self.values.atSimilarity3(key),
-                                                   gtsam.noiseModel.Isotropic.Sigma(7, self.FIXED_SIGMA)))
-        self._gauge_graph(graph, keys)
-        if graph.size():
-            self._solve(graph, keys | free, iterations)
-
-    def optimize_global(self, iterations: int = 30) -> None:
-        graph = gtsam.NonlinearFactorGraph()
-        for factor, _, _ in self.factors.values():
-            graph.add(factor)
-        keys = {self.pose_key(k) for k in self.times}
-        self._gauge_graph(graph, keys)
-        self._solve(graph, keys, iterations)
-
-    def correct_pose_graph(self, kf_ids=None) -> dict[int, np.ndarray]:
-        ids = self.keyframe_ids if kf_ids is None else sorted(kf_ids)
-        keys = {self.pose_key(k) for k in ids}
-        graph = gtsam.NonlinearFactorGraph()
-        noise = gtsam.noiseModel.Diagonal.Sigmas(self.PGC_SIGMAS)
-        for a, b in zip(ids[:-1], ids[1:]):
-            Z = self.pose(a).inverse() * self.pose(b)
-            graph.add(gtsam.BetweenFactorSimilarity3(self.pose_key(a), self.pose_key(b), Z, noise))
-        for factor, owner, fkeys in self.factors.values():
-            if set(fkeys) <= keys and owner != "odometry":
-                graph.add(factor)
-        self._gauge_graph(graph, keys)
-        saved = gtsam.Values(self.values)
-        self._solve(graph, keys, 100)
-        out = {k: self.pose_matrix(k) for k in ids}
-        self.values = saved
-        return out

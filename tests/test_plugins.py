@@ -26,14 +26,14 @@ from fgslam.eval import umeyama
 from fgslam.io.positions import read_positions
 from fgslam.slam import SlamConfig
 
-from plugin_support import DriftingOdometry, GraphBackend, ate_se3, drive, path_length, write_positions
+from plugin_support import CorrectingBackend, DriftingOdometry, ate_se3, drive, path_length, write_positions
 
 POSITION_PRIOR = "fgslam.backend.plugins:PositionPrior"
 PLANAR = "fgslam.backend.plugins:PlanarMotion"
 
 
 def make_backend():
-    return GraphBackend()
+    return CorrectingBackend()
 
 
 class UnknownKeyPlugin:
