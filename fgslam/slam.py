@@ -372,6 +372,10 @@ def run_slam(
         from .frontends import make_frontend
 
         frontend = make_frontend(config.frontend, config, dataset.calibration, config.sensor)
+    if config.factors:  # user factor plugins on the frontend's backend (fgslam/backend/plugins.py)
+        from .backend.plugins import with_plugins
+
+        frontend = with_plugins(frontend, config.factors, dataset.timestamps)
     load_average = [round(v, 2) for v in os.getloadavg()]
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
     state = _RunState()

@@ -9,8 +9,8 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from fgslam.backend.config import BackendConfig
-from fgslam.backend.graph import Backend, as_similarity3
+from fgslam.backend.graph import as_similarity3
+from fgslam.frontends.base import FrameStatus, Frontend
 from fgslam.backend.keys import pose_key
 from fgslam.io.synth.presets import build_trajectory, default_config
 from fgslam.io.synth.sequence import camera_mount
@@ -63,19 +63,16 @@ class DriftingOdometry:
     def __init__(self, backend, t: np.ndarray, T_WC: np.ndarray, rng: np.random.Generator, *,
                  rot_sigma: float = 0.002, trans_sigma: float = 0.01, scale_drift: float = 0.0,
                  window: int = 5, iterations: int = 3, factor_sigmas: np.ndarray | None = None,
-                 first_pose: np.ndarray | None = None, initial_scale: float = 1.0, plugins=()) -> None:
+                 first_pose: np.ndarray | None = None, initial_scale: float = 1.0) -> None:
         self.backend, self.t, self.T_WC, self.rng = backend, t, T_WC, rng
         self.rot_sigma, self.trans_sigma, self.scale_drift = rot_sigma, trans_sigma, scale_drift
         self.window, self.iterations = window, iterations
-        self.plugins = [p for p in plugins if callable(getattr(p, "poll", None))]
         self.sigmas = (np.array([rot_sigma] * 3 + [trans_sigma] * 3 + [1e-3]) if factor_sigmas is None
                        else np.asarray(factor_sigmas, dtype=np.float64))
         self.Z: dict[tuple[int, int], np.ndarray] = {}
         self.handles: dict[tuple[int, int], int] = {}
         self.first_pose = T_WC[0] if first_pose is None else first_pose
         self.log_scale = float(np.log(initial_scale))
-        if hasattr(backend, "add_contributor"):
-            backend.add_contributor(self)
 
     def measure(self, i: int, j: int) -> np.ndarray:
         T_ij = np.linalg.inv(self.T_WC[i]) @ self.T_WC[j]
@@ -98,8 +95,13 @@ class DriftingOdometry:
         self._add_factor(k - 1, k)
         free = [kf for kf in b.keyframe_ids[-self.window:]]
         b.optimize_window(free, self.iterations)
-        for plugin in self.plugins:  # the safe point after a frame
-            plugin.poll(b)
+
+    def process(self, k: int) -> None:
+        """The frontend interface of a run (fgslam.backend.plugins.with_plugins wraps it)."""
+        self.step(k)
+
+    def finish(self) -> None:
+        pass
 
     def _add_factor(self, i: int, j: int) -> None:
         factor = gtsam.BetweenFactorSimilarity3(pose_key(i), pose_key(j), as_similarity3(self.Z[(i, j)]),
@@ -117,11 +119,14 @@ class DriftingOdometry:
                 self.backend.remove_factor(self.handles.pop((i, j)))
                 self._add_factor(i, j)
 
-    def run(self, n: int | None = None) -> np.ndarray:
-        n = len(self.t) if n is None else n
-        for k in range(n):
-            self.step(k)
-        return np.array([self.backend.pose_matrix(k) for k in range(n)])
+
+def run_drive(frontend, n: int) -> np.ndarray:
+    """Feed ``n`` keyframes through ``frontend`` (a DriftingOdometry, possibly wrapped with plugins),
+    finish, and return the backend's final keyframe poses (n, 4, 4)."""
+    for k in range(n):
+        frontend.process(k)
+    frontend.finish()
+    return np.array([frontend.backend.pose_matrix(k) for k in range(n)])
 
 
 def ate_se3(T_est: np.ndarray, T_true: np.ndarray) -> float:
@@ -133,22 +138,29 @@ def ate_se3(T_est: np.ndarray, T_true: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((aligned - T_true[:, :3, 3]) ** 2, axis=1))))
 
 
-class CorrectingBackend(Backend):
-    """The backend with what the runner does around it for corrections: contributors registered with
-    :meth:`add_contributor` hear every correction applied with :meth:`apply_correction` (poses set
-    from ``correction.apply_pose``, then ``contributor.apply_correction``), as the loop service does
-    at a frontend's safe point."""
+class OdometryFrontend(Frontend):
+    """A frontend for ``run_slam`` that makes every frame a keyframe of its backend, posed by a
+    :class:`DriftingOdometry` over the dataset's ground truth (no images used); its trajectory is the
+    backend's keyframe poses. It is the contributor of the plugins' corrections (through its odometry)."""
 
-    def __init__(self, config: BackendConfig | None = None) -> None:
-        super().__init__(config)
-        self.contributors: list = []
+    name = "odometry"
 
-    def add_contributor(self, contributor) -> None:
-        self.contributors.append(contributor)
+    def __init__(self, backend, t: np.ndarray, T_WC: np.ndarray, rng: np.random.Generator, **odometry) -> None:
+        self.odometry = DriftingOdometry(backend, t, T_WC, rng, **odometry)
+        self.backend = backend
+        self.t = t
+
+    def process(self, frame) -> FrameStatus:
+        self.odometry.step(frame.index)
+        return FrameStatus(frame.index, frame.timestamp, self.backend.pose_matrix(frame.index), "tracked",
+                           is_keyframe=True, num_valid=1)
 
     def apply_correction(self, correction) -> None:
-        for kf_id in self.keyframe_ids:
-            T_new, _ = correction.apply_pose(kf_id, self.pose_matrix(kf_id))
-            self.set_pose(kf_id, T_new)
-        for contributor in self.contributors:
-            contributor.apply_correction(correction)
+        self.odometry.apply_correction(correction)
+
+    def trajectory(self):
+        ids = self.backend.keyframe_ids
+        return self.t[ids], np.array([self.backend.pose_matrix(k) for k in ids]), ["tracked"] * len(ids)
+
+    def num_keyframes(self) -> int:
+        return len(self.backend.keyframe_ids)

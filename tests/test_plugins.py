@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
+from fgslam.backend.graph import Backend
 from fgslam.backend.plugins import (
     PlanarMotion,
     PositionPrior,
@@ -19,6 +20,7 @@ from fgslam.backend.plugins import (
     build_plugins,
     finish_plugins,
     load_plugin_class,
+    with_plugins,
 )
 from fgslam.config import load_config
 from fgslam.errors import ConfigError, DataError, FormatError, OptimizationError
@@ -26,14 +28,14 @@ from fgslam.eval import umeyama
 from fgslam.io.positions import read_positions
 from fgslam.slam import SlamConfig
 
-from plugin_support import CorrectingBackend, DriftingOdometry, ate_se3, drive, path_length, write_positions
+from plugin_support import DriftingOdometry, ate_se3, drive, path_length, run_drive, write_positions
 
 POSITION_PRIOR = "fgslam.backend.plugins:PositionPrior"
 PLANAR = "fgslam.backend.plugins:PlanarMotion"
 
 
 def make_backend():
-    return CorrectingBackend()
+    return Backend()
 
 
 class UnknownKeyPlugin:
@@ -128,6 +130,42 @@ def test_shipped_plugin_examples_load():
         assert config.factors and all(isinstance(p, (PositionPrior, PlanarMotion)) for p in build_plugins(config.factors))
 
 
+def test_factors_need_a_frontend_that_feeds_a_backend():
+    class NoBackend:
+        name = "toy"
+
+        def process(self, frame):
+            return frame
+
+    frontend = NoBackend()
+    assert with_plugins(frontend, []) is frontend
+    with pytest.raises(ConfigError, match="factors: frontend 'toy' feeds no backend"):
+        with_plugins(frontend, [{"class": PLANAR}])
+
+
+def test_with_plugins_polls_after_each_frame_and_corrections_reach_the_frontend(tmp_path):
+    """The run's wrapper: the alignment happens at a poll after a frame (not inside add_keyframe), and the
+    uniform correction reaches the contributor (its scale folded into its measurements)."""
+    t, T_true, _, _ = drive("street-loop", seconds=40.0, keyframe_dt=0.3)
+    gps = write_positions(tmp_path / "gps.txt", t, T_true, 1.0, 1.0, np.random.default_rng(0))
+    odometry = DriftingOdometry(make_backend(), t, T_true, np.random.default_rng(1), first_pose=np.eye(4),
+                                initial_scale=0.3)
+    seen = []
+    odometry.apply_correction = lambda c, f=odometry.apply_correction: (seen.append(c), f(c))
+    frontend = with_plugins(odometry, [{"class": POSITION_PRIOR, "options": {"file": str(gps), "max_dt": 0.2,
+                                                                               "correct_every": 0}}], timestamps=t)
+    plugin = frontend.plugins[0]
+    for k in range(len(t)):
+        frontend.process(k)
+        if plugin.aligned:
+            break
+    assert plugin.aligned and len(seen) == 2  # the alignment, then a pose-graph correction
+    uniform = seen[0]
+    assert len({round(s, 12) for s in uniform.scale.values()}) == 1 and 2.5 < uniform.scale[0] < 4.0
+    assert uniform.fold_scale and odometry.log_scale == pytest.approx(np.log(0.3 * uniform.scale[k] * seen[1].scale[k]))
+    assert len(odometry.backend.factor_handles("factors[0]")) == len(plugin._matched)
+
+
 # ----------------------------------------------------------------------------------------- positions file
 
 
@@ -216,18 +254,12 @@ def run_position_drive(tmp_path, preset, use_plugin, seed=0, scale_drift=0.02, *
     synthetic drive, with or without 1 Hz positions of 1 m noise. Returns (estimate, truth, plugin)."""
     t, T_true, _, _ = drive(preset, keyframe_dt=0.3)
     gps = write_positions(tmp_path / f"gps_{preset}.txt", t, T_true, 1.0, 1.0, np.random.default_rng(seed))
-    backend = make_backend()
-    plugins = []
-    if use_plugin:
-        plugins = build_plugins([{"class": POSITION_PRIOR, "options": {"file": str(gps), "sigma": 1.0,
-                                                                         "max_dt": 0.2, **options}}])
-        attach_plugins(plugins, backend, timestamps=t)
-    odometry = DriftingOdometry(backend, t, T_true, np.random.default_rng(seed + 1), scale_drift=scale_drift,
-                                first_pose=np.eye(4), initial_scale=0.3, plugins=plugins)
-    odometry.run()
-    finish_plugins(plugins, backend)
-    est = np.array([backend.pose_matrix(k) for k in range(len(t))])
-    return est, T_true, (plugins[0] if plugins else None)
+    odometry = DriftingOdometry(make_backend(), t, T_true, np.random.default_rng(seed + 1), scale_drift=scale_drift,
+                                first_pose=np.eye(4), initial_scale=0.3)
+    factors = [{"class": POSITION_PRIOR, "options": {"file": str(gps), "sigma": 1.0, "max_dt": 0.2, **options}}]
+    frontend = with_plugins(odometry, factors if use_plugin else [], timestamps=t)
+    est = run_drive(frontend, len(t))
+    return est, T_true, (frontend.plugins[0] if use_plugin else None)
 
 
 @pytest.mark.parametrize("preset", ["street-loop", "highway"])
@@ -269,18 +301,57 @@ def test_planar_motion_brings_height_and_tilt_errors_to_noise_level():
     wobble = float(np.sqrt(np.mean(np.sum((T_true[:, :3, :3] @ up_C - np.array([0, 0, 1.0])) ** 2, axis=1))))
     results = {}
     for use in (False, True):
-        backend = make_backend()
-        plugins = []
-        if use:
-            plugins = build_plugins([{"class": PLANAR, "options": {"up_axis": up_C.tolist(), "height_sigma": 0.05,
-                                                                     "tilt_sigma": 0.01}}])
-            attach_plugins(plugins, backend)
-        DriftingOdometry(backend, t, T_true, np.random.default_rng(1), rot_sigma=0.003, trans_sigma=0.02).run()
-        finish_plugins(plugins, backend)
-        est = np.array([backend.pose_matrix(k) for k in range(len(t))])
+        odometry = DriftingOdometry(make_backend(), t, T_true, np.random.default_rng(1), rot_sigma=0.003,
+                                    trans_sigma=0.02)
+        factors = [{"class": PLANAR, "options": {"up_axis": up_C.tolist(), "height_sigma": 0.05, "tilt_sigma": 0.01}}]
+        est = run_drive(with_plugins(odometry, factors if use else []), len(t))
         results[use] = planar_errors(est, T_true, up_C)
     (h_free, tilt_free), (h_planar, tilt_planar) = results[False], results[True]
     assert h_free > 10 * step_noise and tilt_free > 2 * wobble  # the odometry alone drifts
     assert h_planar <= step_noise, (h_planar, step_noise)
     assert tilt_planar <= wobble, (tilt_planar, wobble)
     assert h_planar < 0.1 * h_free and tilt_planar < 0.5 * tilt_free
+
+
+# ----------------------------------------------------------------------------------------- through run_slam
+
+
+def test_run_with_position_prior_preset_on_a_synthetic_street_drive(tmp_path):
+    """The runner's wiring: the patch_mono_gps preset's factors section (file in tmp_path) on a written
+    synthetic street clip (20 s, 120 m; tiny images: the frontend uses only its ground truth), a
+    frontend feeding a backend with monocular-like drifting odometry, 1 Hz positions with 1 m noise on
+    the dataset's clock. The summary's SE(3) ATE (no scale) is <= 1 % of the path; a file whose times
+    miss the run is refused before the first frame, naming the file."""
+    from fgslam.backend.graph import Backend
+    from fgslam.io.synth import SynthSequence
+    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.writer import write_sequence
+    from fgslam.presets import load_preset_file
+    from fgslam.slam import open_slam_dataset, run_slam
+
+    from plugin_support import OdometryFrontend
+
+    cfg = load_synth_config("street-loop", None, ["frames=201", "camera.width=32", "camera.height=32"])
+    write_sequence(SynthSequence(cfg), tmp_path / "street")
+    base = load_preset_file("patch_mono_gps")
+    config = load_preset_file("patch_mono_gps", ["dataset.crop_multiple=1", "output.plot=false"])
+    dataset = open_slam_dataset(tmp_path / "street", config)
+    gt = dataset.groundtruth
+    gps = write_positions(tmp_path / "gps.txt", gt.timestamps, gt.T_WC, 1.0, 1.0, np.random.default_rng(0))
+    config.factors = [dict(base.factors[0], options=dict(base.factors[0]["options"], file=str(gps), max_dt=0.05))]
+
+    def frontend():
+        return OdometryFrontend(Backend(), gt.timestamps, gt.T_WC, np.random.default_rng(1), scale_drift=0.02,
+                                first_pose=np.eye(4), initial_scale=0.3)
+
+    summary = run_slam(dataset, config, tmp_path / "out", progress=False, frontend=frontend())
+    ev = summary.evaluation
+    assert ev["align"] == "se3" and summary.frames_with_pose == 201
+    assert ev["ate_percent_of_path"] <= 1.0, ev["ate_percent_of_path"]
+    assert ev["scale"] == 1.0
+
+    late = tmp_path / "late.txt"
+    late.write_text("".join(f"{gt.timestamps[-1] + 10 + i:.3f} 0 0 0\n" for i in range(5)))
+    config.factors = [{"class": POSITION_PRIOR, "options": {"file": str(late)}}]
+    with pytest.raises(DataError, match=r"late.txt:1-5: position times .* do not overlap the run's frames"):
+        run_slam(dataset, config, tmp_path / "out2", progress=False, frontend=frontend())

@@ -125,14 +125,18 @@ def build_plugins(entries: Sequence[Any]) -> list[Any]:
     return [build_plugin(entry, i) for i, entry in enumerate(entries)]
 
 
-def attach_plugins(plugins: Sequence[Any], backend: Any, timestamps: Optional[np.ndarray] = None) -> None:
+def attach_plugins(plugins: Sequence[Any], backend: Any, timestamps: Optional[np.ndarray] = None,
+                   contributors: Sequence[Any] = ()) -> Any:
     """Before the first frame: ``check_run(timestamps)`` (when the plugin has it and times are given),
-    then ``attach(backend)``, for each plugin."""
+    then ``attach(...)``, for each plugin. With ``contributors`` the plugins get the backend wrapped in
+    :class:`CorrectedBackend` (their corrections reach the contributors); returns what they got."""
+    handle = CorrectedBackend(backend, contributors) if contributors else backend
     for plugin in plugins:
         check = getattr(plugin, "check_run", None)
         if timestamps is not None and callable(check):
             check(np.asarray(timestamps, dtype=np.float64))
-        plugin.attach(backend)
+        plugin.attach(handle)
+    return handle
 
 
 def poll_plugins(plugins: Sequence[Any], backend: Any) -> None:
@@ -160,10 +164,32 @@ def parse_options(cls: type[T], options: Mapping[str, Any], key: str) -> T:
 # ----------------------------------------------------------------------------------------- corrections
 
 
+class CorrectedBackend:
+    """The backend as the plugins of a run see it: every attribute of ``backend``, plus
+    :meth:`apply_correction`, which sets every keyframe pose from the correction and then lets each
+    contributor (a frontend: ``contributor.apply_correction``) fold it into its own poses and
+    structure. Plugins call it only at the safe point (``poll``, ``finish``)."""
+
+    def __init__(self, backend: Any, contributors: Sequence[Any]) -> None:
+        self._backend = backend
+        self.contributors = list(contributors)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._backend, name)
+
+    def apply_correction(self, correction: Any) -> None:
+        for kf_id in self._backend.keyframe_ids:
+            T_new, _ = correction.apply_pose(kf_id, self._backend.pose_matrix(kf_id))
+            self._backend.set_pose(kf_id, T_new)
+        for contributor in self.contributors:
+            contributor.apply_correction(correction)
+
+
 def apply_correction(backend: Any, correction: Any) -> None:
     """Move the map by a pose correction (``fgslam.loop.closure.LoopCorrection``: a Sim(3) update per
-    keyframe). Through ``backend.apply_correction`` when the backend has it (it sets the poses and lets
-    every contributor fold the scale into its structure); otherwise each keyframe's pose is set."""
+    keyframe). Through ``backend.apply_correction`` when the backend has it (:class:`CorrectedBackend`:
+    the poses, then every contributor folds the scale into its structure); otherwise each keyframe's
+    pose is set."""
     apply = getattr(backend, "apply_correction", None)
     if callable(apply):
         apply(correction)
@@ -171,6 +197,47 @@ def apply_correction(backend: Any, correction: Any) -> None:
     for kf_id in backend.keyframe_ids:
         T_new, _ = correction.apply_pose(kf_id, backend.pose_matrix(kf_id))
         backend.set_pose(kf_id, T_new)
+
+
+class FrontendWithPlugins:
+    """A frontend whose run also drives the factor plugins: after every ``process(frame)`` (the
+    frontend's safe point: no optimisation running) ``poll``, and after ``finish()`` the plugins'
+    ``finish`` (its last corrections reach the frontend before its final trajectory is read).
+    Everything else is the frontend's own."""
+
+    def __init__(self, frontend: Any, plugins: Sequence[Any], backend: Any) -> None:
+        self._frontend = frontend
+        self.plugins = list(plugins)
+        self._plugin_backend = backend
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._frontend, name)
+
+    def process(self, frame: Any) -> Any:
+        status = self._frontend.process(frame)
+        poll_plugins(self.plugins, self._plugin_backend)
+        return status
+
+    def finish(self) -> Any:
+        out = self._frontend.finish()
+        finish_plugins(self.plugins, self._plugin_backend)
+        return out
+
+
+def with_plugins(frontend: Any, entries: Sequence[Any], timestamps: Optional[np.ndarray] = None) -> Any:
+    """The run's frontend with the plugins of a ``factors`` list attached to its backend
+    (``frontend.backend``) and the frontend as the contributor their corrections reach; the frontend
+    itself when the list is empty. ConfigError naming ``factors`` when the frontend feeds no backend."""
+    if not entries:
+        return frontend
+    backend = getattr(frontend, "backend", None)
+    if backend is None:
+        raise ConfigError(f"{FACTORS_KEY}: frontend '{getattr(frontend, 'name', type(frontend).__name__)}' feeds no "
+                          "backend, so factor plugins cannot apply; remove the factors section")
+    plugins = build_plugins(entries)
+    contributors = [frontend] if callable(getattr(frontend, "apply_correction", None)) else []
+    handle = attach_plugins(plugins, backend, timestamps, contributors)
+    return FrontendWithPlugins(frontend, plugins, handle)
 
 
 def uniform_correction(backend: Any, U: np.ndarray) -> Any:
