@@ -19,7 +19,7 @@ PRESET_CLASSES: dict[str, str] = {
     "eval": "fgslam.eval:EvalConfig",
     "dataset": "fgslam.io.datasets.common:DatasetConfig",
     "synth": "fgslam.io.synth.presets:SynthConfig",
-    "map": "fgslam.map:MapConfig",
+    "map": "fgslam.backend.config:BackendConfig",
     "bow": "fgslam.loop.bow:BowConfig",
     "loop": "fgslam.loop.closure:LoopClosureConfig",
     "patch": "fgslam.slam:SlamConfig",

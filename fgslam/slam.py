@@ -67,7 +67,7 @@ from .frontends.patch.config import PatchConfig
 from .io.datasets import Dataset, DatasetConfig, open_dataset
 from .io.trajectory import Trajectory, write_trajectory
 from .loop.closure import LoopClosureConfig
-from .map import MapConfig
+from .backend.config import BackendConfig
 
 logger = logging.getLogger(__name__)
 
@@ -117,7 +117,7 @@ class SlamConfig:
     auto_align: bool = True  # evaluation alignment from the sensor (sim3 mono, se3 stereo/rgbd); false: eval.align
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     patch: PatchConfig = field(default_factory=PatchConfig)
-    map: MapConfig = field(default_factory=MapConfig)
+    map: BackendConfig = field(default_factory=BackendConfig)  # the run's backend (fgslam/backend)
     eval: EvalConfig = field(default_factory=EvalConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     # loop closure (mode off | proximity | classical | both); off by default
@@ -369,9 +369,11 @@ def run_slam(
     check_image_size(dataset)
     out = prepare_output_dir(out_dir, dataset.root)
     if frontend is None:
+        from .backend import Backend
         from .frontends import make_frontend
 
-        frontend = make_frontend(config.frontend, config, dataset.calibration, config.sensor)
+        backend = Backend(config.map)  # one per run, fed by the frontend
+        frontend = make_frontend(config.frontend, config, dataset.calibration, config.sensor, backend=backend)
     if config.factors:  # user factor plugins on the frontend's backend (fgslam/backend/plugins.py)
         from .backend.plugins import with_plugins
 

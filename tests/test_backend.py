@@ -11,7 +11,7 @@ from fgslam.backend import Backend, BackendConfig, GaugeConfig, LinearPiece, key
 from fgslam.backend.config import WindowConfig
 from fgslam.errors import OptimizationError
 from fgslam.factors.reprojection import reproject
-from fgslam.factors.schur import POSE_DIM, BlockConfig, InverseDepthBlock
+from fgslam.factors.schur import POSE_DIM, BlockConfig, InverseDepthBlock, torch_threads
 from fgslam.lie import Sim3
 D = POSE_DIM
 NUM_KF = 5
@@ -156,20 +156,21 @@ def explicit_joint_lm(backend: Backend, free_kfs=None, iterations: int = 60):
             res = b.evaluate(b.poses_from_values(values), d, jacobians=True)
             rows = res.r.shape[0]
             A = np.zeros((rows, 2, n))
-            for s in range(2):
-                slot_keys = [b.keys[int(k)] for k in b.slots[:, s]]
-                free_row = np.array([k in col for k in slot_keys])
-                cols = np.array([col.get(k, 0) for k in slot_keys])
-                for c in range(D):
-                    np.add.at(A, (np.arange(rows)[free_row], slice(None), cols[free_row] + c),
-                              res.J[s][free_row, :, c].numpy())
+            A_cols = A.transpose(0, 2, 1)  # (rows, n, 2) view
+            for s in range(2):  # one pose block per row and slot: no repeated index within one slot
+                slot_col = np.array([col.get(k, -1) for k in b.keys])[b.slots[:, s].numpy()]
+                free_row = np.nonzero(slot_col >= 0)[0]
+                cols = slot_col[free_row][:, None] + np.arange(D)
+                A_cols[free_row[:, None], cols] += res.J[s][free_row].numpy().transpose(0, 2, 1)
             A[np.arange(rows), :, offsets[bi] + b.struct_idx.numpy()] += res.E.numpy()
-            A = A.reshape(2 * rows, n)
-            w = res.weights.numpy().reshape(-1)
-            H += A.T @ (w[:, None] * A)
-            grad += A.T @ (w * res.r.numpy().reshape(-1))
+            A = torch.as_tensor(A.reshape(2 * rows, n))
+            w = res.weights.reshape(-1)
+            with torch_threads(1):  # (a multi-threaded BLAS crawls on a loaded 2-core machine)
+                H += (A.T @ (w[:, None] * A)).numpy()
+                grad += (A.T @ (w * res.r.reshape(-1))).numpy()
         while True:
-            step = np.linalg.solve(H + lam * np.eye(len(H)), -grad)
+            with torch_threads(1):
+                step = torch.linalg.solve(torch.as_tensor(H + lam * np.eye(len(H))), torch.as_tensor(-grad)).numpy()
             trial_values = values.retract(to_vv(step[:n_pose]))
             trial_depths = [d + torch.as_tensor(step[offsets[i]:offsets[i + 1]]) for i, d in enumerate(depths)]
             trial_cost = cost(trial_values, trial_depths)
@@ -222,16 +223,24 @@ def test_compressed_blocks_reach_explicit_joint_optimum(scene_and_reference, sol
         assert report.final_cost < 1e-12
 
 
+@pytest.fixture(scope="module")
+def window_reference():
+    scene = make_scene(seed=4, noise_px=0.5)
+    reference = explicit_joint_lm(build_backend(scene, BackendConfig()), free_kfs=[2, 3, 4])
+    global_backend = build_backend(scene, BackendConfig(max_iterations=60))
+    global_backend.optimize_global()
+    return scene, reference, global_backend.pose(4)
+
+
 @pytest.mark.parametrize("solver", ["lm", "isam2"])
 @pytest.mark.parametrize("leaving", ["fixed", "marginalize"])
-def test_window_reaches_explicit_optimum_with_outside_poses_fixed(solver, leaving):
+def test_window_reaches_explicit_optimum_with_outside_poses_fixed(window_reference, solver, leaving):
     """Keyframes 0, 1 outside the window: the blocks' Schur systems restricted to the free poses equal
     the explicit joint problem over the free poses and every depth with 0, 1 held (no persistent
     built-in factor reaches outside here, so marginalize must give the same)."""
-    scene = make_scene(seed=4, noise_px=0.5)
+    scene, (ref_values, ref_depths, ref_cost), global_pose4 = window_reference
     config = BackendConfig(solver=solver, max_iterations=60, window=WindowConfig(leaving=leaving))
     backend = build_backend(scene, config)
-    ref_values, ref_depths, ref_cost = explicit_joint_lm(build_backend(scene, config), free_kfs=[2, 3, 4])
     before = {kf: backend.pose(kf) for kf in (0, 1)}
     report = backend.optimize_window([2, 3, 4])
     assert report.converged and report.free_keys == 3
@@ -240,24 +249,27 @@ def test_window_reaches_explicit_optimum_with_outside_poses_fixed(solver, leavin
     check_optimum(backend, ref_values, ref_depths, kfs=(2, 3, 4))
     assert backend.cost() == pytest.approx(ref_cost, rel=1e-9)
     # the window's optimum is not the global one: the held poses matter
-    global_backend = build_backend(scene, config)
-    global_backend.optimize_global()
-    assert np.linalg.norm(global_backend.pose(4).localCoordinates(backend.pose(4))) > 1e-4
+    assert np.linalg.norm(global_pose4.localCoordinates(backend.pose(4))) > 1e-4
+
+
+def two_contributors(scene, config):
+    backend = build_backend(scene, config)
+    backend.set_blocks("toy", [toy_block(scene, seed=1)])
+    return backend
+
+
+@pytest.fixture(scope="module")
+def two_contributor_reference():
+    scene = make_scene(seed=8, noise_px=0.5)
+    reference = explicit_joint_lm(two_contributors(scene, BackendConfig()))
+    visual_only, _, _ = explicit_joint_lm(build_backend(scene, BackendConfig()))
+    return scene, reference, visual_only
 
 
 @pytest.mark.parametrize("solver", ["lm", "isam2"])
-def test_two_contributors_on_the_same_keys_reach_the_joint_optimum_of_their_sum(solver):
-    scene = make_scene(seed=8, noise_px=0.5)
-    config = BackendConfig(solver=solver, max_iterations=60)
-
-    def build():
-        backend = build_backend(scene, config)
-        backend.set_blocks("toy", [toy_block(scene, seed=1)])
-        return backend
-
-    ref_values, ref_depths, ref_cost = explicit_joint_lm(build())
-    visual_only, _, _ = explicit_joint_lm(build_backend(scene, config))
-    backend = build()
+def test_two_contributors_on_the_same_keys_reach_the_joint_optimum_of_their_sum(two_contributor_reference, solver):
+    scene, (ref_values, ref_depths, ref_cost), visual_only = two_contributor_reference
+    backend = two_contributors(scene, BackendConfig(solver=solver, max_iterations=60))
     report = backend.optimize_global()
     assert report.converged
     assert report.final_cost == pytest.approx(ref_cost, rel=1e-9)

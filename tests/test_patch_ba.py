@@ -1,5 +1,5 @@
 """Patch BA block: vectorised Schur reduction vs the generic one, fixed frames, stereo/prior rows,
-and local bundle adjustment through SlamMap converging to ground truth."""
+and local bundle adjustment through the backend's window optimisation converging to ground truth."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 from fgslam.factors.schur import InverseDepthBlock, schur_reduce
 from fgslam.frontends.patch.ba import PatchBlock
 from fgslam.lie import Sim3
-from fgslam.map import GaugeConfig, MapConfig, SlamMap, pose_key
+from fgslam.backend import Backend, BackendConfig, GaugeConfig, pose_key
 
 K = torch.tensor([200.0, 200.0, 160.0, 120.0], dtype=torch.float64)
 
@@ -147,14 +147,14 @@ def test_local_ba_converges_to_ground_truth(mode):
     block = PatchBlock([pose_key(f) for f in var], fixed.R, fixed.t, fixed.s, ls, lt, right, uv[e_patch], e_uv,
                        np.ones(len(ls)), e_patch, K, d0, **extra)
     gauge = GaugeConfig(fix_anchor=False, hold_scale=True, world_scale_range=False)
-    smap = SlamMap(MapConfig(max_iterations=30, gauge=gauge))
+    backend = Backend(BackendConfig(gauge=gauge))
     for f in var:
         xi = torch.as_tensor(np.concatenate([rng.normal(0, 0.01, 3), rng.normal(0, 0.03, 3), [0.0]]))
-        smap.add_keyframe(f, poses[f].retract(xi).to_gtsam())
-    smap.add_block(block)
-    report = smap.optimize()
+        backend.add_keyframe(f, poses[f].retract(xi).to_gtsam(), 0.1 * f)
+    backend.set_blocks("patch", [block])
+    report = backend.optimize_window(var, 30)
     assert report.final_cost < 1e-8 * max(report.initial_cost, 1.0)
-    est = smap.poses(var)
+    est = backend.poses(var)
     err_t = (est.t - poses[torch.tensor(var)].t).norm(dim=-1).max().item()
     assert err_t < 1e-6
     np.testing.assert_allclose(block.structure.numpy(), d, rtol=1e-6)

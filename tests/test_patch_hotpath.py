@@ -9,7 +9,7 @@ import torch
 from fgslam.frontends.patch.ba import PatchBlock
 from fgslam.frontends.patch.frontend import _gtsam_matrix, _gtsam_sim3, _interp, _sim3_power
 from fgslam.lie import Sim3
-from fgslam.map import pose_key
+from fgslam.backend.keys import pose_key
 
 from test_patch_ba import K, _edges, _scene, _values
 

@@ -14,7 +14,7 @@ from fgslam.frontends.patch import PatchFrontend
 from fgslam.frontends.patch.ba import PatchBlock
 from fgslam.io.trajectory import Trajectory
 from fgslam.lie import Sim3, sim3_matrix_parts, so3_exp
-from fgslam.map import pose_key
+from fgslam.backend.keys import pose_key
 from patch_support import light_patch_config, render_room
 
 FRAMES = 48

@@ -6,7 +6,7 @@ the Schur elimination of those rows, a whole ``InverseDepthBlock.linearize``, an
 engineers' batched residuals when present (Sim(3) between, depth prior, MASt3R ray+distance and
 calibrated pointmap residuals).
 
-Part 2, one Levenberg-Marquardt iteration of ``fgslam.map.SlamMap`` (solver python_lm) over a
+Part 2, one Levenberg-Marquardt iteration of ``fgslam.backend.Backend`` (solver lm, global) over a
 20-keyframe window: ``dense`` (DROID: 80x60 inverse depths per keyframe, edges to the next
 ``--edges`` keyframes each way) and ``patch`` (DPV-SLAM: 96 patches of 3x3 pixels per keyframe,
 edges to ``--patch-edges`` keyframes each way). Reports the time of block linearisation, of the
@@ -28,7 +28,7 @@ import torch
 from fgslam.factors.reprojection import reproject_inv_depth
 from fgslam.factors.schur import BlockConfig, InverseDepthBlock, SlotGroups, schur_reduce
 from fgslam.lie import Sim3
-from fgslam.map import GaugeConfig, MapConfig, SlamMap, pose_key
+from fgslam.backend import Backend, BackendConfig, GaugeConfig, pose_key
 
 K = torch.tensor([320.0, 320.0, 320.0, 240.0], dtype=torch.float64)
 IMAGE_SIZE = (640.0, 480.0)
@@ -121,13 +121,14 @@ def factor_kernels(n: int, repeat: int) -> dict:
     return out
 
 
-def window_problem(kind: str, num_kf: int, edges: int, gen: torch.Generator) -> SlamMap:
+def window_problem(kind: str, num_kf: int, edges: int, gen: torch.Generator) -> Backend:
     """A 20-keyframe window with one InverseDepthBlock per source keyframe (noisy flow targets)."""
     dt = torch.float64
     poses = random_poses(num_kf, gen)
-    smap = SlamMap(MapConfig(solver="python_lm", max_iterations=1, refine_steps=0, gauge=GaugeConfig()))
+    smap = Backend(BackendConfig(solver="lm", max_iterations=1, refine_steps=0, gauge=GaugeConfig()))
     for kf in range(num_kf):
-        smap.add_keyframe(kf, poses[kf])
+        smap.add_keyframe(kf, poses[kf], float(kf))
+    blocks = []
     if kind == "dense":
         ys, xs = torch.meshgrid(torch.arange(60, dtype=dt), torch.arange(80, dtype=dt), indexing="ij")
         uv_struct = torch.stack((xs, ys), -1).reshape(-1, 2) * 8.0 + 4.0  # 1/8-resolution pixel centres
@@ -157,21 +158,22 @@ def window_problem(kind: str, num_kf: int, edges: int, gen: torch.Generator) -> 
         block = InverseDepthBlock(keys, torch.zeros(n, dtype=torch.long), torch.cat(tslot), torch.cat(uvs),
                                   torch.cat(uvt), torch.cat(ids), torch.ones(n, 2, dtype=dt), K, d_true * 1.05,
                                   BlockConfig())
-        smap.add_block(block)
+        blocks.append(block)
+    smap.set_blocks("bench", blocks)
     return smap
 
 
 def lm_iteration(kind: str, edges: int, repeat: int) -> dict:
     gen = torch.Generator().manual_seed(1)
     smap = window_problem(kind, 20, edges, gen)
-    blocks = list(smap.blocks.values())
+    blocks = smap.blocks()
     measurements = sum(int(b.uv_source.shape[0]) for b in blocks)
     structures = sum(b.num_structs for b in blocks)
     values = smap.values
     t_lin = best_time(lambda: [b.linearize(values) for b in blocks], repeat)
-    gfg = smap.linearize(values)
+    gfg = smap.linearize()
     t_solve = best_time(lambda: gfg.optimize(), repeat)
-    t_cost = best_time(lambda: smap.cost(values), repeat)
+    t_cost = best_time(lambda: smap.cost(), repeat)
     initial = [b.structure.clone() for b in blocks]
 
     def one_iteration():
@@ -179,7 +181,7 @@ def lm_iteration(kind: str, edges: int, repeat: int) -> dict:
             smap.set_pose(kf, values.atSimilarity3(pose_key(kf)))
         for b, d in zip(blocks, initial):
             b.set_structure(d)
-        return smap.optimize()
+        return smap.optimize_global()
 
     t_iter = best_time(one_iteration, repeat)
     return {

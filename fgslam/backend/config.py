@@ -44,6 +44,9 @@ class WindowConfig:
     # frontend rebuilds its blocks (with the frames it holds fixed) for every optimisation.
     leaving: Literal["fixed", "marginalize"] = "fixed"
     marginal_regularization: float = ranged(1e-9, ge=0)  # precision added to eliminated keys (directions no factor observes)
+    # A window runs a few LM iterations per frame (the frontend's count, e.g. patch.ba.iterations):
+    lambda_factor: float = ranged(1000.0, gt=1)  # LM damping multiplier after a rejected step (the pose Hessian dwarfs damping below ~1e4: x10 retries the same step)
+    refine_steps: int = ranged(0, ge=0)  # structure Gauss-Newton steps at fixed poses before/after a window optimisation (LM updates the structure jointly anyway)
 
 
 @dataclass
@@ -65,10 +68,10 @@ class BackendConfig:
     absolute_tolerance: float = ranged(1e-14, ge=0)  # stop when the cost falls below this
     step_tolerance: float = ranged(1e-12, ge=0)  # stop when the largest tangent step component falls below this
     lambda_initial: float = ranged(1e-6, gt=0)  # initial LM damping (identity, on the pose tangents)
-    lambda_factor: float = ranged(10.0, gt=1)  # LM damping multiplier on rejection / divisor on acceptance
+    lambda_factor: float = ranged(10.0, gt=1)  # LM damping multiplier on rejection / divisor on acceptance (global, pose graph; windows: window.lambda_factor)
     lambda_min: float = ranged(1e-12, gt=0)  # smallest LM damping
     lambda_max: float = ranged(1e8, gt=0)  # LM gives up (converged) when rejected steps push lambda above this
-    refine_steps: int = ranged(2, ge=0)  # structure Gauss-Newton steps at fixed poses before and after an optimisation
+    refine_steps: int = ranged(2, ge=0)  # structure Gauss-Newton steps at fixed poses before and after a global optimisation (windows: window.refine_steps)
     refine_each_iteration: bool = False  # also refine after every accepted step (else: joint updates only)
     max_backtracks: int = ranged(6, ge=0)  # step halvings when an isam2 step raises the true cost
     threads: int = ranged(1, ge=0)  # torch threads during optimisation (small dense solves: 1 is fastest)

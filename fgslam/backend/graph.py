@@ -22,7 +22,8 @@ Contents of the optimisation problem:
 
 Optimisation (all through the one LM loop, :func:`fgslam.backend.solver.levenberg_marquardt`):
 
-- :meth:`Backend.optimize_window`: the given keyframes are free. With ``map.window.leaving: fixed``
+- :meth:`Backend.optimize_window`: the given keyframes are free (LM settings of ``map.window``: a
+  window runs the frontend's few iterations per frame). With ``map.window.leaving: fixed``
   every other key keeps its value: factors and blocks that reach it are conditioned on it (their
   linear pieces restricted to the free keys; for a Schur-reduced block this equals eliminating its
   structure in the problem with those poses fixed). With ``marginalize`` the persistent built-in
@@ -465,6 +466,14 @@ class Backend:
         self._values.update(pose_key(kf_id), as_similarity3(T_WC))
         self._bump(int(kf_id))
 
+    def values_of(self, keys: Iterable[int]):
+        """A gtsam.Values with the current values of ``keys`` (e.g. a block's keys)."""
+        keys = {int(k) for k in keys}
+        for key in keys:
+            if not self._values.exists(key):
+                raise OptimizationError(f"unknown key {key_name(key)}")
+        return self._subset(keys)
+
     @property
     def values(self):
         """A copy of the current gtsam.Values."""
@@ -557,7 +566,9 @@ class Backend:
         if kfs and self._anchor is None:
             self._anchor = (kfs[0], self.pose(kfs[0]))
         if len(kfs) >= 2 and self._range is None:
-            self._range = self._make_range(kfs[0], kfs[1])
+            distance = float(np.linalg.norm(_centre(self.pose(kfs[1])) - _centre(self.pose(kfs[0]))))
+            if distance > 0.0:  # else no range yet (retried at the next keyframe)
+                self._range = (kfs[0], kfs[1], distance)
 
     def _gauge_factors(self, free_kfs: Iterable[int]) -> list:
         """The gauge factors of an optimisation whose free keyframes are ``free_kfs``."""
@@ -597,12 +608,12 @@ class Backend:
                 graph.add(factor)
         return graph
 
-    def _problem(self, free_keys: list[int]) -> _WindowProblem:
+    def _problem(self, free_keys: list[int], refine_steps: int | None = None) -> _WindowProblem:
         """The optimisation problem over ``free_keys`` (module docstring)."""
         import gtsam
 
         free = set(free_keys)
-        free_kfs = [kf for kf in self._keyframes if pose_key(kf) in free]
+        free_kfs = [self._key_kf[k] for k in free_keys if k in self._key_kf]
         factors = [(f, keys) for f, keys, _ in self._factors.values()]
         factors += [(f, tuple(int(k) for k in f.keys())) for f in self._gauge_factors(free_kfs)]
         factors = [(f, keys) for f, keys in factors if any(k in free for k in keys)]
@@ -621,7 +632,8 @@ class Backend:
             needed.update(int(k) for k in factor.keys())
         for block in blocks:
             needed.update(int(k) for k in block.keys)
-        return _WindowProblem(self._subset(needed), sorted(free), inner, cross, blocks, self.config.refine_steps,
+        steps = self.config.refine_steps if refine_steps is None else refine_steps
+        return _WindowProblem(self._subset(needed), sorted(free), inner, cross, blocks, steps,
                               self.config.refine_each_iteration)
 
     def _subset(self, keys: set):
@@ -699,11 +711,12 @@ class Backend:
         return {kf: np.asarray(marginals.marginalCovariance(pose_key(kf))) for kf in ids}
 
     # ------------------------------------------------------------------ optimisation
-    def _settings(self, iterations: int | None) -> LMSettings:
+    def _settings(self, iterations: int | None, window: bool = False) -> LMSettings:
         cfg = self.config
         return LMSettings(
             max_iterations=cfg.max_iterations if iterations is None else int(iterations),
-            lambda_initial=cfg.lambda_initial, lambda_factor=cfg.lambda_factor, lambda_max=cfg.lambda_max,
+            lambda_initial=cfg.lambda_initial,
+            lambda_factor=cfg.window.lambda_factor if window else cfg.lambda_factor, lambda_max=cfg.lambda_max,
             lambda_min=cfg.lambda_min, relative_tolerance=cfg.relative_tolerance,
             absolute_tolerance=cfg.absolute_tolerance, step_tolerance=cfg.step_tolerance,
             max_backtracks=cfg.max_backtracks,
@@ -723,21 +736,22 @@ class Backend:
             if not self._values.exists(int(key)):
                 raise OptimizationError(f"unknown key {key_name(int(key))}")
             free.append(int(key))
-        return self._optimize(free, iterations)
+        return self._optimize(free, iterations, window=True)
 
     def optimize_global(self, iterations: int | None = None) -> OptimizeReport:
         """Optimise every key (``iterations``: default ``map.max_iterations``)."""
         return self._optimize([int(k) for k in self._values.keys()], iterations)
 
-    def _optimize(self, free: list[int], iterations: int | None) -> OptimizeReport:
+    def _optimize(self, free: list[int], iterations: int | None, window: bool = False) -> OptimizeReport:
         start = time.perf_counter()
         kind = self.config.solver_kind
+        refine_steps = self.config.window.refine_steps if window else self.config.refine_steps
         with torch_threads(self.config.threads):
-            problem = self._problem(free)
-            initial = problem.refine(self.config.refine_steps)
+            problem = self._problem(free, refine_steps)
+            initial = problem.refine(refine_steps)
             propose = _Isam2Stepper(problem) if kind == "isam2" else None
-            lm = levenberg_marquardt(problem, self._settings(iterations), propose=propose)
-            final = problem.refine(self.config.refine_steps) if self.config.refine_steps > 0 else lm.final_cost
+            lm = levenberg_marquardt(problem, self._settings(iterations, window), propose=propose)
+            final = problem.refine(refine_steps) if refine_steps > 0 else lm.final_cost
         self._write_back(problem)
         report = OptimizeReport(kind, initial, final, lm.iterations, lm.converged, time.perf_counter() - start,
                                 len(free))

@@ -17,6 +17,7 @@ from ..errors import ConfigError
 from .base import FrameStatus, Frontend, PoseSource, SensorMode
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
+    from ..backend import Backend
     from ..io.calibration import Calibration
     from ..slam import SlamConfig
 
@@ -30,14 +31,15 @@ _PLANNED: dict[str, str] = {
 }
 
 
-def _build_patch(config: SlamConfig, calibration: Calibration, sensor_mode: SensorMode) -> Frontend:
+def _build_patch(config: SlamConfig, calibration: Calibration, sensor_mode: SensorMode,
+                 backend: Backend | None = None) -> Frontend:
     from .patch.frontend import PatchFrontend
 
     return PatchFrontend(config.patch, calibration, sensor_mode, map_config=config.map,
-                         loop_config=config.loop_closure)
+                         loop_config=config.loop_closure, backend=backend)
 
 
-_BUILDERS: dict[str, Callable[[SlamConfig, Calibration, SensorMode], Frontend]] = {
+_BUILDERS: dict[str, Callable[..., Frontend]] = {
     "patch": _build_patch,
 }
 
@@ -47,16 +49,19 @@ def available_frontends() -> tuple[str, ...]:
     return tuple(_BUILDERS)
 
 
-def make_frontend(name: str, config: SlamConfig, calibration: Calibration, sensor_mode: SensorMode) -> Frontend:
+def make_frontend(name: str, config: SlamConfig, calibration: Calibration, sensor_mode: SensorMode,
+                  backend: Backend | None = None) -> Frontend:
     """Build frontend family ``name`` from the run's ``config`` (its section ``config.<name>``,
-    ``config.map`` and ``config.loop_closure``) for images described by ``calibration`` in ``sensor_mode`` (mono|stereo|rgbd).
+    ``config.map`` and ``config.loop_closure``) for images described by ``calibration`` in ``sensor_mode`` (mono|stereo|rgbd),
+    feeding ``backend`` (the run's :class:`fgslam.backend.Backend`; None: the frontend builds its own
+    from ``config.map``).
 
     Raises:
         ConfigError: ``name`` is planned but not implemented yet (``dense``, ``pointmap``) or unknown.
     """
     builder = _BUILDERS.get(name)
     if builder is not None:
-        return builder(config, calibration, sensor_mode)
+        return builder(config, calibration, sensor_mode, backend=backend)
     if name in _PLANNED:
         raise ConfigError(
             f"frontend '{name}' ({_PLANNED[name]}) is not implemented yet: it has no issue of its own so far "

@@ -83,7 +83,6 @@ class BAConfig:
     init_iterations: int = ranged(15, ge=1)  # iterations per update round at initialisation
     rounds: int = ranged(2, ge=1)  # update rounds per frame: measure (re-track bad edges), then optimise
     init_rounds: int = ranged(3, ge=1)  # update rounds at initialisation
-    refine_steps: int = ranged(0, ge=0)  # per-patch depth Gauss-Newton steps before/after each BA (LM updates depths jointly anyway)
     pixel_sigma: float = ranged(1.0, gt=0)  # standard deviation (px) of a full-confidence measurement
     huber_delta: float = ranged(2.0, gt=0)  # Huber threshold on the whitened residual (sigma units)
     outlier_threshold: float = ranged(6.0, gt=0)  # edges with a residual above this (px) after BA get zero weight
@@ -97,7 +96,6 @@ class BAConfig:
     stereo_init_steps: int = ranged(5, ge=0)  # stereo: per-patch depth Gauss-Newton steps on the first frame's right-image edges
     stereo_cross_edges: bool = False  # stereo: also edges into the right images of other frames (else own right image only)
     threads: int = ranged(1, ge=0)  # torch threads during BA (small dense work: 1 is fastest)
-    lambda_factor: float = ranged(1000.0, gt=1)  # LM damping multiplier after a rejected step (the pose Hessian dwarfs damping below ~1e4: x10 retries the same step)
     depth_model: Literal["prior", "observation"] = "prior"  # RGB-D: prior on each patch's inverse depth in its source frame (DROID-SLAM), or sensor depth as a measurement of every observation, source and targets (ORB-SLAM3 RGB-D: virtual right-camera pixel u - f b / z)
     depth_noise: Literal["relative", "inverse"] = "relative"  # RGB-D: relative: sigma_d = depth_prior_sigma * d (sigma_z grows with z); inverse: sigma_d = depth_prior_sigma in 1/m (sigma_z grows with z^2, Kinect)
     depth_virtual_baseline: float = ranged(0.08, gt=0)  # RGB-D observation model: baseline (m) of the virtual right camera (sets the pixel scale of the depth rows)

@@ -14,9 +14,11 @@ Per frame (after initialisation):
    reprojection (round 1: the new edges; later rounds: new edges that failed or whose residual
    after BA exceeds ``ba.retrack_threshold``; with ``ba.measured_huber`` each fresh measurement
    Huber-weighted by its distance from the reprojection it started from), then
-   Levenberg-Marquardt on the optimisation window through :class:`fgslam.map.SlamMap` with one
-   :class:`~.ba.PatchBlock` (patch depths Schur-eliminated; frames older than the window fixed;
-   each frame's Sim(3) scale held); Huber weights and an outlier cut are refreshed after each round;
+   Levenberg-Marquardt on the optimisation window through the run's backend
+   (:meth:`fgslam.backend.Backend.optimize_window`) with one :class:`~.ba.PatchBlock` set as this
+   contributor's block (patch depths Schur-eliminated; frames older than the window held fixed by
+   the block; each frame's Sim(3) scale held by the backend's gauge); Huber weights and an outlier
+   cut are refreshed after each round;
 4. too few valid measurements into the frame, or less than ``min_inlier_ratio`` of them BA inliers
    (motion the map's own reprojections contradict): tracking failure - the frame leaves the graph,
    the window's poses and depths are restored, the frame gets the predicted pose
@@ -50,7 +52,7 @@ from __future__ import annotations
 import logging
 import time
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -61,7 +63,9 @@ from ...factors.robust import kernel_weight
 from ...factors.schur import BlockConfig, torch_threads
 from ...loop.closure import LoopClosureConfig
 from ...lie import sim3_matrix_components, sim3_matrix_parts
-from ...map import GaugeConfig, MapConfig, SlamMap, pose_key
+from ...backend.config import BackendConfig
+from ...backend.graph import Backend
+from ...backend.keys import pose_key
 from ..base import FrameStatus, Frontend, SensorMode
 from .ba import PatchBlock
 from .config import PatchConfig
@@ -183,6 +187,45 @@ class _InitState:
     buffer: list = field(default_factory=list)  # (fid, frame, features, tracked uv, valid)
 
 
+class BackendFrame(GraphFrame):
+    """A graph frame whose pose lives in the backend once :meth:`attach` ties it to a keyframe.
+
+    ``T_WC`` reads the backend's pose through a cache refreshed when the backend's pose version of
+    the keyframe changes (an optimisation, a ``set_pose``); assigning ``T_WC`` sets the backend's pose.
+    Detached (before it enters the backend, after it leaves) the frame keeps its last pose itself.
+    """
+
+    _backend: Backend | None = None
+    _version: int = -1
+
+    @property
+    def T_WC(self) -> np.ndarray:
+        backend = self._backend
+        if backend is not None:
+            version = backend.pose_version(self.fid)
+            if version != self._version:
+                self._T_WC = backend.pose_matrix(self.fid)
+                self._version = version
+        return self._T_WC
+
+    @T_WC.setter
+    def T_WC(self, T_WC: np.ndarray) -> None:
+        T_WC = np.asarray(T_WC, dtype=np.float64)
+        backend = self._backend
+        if backend is not None:
+            backend.set_pose(self.fid, T_WC)
+            self._version = backend.pose_version(self.fid)
+        self._T_WC = T_WC
+
+    def attach(self, backend: Backend) -> None:
+        self._backend = backend
+        self._version = backend.pose_version(self.fid)
+
+    def detach(self) -> None:
+        _ = self.T_WC  # keep the backend's last pose
+        self._backend = None
+
+
 class PatchFrontend(PatchLoopClosure, Frontend):
     """DPVO / DPV-SLAM-style patch frontend (see module docstring).
 
@@ -191,22 +234,35 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         calibration: the frames' :class:`fgslam.io.calibration.Calibration` (undistorted pinhole;
             a right camera and ``T_CLCR`` for stereo); None: taken from the first frame.
         sensor_mode: ``mono``, ``stereo`` (needs right images) or ``rgbd`` (needs depth).
-        map_config: solver settings for the local bundle adjustment (its iteration count and gauge
-            are set by the frontend); None: :class:`fgslam.map.MapConfig` defaults.
+        map_config: settings of the backend the frontend builds when none is handed in (None:
+            :class:`fgslam.backend.BackendConfig` defaults); ignored with ``backend``.
         loop_config: loop closure (:class:`fgslam.loop.closure.LoopClosureConfig`; the frontend runs
             its ``classical`` part, see :meth:`_loop_poll_and_apply`); None: loop closure off.
+        backend: the run's :class:`fgslam.backend.Backend` (built by the runner from ``config.map``);
+            None: the frontend builds its own from ``map_config``.
+
+    Keyframes: every graph frame is a backend keyframe from when it enters the graph (added with its
+    timestamp) until it leaves as redundant or rejected (removed); finalised frames stay. The local
+    BA sets this contributor's block (``backend.set_blocks("patch", [block])``), chooses the gauge
+    keyframes (``set_gauge``) and runs ``backend.optimize_window(window, ba.iterations)``; the
+    solver, gauge sigmas, tolerances and window damping are the backend's (``map``). The backend is
+    the only store of keyframe poses: ``GraphFrame.T_WC`` of the frontend's frames
+    (:class:`BackendFrame`) reads the backend through a cache keyed by the backend's pose version,
+    and assigning it sets the backend's pose.
     """
 
     name = "patch"
 
     def __init__(self, config: PatchConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
-                 map_config: MapConfig | None = None, loop_config: LoopClosureConfig | None = None):
+                 map_config: BackendConfig | None = None, loop_config: LoopClosureConfig | None = None,
+                 backend: Backend | None = None):
         self.config = config or PatchConfig()
         self.config.validate()
         if sensor_mode not in ("mono", "stereo", "rgbd"):
             raise ConfigError(f"sensor mode must be mono, stereo or rgbd, got {sensor_mode!r}")
         self.sensor_mode = sensor_mode
-        self.map_config = map_config or MapConfig()
+        self.backend = backend if backend is not None else Backend(map_config or BackendConfig())
+        self.map_config = self.backend.config
         self.source = make_source(self.config)
         self.calibration = None
         if calibration is not None:
@@ -249,7 +305,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         self._border = self.config.graph.effective_border()
 
     def _key(self, fid: int) -> int:
-        """gtsam key of graph frame ``fid`` (``fgslam.map.pose_key``), cached."""
+        """gtsam key of graph frame ``fid`` (``fgslam.backend.keys.pose_key``), cached."""
         key = self._keys.get(fid)
         if key is None:
             if len(self._keys) > 4 * (len(self.graph) + 1):
@@ -290,7 +346,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
             if not self._initialized:
                 self._abandon_initialisation()
             elif self.graph.frames and self.graph.frames[-1].fid == fid:
-                self.graph.remove_frame(fid)
+                self._leave(self.graph.remove_frame(fid))
             status = self._fail(fid, frame, f"optimisation failed: {exc}")
         self._sources[fid] = status.pose_source
         self._loop_keep_image(fid, frame)
@@ -433,7 +489,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
             median = float(np.nanmedian(sensor)) if np.isfinite(sensor).any() else 1.0
         inv_depth = np.where(np.isfinite(sensor), sensor, median)
         keep_depth = self.sensor_mode == "rgbd" and self.config.ba.depth_model == "observation"
-        return GraphFrame(fid=fid, index=int(frame.index), timestamp=float(frame.timestamp), T_WC=np.array(T_WC, dtype=np.float64),
+        return BackendFrame(fid=fid, index=int(frame.index), timestamp=float(frame.timestamp), T_WC=np.array(T_WC, dtype=np.float64),
                           uv=uv, inv_depth=inv_depth, sensor_inv_depth=sensor, colour=colour,
                           features=features, features_right=features_right, depth=frame.depth if keep_depth else None)
 
@@ -453,6 +509,25 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         feats_right = self.source.prepare(frame.image_right) if right and self.sensor_mode == "stereo" else None
         self._times["flow"] += time.perf_counter() - t0
         return feats, feats_right
+
+    def _enter(self, f: GraphFrame) -> None:
+        """Frame ``f`` enters the patch graph and becomes a backend keyframe."""
+        self.graph.add_frame(f)
+        self._ensure_keyframe(f)
+
+    def _ensure_keyframe(self, f: GraphFrame) -> None:
+        if not self.backend.has_keyframe(f.fid):
+            self.backend.add_keyframe(f.fid, f.T_WC, f.timestamp)
+            if isinstance(f, BackendFrame):
+                f.attach(self.backend)
+
+    def _leave(self, f: GraphFrame) -> None:
+        """Frame ``f`` left the patch graph without being finalised (redundant, rejected): it leaves
+        the backend too (its pose stays on the frame)."""
+        if isinstance(f, BackendFrame):
+            f.detach()
+        if self.backend.has_keyframe(f.fid):
+            self.backend.remove_keyframe(f.fid)
 
     # ------------------------------------------------------------------ measurement
     def _predict_edges(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -585,30 +660,34 @@ class PatchFrontend(PatchLoopClosure, Frontend):
             config=BlockConfig(threads=cfg.ba.threads), reprojection=self._reproj, **prior,
         )
         mono_init = init and self.sensor_mode == "mono"
-        gauge = GaugeConfig(fix_anchor=mono_init or len(fixed) == 0, hold_scale=True, world_scale_range=mono_init)
-        mcfg = replace(self.map_config, max_iterations=iterations, refine_steps=cfg.ba.refine_steps,
-                       threads=cfg.ba.threads, gauge=gauge, solver="python_lm", lambda_factor=cfg.ba.lambda_factor)
-        smap = SlamMap(mcfg)
+        backend = self.backend
         for f in var_order:
-            smap.add_keyframe(int(f), _gtsam_sim3(g.frame(int(f)).T_WC))
-        smap.add_block(block)
-        report = smap.optimize()
-        # write back poses and depths; RGB-D keeps every scale at exactly 1: its depth priors act on
-        # inverse depths in the source camera and observe no Sim(3) scale, and the scale prior only
-        # holds each BA near its starting scale, so written-back scales drifted from BA to BA
-        # (7-Scenes: s fell to 0.87 within 200 frames and the trajectory shrank; see README). Stereo
-        # observes the scale through the metric baseline (resetting it there moved the EuRoC static
-        # clip by 2.6 mm instead of 0.8 mm).
+            self._ensure_keyframe(g.frame(int(f)))
+        # gauge: the oldest window frame anchored when nothing outside the window holds the poses;
+        # at monocular initialisation the range between the first and last frame is the world scale
+        anchor = int(var_order[0]) if mono_init or len(fixed) == 0 else None
+        pair = (int(var_order[0]), int(var_order[1])) if mono_init and len(var_order) >= 2 else None
+        backend.set_gauge(anchor=anchor, scale_pair=pair)
+        backend.set_blocks(self.name, [block])
+        report = backend.optimize_window([int(f) for f in var_order], iterations)
+        # RGB-D poses are written back rigid (scale exactly 1): its depth priors act on inverse depths
+        # in the source camera and observe no Sim(3) scale, and the scale prior only holds each BA
+        # near its starting scale, so kept scales drifted from BA to BA (7-Scenes: s fell to 0.87
+        # within 200 frames and the trajectory shrank; see README). Stereo observes the scale through
+        # the metric baseline (resetting it there moved the EuRoC static clip by 2.6 mm instead of 0.8 mm).
         rigid = self.sensor_mode == "rgbd"
         for f in var_order:
-            T_WC = _gtsam_matrix(smap.pose(int(f)))
-            g.frame(int(f)).T_WC = _rigid(T_WC) if rigid else T_WC
+            frame = g.frame(int(f))
+            if rigid:
+                frame.T_WC = _rigid(frame.T_WC)
+            elif not isinstance(frame, BackendFrame):  # a frame built outside the frontend (tests)
+                frame.T_WC = backend.pose_matrix(int(f))
         depth = block.structure.numpy()
         for pos in np.unique(pos_src):
             sel = pos_src == pos
             g.frames[pos].inv_depth[ukeys[sel] % K] = depth[sel]
         # robust weights from the final residuals (the edges' own rows come first in the block)
-        r, valid = block.residuals(smap.values)
+        r, valid = block.residuals(backend.values_of(block.keys))
         r, valid = r[: e.size], valid[: e.size]
         rn = torch.linalg.vector_norm(r, dim=1).numpy()
         robust = np.where(valid.numpy() & (rn <= cfg.ba.outlier_threshold), self._huber_weights(g.confidence[e], rn), 0.0)
@@ -717,7 +796,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         feats, feats_right = self._prepare(frame)
         t0 = time.perf_counter()
         gf = self._new_graph_frame(fid, frame, T_WC, feats, feats_right)
-        self.graph.add_frame(gf)
+        self._enter(gf)
         self._records[fid] = ("graph",)
         self._times["bookkeeping"] += time.perf_counter() - t0
         if self.sensor_mode == "stereo":
@@ -730,7 +809,8 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         else:
             valid = int(np.isfinite(gf.sensor_inv_depth).sum())
         if valid < self.config.tracking.min_valid_edges:
-            self.graph.clear()
+            for f in self.graph.clear():
+                self._leave(f)
             self._records[fid] = None
             return self._status(fid, frame, "initializing", events=[f"waiting for depth ({valid} valid patches)"])
         self._initialized = True
@@ -743,6 +823,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         """After a failed initialisation: the frames it put in the graph (or buffered) get no pose and
         leave; the next frame starts a new initialisation (keyframes of an earlier map stay final)."""
         for f in self.graph.clear():
+            self._leave(f)
             self._records[f.fid] = None
         if self._init is not None:
             for b in [(self._init.ref_fid,)] + self._init.buffer:
@@ -874,7 +955,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
             else:
                 ref_d = self.graph.frames[0].inv_depth
                 gf.inv_depth[:] = float(np.median(ref_d))
-            self.graph.add_frame(gf)
+            self._enter(gf)
             self._records[mfid] = ("graph",)
         idx = self.graph.connect_all(stereo=False)
         ba = self.config.ba
@@ -883,6 +964,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         if n_valid < self.config.tracking.min_valid_edges * len(members):
             logger.info("initialisation at frame %d rejected (%d valid edges); waiting", frame.index, n_valid)
             for f in self.graph.clear():
+                self._leave(f)
                 self._records[f.fid] = None
             self._init = None
             return self._status(fid, frame, "initializing", events=["initialisation rejected"])
@@ -911,7 +993,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         _, feats_right = self._prepare(frame, left=False)  # stereo: the right image only for a moving frame
         t0 = time.perf_counter()
         gf = self._new_graph_frame(fid, frame, T_pred, feats, feats_right)
-        self.graph.add_frame(gf)
+        self._enter(gf)
         self._records[fid] = ("graph",)
         idx = self.graph.connect_new_frame(self.sensor_mode == "stereo", cfg.ba.stereo_cross_edges)
         g = self.graph
@@ -953,7 +1035,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         """A rejected new frame leaves the graph, and the window gets back the poses, depths and
         robust weights it had before that frame's BA."""
         g = self.graph
-        g.remove_frame(fid)
+        self._leave(g.remove_frame(fid))
         frames, robust = saved
         if len(frames) == len(g.frames) and robust.shape == g.robust.shape:
             for f, (T_WC, inv_depth) in zip(g.frames, frames):
@@ -1049,7 +1131,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
             return None
         victim = g.frames[k]
         self._records[victim.fid] = ("rel", a.fid, np.linalg.inv(a.T_WC) @ victim.T_WC)
-        g.remove_frame(victim.fid)
+        self._leave(g.remove_frame(victim.fid))
         return int(victim.index)
 
     def _mean_flow(self, a: GraphFrame, b: GraphFrame) -> float:
