@@ -109,6 +109,10 @@ class DriftingOdometry:
         self.handles[(i, j)] = self.backend.add_factor(factor, owner=self.name)
 
     def apply_correction(self, correction: LoopCorrection) -> None:
+        """As a frontend whose keyframe poses live in the backend: move them, fold the scale."""
+        for kf_id in self.backend.keyframe_ids:
+            T_new, _ = correction.apply_pose(kf_id, self.backend.pose_matrix(kf_id))
+            self.backend.set_pose(kf_id, T_new)
         if not correction.fold_scale:
             return
         # its measurements from now on come in the folded scale of the newest keyframe's structure
@@ -164,3 +168,19 @@ class OdometryFrontend(Frontend):
 
     def num_keyframes(self) -> int:
         return len(self.backend.keyframe_ids)
+
+
+class NoContributor:
+    """The same odometry as a frontend without ``apply_correction``: plugins' corrections then move the
+    backend's keyframes with their Sim(3) scales (nothing folds them), which a Sim(3) map absorbs: new
+    keyframes are dead-reckoned from the corrected, scaled poses."""
+
+    def __init__(self, odometry: DriftingOdometry) -> None:
+        self.odometry = odometry
+        self.backend = odometry.backend
+
+    def process(self, k: int) -> None:
+        self.odometry.step(k)
+
+    def finish(self) -> None:
+        pass

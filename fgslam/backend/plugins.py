@@ -21,8 +21,9 @@ plugin may move the map: on_keyframe callbacks run inside a frontend's frame) an
 ``finish(backend)`` (after the last frame).
 
 A plugin moves the map with :func:`apply_correction` (a ``PoseCorrection``, as loop closure does):
-through ``backend.apply_correction`` when the backend offers it, which lets the contributors fold
-the correction into their structure; otherwise by setting every keyframe pose.
+through ``backend.apply_correction`` when the backend offers it (:class:`CorrectedBackend`, which
+the runner hands to plugins: each contributor moves its keyframes and folds the scale into its
+structure); otherwise by setting every keyframe pose, scales included (nothing to fold into).
 
 Two built-in plugins:
 
@@ -166,9 +167,10 @@ def parse_options(cls: type[T], options: Mapping[str, Any], key: str) -> T:
 
 class CorrectedBackend:
     """The backend as the plugins of a run see it: every attribute of ``backend``, plus
-    :meth:`apply_correction`, which sets every keyframe pose from the correction and then lets each
-    contributor (a frontend: ``contributor.apply_correction``) fold it into its own poses and
-    structure. Plugins call it only at the safe point (``poll``, ``finish``)."""
+    :meth:`apply_correction`, which hands a correction to each contributor (a frontend:
+    ``contributor.apply_correction``), as loop closure does: the contributor moves its keyframes
+    (whose poses live in the backend) and folds the scale into its structure. Plugins call it only
+    at the safe point (``poll``, ``finish``)."""
 
     def __init__(self, backend: Any, contributors: Sequence[Any]) -> None:
         self._backend = backend
@@ -178,21 +180,23 @@ class CorrectedBackend:
         return getattr(self._backend, name)
 
     def apply_correction(self, correction: Any) -> None:
-        for kf_id in self._backend.keyframe_ids:
-            T_new, _ = correction.apply_pose(kf_id, self._backend.pose_matrix(kf_id))
-            self._backend.set_pose(kf_id, T_new)
         for contributor in self.contributors:
             contributor.apply_correction(correction)
 
 
+def can_fold(backend: Any) -> bool:
+    """Whether corrections reach contributors that fold their scale into structure (else a correction
+    moves the keyframe poses with their scales: a Sim(3) map stays consistent without folding)."""
+    return callable(getattr(backend, "apply_correction", None))
+
+
 def apply_correction(backend: Any, correction: Any) -> None:
     """Move the map by a pose correction (``fgslam.loop.closure.LoopCorrection``: a Sim(3) update per
-    keyframe). Through ``backend.apply_correction`` when the backend has it (:class:`CorrectedBackend`:
-    the poses, then every contributor folds the scale into its structure); otherwise each keyframe's
-    pose is set."""
-    apply = getattr(backend, "apply_correction", None)
-    if callable(apply):
-        apply(correction)
+    keyframe): through ``backend.apply_correction`` when the backend has it (:class:`CorrectedBackend`:
+    the contributors move their keyframes and fold the scale into their structure); otherwise each
+    keyframe pose is set (build such corrections with ``fold_scale`` = :func:`can_fold`, False)."""
+    if can_fold(backend):
+        backend.apply_correction(correction)
         return
     for kf_id in backend.keyframe_ids:
         T_new, _ = correction.apply_pose(kf_id, backend.pose_matrix(kf_id))
@@ -242,19 +246,19 @@ def with_plugins(frontend: Any, entries: Sequence[Any], timestamps: Optional[np.
 
 def uniform_correction(backend: Any, U: np.ndarray) -> Any:
     """The correction moving every keyframe by the same Sim(3) ``U`` (4x4 ``[[s R, t], [0, 1]]``),
-    the scale folded into the structure."""
+    the scale folded into the structure when contributors can (:func:`can_fold`)."""
     from ..loop.closure import LoopCorrection
 
     s = float(np.cbrt(np.linalg.det(U[:3, :3])))
     ids = list(backend.keyframe_ids)
     return LoopCorrection(T_update={k: U for k in ids}, scale={k: s for k in ids},
-                          T_WC_new={k: U @ backend.pose_matrix(k) for k in ids}, loops=[], fold_scale=True,
+                          T_WC_new={k: U @ backend.pose_matrix(k) for k in ids}, loops=[], fold_scale=can_fold(backend),
                           n_accepted=0, solve_time_s=0.0)
 
 
 def pose_graph_correction(backend: Any, T_WC_new: Mapping[int, np.ndarray], solve_time_s: float = 0.0) -> Any:
     """The correction taking each keyframe of ``T_WC_new`` from its current pose there, the scale
-    change folded into the structure."""
+    change folded into the structure when contributors can (:func:`can_fold`)."""
     from ..loop.closure import LoopCorrection
 
     T_update, scale = {}, {}
@@ -262,7 +266,7 @@ def pose_graph_correction(backend: Any, T_WC_new: Mapping[int, np.ndarray], solv
         T_old = backend.pose_matrix(k)
         T_update[k] = np.asarray(T_new, dtype=np.float64) @ np.linalg.inv(T_old)
         scale[k] = float(np.cbrt(np.linalg.det(T_new[:3, :3]) / np.linalg.det(T_old[:3, :3])))
-    return LoopCorrection(T_update=T_update, scale=scale, T_WC_new=dict(T_WC_new), loops=[], fold_scale=True,
+    return LoopCorrection(T_update=T_update, scale=scale, T_WC_new=dict(T_WC_new), loops=[], fold_scale=can_fold(backend),
                           n_accepted=0, solve_time_s=solve_time_s)
 
 
