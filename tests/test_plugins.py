@@ -226,25 +226,36 @@ def test_a_plugin_factor_on_an_unknown_key_is_an_optimization_error_naming_it():
 
 
 def test_position_samples_go_to_the_nearest_keyframe_within_max_dt(tmp_path):
-    """Samples at 1 Hz, keyframes every 0.3 s with a gap: each sample is matched once, to the keyframe
+    """Samples at 1 Hz, keyframes every 0.3 s with gaps: each sample is matched once, to the keyframe
     nearest in time, its position interpolated there; samples farther than max_dt from every keyframe
-    are dropped."""
+    are dropped; when the backend drops a keyframe, its sample goes to the nearest remaining one."""
     path = tmp_path / "gps.txt"
-    path.write_text("".join(f"{t:.1f} {10 * t:.3f} 0 0\n" for t in range(6)))
+    path.write_text("".join(f"{t:.1f} {10 * t:.3f} 0 0\n" for t in range(7)))
     plugin = build_plugin({"class": POSITION_PRIOR, "options": {"file": str(path), "max_dt": 0.15,
                                                                   "min_samples": 50}}, 0)
     backend = make_backend()
-    attach_plugins([plugin], backend, timestamps=np.arange(0, 6.0, 0.3))
-    times = [0.0, 0.3, 0.6, 0.9, 1.2, 1.5, 2.4, 2.7, 3.0, 3.3, 5.1]  # nothing near 2.0 and 4.0
+    attach_plugins([plugin], backend, timestamps=np.arange(0, 7.0, 0.3))
+    times = [0.0, 0.3, 0.6, 0.9, 1.2, 1.5, 2.4, 2.7, 3.0, 3.3, 5.1, 5.9, 6.2]  # nothing near 2.0 and 4.0
     for k, t in enumerate(times):
         T = np.eye(4)
         T[0, 3] = 10 * t
         backend.add_keyframe(k, T, t)
+
+    def matched():
+        return {times[k]: p for k, (dt, p, j) in plugin._matched.items()}
+
+    plugin.poll(backend)
+    assert sorted(matched()) == [0.0, 0.9, 3.0, 5.1, 5.9]
+    np.testing.assert_allclose(matched()[0.9], [9.0, 0, 0])  # interpolated at the keyframe's time
+    backend.remove_keyframe(3)  # 0.9 s: sample 1 s would go to 1.2 s, 0.2 s away: dropped
+    backend.remove_keyframe(8)  # 3.0 s: sample 3 s would go to 3.3 s: dropped
+    plugin.poll(backend)  # the safe point re-matches
+    assert sorted(matched()) == [0.0, 5.1, 5.9]
+    plugin.options.max_dt = 0.25
+    backend.remove_keyframe(11)  # 5.9 s: sample 6 s goes to 6.2 s
     finish_plugins([plugin], backend)
-    matched = {times[k]: p for k, (dt, p) in plugin._matched.items()}
-    assert sorted(matched) == [0.0, 0.9, 3.0, 5.1]  # samples 0, 1 (0.1 s from 0.9), 3 and 5 (0.1 s from 5.1)
-    np.testing.assert_allclose(matched[0.9], [9.0, 0, 0])  # interpolated at the keyframe's time
-    np.testing.assert_allclose(matched[5.1], [50.0, 0, 0])  # past the last sample: the last one
+    assert sorted(matched()) == [0.0, 5.1, 6.2]
+    np.testing.assert_allclose(matched()[6.2], [60.0, 0, 0])  # past the last sample: the last one
     assert not plugin.aligned  # min_samples not reached: no alignment, no factors
     assert backend.factor_handles("factors[0]") == []
 

@@ -38,6 +38,7 @@ Two built-in plugins:
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import importlib
 import logging
@@ -319,7 +320,7 @@ class PositionPrior:
         self._kf_ids: list[int] = []
         self._kf_keys: dict[int, int] = {}
         self._next_sample = 0  # first sample not yet matched to a keyframe
-        self._matched: dict[int, tuple[float, np.ndarray]] = {}  # kf_id -> (|dt| of its sample, position)
+        self._matched: dict[int, tuple[float, np.ndarray, int]] = {}  # kf_id -> (|dt|, position, sample index)
         self._handles: dict[int, int] = {}  # kf_id -> factor handle
         self._since_correction = 0
         self.alignment: Optional[np.ndarray] = None  # the 4x4 Sim(3) applied, once aligned
@@ -355,6 +356,7 @@ class PositionPrior:
 
     def finish(self, backend: Any) -> None:
         self._match_samples(math.inf)
+        self._rematch()
         if not self.aligned:
             self._try_align()
         if self.aligned:
@@ -371,6 +373,9 @@ class PositionPrior:
     def poll(self, backend: Any) -> None:
         """Safe point (after a frame, no optimisation running): align the map once the samples allow
         it, then a pose-graph correction after every ``correct_every`` new priors."""
+        self._rematch()
+        if self.aligned:
+            self._add_priors()
         if not self.aligned:
             self._try_align()
         elif self.options.correct_every and self._since_correction >= self.options.correct_every:
@@ -380,30 +385,46 @@ class PositionPrior:
     def _on_keyframe(self, kf_id: int, timestamp: float, key: int) -> None:
         """Inside the backend's add_keyframe (a frontend mid-frame): only match samples and add priors;
         anything that moves the map waits for :meth:`poll`."""
-        self._kf_ids.append(int(kf_id))
-        self._kf_times.append(float(timestamp))
+        i = bisect.bisect_right(self._kf_times, float(timestamp))  # kept in time order
+        self._kf_times.insert(i, float(timestamp))
+        self._kf_ids.insert(i, int(kf_id))
         self._kf_keys[int(kf_id)] = int(key)
         self._match_samples(float(timestamp))
         if self.aligned:
             self._add_priors()
 
     def _match_samples(self, t_now: float) -> None:
-        """Match every sample up to ``t_now`` (all keyframes before it are known) to its nearest keyframe."""
-        times = np.asarray(self._kf_times)
-        while self._next_sample < len(self._times) and self._times[self._next_sample] <= t_now and times.size:
-            t_s = self._times[self._next_sample]
+        """Match every sample up to ``t_now`` (the keyframes around it are known) to a keyframe."""
+        while self._next_sample < len(self._times) and self._times[self._next_sample] <= t_now:
             self._next_sample += 1
-            i = int(np.argmin(np.abs(times - t_s)))
-            dt = abs(times[i] - t_s)
-            kf_id = self._kf_ids[i]
-            if dt > self.options.max_dt or not self.backend.has_keyframe(kf_id):
-                continue
-            if kf_id in self._matched and self._matched[kf_id][0] <= dt:
-                continue
-            if kf_id in self._handles:  # a nearer sample replaces the prior already on this keyframe
-                self.backend.remove_factor(self._handles.pop(kf_id))
-            p = self.track.interpolate(times[i] - self.options.time_offset)
-            self._matched[kf_id] = (dt, p)
+            self._assign(self._next_sample - 1)
+
+    def _assign(self, j: int) -> None:
+        """Give sample ``j`` to the keyframe in the backend nearest to it in time, when within ``max_dt``
+        and that keyframe has no nearer sample (a nearer sample replaces its prior)."""
+        t_s, max_dt = self._times[j], self.options.max_dt
+        lo, hi = bisect.bisect_left(self._kf_times, t_s - max_dt), bisect.bisect_right(self._kf_times, t_s + max_dt)
+        best = None
+        for i in range(lo, hi):
+            if self.backend.has_keyframe(self._kf_ids[i]) and (best is None or abs(self._kf_times[i] - t_s) < best[0]):
+                best = (abs(self._kf_times[i] - t_s), i)
+        if best is None:
+            return
+        dt, i = best
+        kf_id = self._kf_ids[i]
+        if kf_id in self._matched and self._matched[kf_id][0] <= dt:
+            return
+        if kf_id in self._handles:
+            self.backend.remove_factor(self._handles.pop(kf_id))
+        self._matched[kf_id] = (dt, self.track.interpolate(self._kf_times[i] - self.options.time_offset), j)
+
+    def _rematch(self) -> None:
+        """Samples of keyframes the backend dropped (a frontend removing redundant keyframes) go to the
+        nearest remaining keyframe (their factors went with the keyframe)."""
+        for kf_id in [k for k in self._matched if not self.backend.has_keyframe(k)]:
+            _, _, j = self._matched.pop(kf_id)
+            self._handles.pop(kf_id, None)
+            self._assign(j)
 
     # -- alignment, priors, corrections
     def _pairs(self) -> tuple[list[int], np.ndarray, np.ndarray]:
@@ -442,7 +463,7 @@ class PositionPrior:
         return True
 
     def _add_priors(self) -> None:
-        for kf_id, (_, p) in self._matched.items():
+        for kf_id, (_, p, _) in self._matched.items():
             if kf_id in self._handles or not self.backend.has_keyframe(kf_id):
                 continue
             factor = position_prior_factor(self._kf_keys[kf_id], p, self.sigma, self.options.huber_k)
