@@ -177,7 +177,6 @@ def test_read_positions(tmp_path):
     np.testing.assert_allclose(track.p[1], [4, 5, 6])
     np.testing.assert_allclose(track.interpolate(0.5), [2.5, 3.5, 4.5])
     np.testing.assert_allclose(track.interpolate(-1.0), [1, 2, 3])
-    assert track.nearest(1.7) == 1 and track.nearest(1.8) == 2 and track.nearest(9.0) == 2
 
 
 @pytest.mark.parametrize("text, error, message", [

@@ -10,7 +10,9 @@ A run's ``factors`` section lists plugins::
 
 Each class is imported by its dotted path and built as ``Cls(options: dict, key: str)`` where ``key``
 is its config key (``"factors[0]"``): the plugin validates its own options and names bad ones as
-``factors[0].options.<name>`` (:func:`parse_options` does that for a typed options dataclass). It
+``factors[0].options.<name>`` (:func:`parse_options` does that for a typed options dataclass). Loading
+a config builds each plugin once to check it (:func:`validate_factor_entries`) and the run builds it
+again, so a constructor only validates (files are read when the run starts: ``check_run``/``attach``). It
 must have ``attach(backend)``, called once when the run's :class:`~fgslam.backend.graph.Backend`
 exists: a plugin typically registers ``backend.on_keyframe(callback)`` (``callback(kf_id, timestamp,
 key)`` after each new keyframe) and adds GTSAM factors with ``backend.add_factor(factor, owner=key)``

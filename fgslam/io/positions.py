@@ -43,15 +43,6 @@ class PositionTrack:
                 "(seconds on the dataset's clock)"
             )
 
-    def nearest(self, t: float) -> int:
-        """Index of the sample nearest in time to ``t`` (the earlier one on ties)."""
-        j = int(np.searchsorted(self.t, t))
-        if j == 0:
-            return 0
-        if j == len(self):
-            return len(self) - 1
-        return j - 1 if t - self.t[j - 1] <= self.t[j] - t else j
-
     def interpolate(self, t: float) -> np.ndarray:
         """Position at ``t``: linear between the samples around it, the end sample outside them."""
         return np.array([np.interp(t, self.t, self.p[:, k]) for k in range(3)])
