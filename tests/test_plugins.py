@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
+from fgslam.backend.config import BackendConfig
 from fgslam.backend.graph import Backend
 from fgslam.backend.plugins import (
     PlanarMotion,
@@ -34,8 +35,8 @@ POSITION_PRIOR = "fgslam.backend.plugins:PositionPrior"
 PLANAR = "fgslam.backend.plugins:PlanarMotion"
 
 
-def make_backend():
-    return Backend()
+def make_backend(solver: str = "lm"):
+    return Backend(BackendConfig(solver=solver))
 
 
 class UnknownKeyPlugin:
@@ -259,12 +260,12 @@ def test_position_samples_go_to_the_nearest_keyframe_within_max_dt(tmp_path):
     assert backend.factor_handles("factors[0]") == []
 
 
-def run_position_drive(tmp_path, preset, use_plugin, seed=0, scale_drift=0.02, contributor=True, **options):
+def run_position_drive(tmp_path, preset, use_plugin, seed=0, scale_drift=0.02, contributor=True, solver="lm", **options):
     """Monocular-like odometry (own frame, 0.3 map units per metre, log-scale random walk) along a
     synthetic drive, with or without 1 Hz positions of 1 m noise. Returns (estimate, truth, plugin)."""
     t, T_true, _, _ = drive(preset, keyframe_dt=0.3)
     gps = write_positions(tmp_path / f"gps_{preset}.txt", t, T_true, 1.0, 1.0, np.random.default_rng(seed))
-    odometry = DriftingOdometry(make_backend(), t, T_true, np.random.default_rng(seed + 1), scale_drift=scale_drift,
+    odometry = DriftingOdometry(make_backend(solver), t, T_true, np.random.default_rng(seed + 1), scale_drift=scale_drift,
                                 first_pose=np.eye(4), initial_scale=0.3)
     factors = [{"class": POSITION_PRIOR, "options": {"file": str(gps), "sigma": 1.0, "max_dt": 0.2, **options}}]
     frontend = with_plugins(odometry if contributor else NoContributor(odometry), factors if use_plugin else [],
@@ -273,12 +274,14 @@ def run_position_drive(tmp_path, preset, use_plugin, seed=0, scale_drift=0.02, c
     return est, T_true, (frontend.plugins[0] if use_plugin else None)
 
 
-@pytest.mark.parametrize("preset, contributor", [("street-loop", True), ("highway", True), ("street-loop", False)])
-def test_position_prior_pins_scale_and_drift_of_a_monocular_drive(tmp_path, preset, contributor):
+@pytest.mark.parametrize("preset, contributor, solver", [("street-loop", True, "lm"), ("highway", True, "lm"),
+                                                         ("street-loop", False, "lm"), ("street-loop", True, "isam2")])
+def test_position_prior_pins_scale_and_drift_of_a_monocular_drive(tmp_path, preset, contributor, solver):
     """Issue 11 target: SE(3)-aligned ATE with no scale alignment <= 1 % of the path, with corrections
-    folded by the contributor or (no contributor) applied to the Sim(3) poses with their scales. The
+    folded by the contributor or (no contributor) applied to the Sim(3) poses with their scales, with
+    either of the backend's solvers (map.solver lm / isam2). The
     same odometry without the plugin stays in its own scale (0.3 units per metre, drifting): far off."""
-    est, T_true, plugin = run_position_drive(tmp_path, preset, use_plugin=True, contributor=contributor)
+    est, T_true, plugin = run_position_drive(tmp_path, preset, use_plugin=True, contributor=contributor, solver=solver)
     scales = np.cbrt(np.linalg.det(est[:, :3, :3]))
     if contributor:  # folded: every keyframe keeps scale 1
         np.testing.assert_allclose(scales, 1.0, atol=0.05)
@@ -339,7 +342,6 @@ def test_run_with_position_prior_preset_on_a_synthetic_street_drive(tmp_path):
     frontend feeding a backend with monocular-like drifting odometry, 1 Hz positions with 1 m noise on
     the dataset's clock. The summary's SE(3) ATE (no scale) is <= 1 % of the path; a file whose times
     miss the run is refused before the first frame, naming the file."""
-    from fgslam.backend.graph import Backend
     from fgslam.io.synth import SynthSequence
     from fgslam.io.synth.presets import load_synth_config
     from fgslam.io.synth.writer import write_sequence
