@@ -63,9 +63,6 @@ from .solver import LMSettings, NonlinearProblem, levenberg_marquardt
 
 logger = logging.getLogger(__name__)
 
-GAUGE_OWNER = "gauge"  # owner of the factors the backend builds for the gauge
-
-
 @dataclass
 class OptimizeReport:
     """What one optimisation of :class:`Backend` did."""
@@ -823,8 +820,6 @@ class _PoseGraphIsam2:
         return self
 
     def __call__(self, gfg):
-        import gtsam
-
         if not self.started:
             self.isam.update(self.graph, self.values)
             self.started = True
