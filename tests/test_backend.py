@@ -307,6 +307,28 @@ def test_factor_or_block_on_a_missing_key_is_an_error_naming_the_key():
         backend.optimize_window([3])
 
 
+def test_other_variables_are_optimised_with_the_poses():
+    """A non-pose variable (a Point3 landmark key 'l0') with a prior: moved by a global optimisation
+    and by a window that names it, held by a window that does not."""
+    from fgslam.backend.keys import symbol
+
+    backend = Backend(BackendConfig())
+    backend.add_keyframe(0, gtsam.Similarity3(), 0.0)
+    point = symbol("l", 0)
+    backend.add_variable(point, np.zeros(3))
+    assert backend.has_key(point) and key_name(point) == "l0"
+    with pytest.raises(OptimizationError, match="l0"):
+        backend.add_variable(point, np.zeros(3))
+    target = np.array([1.0, 2.0, 3.0])
+    backend.add_factor(gtsam.PriorFactorPoint3(point, target, gtsam.noiseModel.Isotropic.Sigma(3, 0.1)), owner="toy")
+    backend.optimize_window([0])
+    np.testing.assert_array_equal(backend.values.atPoint3(point), np.zeros(3))
+    backend.optimize_window([0], extra_free_keys=[point])
+    np.testing.assert_allclose(backend.values.atPoint3(point), target, atol=1e-9)
+    backend.remove_variable(point)
+    assert not backend.has_key(point) and backend.factor_handles("toy") == []
+
+
 def test_marginalized_window_keeps_outside_factors_as_a_linear_prior():
     """A Sim(3) chain 0-5 with a loop, anchored at 0; a toy block pulls keyframes 4 and 5. The window
     {4, 5}: held fixed, keyframes 0-3 cannot give way; marginalised, their between factors become a

@@ -676,7 +676,12 @@ class Backend:
         ordering = gtsam.Ordering()
         for key in outside:
             ordering.push_back(key)
-        _, remaining = gfg.eliminatePartialSequential(ordering)
+        try:
+            _, remaining = gfg.eliminatePartialSequential(ordering)
+        except RuntimeError as exc:  # gtsam's IndeterminateLinearSystemException
+            names = ", ".join(key_name(k) for k in outside[:5])
+            raise OptimizationError(f"marginalising {names}{', ...' if len(outside) > 5 else ''} failed ({exc}); "
+                                    f"set map.window.marginal_regularization > 0") from exc
         lin_point = gtsam.Values(self._values)
         for key in self._values.keys():
             if int(key) not in free:
