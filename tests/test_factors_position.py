@@ -5,7 +5,17 @@ import gtsam
 import numpy as np
 import pytest
 
-from fgslam.factors.planar import fit_plane, planar_factor, planar_residual, plane_of_keyframe, tilt_basis, unit_up
+from fgslam.factors.planar import (
+    fit_plane,
+    planar_factor,
+    planar_residual,
+    planar_residual_relative,
+    plane_in_keyframe,
+    plane_in_world,
+    plane_of_keyframe,
+    tilt_basis,
+    unit_up,
+)
 from fgslam.factors.position import camera_centre, position_noise, position_prior_factor, position_residual
 
 
@@ -175,21 +185,62 @@ def test_fit_plane_recovers_the_plane_of_noisy_level_keyframes():
     assert np.degrees(np.arccos(min(1.0, n1 @ n_true))) > 0.05  # one keyframe: off by its wobble
 
 
+def test_plane_in_world_and_in_keyframe_are_inverse_and_follow_the_map():
+    rng = np.random.default_rng(7)
+    T_ref = random_similarity(rng)
+    n_C, d_C = unit_up(rng.normal(size=3)), 1.7
+    n_W, d_W = plane_in_world(T_ref, n_C, d_C)
+    n_back, d_back = plane_in_keyframe(T_ref, n_W, d_W)
+    np.testing.assert_allclose(n_back, n_C, atol=1e-12)
+    assert d_back == pytest.approx(d_C)
+    # a point on the plane in the reference camera lies on the world plane
+    x_C = rng.normal(size=3)
+    x_C -= (n_C @ x_C + d_C) * n_C
+    assert n_W @ T_ref.transformFrom(x_C) + d_W == pytest.approx(0.0, abs=1e-9)
+    # moving the whole map by a similarity leaves the relative residual as it is, heights times its scale
+    T_k = random_similarity(rng)
+    U = gtsam.Similarity3(gtsam.Rot3.Expmap(np.array([0.3, -0.2, 1.0])), np.array([5.0, -3.0, 2.0]), 2.5)
+    up = unit_up([0.0, -1.0, 0.0])
+    r = planar_residual_relative(T_ref, T_k, n_C, d_C, up)[0]
+    r_moved = planar_residual_relative(U * T_ref, U * T_k, n_C, d_C, up)[0]
+    np.testing.assert_allclose(r_moved, r * np.array([2.5, 1.0, 1.0]), atol=1e-9)
+
+
+@pytest.mark.parametrize("up", [[0, -1, 0], [0.2, -1.0, 0.1]])
+def test_relative_planar_jacobians_match_finite_differences(up):
+    rng = np.random.default_rng(8)
+    a = unit_up(up)
+    for _ in range(20):
+        T_ref, T_k = random_similarity(rng), random_similarity(rng)
+        n_C, d_C = unit_up(rng.normal(size=3)), float(rng.normal(scale=3.0))
+        r, J_ref, J_k = planar_residual_relative(T_ref, T_k, n_C, d_C, a)
+        n_W, d_W = plane_in_world(T_ref, n_C, d_C)
+        np.testing.assert_allclose(r, planar_residual(T_k, n_W, d_W, a)[0], atol=1e-12)
+        num_ref = numeric_jacobian(lambda X: planar_residual_relative(X, T_k, n_C, d_C, a)[0], T_ref)
+        num_k = numeric_jacobian(lambda X: planar_residual_relative(T_ref, X, n_C, d_C, a)[0], T_k)
+        scale = max(1.0, np.abs(num_ref).max(), np.abs(num_k).max())
+        np.testing.assert_allclose(J_ref, num_ref, atol=1e-7 * scale)
+        np.testing.assert_allclose(J_k, num_k, atol=1e-7 * scale)
+
+
 def test_planar_factor_whitens_and_linearises():
     rng = np.random.default_rng(5)
-    T = random_similarity(rng)
+    T_ref, T = random_similarity(rng), random_similarity(rng)
     up = [0.0, -1.0, 0.0]
     n, d = unit_up([0.1, 0.2, 1.0]), 0.7
-    factor = planar_factor(2, n, d, up, height_sigma=0.05, tilt_sigma=0.01)
+    factor = planar_factor(1, 2, n, d, up, height_sigma=0.05, tilt_sigma=0.01)
     values = gtsam.Values()
+    values.insert(1, T_ref)
     values.insert(2, T)
-    r, J = planar_residual(T, n, d, unit_up(up))
+    r, J_ref, J = planar_residual_relative(T_ref, T, n, d, unit_up(up))
     sig = np.array([0.05, 0.01, 0.01])
     assert factor.error(values) == pytest.approx(0.5 * np.sum((r / sig) ** 2), rel=1e-12)
     A, b = factor.linearize(values).jacobian()
-    np.testing.assert_allclose(A, J / sig[:, None], atol=1e-9)
+    np.testing.assert_allclose(A, np.hstack([J_ref, J]) / sig[:, None], atol=1e-9)
     np.testing.assert_allclose(b, -r / sig, atol=1e-12)
     with pytest.raises(ValueError, match="sigmas"):
-        planar_factor(1, n, d, up, 0.0, 0.01)
+        planar_factor(1, 2, n, d, up, 0.0, 0.01)
     with pytest.raises(ValueError, match="offset"):
-        planar_factor(1, n, float("nan"), up, 0.05, 0.01)
+        planar_factor(1, 2, n, float("nan"), up, 0.05, 0.01)
+    with pytest.raises(ValueError, match="same key"):
+        planar_factor(3, 3, n, d, up, 0.05, 0.01)

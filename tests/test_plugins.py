@@ -375,3 +375,23 @@ def test_run_with_position_prior_preset_on_a_synthetic_street_drive(tmp_path):
     config.factors = [{"class": POSITION_PRIOR, "options": {"file": str(late)}}]
     with pytest.raises(DataError, match=r"late.txt:1-5: position times .* do not overlap the run's frames"):
         run_slam(dataset, config, tmp_path / "out2", progress=False, frontend=frontend())
+
+
+def test_position_prior_and_planar_motion_together(tmp_path):
+    """Both plugins on one backend: the alignment and the pose-graph corrections of the positions move
+    the whole map, and the planar factors' plane (held in a reference keyframe's coordinates) moves
+    with it, so the two agree: ATE <= 1 % of the path without scale, heights at the odometry's noise."""
+    t, T_true, up_C, _ = drive("street-loop", keyframe_dt=0.3)
+    gps = write_positions(tmp_path / "gps.txt", t, T_true, 1.0, 1.0, np.random.default_rng(0))
+    odometry = DriftingOdometry(make_backend(), t, T_true, np.random.default_rng(1), scale_drift=0.02,
+                                first_pose=np.eye(4), initial_scale=0.3)
+    factors = [{"class": POSITION_PRIOR, "options": {"file": str(gps), "max_dt": 0.2}},
+               {"class": PLANAR, "options": {"up_axis": up_C.tolist(), "height_sigma": 0.05, "tilt_sigma": 0.01}}]
+    frontend = with_plugins(odometry, factors, timestamps=t)
+    est = run_drive(frontend, len(t))
+    position, planar = frontend.plugins
+    assert position.aligned and planar.rebuilds >= 1
+    assert ate_se3(est, T_true) <= 0.01 * path_length(T_true)
+    height, tilt = planar_errors(est, T_true, up_C)
+    step_noise = 0.02 * float(np.median(np.linalg.norm(np.diff(T_true[:, :3, 3], axis=0), axis=1)))
+    assert height <= 2 * step_noise, height

@@ -53,7 +53,7 @@ import numpy as np
 
 from ..config import from_dict, ranged
 from ..errors import ConfigError, FGSlamError
-from ..factors.planar import fit_plane, planar_factor, plane_of_keyframe, unit_up
+from ..factors.planar import fit_plane, planar_factor, plane_in_keyframe, plane_in_world, plane_of_keyframe, unit_up
 from ..factors.position import camera_centre, position_noise, position_prior_factor
 from ..io.positions import PositionTrack, read_positions
 
@@ -508,12 +508,14 @@ class PlanarMotion:
     (the plane parallel to the ground in which the camera centre moves) with its ``up_axis`` along the
     plane's normal, through :func:`fgslam.factors.planar.planar_factor` (``owner`` = this plugin's key).
 
-    The plane is a constant of the factors, fitted by the plugin: the first keyframe's plane to
-    begin with, then every ``refit_every`` keyframes the plane that best fits all keyframes
+    The plane is held in the coordinates of a reference keyframe (the first one; when the backend
+    drops it, the oldest remaining one), so that corrections moving the whole map (a position
+    alignment, a loop closure) move it too. It starts as the first keyframe's plane; every
+    ``refit_every`` keyframes the plugin fits it to all keyframes
     (:func:`fgslam.factors.planar.fit_plane`, which averages out the attitude and height wobble of
-    single keyframes); the factors are rebuilt when the fit moved it by more than
-    ``refit_tolerance`` sigmas. At :meth:`finish`: a last fit and, with ``correct_at_finish``, a Sim(3)
-    pose-graph correction over every keyframe and another fit.
+    single keyframes) and rebuilds the factors when the fit moved it by more than ``refit_tolerance``
+    sigmas. At :meth:`finish`: a last fit and, with ``correct_at_finish``, a Sim(3) pose-graph
+    correction over every keyframe and another fit.
 
     Without gravity the plane's attitude in the map is known only through the keyframes' attitudes
     (the first keyframe's wobble included), so a map may lie on a slightly tilted plane: the
@@ -528,7 +530,9 @@ class PlanarMotion:
         except ValueError as exc:
             raise ConfigError(f"{key}.options.up_axis: {exc} (the ground normal in camera coordinates)") from exc
         self.backend: Any = None
-        self.plane: Optional[tuple[np.ndarray, float]] = None  # (n_W, d): n_W . x + d = 0
+        self.reference: Optional[int] = None  # keyframe whose coordinates hold the plane
+        self.plane_C: Optional[tuple[np.ndarray, float]] = None  # (n, d): n . x + d = 0 in the reference camera
+        self._plane_W: Optional[tuple[np.ndarray, float]] = None  # the plane in the world at the last (re)build
         self._keys: dict[int, int] = {}
         self._handles: dict[int, int] = {}
         self._since_fit = 0
@@ -538,28 +542,62 @@ class PlanarMotion:
         self.backend = backend
         backend.on_keyframe(self._on_keyframe)
 
+    @property
+    def plane(self) -> Optional[tuple[np.ndarray, float]]:
+        """The camera plane ``(n_W, d_W)`` in the world at the reference keyframe's current pose."""
+        if self.plane_C is None or not self.backend.has_keyframe(self.reference):
+            return self._plane_W
+        return plane_in_world(self.backend.pose(self.reference), *self.plane_C)
+
     def finish(self, backend: Any) -> None:
         self.refit()
         if self.options.correct_at_finish and self._handles:
             apply_correction(backend, pose_graph_correction(backend, backend.correct_pose_graph()))
             self.refit()
+        plane = self.plane
         logger.info("%s: %d planar factors, plane normal %s offset %.3f, %d rebuilds", self.key,
-                    len(self._handles), None if self.plane is None else np.round(self.plane[0], 4),
-                    math.nan if self.plane is None else self.plane[1], self.rebuilds)
+                    len(self._handles), None if plane is None else np.round(plane[0], 4),
+                    math.nan if plane is None else plane[1], self.rebuilds)
 
     def _on_keyframe(self, kf_id: int, timestamp: float, key: int) -> None:
         self._keys[int(kf_id)] = int(key)
-        if self.plane is None:
-            self.plane = plane_of_keyframe(self.backend.pose(kf_id), self.up_C)
-        self._add(int(kf_id))
+        if self.plane_C is None:
+            self._rebuild(int(kf_id), plane_of_keyframe(self.backend.pose(kf_id), self.up_C))
+        elif not self.backend.has_keyframe(self.reference):
+            self._rebuild(self._oldest(), self._plane_W)
+        else:
+            self._add(int(kf_id))
         self._since_fit += 1
         if self._since_fit >= self.options.refit_every:
             self.refit()
 
+    def _oldest(self) -> int:
+        return min(k for k in self._keys if self.backend.has_keyframe(k))
+
     def _add(self, kf_id: int) -> None:
-        n, d = self.plane
-        factor = planar_factor(self._keys[kf_id], n, d, self.up_C, self.options.height_sigma, self.options.tilt_sigma)
+        if kf_id == self.reference or kf_id in self._handles:
+            return
+        n, d = self.plane_C
+        factor = planar_factor(self._keys[self.reference], self._keys[kf_id], n, d, self.up_C,
+                               self.options.height_sigma, self.options.tilt_sigma)
         self._handles[kf_id] = self.backend.add_factor(factor, owner=self.key)
+
+    def _rebuild(self, reference: int, plane_W: tuple[np.ndarray, float]) -> None:
+        """Hold the world plane ``plane_W`` in keyframe ``reference``'s coordinates; rebuild every factor."""
+        present = set(self.backend.factor_handles(self.key))
+        for handle in self._handles.values():
+            if handle in present:
+                self.backend.remove_factor(handle)
+        self._handles.clear()
+        self._keys = {k: v for k, v in self._keys.items() if self.backend.has_keyframe(k)}
+        if self.reference is not None and reference != self.reference:
+            logger.info("%s: keyframe %d holds the plane (keyframe %d left the backend)", self.key, reference,
+                        self.reference)
+        self.reference = reference
+        self._plane_W = plane_W
+        self.plane_C = plane_in_keyframe(self.backend.pose(reference), *plane_W)
+        for k in self._keys:
+            self._add(k)
 
     def refit(self) -> None:
         """Fit the plane to every keyframe's current pose; rebuild the factors when it moved."""
@@ -577,15 +615,8 @@ class PlanarMotion:
         tol = self.options.refit_tolerance
         if angle <= tol * self.options.tilt_sigma and shift <= tol * self.options.height_sigma:
             return
-        self.plane = (n, d)
-        present = set(self.backend.factor_handles(self.key))
-        for handle in self._handles.values():
-            if handle in present:
-                self.backend.remove_factor(handle)
-        self._handles.clear()
-        self._keys = {k: self._keys[k] for k in alive}
-        for k in alive:
-            self._add(k)
+        reference = self.reference if self.backend.has_keyframe(self.reference) else min(alive)
+        self._rebuild(reference, (n, d))
         self.rebuilds += 1
 
 

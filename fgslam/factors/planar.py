@@ -22,7 +22,10 @@ exact at the linearisation point (``dc/du = s R``, ``d(R^T n)/dw = [R^T n]x``)::
                           [B^T [v]x,    0,         0]]      v = R^T n_W
 
 :func:`fit_plane` gives the camera plane that best fits a set of keyframes under the same
-residuals (closed form), :func:`plane_of_keyframe` the plane of a single keyframe.
+residuals (closed form), :func:`plane_of_keyframe` the plane of a single keyframe. The factor
+(:func:`planar_factor`) holds the plane in the coordinates of a reference keyframe
+(:func:`planar_residual_relative`), so that a correction moving the whole map (a Sim(3) alignment,
+a loop closure) moves the plane with it.
 """
 
 from __future__ import annotations
@@ -77,6 +80,43 @@ def planar_residual(T_WC, n_W: np.ndarray, d: float, up_C: np.ndarray) -> tuple[
     return r, J
 
 
+def plane_in_world(T_ref, n_C: np.ndarray, d_C: float) -> tuple[np.ndarray, float]:
+    """World camera plane ``(n_W, d_W)`` of the plane ``n_C . x + d_C = 0`` in the coordinates of the
+    reference keyframe ``T_ref`` (``x_W = s R x + c``): ``n_W = R n_C``, ``d_W = s d_C - n_W . c``."""
+    n_W = T_ref.rotation().matrix() @ np.asarray(n_C, dtype=np.float64)
+    return n_W, float(T_ref.scale()) * float(d_C) - float(n_W @ camera_centre(T_ref))
+
+
+def plane_in_keyframe(T_ref, n_W: np.ndarray, d_W: float) -> tuple[np.ndarray, float]:
+    """The inverse of :func:`plane_in_world`: a world plane in the reference keyframe's coordinates."""
+    n_W = np.asarray(n_W, dtype=np.float64)
+    return T_ref.rotation().matrix().T @ n_W, (float(d_W) + float(n_W @ camera_centre(T_ref))) / float(T_ref.scale())
+
+
+def planar_residual_relative(T_ref, T_k, n_C: np.ndarray, d_C: float, up_C: np.ndarray
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`planar_residual` of keyframe ``T_k`` for the plane ``n_C . x + d_C = 0`` held in the
+    coordinates of the reference keyframe ``T_ref`` (so that any motion of the whole map moves the
+    plane with it), and its Jacobians (3, 7) w.r.t. the right perturbations of ``T_ref`` and ``T_k``.
+    With ``n_W = R_r n_C``, ``r_h = n_W . (c_k - c_r) + s_r d_C`` and ``tilt = B^T R_k^T R_r n_C``::
+
+        d r_h / d w_r = -(c_k - c_r)^T R_r [n_C]x     d r_h / d u_r = -s_r n_C^T     d r_h / d lambda_r = s_r d_C
+        d tilt / d w_r = -B^T R_k^T R_r [n_C]x        (w.r.t. T_k: as :func:`planar_residual`)
+    """
+    n_C = np.asarray(n_C, dtype=np.float64)
+    n_W, d_W = plane_in_world(T_ref, n_C, d_C)
+    r, J_k = planar_residual(T_k, n_W, d_W, up_C)
+    R_r, R_k = T_ref.rotation().matrix(), T_k.rotation().matrix()
+    s_r = float(T_ref.scale())
+    n_x = _skew(n_C)
+    J_ref = np.zeros((PLANAR_DIM, POSE_DOF))
+    J_ref[0, 0:3] = -(camera_centre(T_k) - camera_centre(T_ref)) @ R_r @ n_x
+    J_ref[0, 3:6] = -s_r * n_C
+    J_ref[0, 6] = s_r * float(d_C)
+    J_ref[1:, 0:3] = -tilt_basis(np.asarray(up_C, dtype=np.float64)).T @ R_k.T @ R_r @ n_x
+    return r, J_ref, J_k
+
+
 def plane_of_keyframe(T_WC, up_C: np.ndarray) -> tuple[np.ndarray, float]:
     """The camera plane ``(n_W, d)`` of one keyframe: normal ``R up_C`` through its centre."""
     n = T_WC.rotation().matrix() @ np.asarray(up_C, dtype=np.float64)
@@ -113,21 +153,27 @@ def planar_noise(height_sigma: float, tilt_sigma: float):
     return gtsam.noiseModel.Diagonal.Sigmas(sig)
 
 
-def planar_factor(key: int, n_W: np.ndarray, d: float, up_C: Sequence[float], height_sigma: float,
-                  tilt_sigma: float):
-    """``gtsam.CustomFactor`` on the Similarity3 at ``key``: the camera on the camera plane
-    ``n_W . x + d = 0`` with its up axis ``up_C`` along the plane's normal (module docstring)."""
+def planar_factor(key_ref: int, key: int, n_C: np.ndarray, d_C: float, up_C: Sequence[float],
+                  height_sigma: float, tilt_sigma: float):
+    """``gtsam.CustomFactor`` on two Similarity3 keys: keyframe ``key`` on the camera plane
+    ``n_C . x + d_C = 0`` held in the coordinates of keyframe ``key_ref`` (it moves with the map), with
+    its up axis ``up_C`` along the plane's normal (:func:`planar_residual_relative`)."""
     import gtsam
 
     up = unit_up(up_C)
-    n = unit_up(n_W)
-    if not np.isfinite(d):
-        raise ValueError(f"planar factor on key {key}: non-finite plane offset {d!r}")
+    n = unit_up(n_C)
+    if not np.isfinite(d_C):
+        raise ValueError(f"planar factor on key {key}: non-finite plane offset {d_C!r}")
+    if int(key_ref) == int(key):
+        raise ValueError(f"planar factor: the reference and the keyframe are the same key {key}")
 
     def error(this, values, jacobians):
-        r, J = planar_residual(values.atSimilarity3(this.keys()[0]), n, float(d), up)
+        keys = this.keys()
+        r, J_ref, J_k = planar_residual_relative(values.atSimilarity3(keys[0]), values.atSimilarity3(keys[1]), n,
+                                                 float(d_C), up)
         if jacobians is not None:
-            jacobians[0] = J
+            jacobians[0] = J_ref
+            jacobians[1] = J_k
         return r
 
-    return gtsam.CustomFactor(planar_noise(height_sigma, tilt_sigma), [int(key)], error)
+    return gtsam.CustomFactor(planar_noise(height_sigma, tilt_sigma), [int(key_ref), int(key)], error)
