@@ -216,6 +216,7 @@ class _WindowProblem:
         self.cross = cross  # nonlinear factors with a fixed key
         self.blocks = blocks
         self.structured = [b for b in blocks if getattr(b, "has_structure", True)]
+        self._has_structure = {id(b) for b in self.structured}
         self.refine_steps = refine_steps
         self.refine_each_iteration = refine_each_iteration
         self.dims = {int(k): int(d) for k, d in values.dims().items()}
@@ -245,7 +246,7 @@ class _WindowProblem:
         if steps <= 0:
             return graph_cost + sum(float(b.cost(self.values)) for b in self.blocks)
         return graph_cost + sum(
-            float(b.refine_structure(self.values, steps)) if b in self.structured else float(b.cost(self.values))
+            float(b.refine_structure(self.values, steps)) if id(b) in self._has_structure else float(b.cost(self.values))
             for b in self.blocks
         )
 
@@ -315,10 +316,9 @@ class _WindowProblem:
         values = self.values.retract(delta)  # keys without a step keep their value
         full = self._full_delta(delta) if self.structured else delta
         structures = [b.clamp_structure(b.structure + b.back_substitute(full)) for b in self.structured]
-        it = iter(structures)
-        cost = self._graph_cost(values) + sum(
-            float(b.cost(values, next(it))) if b in self.structured else float(b.cost(values)) for b in self.blocks
-        )
+        trial_of = {id(b): s for b, s in zip(self.structured, structures)}
+        cost = self._graph_cost(values) + sum(float(b.cost(values, trial_of[id(b)])) if id(b) in trial_of
+                                              else float(b.cost(values)) for b in self.blocks)
         return cost, (values, structures)
 
     def accept(self, state, cost: float) -> float:

@@ -192,6 +192,7 @@ class BackendFrame(GraphFrame):
 
     ``T_WC`` reads the backend's pose through a cache refreshed when the backend's pose version of
     the keyframe changes (an optimisation, a ``set_pose``); assigning ``T_WC`` sets the backend's pose.
+    Never change the returned array in place (that would bypass the backend): assign a new one.
     Detached (before it enters the backend, after it leaves) the frame keeps its last pose itself.
     """
 
@@ -210,7 +211,7 @@ class BackendFrame(GraphFrame):
 
     @T_WC.setter
     def T_WC(self, T_WC: np.ndarray) -> None:
-        T_WC = np.asarray(T_WC, dtype=np.float64)
+        T_WC = np.array(T_WC, dtype=np.float64)
         backend = self._backend
         if backend is not None:
             backend.set_pose(self.fid, T_WC)
