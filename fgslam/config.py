@@ -262,13 +262,15 @@ def _build(cls: type[T], data: Mapping[str, Any], source: str, prefix: str = "")
     return obj
 
 
-def from_dict(cls: type[T], data: Mapping[str, Any] | None, source: str = "<dict>") -> T:
-    """Build dataclass ``cls`` from a (nested) mapping; missing keys keep their defaults."""
+def from_dict(cls: type[T], data: Mapping[str, Any] | None, source: str = "<dict>", prefix: str = "") -> T:
+    """Build dataclass ``cls`` from a (nested) mapping; missing keys keep their defaults. ``prefix``
+    is put before every key named in errors (``"factors[0].options."`` for a section nested elsewhere)."""
     if data is None:
         data = {}
     if not isinstance(data, Mapping):
-        raise ConfigError(f"{source}: the top level must be a mapping of keys to values")
-    return _build(cls, data, source)
+        where = f"key '{prefix.rstrip('.')}'" if prefix else "the top level"
+        raise ConfigError(f"{source}: {where} must be a mapping of keys to values")
+    return _build(cls, data, source, prefix=prefix)
 
 
 def to_dict(obj: Any) -> Any:

@@ -127,9 +127,14 @@ class SlamConfig:
     output: OutputConfig = field(default_factory=OutputConfig)
     # loop closure (mode off | proximity | classical | both); off by default
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    # user factor plugins, [{class: "package.module:ClassName", options: {...}}] (fgslam/backend/plugins.py)
+    factors: list[dict[str, Any]] = field(default_factory=list)
 
     def validate(self) -> None:
+        from .backend.plugins import validate_factor_entries
+
         self.loop_closure.validate()
+        validate_factor_entries(self.factors)
 
     def family_section(self, name: str | None = None) -> Any:
         """The config section of frontend family ``name`` (default: ``frontend``); None for a family
@@ -383,6 +388,10 @@ def run_slam(
 
         backend = Backend(config.map)  # one per run, fed by the frontend
         frontend = make_frontend(config.frontend, config, dataset.calibration, config.sensor, backend=backend)
+    if config.factors:  # user factor plugins on the frontend's backend (fgslam/backend/plugins.py)
+        from .backend.plugins import with_plugins
+
+        frontend = with_plugins(frontend, config.factors, dataset.timestamps)
     load_average = [round(v, 2) for v in os.getloadavg()]
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
     state = _RunState()

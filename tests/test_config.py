@@ -193,6 +193,8 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.frontends.pointmap.source:PointmapSourceConfig",
     "fgslam.frontends.pointmap.matching:MatchingConfig",
     "fgslam.loop.bow:VocabularyTrainingConfig",
+    "fgslam.backend.plugins:PositionPriorOptions",
+    "fgslam.backend.plugins:PlanarMotionOptions",
 )
 
 
