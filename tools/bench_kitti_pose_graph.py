@@ -18,6 +18,13 @@ factor 10, upper bound 1e5, identity damping, multifrontal Cholesky, COLAMD):
 - ``fgslam``: ``fgslam.backend.solver.levenberg_marquardt`` on a ``NonlinearProblem`` (the loop the
   backend's pose-graph correction, ``fgslam.loop.pose_graph`` and ``fgslam pgo`` run).
 
+Through the backend (``backend`` in the JSON): the same drifted keyframes and loop factors in a
+:class:`fgslam.backend.Backend` (loops added with ``add_factor``), timed through its pose-graph
+correction ``Backend.correct_pose_graph()`` (graph building included: consecutive odometry from the
+current estimate with ``map.pose_graph`` sigmas, the loop factors, the anchor prior) against GTSAM's
+LM on the graph ``Backend.pose_graph_problem()`` builds (building excluded), with the backend's
+stopping rule (relative decrease ``--relative-tolerance``) given to both.
+
 Times are the best of ``--repeats`` alternating runs (wall and process CPU: the machine is shared;
 the load average is recorded); ``ratio`` = fgslam / gtsam; the final costs must agree to 1e-6
 relative (``cost_relative_difference``).
@@ -141,6 +148,56 @@ def run(gt_T_WC: np.ndarray, repeats: int, max_iterations: int, relative_toleran
     }
 
 
+def run_backend(gt_T_WC: np.ndarray, repeats: int, max_iterations: int, relative_tolerance: float, seed: int = 0,
+                frame_dt_s: float = 1.0 / KITTI_FRAME_RATE_HZ) -> dict:
+    """The pose-graph correction of a Backend holding the drifted keyframes and the loops, against
+    GTSAM's LM on the same graph (module docstring)."""
+    import gtsam
+
+    from fgslam.backend import keys as backend_keys
+    from fgslam.backend.config import BackendConfig
+    from fgslam.backend.graph import Backend, as_similarity3
+    from fgslam.factors.sim3 import make_between_factors
+    from fgslam.loop.pose_graph import PoseGraphConfig
+
+    bench = _bench_pose_graph()
+    scn = bench.simulate_kitti_drift(gt_T_WC, bench.DriftSimConfig(stride=1, false_loop_fraction=0.0, seed=seed),
+                                     frame_dt_s)
+    config = BackendConfig(max_iterations=max_iterations, relative_tolerance=relative_tolerance, absolute_tolerance=0.0,
+                           step_tolerance=0.0, lambda_initial=1e-5, lambda_factor=10.0, lambda_max=1e5)
+    backend = Backend(config)
+    for k, pose in enumerate(scn.T_WC_odom.to_gtsam()):
+        backend.add_keyframe(k, pose, timestamp=k * frame_dt_s)
+    keys_i = [backend_keys.pose_key(int(i)) for i in scn.loop_i]
+    keys_j = [backend_keys.pose_key(int(j)) for j in scn.loop_j]
+    for f in make_between_factors(np.array(keys_i, dtype=np.int64), np.array(keys_j, dtype=np.int64), scn.T_CiCj,
+                                  sigmas=np.asarray(PoseGraphConfig().loop_sigmas)):
+        backend.add_factor(f, owner="loop")
+    graph, initial, ids = backend.pose_graph_problem()
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(relative_tolerance)
+    params.setAbsoluteErrorTol(0.0)
+    best = {"gtsam": None, "backend": None}
+    for _ in range(repeats):
+        (values, iterations), wall, cpu = _timed(lambda: (lambda o: (o.optimize(), o.iterations()))(
+            gtsam.LevenbergMarquardtOptimizer(graph, initial, params)))
+        entry = {"time_s": wall, "cpu_s": cpu, "final_cost": float(graph.error(values)), "iterations": int(iterations)}
+        if best["gtsam"] is None or wall < best["gtsam"]["time_s"]:
+            best["gtsam"] = entry
+        new, wall, cpu = _timed(backend.correct_pose_graph)
+        result = gtsam.Values()
+        for kf, T in new.items():
+            result.insert(backend_keys.pose_key(kf), as_similarity3(T))
+        entry = {"time_s": wall, "cpu_s": cpu, "final_cost": float(graph.error(result))}
+        if best["backend"] is None or wall < best["backend"]["time_s"]:
+            best["backend"] = entry
+    g, b = best["gtsam"], best["backend"]
+    return {"keyframes": len(ids), "loops": len(keys_i), "initial_cost": float(graph.error(initial)), "gtsam": g,
+            "backend": b, "ratio_time": b["time_s"] / g["time_s"], "ratio_cpu": b["cpu_s"] / g["cpu_s"],
+            "cost_relative_difference": abs(b["final_cost"] - g["final_cost"]) / max(abs(g["final_cost"]), 1e-300)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=TOOLS_DIR.parent.parent / "shared" / "data")
@@ -162,6 +219,8 @@ def main() -> None:
     load_start = os.getloadavg()[0]
     out = run(gt, args.repeats, args.max_iterations, args.relative_tolerance, args.absolute_tolerance, args.seed,
               args.stride / KITTI_FRAME_RATE_HZ)
+    out["backend"] = run_backend(gt, args.repeats, args.max_iterations, args.relative_tolerance, args.seed,
+                                 args.stride / KITTI_FRAME_RATE_HZ)
     out.update(load_average_1min_start=load_start, load_average_1min_end=os.getloadavg()[0], cpu_count=os.cpu_count())
     print(json.dumps(out, indent=2))
 
