@@ -307,16 +307,32 @@ def test_global_ba_whose_loop_edges_lose_their_weight_is_undone():
     assert service.proximity_counts["undone"] == 1
 
 
-def test_query_while_busy_is_skipped_and_failure_undoes():
+def test_loops_verified_during_a_global_ba_wait_for_the_next_one():
+    toy = ToyMap(20)
+    service = _proximity_service(toy)
+    service.search(10)
+    service.search(12)  # within the cooldown of the loop of 10
+    service.search(14)  # verified while the first global BA runs: waits
+    assert len(toy.jobs) == 1 and service.busy
+    toy.gate.set()
+    _poll_until_idle(service)
+    assert len(toy.jobs) == 2 and toy.jobs[1].loop_edges["src"].tolist() == [14, 0]
+    assert service.proximity_loops == [(10, 0, "accepted"), (14, 0, "accepted")]
+    assert service.proximity_counts["queries"] == 2 and toy.events == ["global_ba", "correction"] * 2
+
+
+def test_failed_global_ba_undoes_its_loop_and_lifts_the_cooldown():
     toy = ToyMap(10)
     toy.fail = True
     service = _proximity_service(toy)
     service.search(8)
-    service.search(9)  # a global BA is running: no second one
-    assert service.proximity_counts["busy_skips"] == 1 and len(toy.jobs) == 1
     toy.gate.set()
     _poll_until_idle(service)
     assert toy.events == [] and service.proximity_loops == [(8, 0, "undone: global BA failed")]
+    toy.fail = False
+    service.search(9)  # right after: no cooldown from an undone loop
+    _poll_until_idle(service)
+    assert service.proximity_loops[-1] == (9, 0, "accepted") and toy.events == ["global_ba", "correction"]
 
 
 def test_global_ba_is_solved_again_after_a_correction_and_dropped_on_a_new_map(monkeypatch):

@@ -19,18 +19,19 @@ The frontend holds one :class:`LoopService` and calls it at fixed points of its 
 Classical (``mode`` classical or both): :class:`fgslam.loop.closure.LoopCloser` in its worker thread;
 a correction is a :class:`~fgslam.backend.contributor.PoseCorrection` (metric maps: SE(3)).
 
-Proximity (``mode`` proximity or both): the newest settled keyframe is a query unless a global BA is
-running or the last accepted loop's ``cooldown`` lasts; the contributor picks the best candidate
-among the keyframes settled at least ``min_gap`` before it (``proximity_candidate``), measures and
-verifies long-range edges (``long_range_edges``: None rejects the loop) and hands over a snapshot of
-its map with every stored edge and the loop edges (``global_ba_job``). The global BA runs in a
-background thread (``run_in_thread``; else at once); its result is applied at the next safe point:
+Proximity (``mode`` proximity or both): the newest settled keyframe is a query unless the
+``cooldown`` of the last verified loop lasts; the contributor picks the best candidate among the
+keyframes settled at least ``min_gap`` before it (``proximity_candidate``) and measures and verifies
+long-range edges (``long_range_edges``: None rejects the loop). A verified loop waits while a global
+BA runs; then the contributor hands over a snapshot of its map with every stored edge and the loop
+edges of every waiting loop (``global_ba_job``). The global BA runs in a background thread
+(``run_in_thread``; else at once); its result is applied at the next safe point:
 
 1. *stale*: when a correction was applied since the snapshot (the result would undo or repeat it) the
    BA is run again on a new snapshot with the same loop edges (at most ``max_pose_graph_retries``
    times); when the frontend started a new map, it is dropped;
 2. *gate*: when less than ``min_ba_inlier_ratio`` of the loop edges keep a non-zero robust weight the
-   result is discarded (the loop is "undone");
+   result is discarded (its loops are "undone", and their cooldown is lifted);
 3. otherwise ``contributor.apply_global_ba`` takes the structure of the keyframes that did not change
    since the snapshot and the surviving loop edges, and every keyframe gets the correction
    ``U_k = T_new_k T_snapshot_k^-1`` applied to its *current* pose (local refinements since the snapshot
@@ -74,8 +75,7 @@ class _Running:
     """A global BA handed to the solver: its job, the loop it closes, and the epochs of its snapshot."""
 
     job: GlobalBAJob
-    query: Optional[int]
-    candidate: Optional[int]
+    loops: list  # (query id, candidate id) of the loops whose edges it holds
     epoch: int
     map_epoch: int
     tries: int
@@ -84,6 +84,7 @@ class _Running:
     result: Any = None
     error: Optional[BaseException] = None
     seconds: float = 0.0
+    pending: list = field(default_factory=list)  # the (query, candidate, edges) it was started with
 
 
 class LoopService:
@@ -118,9 +119,9 @@ class LoopService:
             self._settled: dict[int, int] = {}  # keyframe id -> ordinal among settled keyframes
             self._order: list[int] = []
             self._cooldown_until = -1  # ordinal before which no loop is searched
+            self._pending: list[tuple[int, int, dict]] = []  # verified loops waiting for the running global BA
             self.proximity_counts = {"queries": 0, "candidates": 0, "verified": 0, "accepted": 0, "undone": 0,
-                                     "global_ba_runs": 0, "global_ba_s": 0.0, "global_ba_reruns": 0,
-                                     "busy_skips": 0}
+                                     "global_ba_runs": 0, "global_ba_s": 0.0, "global_ba_reruns": 0}
             self.proximity_loops: list[tuple[int, int, str]] = []  # (query id, candidate id, status)
 
     # ------------------------------------------------------------------ state
@@ -226,9 +227,6 @@ class LoopService:
         ordinal = self._settled[query]
         if ordinal < self._cooldown_until:
             return
-        if self.busy:
-            self.proximity_counts["busy_skips"] += 1
-            return
         counts = self.proximity_counts
         counts["queries"] += 1
         eligible = self.eligible_candidates(query)
@@ -243,10 +241,31 @@ class LoopService:
             self.proximity_loops.append((query, cand.fid, "rejected: verification"))
             return
         counts["verified"] += 1
+        self._cooldown_until = ordinal + self.proximity.cooldown  # lifted again if the loop is undone
+        self._pending.append((query, cand.fid, edges))
+        if not self.busy:
+            self._start_pending()
+
+    def _start_pending(self, tries: int = 1) -> None:
+        """A global BA with the loop edges of every pending loop."""
+        loops, self._pending = self._pending, []
+        edges = {k: np.concatenate([np.asarray(e[k]) for _, _, e in loops]) for k in loops[0][2]}
         job = self.contributor.global_ba_job(edges)
         if job is None:
+            self._undo([(q, c) for q, c, _ in loops], "undone: no map for the global BA")
             return
-        self._start(_Running(job, query, cand.fid, self._epoch, self._map_epoch, tries=1))
+        run = _Running(job, [(q, c) for q, c, _ in loops], self._epoch, self._map_epoch, tries)
+        run.pending = loops
+        self._start(run)
+
+    def _undo(self, loops: list, status: str) -> None:
+        if not loops:
+            return
+        for q, c in loops:
+            self.proximity_loops.append((q, c, status))
+            self.proximity_counts["undone"] += 1
+        # the provisional cooldown of undone loops is lifted (loops still pending keep theirs)
+        self._cooldown_until = max([self._settled[q] + self.proximity.cooldown for q, _, _ in self._pending], default=-1)
 
     def run_global_ba(self, loop_edges: dict | None = None) -> bool:
         """A global BA with ``loop_edges`` now, in the caller's thread (tests, maintenance): applied
@@ -256,7 +275,7 @@ class LoopService:
         job = self.contributor.global_ba_job(loop_edges)
         if job is None:
             return False
-        run = _Running(job, None, None, self._epoch, self._map_epoch, tries=1)
+        run = _Running(job, [], self._epoch, self._map_epoch, tries=1)
         self._solve(run)
         self._running = run
         return self._finish_global_ba(run)
@@ -281,11 +300,14 @@ class LoopService:
 
     def wait(self) -> None:
         """Wait for a running global BA and apply it (reruns included)."""
+        t0 = time.perf_counter()
         while self._running is not None:
             run = self._running
             if run.thread is not None:
                 run.thread.join()
             self._finish_global_ba(run)
+        if self.proximity is not None:
+            self._times["proximity"] += time.perf_counter() - t0
 
     def _finish_global_ba(self, run: _Running) -> bool:
         """Apply a solved global BA at the safe point (module docstring, steps 1-3); returns whether it
@@ -304,14 +326,12 @@ class LoopService:
         elif run.map_epoch != self._map_epoch:
             status = "undone: a new map started during the global BA"
         elif run.epoch != self._epoch:
-            if run.tries < self.config.max_pose_graph_retries:
-                job = self.contributor.global_ba_job(run.job.loop_edges)
-                if job is not None:
-                    if counts is not None:
-                        counts["global_ba_reruns"] += 1
-                    logger.info("global BA: a correction was applied meanwhile; solving again")
-                    self._start(_Running(job, run.query, run.candidate, self._epoch, self._map_epoch, run.tries + 1))
-                    return False
+            if run.tries < self.config.max_pose_graph_retries and run.pending:
+                counts["global_ba_reruns"] += 1
+                logger.info("global BA: a correction was applied meanwhile; solving again")
+                self._pending = run.pending + self._pending
+                self._start_pending(run.tries + 1)
+                return False
             status = "undone: corrections kept arriving during the global BA"
         job, res = run.job, run.result
         if status is None:
@@ -324,9 +344,8 @@ class LoopService:
                                 100 * kept, 100 * ratio)
                     status = "undone: loop edges inconsistent after global BA"
         if status is not None:
-            if run.query is not None:
-                self.proximity_loops.append((run.query, run.candidate, status))
-                counts["undone"] += 1
+            self._undo(run.loops, status)
+            self._next()
             return False
         ids = [int(k) for k in job.kf_ids]
         corr = PoseCorrection.between(dict(zip(ids, job.T_WC)), dict(zip(ids, res.T_WC)), run.seconds,
@@ -337,23 +356,24 @@ class LoopService:
         if self.closer is not None:
             poses = {k: self.contributor.keyframe_pose(k) for k in ids}
             self.closer.update_poses({k: T for k, T in poses.items() if T is not None})
-        if run.query is not None:
-            self.proximity_loops.append((run.query, run.candidate, "accepted"))
+        for q, c in run.loops:
+            self.proximity_loops.append((q, c, "accepted"))
             counts["accepted"] += 1
-            self._cooldown_until = self._settled[run.query] + self.proximity.cooldown
-            logger.info("proximity loop closed: keyframe %d <-> keyframe %d (%d loop edges; global BA %.2f s, "
-                        "applied %.2f s after its start)", run.query, run.candidate, int(keep.size), run.seconds,
-                        time.perf_counter() - run.started)
+            logger.info("proximity loop closed: keyframe %d <-> keyframe %d (global BA %.2f s over %d loop edges, "
+                        "applied %.2f s after its start)", q, c, run.seconds, int(keep.size), time.perf_counter() - run.started)
+        self._next()
         return True
+
+    def _next(self) -> None:
+        """Start the global BA of the loops verified while the last one ran."""
+        if self.proximity is not None and self._pending and not self.busy:
+            self._start_pending()
 
     # ------------------------------------------------------------------ end
     def finish(self) -> None:
         """Wait for a running global BA and apply it; stop the closer and apply its last correction
         (the caller hands its remaining keyframes first)."""
-        if self.proximity is not None:
-            t0 = time.perf_counter()
-            self.wait()
-            self._times["proximity"] += time.perf_counter() - t0
+        self.wait()
         if self.closer is not None:
             t0 = time.perf_counter()
             self.closer.close()

@@ -58,12 +58,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from ...backend.contributor import GlobalBAJob, KeyframeImage, PoseCorrection
+from ...backend.loop_service import LoopService
 from ...errors import ConfigError, OptimizationError
 from ...factors.reprojection import ReprojectionConfig, reproject
 from ...factors.robust import kernel_weight
 from ...factors.schur import BlockConfig, torch_threads
-from ...backend.contributor import GlobalBAJob, KeyframeImage, PoseCorrection
-from ...backend.loop_service import LoopService
 from ...loop.closure import LoopClosureConfig
 from ...lie import sim3_matrix_components, sim3_matrix_parts
 from ...map import GaugeConfig, MapConfig, SlamMap, pose_key
@@ -200,8 +200,8 @@ class PatchFrontend(Frontend):
         sensor_mode: ``mono``, ``stereo`` (needs right images) or ``rgbd`` (needs depth).
         map_config: solver settings for the local bundle adjustment (its iteration count and gauge
             are set by the frontend); None: :class:`fgslam.map.MapConfig` defaults.
-        loop_config: loop closure (:class:`fgslam.loop.closure.LoopClosureConfig`; the frontend runs
-            the shared :class:`~fgslam.backend.loop_service.LoopService` runs it); None: loop closure off.
+        loop_config: loop closure (:class:`fgslam.loop.closure.LoopClosureConfig`, run by the shared
+            :class:`~fgslam.backend.loop_service.LoopService`); None: loop closure off.
     """
 
     name = "patch"
