@@ -49,7 +49,9 @@ class GlobalBAJob:
     weight), e.g. :func:`fgslam.frontends.patch.global_ba.global_bundle_adjustment` bound to its
     problem. ``kf_ids[i]`` is the keyframe of problem frame i, ``T_WC`` their poses at the snapshot;
     ``is_loop`` marks the problem's loop edges (the gate ``min_ba_inlier_ratio`` acts on them);
-    ``context`` is the contributor's own data for :meth:`ProximityContributor.apply_global_ba`."""
+    ``context`` is the contributor's own data for :meth:`ProximityContributor.apply_global_ba`.
+    ``in_process``: ``solve`` is picklable and needs nothing of the contributor's process (a module-level
+    function bound to its data), so the service may run it in a worker process."""
 
     solve: Callable[[], Any]
     kf_ids: np.ndarray
@@ -57,6 +59,7 @@ class GlobalBAJob:
     is_loop: np.ndarray
     loop_edges: Optional[dict] = None
     context: Any = None
+    in_process: bool = False
 
 
 @runtime_checkable

@@ -24,12 +24,15 @@ Proximity (``mode`` proximity or both): the newest settled keyframe is a query u
 keyframes settled at least ``min_gap`` before it (``proximity_candidate``) and measures and verifies
 long-range edges (``long_range_edges``: None rejects the loop). A verified loop waits while a global
 BA runs; then the contributor hands over a snapshot of its map with every stored edge and the loop
-edges of every waiting loop (``global_ba_job``). The global BA runs in a background thread
-(``run_in_thread``; else at once); its result is applied at the next safe point:
+edges of every waiting loop (``global_ba_job``). The global BA runs in the background
+(``run_in_thread``; else at once): a job whose solve is a picklable function (``in_process``, the
+patch family's) in a worker process of its own (spawned once per service: in a thread of the tracking
+process, the two would take turns on the interpreter lock and both slow down, the global BA about
+10x on the street drive), others in a thread. Its result is applied at the next safe point:
 
-1. *stale*: when a correction was applied since the snapshot (the result would undo or repeat it) the
-   BA is run again on a new snapshot with the same loop edges (at most ``max_pose_graph_retries``
-   times); when the frontend started a new map, it is dropped;
+1. when the frontend started a new map since the snapshot, it is dropped (a correction applied
+   since the snapshot, e.g. the classical closer's, is kept: the result is applied on top of it, as
+   a classical correction is applied on top of a global BA's result);
 2. *gate*: when less than ``min_ba_inlier_ratio`` of the loop edges keep a non-zero robust weight the
    result is discarded (its loops are "undone", and their cooldown is lifted);
 3. otherwise ``contributor.apply_global_ba`` takes the structure of the keyframes that did not change
@@ -45,7 +48,9 @@ applies its last correction.
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import threading
+from concurrent.futures import ProcessPoolExecutor
 import time
 from dataclasses import dataclass, field
 from typing import Any, Optional, Protocol
@@ -62,6 +67,10 @@ logger = logging.getLogger(__name__)
 _SOLVER_ERRORS = (OptimizationError, RuntimeError, np.linalg.LinAlgError)
 
 
+def _warm_up() -> None:
+    """Runs first in the worker process: it starts (spawn, imports) before the first global BA needs it."""
+
+
 class ProximityGates(Protocol):
     """The proximity settings the service uses (the family's proximity config, e.g. ``patch.proximity``)."""
 
@@ -72,19 +81,16 @@ class ProximityGates(Protocol):
 
 @dataclass
 class _Running:
-    """A global BA handed to the solver: its job, the loop it closes, and the epochs of its snapshot."""
+    """A global BA handed to the solver: its job, the loops it closes, and the map it was taken from."""
 
     job: GlobalBAJob
     loops: list  # (query id, candidate id) of the loops whose edges it holds
-    epoch: int
     map_epoch: int
-    tries: int
     started: float = field(default_factory=time.perf_counter)
     thread: Optional[threading.Thread] = None
     result: Any = None
     error: Optional[BaseException] = None
     seconds: float = 0.0
-    pending: list = field(default_factory=list)  # the (query, candidate, edges) it was started with
 
 
 class LoopService:
@@ -111,9 +117,9 @@ class LoopService:
             self._counts = {"corrections_applied": 0, "keyframes_added": 0, "relocalization_attempts": 0,
                             "relocalized": 0}
         self._last_added = -1  # newest keyframe id handed to the closer
-        self._epoch = 0  # corrections applied so far (a global BA on an older snapshot is stale)
         self._map_epoch = 0  # maps started by the contributor so far
         self._running: Optional[_Running] = None
+        self._pool: Optional[ProcessPoolExecutor] = None  # the global BA's worker process (in_process jobs)
         if self.proximity is not None:
             self._times["proximity"] = 0.0
             self._settled: dict[int, int] = {}  # keyframe id -> ordinal among settled keyframes
@@ -121,7 +127,7 @@ class LoopService:
             self._cooldown_until = -1  # ordinal before which no loop is searched
             self._pending: list[tuple[int, int, dict]] = []  # verified loops waiting for the running global BA
             self.proximity_counts = {"queries": 0, "candidates": 0, "verified": 0, "accepted": 0, "undone": 0,
-                                     "global_ba_runs": 0, "global_ba_s": 0.0, "global_ba_reruns": 0}
+                                     "global_ba_runs": 0, "global_ba_s": 0.0}
             self.proximity_loops: list[tuple[int, int, str]] = []  # (query id, candidate id, status)
 
     # ------------------------------------------------------------------ state
@@ -155,7 +161,6 @@ class LoopService:
         if corr is None:
             return
         self.contributor.apply_correction(corr)
-        self._epoch += 1
         self._counts["corrections_applied"] += 1
         logger.info("loop correction applied (%d loops accepted, %d keyframes in the pose graph)",
                     corr.n_accepted, len(corr.T_update))
@@ -232,6 +237,9 @@ class LoopService:
         eligible = self.eligible_candidates(query)
         if not eligible:
             return
+        if self.config.run_in_thread and self._pool is None:  # loops are possible from now on
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+            self._pool.submit(_warm_up)
         cand = self.contributor.proximity_candidate(query, eligible)
         if cand is None:
             return
@@ -246,7 +254,7 @@ class LoopService:
         if not self.busy:
             self._start_pending()
 
-    def _start_pending(self, tries: int = 1) -> None:
+    def _start_pending(self) -> None:
         """A global BA with the loop edges of every pending loop."""
         loops, self._pending = self._pending, []
         edges = {k: np.concatenate([np.asarray(e[k]) for _, _, e in loops]) for k in loops[0][2]}
@@ -254,9 +262,7 @@ class LoopService:
         if job is None:
             self._undo([(q, c) for q, c, _ in loops], "undone: no map for the global BA")
             return
-        run = _Running(job, [(q, c) for q, c, _ in loops], self._epoch, self._map_epoch, tries)
-        run.pending = loops
-        self._start(run)
+        self._start(_Running(job, [(q, c) for q, c, _ in loops], self._map_epoch))
 
     def _undo(self, loops: list, status: str) -> None:
         if not loops:
@@ -275,7 +281,7 @@ class LoopService:
         job = self.contributor.global_ba_job(loop_edges)
         if job is None:
             return False
-        run = _Running(job, [], self._epoch, self._map_epoch, tries=1)
+        run = _Running(job, [], self._map_epoch)
         self._solve(run)
         self._running = run
         return self._finish_global_ba(run)
@@ -283,6 +289,8 @@ class LoopService:
     def _start(self, run: _Running) -> None:
         self._running = run
         if self.config.run_in_thread:
+            if run.job.in_process and self._pool is None:  # (a search created it already)
+                self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
             run.thread = threading.Thread(target=self._solve, args=(run,), name="fgslam-global-ba", daemon=True)
             run.thread.start()
         else:
@@ -293,7 +301,10 @@ class LoopService:
         """Solve the job (worker thread or caller); an exception is kept for the safe point."""
         t0 = time.perf_counter()
         try:
-            run.result = run.job.solve()
+            if run.thread is not None and run.job.in_process:
+                run.result = self._pool.submit(run.job.solve).result()
+            else:
+                run.result = run.job.solve()
         except BaseException as exc:  # noqa: BLE001 - surfaced at the safe point
             run.error = exc
         run.seconds = time.perf_counter() - t0
@@ -325,14 +336,6 @@ class LoopService:
             status = "undone: global BA failed"
         elif run.map_epoch != self._map_epoch:
             status = "undone: a new map started during the global BA"
-        elif run.epoch != self._epoch:
-            if run.tries < self.config.max_pose_graph_retries and run.pending:
-                counts["global_ba_reruns"] += 1
-                logger.info("global BA: a correction was applied meanwhile; solving again")
-                self._pending = run.pending + self._pending
-                self._start_pending(run.tries + 1)
-                return False
-            status = "undone: corrections kept arriving during the global BA"
         job, res = run.job, run.result
         if status is None:
             keep = res.robust[job.is_loop] > 0
@@ -352,7 +355,6 @@ class LoopService:
                                       hold_older=True)
         self.contributor.apply_global_ba(job, res, keep)
         self.contributor.apply_correction(corr)
-        self._epoch += 1
         if self.closer is not None:
             poses = {k: self.contributor.keyframe_pose(k) for k in ids}
             self.closer.update_poses({k: T for k, T in poses.items() if T is not None})
@@ -374,6 +376,9 @@ class LoopService:
         """Wait for a running global BA and apply it; stop the closer and apply its last correction
         (the caller hands its remaining keyframes first)."""
         self.wait()
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
         if self.closer is not None:
             t0 = time.perf_counter()
             self.closer.close()

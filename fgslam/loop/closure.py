@@ -127,7 +127,7 @@ class LoopClosureConfig:
     run_in_thread: bool = True            # worker threads (classical closer, global BA); False: synchronous (tests, determinism)
     max_candidates: int = ranged(2, ge=1)  # accepted BoW candidates verified per query keyframe
     fold_scale: bool = True               # frontend folds the scale correction into depths
-    max_pose_graph_retries: int = ranged(3, ge=1)  # solves (pose graph, global BA) when a correction was applied mid-solve
+    max_pose_graph_retries: int = ranged(3, ge=1)  # recomputations when a correction was applied mid-solve
     # Pose-graph throttle (module docstring): once a loop cluster has a correction, its further loops
     # are solved at most every solve_every described keyframes (1: after every verified loop) ...
     solve_every: int = ranged(5, ge=1)

@@ -54,6 +54,7 @@ import logging
 import time
 import warnings
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 import torch
@@ -1372,8 +1373,8 @@ class PatchFrontend(Frontend):
             weight=e["confidence"].astype(np.float64) / self.config.ba.pixel_sigma ** 2, struct_idx=struct_idx,
             inv_depth=d_all[owner, patch], K=self.K.numpy().copy(),
             K_right=None if self.K_right is None else self.K_right.numpy().copy(), T_CRCL=self.T_CRCL, **prior)
-        return GlobalBAJob(solve=lambda: global_bundle_adjustment(problem, pc.ba, self._reproj), kf_ids=fids,
-                           T_WC=T_WC, is_loop=is_loop, loop_edges=loop_edges,
+        return GlobalBAJob(solve=partial(global_bundle_adjustment, problem, pc.ba, self._reproj), kf_ids=fids,
+                           T_WC=T_WC, is_loop=is_loop, loop_edges=loop_edges, in_process=True,
                            context={"owner": owner, "patch": patch, "inv_depth": d_all, "known": known, "n_loop": n_loop})
 
     def apply_global_ba(self, job: GlobalBAJob, result, keep_loop: np.ndarray) -> None:
