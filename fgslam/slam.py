@@ -267,6 +267,7 @@ class RunSummary:
     cpu_s: float  # CPU time (user + system, all threads) of the run: comparable across machine loads
     fps: float  # frames processed per second of wall time (reading included)
     fps_frontend: float  # frames per second of frontend time (process + finish)
+    max_frame_s: float  # longest frontend.process() of one frame (a stall of tracking)
     read_s: float  # time spent reading frames from the dataset
     stage_s: dict[str, float]  # frontend.stage_times()
     stage_ms_per_frame: dict[str, float]
@@ -336,6 +337,7 @@ class _RunState:
     events: Counter = field(default_factory=Counter)
     read_s: float = 0.0
     frontend_s: float = 0.0
+    max_frame_s: float = 0.0  # longest frontend.process() call
     wall_s: float = 0.0
     cpu_s: float = 0.0
 
@@ -494,7 +496,9 @@ def _loop(
             state.frames_read += 1
             where = f"at frame {frame.index}" + (f" ({frame.path})" if frame.path is not None else "")
             status = frontend.process(frame)
-            state.frontend_s += time.perf_counter() - t_frontend
+            frame_s = time.perf_counter() - t_frontend
+            state.frontend_s += frame_s
+            state.max_frame_s = max(state.max_frame_s, frame_s)
             t_frontend = None
             state.frames_processed += 1
             where = f"after frame {frame.index}"
@@ -713,6 +717,7 @@ def _finalize(
         cpu_s=state.cpu_s,
         fps=n / state.wall_s if state.wall_s > 0 else 0.0,
         fps_frontend=n / state.frontend_s if state.frontend_s > 0 else 0.0,
+        max_frame_s=state.max_frame_s,
         read_s=state.read_s,
         stage_s=stage_s,
         stage_ms_per_frame={k: 1000.0 * v / n for k, v in stage_s.items()} if n else {},

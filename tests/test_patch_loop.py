@@ -218,7 +218,7 @@ def prox_frontend(room):
 def test_proximity_loop_edges_join_the_inactive_store(prox_frontend):
     fe, _ = prox_frontend
     store = fe.inactive_edges()
-    first = min(fe._prox_loops, key=lambda rec: rec[0])
+    first = min(fe.loops.proximity_loops, key=lambda rec: rec[0])
     q_fid, c_fid, status = first
     assert status == "accepted"
     loop = (store["src"] == c_fid) | (store["tgt"] == c_fid)
@@ -229,18 +229,16 @@ def test_proximity_loop_edges_join_the_inactive_store(prox_frontend):
 
 def test_wrong_proximity_candidate_is_rejected_by_verification(prox_frontend):
     """A candidate on the far side of the room (no shared view) gets no verified loop edges."""
-    from fgslam.frontends.patch.proximity import Candidate
-
     fe, T_gt = prox_frontend
     q = fe.graph.frames[len(fe.graph) // 2]
     if q.features is None:  # the newest graph frames keep their source features
         q = next(f for f in reversed(fe.graph.frames) if f.features is not None)
-    stored = [fid for fid in fe._prox.order if fid in fe._prox]
+    stored = [fid for fid in fe._prox_store.order if fid in fe._prox_store]
     index = {f.fid: f.index for f in list(fe._final.values()) + fe.graph.frames}
     axis = lambda i: T_gt[i][:3, 2]
     far = min(stored, key=lambda fid: float(axis(index[fid]) @ axis(q.index)))  # most opposite view
     assert float(axis(index[far]) @ axis(q.index)) < 0
-    assert fe._prox_measure(q, Candidate(far, 0.0, 0.0, 0.0, 1.0)) is None
+    assert fe.long_range_edges(q.fid, far) is None
 
 
 def test_inconsistent_loop_edges_are_undone(prox_frontend):
@@ -256,7 +254,7 @@ def test_inconsistent_loop_edges_are_undone(prox_frontend):
             "confidence": np.ones(n, np.float32), "inv_depth": a.inv_depth.astype(np.float32)}
     before = {f.fid: f.T_WC.copy() for f in fe.graph.frames}
     stored = fe.graph.inactive.count
-    assert fe._global_ba(fake) is False
+    assert fe.loops.run_global_ba(fake) is False
     assert all(np.array_equal(f.T_WC, before[f.fid]) for f in fe.graph.frames)
     assert fe.graph.inactive.count == stored
 
@@ -348,15 +346,15 @@ def test_textureless_proximity_candidate_is_rejected(prox_frontend):
     from fgslam.frontends.patch.lk import LKFeatures
 
     fe, _ = prox_frontend
-    q = next(f for f in reversed(fe.graph.frames) if f.features is not None and f.fid in fe._prox)
-    cand = fe._prox_candidate(q)
-    assert cand is not None and fe._prox_measure(q, cand) is not None
-    old = [cand.fid] + fe._prox.neighbours(cand.fid, fe.config.proximity.old_neighbours)
-    saved = {fid: fe._prox.get(fid) for fid in old}
+    q = next(f for f in reversed(fe.graph.frames) if f.features is not None and f.fid in fe._prox_store)
+    cand = fe.proximity_candidate(q.fid, fe.loops.eligible_candidates(q.fid))
+    assert cand is not None and fe.long_range_edges(q.fid, cand.fid) is not None
+    old = [cand.fid] + fe._prox_store.neighbours(cand.fid, fe.config.proximity.old_neighbours)
+    saved = {fid: fe._prox_store.get(fid) for fid in old}
     for fid, packed in saved.items():
         real = fe.source.unpack(packed)
-        fe._prox._items[fid] = fe.source.pack(LKFeatures(np.full_like(real.image, 128), real.width, real.height))
+        fe._prox_store._items[fid] = fe.source.pack(LKFeatures(np.full_like(real.image, 128), real.width, real.height))
     try:
-        assert fe._prox_measure(q, cand) is None
+        assert fe.long_range_edges(q.fid, cand.fid) is None
     finally:
-        fe._prox._items.update(saved)
+        fe._prox_store._items.update(saved)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -142,6 +143,24 @@ def _run(synth_root, tmp_path, sensor="mono", frontend_kwargs=None, overrides=()
 # --------------------------------------------------------------------------------------- outputs
 
 
+def test_summary_max_frame_time(synth_root, tmp_path):
+    """``max_frame_s`` is the longest ``process()`` call: one frame that stalls tracking sets it."""
+    stall_s, stall_at = 0.3, 6
+
+    class Stalling(FakeFrontend):
+        def process(self, frame):
+            if frame.index == stall_at:
+                time.sleep(stall_s)
+            return super().process(frame)
+
+    config = _config("sensor=mono")
+    rng = np.random.default_rng(1)
+    fe = Stalling(_random_sim3(rng, 0.5), 0.0, rng)
+    summary = run_slam(open_slam_dataset(synth_root, config), config, tmp_path / "out", progress=False, frontend=fe)
+    assert stall_s <= summary.max_frame_s <= summary.wall_s
+    assert json.loads((tmp_path / "out" / SUMMARY_FILE).read_text())["max_frame_s"] == summary.max_frame_s
+
+
 def test_outputs_exist_and_parse_back(synth_root, tmp_path):
     summary, fe, ds = _run(synth_root, tmp_path)
     out = tmp_path / "out"
@@ -173,6 +192,7 @@ def test_summary_fields_mono_sim3(synth_root, tmp_path):
     assert data["stage_s"] == pytest.approx({"flow": 0.001 * N_FRAMES, "ba": 0.002 * N_FRAMES})
     assert data["stage_ms_per_frame"]["ba"] == pytest.approx(2.0)
     assert data["fps"] > 0 and data["fps_frontend"] >= data["fps"]
+    assert 0 < data["max_frame_s"] <= data["wall_s"]  # the longest process() call
     assert data["peak_rss_mb"] > 0 and len(data["load_average"]) == 3 and data["cpu_s"] >= 0
     ev = data["evaluation"]
     assert ev["align"] == "sim3"

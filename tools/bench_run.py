@@ -7,7 +7,7 @@ where the estimated motion extent is the figure of merit; synthetic ``room-loop`
 and RGB-D; the synthetic ``street-loop`` drive (1,100 frames) with loop closure (``street_loop``,
 not in the default set: it renders and runs for several minutes). Each case reports ATE
 (m and % of the ground-truth path, with the alignment used), frames/s overall and of the frontend,
-ms per frame of every frontend stage, keyframes, failures, the estimate's motion extent, peak RSS,
+ms per frame of every frontend stage, the longest frame (``max_frame_s``), keyframes, failures, the estimate's motion extent, peak RSS,
 and whether the issue-4 target is met. Every case runs in its own process (peak RSS per case).
 
 The machine may be shared: the load average before and after each case is recorded.
@@ -169,6 +169,7 @@ def run_case(name: str, args: argparse.Namespace) -> dict:
         "keyframes": s["keyframes"],
         "fps": s["fps"],
         "fps_frontend": s["fps_frontend"],
+        "max_frame_s": s.get("max_frame_s"),  # longest frame of the tracking loop (None: a tree without it)
         "stage_ms_per_frame": s["stage_ms_per_frame"],
         "read_ms_per_frame": 1000.0 * s["read_s"] / max(s["frames_processed"], 1),
         "wall_s": s["wall_s"],
@@ -264,7 +265,7 @@ def _child(name: str, argv: list[str], code: Path | None) -> dict:
 def _ratios(new: dict, baseline: dict) -> dict:
     """new / baseline of the figures that matter (None where either is missing or zero)."""
     out = {}
-    for key in ("ate_rmse_m", "max_distance_from_start", "fps", "fps_frontend", "cpu_s"):
+    for key in ("ate_rmse_m", "max_distance_from_start", "fps", "fps_frontend", "cpu_s", "max_frame_s"):
         a, b = new.get(key), baseline.get(key)
         out[key] = a / b if isinstance(a, (int, float)) and isinstance(b, (int, float)) and b else None
     return out

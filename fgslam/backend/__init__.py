@@ -2,7 +2,9 @@
 
 Modules: :mod:`.keys` (gtsam keys of keyframe poses and other variables), :mod:`.blocks` (the
 contract of a frontend's measurement blocks), :mod:`.solver` (the one Levenberg-Marquardt loop),
-:mod:`.config` (``BackendConfig``, the ``map`` section), :mod:`.graph` (``Backend``).
+:mod:`.config` (``BackendConfig``, the ``map`` section), :mod:`.graph` (``Backend``),
+:mod:`.contributor` (what shared services need from a frontend), :mod:`.loop_service` (loop
+closure as a service), :mod:`.plugins` (user factor plugins).
 Importing this package imports no gtsam or torch (each module imports them where used; the names
 below are resolved lazily).
 """

@@ -5,7 +5,7 @@ Pipeline per keyframe (in a worker thread, or synchronously): ORB features + BoW
 consistency), geometric verification of the best candidates, Sim(3) pose graph over every keyframe
 (:func:`fgslam.loop.pose_graph.optimize_sim3_pose_graph`: smoothness from the current relative
 Sim(3)s + every verified loop so far, plausibility gate, pairwise consistency, chi-square test), and a
-:class:`LoopCorrection` handed to the frontend through :meth:`LoopCloser.poll`.
+:class:`PoseCorrection` handed to the frontend through :meth:`LoopCloser.poll`.
 
 Pose-graph throttle: on a return, consecutive keyframes each verify a loop. Loops form clusters (a
 loop whose query comes more than ``LoopClosureConfig.cluster_gap`` described keyframes after the
@@ -19,7 +19,7 @@ Metric mode (``LoopCloser(metric=True)``: stereo, RGB-D): the map's scale is met
 pose keeps its Sim(3) scale (1), since depth priors and stereo edges are in metres. Verification then
 fits a rigid ``T_CqCc`` (``s = 1``, :func:`~fgslam.loop.sim3_estimation.estimate_sim3_ransac` with
 ``with_scale=False``), the pose graph holds every keyframe's scale (``hold_scale``: an SE(3) pose
-graph), and each :class:`LoopCorrection` is SE(3): all ``scale`` are 1 and ``fold_scale`` is False
+graph), and each :class:`PoseCorrection` is SE(3): all ``scale`` are 1 and ``fold_scale`` is False
 (nothing to fold). Relocalisation returns the metric PnP pose in both modes.
 
 Conventions: poses are camera-to-world Sim(3) ``T_WC`` (``X_W = s R X_C + t``, 4x4
@@ -42,13 +42,13 @@ Geometric verification of a pair (query q, candidate c):
 Too few matches, too few triangulated points (no texture, too little parallax) and degenerate or
 unsupported Sim(3)s reject the pair with a logged reason (:class:`Verification`).
 
-Corrections: a :class:`LoopCorrection` holds, for every keyframe of the pose-graph snapshot, the
+Corrections: a :class:`PoseCorrection` holds, for every keyframe of the pose-graph snapshot, the
 world-frame update ``U_k = T_WC_new_k T_WC_old_k^-1`` (Sim(3)). The frontend applies it at a safe
 point as ``T_WC <- U_k T_WC`` to its *current* pose of keyframe k (local refinements since the
 snapshot are kept) and, for keyframes added after the snapshot, with the update of the nearest
-corrected keyframe id (:meth:`LoopCorrection.update_for`). With ``fold_scale`` (frontends whose pose
+corrected keyframe id (:meth:`PoseCorrection.update_for`). With ``fold_scale`` (frontends whose pose
 scale is a fixed gauge: patch, dense) the scale part ``s_k`` of ``U_k`` is folded into the depths
-(DPV-SLAM: ``d <- d / s_k``) and the pose keeps its old scale (:meth:`LoopCorrection.apply`); the
+(DPV-SLAM: ``d <- d / s_k``) and the pose keeps its old scale (:meth:`PoseCorrection.apply`); the
 closer then assumes that every correction handed out by :meth:`LoopCloser.poll` is applied (it
 rescales its stored loop measurements and applies the correction to its own pose table).
 """
@@ -124,7 +124,7 @@ class LoopClosureConfig:
     verification: VerificationConfig = field(default_factory=VerificationConfig)
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     relocalization: RelocalizationConfig = field(default_factory=RelocalizationConfig)
-    run_in_thread: bool = True            # worker thread; False: synchronous (tests, determinism)
+    run_in_thread: bool = True            # worker threads (classical closer, global BA); False: synchronous (tests, determinism)
     max_candidates: int = ranged(2, ge=1)  # accepted BoW candidates verified per query keyframe
     fold_scale: bool = True               # frontend folds the scale correction into depths
     max_pose_graph_retries: int = ranged(3, ge=1)  # recomputations when a correction was applied mid-solve
@@ -181,8 +181,10 @@ class LoopRecord:
 
 
 @dataclass
-class LoopCorrection:
-    """A pose-graph correction (see the module docstring for how to apply it).
+class PoseCorrection:
+    """A Sim(3) correction of keyframe poses (see the module docstring for how to apply it): from the
+    classical closer's pose graph, or from a global bundle adjustment that ran on a snapshot
+    (:mod:`fgslam.backend.loop_service`). ``LoopCorrection`` is its former name.
 
     ``T_update[k]`` = ``T_WC_new_k T_WC_old_k^-1`` (4x4 Sim(3), world frame) for every keyframe of
     the snapshot; ``scale[k]`` = its scale ``s_new_k / s_old_k``; ``T_WC_new[k]`` the corrected
@@ -197,16 +199,34 @@ class LoopCorrection:
     fold_scale: bool
     n_accepted: int
     solve_time_s: float
+    hold_older: bool = False  # keyframes older than every listed one keep their pose (a global BA of the current map)
     _ids: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         self._ids = np.array(sorted(self.T_update), dtype=np.int64)
 
+    @classmethod
+    def between(cls, T_WC_old: dict[int, np.ndarray], T_WC_new: dict[int, np.ndarray], solve_time_s: float = 0.0,
+                fold_scale: bool = False, loops: Sequence[LoopRecord] = (), n_accepted: int = 0,
+                hold_older: bool = False) -> "PoseCorrection":
+        """The correction that takes every keyframe from ``T_WC_old[k]`` to ``T_WC_new[k]`` (4x4 Sim(3)
+        each, same keys): ``U_k = T_new T_old^-1``, ``scale[k] = s_new / s_old``."""
+        updates, scale = {}, {}
+        for k, T_old in T_WC_old.items():
+            T_new = np.asarray(T_WC_new[k], np.float64)
+            updates[k] = T_new @ np.linalg.inv(T_old)
+            scale[k] = float(sim3_matrix_parts(T_new)[2] / sim3_matrix_parts(T_old)[2])
+        return cls(updates, scale, {k: np.asarray(T, np.float64) for k, T in T_WC_new.items()}, list(loops),
+                   fold_scale, n_accepted, solve_time_s, hold_older)
+
     def update_for(self, kf_id: int) -> tuple[np.ndarray, float]:
         """``(U (4, 4), s)`` of keyframe ``kf_id``: its own update, or that of the corrected
-        keyframe with the nearest id (ties: the older one) for keyframes outside the snapshot."""
+        keyframe with the nearest id (ties: the older one) for keyframes outside the snapshot
+        (with ``hold_older``, the identity for ids below every listed one)."""
         if kf_id in self.T_update:
             return self.T_update[kf_id], self.scale[kf_id]
+        if self.hold_older and (len(self._ids) == 0 or kf_id < self._ids[0]):
+            return np.eye(4), 1.0
         pos = int(np.searchsorted(self._ids, kf_id))
         near = [self._ids[p] for p in (pos - 1, pos) if 0 <= p < len(self._ids)]
         best = int(min(near, key=lambda k: (abs(int(k) - kf_id), k)))
@@ -236,6 +256,9 @@ class LoopCorrection:
         out = np.array(T_KF, dtype=np.float64, copy=True)
         out[:3, 3] *= s
         return out
+
+
+LoopCorrection = PoseCorrection  # former name
 
 
 @dataclass
@@ -391,7 +414,7 @@ class LoopCloser:
         self._poses: dict[int, np.ndarray] = {}      # latest T_WC per keyframe (4x4)
         self._loops: list[LoopRecord] = []
         self._log: list[Verification] = []
-        self._pending: LoopCorrection | None = None
+        self._pending: PoseCorrection | None = None
         self._epoch = 0                              # corrections handed out so far
         self._queue: queue.Queue = queue.Queue()
         self._closed = False
@@ -452,7 +475,7 @@ class LoopCloser:
                 if int(k) in self._poses:
                     self._poses[int(k)] = _as_matrix(T)
 
-    def poll(self) -> LoopCorrection | None:
+    def poll(self) -> PoseCorrection | None:
         """The newest correction not yet handed out, or None (non-blocking). The caller must apply
         it (module docstring); the closer applies it to its own pose table and loop measurements."""
         if not self._enabled:
@@ -710,7 +733,7 @@ class LoopCloser:
                 T_new = res.T_WC.matrix().numpy()
                 updates = {k: T_new[i] @ np.linalg.inv(T_old[i]) for i, k in enumerate(ids)}
                 scale = {k: float(res.scale_correction[i]) for i, k in enumerate(ids)}
-                self._pending = LoopCorrection(updates, scale, {k: T_new[i] for i, k in enumerate(ids)},
+                self._pending = PoseCorrection(updates, scale, {k: T_new[i] for i, k in enumerate(ids)},
                                                statuses, self.cfg.fold_scale and not self.metric, n_acc, dt)
                 self._counts["corrections"] += 1
                 logger.info("loop correction ready: %d keyframes, %d/%d loops accepted (%.3f s)",

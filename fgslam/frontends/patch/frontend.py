@@ -42,9 +42,12 @@ the rigid part ``[R | t]``. Every input frame gets a pose once the map exists (k
 map, removed frames relative to a neighbour, frames buffered during initialisation interpolated);
 frames before a successful initialisation are omitted.
 
-Loop closure, classical and proximity with the global bundle adjustment, lives in the mixin
-:class:`~.loops.PatchLoopClosure` (:mod:`.loops`); finalised keyframes (out of the graph) keep their
-pose and patches for it (``_final``).
+Loop closure, classical and proximity with the global bundle adjustment, is the shared service
+:class:`fgslam.backend.loop_service.LoopService` (``self.loops``); the frontend is its contributor
+(:mod:`fgslam.backend.contributor`: keyframe images and poses, :meth:`PatchFrontend.apply_correction`,
+long-range edges, the global BA's snapshot and hand-over). Finalised keyframes (out of the graph)
+keep their pose and patches for it (``_final``). Non-keyframes' poses are typed records
+(:mod:`.records`).
 """
 
 from __future__ import annotations
@@ -53,10 +56,13 @@ import logging
 import time
 import warnings
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import torch
 
+from ...backend.contributor import GlobalBAJob, KeyframeImage, PoseCorrection
+from ...backend.loop_service import LoopService
 from ...errors import ConfigError, OptimizationError
 from ...factors.depth import depth_priors, inv_depth_sigma
 from ...factors.reprojection import ReprojectionConfig, reproject, reproject_edges
@@ -70,8 +76,10 @@ from ...backend.keys import pose_key
 from ..base import FrameStatus, Frontend, SensorMode
 from .ba import PatchBlock
 from .config import PatchConfig
+from .global_ba import GlobalBAProblem, global_bundle_adjustment
 from .graph import GraphFrame, PatchGraph
-from .loops import PatchLoopClosure
+from .proximity import Candidate, KeyframeStore, fundamental_inliers, held_frames, pose_filter
+from .records import AbsolutePose, InterpolatedPose, KeyframePose, PoseRecord, RelativePose, resolve_pose
 from .source import make_source
 
 logger = logging.getLogger(__name__)
@@ -228,7 +236,7 @@ class BackendFrame(GraphFrame):
         self._backend = None
 
 
-class PatchFrontend(PatchLoopClosure, Frontend):
+class PatchFrontend(Frontend):
     """DPVO / DPV-SLAM-style patch frontend (see module docstring).
 
     Args:
@@ -238,8 +246,8 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         sensor_mode: ``mono``, ``stereo`` (needs right images) or ``rgbd`` (needs depth).
         map_config: settings of the backend the frontend builds when none is handed in (None:
             :class:`fgslam.backend.BackendConfig` defaults); ignored with ``backend``.
-        loop_config: loop closure (:class:`fgslam.loop.closure.LoopClosureConfig`; the frontend runs
-            its ``classical`` part, see :meth:`_loop_poll_and_apply`); None: loop closure off.
+        loop_config: loop closure (:class:`fgslam.loop.closure.LoopClosureConfig`, run by the shared
+            :class:`~fgslam.backend.loop_service.LoopService`); None: loop closure off.
         backend: the run's :class:`fgslam.backend.Backend` (built by the runner from ``config.map``);
             None: the frontend builds its own from ``map_config``.
 
@@ -273,7 +281,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         self._rng = np.random.default_rng(self.config.graph.seed)
         self._initialized = False
         self._init: _InitState | None = None
-        self._records: dict[int, tuple] = {}  # fid -> pose record (see _resolve)
+        self._records: dict[int, PoseRecord | None] = {}  # fid -> pose record (.records)
         self._inputs: list[tuple[int, float, int]] = []  # (fid, timestamp, index) per input frame
         self._sources: dict[int, str] = {}
         self._velocity = np.eye(4)
@@ -320,7 +328,10 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         return len(self.graph) + self._finalised
 
     def stage_times(self) -> dict[str, float]:
-        return dict(self._times)
+        out = dict(self._times)
+        for stage, seconds in self.loops.stage_times().items():  # the loop service's part in this thread
+            out[stage] = out.get(stage, 0.0) + seconds
+        return out
 
     @property
     def num_failures(self) -> int:
@@ -336,7 +347,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         self._inputs.append((fid, float(frame.timestamp), int(frame.index)))
         self._records[fid] = None
         if self._initialized:
-            self._loop_poll_and_apply()  # safe point (no BA running); outside the numerical-trouble guard
+            self.loops.poll()  # safe point (no BA running); outside the numerical-trouble guard
         try:
             with torch_threads(self.config.threads):
                 if not self._initialized:
@@ -378,7 +389,9 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         return np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks])
 
     def finish(self) -> None:
-        self._loop_finish()
+        self.loops.wait()  # a running global BA is applied before the last keyframes go to the closer
+        self._loop_feed_keyframes(all_frames=True)
+        self.loops.finish()
         logger.info("patch frontend: %d frames, %d keyframes, %d tracking failures",
                     len(self._inputs), self.num_keyframes(), self._failures)
 
@@ -392,26 +405,11 @@ class PatchFrontend(PatchLoopClosure, Frontend):
             raise ConfigError(f"frame {frame.index}: sensor mode rgbd but the frame has no depth")
 
     def _resolve(self, fid: int, cache: dict) -> np.ndarray | None:
-        if fid in cache:
-            return cache[fid]
-        rec = self._records.get(fid)
-        T = None
-        if rec is None:
-            T = None
-        elif rec[0] == "graph":
-            T = self.graph.frame(fid).T_WC
-        elif rec[0] == "final":
-            T = self._final[fid].T_WC
-        elif rec[0] == "abs":
-            T = rec[1]
-        elif rec[0] == "rel":
-            ref = self._resolve(rec[1], cache)
-            T = None if ref is None else ref @ rec[2]
-        elif rec[0] == "interp":
-            Ta, Tb = self._resolve(rec[1], cache), self._resolve(rec[2], cache)
-            T = None if Ta is None or Tb is None else _interp(Ta, Tb, rec[3])
-        cache[fid] = T
-        return T
+        return resolve_pose(fid, self._records, self._keyframe_T_WC, cache)
+
+    def _keyframe_T_WC(self, fid: int) -> np.ndarray:
+        f = self._final.get(fid)
+        return (f if f is not None else self.graph.frame(fid)).T_WC
 
     def _pose_of(self, fid: int) -> np.ndarray | None:
         return self._resolve(fid, {})
@@ -790,7 +788,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         t0 = time.perf_counter()
         gf = self._new_graph_frame(fid, frame, T_WC, feats, feats_right)
         self._enter(gf)
-        self._records[fid] = ("graph",)
+        self._records[fid] = KeyframePose()
         self._times["bookkeeping"] += time.perf_counter() - t0
         if self.sensor_mode == "stereo":
             idx = self.graph.connect_all(stereo=True)
@@ -879,7 +877,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
             prev = st.ref_fid if drop == 0 else st.buffer[drop - 1][0]
             nxt = st.buffer[drop][0]
             alpha = (dropped[1].timestamp - self._stamp(prev)) / max(self._stamp(nxt) - self._stamp(prev), 1e-9)
-            self._records[dropped[0]] = ("interp", prev, nxt, float(alpha))
+            self._records[dropped[0]] = InterpolatedPose(prev, nxt, float(alpha))
         if len(st.buffer) + 1 < tcfg.init_min_frames:
             return self._status(fid, frame, "initializing", events=["collecting initialisation frames"])
         ok, T_C0Cn, depths, parallax = self._two_view(st.ref_uv[valid], m.uv[valid])
@@ -949,7 +947,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
                 ref_d = self.graph.frames[0].inv_depth
                 gf.inv_depth[:] = float(np.median(ref_d))
             self._enter(gf)
-            self._records[mfid] = ("graph",)
+            self._records[mfid] = KeyframePose()
         idx = self.graph.connect_all(stereo=False)
         ba = self.config.ba
         self._rounds(idx, ba.init_rounds, ba.init_iterations, init=True, new_fid=None)
@@ -987,7 +985,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         t0 = time.perf_counter()
         gf = self._new_graph_frame(fid, frame, T_pred, feats, feats_right)
         self._enter(gf)
-        self._records[fid] = ("graph",)
+        self._records[fid] = KeyframePose()
         idx = self.graph.connect_new_frame(self.sensor_mode == "stereo", cfg.ba.stereo_cross_edges)
         g = self.graph
         done = idx[(g.src[idx] == last.fid) & (g.tgt[idx] == fid) & ~g.right[idx]]  # measured by the motion filter
@@ -1061,7 +1059,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         """A frame whose image barely moved from the newest keyframe's: it does not enter the graph
         (no keyframe, no BA; depths and scale stay untouched) and takes the keyframe's pose until the
         next keyframe places it by its flow (:meth:`_place_still`); the motion model restarts from rest."""
-        self._records[fid] = ("rel", kf_fid, np.eye(4))
+        self._records[fid] = RelativePose(kf_fid, np.eye(4))
         self._still.append((fid, kf_fid, flow))
         self._velocity = np.eye(4)
         self._last_fid = fid
@@ -1073,7 +1071,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         ``fid``, interpolated by their flow relative to the new keyframe's (``flow`` px)."""
         for still_fid, kf_fid, still_flow in self._still:
             alpha = min(still_flow / flow, 1.0) if np.isfinite(flow) and flow > 0 else 0.0
-            self._records[still_fid] = ("interp", kf_fid, fid, float(alpha))
+            self._records[still_fid] = InterpolatedPose(kf_fid, fid, float(alpha))
         self._still = []
 
     def _fail(self, fid: int, frame, reason: str, T_pred: np.ndarray | None = None) -> FrameStatus:
@@ -1087,7 +1085,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         if T_pred is None:
             T_pred = self._predict()
         ref = self._last_fid
-        self._records[fid] = ("rel", ref, np.linalg.inv(self._pose_of(ref)) @ T_pred)
+        self._records[fid] = RelativePose(ref, np.linalg.inv(self._pose_of(ref)) @ T_pred)
         # keep the velocity; the next prediction continues from this frame
         self._last_fid = fid
         source = "motion_model"
@@ -1105,6 +1103,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         self._loop_feed_keyframes(all_frames=True)
         for f in self.graph.clear():
             self._finalise(f)
+        self.loops.map_reset()
         self._initialized = False
         self._init = None
         self._lost = 0
@@ -1123,7 +1122,7 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         if flow >= self.config.tracking.keyframe_threshold:
             return None
         victim = g.frames[k]
-        self._records[victim.fid] = ("rel", a.fid, np.linalg.inv(a.T_WC) @ victim.T_WC)
+        self._records[victim.fid] = RelativePose(a.fid, np.linalg.inv(a.T_WC) @ victim.T_WC)
         self._leave(g.remove_frame(victim.fid))
         return int(victim.index)
 
@@ -1170,5 +1169,304 @@ class PatchFrontend(PatchLoopClosure, Frontend):
         f.features_right = None
         f.depth = None
         self._final[f.fid] = f
-        self._records[f.fid] = ("final",)
+        self._records[f.fid] = KeyframePose()
         self._finalised += 1
+
+    # ------------------------------------------------------------------ loop closure: the service's hooks
+    def _loop_init(self, loop_config: LoopClosureConfig | None) -> None:
+        """The shared loop-closure service (classical closer when ``mode`` is classical or both;
+        proximity loops when proximity or both) with this frontend as its contributor."""
+        self.loops = LoopService(self, loop_config, metric=self.sensor_mode != "mono",  # metric: SE(3) corrections
+                                 proximity=self.config.proximity)
+        self.loop_config = self.loops.config
+        self._loop_images: dict[int, tuple] = {}  # fid -> (image, timestamp, depth) while it may become a loop keyframe
+        self._prox_store: KeyframeStore | None = None  # settled keyframes' packed source features (long-range edges)
+        if self.loops.proximity is not None:
+            self._prox_store = KeyframeStore(self.config.proximity.max_stored_keyframes)
+            self._times["proximity"] = 0.0
+
+    @property
+    def closer(self):
+        """The classical :class:`~fgslam.loop.closure.LoopCloser` (None: off)."""
+        return self.loops.closer
+
+    def inactive_edges(self) -> dict:
+        """The bounded store of inactive edges (see :class:`~.graph.InactiveEdges`)."""
+        return self.graph.inactive.arrays()
+
+    def _loop_keep_image(self, fid: int, frame) -> None:
+        """Keep the image of frame ``fid`` while it is in the graph (or buffered for initialisation)."""
+        if self.loops.closer is None:
+            return
+        self._loop_images[fid] = (frame.image, float(frame.timestamp), frame.depth)
+        if self._init is not None:
+            keep = {self._init.ref_fid} | {b[0] for b in self._init.buffer}
+        else:
+            keep = {f.fid for f in self.graph.frames}
+        for old in [k for k in self._loop_images if k not in keep]:
+            del self._loop_images[old]
+
+    def _loop_feed_keyframes(self, all_frames: bool = False) -> None:
+        """Hand keyframes that can no longer be removed (graph positions below
+        ``len - 1 - keyframe_index``; every graph frame with ``all_frames``) to the closer, then the
+        latest graph poses."""
+        if self.loops.closer is None:
+            return
+        g = self.graph
+        final = len(g) if all_frames else len(g) - 1 - self.config.tracking.keyframe_index
+        for p in range(max(final, 0)):
+            fid = g.frames[p].fid
+            if fid in self._loop_images:
+                self.loops.add_keyframe(fid, [g.frames[q].fid for q in (p - 1, p + 1) if 0 <= q < len(g)])
+                del self._loop_images[fid]
+        self.loops.update_poses({f.fid: f.T_WC for f in g.frames})
+
+    def _loop_relocalize(self, fid: int, frame) -> np.ndarray | None:
+        """Pose of a lost frame from the closer's keyframe database (``T_WC`` 4x4 in the map's units) or
+        None; on success it becomes frame ``fid``'s pose, the anchor of the re-initialisation."""
+        found = self.loops.relocalize(frame.image, self.K.numpy())
+        if found is None:
+            return None
+        kf_id, T_WC = found
+        self._records[fid] = AbsolutePose(np.asarray(T_WC, dtype=np.float64))
+        if self.sensor_mode == "mono":
+            logger.info("frame %d relocalised on keyframe %d; monocular: the re-initialised map starts at this "
+                        "pose but gets a scale of its own (not tied to the old map's)", frame.index, kf_id)
+        else:
+            logger.info("frame %d relocalised on keyframe %d", frame.index, kf_id)
+        return T_WC
+
+    def loop_summary(self) -> dict | None:
+        out = self.loops.summary({fid: idx for fid, _, idx in self._inputs})
+        if out is not None and self._prox_store is not None:
+            out["proximity"]["stored_keyframes"] = len(self._prox_store.order) - self._prox_store.dropped
+        return out
+
+    def _prox_step(self) -> None:
+        """Store newly settled keyframes (their packed source features, for long-range edges) and search
+        a proximity loop for the newest one."""
+        if self._prox_store is None:
+            return
+        t0 = time.perf_counter()
+        g = self.graph
+        settled = len(g) - 1 - self.config.tracking.keyframe_index
+        query = None
+        for p in range(max(settled, 0)):
+            f = g.frames[p]
+            last = self._prox_store.last
+            if (last is not None and f.fid <= last) or f.features is None:
+                continue
+            self._prox_store.add(f.fid, self.source.pack(f.features))
+            self.loops.keyframe_settled(f.fid)
+            query = f
+        self._times["proximity"] += time.perf_counter() - t0
+        if query is not None:
+            self.loops.search(query.fid)
+
+    # ------------------------------------------------------------------ contributor contract (fgslam.backend.contributor)
+    def _keyframe(self, fid: int) -> GraphFrame | None:
+        """The keyframe ``fid`` (in the graph or finalised), or None."""
+        f = self._final.get(fid)
+        if f is not None:
+            return f
+        try:
+            return self.graph.frame(fid)
+        except KeyError:
+            return None
+
+    def keyframe_image(self, kf_id: int) -> KeyframeImage | None:
+        kept = self._loop_images.get(kf_id)
+        if kept is None:
+            return None
+        image, timestamp, depth = kept
+        return KeyframeImage(image, self.K.numpy(), timestamp, depth)
+
+    def keyframe_pose(self, kf_id: int) -> np.ndarray | None:
+        f = self._keyframe(kf_id)
+        return None if f is None else f.T_WC
+
+    def apply_correction(self, correction: PoseCorrection) -> None:
+        """Graph and finalised keyframes ``T_WC <- U_k T_WC`` with the folded scale in their patch
+        inverse depths (sensor depths stay as measured); non-keyframe records re-expressed
+        (:meth:`.records.PoseRecord.corrected`) and the motion model's velocity in its reference's
+        folded units."""
+        for f in list(self.graph.frames) + list(self._final.values()):
+            f.T_WC, s = correction.apply_pose(f.fid, f.T_WC)
+            if s != 1.0:
+                f.inv_depth = f.inv_depth / s
+        for fid, rec in list(self._records.items()):
+            if rec is not None:
+                self._records[fid] = rec.corrected(fid, correction)
+        if self._last_fid is not None and correction.fold_scale:
+            self._velocity = PoseCorrection.fold_relative(self._velocity, correction.update_for(self._last_fid)[1])
+
+    def proximity_candidate(self, query_kf_id: int, candidate_kf_ids: list[int]) -> Candidate | None:
+        """The best proximity candidate of settled keyframe ``query_kf_id`` among ``candidate_kf_ids``
+        (stored, of the current map): pose, angle and flow tests (:mod:`.proximity`), least flow wins."""
+        pc = self.config.proximity
+        q = self._keyframe(query_kf_id)
+        fids = [fid for fid in candidate_kf_ids if fid in self._prox_store and fid >= (self._map_start_fid or 0)]
+        frames = [f for f in (self._keyframe(fid) for fid in fids) if f is not None]
+        if q is None or not frames:
+            return None
+        good = q.inv_depth > 0
+        if not good.any():
+            return None
+        depth = float(np.median(1.0 / q.inv_depth[good]))
+        T_c = np.stack([f.T_WC for f in frames])
+        ok, dist, angle = pose_filter(q.T_WC, T_c, pc.radius * depth, pc.max_angle_deg)
+        best = None
+        for i in np.nonzero(ok)[0]:
+            f = frames[i]
+            uv, valid = self._reproject_patches(f, q)
+            if valid.mean() < pc.min_overlap:
+                continue
+            flow = float(np.linalg.norm(uv[valid] - f.uv[valid], axis=1).mean())
+            if flow <= pc.max_flow_px and (best is None or flow < best.flow):
+                best = Candidate(f.fid, float(dist[i]), float(angle[i]), flow, float(valid.mean()))
+        return best
+
+    def _reproject_patches(self, a: GraphFrame, b: GraphFrame) -> tuple[np.ndarray, np.ndarray]:
+        """Frame a's patch centres reprojected into frame b's left image at the current poses and
+        depths: (K, 2) pixels and validity (in front, inside the image with the patch margin)."""
+        uv, ok = self._reproject_frame(a, b)
+        return uv, ok & self._inside(uv)
+
+    def long_range_edges(self, query_kf_id: int, candidate_kf_id: int) -> dict | None:
+        """Loop edges between the candidate's neighbourhood (stored keyframes) and the query's (graph
+        frames with features), measured from two starts (current reprojection and zero motion; the
+        more confident wins) and verified per frame pair by a fundamental-matrix RANSAC. Returns
+        the verified edges as an inactive-edge chunk, or None."""
+        pc = self.config.proximity
+        store = self._prox_store
+        q = self._keyframe(query_kf_id)
+        old = [candidate_kf_id] + store.neighbours(candidate_kf_id, pc.old_neighbours)
+        old = [f for f in (self._keyframe(fid) for fid in old) if f is not None]
+        if q is None or not old:
+            return None
+        pq = self.graph.position(q.fid)
+        new = [f for f in self.graph.frames[max(0, pq - pc.new_neighbours): pq + pc.new_neighbours + 1]
+               if f.features is not None]
+        feats_old = {f.fid: self.source.unpack(store.get(f.fid)) for f in old}
+        groups = []  # (src frame, tgt frame, src feats, tgt feats, pair id)
+        for pair, (o, n) in enumerate((o, n) for o in old for n in new):
+            groups.append((o, n, feats_old[o.fid], n.features, pair))
+            groups.append((n, o, n.features, feats_old[o.fid], pair))
+        requests, starts = [], []
+        for a, b, fa, fb, _ in groups:
+            pred, _ = self._reproject_patches(a, b)
+            requests.append((fa, fb, a.uv, pred))
+            starts.append((fa, fb, a.uv, a.uv.copy()))
+        t0 = time.perf_counter()
+        from_pred = self.source.measure_batch(requests)
+        from_zero = self.source.measure_batch(starts)
+        self._times["flow"] += time.perf_counter() - t0
+        chunks, valid_total, inlier_total = [], 0, 0
+        by_pair: dict[int, list] = {}
+        for (a, b, _, _, pair), m1, m0 in zip(groups, from_pred, from_zero):
+            use0 = m0.confidence > m1.confidence
+            uv = np.where(use0[:, None], m0.uv, m1.uv)
+            conf = np.where(use0, m0.confidence, m1.confidence)
+            by_pair.setdefault(pair, []).append((a, b, uv, conf))
+        for pair, parts in by_pair.items():
+            # one fundamental matrix per frame pair: both directions as (old pixel, new pixel)
+            pts_o, pts_n, owners = [], [], []
+            for k, (a, b, uv, conf) in enumerate(parts):
+                ok = conf > 0
+                if k == 0:
+                    pts_o.append(a.uv[ok]); pts_n.append(uv[ok])
+                else:
+                    pts_o.append(uv[ok]); pts_n.append(a.uv[ok])
+                owners.append(np.nonzero(ok)[0])
+            counts = [len(o) for o in owners]
+            valid_total += sum(counts)
+            inl = fundamental_inliers(np.concatenate(pts_o), np.concatenate(pts_n), pc.ransac_threshold_px)
+            inlier_total += int(inl.sum())
+            offset = 0
+            for (a, b, uv, conf), idx, cnt in zip(parts, owners, counts):
+                keep = idx[inl[offset: offset + cnt]]
+                offset += cnt
+                if keep.size:
+                    chunks.append({"src": np.full(keep.size, a.fid, np.int64), "patch": keep.astype(np.int64),
+                                   "tgt": np.full(keep.size, b.fid, np.int64), "right": np.zeros(keep.size, bool),
+                                   "uv_src": a.uv[keep].astype(np.float32), "uv": uv[keep].astype(np.float32),
+                                   "confidence": conf[keep].astype(np.float32),
+                                   "inv_depth": a.inv_depth[keep].astype(np.float32)})
+        ratio = inlier_total / max(valid_total, 1)
+        if inlier_total < pc.min_loop_edges or ratio < pc.min_inlier_ratio:
+            logger.info("proximity loop %d -> %d rejected: %d verified of %d measured loop edges",
+                        q.index, self._keyframe(candidate_kf_id).index, inlier_total, valid_total)
+            return None
+        return {key: np.concatenate([c[key] for c in chunks]) for key in chunks[0]}
+
+    def global_ba_job(self, loop_edges: dict | None = None) -> GlobalBAJob | None:
+        """Snapshot for a global BA over the current map's keyframes with every active, inactive and
+        (given) loop edge (held: keyframes known only through loop edges, and the gauge: the oldest
+        one, monocular two); solved by :func:`.global_ba.global_bundle_adjustment`."""
+        pc = self.config.proximity
+        g = self.graph
+        start = self._map_start_fid or 0
+        frames = sorted([f for f in self._final.values() if f.fid >= start] + list(g.frames), key=lambda f: f.fid)
+        if not frames:
+            return None
+        fids = np.array([f.fid for f in frames], np.int64)
+        parts = []
+        inactive = g.inactive.arrays()
+        if inactive:
+            parts.append({k: inactive[k] for k in ("src", "patch", "tgt", "right", "uv", "confidence")})
+        active = g.confidence > 0
+        parts.append({"src": g.src[active], "patch": g.patch[active], "tgt": g.tgt[active], "right": g.right[active],
+                      "uv": g.uv[active], "confidence": g.confidence[active]})
+        n_loop = 0
+        if loop_edges is not None:
+            parts.append({k: loop_edges[k] for k in ("src", "patch", "tgt", "right", "uv", "confidence")})
+            n_loop = len(loop_edges["src"])
+        e = {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in parts[0]}
+        is_loop = np.zeros(len(e["src"]), bool)
+        if n_loop:
+            is_loop[-n_loop:] = True
+        known = np.isin(e["src"], fids) & np.isin(e["tgt"], fids) & (e["confidence"] > 0)
+        e = {k: v[known] for k, v in e.items()}
+        is_loop = is_loop[known]
+        src_i, tgt_i = np.searchsorted(fids, e["src"]), np.searchsorted(fids, e["tgt"])
+        Kp = self.config.graph.patches_per_frame
+        ukeys, struct_idx = np.unique(src_i * Kp + e["patch"], return_inverse=True)
+        owner, patch = ukeys // Kp, ukeys % Kp
+        uv_all = np.stack([f.uv for f in frames])
+        d_all = np.stack([f.inv_depth for f in frames])
+        prior = {}
+        if self.sensor_mode == "rgbd":
+            sens = np.stack([f.sensor_inv_depth for f in frames])[owner, patch]
+            prior = depth_priors(sens, self.config.ba.depth_noise_model()).kwargs()
+        fixed = held_frames(len(frames), src_i, tgt_i, is_loop, 2 if self.sensor_mode == "mono" else 1)
+        T_WC = np.stack([f.T_WC for f in frames])
+        problem = GlobalBAProblem(
+            T_WC=T_WC.copy(), fixed=fixed, src=src_i, tgt=tgt_i, right=e["right"].astype(bool),
+            uv_src=uv_all[src_i, e["patch"]], uv=e["uv"].astype(np.float64),
+            weight=e["confidence"].astype(np.float64) / self.config.ba.pixel_sigma ** 2, struct_idx=struct_idx,
+            inv_depth=d_all[owner, patch], K=self.K.numpy().copy(),
+            K_right=None if self.K_right is None else self.K_right.numpy().copy(), T_CRCL=self.T_CRCL, **prior)
+        return GlobalBAJob(solve=partial(global_bundle_adjustment, problem, pc.ba, self._reproj), kf_ids=fids,
+                           T_WC=T_WC, is_loop=is_loop, loop_edges=loop_edges, in_process=True,
+                           context={"owner": owner, "patch": patch, "inv_depth": d_all, "known": known, "n_loop": n_loop})
+
+    def apply_global_ba(self, job: GlobalBAJob, result, keep_loop: np.ndarray) -> None:
+        """Hand-over of an accepted global BA (before its pose correction): the optimised patch depths
+        of the keyframes whose pose and depths did not change since the snapshot (the others keep
+        theirs: their pose gets the correction, and their depths are the newer local BA's); the loop
+        edges that kept a weight join the inactive store."""
+        ctx = job.context
+        owner, patch = ctx["owner"], ctx["patch"]
+        for pos in np.unique(owner):
+            f = self._keyframe(int(job.kf_ids[pos]))
+            if f is None or not (np.array_equal(f.T_WC, job.T_WC[pos]) and np.array_equal(f.inv_depth, ctx["inv_depth"][pos])):
+                continue
+            sel = owner == pos
+            f.inv_depth = f.inv_depth.copy()
+            f.inv_depth[patch[sel]] = result.inv_depth[sel]
+        n_loop = ctx["n_loop"]
+        if n_loop:
+            keep = np.zeros(n_loop, bool)
+            keep[ctx["known"][-n_loop:]] = keep_loop
+            if keep.any():
+                self.graph.inactive.add({k: v[keep] for k, v in job.loop_edges.items()})

@@ -1,0 +1,96 @@
+"""The contributor contract: what shared services (loop closure, relocalisation) need from a frontend.
+
+A frontend family that feeds the backend implements :class:`Contributor`; the loop-closure service
+(:class:`fgslam.backend.loop_service.LoopService`) talks to it only through these methods, so the
+patch, dense and pointmap families (or two of them on one graph) share one service.
+
+- :meth:`Contributor.keyframe_image`: the keyframe's grey image, intrinsics and (RGB-D) depth, for
+  retrieval (BoW), verification and relocalisation; None once the frontend no longer keeps it.
+- :meth:`Contributor.keyframe_pose`: its current ``T_WC`` (4x4 Sim(3)) or None.
+- :meth:`Contributor.apply_correction`: apply a :class:`PoseCorrection` (a Sim(3) update per keyframe;
+  keyframes it does not list take the update of the nearest listed id) to the frontend's own poses,
+  structure (with ``fold_scale`` the scale goes into the structure: patch inverse depths ``d <- d / s``)
+  and non-keyframe pose records. Called only at the frontend's safe point (:meth:`LoopService.poll`).
+- :meth:`Contributor.long_range_edges`: proximity loops: measured and verified long-range
+  observations between the neighbourhoods of two keyframes (None: none, or the family has none).
+
+Families with proximity loops also implement :class:`ProximityContributor` (candidate search and the
+global bundle adjustment's hand-over: a snapshot problem solved in the background and its result).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Optional, Protocol, runtime_checkable
+
+import numpy as np
+
+from ..loop.closure import PoseCorrection
+
+__all__ = ["Contributor", "GlobalBAJob", "KeyframeImage", "PoseCorrection", "ProximityContributor"]
+
+
+@dataclass(frozen=True)
+class KeyframeImage:
+    """What retrieval and verification see of a keyframe."""
+
+    image: np.ndarray  # (H, W) grey uint8
+    K: np.ndarray  # (4,) fx, fy, cx, cy of the undistorted pinhole image
+    timestamp: float
+    depth: Optional[np.ndarray] = None  # (H, W) metres (RGB-D), None otherwise
+
+
+@dataclass
+class GlobalBAJob:
+    """A contributor's snapshot for one global bundle adjustment, solved by the service (possibly in
+    a background thread, so nothing in it may alias the contributor's live state).
+
+    ``solve()`` returns a result with ``T_WC`` (F, 4, 4) and ``robust`` (N,) (0: the edge lost its
+    weight), e.g. :func:`fgslam.frontends.patch.global_ba.global_bundle_adjustment` bound to its
+    problem. ``kf_ids[i]`` is the keyframe of problem frame i, ``T_WC`` their poses at the snapshot;
+    ``is_loop`` marks the problem's loop edges (the gate ``min_ba_inlier_ratio`` acts on them);
+    ``context`` is the contributor's own data for :meth:`ProximityContributor.apply_global_ba`.
+    ``in_process``: ``solve`` is picklable and needs nothing of the contributor's process (a module-level
+    function bound to its data), so the service may run it in a worker process."""
+
+    solve: Callable[[], Any]
+    kf_ids: np.ndarray
+    T_WC: np.ndarray
+    is_loop: np.ndarray
+    loop_edges: Optional[dict] = None
+    context: Any = None
+    in_process: bool = False
+
+
+@runtime_checkable
+class Contributor(Protocol):
+    """A frontend as the shared services see it (module docstring)."""
+
+    name: str
+
+    def keyframe_image(self, kf_id: int) -> Optional[KeyframeImage]: ...
+
+    def keyframe_pose(self, kf_id: int) -> Optional[np.ndarray]: ...
+
+    def apply_correction(self, correction: PoseCorrection) -> None: ...
+
+    def long_range_edges(self, query_kf_id: int, candidate_kf_id: int) -> Optional[dict]: ...
+
+
+@runtime_checkable
+class ProximityContributor(Contributor, Protocol):
+    """A contributor with proximity loops and a global bundle adjustment (patch family today)."""
+
+    def proximity_candidate(self, query_kf_id: int, candidate_kf_ids: list[int]) -> Any:
+        """The best candidate among older keyframes (an object with ``fid`` and ``flow``) or None."""
+        ...
+
+    def global_ba_job(self, loop_edges: Optional[dict]) -> Optional[GlobalBAJob]:
+        """Snapshot of the current map with every stored edge and ``loop_edges`` (None: no map)."""
+        ...
+
+    def apply_global_ba(self, job: GlobalBAJob, result: Any, keep_loop: np.ndarray) -> None:
+        """Hand-over of an accepted result, before the pose correction is applied: structure of the
+        keyframes unchanged since the snapshot, loop edges ``keep_loop`` (bool over the job's loop
+        edges) into the contributor's store."""
+        ...
