@@ -374,3 +374,19 @@ def test_finish_waits_for_the_running_global_ba():
     service.finish()
     assert not service.busy and toy.events == ["global_ba", "correction"]
     assert service.summary({})["proximity"]["accepted"] == 1
+
+
+def test_several_loops_verified_during_a_global_ba_get_one_global_ba_each():
+    """Loops waiting for a running global BA are solved one per global BA, oldest first (the street
+    drive: four loops merged into one global BA left 0.282 m ATE, one each 0.256 m)."""
+    toy = ToyMap(24)
+    service = _proximity_service(toy)
+    service.search(10)
+    service.search(14)  # waits
+    service.search(18)  # waits too (past the cooldown of 14's verification)
+    assert len(toy.jobs) == 1 and service.busy
+    toy.gate.set()
+    _poll_until_idle(service)
+    assert [job.loop_edges["src"].tolist() for job in toy.jobs] == [[10, 0], [14, 0], [18, 0]]
+    assert service.proximity_loops == [(10, 0, "accepted"), (14, 0, "accepted"), (18, 0, "accepted")]
+    assert service.proximity_counts["global_ba_runs"] == 3

@@ -11,6 +11,7 @@ import fgslam.backend.graph as backend_graph
 from fgslam.backend import Backend, BackendConfig
 from fgslam.config import load_config
 from fgslam.frontends.patch import PatchFrontend
+from fgslam.frontends.patch.records import RelativePose
 from fgslam.slam import SlamConfig, open_slam_dataset, run_slam
 from patch_support import light_patch_config, open_frames, render_room
 
@@ -44,7 +45,7 @@ def test_graph_frames_are_backend_keyframes_and_poses_live_in_the_backend(room):
     final_fids = sorted(fe._final)
     assert final_fids  # some keyframes were finalised: they stay in the backend
     assert backend.keyframe_ids == sorted(graph_fids + final_fids)
-    removed = [fid for fid, rec in fe._records.items() if rec is not None and rec[0] == "rel"
+    removed = [fid for fid, rec in fe._records.items() if isinstance(rec, RelativePose)
                and fid not in fe._final and not any(fid == f.fid for f in fe.graph.frames)]
     assert removed and not any(backend.has_keyframe(fid) for fid in removed)
     for f in fe.graph.frames + list(fe._final.values()):

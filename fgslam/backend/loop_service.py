@@ -255,8 +255,9 @@ class LoopService:
             self._start_pending()
 
     def _start_pending(self) -> None:
-        """A global BA with the loop edges of every pending loop."""
-        loops, self._pending = self._pending, []
+        """A global BA with the loop edges of the oldest pending loop (the others wait for the next
+        one: one global BA per loop, as when each ran at once)."""
+        loops, self._pending = self._pending[:1], self._pending[1:]
         edges = {k: np.concatenate([np.asarray(e[k]) for _, _, e in loops]) for k in loops[0][2]}
         job = self.contributor.global_ba_job(edges)
         if job is None:
