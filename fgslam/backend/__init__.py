@@ -1,4 +1,4 @@
-"""The persistent GTSAM backend that every frontend feeds (docs/design.md section 1).
+"""The persistent GTSAM backend that every frontend feeds (docs/design.md section 8).
 
 Modules: :mod:`.keys` (gtsam keys of keyframe poses and other variables), :mod:`.blocks` (the
 contract of a frontend's measurement blocks), :mod:`.solver` (the one Levenberg-Marquardt loop),

@@ -1,4 +1,4 @@
-"""The backend: one GTSAM graph per run that every frontend feeds (docs/design.md section 1).
+"""The backend: one GTSAM graph per run that every frontend feeds (docs/design.md section 8).
 
 Keyframe ``kf`` has the gtsam key :func:`~fgslam.backend.keys.pose_key` ``= gtsam.symbol('x', kf)``
 holding a ``gtsam.Similarity3`` T_WC (camera-to-world; fgslam.lie's ``Sim3(R, t, s)`` maps to
