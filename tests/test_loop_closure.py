@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 import pytest
+from geometry_support import rigid, rot_y
 
 from fgslam.config import load_config
 from fgslam.errors import ConfigError
@@ -34,18 +35,6 @@ METRIC_LATERAL_DRIFT = 0.02   # metric odometry: sideways drift per metre driven
 
 
 # ----------------------------------------------------------------------------------- fixtures
-
-def _rot_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def _rigid(T: np.ndarray) -> np.ndarray:
-    out = np.array(T, dtype=np.float64, copy=True)
-    s = np.cbrt(np.linalg.det(out[..., :3, :3]))
-    out[..., :3, :3] /= s[..., None, None]
-    return out
-
 
 def _rotation_deg(R: np.ndarray) -> float:
     return math.degrees(math.acos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
@@ -68,7 +57,7 @@ def street():
     for k in range(1, n):
         D = np.linalg.inv(T_gt[k - 1]) @ T_gt[k]
         S = np.eye(4)
-        S[:3, :3] = _rot_y(yaw) @ D[:3, :3]
+        S[:3, :3] = rot_y(yaw) @ D[:3, :3]
         M = S.copy()
         S[:3, 3] = math.exp(rate * (k - 1)) * D[:3, 3]
         M[:3, 3] = D[:3, 3] + METRIC_LATERAL_DRIFT * np.linalg.norm(D[:3, 3]) * np.array([1.0, 0.0, 0.0])
@@ -80,7 +69,7 @@ def street():
 
 def _ate(street, ids, T_WC, align: str = "sim3") -> float:
     t = street["t"][ids]
-    res = evaluate(Trajectory(t, street["T_gt"][ids]), Trajectory(t, _rigid(np.stack(T_WC))),
+    res = evaluate(Trajectory(t, street["T_gt"][ids]), Trajectory(t, rigid(np.stack(T_WC))),
                    EvalConfig(align=align, rpe_delta_meters=None))
     return float(res.ate.rmse)
 
@@ -243,7 +232,7 @@ def test_relocalisation(street, sync_run):
     kf, T_WC = found
     assert kf in (99, 100, 101, 102)
     T_kf = sync_run["poses"][kf]
-    rel = np.linalg.inv(_rigid(T_kf)) @ _rigid(T_WC)        # estimated T_CkCq (keyframe units)
+    rel = np.linalg.inv(rigid(T_kf)) @ rigid(T_WC)        # estimated T_CkCq (keyframe units)
     rel_gt = np.linalg.inv(street["T_gt"][kf]) @ T_gt_q
     assert _rotation_deg(rel[:3, :3].T @ rel_gt[:3, :3]) < 2.0
     # position in the keyframe's units: compare directions and the local metric scale
@@ -380,7 +369,7 @@ def test_correction_apply_and_fold():
     # a non-keyframe anchored to keyframe 2 follows: folded anchor @ folded relative pose
     T_KF = _random_sim3(rng, (1.0, 1.0))
     T_F_new = new[2] @ T_KF
-    np.testing.assert_allclose(_rigid(T_f @ LoopCorrection.fold_relative(T_KF, s)), _rigid(T_F_new), atol=1e-10)
+    np.testing.assert_allclose(rigid(T_f @ LoopCorrection.fold_relative(T_KF, s)), rigid(T_F_new), atol=1e-10)
 
 
 def test_triangulation_and_epipolar_geometry():

@@ -17,6 +17,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from geometry_support import rigid, rot_y
 
 from fgslam.backend.contributor import Contributor, GlobalBAJob, KeyframeImage, PoseCorrection, ProximityContributor
 from fgslam.backend.loop_service import LoopService
@@ -32,18 +33,6 @@ MIN_GAP_S = 10.0  # ... and at least this far apart in time
 SCALE_DRIFT_TOTAL = 0.4  # log scale drift of the odometry at the end
 HEADING_DRIFT_DEG = 10.0  # heading drift of the odometry at the end
 WAIT_S = 30.0  # longest wait for a background solve in these tests
-
-
-def _rot_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def _rigid(T: np.ndarray) -> np.ndarray:
-    out = np.array(T, dtype=np.float64, copy=True)
-    s = np.cbrt(np.linalg.det(out[..., :3, :3]))
-    out[..., :3, :3] /= s[..., None, None]
-    return out
 
 
 # ----------------------------------------------------------------------------------- classical
@@ -97,7 +86,7 @@ def room():
     for k in range(1, n):
         D = np.linalg.inv(T_gt[k - 1]) @ T_gt[k]
         S = np.eye(4)
-        S[:3, :3] = _rot_y(yaw) @ D[:3, :3]
+        S[:3, :3] = rot_y(yaw) @ D[:3, :3]
         S[:3, 3] = math.exp(rate * (k - 1)) * D[:3, 3]
         steps.append(S)
     return dict(K=np.array(seq.K, np.float64), t=t, T_gt=T_gt, images=images, steps=steps)
@@ -130,7 +119,7 @@ def classical_run(room):
 
 
 def _ate(room, poses) -> float:
-    res = evaluate(Trajectory(room["t"], room["T_gt"]), Trajectory(room["t"], _rigid(np.stack(poses))),
+    res = evaluate(Trajectory(room["t"], room["T_gt"]), Trajectory(room["t"], rigid(np.stack(poses))),
                    EvalConfig(align="sim3", rpe_delta_meters=None))
     return float(res.ate.rmse)
 
@@ -182,7 +171,7 @@ class ToyMap(ToyKeyframes):
         self.map_start = map_start
         for k in range(n):
             T = np.eye(4)
-            T[:3, :3] = _rot_y(0.05 * k)
+            T[:3, :3] = rot_y(0.05 * k)
             T[:3, 3] = [0.5 * k, 0.0, 0.1 * k]
             self.poses[k] = T
         self.gate = threading.Event()
@@ -195,7 +184,7 @@ class ToyMap(ToyKeyframes):
     @staticmethod
     def moved(k: int, T: np.ndarray) -> np.ndarray:
         A = np.eye(4)
-        A[:3, :3] = _rot_y(0.01 * k)
+        A[:3, :3] = rot_y(0.01 * k)
         A[:3, 3] = [0.0, 0.02 * k, -0.03 * k]
         return A @ T
 

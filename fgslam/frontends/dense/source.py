@@ -32,7 +32,6 @@ import abc
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal, Optional
 
 import cv2
@@ -40,6 +39,7 @@ import numpy as np
 
 from ...config import ranged
 from ...errors import ConfigError, DataError
+from ..checkpoints import LearnedSlot, require_checkpoint
 
 logger = logging.getLogger(__name__)
 
@@ -259,21 +259,8 @@ class LearnedDroidSource(DenseSource):
 
     def __init__(self, checkpoint: str | None, stride: int = 8):
         self.stride = int(stride)
-        if checkpoint is None:
-            raise ConfigError(
-                "dense.source.kind=learned needs dense.source.checkpoint (path of the DROID-SLAM weights "
-                "droid.pth); the built-in alternative is dense.source.kind=flow (dense optical flow, no weights)"
-            )
-        path = Path(checkpoint).expanduser()
-        if not path.is_file():
-            raise DataError(
-                f"DROID-SLAM checkpoint {path} not found (dense.source.checkpoint); fgslam downloads nothing: "
-                "get droid.pth from the DROID-SLAM project, or use dense.source.kind=flow"
-            )
-        raise DataError(
-            f"DROID-SLAM checkpoint {path} found, but the learned DROID update operator is not part of this "
-            "fgslam build yet; use the built-in source with dense.source.kind=flow"
-        )
+        require_checkpoint(LearnedSlot("DROID-SLAM", "droid.pth", "dense.source.kind=learned", "dense.source.checkpoint",
+                                       "dense.source.kind=flow"), checkpoint)
 
     def add_frame(self, frame_id, image):  # pragma: no cover - construction always fails for now
         raise NotImplementedError

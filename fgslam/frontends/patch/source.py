@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ...errors import ConfigError, DataError
+from ..checkpoints import LearnedSlot, require_checkpoint
 
 if TYPE_CHECKING:
     from .config import PatchConfig
@@ -72,21 +72,8 @@ class LearnedDPVOSource(MeasurementSource):
     name = "learned"
 
     def __init__(self, checkpoint: str | None):
-        if checkpoint is None:
-            raise ConfigError(
-                "patch.source=learned needs patch.checkpoint (path of the DPVO weights dpvo.pth); "
-                "the built-in alternative is patch.source=lk"
-            )
-        path = Path(checkpoint).expanduser()
-        if not path.is_file():
-            raise DataError(
-                f"DPVO checkpoint {path} not found (patch.checkpoint); download dpvo.pth from the DPVO "
-                "project or use the built-in Lucas-Kanade source with patch.source=lk"
-            )
-        raise DataError(
-            f"DPVO checkpoint {path} found, but the learned DPVO update operator is not part of this "
-            "fgslam build yet; use the built-in source with patch.source=lk"
-        )
+        require_checkpoint(LearnedSlot("DPVO", "dpvo.pth", "patch.source=learned", "patch.checkpoint",
+                                       "patch.source=lk"), checkpoint)
 
     def prepare(self, image: np.ndarray):  # pragma: no cover - construction always fails for now
         raise NotImplementedError

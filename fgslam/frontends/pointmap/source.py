@@ -34,10 +34,8 @@ pair with zero confidence where nothing was measured and a logged warning, never
 from __future__ import annotations
 
 import abc
-import importlib.util
 import logging
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal, Optional
 
 import cv2
@@ -45,6 +43,7 @@ import numpy as np
 
 from ...config import ranged
 from ...errors import ConfigError, DataError
+from ..checkpoints import LearnedSlot, require_checkpoint
 from ..dense.source import DenseFlowConfig, DenseFlowSource
 from .descriptors import DescriptorConfig, dense_descriptors
 
@@ -452,18 +451,9 @@ class Mast3rPointmapSource(PointmapSource):
     name = "mast3r"
 
     def __init__(self, checkpoint: str | None):
-        if checkpoint is None:
-            raise ConfigError("pointmap.source.kind=mast3r needs pointmap.source.checkpoint (path of a MASt3R "
-                              "checkpoint); the built-in alternatives are pointmap.source.kind=rgbd, stereo or mono")
-        path = Path(checkpoint).expanduser()
-        if not path.is_file():
-            raise DataError(f"MASt3R checkpoint {path} not found (pointmap.source.checkpoint); fgslam downloads "
-                            "nothing: get it from the MASt3R project, or use pointmap.source.kind=rgbd, stereo or mono")
-        if importlib.util.find_spec("mast3r") is None:
-            raise DataError("pointmap.source.kind=mast3r needs the mast3r package (not installed; fgslam does not "
-                            "install it); or use pointmap.source.kind=rgbd, stereo or mono")
-        raise DataError(f"MASt3R package and checkpoint {path} found, but the MASt3R adapter is not part of this "
-                        "fgslam build yet; use pointmap.source.kind=rgbd, stereo or mono")
+        require_checkpoint(LearnedSlot("MASt3R", "a MASt3R checkpoint", "pointmap.source.kind=mast3r",
+                                       "pointmap.source.checkpoint", "pointmap.source.kind=rgbd, stereo or mono",
+                                       package="mast3r"), checkpoint)
 
     def add_frame(self, frame_id, image, depth=None, right=None):  # pragma: no cover - construction always fails
         raise NotImplementedError

@@ -1,0 +1,43 @@
+"""The one check of a learned measurement source's checkpoint (patch: DPVO, dense: DROID-SLAM,
+pointmap: MASt3R). fgslam ships no weights and downloads nothing; a learned source whose
+checkpoint (or package) is missing fails at construction with an error that names the config key
+and the built-in alternative, never a silent fallback (docs/design.md section 7)."""
+
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NoReturn, Optional
+
+from ..errors import ConfigError, DataError
+
+
+@dataclass(frozen=True)
+class LearnedSlot:
+    """What the errors of one learned source name."""
+
+    network: str  # "DPVO"
+    weights: str  # the checkpoint file users look for: "dpvo.pth"
+    selected: str  # the setting that chose it: "patch.source=learned"
+    key: str  # the checkpoint's config key: "patch.checkpoint"
+    builtin: str  # the built-in alternative: "patch.source=lk"
+    package: Optional[str] = None  # a Python package the network also needs ("mast3r")
+
+
+def require_checkpoint(slot: LearnedSlot, checkpoint: str | None) -> NoReturn:
+    """Raise the error that says why the learned source ``slot`` cannot run: no checkpoint configured
+    (ConfigError), the file missing or the package absent (DataError), or, with both present, that
+    the network's adapter is not part of this build (DataError)."""
+    if checkpoint is None:
+        raise ConfigError(f"{slot.selected} needs {slot.key} (path of the {slot.network} weights {slot.weights}); "
+                          f"the built-in alternative is {slot.builtin}")
+    path = Path(checkpoint).expanduser()
+    if not path.is_file():
+        raise DataError(f"{slot.network} checkpoint {path} not found ({slot.key}); fgslam downloads nothing: get "
+                        f"{slot.weights} from the {slot.network} project, or use {slot.builtin}")
+    if slot.package is not None and importlib.util.find_spec(slot.package) is None:
+        raise DataError(f"{slot.selected} needs the {slot.package} package (not installed; fgslam does not install "
+                        f"it); or use {slot.builtin}")
+    raise DataError(f"{slot.network} checkpoint {path} found, but the learned {slot.network} network is not part "
+                    f"of this fgslam build yet; use the built-in source with {slot.builtin}")
