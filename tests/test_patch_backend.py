@@ -66,9 +66,9 @@ def test_local_ba_uses_the_backends_settings(room, monkeypatch):
     seen = []
     real = backend_graph.levenberg_marquardt
 
-    def spy(problem, settings, propose=None, ordering_cache=None):
+    def spy(problem, settings, propose=None, ordering_cache=None, initial_cost=None):
         seen.append((settings, propose))
-        return real(problem, settings, propose=propose, ordering_cache=ordering_cache)
+        return real(problem, settings, propose=propose, ordering_cache=ordering_cache, initial_cost=initial_cost)
 
     monkeypatch.setattr(backend_graph, "levenberg_marquardt", spy)
     config = BackendConfig()

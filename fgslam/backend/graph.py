@@ -723,7 +723,8 @@ class Backend:
             problem = self._problem(free, refine_steps)
             initial = problem.refine(refine_steps)
             propose = _Isam2Stepper(problem) if kind == "isam2" else None
-            lm = levenberg_marquardt(problem, self._settings(iterations, window), propose=propose)
+            lm = levenberg_marquardt(problem, self._settings(iterations, window), propose=propose,
+                                     initial_cost=initial)  # the cost refine() just evaluated
             final = problem.refine(refine_steps) if refine_steps > 0 else lm.final_cost
         self._write_back(problem)
         report = OptimizeReport(kind, initial, final, lm.iterations, lm.converged, time.perf_counter() - start,

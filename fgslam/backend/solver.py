@@ -177,13 +177,14 @@ def _solve(graph, settings: LMSettings, ordering_cache: list):
 
 
 def levenberg_marquardt(problem: LMProblem, settings: LMSettings, propose: Callable | None = None,
-                        ordering_cache: list | None = None) -> LMReport:
+                        ordering_cache: list | None = None, initial_cost: float | None = None) -> LMReport:
     """Minimise ``problem`` from its current state (module docstring). ``ordering_cache``: a list that
     holds the elimination ordering across calls on problems with the same keys (filled on first use).
     ``propose``: a step provider ``propose(gfg) -> gtsam.VectorValues`` (iSAM2) instead of the damped
-    elimination."""
+    elimination. ``initial_cost``: the problem's cost at its current state when the caller has just
+    evaluated it (saves one evaluation per call: the window BA runs this many times per frame)."""
     ordering_cache = [] if ordering_cache is None else ordering_cache
-    cost = float(problem.cost())
+    cost = float(problem.cost()) if initial_cost is None else float(initial_cost)
     report = LMReport(cost, cost, 0, 0, False, settings.lambda_initial)
     timings = report.timings
     lam = settings.lambda_initial
