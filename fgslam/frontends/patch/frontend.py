@@ -664,6 +664,9 @@ class PatchFrontend(Frontend):
         backend.set_gauge(anchor=anchor, scale_pair=pair)
         backend.set_blocks(self.name, [block])
         report = backend.optimize_window([int(f) for f in var_order], iterations)
+        # robust weights from the final residuals at the optimised poses, before the RGB-D rigid
+        # write-back below (the block answers from its memo of the last accepted step)
+        r, valid = block.residuals(backend.values_of(block.keys))
         # RGB-D poses are written back rigid (scale exactly 1): its depth priors act on inverse depths
         # in the source camera and observe no Sim(3) scale, and the scale prior only holds each BA
         # near its starting scale, so kept scales drifted from BA to BA (7-Scenes: s fell to 0.87
@@ -680,9 +683,7 @@ class PatchFrontend(Frontend):
         for pos in np.unique(pos_src):
             sel = pos_src == pos
             g.frames[pos].inv_depth[ukeys[sel] % K] = depth[sel]
-        # robust weights from the final residuals (the edges' own rows come first in the block)
-        r, valid = block.residuals(backend.values_of(block.keys))
-        r, valid = r[: e.size], valid[: e.size]
+        r, valid = r[: e.size], valid[: e.size]  # the edges' own rows come first in the block
         rn = torch.linalg.vector_norm(r, dim=1).numpy()
         robust = np.where(valid.numpy() & (rn <= cfg.ba.outlier_threshold), self._huber_weights(g.confidence[e], rn), 0.0)
         g.robust[e] = robust
