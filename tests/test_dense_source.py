@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from dense_support import gauge_graph, solve
+from geometry_support import transfer_pixels
 from fgslam.backend.keys import pose_key
 from fgslam.camera import PinholeCamera
 from fgslam.errors import ConfigError, DataError
@@ -48,17 +49,12 @@ def ground_truth(seq: SynthSequence, i: int, j: int):
     per-pixel correspondences), the visible fraction of each block, the block-mean inverse depth and poses."""
     Ti, Tj = seq.camera_poses(seq.frame_times()[[i, j]])
     ri, rj = seq.render_view(Ti), seq.render_view(Tj)
-    fx, fy, cx, cy = seq.K
     H, W = ri.depth.shape
-    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
     z = ri.depth.astype(np.float64)
-    X = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1)
-    T = np.linalg.inv(Tj) @ Ti
-    Xj = X @ T[:3, :3].T + T[:3, 3]
-    uj, vj = fx * Xj[..., 0] / Xj[..., 2] + cx, fy * Xj[..., 1] / Xj[..., 2] + cy
+    uj, vj, z_in_j = transfer_pixels(ri.depth, seq.K, Ti, Tj)
     inside = (uj >= 0) & (uj <= W - 1) & (vj >= 0) & (vj <= H - 1)
     zj = cv2.remap(rj.depth, uj.astype(np.float32), vj.astype(np.float32), cv2.INTER_NEAREST)
-    visible = inside & (np.abs(zj - Xj[..., 2]) < 0.02 * Xj[..., 2])
+    visible = inside & (np.abs(zj - z_in_j) < 0.02 * z_in_j)
 
     def pool(a):
         return a.reshape(H // S, S, W // S, S).mean(axis=(1, 3))

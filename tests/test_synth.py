@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from geometry_support import transfer_pixels
 
 from fgslam.io.synth import SynthSequence, write_sequence
 from fgslam.io.synth.imu import ImuConfig, simulate_imu, specific_force
@@ -71,17 +72,9 @@ def _backward_warp_error(seq: SynthSequence, img_i, depth_i, T_WCi, img_j, depth
     """Mean |I_j - warp(I_i)| over pixels of j visible in i, and their fraction. Pixel p of j is
     back-projected with its ground-truth depth, moved into camera i and sampled there; occluded
     pixels (depth mismatch in i) and pixels near depth edges of i are excluded."""
-    fx, fy, cx, cy = seq.K
     H, W = depth_j.shape
-    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
     z = depth_j.astype(np.float64)
-    X_j = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1)
-    T_CiCj = np.linalg.inv(T_WCi) @ T_WCj
-    X_i = X_j @ T_CiCj[:3, :3].T + T_CiCj[:3, 3]
-    zi = X_i[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ui = fx * X_i[..., 0] / zi + cx
-        vi = fy * X_i[..., 1] / zi + cy
+    ui, vi, zi = transfer_pixels(depth_j, seq.K, T_WCj, T_WCi)
     valid = (z > 0) & (zi > 0.1) & (ui >= 1) & (ui <= W - 2) & (vi >= 1) & (vi <= H - 2)
     mapx = np.where(valid, ui, -1).astype(np.float32)
     mapy = np.where(valid, vi, -1).astype(np.float32)

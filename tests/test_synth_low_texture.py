@@ -8,6 +8,7 @@ import json
 import cv2
 import numpy as np
 import pytest
+from geometry_support import transfer_pixels
 
 from fgslam.io.synth import SynthSequence
 from fgslam.io.synth.presets import load_synth_config
@@ -117,19 +118,14 @@ def test_ground_truth_depth_and_poses_are_consistent(low):
     i, j = 150, 154
     Ti, Tj = low.camera_poses(low.frame_times()[[i, j]])
     ri, rj = low.render_view(Ti), low.render_view(Tj)
-    fx, fy, cx, cy = low.K
+    fx = low.K[0]
     H, W = ri.depth.shape
 
     def transfer(T_WCj):
-        u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-        z = ri.depth.astype(np.float64)
-        X = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1)
-        T = np.linalg.inv(T_WCj) @ Ti
-        Xj = X @ T[:3, :3].T + T[:3, 3]
-        uj, vj = fx * Xj[..., 0] / Xj[..., 2] + cx, fy * Xj[..., 1] / Xj[..., 2] + cy
-        ok = (z > 0) & (uj >= 0) & (uj <= W - 1) & (vj >= 0) & (vj <= H - 1)
+        uj, vj, z_in_j = transfer_pixels(ri.depth, low.K, Ti, T_WCj)
+        ok = (ri.depth > 0) & (uj >= 0) & (uj <= W - 1) & (vj >= 0) & (vj <= H - 1)
         zj = cv2.remap(rj.depth, uj.astype(np.float32), vj.astype(np.float32), cv2.INTER_LINEAR)
-        rel = np.abs(zj - Xj[..., 2]) / Xj[..., 2]
+        rel = np.abs(zj - z_in_j) / z_in_j
         return rel[ok], ok
 
     rel, ok = transfer(Tj)

@@ -17,11 +17,11 @@ import argparse
 import json
 import os
 import platform
-import time
 
 import gtsam
 import numpy as np
 import torch
+from bench_factors import best_time  # tools/ is on the path of a script run from it
 
 from fgslam.backend.keys import pose_key
 from fgslam.factors.dense import DenseBlock, DenseEdge, DenseKeyframe, pixel_grid
@@ -32,16 +32,6 @@ from fgslam.io.synth.presets import load_synth_config
 from fgslam.lie import Sim3
 
 STRIDE = 8
-
-
-def best_time(fn, repeat: int) -> float:
-    fn()
-    best = float("inf")
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def block_bench(width: int, height: int, keyframes: int, edges: int, repeat: int) -> dict:
