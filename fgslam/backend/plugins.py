@@ -194,7 +194,7 @@ def can_fold(backend: Any) -> bool:
 
 
 def apply_correction(backend: Any, correction: Any) -> None:
-    """Move the map by a pose correction (``fgslam.loop.closure.LoopCorrection``: a Sim(3) update per
+    """Move the map by a pose correction (``fgslam.loop.closure.PoseCorrection``: a Sim(3) update per
     keyframe): through ``backend.apply_correction`` when the backend has it (:class:`CorrectedBackend`:
     the contributors move their keyframes and fold the scale into their structure); otherwise each
     keyframe pose is set (build such corrections with ``fold_scale`` = :func:`can_fold`, False)."""
@@ -250,11 +250,11 @@ def with_plugins(frontend: Any, entries: Sequence[Any], timestamps: Optional[np.
 def uniform_correction(backend: Any, U: np.ndarray) -> Any:
     """The correction moving every keyframe by the same Sim(3) ``U`` (4x4 ``[[s R, t], [0, 1]]``),
     the scale folded into the structure when contributors can (:func:`can_fold`)."""
-    from ..loop.closure import LoopCorrection
+    from ..loop.closure import PoseCorrection
 
     s = float(np.cbrt(np.linalg.det(U[:3, :3])))
     ids = list(backend.keyframe_ids)
-    return LoopCorrection(T_update={k: U for k in ids}, scale={k: s for k in ids},
+    return PoseCorrection(T_update={k: U for k in ids}, scale={k: s for k in ids},
                           T_WC_new={k: U @ backend.pose_matrix(k) for k in ids}, loops=[], fold_scale=can_fold(backend),
                           n_accepted=0, solve_time_s=0.0)
 
@@ -262,15 +262,10 @@ def uniform_correction(backend: Any, U: np.ndarray) -> Any:
 def pose_graph_correction(backend: Any, T_WC_new: Mapping[int, np.ndarray], solve_time_s: float = 0.0) -> Any:
     """The correction taking each keyframe of ``T_WC_new`` from its current pose there, the scale
     change folded into the structure when contributors can (:func:`can_fold`)."""
-    from ..loop.closure import LoopCorrection
+    from ..loop.closure import PoseCorrection
 
-    T_update, scale = {}, {}
-    for k, T_new in T_WC_new.items():
-        T_old = backend.pose_matrix(k)
-        T_update[k] = np.asarray(T_new, dtype=np.float64) @ np.linalg.inv(T_old)
-        scale[k] = float(np.cbrt(np.linalg.det(T_new[:3, :3]) / np.linalg.det(T_old[:3, :3])))
-    return LoopCorrection(T_update=T_update, scale=scale, T_WC_new=dict(T_WC_new), loops=[], fold_scale=can_fold(backend),
-                          n_accepted=0, solve_time_s=solve_time_s)
+    return PoseCorrection.between({k: backend.pose_matrix(k) for k in T_WC_new}, dict(T_WC_new), solve_time_s,
+                                  fold_scale=can_fold(backend))
 
 
 # ----------------------------------------------------------------------------------------- PositionPrior
