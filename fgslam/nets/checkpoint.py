@@ -48,8 +48,8 @@ def read_state_dict(path: str | Path) -> "OrderedDict[str, torch.Tensor]":
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - torch.load raises many types on a foreign file (IndexError, UnpicklingError...)
-        raise CheckpointError(f"checkpoint {path} is not a readable torch state dict: "
-                              f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+        raise CheckpointError(f"checkpoint {path} is not a readable torch state dict "
+                              f"(torch.load with weights_only: {type(exc).__name__})") from None
     if isinstance(obj, dict) and "model_state_dict" in obj and isinstance(obj["model_state_dict"], dict):
         obj = obj["model_state_dict"]
     if not isinstance(obj, dict) or not obj or not all(isinstance(v, torch.Tensor) for v in obj.values()):
