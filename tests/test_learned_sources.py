@@ -95,8 +95,9 @@ def test_droid_recurrent_state_is_kept_per_edge_and_dropped_with_frames(ckpts):
     np.testing.assert_allclose(a.revise([(0, 1)], induced(1))[0].target, first.target, atol=1e-5)  # fresh edge
 
 
-def test_droid_memory_efficient_and_volume_correlation_agree(ckpts):
-    alt, vol = droid(ckpts, correlation="alt", chunk_edges=1), droid(ckpts, correlation="volume")
+@pytest.mark.parametrize("mode", ["alt", "features"])
+def test_droid_memory_efficient_and_volume_correlation_agree(ckpts, mode):
+    alt, vol = droid(ckpts, correlation=mode, chunk_edges=1), droid(ckpts, correlation="volume")
     for k, im in enumerate(images()):
         alt.add_frame(k, im)
         vol.add_frame(k, im)

@@ -115,9 +115,9 @@ def test_memory_efficient_correlation_equals_the_all_pairs_pyramid():
     ii, jj = torch.tensor([0, 1, 2, 0]), torch.tensor([1, 2, 0, 2])
     coords = torch.rand(4, 16, 12, 2, generator=g, dtype=torch.float64) * torch.tensor([14.0, 18.0]) - 1.0
     volume = CorrVolume(fmaps[ii], fmaps[jj])(coords)
-    alt = AltCorr(fmaps, chunk=3)(coords, ii, jj)
     assert volume.shape == (4, 196, 16, 12)
-    torch.testing.assert_close(alt, volume)
+    for mode in ("volume", "features"):
+        torch.testing.assert_close(AltCorr(fmaps, chunk=3, mode=mode)(coords, ii, jj), volume)
     # channel = level * 49 + x_offset * 7 + y_offset: level 0 at offset (+1, -2) of edge 2, pixel (3, 5)
     e, y, x = 2, 3, 5
     cx, cy = coords[e, y, x].tolist()

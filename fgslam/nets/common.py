@@ -13,7 +13,7 @@ import torch
 import torch.nn as nn
 
 __all__ = ["GradientClip", "ResidualBlock", "Encoder", "window_lookup", "group_index", "scatter_mean",
-           "scatter_softmax", "scatter_sum"]
+           "scatter_softmax", "scatter_sum", "window_correlation"]
 
 
 class _GradClip(torch.autograd.Function):
@@ -102,13 +102,9 @@ class Encoder(nn.Module):
         return self.conv2(x)
 
 
-def window_lookup(src: torch.Tensor, frame: torch.Tensor, coords: torch.Tensor, radius: int) -> torch.Tensor:
-    """Bilinear ``(2r+1) x (2r+1)`` windows of ``src`` around points (module docstring).
-
-    ``src`` ``(N, C, H, W)`` maps; ``frame`` ``(B,)`` which map each batch row reads; ``coords``
-    ``(B, Q, 2)`` points ``(x, y)`` in the map's pixels. Returns ``(B, Q, 2r+1 (x), 2r+1 (y), C)``.
-    Non-finite points read zeros.
-    """
+def _window_gather(src, frame, coords, radius):
+    """Integer samples of the windows: ``(B, Q, D, D, C)`` values (zero outside) ``[x][y]``, ``D = 2r + 2``,
+    and the bilinear fractions ``dx``, ``dy`` ``(B, Q, 1, 1)``."""
     N, C, H, W = src.shape
     B, Q, _ = coords.shape
     D = 2 * radius + 2
@@ -116,7 +112,6 @@ def window_lookup(src: torch.Tensor, frame: torch.Tensor, coords: torch.Tensor, 
     coords = torch.where(ok_pt[..., None], coords, torch.zeros_like(coords))
     x0, y0 = coords[..., 0], coords[..., 1]
     fx, fy = torch.floor(x0), torch.floor(y0)
-    dx, dy = (x0 - fx)[..., None, None], (y0 - fy)[..., None, None]
     off = torch.arange(D, device=src.device) - radius
     xs = fx.long()[..., None] + off  # (B, Q, D)
     ys = fy.long()[..., None] + off
@@ -124,10 +119,39 @@ def window_lookup(src: torch.Tensor, frame: torch.Tensor, coords: torch.Tensor, 
     inside = (xs2 >= 0) & (xs2 < W) & (ys2 >= 0) & (ys2 < H) & ok_pt[..., None, None]
     flat = (frame.long()[:, None, None, None] * (H * W) + ys2.clamp(0, H - 1) * W + xs2.clamp(0, W - 1))
     table = src.permute(0, 2, 3, 1).reshape(N * H * W, C)
-    vals = table[flat.reshape(-1)].reshape(B, Q, D, D, C) * inside[..., None].to(src.dtype)
-    dx, dy = dx[..., None], dy[..., None]
+    vals = table.index_select(0, flat.reshape(-1)).reshape(B, Q, D, D, C) * inside[..., None].to(src.dtype)
+    return vals, (x0 - fx)[..., None, None], (y0 - fy)[..., None, None]
+
+
+def _bilinear(vals: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor) -> torch.Tensor:
+    """Combine ``(B, Q, D, D, ...)`` integer samples into ``(B, Q, D-1, D-1, ...)`` bilinear values."""
+    extra = vals.dim() - 4
+    dx = dx.reshape(dx.shape + (1,) * extra)
+    dy = dy.reshape(dy.shape + (1,) * extra)
     return ((1 - dx) * (1 - dy) * vals[:, :, :-1, :-1] + dx * (1 - dy) * vals[:, :, 1:, :-1]
             + (1 - dx) * dy * vals[:, :, :-1, 1:] + dx * dy * vals[:, :, 1:, 1:])
+
+
+def window_lookup(src: torch.Tensor, frame: torch.Tensor, coords: torch.Tensor, radius: int) -> torch.Tensor:
+    """Bilinear ``(2r+1) x (2r+1)`` windows of ``src`` around points (module docstring).
+
+    ``src`` ``(N, C, H, W)`` maps; ``frame`` ``(B,)`` which map each batch row reads; ``coords``
+    ``(B, Q, 2)`` points ``(x, y)`` in the map's pixels. Returns ``(B, Q, 2r+1 (x), 2r+1 (y), C)``.
+    Non-finite points read zeros.
+    """
+    vals, dx, dy = _window_gather(src, frame, coords, radius)
+    return _bilinear(vals, dx, dy)
+
+
+def window_correlation(src: torch.Tensor, frame: torch.Tensor, coords: torch.Tensor, query: torch.Tensor,
+                       radius: int) -> torch.Tensor:
+    """Dot products of ``query`` ``(B, Q, C)`` with the bilinear windows of :func:`window_lookup`:
+    ``(B, Q, 2r+1 (x), 2r+1 (y))``. The products are taken at the integer samples first (bilinear
+    interpolation is linear), so the C-dimensional windows are never interpolated."""
+    vals, dx, dy = _window_gather(src, frame, coords, radius)
+    B, Q, D = vals.shape[:3]
+    dots = torch.bmm(vals.reshape(B * Q, D * D, -1), query.reshape(B * Q, -1, 1)).reshape(B, Q, D, D)
+    return _bilinear(dots, dx, dy)
 
 
 def group_index(keys: torch.Tensor) -> tuple[torch.Tensor, int]:

@@ -28,8 +28,8 @@ class NetRuntimeConfig:
 class DroidNetConfig(NetRuntimeConfig):
     """DROID-SLAM's network as the dense source (``dense.source.kind: droid``)."""
 
-    correlation: Literal["alt", "volume"] = "alt"  # alt: memory-efficient lookup; volume: all-pairs pyramid per edge
-    chunk_edges: int = ranged(8, ge=1)  # alt: edges correlated at a time (bounds memory: ~ chunk * h * w * 49 * 128 floats)
+    correlation: Literal["alt", "features", "volume"] = "alt"  # alt: chunk_edges edges' all-pairs volumes at a time; features: chunked, no volume (pooled target features, slower); volume: every edge's volume at once
+    chunk_edges: int = ranged(8, ge=1)  # alt / features: edges correlated at a time (memory: chunk * (h w)^2 or chunk * h w * 64 * 128 floats)
     motion_clamp: float = ranged(64.0, gt=0)  # grid px: the motion features are clamped to +- this (DROID: 64)
 
 

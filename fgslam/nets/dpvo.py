@@ -25,7 +25,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .common import Encoder, GradientClip, group_index, scatter_softmax, scatter_sum, window_lookup
+from .common import Encoder, GradientClip, group_index, scatter_softmax, scatter_sum, window_correlation, window_lookup
 
 __all__ = ["DIM", "GatedResidual", "Patchifier", "SoftAgg", "Update", "VONet", "neighbors", "patch_correlation",
            "patch_window"]
@@ -161,8 +161,8 @@ def patch_correlation(gmap: torch.Tensor, levels: list[torch.Tensor], coords: to
     g = gmap[kk].permute(0, 2, 3, 1).reshape(E, p * p, -1)  # (E, p*p, C) rows then columns
     out = []
     for lvl, fl in zip(LEVELS, levels):
-        win = window_lookup(fl, jj, coords.reshape(E, p * p, 2) / lvl, radius)  # (E, pp, x, y, C)
-        out.append(torch.einsum("eqxyc,eqc->exyq", win, g))  # (E, 7x, 7y, p*p)
+        corr = window_correlation(fl, jj, coords.reshape(E, p * p, 2) / lvl, g, radius)  # (E, pp, 7x, 7y)
+        out.append(corr.permute(0, 2, 3, 1))  # (E, 7x, 7y, p*p)
     return torch.stack(out, -1).reshape(E, -1)
 
 

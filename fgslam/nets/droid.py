@@ -8,10 +8,11 @@ loads strictly (:mod:`fgslam.nets.checkpoint`):
   (tanh, 128) and the input (relu, 128).
 - correlation: all-pairs ``<f_i, f_j> / 16`` (features / 4 each), a 4-level pyramid (2x2 average
   pooling of the target dimensions, eq. 1), radius-3 lookup (49 values per level, 196 channels,
-  channel ``level * 49 + x_offset * 7 + y_offset``). :class:`CorrVolume` builds the volume;
-  :class:`AltCorr` (memory-efficient, for long edge lists) pools the target *features* instead and
-  correlates only the looked-up windows, in chunks of edges: the same numbers (correlation is linear
-  in ``f_j``, so pooling commutes with it) in O(E h w 49 C) memory instead of O(E (h w)^2).
+  channel ``level * 49 + x_offset * 7 + y_offset``). :class:`CorrVolume` builds the volume of every
+  edge at once; :class:`AltCorr` (memory-efficient, for long edge lists) correlates ``chunk`` edges at a
+  time, either through each chunk's volume or, never forming a volume, by pooling the target
+  *features* and dotting the looked-up windows with the source features: the same numbers
+  (correlation is linear in ``f_j``, so pooling and interpolation commute with it).
 - ``update``: 1x1+3x3 correlation encoder, 7x7+3x3 motion encoder of ``[flow, target - coords]``
   (clamped to +-64), the 3x3 ConvGRU with global context pooling (``gru``), heads ``delta`` (flow
   revision r_ij), ``weight`` (confidence w_ij, sigmoid) and ``agg``: conv, mean over the edges that share
@@ -27,7 +28,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .common import Encoder, GradientClip, group_index, scatter_mean, window_lookup
+from .common import Encoder, GradientClip, scatter_mean, window_correlation, window_lookup
 
 __all__ = ["AltCorr", "ConvGRU", "CorrVolume", "DroidNet", "GraphAgg", "UpdateModule", "convex_upsample",
            "coords_grid", "CORR_LEVELS", "CORR_RADIUS"]
@@ -155,17 +156,24 @@ class CorrVolume:
 
 
 class AltCorr:
-    """Memory-efficient correlation (the same values as :class:`CorrVolume`): a feature pyramid per
-    frame; per edge the target windows are sampled from it and dotted with the source features,
-    ``chunk`` edges at a time."""
+    """Memory-efficient correlation for long edge lists (the same values as :class:`CorrVolume`):
+    edges are correlated ``chunk`` at a time, so memory is bounded by the chunk, not the edge list.
+    ``mode="volume"`` (default) builds each chunk's all-pairs pyramid (one matmul, fast, ``chunk (h w)^2``
+    floats); ``mode="features"`` never forms a volume: it pools the target *features* and dots the
+    looked-up windows with the source features (``chunk h w 64 C`` floats; slower on CPU, for large
+    images)."""
 
-    def __init__(self, fmaps: torch.Tensor, levels: int = CORR_LEVELS, radius: int = CORR_RADIUS, chunk: int = 16):
+    def __init__(self, fmaps: torch.Tensor, levels: int = CORR_LEVELS, radius: int = CORR_RADIUS, chunk: int = 16,
+                 mode: str = "volume"):
         self.radius = radius
+        self.levels = levels
         self.chunk = max(1, int(chunk))
-        self.fmaps = fmaps / FEATURE_SCALE
-        self.pyramid = [self.fmaps]
-        for _ in range(levels - 1):
-            self.pyramid.append(F.avg_pool2d(self.pyramid[-1], 2, stride=2))
+        self.mode = mode
+        self.fmaps = fmaps
+        self.pyramid = [fmaps / FEATURE_SCALE]
+        if mode == "features":
+            for _ in range(levels - 1):
+                self.pyramid.append(F.avg_pool2d(self.pyramid[-1], 2, stride=2))
 
     def __call__(self, coords: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor) -> torch.Tensor:
         """``coords`` ``(E, h, w, 2)``; ``ii``, ``jj`` ``(E,)`` indices into ``fmaps`` -> ``(E, 196, h, w)``."""
@@ -173,15 +181,17 @@ class AltCorr:
         parts = []
         for lo in range(0, E, self.chunk):
             sl = slice(lo, min(E, lo + self.chunk))
+            if self.mode == "volume":
+                parts.append(CorrVolume(self.fmaps[ii[sl]], self.fmaps[jj[sl]], self.levels, self.radius)(coords[sl]))
+                continue
             e = sl.stop - sl.start
-            f_i = self.fmaps[ii[sl]].flatten(2).transpose(1, 2)  # (e, hw, C)
+            f_i = self.pyramid[0][ii[sl]].flatten(2).transpose(1, 2)  # (e, hw, C)
             levels = []
             for level, fl in enumerate(self.pyramid):
                 pts = coords[sl].reshape(e, h * w, 2) / 2 ** level
-                win = window_lookup(fl, jj[sl], pts, self.radius)  # (e, hw, 7, 7, C)
-                levels.append(torch.einsum("eqxyc,eqc->eqxy", win, f_i).reshape(e, h, w, -1))
-            parts.append(torch.cat(levels, -1))
-        return torch.cat(parts, 0).permute(0, 3, 1, 2)
+                levels.append(window_correlation(fl, jj[sl], pts, f_i, self.radius).reshape(e, h, w, -1))
+            parts.append(torch.cat(levels, -1).permute(0, 3, 1, 2))
+        return torch.cat(parts, 0)
 
 
 def convex_upsample(data: torch.Tensor, mask: torch.Tensor, factor: int = 8) -> torch.Tensor:

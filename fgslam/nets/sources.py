@@ -131,9 +131,14 @@ class DroidRunner:
             net = torch.stack(nets)
             target = torch.stack(targets)
             inp = torch.stack([self._frames[int(i)][2] for i, _ in edges])
-            corr_fn = AltCorr(fmaps, chunk=cfg.chunk_edges) if cfg.correlation == "alt" else CorrVolume(fmaps[ii], fmaps[jj])
+            if cfg.correlation == "volume":
+                volume = CorrVolume(fmaps[ii], fmaps[jj])
+                corr_fn = lambda c: volume(c)  # noqa: E731
+            else:
+                alt = AltCorr(fmaps, chunk=cfg.chunk_edges, mode="volume" if cfg.correlation == "alt" else "features")
+                corr_fn = lambda c: alt(c, ii, jj)  # noqa: E731
             for _ in range(cfg.iterations):
-                corr = corr_fn(coords1, ii, jj) if cfg.correlation == "alt" else corr_fn(coords1)
+                corr = corr_fn(coords1)
                 motion = self.net.motion(coords0, coords1, target, cfg.motion_clamp)
                 net, delta, weight, (eta, _mask, eta_frames) = self.net.update(net, inp, corr, motion, src)
                 target = coords1 + delta
