@@ -17,6 +17,7 @@ monocular scale) do not move; every pose's scale is held (6 free dof), as the mo
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -117,8 +118,10 @@ def dense_ba_step(poses: Sim3, inv_depth: torch.Tensor, K: torch.Tensor, ii: tor
     C = torch.einsum("en,ehw->nhw", src, (wE * res.J_d).sum(-1)) + eta.to(dt)
     b = torch.einsum("en,ehw->nhw", src, (wE * r).sum(-1))
     F = torch.einsum("en,ehwa->nhwa", src, torch.einsum("ehwr,ehwra->ehwa", wE, J))
-    system = eliminate_structure(H, g, c.detach(), F.reshape(N * h * w, -1), b.reshape(-1), C.reshape(-1),
-                                 config.min_information)
+    with warnings.catch_warnings():  # the reduced constant c (a float there) is not needed here
+        warnings.filterwarnings("ignore", message="Converting a tensor with requires_grad", category=UserWarning)
+        system = eliminate_structure(H, g, c.detach(), F.reshape(N * h * w, -1), b.reshape(-1), C.reshape(-1),
+                                     config.min_information)
     Hs = system.H + torch.diag(config.ep + config.lm * torch.diagonal(system.H))
     dx = -torch.linalg.solve(Hs, system.g)
     dd = system.back_substitute(dx).reshape(N, h, w)
