@@ -248,7 +248,7 @@ def main() -> None:
         write_sequence(SynthSequence(load_synth_config("room-loop", overrides=[
             f"frames={args.synth_frames}", "camera.rate_hz=10", f"camera.width={args.width}",
             f"camera.height={args.height}"])), tmp.name)
-        sequences.append(("synthetic room-loop", Path(tmp.name), None, 10.0))
+        sequences.append(("synthetic room-loop", Path(tmp.name), "euroc", 10.0))
     kitchen = SHARED / "7scenes_redkitchen_0-599"
     if kitchen.is_dir():
         sequences.append(("7-Scenes kitchen 0-599", kitchen, "7scenes", 30.0))

@@ -21,8 +21,9 @@ loss, the mean distance between the reprojection with the estimated poses and de
 with the exact ones (grid px, where the exact depth exists).
 
 ``--eval-clips`` fixed clips (their own seed) are scored before training and at every
-``--eval-every`` steps (losses of the last iteration, no gradient); JSON lines to stdout, the summary
-last. CPU by default (threads ``--threads``); ``--device auto`` uses CUDA when present.
+``--eval-every`` steps (losses of the last iteration, no gradient), beside the losses of the
+starting point itself (``initial_state``: poses and depths before any update, what the network must
+beat); JSON lines to stdout, the summary last. CPU by default (threads ``--threads``); ``--device auto`` uses CUDA when present.
 
 Usage (the CPU smoke run of the README):
   .venv/bin/python tools/train.py --steps 300 --out runs/train/droid.pth
@@ -214,6 +215,22 @@ def unroll(net: DroidNet, pool: ClipPool, clip: list[int], cfg: TrainConfig, dev
     return losses
 
 
+def initial_losses(pool: ClipPool, clip: list[int], cfg: TrainConfig) -> tuple[float, float]:
+    """Pose and flow loss of the starting point itself (no update): what the network must beat."""
+    frames = [pool.frames[n] for n in clip]
+    N = len(frames)
+    gt_depth = torch.tensor(np.stack([f.inv_depth for f in frames]))
+    gt_poses = Sim3.from_matrix(torch.tensor(np.stack([f.T_WC for f in frames])))
+    ii, jj = edges(N, cfg.edge_radius)
+    poses = gt_poses[torch.tensor([min(n, cfg.fixed_poses - 1) for n in range(N)])]
+    depth = torch.full_like(gt_depth, float(gt_depth[0][gt_depth[0] > 0].median()))
+    coords_gt, valid_gt = induced_coords(gt_poses, gt_depth, pool.K, ii, jj)
+    coords, valid = induced_coords(poses, depth, pool.K, ii, jj)
+    both = valid & valid_gt & (gt_depth[ii] > 0)
+    flow = (torch.linalg.vector_norm(coords - coords_gt, dim=-1) * both).sum() / both.sum().clamp(min=1)
+    return float(relative_pose_error(poses, gt_poses, ii, jj)), float(flow)
+
+
 def total_loss(losses, cfg: TrainConfig) -> torch.Tensor:
     K = len(losses)
     return sum(cfg.gamma ** (K - 1 - k) * (cfg.pose_weight * p + cfg.flow_weight * f) for k, (p, f) in enumerate(losses))
@@ -251,6 +268,8 @@ def train(cfg: TrainConfig, log=print, pool: ClipPool | None = None) -> dict:
     eval_clips = [pool.sample(eval_rng) for _ in range(cfg.eval_clips)]
     net = DroidNet().to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    start = np.mean([initial_losses(pool, clip, cfg) for clip in eval_clips], axis=0)
+    log(json.dumps({"eval_initial_state": {"pose_loss": float(start[0]), "flow_loss": float(start[1])}}))
     history = [{"step": 0, **evaluate(net, pool, eval_clips, cfg, device)}]
     log(json.dumps({"eval": history[-1]}))
     recent = []
@@ -274,7 +293,8 @@ def train(cfg: TrainConfig, log=print, pool: ClipPool | None = None) -> dict:
     if cfg.steps == 0:
         save_checkpoint(net, cfg.out)
     load_droid(cfg.out)  # the file is what the dense source loads
-    return {"config": dataclasses.asdict(cfg), "eval": history, "checkpoint": str(Path(cfg.out).resolve()),
+    return {"config": dataclasses.asdict(cfg), "eval": history,
+            "initial_state": {"pose_loss": float(start[0]), "flow_loss": float(start[1])}, "checkpoint": str(Path(cfg.out).resolve()),
             "wall_s": time.perf_counter() - t0, "cpu_s": cpu_seconds() - c0, "load": os.getloadavg()[0]}
 
 
