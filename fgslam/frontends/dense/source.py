@@ -16,8 +16,8 @@ Sources:
   confidence per pixel and axis from the forward-backward consistency, the photometric error of the
   warped target image and the image gradient energy along each axis (the aperture problem: a uniform
   wall or an edge constrains the flow only across the edge).
-- :class:`LearnedDroidSource`: the slot of DROID's learned update operator; it needs the
-  ``droid.pth`` checkpoint, which is not shipped: without one it is a :class:`~fgslam.errors.ConfigError`
+- :class:`LearnedDroidSource` (``kind: droid``): DROID's learned update operator (:mod:`fgslam.nets`) from
+  the ``droid.pth`` checkpoint, which is not shipped: without one it is a :class:`~fgslam.errors.ConfigError`
   naming ``dense.source.checkpoint`` and the built-in alternative; no download is ever attempted.
 
 Grid convention: with stride ``s`` (8), grid pixel ``(x, y)`` covers image pixels ``s x .. s x + s - 1``
@@ -39,7 +39,8 @@ import numpy as np
 
 from ...config import ranged
 from ...errors import ConfigError, DataError
-from ..checkpoints import LearnedSlot, require_checkpoint
+from ...nets.config import DroidNetConfig
+from ..checkpoints import LearnedSlot, load_learned
 
 logger = logging.getLogger(__name__)
 
@@ -68,10 +69,11 @@ class DenseFlowConfig:
 class DenseSourceConfig:
     """Which dense measurement source, and its settings (YAML section ``dense.source``)."""
 
-    kind: Literal["flow", "learned"] = "flow"  # built-in dense flow, or DROID's learned update operator
+    kind: Literal["flow", "droid", "learned"] = "flow"  # built-in dense flow, or DROID's learned update operator (droid; learned: the same)
     checkpoint: Optional[str] = None  # learned: path of the DROID-SLAM weights (droid.pth)
     stride: int = ranged(8, ge=1)  # image pixels per grid pixel (DROID: 8)
     flow: DenseFlowConfig = field(default_factory=DenseFlowConfig)
+    droid: DroidNetConfig = field(default_factory=DroidNetConfig)  # kind droid: iterations, threads, device
 
 
 @dataclass
@@ -249,33 +251,38 @@ class DenseFlowSource(DenseSource):
 
 
 class LearnedDroidSource(DenseSource):
-    """Slot of DROID-SLAM's learned update operator (feature and context encoders, correlation
-    pyramid, ConvGRU emitting revisions r_ij, confidences w_ij and the damping eta). It needs the
-    ``droid.pth`` checkpoint, which is not shipped with fgslam: without ``dense.source.checkpoint`` it
-    is a ConfigError, with a missing file a DataError, both naming the built-in ``dense.source.kind: flow``.
-    """
+    """DROID-SLAM's learned update operator (feature and context encoders, correlation pyramid, ConvGRU
+    emitting revisions r_ij, confidences w_ij and the damping eta; :mod:`fgslam.nets.droid`) run from
+    the ``droid.pth`` checkpoint (:mod:`fgslam.nets.sources`). The checkpoint is not shipped with
+    fgslam: without ``dense.source.checkpoint`` it is a ConfigError, with a missing or foreign file a
+    DataError, each naming the built-in ``dense.source.kind: flow``. ``fb_error`` is NaN (the network
+    has no forward-backward check)."""
 
-    name = "learned"
+    name = "droid"
 
-    def __init__(self, checkpoint: str | None, stride: int = 8):
+    def __init__(self, checkpoint: str | None, stride: int = 8, config=None):
+        from ...nets.sources import DroidRunner
+
         self.stride = int(stride)
-        require_checkpoint(LearnedSlot("DROID-SLAM", "droid.pth", "dense.source.kind=learned", "dense.source.checkpoint",
-                                       "dense.source.kind=flow"), checkpoint)
+        slot = LearnedSlot("DROID-SLAM", "droid.pth", "dense.source.kind=droid", "dense.source.checkpoint",
+                           "dense.source.kind=flow")
+        self._runner = load_learned(slot, checkpoint, lambda path: DroidRunner(path, config, self.stride))
 
-    def add_frame(self, frame_id, image):  # pragma: no cover - construction always fails for now
-        raise NotImplementedError
+    def add_frame(self, frame_id: int, image: np.ndarray) -> None:
+        self._runner.add_frame(frame_id, image)
 
-    def remove_frame(self, frame_id):  # pragma: no cover
-        raise NotImplementedError
+    def remove_frame(self, frame_id: int) -> None:
+        self._runner.remove_frame(frame_id)
 
-    def revise(self, edges, uv_induced):  # pragma: no cover
-        raise NotImplementedError
+    def revise(self, edges: Sequence[tuple[int, int]], uv_induced: np.ndarray) -> list[FlowRevision]:
+        return [FlowRevision(target=t, weight=w, damping=eta, fb_error=np.full(eta.shape, np.nan))
+                for t, w, eta in self._runner.revise(edges, uv_induced)]
 
 
 def make_dense_source(config: DenseSourceConfig) -> DenseSource:
     """The dense measurement source selected by ``config.kind``."""
     if config.kind == "flow":
         return DenseFlowSource(config.flow, config.stride)
-    if config.kind == "learned":
-        return LearnedDroidSource(config.checkpoint, config.stride)
-    raise ConfigError(f"dense.source.kind: unknown source {config.kind!r} (expected flow or learned)")
+    if config.kind in ("droid", "learned"):
+        return LearnedDroidSource(config.checkpoint, config.stride, config.droid)
+    raise ConfigError(f"dense.source.kind: unknown source {config.kind!r} (expected flow or droid)")

@@ -14,6 +14,7 @@ from typing import Literal, Optional
 from ...config import check_ranges, ranged
 from ...errors import ConfigError
 from ...factors.depth import DepthPriorConfig
+from ...nets.config import DpvoNetConfig
 
 
 @dataclass
@@ -184,8 +185,9 @@ class ProximityConfig:
 class PatchConfig:
     """Root configuration of :class:`fgslam.frontends.patch.PatchFrontend`."""
 
-    source: Literal["lk", "learned"] = "lk"  # measurement source: built-in Lucas-Kanade or the DPVO network
-    checkpoint: Optional[str] = None  # learned source: path of the DPVO checkpoint (dpvo.pth)
+    source: Literal["lk", "dpvo", "learned"] = "lk"  # measurement source: built-in Lucas-Kanade or the DPVO network (dpvo; learned: the same)
+    checkpoint: Optional[str] = None  # dpvo source: path of the DPVO checkpoint (dpvo.pth)
+    dpvo: DpvoNetConfig = field(default_factory=DpvoNetConfig)  # dpvo source: iterations, threads, device
     threads: int = ranged(1, ge=0)  # torch threads of the frontend (flow/bookkeeping)
     graph: GraphConfig = field(default_factory=GraphConfig)
     lk: LKConfig = field(default_factory=LKConfig)
@@ -197,8 +199,8 @@ class PatchConfig:
         """Raise ConfigError naming the first field out of its range or inconsistent with another."""
         check_ranges(self, "patch.")
         self.graph.validate()
-        if self.source not in ("lk", "learned"):
-            raise ConfigError(f"patch.source must be 'lk' or 'learned', got {self.source!r}")
+        if self.source not in ("lk", "dpvo", "learned"):
+            raise ConfigError(f"patch.source must be 'lk' or 'dpvo', got {self.source!r}")
         if self.ba.depth_model not in ("prior", "observation") or self.ba.depth_noise not in ("relative", "inverse"):
             raise ConfigError(f"patch.ba.depth_model must be prior|observation and depth_noise relative|inverse, "
                               f"got {self.ba.depth_model!r}, {self.ba.depth_noise!r}")

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ...errors import ConfigError, DataError
-from ..checkpoints import LearnedSlot, require_checkpoint
+from ..checkpoints import LearnedSlot, load_learned
 
 if TYPE_CHECKING:
     from .config import PatchConfig
@@ -64,30 +64,44 @@ class MeasurementSource(abc.ABC):
 
 
 class LearnedDPVOSource(MeasurementSource):
-    """Slot of DPVO's learned update operator (correlation features + recurrent update emitting
-    Delta_ikj and w_ikj). It needs the ``dpvo.pth`` checkpoint, which is not shipped with fgslam;
-    without it construction fails with a :class:`DataError` naming the file and ``source: lk``.
-    """
+    """DPVO's learned update operator (patch correlation + recurrent update emitting Delta_ikj and
+    w_ikj; :mod:`fgslam.nets.dpvo`) run from the ``dpvo.pth`` checkpoint (:mod:`fgslam.nets.sources`).
+    The checkpoint is not shipped with fgslam; without it construction fails with a ConfigError /
+    DataError naming the file and ``source: lk``. The confidence is the smaller of the two per-axis
+    weights; ``fb_error`` is 0 (no forward-backward check). Long-range (loop) edges keep only the image
+    (:meth:`pack`) and recompute the maps."""
 
-    name = "learned"
+    name = "dpvo"
 
-    def __init__(self, checkpoint: str | None):
-        require_checkpoint(LearnedSlot("DPVO", "dpvo.pth", "patch.source=learned", "patch.checkpoint",
-                                       "patch.source=lk"), checkpoint)
+    def __init__(self, checkpoint: str | None, config=None):
+        from ...nets.sources import DpvoRunner
 
-    def prepare(self, image: np.ndarray):  # pragma: no cover - construction always fails for now
-        raise NotImplementedError
+        slot = LearnedSlot("DPVO", "dpvo.pth", "patch.source=dpvo", "patch.checkpoint", "patch.source=lk")
+        self._runner = load_learned(slot, checkpoint, lambda path: DpvoRunner(path, config))
 
-    def measure(self, src, tgt, uv_src, uv_pred):  # pragma: no cover
-        raise NotImplementedError
+    def prepare(self, image: np.ndarray):
+        return self._runner.prepare(image)
+
+    def pack(self, features):
+        return self._runner.pack(features)
+
+    def unpack(self, packed):
+        return self._runner.unpack(packed)
+
+    def measure(self, src, tgt, uv_src: np.ndarray, uv_pred: np.ndarray) -> Measurement:
+        return self.measure_batch([(src, tgt, uv_src, uv_pred)])[0]
+
+    def measure_batch(self, requests: list) -> list[Measurement]:
+        return [Measurement(uv=uv, confidence=conf, fb_error=np.zeros(len(conf)))
+                for uv, conf in self._runner.measure_batch(requests)]
 
 
 def make_source(config: "PatchConfig") -> MeasurementSource:
-    """The measurement source selected by ``config.source`` (``lk`` or ``learned``)."""
+    """The measurement source selected by ``config.source`` (``lk``, or ``dpvo`` = ``learned``)."""
     if config.source == "lk":
         from .lk import LKSource
 
         return LKSource(config.lk, config.graph.patch_size * config.graph.patch_stride)
-    if config.source == "learned":
-        return LearnedDPVOSource(config.checkpoint)
-    raise ConfigError(f"patch.source: unknown source {config.source!r} (expected lk or learned)")
+    if config.source in ("dpvo", "learned"):
+        return LearnedDPVOSource(config.checkpoint, config.dpvo)
+    raise ConfigError(f"patch.source: unknown source {config.source!r} (expected lk or dpvo)")
