@@ -1,0 +1,114 @@
+"""The Sim(3) -> Pose3 IMU adapter (fgslam/factors/imu.py): Jacobians against finite differences,
+the wrapped CombinedImuFactor against gtsam's own factor on Pose3 keys, preintegration pieces."""
+
+import numpy as np
+import pytest
+
+gtsam = pytest.importorskip("gtsam")
+
+from fgslam.factors.imu import (ImuNoise, body_pose, body_pose_jacobian, combined_params, imu_factor_on_sim3,
+                                integration_steps, preintegrate, sim3_from_body_pose)
+
+NOISE = ImuNoise(1.7e-4, 2.0e-3, 1.9e-5, 3.0e-3)
+
+
+def random_sim3(rng):
+    return gtsam.Similarity3(gtsam.Rot3.Expmap(rng.normal(size=3)), rng.normal(size=3), float(np.exp(rng.normal(0, 0.3))))
+
+
+def random_pose(rng):
+    return gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.5), rng.normal(size=3) * 0.2)
+
+
+def test_body_pose_jacobian_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        S, T_CB = random_sim3(rng), random_pose(rng)
+        J = body_pose_jacobian(S, T_CB)
+        P0 = body_pose(S, T_CB)
+        eps = 1e-6
+        num = np.zeros((6, 7))
+        for k in range(7):
+            d = np.zeros(7)
+            d[k] = eps
+            plus = P0.localCoordinates(body_pose(S.retract(d), T_CB))
+            minus = P0.localCoordinates(body_pose(S.retract(-d), T_CB))
+            num[:, k] = (plus - minus) / (2 * eps)
+        np.testing.assert_allclose(J, num, atol=1e-7)
+        assert np.abs(J[:, 6]).max() == 0.0  # the keyframe scale is a gauge: the body pose ignores it
+
+
+def test_sim3_from_body_pose_inverts_body_pose():
+    rng = np.random.default_rng(1)
+    T_WB, T_CB = random_pose(rng), random_pose(rng)
+    S = sim3_from_body_pose(T_WB, T_CB, scale=1.7)
+    assert S.scale() == pytest.approx(1.7)
+    assert body_pose(S, T_CB).equals(T_WB, 1e-12)
+
+
+def _imu_problem(rng):
+    params = combined_params(np.array([0.0, 0.0, -9.81]), NOISE)
+    bias = gtsam.imuBias.ConstantBias(rng.normal(0, 0.05, 3), rng.normal(0, 0.01, 3))
+    t = np.arange(0, 0.5, 0.005)
+    pim = preintegrate(params, bias, t, rng.normal(0, 0.3, (t.size, 3)), rng.normal(0, 1.0, (t.size, 3)) + [0, 0, 9.81],
+                       0.0, 0.5)
+    return pim
+
+
+def test_wrapped_factor_error_and_jacobians():
+    rng = np.random.default_rng(2)
+    pim = _imu_problem(rng)
+    T_CB = random_pose(rng)
+    keys = (gtsam.symbol("x", 0), gtsam.symbol("v", 0), gtsam.symbol("x", 1), gtsam.symbol("v", 1),
+            gtsam.symbol("b", 0), gtsam.symbol("b", 1))
+    values = gtsam.Values()
+    Si, Sj = random_sim3(rng), random_sim3(rng)
+    values.insert(keys[0], Si)
+    values.insert(keys[1], rng.normal(size=3))
+    values.insert(keys[2], Sj)
+    values.insert(keys[3], rng.normal(size=3))
+    values.insert(keys[4], gtsam.imuBias.ConstantBias(rng.normal(0, 0.1, 3), rng.normal(0, 0.01, 3)))
+    values.insert(keys[5], gtsam.imuBias.ConstantBias(rng.normal(0, 0.1, 3), rng.normal(0, 0.01, 3)))
+    factor = imu_factor_on_sim3(keys, pim, T_CB)
+
+    # same error as gtsam's CombinedImuFactor on the body poses
+    ref = gtsam.CombinedImuFactor(*range(6), pim)
+    local = gtsam.Values()
+    local.insert(0, body_pose(Si, T_CB))
+    local.insert(1, values.atPoint3(keys[1]))
+    local.insert(2, body_pose(Sj, T_CB))
+    local.insert(3, values.atPoint3(keys[3]))
+    local.insert(4, values.atConstantBias(keys[4]))
+    local.insert(5, values.atConstantBias(keys[5]))
+    assert factor.error(values) == pytest.approx(ref.error(local), rel=1e-12)
+    assert factor.error(values) > 0
+
+    # Jacobians of the whitened error against central differences in every key's tangent
+    A, b = factor.linearize(values).jacobian()
+    A, e0 = np.asarray(A), -np.asarray(b)
+    np.testing.assert_allclose(e0, factor.whitenedError(values), atol=1e-9)
+    dims = [7, 3, 7, 3, 6, 6]
+    col = 0
+    eps = 1e-6
+    for key, d in zip(keys, dims):
+        for k in range(d):
+            delta = gtsam.VectorValues()
+            for kk, dd in zip(keys, dims):
+                v = np.zeros(dd)
+                if kk == key:
+                    v[k] = eps
+                delta.insert(kk, v)
+            plus = factor.whitenedError(values.retract(delta))
+            minus = factor.whitenedError(values.retract(delta.scale(-1.0)))
+            np.testing.assert_allclose(A[:, col], (plus - minus) / (2 * eps), atol=2e-4 * max(1.0, np.abs(A[:, col]).max()))
+            col += 1
+
+
+def test_integration_steps_cover_the_interval():
+    t = np.array([0.0, 0.1, 0.2, 0.3])
+    idx, dt = integration_steps(t, 0.05, 0.25)
+    np.testing.assert_array_equal(idx, [0, 1, 2])
+    np.testing.assert_allclose(dt, [0.05, 0.1, 0.05])
+    idx, dt = integration_steps(t, -0.1, 0.45)  # before the first sample: held by it; after the last: the last
+    assert dt.sum() == pytest.approx(0.55)
+    assert integration_steps(t, 0.2, 0.2)[0].size == 0
