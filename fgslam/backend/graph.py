@@ -337,6 +337,7 @@ class Backend:
         self._blocks: dict[str, list] = {}
         self._callbacks: list[Callable] = []
         self._removed_callbacks: list[Callable] = []
+        self._window_hooks: list[Callable] = []  # free keyframes -> extra keys freed with a window
         self._attached: dict[int, list[int]] = {}  # kf_id -> keys attached to it (velocity, bias, ...)
         self._attached_kf: dict[int, int] = {}  # attached key -> kf_id
         self._key_kf: dict[int, int] = {}  # pose key -> kf_id
@@ -545,6 +546,12 @@ class Backend:
     def on_keyframe(self, callback: Callable[[int, float, int], None]) -> None:
         """Register ``callback(kf_id, timestamp, key)``, called after every :meth:`add_keyframe`."""
         self._callbacks.append(callback)
+
+    def on_window(self, hook: Callable[[list[int]], Iterable[int]]) -> None:
+        """Register ``hook(free_kf_ids) -> keys``: non-keyframe variables that every
+        :meth:`optimize_window` frees besides the window's own (e.g. the velocities and biases of the IMU's
+        fixed-lag window, which no visual factor holds once their keyframe's pose is fixed)."""
+        self._window_hooks.append(hook)
 
     def on_keyframe_removed(self, callback: Callable[[int], None]) -> None:
         """Register ``callback(kf_id)``, called after every :meth:`remove_keyframe` (its factors and
@@ -799,11 +806,14 @@ class Backend:
         other key held fixed or marginalised (``map.window.leaving``; module docstring);
         ``iterations``: LM iterations (default ``map.max_iterations``). Updates the free poses and
         the blocks' structure."""
+        free_kf_ids = list(free_kf_ids)
         free = []
         for kf in free_kf_ids:
             self._check_keyframe(kf)
             free.append(pose_key(kf))
             free.extend(self._attached.get(int(kf), ()))  # keys attached to a free keyframe are free
+        kfs = [int(kf) for kf in free_kf_ids] if self._window_hooks else []
+        extra_free_keys = list(extra_free_keys) + [k for hook in self._window_hooks for k in hook(kfs)]
         for key in extra_free_keys:
             if not self._values.exists(int(key)):
                 raise OptimizationError(f"unknown key {key_name(int(key))}")

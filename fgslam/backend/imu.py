@@ -1,4 +1,4 @@
-"""Visual-inertial SLAM on the run's backend: the IMU service (docs/design.md section 13).
+"""Visual-inertial SLAM on the run's backend: the IMU service (docs/design.md section 11).
 
 :class:`ImuService` is attached to a :class:`~fgslam.backend.Backend` and works for any frontend that
 feeds it keyframes (``on_keyframe``):
@@ -71,8 +71,11 @@ class ImuInitConfig:
     static_gyro_std: float = ranged(0.01, gt=0)  # rad/s: largest per-axis spread of the chunks' mean rates
     static_accel_std: float = ranged(0.1, gt=0)  # m/s^2: largest per-axis spread of the chunks' mean specific forces
     static_metric_start: bool = True  # a metric map (stereo/RGB-D) with a still start initialises at once (velocity 0)
-    keyframes: int = ranged(10, ge=3)  # keyframes of the visual-inertial initialisation
-    min_duration_s: float = ranged(1.0, gt=0)  # s they must span
+    keyframes: int = ranged(10, ge=3)  # fewest keyframes of the visual-inertial initialisation
+    min_duration_s: float = ranged(3.0, gt=0)  # monocular: s of the newest keyframes it uses (the scale needs accelerations)
+    metric_min_duration_s: float = ranged(1.0, gt=0)  # metric maps (stereo, RGB-D; no scale to estimate): the same
+    spacing_s: float = ranged(0.3, ge=0)  # s between the keyframes it uses (longer baselines: less attenuation of the scale by visual noise)
+    max_scale_rel_sigma: float = ranged(0.05, gt=0)  # monocular: the scale's relative standard deviation (least squares) must be below this
     gyro_bias_iterations: int = ranged(5, ge=1)  # Gauss-Newton iterations of the gyroscope bias
     gravity_tolerance: float = ranged(0.1, gt=0)  # relative |g| error beyond which the unconstrained solve is rejected
     min_scale: float = ranged(1e-3, gt=0)  # monocular: smallest plausible metric scale (map units -> m)
@@ -98,6 +101,9 @@ class ImuServiceConfig:
     integration_sigma: float = ranged(1e-4, gt=0)  # gtsam integration covariance sigma
     history: Literal["window", "full"] = "window"  # window: marginalise old velocities/biases; full: keep (isam2)
     window_keyframes: int = ranged(20, ge=3)  # linked keyframes kept with history: window
+    # velocities and biases of every linked keyframe (the IMU window) are free in each window optimisation,
+    # also where the frontend holds the keyframe's pose fixed (else they are fixed with it: overconfident)
+    free_window_states: bool = True
     max_gap_s: float = ranged(0.05, gt=0)  # s: a larger gap between samples (or to a frame time) is a bad interval
     max_interval_s: float = ranged(5.0, gt=0)  # s: longest keyframe interval given an IMU factor
     max_bridge_s: float = ranged(3.0, ge=0)  # s: IMU prediction from the newest linked keyframe up to this long
@@ -197,6 +203,8 @@ class ImuService:
         self.init_time: Optional[float] = None
         backend.on_keyframe(self._on_keyframe)
         backend.on_keyframe_removed(self._on_removed)
+        if config.free_window_states:
+            backend.on_window(self._window_keys)
 
     # ------------------------------------------------------------------ samples
     def feed(self, imu, frame_t: float) -> None:
@@ -296,6 +304,10 @@ class ImuService:
             del self._links[pair]  # the backend removed the factor with the keyframe
         if self.initialized:
             self._relink()
+
+    def _window_keys(self, free_kf_ids: list[int]) -> list[int]:
+        """Velocity and bias keys of the linked keyframes (``free_window_states``)."""
+        return [key for kf in self._linked for key in (velocity_key(kf), bias_key(kf))]
 
     def _state(self, kf_id: int):
         """(T_WB Pose3, velocity, bias) of a linked keyframe."""
@@ -442,10 +454,19 @@ class ImuService:
                 bias = gtsam.imuBias.ConstantBias(np.zeros(3), self.static.gyro_bias)
                 self._start(g_W, {kf: np.zeros(3)}, bias, "static")
                 return
-        if len(self._kfs) < ic.keyframes:
+        duration = ic.metric_min_duration_s if self.metric else ic.min_duration_s
+        if len(self._kfs) < ic.keyframes or self._kfs[-1][0] - self._kfs[0][0] < duration:
             return
-        window = self._kfs[-ic.keyframes:]
-        if window[-1][0] - window[0][0] < ic.min_duration_s or not self.covered(window[0][0], window[-1][0]):
+        t_last = self._kfs[-1][0]
+        window = [(t, k) for t, k in self._kfs if t >= t_last - duration]
+        spaced = [window[-1]]
+        for item in reversed(window[:-1]):
+            if spaced[-1][0] - item[0] >= ic.spacing_s:
+                spaced.append(item)
+        window = spaced[::-1]
+        if len(window) < 3:
+            return
+        if not self.covered(window[0][0], window[-1][0]):
             return
         solution = self._visual_inertial(window)
         if solution is None:
@@ -535,25 +556,31 @@ class ImuService:
                 w = 1.0 / max(dt, 1e-3)  # position rows per unit time, like the velocity rows
                 rows += [w * A1, A2]
                 rhs += [w * b1, b2]
-            x = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
+            A, b = np.vstack(rows), np.concatenate(rhs)
+            x = np.linalg.lstsq(A, b, rcond=None)[0]
             v = x[:nv].reshape(n, 3)
             g = g_known if g_known is not None else x[nv:nv + 3]
             s = 1.0 if self.metric else float(x[-1])
-            return v, g, s
+            sigma_s = 0.0
+            if not self.metric:  # least-squares standard deviation of the scale
+                dof = max(A.shape[0] - A.shape[1], 1)
+                var = float(np.sum((A @ x - b) ** 2)) / dof
+                sigma_s = float(np.sqrt(var * np.linalg.pinv(A.T @ A)[-1, -1]))
+            return v, g, s, sigma_s
 
         if self.static is not None:
             R_BsB0 = self._rotation_between(self.static.t, ts[0], bg)
             g_W = R_WB[0] @ R_BsB0.T @ self.static.gravity_B
         else:
-            _, g_free, s_free = solve(None)
+            _, g_free, s_free, _ = solve(None)
             if abs(np.linalg.norm(g_free) - G) > ic.gravity_tolerance * G:
                 logger.info("IMU: visual-inertial initialisation rejected: |g| = %.3f m/s^2 (scale %.4g); retrying",
                             float(np.linalg.norm(g_free)), s_free)
                 return None
             g_W = G * g_free / np.linalg.norm(g_free)
-        v, g_W, s = solve(g_W)
-        if not self.metric and not ic.min_scale <= s <= ic.max_scale:
-            logger.info("IMU: visual-inertial initialisation rejected: scale %.4g; retrying", s)
+        v, g_W, s, sigma_s = solve(g_W)
+        if not self.metric and not (ic.min_scale <= s <= ic.max_scale and sigma_s < ic.max_scale_rel_sigma * s):
+            logger.info("IMU: visual-inertial initialisation rejected: scale %.4g +- %.2g; retrying", s, sigma_s)
             return None
         logger.info("IMU: visual-inertial initialisation over %d keyframes (%.2f s): scale %.4f, gyroscope bias %s",
                     n, ts[-1] - ts[0], s, np.round(bg, 5))
