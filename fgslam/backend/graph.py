@@ -528,6 +528,13 @@ class Backend:
         self._values.update(pose_key(kf_id), as_similarity3(T_WC))
         self._bump(int(kf_id))
 
+    def set_value(self, key: int, value) -> None:
+        """Overwrite a non-keyframe variable's value (e.g. velocities rescaled with the map)."""
+        key = int(key)
+        if not self._values.exists(key) or key in self._key_kf:
+            raise OptimizationError(f"set_value: {key_name(key)} is not a non-keyframe variable of the backend")
+        self._values.update(key, value)
+
     def values_of(self, keys: Iterable[int]):
         """A gtsam.Values with the current values of ``keys`` (e.g. a block's keys)."""
         keys = {int(k) for k in keys}

@@ -75,6 +75,10 @@ class ImuInitConfig:
     min_duration_s: float = ranged(3.0, gt=0)  # monocular: s of the newest keyframes it uses (the scale needs accelerations)
     metric_min_duration_s: float = ranged(1.0, gt=0)  # metric maps (stereo, RGB-D; no scale to estimate): the same
     spacing_s: float = ranged(0.3, ge=0)  # s between the keyframes it uses (longer baselines: less attenuation of the scale by visual noise)
+    # monocular: the scale re-estimated (gravity known) over the keyframes since the initialisation
+    # this many seconds after it; the map is rescaled when it changed by more than refine_min_change
+    refine_at_s: list[float] = ranged(default_factory=lambda: [5.0, 15.0], gt=0)
+    refine_min_change: float = ranged(0.01, ge=0)  # relative scale change worth a rescale
     max_scale_rel_sigma: float = ranged(0.05, gt=0)  # monocular: the scale's relative standard deviation (least squares) must be below this
     gyro_bias_iterations: int = ranged(5, ge=1)  # Gauss-Newton iterations of the gyroscope bias
     gravity_tolerance: float = ranged(0.1, gt=0)  # relative |g| error beyond which the unconstrained solve is rejected
@@ -201,6 +205,8 @@ class ImuService:
         self.params = None
         self.scale_applied: Optional[float] = None  # monocular: the metric scale applied at initialisation
         self.init_time: Optional[float] = None
+        self._refinements = 0
+        self.scale_refinements: list[float] = []
         backend.on_keyframe(self._on_keyframe)
         backend.on_keyframe_removed(self._on_removed)
         if config.free_window_states:
@@ -277,6 +283,8 @@ class ImuService:
             keep_from = linked[0] if linked else self._kfs[max(0, len(self._kfs) - self.config.init.keyframes - 1)][0]
             if not self.initialized:
                 keep_from = min(keep_from, self._kfs[0][0])
+            elif not self.metric and self._refinements < len(self.config.init.refine_at_s):
+                keep_from = min(keep_from, self.init_time)  # the scale refinements read back to the initialisation
         if keep_from is None or not self._static_done:
             return
         cut = max(0, int(np.searchsorted(self._t, keep_from, side="right")) - 2)
@@ -406,6 +414,8 @@ class ImuService:
             self._try_static()
         if not self.initialized:
             self._try_initialise()
+        elif not self.metric and self._refinements < len(self.config.init.refine_at_s):
+            self._try_refine_scale()
 
     def _try_static(self) -> None:
         ic = self.config.init
@@ -459,11 +469,7 @@ class ImuService:
             return
         t_last = self._kfs[-1][0]
         window = [(t, k) for t, k in self._kfs if t >= t_last - duration]
-        spaced = [window[-1]]
-        for item in reversed(window[:-1]):
-            if spaced[-1][0] - item[0] >= ic.spacing_s:
-                spaced.append(item)
-        window = spaced[::-1]
+        window = self._spaced(window)
         if len(window) < 3:
             return
         if not self.covered(window[0][0], window[-1][0]):
@@ -477,7 +483,44 @@ class ImuService:
         bias = gtsam.imuBias.ConstantBias(np.zeros(3), bg)
         self._start(g_W, {kf: v for (_, kf), v in zip(window, velocities)}, bias, "visual-inertial")
 
-    def _visual_inertial(self, window):
+    def _spaced(self, window):
+        spaced = [window[-1]]
+        for item in reversed(window[:-1]):
+            if spaced[-1][0] - item[0] >= self.config.init.spacing_s:
+                spaced.append(item)
+        return spaced[::-1]
+
+    def _try_refine_scale(self) -> None:
+        """Monocular: the scale again (gravity known) over every keyframe since the initialisation, at
+        ``init.refine_at_s``; the map and the velocities rescaled when it changed (module docstring)."""
+        ic = self.config.init
+        t_last = self._kfs[-1][0]
+        if t_last - self.init_time < ic.refine_at_s[self._refinements]:
+            return
+        self._refinements += 1
+        window = self._spaced([(t, k) for t, k in self._kfs if t >= self.init_time])
+        if len(window) < 3 or not self.covered(window[0][0], window[-1][0]):
+            return
+        solution = self._visual_inertial(window, self.gravity_W)
+        if solution is None:
+            return
+        _, s, _, _ = solution
+        self.scale_refinements.append(float(s))
+        if abs(np.log(s)) <= ic.refine_min_change:
+            return
+        self._rescale(s)
+        for kf in self._linked:
+            v = np.asarray(self.backend.values_of([velocity_key(kf)]).atPoint3(velocity_key(kf)))
+            self.backend.set_value(velocity_key(kf), s * v)
+        import gtsam
+
+        for handle in self.backend.factor_handles(OWNER):  # marginal priors linearised at the old scale
+            if isinstance(self.backend.factor(handle), gtsam.LinearContainerFactor):
+                self.backend.remove_factor(handle)
+        self.scale_applied *= s
+        logger.info("IMU: scale refined by %.4f (%.1f s after the initialisation)", s, t_last - self.init_time)
+
+    def _visual_inertial(self, window, gravity_W: Optional[np.ndarray] = None):
         """Gyroscope bias, gravity, scale and velocities of ``window`` (list of (t, kf)); None when
         implausible (logged)."""
         import gtsam
@@ -568,7 +611,9 @@ class ImuService:
                 sigma_s = float(np.sqrt(var * np.linalg.pinv(A.T @ A)[-1, -1]))
             return v, g, s, sigma_s
 
-        if self.static is not None:
+        if gravity_W is not None:
+            g_W = np.asarray(gravity_W, dtype=np.float64)
+        elif self.static is not None:
             R_BsB0 = self._rotation_between(self.static.t, ts[0], bg)
             g_W = R_WB[0] @ R_BsB0.T @ self.static.gravity_B
         else:
