@@ -66,16 +66,19 @@ def _samples(t, rate=200.0):
     return ImuSamples(t, gyro, accel)
 
 
-def _service(**overrides):
-    backend = Backend()
+def _service(solver="lm", **overrides):
+    from fgslam.backend.config import BackendConfig
+
+    backend = Backend(BackendConfig(solver=solver))
     cfg = ImuServiceConfig(enabled=True)
     for key, value in overrides.items():
         setattr(cfg, key, value)
     return backend, ImuService(cfg, backend, np.eye(4), metric=True)
 
 
-def test_still_synthetic_stream_initialises_and_links_keyframes():
-    backend, service = _service()
+@pytest.mark.parametrize("solver,history", [("lm", "window"), ("isam2", "full")])
+def test_still_synthetic_stream_initialises_and_links_keyframes(solver, history):
+    backend, service = _service(solver, history=history)
     for k in range(1, 41):  # 2 s of frames at 20 Hz, 200 Hz samples, at rest
         t = k * 0.05
         service.feed(_samples(np.arange(t - 0.045, t + 1e-9, 0.005)), t)
@@ -177,3 +180,12 @@ def test_attached_keys_follow_their_keyframe():
     backend.remove_keyframe(1)
     assert removed == [1] and not backend.has_key(velocity_key(1)) and backend.factor_handles("user") == [backend.factor_handles("user")[0]]
     assert backend.attached_keys(0) == [velocity_key(0)] and backend.attached_keys(1) == []
+
+
+def test_cli_inertial_preset_on_a_dataset_without_imu(shared_data, tmp_path, capsys):
+    from fgslam.cli import main
+
+    rc = main(["run", "patch_mono_inertial", "--data", str(shared_data / "kitti00_0-199"), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "fgslam: error: imu.enabled" in err and "has no IMU samples" in err and "Traceback" not in err
