@@ -10,7 +10,7 @@ gtsam = pytest.importorskip("gtsam")
 
 from fgslam.backend import Backend
 from fgslam.backend.imu import ImuService, ImuServiceConfig, with_imu
-from fgslam.backend.keys import bias_key, pose_key, velocity_key
+from fgslam.backend.keys import bias_key, velocity_key
 from fgslam.errors import DataError
 from fgslam.io.frame import ImuSamples
 

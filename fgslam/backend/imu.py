@@ -47,7 +47,7 @@ from typing import Any, Literal, Optional
 import numpy as np
 
 from ..config import ranged
-from ..errors import ConfigError, DataError
+from ..errors import ConfigError, DataError, OptimizationError
 from ..factors.imu import (ImuNoise, body_pose, combined_params, imu_factor_on_sim3, integration_steps,
                            preintegrate, sim3_from_body_pose)
 from .keys import bias_key, pose_key, velocity_key
@@ -720,7 +720,10 @@ class FrontendWithImu:
     def process(self, frame: Any) -> Any:
         self.imu_service.feed(frame.imu, frame.timestamp)
         status = self._frontend.process(frame)
-        self.imu_service.poll()
+        try:
+            self.imu_service.poll()
+        except (OptimizationError, RuntimeError, np.linalg.LinAlgError) as exc:  # numerical trouble: vision goes on
+            logger.warning("IMU: initialisation step after frame %s failed (%s); retrying later", frame.index, exc)
         return status
 
     def finish(self) -> Any:
