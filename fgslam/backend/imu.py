@@ -77,7 +77,7 @@ class ImuInitConfig:
     spacing_s: float = ranged(0.3, ge=0)  # s between the keyframes it uses (longer baselines: less attenuation of the scale by visual noise)
     # monocular: the scale re-estimated (gravity known) over the keyframes since the initialisation
     # this many seconds after it; the map is rescaled when it changed by more than refine_min_change
-    refine_at_s: list[float] = ranged(default_factory=lambda: [5.0, 15.0], gt=0)
+    refine_at_s: list[float] = ranged(default_factory=lambda: [3.0, 6.0, 9.0, 12.0, 15.0], gt=0)
     refine_min_change: float = ranged(0.01, ge=0)  # relative scale change worth a rescale
     max_scale_rel_sigma: float = ranged(0.05, gt=0)  # monocular: the scale's relative standard deviation (least squares) must be below this
     gyro_bias_iterations: int = ranged(5, ge=1)  # Gauss-Newton iterations of the gyroscope bias
