@@ -60,6 +60,7 @@ from typing import Any, Callable, Literal, Optional
 import numpy as np
 
 from .backend.config import BackendConfig
+from .backend.imu import ImuServiceConfig
 from .config import check_ranges, ranged, to_dict, with_sections
 from .errors import ConfigError, DataError, EvaluationError, FGSlamError, Interrupted
 from .eval import EvalConfig, EvalResult, evaluate
@@ -123,6 +124,7 @@ class SlamConfig:
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     # (here: one section per frontend family, e.g. patch: PatchConfig, from the frontend registry)
     map: BackendConfig = field(default_factory=BackendConfig)  # the run's backend (fgslam/backend)
+    imu: ImuServiceConfig = field(default_factory=ImuServiceConfig)  # IMU fusion (fgslam/backend/imu.py; inertial presets)
     eval: EvalConfig = field(default_factory=EvalConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     # loop closure (mode off | proximity | classical | both); off by default
@@ -390,6 +392,7 @@ def run_slam(
 
         backend = Backend(config.map)  # one per run, fed by the frontend
         frontend = make_frontend(config.frontend, config, dataset.calibration, config.sensor, backend=backend)
+    frontend = _with_imu(frontend, config, dataset)  # IMU service on the backend when imu.enabled
     if config.factors:  # user factor plugins on the frontend's backend (fgslam/backend/plugins.py)
         from .backend.plugins import with_plugins
 
@@ -428,6 +431,17 @@ def run_slam(
     if summary.output_errors:
         raise OutputError(f"the run finished but {written}")
     return summary
+
+
+def _with_imu(frontend: Frontend, config: SlamConfig, dataset: Dataset) -> Frontend:
+    """The frontend with the IMU service fed each frame's ``frame.imu`` (``imu.enabled``), else itself;
+    DataError when the dataset has no IMU (fgslam/backend/imu.py)."""
+    if not config.imu.enabled:
+        return frontend
+    from .backend.imu import with_imu
+
+    return with_imu(frontend, config.imu, dataset.calibration, dataset.has_imu, config.sensor,
+                    getattr(dataset, "imu_noise", None), where=str(dataset.root))
 
 
 def _outputs_text(out: Path, summary: RunSummary) -> str:

@@ -3,7 +3,8 @@
 Keyframe ``kf`` has the gtsam key :func:`~fgslam.backend.keys.pose_key` ``= gtsam.symbol('x', kf)``
 holding a ``gtsam.Similarity3`` T_WC (camera-to-world; fgslam.lie's ``Sim3(R, t, s)`` maps to
 ``Similarity3(Rot3(R), t / s, s)``), and a timestamp. Tangents are gtsam's ``[w, u, lambda]`` with
-right perturbation. Other variables (velocities, biases, plugin variables) are added by key.
+right perturbation. Other variables (velocities, biases, plugin variables) are added by key, optionally
+attached to a keyframe (:meth:`Backend.attach_key`: free, fixed, marginalised and removed with it).
 
 Contents of the optimisation problem:
 
@@ -56,7 +57,7 @@ import numpy as np
 
 from ..errors import OptimizationError
 from ..factors.range import camera_centre, range_factor
-from ..factors.schur import POSE_DIM, torch_threads, to_gaussian_factor
+from ..factors.schur import POSE_DIM, torch_threads
 from ..lie import Sim3
 from .config import BackendConfig, GaugeConfig
 from .keys import key_name, pose_key
@@ -128,10 +129,20 @@ def _restricted_factor(gf, keys: tuple[int, ...], free: set, dims: dict):
         return gtsam.JacobianFactor(fkeys[0], blocks[0], fkeys[1], blocks[1], b, unit)
     if len(fkeys) == 3:
         return gtsam.JacobianFactor(fkeys[0], blocks[0], fkeys[1], blocks[1], fkeys[2], blocks[2], b, unit)
-    if len(set(fdims)) != 1:
-        raise OptimizationError("a factor on more than 3 free keys of different dimensions cannot be restricted")
-    H = A.T @ A
-    return to_gaussian_factor(fkeys, H, -A.T @ b, float(b @ b), dim=fdims[0])
+    return jacobian_on(fkeys, fdims, A, b)
+
+
+def jacobian_on(keys: list[int], dims: list[int], A: np.ndarray, b: np.ndarray):
+    """The linear factor ``0.5 |A dx - b|^2`` on ``keys`` of dimensions ``dims`` (any number, mixed
+    dimensions: a ``gtsam.GaussianConditional`` from a ``VerticalBlockMatrix`` is a JacobianFactor on
+    any number of keys, docs/design.md section 6)."""
+    import gtsam
+
+    Ab = np.empty((A.shape[0], A.shape[1] + 1))
+    Ab[:, :-1] = A
+    Ab[:, -1] = b
+    return gtsam.GaussianConditional([int(k) for k in keys], len(keys),
+                                     gtsam.VerticalBlockMatrix([int(d) for d in dims], Ab, True))
 
 
 class _Isam2Stepper:
@@ -325,6 +336,10 @@ class Backend:
         self._next_handle = 0
         self._blocks: dict[str, list] = {}
         self._callbacks: list[Callable] = []
+        self._removed_callbacks: list[Callable] = []
+        self._window_hooks: list[Callable] = []  # free keyframes -> extra keys freed with a window
+        self._attached: dict[int, list[int]] = {}  # kf_id -> keys attached to it (velocity, bias, ...)
+        self._attached_kf: dict[int, int] = {}  # attached key -> kf_id
         self._key_kf: dict[int, int] = {}  # pose key -> kf_id
         self._versions: dict[int, int] = {}  # kf_id -> version of its pose (changes on every update)
         self._version = 0
@@ -386,6 +401,8 @@ class Backend:
             del self._factors[handle]
         for owner, blocks in self._blocks.items():
             self._blocks[owner] = [b for b in blocks if key not in b.keys]
+        for attached in self._attached.pop(kf_id, []):  # keys attached to the keyframe go with it
+            self.remove_variable(attached)
         self._values.erase(key)
         del self._keyframes[kf_id]
         del self._versions[kf_id]
@@ -397,13 +414,38 @@ class Backend:
             self._range = None
             self._gauge_explicit = False
         self._default_gauge()
+        for callback in self._removed_callbacks:
+            callback(kf_id)
 
-    def add_variable(self, key: int, value) -> None:
-        """Add a non-keyframe variable (velocity, bias, plugin variable) with its initial value."""
+    def add_variable(self, key: int, value, attach_to: int | None = None) -> None:
+        """Add a non-keyframe variable (velocity, bias, plugin variable) with its initial value;
+        ``attach_to``: a keyframe the variable belongs to (:meth:`attach_key`)."""
         key = int(key)
         if self._values.exists(key):
             raise OptimizationError(f"variable {key_name(key)} is already in the backend")
+        if attach_to is not None:
+            self._check_keyframe(attach_to)
         self._values.insert(key, value)
+        if attach_to is not None:
+            self.attach_key(key, attach_to)
+
+    def attach_key(self, key: int, kf_id: int) -> None:
+        """Attach variable ``key`` to keyframe ``kf_id``: it is free in every window where the keyframe
+        is (:meth:`optimize_window`), outside it where the keyframe is (held fixed or marginalised
+        with it), and removed with the keyframe (:meth:`remove_keyframe`)."""
+        key, kf_id = int(key), int(kf_id)
+        self._check_keyframe(kf_id)
+        if not self._values.exists(key) or key in self._key_kf:
+            raise OptimizationError(f"only an existing non-keyframe variable can be attached, not {key_name(key)}")
+        previous = self._attached_kf.get(key)
+        if previous is not None:
+            self._attached[previous].remove(key)
+        self._attached_kf[key] = kf_id
+        self._attached.setdefault(kf_id, []).append(key)
+
+    def attached_keys(self, kf_id: int) -> list[int]:
+        """Variables attached to keyframe ``kf_id`` (:meth:`attach_key`)."""
+        return list(self._attached.get(int(kf_id), []))
 
     def remove_variable(self, key: int) -> None:
         """Remove a non-keyframe variable and every factor on it."""
@@ -413,6 +455,58 @@ class Backend:
         for handle in [h for h, (_, keys, _) in self._factors.items() if key in keys]:
             del self._factors[handle]
         self._values.erase(key)
+        kf_id = self._attached_kf.pop(key, None)
+        if kf_id is not None and key in self._attached.get(kf_id, []):
+            self._attached[kf_id].remove(key)
+
+    def marginalize_variables(self, keys: Iterable[int], condition_on: Iterable[int] = (), owner: str = "marginal") -> list[int]:
+        """Remove the non-keyframe variables ``keys`` and every persistent factor on them, keeping what
+        those factors said about the other keys they reach as a linear prior (their Gaussian marginal at
+        the current estimate: the factors linearised, ``keys`` eliminated, the rest as
+        ``gtsam.LinearContainerFactor``s owned by ``owner``). Keys in ``condition_on`` are held at their
+        current value instead (their columns dropped: the prior then does not touch them; e.g. a
+        keyframe pose that stays in the map, fixed outside the window). Returns the new factors' handles."""
+        import gtsam
+
+        keys = [int(k) for k in keys]
+        for key in keys:
+            if not self._values.exists(key) or key in self._key_kf:
+                raise OptimizationError(f"only existing non-keyframe variables can be marginalised, not {key_name(key)}")
+        drop = set(keys)
+        held = {int(k) for k in condition_on}
+        touching = [(h, f, fkeys) for h, (f, fkeys, _) in self._factors.items() if any(k in drop for k in fkeys)]
+        dims = {int(k): int(d) for k, d in self._values.dims().items()}
+        gfg = gtsam.GaussianFactorGraph()
+        reached: set[int] = set()
+        for _, factor, fkeys in touching:
+            free = {k for k in fkeys if k not in held}
+            restricted = _restricted_factor(factor.linearize(self._values), fkeys, free, dims)
+            if restricted is not None:
+                gfg.push_back(restricted)
+                reached.update(k for k in free if k not in drop)
+        reg = self.config.window.marginal_regularization
+        for key in keys:  # directions no factor observes stay determinate
+            gfg.push_back(gtsam.JacobianFactor(key, np.sqrt(max(reg, 1e-12)) * np.eye(dims[key]), np.zeros(dims[key]),
+                                               gtsam.noiseModel.Unit.Create(dims[key])))
+        ordering = gtsam.Ordering()
+        for key in keys:
+            ordering.push_back(key)
+        try:
+            _, remaining = gfg.eliminatePartialSequential(ordering)
+        except RuntimeError as exc:  # gtsam's IndeterminateLinearSystemException
+            raise OptimizationError(f"marginalising {', '.join(key_name(k) for k in keys)} failed ({exc})") from exc
+        for handle, _, _ in touching:
+            del self._factors[handle]
+        for key in keys:
+            self.remove_variable(key)
+        lin_point = self._subset(reached) if reached else gtsam.Values()
+        handles = []
+        for i in range(remaining.size()):
+            factor = remaining.at(i)
+            if factor is None or len(factor.keys()) == 0:
+                continue
+            handles.append(self.add_factor(gtsam.LinearContainerFactor(factor, lin_point), owner))
+        return handles
 
     def pose(self, kf_id: int):
         """Current T_WC of keyframe ``kf_id`` (gtsam.Similarity3)."""
@@ -434,6 +528,13 @@ class Backend:
         self._values.update(pose_key(kf_id), as_similarity3(T_WC))
         self._bump(int(kf_id))
 
+    def set_value(self, key: int, value) -> None:
+        """Overwrite a non-keyframe variable's value (e.g. velocities rescaled with the map)."""
+        key = int(key)
+        if not self._values.exists(key) or key in self._key_kf:
+            raise OptimizationError(f"set_value: {key_name(key)} is not a non-keyframe variable of the backend")
+        self._values.update(key, value)
+
     def values_of(self, keys: Iterable[int]):
         """A gtsam.Values with the current values of ``keys`` (e.g. a block's keys)."""
         keys = {int(k) for k in keys}
@@ -452,6 +553,17 @@ class Backend:
     def on_keyframe(self, callback: Callable[[int, float, int], None]) -> None:
         """Register ``callback(kf_id, timestamp, key)``, called after every :meth:`add_keyframe`."""
         self._callbacks.append(callback)
+
+    def on_window(self, hook: Callable[[list[int]], Iterable[int]]) -> None:
+        """Register ``hook(free_kf_ids) -> keys``: non-keyframe variables that every
+        :meth:`optimize_window` frees besides the window's own (e.g. the velocities and biases of the IMU's
+        fixed-lag window, which no visual factor holds once their keyframe's pose is fixed)."""
+        self._window_hooks.append(hook)
+
+    def on_keyframe_removed(self, callback: Callable[[int], None]) -> None:
+        """Register ``callback(kf_id)``, called after every :meth:`remove_keyframe` (its factors and
+        attached keys are gone already)."""
+        self._removed_callbacks.append(callback)
 
     # ------------------------------------------------------------------ factors and blocks
     def add_factor(self, factor, owner: str = "user") -> int:
@@ -701,15 +813,19 @@ class Backend:
         other key held fixed or marginalised (``map.window.leaving``; module docstring);
         ``iterations``: LM iterations (default ``map.max_iterations``). Updates the free poses and
         the blocks' structure."""
+        free_kf_ids = list(free_kf_ids)
         free = []
         for kf in free_kf_ids:
             self._check_keyframe(kf)
             free.append(pose_key(kf))
+            free.extend(self._attached.get(int(kf), ()))  # keys attached to a free keyframe are free
+        kfs = [int(kf) for kf in free_kf_ids] if self._window_hooks else []
+        extra_free_keys = list(extra_free_keys) + [k for hook in self._window_hooks for k in hook(kfs)]
         for key in extra_free_keys:
             if not self._values.exists(int(key)):
                 raise OptimizationError(f"unknown key {key_name(int(key))}")
             free.append(int(key))
-        return self._optimize(free, iterations, window=True)
+        return self._optimize(list(dict.fromkeys(free)), iterations, window=True)
 
     def optimize_global(self, iterations: int | None = None) -> OptimizeReport:
         """Optimise every key (``iterations``: default ``map.max_iterations``)."""

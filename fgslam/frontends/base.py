@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 
 #: How a frame's pose was obtained.
-PoseSource = Literal["initializing", "tracked", "motion_model", "relocalized"]
+PoseSource = Literal["initializing", "tracked", "motion_model", "relocalized", "imu"]
 
 SensorMode = Literal["mono", "stereo", "rgbd"]
 
@@ -31,7 +31,8 @@ class FrameStatus:
             or None while the system is initialising and has no pose yet.
         pose_source: ``initializing`` (waiting for parallax), ``tracked`` (visual measurements),
             ``motion_model`` (tracking failed; pose predicted - counted as a failure),
-            ``relocalized``.
+            ``relocalized``, ``imu`` (visual tracking failed; pose from the IMU prediction of the
+            run's IMU service - bridged, not counted as a failure).
         is_keyframe: whether the frame is currently kept as a keyframe.
         num_valid: number of valid measurements (patches / pixels / matches) used for this frame.
         events: human-readable notes (initialised, tracking lost, keyframe removed, ...).

@@ -297,6 +297,10 @@ class PatchFrontend(Frontend):
         self._finalised = 0  # keyframes that left the graph (pose final)
         self._keys: dict[int, int] = {}  # fid -> gtsam key cache (bounded to about the graph size)
         self._still: list[tuple[int, int, float]] = []  # stationary frames since the newest keyframe: (fid, keyframe fid, flow px)
+        # optional pose prediction at a timestamp (4x4 T_WC or None), set by the run's IMU service
+        # (fgslam/backend/imu.py): the motion prior of tracking, and the pose of a frame whose visual
+        # tracking fails (pose_source "imu": bridged, not a failure)
+        self.motion_prior = None
         self._loop_init(loop_config)
 
     # ------------------------------------------------------------------ calibration
@@ -420,8 +424,13 @@ class PatchFrontend(Frontend):
                            T_WC=None if T is None else _rigid(T), pose_source=source,
                            is_keyframe=is_keyframe, num_valid=int(num_valid), events=list(events or []))
 
-    def _predict(self) -> np.ndarray:
-        """Damped constant-velocity prediction from the last posed frame."""
+    def _predict(self, timestamp: float | None = None) -> np.ndarray:
+        """The motion prior's pose at ``timestamp`` when it gives one, else the damped constant-velocity
+        prediction from the last posed frame."""
+        if self.motion_prior is not None and timestamp is not None:
+            T_prior = self.motion_prior(float(timestamp))
+            if T_prior is not None:
+                return T_prior
         T_last = self._pose_of(self._last_fid)
         damping = self.config.tracking.motion_damping
         return T_last @ _sim3_power(self._velocity, damping)
@@ -976,7 +985,7 @@ class PatchFrontend(Frontend):
     # ------------------------------------------------------------------ tracking
     def _track(self, fid: int, frame) -> FrameStatus:
         cfg = self.config
-        T_pred = self._predict()
+        T_pred = self._predict(frame.timestamp)
         feats, _ = self._prepare(frame, right=False)
         last = self.graph.frames[-1]
         flow, kf_uv, kf_conf, kf_pred = self._keyframe_flow(last, feats, T_pred)
@@ -1077,6 +1086,12 @@ class PatchFrontend(Frontend):
 
     def _fail(self, fid: int, frame, reason: str, T_pred: np.ndarray | None = None) -> FrameStatus:
         self._still = []  # stationary frames keep their keyframe's pose
+        T_prior = self.motion_prior(float(frame.timestamp)) if self.motion_prior is not None and self._initialized else None
+        if T_prior is not None and self._last_fid is not None:  # bridged by the IMU: no failure, no reset
+            self._records[fid] = RelativePose(self._last_fid, np.linalg.inv(self._pose_of(self._last_fid)) @ T_prior)
+            self._last_fid = fid
+            logger.info("frame %d: %s; pose from the IMU", frame.index, reason)
+            return self._status(fid, frame, "imu", events=[reason, "imu bridge"])
         self._failures += 1
         self._lost += 1
         events = [reason]

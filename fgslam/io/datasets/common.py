@@ -313,6 +313,7 @@ class Dataset:
         self.raw_calibration: Optional[Calibration] = None
         self.calibration_source = str(self.root)
         self.imu: Optional[ImuSamples] = None
+        self.imu_noise: Optional[dict[str, float]] = None  # noise densities of the IMU (EuRoC sensor.yaml keys) when given
         self._has_stereo = False
         self._has_depth = False
         self._gt_cache: Optional[np.ndarray] = None

@@ -147,7 +147,9 @@ class EurocDataset(Dataset):
         imu_dir = mav / "imu0"
         if (imu_dir / "data.csv").is_file():
             if (imu_dir / "sensor.yaml").is_file():
-                T_BS_imu = _transform(read_yaml_file(imu_dir / "sensor.yaml"), "T_BS", imu_dir / "sensor.yaml")
+                imu_yaml = read_yaml_file(imu_dir / "sensor.yaml")
+                T_BS_imu = _transform(imu_yaml, "T_BS", imu_dir / "sensor.yaml")
+                self.imu_noise = _imu_noise(imu_yaml)
             if config.load_imu:
                 self.imu = _read_imu(imu_dir / "data.csv")
         calib.T_BC = np.linalg.inv(T_BS_imu) @ T_BS0
@@ -213,6 +215,24 @@ class EurocDataset(Dataset):
             d = read_image(self._depth[raw_index])
             depth = d.astype(np.float32) / np.float32(self.depth_scale)
         return RawFrame(image, path, right, depth)
+
+
+#: the noise keys of an EuRoC imu0/sensor.yaml (continuous-time densities)
+IMU_NOISE_KEYS = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
+                  "accelerometer_random_walk")
+
+
+def _imu_noise(data) -> Optional[dict]:
+    """The positive finite noise densities of an imu0/sensor.yaml (None when it gives none)."""
+    out = {}
+    for key in IMU_NOISE_KEYS:
+        try:
+            value = float(data.get(key)) if isinstance(data, dict) and data.get(key) is not None else None
+        except (TypeError, ValueError):
+            value = None
+        if value is not None and np.isfinite(value) and value > 0:
+            out[key] = value
+    return out or None
 
 
 def _read_imu(csv: Path) -> ImuSamples:
