@@ -177,7 +177,8 @@ def test_a_new_family_is_one_registry_entry(tmp_path):
                           text=True, env=env)
     assert proc.returncode == 0, proc.stderr
     got = json.loads(proc.stdout)
-    assert got["fields"].index("toy") == got["fields"].index("patch") + 1  # family sections after dataset
+    # family sections after dataset, in registry order (patch, dense, then the new one)
+    assert got["fields"].index("toy") == got["fields"].index("dense") + 1 == got["fields"].index("patch") + 2
     assert (got["gain"], got["size"], got["patch"]) == (2.5, 7, 2)
     assert got["dump"] == {"gain": 2.5, "window": {"size": 7}}
     assert got["built"] == ["ToyConfig", "calib", "rgbd", got["services"]] and got["services"]
