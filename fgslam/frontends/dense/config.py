@@ -29,9 +29,11 @@ class DenseGraphConfig:
 class DenseBAConfig:
     """Local dense bundle adjustment through the backend's window optimisation."""
 
-    window: int = ranged(6, ge=1)  # newest keyframes with free poses (the rest of the active graph is held fixed)
-    rounds: int = ranged(2, ge=1)  # measure/optimise rounds per new keyframe
+    window: int = ranged(4, ge=1)  # newest keyframes with free poses (the rest of the active graph is held fixed)
+    rounds: int = ranged(1, ge=1)  # measure/optimise rounds per new keyframe
     iterations: int = ranged(2, ge=1)  # LM iterations per round
+    remeasure: int = ranged(2, ge=1)  # edges touching the newest this many keyframes are re-measured each round (the others keep their last measurement)
+    per_edge_min_rows: int = ranged(256, ge=1)  # block evaluation edge by edge (pose pair broadcast) above this many rows per edge
     init_rounds: int = ranged(5, ge=1)  # rounds of the initialisation
     init_iterations: int = ranged(4, ge=1)  # LM iterations per initialisation round
     pixel_sigma: float = ranged(1.0, gt=0)  # image px: standard deviation of a fully confident flow measurement
@@ -63,7 +65,7 @@ class DenseGlobalConfig:
     every: int = ranged(0, ge=0)  # run after every this many new keyframes (0: only at the end)
     final: bool = True  # run once at the end of the sequence
     iterations: int = ranged(4, ge=1)  # LM iterations per measure/optimise round
-    rounds: int = ranged(2, ge=1)  # measure/optimise rounds
+    rounds: int = ranged(1, ge=1)  # measure/optimise rounds
     temporal_radius: int = ranged(2, ge=1)  # edges between keyframes this close in order always
     nms_radius: int = ranged(1, ge=0)  # Chebyshev non-maximum suppression of the proximity edges (keyframe indices)
     max_distance: float = ranged(60.0, gt=0)  # image px: proximity edges only below this flow distance

@@ -342,9 +342,10 @@ class DenseFrontend(Frontend):
         t0 = time.perf_counter()
         kf_fid = g.active[-1]
         T_pred = self._predict()
+        flow0 = self._times["flow"]
         self.source.add_frame(fid, self._cropped(frame.image))
         T_WC, flow, n_conf, ok = self._track(kf_fid, fid, T_pred)
-        self._times["tracking"] += time.perf_counter() - t0
+        self._times["tracking"] += time.perf_counter() - t0 - (self._times["flow"] - flow0)
         n_pix = g.shape[0] * g.shape[1]
         if not ok or n_conf < self.config.tracking.min_confident * n_pix:
             self.source.remove_frame(fid)
@@ -491,7 +492,8 @@ class DenseFrontend(Frontend):
         return (self.stride / self.config.ba.pixel_sigma) ** 2
 
     def _block_config(self) -> DenseBlockConfig:
-        return DenseBlockConfig(block=BlockConfig(structure_damping=self.config.ba.damping, threads=self.config.threads),
+        return DenseBlockConfig(block=BlockConfig(structure_damping=self.config.ba.damping, threads=self.config.threads,
+                                                  per_edge_min_rows=self.config.ba.per_edge_min_rows),
                                 reprojection=self._reproj, depth_prior=self.config.ba.depth_prior)
 
     def _lm(self, iterations: int) -> LMSettings:
@@ -679,10 +681,13 @@ class DenseFrontend(Frontend):
         free = g.active[-cfg.window:]
         free_set = set(free)
         edges = [e for e in g.active_edges() if e[0] in free_set or e[1] in free_set]
-        for r in range(cfg.rounds):
-            self._measure(edges if r == 0 else [e for e in edges if new_fid in e])
+        newest = set(g.active[-cfg.remeasure:]) | {new_fid}
+        fresh = [e for e in edges if e[0] in newest or e[1] in newest]
+        flow0 = self._times["flow"]
+        for _ in range(cfg.rounds):
+            self._measure(fresh)
             self._optimize(free, edges, cfg.iterations, init=False)
-        self._times["ba"] += time.perf_counter() - t0
+        self._times["ba"] += time.perf_counter() - t0 - (self._times["flow"] - flow0)
 
     def _initialize(self) -> None:
         """Monocular initialisation: every collected keyframe connected to its neighbours and optimised."""
@@ -695,11 +700,12 @@ class DenseFrontend(Frontend):
                 if f != fid and g.distance(fid, f, self.config.graph.distance_stride) < self.config.graph.max_edge_distance:
                     g.edges.setdefault((fid, f), EdgeMeasurement(np.full(g.shape + (2,), np.nan), np.zeros(g.shape + (2,))))
         edges = g.active_edges()
+        flow0 = self._times["flow"]
         for _ in range(cfg.init_rounds):
             self._measure(edges)
             self._optimize(free, edges, cfg.init_iterations, init=True)
         self._initialized = True
-        self._times["ba"] += time.perf_counter() - t0
+        self._times["ba"] += time.perf_counter() - t0 - (self._times["flow"] - flow0)
         logger.info("dense frontend: initialised on %d keyframes, %d edges", len(free), len(edges))
         self._retrack(self._init_frames)
         self._init_frames = {}
@@ -708,6 +714,7 @@ class DenseFrontend(Frontend):
         """Motion-only poses of non-keyframes ``fid -> (keyframe, image)`` against their keyframe's
         current map, from their current pose (their records become relative to that keyframe)."""
         t0 = time.perf_counter()
+        flow0 = self._times["flow"]
         for fid, (kf_fid, image) in frames.items():
             T0 = self._pose_of(fid)
             if T0 is None or kf_fid not in self.graph.keyframes:
@@ -719,7 +726,7 @@ class DenseFrontend(Frontend):
                 self.source.remove_frame(fid)
             if ok and n_conf > 0:
                 self._records[fid] = RelativePose(kf_fid, np.linalg.inv(self._keyframe_T_WC(kf_fid)) @ T)
-        self._times["tracking"] += time.perf_counter() - t0
+        self._times["tracking"] += time.perf_counter() - t0 - (self._times["flow"] - flow0)
 
     def _remove_redundant(self) -> int | None:
         g = self.graph
@@ -760,6 +767,7 @@ class DenseFrontend(Frontend):
         """Edges rebuilt from the N x N flow-distance matrix of the map's keyframes (those whose images
         are kept), measured, and every keyframe of the map optimised through the backend."""
         t0 = time.perf_counter()
+        flow0 = self._times["flow"]
         g = self.graph
         cfg = self.config.global_ba
         self._new_since_global = 0
@@ -787,7 +795,7 @@ class DenseFrontend(Frontend):
         for e in [e for e in g.edges if e not in kept and not (e[0] in active and e[1] in active) and e not in edges]:
             del g.edges[e]
         self._counts["global_runs"] += 1
-        self._times["global"] += time.perf_counter() - t0
+        self._times["global"] += time.perf_counter() - t0 - (self._times["flow"] - flow0)
         logger.info("dense global optimisation: %d keyframes, %d edges, %.2f s", len(free), len(edges),
                     time.perf_counter() - t0)
 
