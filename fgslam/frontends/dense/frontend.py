@@ -144,7 +144,7 @@ class DenseFrontend(Frontend):
         self._lost = 0
         self._failures = 0
         self._counts = {"keyframes_added": 0, "keyframes_removed": 0, "tracking_failures": 0, "map_restarts": 0,
-                        "global_runs": 0, "low_confidence_frames": 0}
+                        "global_runs": 0, "low_confidence_frames": 0, "low_texture_frames": 0}
         self._new_since_global = 0
         self._times = {"flow": 0.0, "tracking": 0.0, "ba": 0.0, "global": 0.0, "bookkeeping": 0.0}
         self.loops = LoopService(self, loop_config, metric=self.sensor_mode != "mono")
@@ -342,6 +342,10 @@ class DenseFrontend(Frontend):
         t0 = time.perf_counter()
         kf_fid = g.active[-1]
         T_pred = self._predict()
+        textured = self._textured_share(frame.image)
+        if textured < self.config.tracking.min_textured:
+            self._counts["low_texture_frames"] += 1
+            return self._fail(fid, frame, f"tracking lost: no texture ({100 * textured:.1f} % of the grid textured)", T_pred)
         flow0 = self._times["flow"]
         self.source.add_frame(fid, self._cropped(frame.image))
         T_WC, flow, n_conf, ok = self._track(kf_fid, fid, T_pred)
@@ -379,6 +383,14 @@ class DenseFrontend(Frontend):
         if every and self._new_since_global >= every:
             self._global()
         return self._status(fid, frame, "tracked", fid in g.keyframes, n_conf, events)
+
+    def _textured_share(self, image: np.ndarray) -> float:
+        """Share of grid blocks of the frame whose RMS image gradient exceeds ``tracking.texture_gradient``."""
+        img = self._cropped(image).astype(np.float32)
+        gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
+        gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
+        energy = _pool(gx * gx + gy * gy, self.stride)
+        return float((energy > self.config.tracking.texture_gradient ** 2).mean())
 
     def _fail(self, fid: int, frame, reason: str, T_pred: np.ndarray | None = None) -> FrameStatus:
         """Tracking failure: predicted pose relative to the newest keyframe, counted; a map restart
