@@ -15,7 +15,8 @@
   the run failed (``interrupted``: the signal that stopped it) and the outputs that could not be
   written (``output_errors``);
 - ``trajectory.png``: top view of the (aligned) estimate against the ground truth;
-- ``points.ply`` when ``output.write_ply`` (the frontend's keyframe points, when it has any).
+- ``points.ply`` when ``output.write_ply`` (the frontend's keyframe points, when it has any);
+- ``depth/<kf:06d>.png`` when ``output.write_depth`` (16-bit millimetres, from ``keyframe_depths()``).
 
 Failure handling: tracking failures are reported by the frontend (``pose_source == "motion_model"``)
 and counted; corrupt frames are skipped by the dataset and counted; a non-finite pose from the
@@ -104,6 +105,7 @@ class OutputConfig:
     # plot plane; auto: the two axes of largest ground-truth (else estimate) extent
     plot_plane: Literal["auto", "xy", "xz", "yz"] = "auto"
     write_ply: bool = False  # write points.ply from the frontend's keyframe points (when it provides them)
+    write_depth: bool = False  # write depth/<kf:06d>.png per keyframe (16-bit, millimetres; frontends with keyframe_depths(): dense)
 
 
 @dataclass
@@ -115,7 +117,7 @@ class SlamConfig:
     after the family and placed after ``dataset`` (``patch: PatchConfig``): they come from the
     registry :data:`fgslam.frontends.FAMILIES`, so a new family needs no edit here."""
 
-    frontend: Literal[FRONTEND_NAMES] = "patch"  # frontend family (dense/pointmap: not implemented yet)
+    frontend: Literal[FRONTEND_NAMES] = "patch"  # frontend family (pointmap: not implemented yet)
     sensor: SensorName = "mono"  # mono | stereo (needs right images) | rgbd (needs depth)
     threads: int = ranged(0, ge=0)  # torch and OpenCV threads for the run (0: leave the library defaults); stages may set their own
     log_interval_frames: int = ranged(100, ge=1)  # a progress line at least every this many frames
@@ -689,6 +691,7 @@ def _finalize(
         errors.append((exc, "in its end-of-run queries (stage_times/num_keyframes/loop_summary/keyframe_points)"))
     if points is not None:
         _write_output("ply", [out / PLY_FILE], lambda: _write_points(out / PLY_FILE, points), outputs, output_errors)
+    _write_keyframe_depths(frontend, config, out, outputs, output_errors, notes)
     if config.output.plot and traj is not None:
         _write_output("plot", [out / PLOT_FILE], lambda: _plot(out / PLOT_FILE, gt, traj, result, config),
                       outputs, output_errors)
@@ -818,6 +821,41 @@ def _auto_plane(traj: Trajectory) -> str:
     extent = np.ptp(traj.t_WC, axis=0) if len(traj) else np.zeros(3)
     a, b = sorted(np.argsort(extent)[-2:])
     return "xyz"[a] + "xyz"[b]
+
+
+DEPTH_DIR = "depth"
+
+
+def _write_keyframe_depths(frontend: Frontend, config: SlamConfig, out: Path, outputs: dict[str, str],
+                           output_errors: dict[str, str], notes: list[str]) -> None:
+    """``output.write_depth``: ``depth/<kf:06d>.png`` per keyframe of ``frontend.keyframe_depths()``,
+    16-bit millimetres (0: no depth; depths beyond 65.535 m clipped), written as one output."""
+    if not config.output.write_depth:
+        return
+    try:
+        depths = frontend.keyframe_depths()
+    except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+        output_errors["depth"] = f"keyframe_depths(): {type(exc).__name__}: {exc}"
+        logger.error("could not get the keyframe depths: %s: %s", type(exc).__name__, exc)
+        return
+    if not depths:
+        notes.append(f"output.write_depth: frontend '{frontend.name}' provides no keyframe depths; none written")
+        return
+    folder = out / DEPTH_DIR
+    paths = [folder / f"{kf:06d}.png" for kf in sorted(depths)]
+
+    def write() -> None:
+        import cv2
+
+        folder.mkdir(exist_ok=True)
+        for path, kf in zip(paths, sorted(depths)):
+            depth = np.nan_to_num(np.asarray(depths[kf][1], dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+            mm = np.clip(np.rint(depth * 1000.0), 0, np.iinfo(np.uint16).max).astype(np.uint16)
+            if not cv2.imwrite(str(path), mm):
+                raise OSError(f"cv2.imwrite failed for {path}")
+
+    if _write_output("depth", paths, write, outputs, output_errors):
+        outputs["depth"] = str(folder)
 
 
 def _write_points(path: Path, points: tuple[np.ndarray, np.ndarray]) -> Path:

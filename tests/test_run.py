@@ -354,7 +354,7 @@ def test_bad_config_values():
 # --------------------------------------------------------------------------------------- registry
 
 
-@pytest.mark.parametrize("name", ["dense", "pointmap"])
+@pytest.mark.parametrize("name", ["pointmap"])
 def test_planned_frontends_say_not_implemented(name, synth_root):
     config = _config(f"frontend={name}")
     calib = open_slam_dataset(synth_root, config).calibration
@@ -434,7 +434,7 @@ def test_cli_run_errors_are_clear(synth_root, tmp_path, capsys, cli_main):
     main = cli_main
     rc = main(["run", "patch_nonexistent", "--data", str(synth_root), "--out", str(tmp_path / "o")])
     assert rc == 2 and "no preset of that name" in capsys.readouterr().err
-    rc = main(["run", "patch_mono", "--data", str(synth_root), "--out", str(tmp_path / "o"), "-o", "frontend=dense"])
+    rc = main(["run", "patch_mono", "--data", str(synth_root), "--out", str(tmp_path / "o"), "-o", "frontend=pointmap"])
     assert rc == 2 and "not implemented yet" in capsys.readouterr().err
     rc = main(["run", "patch_mono", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "o")])
     assert rc == 2 and "no such file" in capsys.readouterr().err

@@ -43,7 +43,7 @@ import torch
 from ..backend.blocks import LinearPiece
 from ..lie import Sim3
 from .depth import DepthPriorConfig, depth_prior, depth_priors
-from .reprojection import ReprojectionConfig
+from .reprojection import ReprojectionConfig, reproject_inv_depth
 from .schur import (
     POSE_DIM,
     BlockConfig,
@@ -57,7 +57,7 @@ from .schur import (
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DenseBlock", "DenseBlockConfig", "DenseEdge", "DenseKeyframe", "DenseSourceBlock", "pixel_grid"]
+__all__ = ["DenseBlock", "DenseBlockConfig", "DenseEdge", "DenseKeyframe", "DenseSourceBlock", "DenseStereo", "pixel_grid"]
 
 
 @dataclass
@@ -80,6 +80,21 @@ class DenseKeyframe:
     inverse_depth: torch.Tensor | np.ndarray
     sensor_depth: torch.Tensor | np.ndarray | None = None
     damping: torch.Tensor | np.ndarray | None = None
+    stereo: "DenseStereo | None" = None
+
+
+@dataclass
+class DenseStereo:
+    """The right image of a stereo keyframe: ``uv_target`` ``(h, w, 2)`` where each grid pixel of the
+    left map is seen in the right image's grid (non-finite: no measurement), ``weight`` ``(h, w, 2)`` or
+    ``(h, w)`` its confidence, ``K_right`` the right grid's intrinsics and ``T_CRCL`` the calibrated
+    metric left-to-right extrinsics (4x4), fixed in the factor: the rows depend on the source's inverse
+    depths only (``fgslam.factors.depth.reproject_stereo`` with no target pose)."""
+
+    uv_target: torch.Tensor | np.ndarray
+    weight: torch.Tensor | np.ndarray
+    K_right: torch.Tensor | np.ndarray
+    T_CRCL: torch.Tensor | np.ndarray
 
 
 @dataclass
@@ -159,11 +174,19 @@ class DenseSourceBlock(VisualBlock):
             self._prior_value = torch.as_tensor(priors.value, dtype=torch.float64)
             self._prior_weight = torch.as_tensor(priors.weight, dtype=torch.float64)
         n_prior = int(self._prior_idx.numel())
-        self.slots = torch.cat([self._flow.slots, torch.zeros(n_prior, 2, dtype=torch.long)])
-        self.struct_idx = torch.cat([self._flow.struct_idx, self._prior_idx])
+        # stereo rows: every grid pixel of the left map seen in the keyframe's own right image
+        self._stereo = None
+        n_stereo = 0
+        if keyframe.stereo is not None:
+            st = keyframe.stereo
+            uv_r, w_r = self._edge_rows([DenseEdge(keyframe.key, -1, st.uv_target, st.weight)])
+            self._stereo = (grid, uv_r, w_r, _tensor(st.K_right), _tensor(st.T_CRCL))
+            n_stereo = n_pix
+        self.slots = torch.cat([self._flow.slots, torch.zeros(n_prior + n_stereo, 2, dtype=torch.long)])
+        self.struct_idx = torch.cat([self._flow.struct_idx, self._prior_idx, torch.arange(n_stereo)])
         groups = self._flow.groups if n_flow else SlotGroups((0,), ())
-        if n_prior:
-            groups = SlotGroups(groups.bounds + (n_flow + n_prior,), groups.slots + ((0, 0),))
+        if n_prior + n_stereo:
+            groups = SlotGroups(groups.bounds + (n_flow + n_prior + n_stereo,), groups.slots + ((0, 0),))
         self.groups = groups
         if keyframe.damping is not None:
             eta = _tensor(keyframe.damping)
@@ -232,18 +255,30 @@ class DenseSourceBlock(VisualBlock):
         flow = self._flow.evaluate(poses, structure, jacobians)
         self.num_invalid = flow.num_invalid
         n_prior = int(self._prior_idx.numel())
-        if n_prior == 0:
+        if n_prior == 0 and self._stereo is None:
             return flow
         dtype = torch.float64
-        prior = depth_prior(structure.to(dtype)[self._prior_idx], self._prior_value, self._prior_weight)
-        zero = torch.zeros(n_prior, dtype=dtype)
-        r = torch.cat([flow.r, torch.stack((prior.residual, zero), -1)])
-        weights = torch.cat([flow.weights, torch.stack((prior.weight, zero), -1)])
+        rs, ws, Es = [flow.r], [flow.weights], [flow.E]
+        if n_prior:
+            prior = depth_prior(structure.to(dtype)[self._prior_idx], self._prior_value, self._prior_weight)
+            zero = torch.zeros(n_prior, dtype=dtype)
+            rs.append(torch.stack((prior.residual, zero), -1))
+            ws.append(torch.stack((prior.weight, zero), -1))
+            Es.append(torch.stack((prior.J_d, zero), -1))
+        if self._stereo is not None:
+            grid, uv_r, w_r, K_right, T_CRCL = self._stereo
+            identity = (torch.eye(3, dtype=dtype), torch.zeros(3, dtype=dtype), torch.ones((), dtype=dtype))
+            st = reproject_inv_depth(grid, structure.to(dtype), identity, identity, self._flow.K, uv_r, K_right,
+                                     T_CtCj=T_CRCL, config=self.dense_config.reprojection)
+            rs.append(st.residual)
+            ws.append(torch.where(st.valid[:, None], w_r, torch.zeros((), dtype=dtype)))
+            Es.append(st.J_d)
+        n_self = sum(int(r.shape[0]) for r in rs[1:])
+        r, weights = torch.cat(rs), torch.cat(ws)
         if not jacobians:
             return BlockResiduals(r=r, weights=weights, num_invalid=flow.num_invalid)
-        E = torch.cat([flow.E, torch.stack((prior.J_d, zero), -1)])
-        J0 = torch.zeros(n_prior, 2, POSE_DIM, dtype=dtype)
-        return BlockResiduals(r=r, weights=weights, E=E, J=[torch.cat([Jc, J0]) for Jc in flow.J],
+        J0 = torch.zeros(n_self, 2, POSE_DIM, dtype=dtype)
+        return BlockResiduals(r=r, weights=weights, E=torch.cat(Es), J=[torch.cat([Jc, J0]) for Jc in flow.J],
                               num_invalid=flow.num_invalid)
 
     def back_substitute(self, delta) -> torch.Tensor:

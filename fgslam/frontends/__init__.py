@@ -12,8 +12,8 @@ config section, the camera calibration, ``mono | stereo | rgbd``, and the run's 
 (:mod:`fgslam.slam` imports this module, never the reverse), and each family is imported only when
 its config class or builder is first needed, so importing :mod:`fgslam.frontends` stays cheap.
 
-Families: ``patch`` (DPVO / DPV-SLAM, issue 4) is implemented; ``dense`` (DROID-SLAM) and
-``pointmap`` (MASt3R-SLAM) are planned (no config section, no builder yet) and raise a
+Families: ``patch`` (DPVO / DPV-SLAM, issue 4) and ``dense`` (DROID-SLAM, issue 12) are implemented;
+``pointmap`` (MASt3R-SLAM) is planned (no config section, no builder yet) and raises a
 :class:`~fgslam.errors.ConfigError` that says so.
 """
 
@@ -50,7 +50,9 @@ FAMILIES: tuple[FrontendFamily, ...] = (
     FrontendFamily("patch", "the DPVO / DPV-SLAM patch family",
                    config="fgslam.frontends.patch.config:PatchConfig",
                    builder="fgslam.frontends.patch.frontend:PatchFrontend"),
-    FrontendFamily("dense", "the dense DROID-SLAM family"),
+    FrontendFamily("dense", "the dense DROID-SLAM family",
+                   config="fgslam.frontends.dense.config:DenseConfig",
+                   builder="fgslam.frontends.dense.frontend:DenseFrontend"),
     FrontendFamily("pointmap", "the MASt3R-SLAM pointmap family"),
 )
 

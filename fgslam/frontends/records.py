@@ -1,0 +1,147 @@
+"""Pose records of the frontends: how each input frame's pose is obtained (typed, immutable).
+
+Shared by the patch and dense families (moved here from ``frontends/patch/records.py``), with the
+Sim(3) matrix helpers they both use (:func:`rigid`, :func:`sim3_power`, :func:`interpolate`).
+
+Every input frame id maps to a record, or to None while it has no pose (before initialisation, a
+dropped initialisation attempt):
+
+- :class:`KeyframePose`: a keyframe: its pose is the frontend's keyframe pose (the backend's);
+- :class:`AbsolutePose`: a pose of its own (a relocalised frame);
+- :class:`RelativePose`: ``T_WC = T_WC(ref) T_ref_frame`` (a removed keyframe, a stationary frame, a
+  tracking failure: relative to the frame it was predicted from);
+- :class:`InterpolatedPose`: ``T_WC(a) Exp(alpha Log(T_WC(a)^-1 T_WC(b)))`` (a stationary frame placed
+  by its flow, a frame dropped from the initialisation buffer).
+
+:func:`resolve_pose` follows the references (with a cache); :meth:`PoseRecord.corrected` re-expresses
+a record under a :class:`~fgslam.backend.contributor.PoseCorrection` (loop closure, global BA).
+Poses are 4x4 Sim(3) matrices ``[[s R, t], [0, 1]]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..lie import sim3_matrix_parts
+from ..loop.closure import PoseCorrection
+
+
+def rigid(M: np.ndarray) -> np.ndarray:
+    """Rigid part ``[R | t]`` of a Sim(3) matrix ``[[s R, t], [0, 1]]``."""
+    out = np.array(M, dtype=np.float64, copy=True)
+    out[:3, :3] = sim3_matrix_parts(out)[0]
+    return out
+
+
+def interpolate(Ta: np.ndarray, Tb: np.ndarray, alpha: float) -> np.ndarray:
+    """``Ta Exp(alpha Log(Ta^-1 Tb))`` on Sim(3) matrices."""
+    return Ta @ sim3_power(np.linalg.inv(Ta) @ Tb, alpha)
+
+
+def sim3_power(M: np.ndarray, alpha: float) -> np.ndarray:
+    """``Exp(alpha Log(M))`` of a Sim(3) matrix, through gtsam's ``Similarity3`` Logmap/Expmap (whose
+    tangent is ``fgslam.lie.Sim3``'s ``[w, u, lambda]``); per-frame motion model without torch."""
+    import gtsam
+
+    return gtsam_matrix(gtsam.Similarity3.Expmap(alpha * gtsam.Similarity3.Logmap(gtsam_sim3(M))))
+
+
+def gtsam_sim3(M: np.ndarray):
+    """``gtsam.Similarity3`` of a Sim(3) matrix ``[[s R, t], [0, 1]]`` (R projected onto SO(3));
+    numpy twin of ``Sim3.from_matrix(M).to_gtsam()`` without the torch round trip (hot path)."""
+    import gtsam
+
+    R, t, s = sim3_matrix_parts(M, project=True)
+    return gtsam.Similarity3(gtsam.Rot3(R), t / s, s)
+
+
+def gtsam_matrix(S) -> np.ndarray:
+    """Sim(3) matrix ``[[s R, t], [0, 1]]`` of a ``gtsam.Similarity3`` (gtsam acts as ``s (R p + t_g)``,
+    so ``t = s t_g``); numpy twin of ``Sim3.from_gtsam(S).matrix()``."""
+    s = float(S.scale())
+    M = np.eye(4)
+    M[:3, :3] = s * S.rotation().matrix()
+    M[:3, 3] = s * np.asarray(S.translation(), dtype=np.float64)
+    return M
+
+
+class PoseRecord:
+    """Base of the pose records (module docstring)."""
+
+    def pose(self, resolve: Callable[[int], Optional[np.ndarray]],
+             keyframe_pose: Callable[[int], np.ndarray], fid: int) -> Optional[np.ndarray]:
+        """``T_WC`` of frame ``fid`` (None when a reference has no pose); ``resolve(fid)`` gives other
+        frames' poses, ``keyframe_pose(fid)`` a keyframe's."""
+        raise NotImplementedError
+
+    def corrected(self, fid: int, correction: PoseCorrection) -> "PoseRecord":
+        """The record after ``correction`` was applied to every keyframe (itself when unaffected)."""
+        return self
+
+
+@dataclass(frozen=True)
+class KeyframePose(PoseRecord):
+    """The frame is a keyframe (in the patch graph or finalised)."""
+
+    def pose(self, resolve, keyframe_pose, fid):
+        return keyframe_pose(fid)
+
+
+@dataclass(frozen=True)
+class AbsolutePose(PoseRecord):
+    """A pose of its own (4x4 ``T_WC``); corrected like a keyframe of the same id."""
+
+    T_WC: np.ndarray
+
+    def pose(self, resolve, keyframe_pose, fid):
+        return self.T_WC
+
+    def corrected(self, fid, correction):
+        return AbsolutePose(correction.apply_pose(fid, self.T_WC)[0])
+
+
+@dataclass(frozen=True)
+class RelativePose(PoseRecord):
+    """``T_WC = T_WC(ref) T_ref_frame``; with a folded correction scale ``s`` of ``ref`` the relative
+    pose is re-expressed in the folded units (translation times ``s``)."""
+
+    ref: int
+    T_ref_frame: np.ndarray
+
+    def pose(self, resolve, keyframe_pose, fid):
+        T_ref = resolve(self.ref)
+        return None if T_ref is None else T_ref @ self.T_ref_frame
+
+    def corrected(self, fid, correction):
+        if not correction.fold_scale:
+            return self
+        return RelativePose(self.ref, PoseCorrection.fold_relative(self.T_ref_frame, correction.update_for(self.ref)[1]))
+
+
+@dataclass(frozen=True)
+class InterpolatedPose(PoseRecord):
+    """Between frames ``a`` and ``b`` at ``alpha`` (0: a, 1: b) on Sim(3); follows both end poses."""
+
+    a: int
+    b: int
+    alpha: float
+
+    def pose(self, resolve, keyframe_pose, fid):
+        Ta, Tb = resolve(self.a), resolve(self.b)
+        return None if Ta is None or Tb is None else interpolate(Ta, Tb, self.alpha)
+
+
+def resolve_pose(fid: int, records: dict, keyframe_pose: Callable[[int], np.ndarray],
+                 cache: dict) -> Optional[np.ndarray]:
+    """``T_WC`` of frame ``fid`` from ``records`` (fid -> :class:`PoseRecord` or None), following
+    references; ``cache`` (fid -> pose) is filled on the way."""
+    if fid in cache:
+        return cache[fid]
+    rec = records.get(fid)
+    T = None if rec is None else rec.pose(lambda other: resolve_pose(other, records, keyframe_pose, cache),
+                                          keyframe_pose, fid)
+    cache[fid] = T
+    return T

@@ -1,0 +1,65 @@
+"""The dense frontend on short slices of the shared real sequences, with the dense presets (half
+resolution for 7-Scenes and EuRoC).
+
+Bounds are the issue's targets for the full sequences applied to the slices: 7-Scenes RGB-D SE(3)
+ATE <= 0.04 m and monocular Sim(3) ATE <= 0.04 m, EuRoC static clip stereo: <= 0.01 m of estimated
+motion; KITTI's start: see its test.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fgslam.eval import EvalConfig, evaluate
+from fgslam.frontends import make_frontend
+from fgslam.io.trajectory import Trajectory
+from fgslam.slam import load_slam_config, open_slam_dataset
+
+
+def run(path, preset, end):
+    config = load_slam_config(preset, ["dataset.load_rgb=false"] + ([f"dataset.end={end}"] if end else []))
+    ds = open_slam_dataset(path, config)
+    fe = make_frontend("dense", config, ds.calibration, config.sensor)
+    statuses = [fe.process(f) for f in ds]
+    fe.finish()
+    return ds, fe, statuses
+
+
+def ate(ds, fe, align):
+    stamps, poses, _ = fe.trajectory()
+    return evaluate(ds.groundtruth, Trajectory(stamps, poses), EvalConfig(align=align)), len(stamps)
+
+
+def test_sevenscenes_rgbd_slice(shared_data):
+    ds, fe, statuses = run(shared_data / "7scenes_redkitchen_0-599", "dense_7scenes_rgbd", 60)
+    res, n = ate(ds, fe, "se3")
+    assert fe.num_failures == 0 and n == 60
+    assert res.ate.rmse <= 0.04, res.ate.rmse
+    depths = fe.keyframe_depths()
+    assert depths and all(d.shape == (240, 320) for _, d, _ in depths.values())
+
+
+def test_sevenscenes_mono_slice(shared_data):
+    ds, fe, statuses = run(shared_data / "7scenes_redkitchen_0-599", "dense_7scenes_mono", 60)
+    res, n = ate(ds, fe, "sim3")
+    assert fe.num_failures == 0 and n == 60
+    assert res.ate.rmse <= 0.04, res.ate.rmse
+
+
+def test_kitti_mono_slice_tracks_the_drive(shared_data):
+    """The first 30 frames (26 m) of KITTI 00: every frame posed without failure. Not the 1 % target:
+    the monocular scale drifts over this start (measured 4.2 % of the path, a bow-shaped error; the
+    full 200 frames reach the target, see tools/bench_dense_run.py), so the bound is 5 %."""
+    ds, fe, statuses = run(shared_data / "kitti00_0-199", "dense_kitti_mono", 30)
+    res, n = ate(ds, fe, "sim3")
+    assert fe.num_failures == 0 and n == 30
+    assert res.ate.rmse <= 0.05 * res.gt_path_length_m, (res.ate.rmse, res.gt_path_length_m)
+
+
+def test_euroc_static_stereo(shared_data):
+    ds, fe, statuses = run(shared_data / "euroc_v101_micro", "dense_euroc_stereo", None)
+    stamps, poses, _ = fe.trajectory()
+    assert len(stamps) == len(statuses) and fe.num_failures == 0
+    motion = np.linalg.norm(poses[:, :3, 3] - poses[0, :3, 3], axis=1).max()
+    assert motion <= 0.01, motion
+    assert fe.num_keyframes() <= 3  # the motion filter keeps a still camera out of the graph
