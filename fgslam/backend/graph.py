@@ -807,6 +807,14 @@ class Backend:
             max_backtracks=cfg.max_backtracks,
         )
 
+    def optimize_pose(self, blocks, values, key: int, iterations: int | None = None, hold=None):
+        """Motion-only optimisation of ``key`` against ``blocks`` whose other keys are held at ``values``
+        (a frame tracked against its keyframe; :mod:`fgslam.backend.motion_only`), with the map's LM
+        settings. The backend's own graph is not touched; returns a ``MotionOnlyResult``."""
+        from .motion_only import optimize_pose
+
+        return optimize_pose(blocks, values, key, self._settings(iterations), hold)
+
     def optimize_window(self, free_kf_ids: Iterable[int], iterations: int | None = None,
                         extra_free_keys: Iterable[int] = ()) -> OptimizeReport:
         """Optimise the poses of ``free_kf_ids`` (and ``extra_free_keys``, other variables) with every

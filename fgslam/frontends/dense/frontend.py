@@ -48,7 +48,6 @@ from ...backend.contributor import KeyframeImage, PoseCorrection
 from ...backend.graph import Backend
 from ...backend.keys import pose_key
 from ...backend.loop_service import LoopService
-from ...backend.solver import LMSettings, levenberg_marquardt
 from ...errors import ConfigError, DataError, OptimizationError
 from ...factors.dense import DenseBlock, DenseBlockConfig, DenseEdge, DenseKeyframe, DenseSourceBlock, DenseStereo
 from ...factors.reprojection import ReprojectionConfig
@@ -68,36 +67,7 @@ logger = logging.getLogger(__name__)
 _HOLD_DEPTH = 1e12
 #: information on the frame's log-scale in the motion-only optimisation (unobservable there)
 _HOLD_SCALE = 1e8
-
-
-class _MotionOnly:
-    """LM problem of one frame's pose against a keyframe's held inverse-depth map (the dense block of
-    edge keyframe -> frame; the keyframe's pose is fixed, the frame's scale held)."""
-
-    def __init__(self, block: DenseSourceBlock, values, key: int):
-        self.block, self.values, self.key = block, values, key
-
-    def cost(self) -> float:
-        return self.block.cost(self.values)
-
-    def linearize(self):
-        import gtsam
-
-        (piece,) = self.block.linearize(self.values)
-        d = POSE_DIM
-        H = piece.H[d:2 * d, d:2 * d].copy()
-        H[6, 6] += _HOLD_SCALE
-        gfg = gtsam.GaussianFactorGraph()
-        gfg.push_back(gtsam.HessianFactor(self.key, H, -piece.g[d:2 * d], float(piece.c)))
-        return gfg
-
-    def trial(self, delta):
-        values = self.values.retract(delta)
-        return self.block.cost(values), values
-
-    def accept(self, state, cost: float) -> float:
-        self.values = state
-        return cost
+_HOLD_SCALE_ONLY = np.array([0.0] * (POSE_DIM - 1) + [_HOLD_SCALE])
 
 
 def _pool(a: np.ndarray, s: int) -> np.ndarray:
@@ -471,9 +441,8 @@ class DenseFrontend(Frontend):
             values = gtsam.Values()
             values.insert(key_kf, gtsam_sim3(T_kf))
             values.insert(key_f, gtsam_sim3(T))
-            problem = _MotionOnly(block, values, key_f)
-            levenberg_marquardt(problem, self._lm(cfg.iterations))
-            T = gtsam_matrix(problem.values.atSimilarity3(key_f))
+            result = self.backend.optimize_pose([block], values, key_f, cfg.iterations, hold=_HOLD_SCALE_ONLY)
+            T = gtsam_matrix(result.values.atSimilarity3(key_f))
         flow = float(np.linalg.norm(rev.target - g.grid, axis=-1)[conf].mean() * self.stride)
         return T, flow, n_conf, bool(np.isfinite(T).all())
 
@@ -507,13 +476,6 @@ class DenseFrontend(Frontend):
         return DenseBlockConfig(block=BlockConfig(structure_damping=self.config.ba.damping, threads=self.config.threads,
                                                   per_edge_min_rows=self.config.ba.per_edge_min_rows),
                                 reprojection=self._reproj, depth_prior=self.config.ba.depth_prior)
-
-    def _lm(self, iterations: int) -> LMSettings:
-        cfg = self.backend.config
-        return LMSettings(max_iterations=iterations, lambda_initial=cfg.lambda_initial, lambda_factor=cfg.lambda_factor,
-                          lambda_max=cfg.lambda_max, lambda_min=cfg.lambda_min,
-                          relative_tolerance=cfg.relative_tolerance, absolute_tolerance=cfg.absolute_tolerance,
-                          step_tolerance=cfg.step_tolerance)
 
     # ------------------------------------------------------------------ keyframes
     def _new_keyframe(self, fid: int, frame, T_WC: np.ndarray, source_added: bool = False) -> None:
