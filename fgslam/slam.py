@@ -80,6 +80,7 @@ KITTI_TIMES_FILE = "trajectory_kitti_times.txt"
 SUMMARY_FILE = "summary.json"
 PLOT_FILE = "trajectory.png"
 PLY_FILE = "points.ply"
+MAP_FILE = "map.npz"  # fgslam.export.map.MAP_FILE
 
 BYTES_PER_KIB = 1024  # ru_maxrss is in KiB on Linux
 BYTES_PER_MIB = 1024 * 1024
@@ -103,6 +104,7 @@ class OutputConfig:
     # plot plane; auto: the two axes of largest ground-truth (else estimate) extent
     plot_plane: Literal["auto", "xy", "xz", "yz"] = "auto"
     write_ply: bool = False  # write points.ply from the frontend's keyframe points (when it provides them)
+    write_map: bool = True  # write map.npz (keyframes, points, tracks, calibration, frames) for `fgslam export`
 
 
 @dataclass
@@ -340,6 +342,7 @@ class _RunState:
     max_frame_s: float = 0.0  # longest frontend.process() call
     wall_s: float = 0.0
     cpu_s: float = 0.0
+    frame_paths: dict[int, str] = field(default_factory=dict)  # dataset index -> image path (map.npz)
 
 
 def _cpu_seconds() -> float:
@@ -494,6 +497,7 @@ def _loop(
             t_frontend = time.perf_counter()
             state.read_s += t_frontend - t0
             state.frames_read += 1
+            state.frame_paths[frame.index] = "" if frame.path is None else str(frame.path)
             where = f"at frame {frame.index}" + (f" ({frame.path})" if frame.path is not None else "")
             status = frontend.process(frame)
             frame_s = time.perf_counter() - t_frontend
@@ -675,6 +679,8 @@ def _finalize(
         errors.append((exc, "in its end-of-run queries (stage_times/num_keyframes/loop_summary/keyframe_points)"))
     if points is not None:
         _write_output("ply", [out / PLY_FILE], lambda: _write_points(out / PLY_FILE, points), outputs, output_errors)
+    if config.output.write_map:
+        _write_map(out / MAP_FILE, dataset, frontend, config, state, outputs, output_errors, notes)
     if config.output.plot and traj is not None:
         _write_output("plot", [out / PLOT_FILE], lambda: _plot(out / PLOT_FILE, gt, traj, result, config),
                       outputs, output_errors)
@@ -739,6 +745,29 @@ def _finalize(
     return summary, first_error
 
 
+def _write_map(path: Path, dataset: Dataset, frontend: Frontend, config: SlamConfig, state: _RunState,
+               outputs: dict[str, str], output_errors: dict[str, str], notes: list[str]) -> None:
+    """``map.npz`` for ``fgslam export``: the frontend's :meth:`~Frontend.map_export` with the
+    calibration of the images it saw and the run's frames (a frontend without a map: a note)."""
+    from .export.map import RunMap, save_run_map
+
+    try:
+        exported = frontend.map_export()
+    except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+        output_errors["map"] = f"{path.name}: map_export() failed: {type(exc).__name__}: {exc}"
+        logger.error("could not export the map: %s: %s", type(exc).__name__, exc)
+        return
+    if exported is None:
+        notes.append(f"frontend '{frontend.name}' exports no map: no {path.name} written")
+        return
+    c = dataset.calibration
+    indices = np.array(sorted(state.frame_paths), dtype=np.int64)
+    run_map = RunMap(exported, np.asarray(c.K, dtype=np.float64), int(c.width), int(c.height),
+                     dataset.timestamps[indices] if indices.size else np.zeros(0), indices,
+                     [state.frame_paths[int(i)] for i in indices], config.sensor)
+    _write_output("map", [path], lambda: save_run_map(path, run_map), outputs, output_errors)
+
+
 def _write_output(kind: str, paths: list[Path], write: Callable[[], Any], outputs: dict[str, str],
                   output_errors: dict[str, str]) -> bool:
     """Run ``write`` (which writes ``paths``); on any failure remove what it left (never a truncated
@@ -784,7 +813,7 @@ def _json_default(obj: Any) -> Any:
 def _plot(
     path: Path, gt: Optional[Trajectory], traj: Trajectory, result: Optional[EvalResult], config: SlamConfig
 ) -> Path:
-    from .io.plot import plot_trajectories
+    from .io.plot import plot_trajectories, pose_errors
 
     est = traj if result is None else result.aligned_est
     plane = config.output.plot_plane
@@ -795,7 +824,8 @@ def _plot(
                  f"({result.align}, {result.n_matched} poses)")
     else:
         title = f"{config.frontend} {config.sensor}: estimate ({len(traj)} poses, no ground truth)"
-    return plot_trajectories(path, gt, est, title=title, plane=plane)
+    errors = None if result is None else {"estimate": pose_errors(result.matched_gt, result.aligned_est)}
+    return plot_trajectories(path, gt, est, title=title, plane=plane, errors=errors)
 
 
 def _auto_plane(traj: Trajectory) -> str:
@@ -808,25 +838,9 @@ def _auto_plane(traj: Trajectory) -> str:
 
 def _write_points(path: Path, points: tuple[np.ndarray, np.ndarray]) -> Path:
     """Binary little-endian PLY of the finite points ``(X_W (N, 3), colour (N, 3) uint8)``."""
-    X_W, colour = points
-    X_W = np.asarray(X_W, dtype=np.float32).reshape(-1, 3)
-    colour = np.asarray(colour, dtype=np.uint8).reshape(-1, 3)
-    keep = np.all(np.isfinite(X_W), axis=1)
-    X_W, colour = X_W[keep], colour[keep]
-    vertex = np.empty(X_W.shape[0], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                            ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    for i, name in enumerate("xyz"):
-        vertex[name] = X_W[:, i]
-    for i, name in enumerate(("red", "green", "blue")):
-        vertex[name] = colour[:, i]
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              f"element vertex {vertex.shape[0]}\n"
-              "property float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(vertex.tobytes())
-    return path
+    from .export.ply import write_ply
+
+    return write_ply(path, points[0], points[1])
 
 
 # ----------------------------------------------------------------------------------------- threads
