@@ -63,6 +63,7 @@ from .backend.config import BackendConfig
 from .config import check_ranges, ranged, to_dict, with_sections
 from .errors import ConfigError, DataError, EvaluationError, FGSlamError, Interrupted
 from .eval import EvalConfig, EvalResult, evaluate
+from .export.rerun import RerunConfig
 from .frontends import FRONTEND_NAMES, family_config_classes
 from .frontends.base import FrameStatus, Frontend
 from .io.datasets import Dataset, DatasetConfig, open_dataset
@@ -105,6 +106,7 @@ class OutputConfig:
     plot_plane: Literal["auto", "xy", "xz", "yz"] = "auto"
     write_ply: bool = False  # write points.ply from the frontend's keyframe points (when it provides them)
     write_map: bool = True  # write map.npz (keyframes, points, tracks, calibration, frames) for `fgslam export`
+    rerun: RerunConfig = field(default_factory=RerunConfig)  # what `fgslam run --rerun out.rrd` logs (fgslam/export/rerun.py)
 
 
 @dataclass
@@ -301,15 +303,23 @@ class RunSummary:
 
 
 class _Progress:
-    """Progress lines on the module logger at most every ``every_frames`` frames or ``every_s`` s."""
+    """A progress bar (tqdm) on stderr when it is a terminal, else progress lines on the module
+    logger at most every ``every_frames`` frames or ``every_s`` s."""
 
     def __init__(self, total: int, every_frames: int, every_s: float, enabled: bool) -> None:
         self.total, self.every_frames, self.every_s, self.enabled = total, every_frames, every_s, enabled
         self.t0 = time.perf_counter()
         self.last_t, self.last_n = self.t0, 0
+        self.bar = _progress_bar(total, "frames") if enabled else None
 
     def update(self, n: int, keyframes: int, failures: int, force: bool = False) -> None:
         if not self.enabled:
+            return
+        if self.bar is not None:
+            self.bar.update(n - self.bar.n)
+            self.bar.set_postfix(keyframes=keyframes, failures=failures, refresh=False)
+            if force:
+                self.bar.close()
             return
         now = time.perf_counter()
         if not force and n - self.last_n < self.every_frames and now - self.last_t < self.every_s:
@@ -323,6 +333,17 @@ class _Progress:
             "frame %d/%d (%.0f%%)  %.1f frames/s  %d keyframes  %d failures  ETA %s",
             n, self.total, 100.0 * n / max(self.total, 1), fps, keyframes, failures, eta_txt,
         )
+
+
+def _progress_bar(total: int, unit: str):
+    """A tqdm bar on stderr when stderr is a terminal (None otherwise: log lines instead)."""
+    import sys
+
+    if not (hasattr(sys.stderr, "isatty") and sys.stderr.isatty()):
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit=unit, file=sys.stderr, dynamic_ncols=True, leave=True)
 
 
 @dataclass
@@ -358,6 +379,7 @@ def run_slam(
     progress: bool = True,
     frontend: Optional[Frontend] = None,
     on_summary: Optional[Callable[[RunSummary], None]] = None,
+    rerun: Optional[str] = None,
 ) -> RunSummary:
     """Run SLAM over ``dataset`` with ``config`` and write the outputs into ``out_dir``.
 
@@ -369,6 +391,8 @@ def run_slam(
         frontend: use this frontend instead of building ``config.frontend`` (tests, custom frontends).
         on_summary: called with the summary once the outputs are written, also when the run then
             raises (the command line prints its report there).
+        rerun: log the run to rerun: a ``.rrd`` file, or ``live`` for a running viewer
+            (:mod:`fgslam.export.rerun`; the rerun SDK is an optional extra).
 
     Returns:
         The :class:`RunSummary` also written to ``summary.json``.
@@ -397,6 +421,7 @@ def run_slam(
         from .backend.plugins import with_plugins
 
         frontend = with_plugins(frontend, config.factors, dataset.timestamps)
+    frontend = _with_rerun(frontend, rerun, dataset, config)
     load_average = [round(v, 2) for v in os.getloadavg()]
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
     state = _RunState()
@@ -431,6 +456,15 @@ def run_slam(
     if summary.output_errors:
         raise OutputError(f"the run finished but {written}")
     return summary
+
+
+def _with_rerun(frontend: Frontend, target: Optional[str], dataset: Dataset, config: SlamConfig) -> Frontend:
+    """The frontend logging to rerun when ``target`` is given (fgslam/export/rerun.py), else itself."""
+    if not target:
+        return frontend
+    from .export.rerun import with_rerun
+
+    return with_rerun(frontend, target, dataset.calibration, config.output.rerun)
 
 
 def _outputs_text(out: Path, summary: RunSummary) -> str:
