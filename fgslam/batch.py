@@ -83,10 +83,6 @@ class BatchMatrix:
     out: str = ""  # output folder (default: beside the matrix file, named after it)
 
     def validate(self) -> None:
-        if not self.configs:
-            raise ConfigError("configs: the matrix needs at least one config")
-        if not self.datasets:
-            raise ConfigError("datasets: the matrix needs at least one dataset")
         self.configs = {k: _entry(ConfigEntry, "preset", v, f"configs.{k}.") for k, v in self.configs.items()}
         self.datasets = {k: _entry(DatasetEntry, "path", v, f"datasets.{k}.") for k, v in self.datasets.items()}
         for name in list(self.configs) + list(self.datasets):
@@ -118,6 +114,9 @@ def load_matrix(path: str | Path) -> tuple[BatchMatrix, Path]:
     if not path.is_file():
         raise ConfigError(f"{path}: no such matrix file")
     matrix = from_dict(BatchMatrix, read_yaml(path), source=str(path))
+    for key in ("configs", "datasets"):
+        if not getattr(matrix, key):
+            raise ConfigError(f"{path}: {key}: the matrix needs at least one entry")
     base = path.parent.resolve()
     for entry in matrix.datasets.values():
         entry.path = str((base / entry.path).resolve()) if not Path(entry.path).is_absolute() else entry.path
@@ -239,6 +238,7 @@ def run_batch(matrix: BatchMatrix, out: Path, options: BatchOptions | None = Non
     ``use_ray``: None = Ray when installed; False = one after another in this process; True = Ray
     (ConfigError when it is not installed)."""
     options = options or BatchOptions()
+    matrix.validate()
     cells = cells_of(matrix, out)
     check_cells(cells)
     out.mkdir(parents=True, exist_ok=True)

@@ -100,7 +100,7 @@ def test_unknown_matrix_keys_are_named(tmp_path, clip):
     with pytest.raises(ConfigError, match=r"unknown key 'configs\.a\.overides'"):
         load_matrix(tmp_path / "m2.yaml")
     (tmp_path / "m3.yaml").write_text("configs: {a: patch_mono}\ndatasets: {}\n")
-    with pytest.raises(ConfigError, match="at least one dataset"):
+    with pytest.raises(ConfigError, match="datasets: the matrix needs at least one entry"):
         load_matrix(tmp_path / "m3.yaml")
     # a bad override fails the batch before any cell runs, naming the cell
     matrix, out = load_matrix(_matrix(tmp_path, clip))
