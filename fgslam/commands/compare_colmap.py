@@ -56,8 +56,7 @@ def run(args: argparse.Namespace) -> int:
         if args.features < 16:
             raise ConfigError(f"--features must be at least 16 (got {args.features})")
         cfg = replace(cfg, colmap=replace(cfg.colmap, max_num_features=args.features))
-    report = compare_colmap(dataset, config, out, cfg, progress=not args.no_progress)
-    report["fgslam"]["preset"] = preset
+    report = compare_colmap(dataset, config, out, cfg, progress=not args.no_progress, preset=preset)
     if args.json:
         print(json.dumps(report, default=float))
     else:
@@ -70,7 +69,7 @@ def format_report(r: dict) -> str:
     fmt = lambda v: "-" if v is None else f"{v:.4f} m"  # noqa: E731
     lines = [
         f"{r['dataset']['path']} ({r['dataset']['format']}, {r['dataset']['frames']} frames, load {r['load_average_start']})",
-        f"  fgslam: {fg['wall_s']:.1f} s wall ({fg['cpu_s']:.1f} s CPU), {fg['registered_frames']} frames posed, "
+        f"  fgslam ({fg['preset']}): {fg['wall_s']:.1f} s wall ({fg['cpu_s']:.1f} s CPU), {fg['registered_frames']} frames posed, "
         f"{fg['points']} points, ATE {fmt(fg.get('ate_m'))} (on COLMAP's frames {fmt(fg.get('ate_on_colmap_frames_m'))})",
         f"  COLMAP: {cm['wall_s']:.1f} s wall ({cm['cpu_s']:.1f} s CPU), {cm['registered_frames']} frames registered "
         f"({cm['models']} models), {cm['points']} points, ATE {fmt(cm.get('ate_m'))}",

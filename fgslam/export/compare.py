@@ -101,7 +101,7 @@ def write_frames(dataset, image_dir: Path) -> dict[str, float]:
 
 
 def compare_colmap(dataset, slam_config, out: Path, config: CompareConfig | None = None,
-                   progress: bool = True) -> dict[str, Any]:
+                   progress: bool = True, preset: str = "") -> dict[str, Any]:
     """Run fgslam and COLMAP on ``dataset`` (monocular), write ``compare.json`` and ``compare.png``
     into ``out`` and return the report (see the module docstring)."""
     import os
@@ -129,7 +129,7 @@ def compare_colmap(dataset, slam_config, out: Path, config: CompareConfig | None
                     "groundtruth": gt is not None},
         "load_average_start": load,
         "frame_writing_s": write_s,
-        "fgslam": {"config": slam_config.frontend, "wall_s": summary.wall_s, "cpu_s": summary.cpu_s,
+        "fgslam": {"frontend": slam_config.frontend, "preset": preset, "wall_s": summary.wall_s, "cpu_s": summary.cpu_s,
                    "registered_frames": summary.frames_with_pose, "keyframes": summary.keyframes},
         "colmap": {"wall_s": sfm.seconds["total"], "cpu_s": sfm.cpu_seconds, "stages_s": sfm.seconds,
                    "models": sfm.models, "registered_frames": 0 if sfm.model is None else len(sfm.model.names),
