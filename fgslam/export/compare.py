@@ -43,6 +43,7 @@ class CompareConfig:
 
     colmap: ColmapSfmConfig = field(default_factory=ColmapSfmConfig)
     max_cloud_points: int = ranged(200000, ge=100)  # clouds are subsampled (evenly) to this many points for the distances
+    max_point_range_factor: float = ranged(10.0, gt=0)  # cloud metrics leave out points farther from every camera of their run than this x the cloud's median such distance
 
 
 PRESET_BY_FORMAT = {"kitti": "patch_kitti_mono", "7scenes": "patch_7scenes_mono", "euroc": "patch_euroc_mono"}
@@ -80,6 +81,32 @@ def _subsample(X: np.ndarray, n: int) -> np.ndarray:
     if X.shape[0] <= n:
         return X
     return X[np.linspace(0, X.shape[0] - 1, n).astype(np.int64)]
+
+
+def compare_clouds(fg_cloud: np.ndarray, cm_cloud: np.ndarray, fg_centres: np.ndarray, cm_centres: np.ndarray,
+                   config: "CompareConfig", frame: str) -> dict[str, Any]:
+    """Accuracy and completion of fgslam's cloud against COLMAP's, both in one frame, each cloud
+    without its points farther from every camera of its own run than ``max_point_range_factor``
+    times the median such distance of the cloud (far points: near-zero inverse depths, sky),
+    counted in the report."""
+    from scipy.spatial import cKDTree
+
+    kept, limits = {}, {}
+    for name, cloud, centres in (("fgslam", fg_cloud, fg_centres), ("colmap", cm_cloud, cm_centres)):
+        cloud = cloud[np.all(np.isfinite(cloud), axis=1)]
+        if len(cloud) and len(centres):
+            dist = cKDTree(centres).query(cloud)[0]
+            limits[name] = float(config.max_point_range_factor * np.median(dist))
+            near = dist <= limits[name]
+        else:
+            near = np.zeros(len(cloud), bool)
+        kept[name] = (cloud[near], int((~near).sum()))
+    d = cloud_distances(_subsample(kept["fgslam"][0], config.max_cloud_points),
+                        _subsample(kept["colmap"][0], config.max_cloud_points))
+    return {"frame": frame, "fgslam_against_colmap": d, "range_limits": limits,
+            "far_points_left_out": {"fgslam": kept["fgslam"][1], "colmap": kept["colmap"][1]},
+            "note": "accuracy: fgslam points to the nearest COLMAP point; completion: COLMAP points to the nearest "
+                    "fgslam point (COLMAP against fgslam swaps the two)"}
 
 
 def _apply(alignment, X: np.ndarray) -> np.ndarray:
@@ -173,28 +200,22 @@ def compare_colmap(dataset, slam_config, out: Path, config: CompareConfig | None
         report["ate_ratio"] = report["fgslam"]["ate_m"] / max(report["colmap"]["ate_m"], 1e-12)
 
     # point clouds in one frame: the ground truth's (each aligned by its own trajectory), else COLMAP's
-    frame_name = None
-    fg_cloud = cm_cloud = None
+    report["clouds"] = None
     if "fgslam" in results and "colmap" in results:
-        fg_cloud, cm_cloud = _apply(results["fgslam"].alignment, fg_points), _apply(results["colmap"].alignment, cm_points)
-        frame_name = "ground truth (each run aligned by its own Sim(3) trajectory alignment)"
+        a_fg, a_cm = results["fgslam"].alignment, results["colmap"].alignment
+        report["clouds"] = compare_clouds(
+            _apply(a_fg, fg_points), _apply(a_cm, cm_points), _apply(a_fg, fg_traj.t_WC), _apply(a_cm, cm_traj.t_WC),
+            config, "ground truth (each run aligned by its own Sim(3) trajectory alignment)")
     elif fg_traj is not None and cm_traj is not None:
         t_fg, t_cm = np.round(fg_traj.timestamps, 6), np.round(cm_traj.timestamps, 6)
         both, i_fg, i_cm = np.intersect1d(t_fg, t_cm, return_indices=True)
         if both.size >= 3:
             try:
                 a = umeyama(fg_traj.t_WC[i_fg], cm_traj.t_WC[i_cm], with_scale=True)
-                fg_cloud, cm_cloud = _apply(a, fg_points), cm_points
-                frame_name = "COLMAP's (fgslam aligned by Sim(3) on the frames both registered)"
+                report["clouds"] = compare_clouds(
+                    _apply(a, fg_points), cm_points, _apply(a, fg_traj.t_WC), cm_traj.t_WC, config, "COLMAP's (fgslam aligned by Sim(3) on the frames both registered)")
             except EvaluationError as exc:
                 logger.warning("cannot align the clouds: %s", exc)
-    if fg_cloud is not None:
-        d = cloud_distances(_subsample(fg_cloud, config.max_cloud_points), _subsample(cm_cloud, config.max_cloud_points))
-        report["clouds"] = {"frame": frame_name, "fgslam_against_colmap": d,
-                            "note": "accuracy: fgslam points to the nearest COLMAP point; completion: COLMAP points "
-                                    "to the nearest fgslam point (COLMAP against fgslam swaps the two)"}
-    else:
-        report["clouds"] = None
 
     report["outputs"] = {"json": str(out / COMPARE_JSON)}
     try:
