@@ -16,7 +16,7 @@ from . import __version__
 from .errors import FGSlamError
 
 #: Subcommands in the order ``fgslam --help`` lists them.
-COMMANDS: tuple[str, ...] = ("run", "demo", "synth", "info", "eval", "pgo")
+COMMANDS: tuple[str, ...] = ("run", "demo", "synth", "info", "eval", "pgo", "export", "compare-colmap", "batch")
 
 _LOG_FORMAT = "%(asctime)s %(levelname).1s %(name)s: %(message)s"
 
@@ -33,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMANDS:
-        module = importlib.import_module(f".commands.{name}", __package__)
+        module = importlib.import_module(f".commands.{name.replace('-', '_')}", __package__)
         cmd = sub.add_parser(name, help=module.HELP, description=module.HELP)
         module.add_arguments(cmd)
         cmd.set_defaults(_run=module.run)

@@ -65,6 +65,7 @@ from .backend.imu import ImuServiceConfig
 from .config import check_ranges, ranged, to_dict, with_sections
 from .errors import ConfigError, DataError, EvaluationError, FGSlamError, Interrupted
 from .eval import EvalConfig, EvalResult, evaluate
+from .export.rerun import RerunConfig
 from .frontends import FRONTEND_NAMES, family_config_classes
 from .frontends.base import FrameStatus, Frontend
 from .io.datasets import Dataset, DatasetConfig, open_dataset
@@ -82,6 +83,7 @@ KITTI_TIMES_FILE = "trajectory_kitti_times.txt"
 SUMMARY_FILE = "summary.json"
 PLOT_FILE = "trajectory.png"
 PLY_FILE = "points.ply"
+MAP_FILE = "map.npz"  # fgslam.export.map.MAP_FILE
 
 BYTES_PER_KIB = 1024  # ru_maxrss is in KiB on Linux
 BYTES_PER_MIB = 1024 * 1024
@@ -106,6 +108,8 @@ class OutputConfig:
     plot_plane: Literal["auto", "xy", "xz", "yz"] = "auto"
     write_ply: bool = False  # write points.ply from the frontend's keyframe points (when it provides them)
     write_depth: bool = False  # write depth/<kf:06d>.png per keyframe (16-bit, millimetres; frontends with keyframe_depths(): dense)
+    write_map: bool = True  # write map.npz (keyframes, points, tracks, calibration, frames) for `fgslam export`
+    rerun: RerunConfig = field(default_factory=RerunConfig)  # what `fgslam run --rerun out.rrd` logs (fgslam/export/rerun.py)
 
 
 @dataclass
@@ -303,15 +307,23 @@ class RunSummary:
 
 
 class _Progress:
-    """Progress lines on the module logger at most every ``every_frames`` frames or ``every_s`` s."""
+    """A progress bar (tqdm) on stderr when it is a terminal, else progress lines on the module
+    logger at most every ``every_frames`` frames or ``every_s`` s."""
 
     def __init__(self, total: int, every_frames: int, every_s: float, enabled: bool) -> None:
         self.total, self.every_frames, self.every_s, self.enabled = total, every_frames, every_s, enabled
         self.t0 = time.perf_counter()
         self.last_t, self.last_n = self.t0, 0
+        self.bar = _progress_bar(total, "frames") if enabled else None
 
     def update(self, n: int, keyframes: int, failures: int, force: bool = False) -> None:
         if not self.enabled:
+            return
+        if self.bar is not None:
+            self.bar.update(n - self.bar.n)
+            self.bar.set_postfix(keyframes=keyframes, failures=failures, refresh=False)
+            if force:
+                self.bar.close()
             return
         now = time.perf_counter()
         if not force and n - self.last_n < self.every_frames and now - self.last_t < self.every_s:
@@ -325,6 +337,17 @@ class _Progress:
             "frame %d/%d (%.0f%%)  %.1f frames/s  %d keyframes  %d failures  ETA %s",
             n, self.total, 100.0 * n / max(self.total, 1), fps, keyframes, failures, eta_txt,
         )
+
+
+def _progress_bar(total: int, unit: str):
+    """A tqdm bar on stderr when stderr is a terminal (None otherwise: log lines instead)."""
+    import sys
+
+    if not (hasattr(sys.stderr, "isatty") and sys.stderr.isatty()):
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit=unit, file=sys.stderr, dynamic_ncols=True, leave=True)
 
 
 @dataclass
@@ -344,6 +367,7 @@ class _RunState:
     max_frame_s: float = 0.0  # longest frontend.process() call
     wall_s: float = 0.0
     cpu_s: float = 0.0
+    frame_paths: dict[int, str] = field(default_factory=dict)  # dataset index -> image path (map.npz)
 
 
 def _cpu_seconds() -> float:
@@ -359,6 +383,7 @@ def run_slam(
     progress: bool = True,
     frontend: Optional[Frontend] = None,
     on_summary: Optional[Callable[[RunSummary], None]] = None,
+    rerun: Optional[str] = None,
 ) -> RunSummary:
     """Run SLAM over ``dataset`` with ``config`` and write the outputs into ``out_dir``.
 
@@ -370,6 +395,8 @@ def run_slam(
         frontend: use this frontend instead of building ``config.frontend`` (tests, custom frontends).
         on_summary: called with the summary once the outputs are written, also when the run then
             raises (the command line prints its report there).
+        rerun: log the run to rerun: a ``.rrd`` file, or ``live`` for a running viewer
+            (:mod:`fgslam.export.rerun`; the rerun SDK is an optional extra).
 
     Returns:
         The :class:`RunSummary` also written to ``summary.json``.
@@ -399,6 +426,7 @@ def run_slam(
         from .backend.plugins import with_plugins
 
         frontend = with_plugins(frontend, config.factors, dataset.timestamps)
+    frontend = _with_rerun(frontend, rerun, dataset, config)
     load_average = [round(v, 2) for v in os.getloadavg()]
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
     state = _RunState()
@@ -444,6 +472,13 @@ def _with_imu(frontend: Frontend, config: SlamConfig, dataset: Dataset) -> Front
 
     return with_imu(frontend, config.imu, dataset.calibration, dataset.has_imu, config.sensor,
                     getattr(dataset, "imu_noise", None), where=str(dataset.root))
+def _with_rerun(frontend: Frontend, target: Optional[str], dataset: Dataset, config: SlamConfig) -> Frontend:
+    """The frontend logging to rerun when ``target`` is given (fgslam/export/rerun.py), else itself."""
+    if not target:
+        return frontend
+    from .export.rerun import with_rerun
+
+    return with_rerun(frontend, target, dataset.calibration, config.output.rerun)
 
 
 def _outputs_text(out: Path, summary: RunSummary) -> str:
@@ -510,6 +545,7 @@ def _loop(
             t_frontend = time.perf_counter()
             state.read_s += t_frontend - t0
             state.frames_read += 1
+            state.frame_paths[frame.index] = "" if frame.path is None else str(frame.path)
             where = f"at frame {frame.index}" + (f" ({frame.path})" if frame.path is not None else "")
             status = frontend.process(frame)
             frame_s = time.perf_counter() - t_frontend
@@ -692,6 +728,8 @@ def _finalize(
     if points is not None:
         _write_output("ply", [out / PLY_FILE], lambda: _write_points(out / PLY_FILE, points), outputs, output_errors)
     _write_keyframe_depths(frontend, config, out, outputs, output_errors, notes)
+    if config.output.write_map:
+        _write_map(out / MAP_FILE, dataset, frontend, config, state, outputs, output_errors, notes)
     if config.output.plot and traj is not None:
         _write_output("plot", [out / PLOT_FILE], lambda: _plot(out / PLOT_FILE, gt, traj, result, config),
                       outputs, output_errors)
@@ -756,6 +794,29 @@ def _finalize(
     return summary, first_error
 
 
+def _write_map(path: Path, dataset: Dataset, frontend: Frontend, config: SlamConfig, state: _RunState,
+               outputs: dict[str, str], output_errors: dict[str, str], notes: list[str]) -> None:
+    """``map.npz`` for ``fgslam export``: the frontend's :meth:`~Frontend.map_export` with the
+    calibration of the images it saw and the run's frames (a frontend without a map: a note)."""
+    from .export.map import RunMap, save_run_map
+
+    try:
+        exported = frontend.map_export()
+    except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+        output_errors["map"] = f"{path.name}: map_export() failed: {type(exc).__name__}: {exc}"
+        logger.error("could not export the map: %s: %s", type(exc).__name__, exc)
+        return
+    if exported is None:
+        notes.append(f"frontend '{frontend.name}' exports no map: no {path.name} written")
+        return
+    c = dataset.calibration
+    indices = np.array(sorted(state.frame_paths), dtype=np.int64)
+    run_map = RunMap(exported, np.asarray(c.K, dtype=np.float64), int(c.width), int(c.height),
+                     dataset.timestamps[indices] if indices.size else np.zeros(0), indices,
+                     [state.frame_paths[int(i)] for i in indices], config.sensor)
+    _write_output("map", [path], lambda: save_run_map(path, run_map), outputs, output_errors)
+
+
 def _write_output(kind: str, paths: list[Path], write: Callable[[], Any], outputs: dict[str, str],
                   output_errors: dict[str, str]) -> bool:
     """Run ``write`` (which writes ``paths``); on any failure remove what it left (never a truncated
@@ -801,7 +862,7 @@ def _json_default(obj: Any) -> Any:
 def _plot(
     path: Path, gt: Optional[Trajectory], traj: Trajectory, result: Optional[EvalResult], config: SlamConfig
 ) -> Path:
-    from .io.plot import plot_trajectories
+    from .io.plot import plot_trajectories, pose_errors
 
     est = traj if result is None else result.aligned_est
     plane = config.output.plot_plane
@@ -812,7 +873,8 @@ def _plot(
                  f"({result.align}, {result.n_matched} poses)")
     else:
         title = f"{config.frontend} {config.sensor}: estimate ({len(traj)} poses, no ground truth)"
-    return plot_trajectories(path, gt, est, title=title, plane=plane)
+    errors = None if result is None else {"estimate": pose_errors(result.matched_gt, result.aligned_est)}
+    return plot_trajectories(path, gt, est, title=title, plane=plane, errors=errors)
 
 
 def _auto_plane(traj: Trajectory) -> str:
@@ -860,25 +922,9 @@ def _write_keyframe_depths(frontend: Frontend, config: SlamConfig, out: Path, ou
 
 def _write_points(path: Path, points: tuple[np.ndarray, np.ndarray]) -> Path:
     """Binary little-endian PLY of the finite points ``(X_W (N, 3), colour (N, 3) uint8)``."""
-    X_W, colour = points
-    X_W = np.asarray(X_W, dtype=np.float32).reshape(-1, 3)
-    colour = np.asarray(colour, dtype=np.uint8).reshape(-1, 3)
-    keep = np.all(np.isfinite(X_W), axis=1)
-    X_W, colour = X_W[keep], colour[keep]
-    vertex = np.empty(X_W.shape[0], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                            ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    for i, name in enumerate("xyz"):
-        vertex[name] = X_W[:, i]
-    for i, name in enumerate(("red", "green", "blue")):
-        vertex[name] = colour[:, i]
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              f"element vertex {vertex.shape[0]}\n"
-              "property float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(vertex.tobytes())
-    return path
+    from .export.ply import write_ply
+
+    return write_ply(path, points[0], points[1])
 
 
 # ----------------------------------------------------------------------------------------- threads

@@ -195,6 +195,10 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.loop.bow:VocabularyTrainingConfig",
     "fgslam.backend.plugins:PositionPriorOptions",
     "fgslam.backend.plugins:PlanarMotionOptions",
+    "fgslam.export.colmap:ColmapExportConfig",
+    "fgslam.export.compare:CompareConfig",
+    "fgslam.batch:BatchMatrix",
+    "fgslam.batch:BatchOptions",
 )
 
 

@@ -74,12 +74,13 @@ def run(args: argparse.Namespace) -> int:
     plot_error = None
     if args.plot:
         from ..errors import DataError
-        from ..io.plot import plot_trajectories
+        from ..io.plot import plot_trajectories, pose_errors
 
         plane = args.plane or ("xz" if gt_format == "kitti" else "xy")
         title = f"ATE {result.ate.rmse:.3f} m ({config.align}, {result.n_matched} poses)"
         try:
-            plot_trajectories(args.plot, gt, result.aligned_est, title=title, plane=plane)
+            plot_trajectories(args.plot, gt, result.aligned_est, title=title, plane=plane,
+                              errors={"estimate": pose_errors(result.matched_gt, result.aligned_est)})
         except DataError as exc:  # the results are still printed, then the error
             plot_error = exc
 

@@ -23,7 +23,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--format", default="auto", choices=FORMAT_CHOICES, help="dataset loader (default: detect)")
     parser.add_argument("-o", "--override", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a SlamConfig field, e.g. -o sensor=rgbd -o dataset.end=100 (repeatable)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar or lines on stderr")
+    parser.add_argument("--rerun", metavar="OUT.rrd", default=None,
+                        help="log frames, poses, keyframe points and loop edges to a rerun file (or 'live': a running "
+                             "viewer); needs the optional extra fgslam[rerun]")
     parser.add_argument("--json", action="store_true", help="print the run summary as one JSON object")
 
 
@@ -31,13 +34,17 @@ def run(args: argparse.Namespace) -> int:
     from ..slam import load_slam_config, open_slam_dataset, prepare_output_dir, run_slam
 
     config = load_slam_config(args.config, args.overrides)
+    if args.rerun:
+        from ..export.rerun import check_rerun_target
+
+        check_rerun_target(args.rerun)
     prepare_output_dir(args.out, args.data)  # before any work: writable, not the dataset folder nor inside it
     dataset = open_slam_dataset(args.data, config, args.format)
 
     def report(summary) -> None:  # also when the run then fails or is interrupted (the error line follows)
         print(json.dumps(summary.to_dict(), default=str) if args.json else format_report(summary.to_dict()), flush=True)
 
-    run_slam(dataset, config, args.out, progress=not args.no_progress, on_summary=report)
+    run_slam(dataset, config, args.out, progress=not args.no_progress, on_summary=report, rerun=args.rerun)
     return 0
 
 

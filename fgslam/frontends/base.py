@@ -89,3 +89,21 @@ class Frontend(abc.ABC):
         """Optional loop-closure counts for ``summary.json`` (loops verified / accepted, corrections
         applied, relocalisations, ...); None when the frontend runs no loop closure."""
         return None
+
+    def map_export(self):
+        """The map a run saves for ``fgslam export`` (:class:`fgslam.export.map.MapExport`: keyframe
+        ids, timestamps, rigid ``T_WC``, points with colour and tracks), or None.
+
+        Default: the points of :meth:`keyframe_points` without tracks, and the keyframes of the
+        frontend's backend (``self.backend``) when it has one; None without points. Frontends that
+        know which keyframe pixels observe each point override it (the patch frontend: its patches)."""
+        points = self.keyframe_points()
+        if points is None:
+            return None
+        from ..export.map import MapExport, rigid_poses
+
+        backend = getattr(self, "backend", None)
+        kf_ids = [] if backend is None else sorted(backend.keyframe_ids)
+        T_WC = rigid_poses(np.stack([backend.pose_matrix(k) for k in kf_ids])) if kf_ids else np.zeros((0, 4, 4))
+        stamps = [backend.timestamp(k) for k in kf_ids]
+        return MapExport(kf_ids, stamps, T_WC, points[0], points[1])

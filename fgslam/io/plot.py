@@ -14,6 +14,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import DataError
 from .trajectory import Trajectory
 
@@ -22,6 +24,11 @@ logger = logging.getLogger(__name__)
 PLANES = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
 FIGURE_SIZE_IN = (7.0, 6.0)  # inches
 FIGURE_DPI = 120
+
+
+def pose_errors(matched_gt: Trajectory, aligned_est: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+    """``(timestamps, translation errors)`` of associated, aligned trajectories (the ATE's terms)."""
+    return aligned_est.timestamps, np.linalg.norm(matched_gt.t_WC - aligned_est.t_WC, axis=1)
 
 
 def check_plot_path(path_png: str | Path) -> Path:
@@ -48,17 +55,27 @@ def check_plot_path(path_png: str | Path) -> Path:
     return path
 
 
+ERROR_FIGURE_SIZE_IN = (12.0, 5.5)  # inches, with the error-over-time panel
+COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
+
+
 def plot_trajectories(
     path_png: str | Path,
     gt: Trajectory | None,
     est: Trajectory,
     title: str = "",
     plane: str = "xz",
+    others: dict[str, Trajectory] | None = None,
+    errors: dict[str, Trajectory | tuple] | None = None,
+    label: str = "estimate",
 ) -> Path:
-    """Draw ``est`` (and ``gt`` when given) seen on ``plane`` and save a PNG at ``path_png``.
+    """Draw ``est`` (and ``gt`` when given, and ``others`` by label) seen on ``plane`` and save a
+    PNG at ``path_png``.
 
-    Both trajectories are drawn as given: align the estimate first (``fgslam.eval``) to overlay
-    it on the ground truth. Start points are marked with a circle. Returns the written path.
+    Every trajectory is drawn as given: align the estimates first (``fgslam.eval``) to overlay
+    them on the ground truth. Start points are marked with a circle. With ``errors`` (label ->
+    ``(timestamps, errors in metres)``) a second panel shows the translation error over time (the
+    ATE's per-pose errors). Returns the written path.
 
     Raises:
         DataError: unknown plane, a destination :func:`check_plot_path` refuses, or the file
@@ -72,14 +89,15 @@ def plot_trajectories(
     from matplotlib.figure import Figure
 
     a, b = PLANES[plane]
-    fig = Figure(figsize=FIGURE_SIZE_IN, dpi=FIGURE_DPI)
+    fig = Figure(figsize=ERROR_FIGURE_SIZE_IN if errors else FIGURE_SIZE_IN, dpi=FIGURE_DPI)
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
+    ax = fig.add_subplot(1, 2 if errors else 1, 1)
     if gt is not None:
         ax.plot(gt.t_WC[:, a], gt.t_WC[:, b], color="0.4", linestyle="--", linewidth=1.2, label="ground truth")
         ax.plot(gt.t_WC[0, a], gt.t_WC[0, b], "o", color="0.4")
-    ax.plot(est.t_WC[:, a], est.t_WC[:, b], color="tab:blue", linewidth=1.2, label="estimate")
-    ax.plot(est.t_WC[0, a], est.t_WC[0, b], "o", color="tab:blue")
+    for (name, traj), colour in zip({label: est, **(others or {})}.items(), COLOURS):
+        ax.plot(traj.t_WC[:, a], traj.t_WC[:, b], color=colour, linewidth=1.2, label=name)
+        ax.plot(traj.t_WC[0, a], traj.t_WC[0, b], "o", color=colour)
     ax.set_xlabel(f"{plane[0]} [m]")
     ax.set_ylabel(f"{plane[1]} [m]")
     ax.set_aspect("equal", adjustable="datalim")
@@ -87,6 +105,16 @@ def plot_trajectories(
     ax.legend(loc="best")
     if title:
         ax.set_title(title)
+    if errors:
+        ax2 = fig.add_subplot(1, 2, 2)
+        for (name, (t, e)), colour in zip(errors.items(), COLOURS):
+            t = np.asarray(t, dtype=np.float64)
+            ax2.plot(t - t[0] if t.size else t, e, color=colour, linewidth=1.0, label=name)
+        ax2.set_xlabel("time [s]")
+        ax2.set_ylabel("translation error after alignment [m]")
+        ax2.grid(True, linewidth=0.5, alpha=0.5)
+        ax2.legend(loc="best")
+        ax2.set_title("error over time")
     fig.tight_layout()
     try:
         if not path.parent.exists():

@@ -1,0 +1,365 @@
+"""``fgslam batch MATRIX.yaml``: runs a matrix of configs x datasets and collects one table.
+
+A matrix file (every key optional but ``configs`` and ``datasets``; an unknown key is an error
+naming it)::
+
+    configs:                       # name -> preset / YAML file (+ overrides), or just the preset
+      mono: patch_mono
+      light: {preset: patch_mono, overrides: [patch.graph.patches_per_frame=48]}
+    datasets:                      # name -> folder (+ format, overrides), or just the folder
+      room: data/room              # relative paths: from the matrix file's folder
+      kitti: {path: ../shared/data/kitti00_0-199, format: kitti, overrides: [dataset.end=100]}
+    overrides: [output.plot=false] # for every cell (before the config's and the dataset's own)
+    cpus: 1                        # CPUs of each cell: its Ray resource request and its `threads`
+    out: runs/batch                # default: <matrix folder>/<matrix name>
+
+Each cell (config, dataset) is one ``fgslam run`` into ``OUT/<config>/<dataset>/``. With Ray
+(an optional extra) each cell is one Ray task with ``cpus`` CPUs on a local Ray instance
+(``workers`` cells at a time) or on the cluster at ``address``; Ray schedules them (no scheduler
+of fgslam's own). Without Ray the cells run one after another in this process (said in the log).
+A failing cell records its error in the table and never stops the batch; a cell whose folder
+already holds a successful ``summary.json`` is not run again (its summary is read back), so
+running a batch again completes what failed or is missing.
+
+Outputs in ``OUT``: ``batch.json`` (every cell's row), ``batch.csv`` and ``batch.md`` (a Markdown
+table of ATE and frames/s per cell).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import os
+import socket
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+from .config import from_dict, ranged, read_yaml
+from .errors import ConfigError, DataError
+
+logger = logging.getLogger(__name__)
+
+BATCH_JSON = "batch.json"
+BATCH_CSV = "batch.csv"
+BATCH_MD = "batch.md"
+SUMMARY_FILE = "summary.json"
+COLUMNS = ("config", "dataset", "status", "ate_m", "align", "ate_percent", "fps", "frames", "frames_with_pose",
+           "keyframes", "wall_s", "cpu_s", "skipped", "error", "out")
+
+
+@dataclass
+class ConfigEntry:
+    """One row of the matrix: a preset name or YAML file and its overrides."""
+
+    preset: str = "patch_mono"  # preset name or YAML path (relative: from the matrix file)
+    overrides: list[str] = field(default_factory=list)  # -o key=value of this config
+
+
+@dataclass
+class DatasetEntry:
+    """One column of the matrix: a dataset folder, its loader and overrides."""
+
+    path: str = ""  # dataset folder (relative: from the matrix file)
+    format: str = "auto"  # loader (auto-detected by default)
+    overrides: list[str] = field(default_factory=list)  # -o key=value for runs on this dataset
+
+    def validate(self) -> None:
+        if not self.path:
+            raise ConfigError("path: a dataset needs a path")
+
+
+@dataclass
+class BatchMatrix:
+    """The matrix file (see the module docstring)."""
+
+    configs: dict[str, Any] = field(default_factory=dict)  # name -> ConfigEntry mapping, or a preset name
+    datasets: dict[str, Any] = field(default_factory=dict)  # name -> DatasetEntry mapping, or a folder
+    overrides: list[str] = field(default_factory=list)  # for every cell
+    cpus: int = ranged(1, ge=1)  # CPUs per cell (Ray resources; the run's `threads`)
+    out: str = ""  # output folder (default: beside the matrix file, named after it)
+
+    def validate(self) -> None:
+        self.configs = {k: _entry(ConfigEntry, "preset", v, f"configs.{k}.") for k, v in self.configs.items()}
+        self.datasets = {k: _entry(DatasetEntry, "path", v, f"datasets.{k}.") for k, v in self.datasets.items()}
+        for name in list(self.configs) + list(self.datasets):
+            if not name or "/" in name or name.startswith("."):
+                raise ConfigError(f"cell names become folder names: {name!r} is not a valid one")
+
+
+def _entry(cls, main_key: str, value: Any, prefix: str):
+    """A matrix entry from a mapping (unknown keys named) or the shorthand of its main key."""
+    if isinstance(value, (str, Path)):
+        return cls(**{main_key: str(value)})
+    if isinstance(value, cls):
+        return value
+    return from_dict(cls, value, source="matrix", prefix=prefix)
+
+
+@dataclass
+class BatchOptions:
+    """How ``fgslam batch`` runs its cells."""
+
+    workers: int = ranged(2, ge=1)  # local Ray: CPUs given to the instance = workers x cpus
+    connect_timeout_s: float = ranged(5.0, gt=0)  # an unreachable --address fails after this long
+    object_store_mb: int = ranged(128, ge=80)  # local Ray's object store (cells return small dicts)
+
+
+def load_matrix(path: str | Path) -> tuple[BatchMatrix, Path]:
+    """The matrix at ``path`` with relative paths resolved against its folder; and its output folder."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such matrix file")
+    matrix = from_dict(BatchMatrix, read_yaml(path), source=str(path))
+    for key in ("configs", "datasets"):
+        if not getattr(matrix, key):
+            raise ConfigError(f"{path}: {key}: the matrix needs at least one entry")
+    base = path.parent.resolve()
+    for entry in matrix.datasets.values():
+        entry.path = str((base / entry.path).resolve()) if not Path(entry.path).is_absolute() else entry.path
+    for entry in matrix.configs.values():
+        candidate = base / entry.preset
+        if entry.preset.endswith((".yaml", ".yml")) and not Path(entry.preset).is_absolute():
+            entry.preset = str(candidate.resolve())
+    out = Path(matrix.out) if matrix.out else base / path.stem
+    if not out.is_absolute():
+        out = (base / out).resolve()
+    return matrix, out
+
+
+def cells_of(matrix: BatchMatrix, out: Path) -> list[dict[str, Any]]:
+    """One plain dict per cell (what a Ray task receives)."""
+    cells = []
+    for cname, c in matrix.configs.items():
+        for dname, d in matrix.datasets.items():
+            cells.append({
+                "config": cname, "dataset": dname, "preset": c.preset, "data": d.path, "format": d.format,
+                "overrides": [f"threads={matrix.cpus}", *matrix.overrides, *c.overrides, *d.overrides],
+                "out": str(out / cname / dname),
+            })
+    return cells
+
+
+def check_cells(cells: list[dict[str, Any]]) -> None:
+    """Load every cell's config before anything runs: a bad key fails the batch at once, naming the
+    cell (a missing dataset folder does not: that cell fails and the others run)."""
+    from .slam import load_slam_config
+
+    for cell in cells:
+        try:
+            load_slam_config(cell["preset"], cell["overrides"])
+        except ConfigError as exc:
+            raise ConfigError(f"cell {cell['config']} x {cell['dataset']}: {exc}") from exc
+
+
+def finished_row(cell: dict[str, Any]) -> Optional[dict[str, Any]]:
+    """The row of a cell whose folder holds a successful summary (None: run it)."""
+    path = Path(cell["out"]) / SUMMARY_FILE
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if summary.get("error") or summary.get("output_errors"):
+        return None
+    return _row(cell, summary, skipped=True)
+
+
+def _row(cell: dict[str, Any], summary: Optional[dict[str, Any]], skipped: bool = False, error: str = "") -> dict[str, Any]:
+    row = {k: None for k in COLUMNS}
+    row.update(config=cell["config"], dataset=cell["dataset"], out=cell["out"], skipped=skipped, error=error or None)
+    if summary is not None:
+        ev = summary.get("evaluation") or {}
+        row.update(ate_m=ev.get("ate_rmse_m"), align=ev.get("align"), ate_percent=ev.get("ate_percent_of_path"),
+                   fps=summary.get("fps"), frames=summary.get("frames_processed"),
+                   frames_with_pose=summary.get("frames_with_pose"), keyframes=summary.get("keyframes"),
+                   wall_s=summary.get("wall_s"), cpu_s=summary.get("cpu_s"))
+        row["error"] = row["error"] or summary.get("error")
+    row["status"] = "failed" if row["error"] else "ok"
+    return row
+
+
+def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
+    """Run one cell (in a Ray worker or in this process); never raises: a failure is the row's error."""
+    from .slam import load_slam_config, open_slam_dataset, run_slam
+
+    summary = None
+    try:
+        config = load_slam_config(cell["preset"], cell["overrides"])
+        dataset = open_slam_dataset(cell["data"], config, cell["format"])
+        result = run_slam(dataset, config, cell["out"], progress=False)
+        summary = result.to_dict()
+        return _row(cell, json.loads(json.dumps(summary, default=str)))
+    except Exception as exc:  # noqa: BLE001 - a failing cell is recorded, the batch goes on
+        path = Path(cell["out"]) / SUMMARY_FILE
+        try:
+            summary = json.loads(path.read_text()) if path.is_file() else None
+        except (OSError, ValueError):
+            summary = None
+        return _row(cell, summary, error=f"{type(exc).__name__}: {exc}")
+
+
+# ----------------------------------------------------------------------------------------- running
+
+
+def ray_available() -> bool:
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def check_address(address: str, timeout_s: float) -> None:
+    """Fail within ``timeout_s`` when the Ray address ``host:port`` (or ``ray://host:port``) does not
+    accept connections (Ray's own connection attempts retry for minutes)."""
+    if address in ("auto", "local"):
+        return
+    target = address.split("://", 1)[-1]
+    host, _, port = target.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConfigError(f"--address {address!r}: expected host:port (or ray://host:port, or auto)")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        why = "timed out" if isinstance(exc, TimeoutError) or isinstance(exc, socket.timeout) else (exc.strerror or str(exc))
+        raise DataError(f"Ray cluster at {address} cannot be reached ({why} after at most {timeout_s:g} s); "
+                        "start it (`ray start --head`) or leave out --address for a local Ray") from exc
+
+
+def run_batch(matrix: BatchMatrix, out: Path, options: BatchOptions | None = None, address: str | None = None,
+              use_ray: bool | None = None, on_row: Callable[[dict[str, Any], int, int], None] | None = None,
+              ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Run every cell not finished yet; returns the rows (matrix order) and run facts (engine, times).
+
+    ``use_ray``: None = Ray when installed; False = one after another in this process; True = Ray
+    (ConfigError when it is not installed)."""
+    options = options or BatchOptions()
+    matrix.validate()
+    cells = cells_of(matrix, out)
+    check_cells(cells)
+    out.mkdir(parents=True, exist_ok=True)
+    rows: dict[int, dict[str, Any]] = {}
+    todo = []
+    for i, cell in enumerate(cells):
+        row = finished_row(cell)
+        if row is not None:
+            rows[i] = row
+        else:
+            todo.append(i)
+    if rows:
+        logger.info("%d of %d cells finished before: not run again", len(rows), len(cells))
+    have_ray = ray_available()
+    if use_ray and not have_ray:
+        raise ConfigError("Ray is not installed: install the extra (pip install 'fgslam[batch]') or run without --ray")
+    if address and not have_ray:
+        raise ConfigError(f"--address {address}: Ray is not installed (pip install 'fgslam[batch]')")
+    engine = "ray" if (use_ray if use_ray is not None else have_ray) else "sequential"
+    if engine == "sequential" and use_ray is None:
+        logger.warning("Ray is not installed: running the %d cells one after another (pip install 'fgslam[batch]' "
+                       "for parallel cells)", len(todo))
+    t0 = time.perf_counter()
+    done = len(rows)
+
+    def record(i: int, row: dict[str, Any]) -> None:
+        nonlocal done
+        rows[i] = row
+        done += 1
+        if row["status"] != "ok":
+            logger.warning("cell %s x %s failed: %s", row["config"], row["dataset"], row["error"])
+        if on_row is not None:
+            on_row(row, done, len(cells))
+
+    facts: dict[str, Any] = {"engine": engine, "cells": len(cells), "run": len(todo), "skipped": len(cells) - len(todo),
+                             "load_average_start": [round(v, 2) for v in os.getloadavg()]}
+    if engine == "ray" and todo:
+        facts.update(_run_ray(cells, todo, matrix.cpus, options, address, record))
+    else:
+        for i in todo:
+            record(i, run_cell(cells[i]))
+    facts["wall_s"] = time.perf_counter() - t0
+    ordered = [rows[i] for i in range(len(cells))]
+    write_tables(out, ordered, facts)
+    return ordered, facts
+
+
+def _run_ray(cells, todo, cpus, options: BatchOptions, address, record) -> dict[str, Any]:
+    import ray
+
+    if address:
+        check_address(address, options.connect_timeout_s)
+    started_here = not ray.is_initialized()
+    if started_here:
+        kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
+        if address:
+            kwargs["address"] = address
+        else:
+            kwargs.update(num_cpus=options.workers * cpus, object_store_memory=options.object_store_mb * 1024 * 1024)
+        t0 = time.perf_counter()
+        ray.init(**kwargs)
+        startup_s = time.perf_counter() - t0
+    else:
+        startup_s = 0.0
+    try:
+        task = ray.remote(num_cpus=cpus, max_retries=0)(run_cell)
+        pending = {task.remote(cells[i]): i for i in todo}
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for ref in ready:
+                i = pending.pop(ref)
+                try:
+                    row = ray.get(ref)
+                except Exception as exc:  # noqa: BLE001 - a worker that died (crash, out of memory): the cell's error
+                    row = _row(cells[i], None, error=f"Ray task failed: {type(exc).__name__}: {str(exc).splitlines()[0]}")
+                record(i, row)
+        resources = ray.cluster_resources()
+    finally:
+        if started_here:
+            ray.shutdown()
+    return {"ray_startup_s": startup_s, "ray_cpus": resources.get("CPU"), "address": address or "local"}
+
+
+# ----------------------------------------------------------------------------------------- tables
+
+
+def _fmt(value: Any, digits: int = 3) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def markdown_table(rows: list[dict[str, Any]]) -> str:
+    """ATE and frames/s per cell: one row per config, one column per dataset."""
+    configs = list(dict.fromkeys(r["config"] for r in rows))
+    datasets = list(dict.fromkeys(r["dataset"] for r in rows))
+    by = {(r["config"], r["dataset"]): r for r in rows}
+    lines = ["| config | " + " | ".join(datasets) + " |", "|---|" + "---|" * len(datasets)]
+    for c in configs:
+        cells = []
+        for d in datasets:
+            r = by.get((c, d))
+            if r is None:
+                cells.append("-")
+            elif r["status"] != "ok":
+                cells.append(f"failed: {str(r['error'])[:60]}")
+            else:
+                ate = "-" if r["ate_m"] is None else f"ATE {r['ate_m']:.3f} m ({r['align']})"
+                cells.append(f"{ate}, {r['fps']:.1f} frames/s")
+        lines.append(f"| {c} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_tables(out: Path, rows: list[dict[str, Any]], facts: dict[str, Any]) -> None:
+    (out / BATCH_JSON).write_text(json.dumps({"facts": facts, "cells": rows}, indent=2, default=str) + "\n")
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(COLUMNS))
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({k: r.get(k) for k in COLUMNS})
+    (out / BATCH_CSV).write_text(buf.getvalue())
+    (out / BATCH_MD).write_text(markdown_table(rows) + "\n")

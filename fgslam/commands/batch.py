@@ -1,0 +1,73 @@
+"""``fgslam batch MATRIX.yaml``: a matrix of configs x datasets, one run per cell (on Ray when it is
+installed: a local instance, or ``--address`` of a cluster), one table of ATE and frames/s
+(``batch.json``, ``batch.csv``, ``batch.md``; see :mod:`fgslam.batch`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+
+HELP = "run a matrix of configs x datasets (on Ray when installed) and collect one summary table"
+
+logger = logging.getLogger("fgslam.batch")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("matrix", metavar="MATRIX.yaml", help="matrix file (configs, datasets, overrides, cpus, out)")
+    parser.add_argument("--out", default=None, metavar="DIR", help="output folder (default: the matrix's `out`, "
+                        "else beside the matrix file, named after it)")
+    parser.add_argument("--address", default=None, metavar="HOST:PORT",
+                        help="join the Ray cluster at this address (default: start a local Ray)")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="local Ray: cells at a time (default 2)")
+    engine = parser.add_mutually_exclusive_group()
+    engine.add_argument("--sequential", action="store_true", help="run the cells one after another in this process")
+    engine.add_argument("--ray", action="store_true", help="require Ray (error when it is not installed)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar or lines")
+    parser.add_argument("--json", action="store_true", help="print the table as one JSON object")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+    from pathlib import Path
+
+    from ..batch import BatchOptions, load_matrix, markdown_table, run_batch
+    from ..config import check_ranges
+
+    matrix, out = load_matrix(args.matrix)
+    if args.out:
+        out = Path(args.out)
+    options = BatchOptions()
+    if args.workers is not None:
+        options = replace(options, workers=args.workers)
+        check_ranges(options, source="--workers")
+    use_ray = False if args.sequential else True if (args.ray or args.address) else None
+    bar = None
+    if not args.no_progress and sys.stderr.isatty():
+        from tqdm import tqdm
+
+        n = len(matrix.configs) * len(matrix.datasets)
+        bar = tqdm(total=n, desc="cells", unit="cell", file=sys.stderr)
+
+    def on_row(row, done, total) -> None:
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix_str(f"{row['config']} x {row['dataset']}: {row['status']}")
+        elif not args.no_progress:
+            logger.info("cell %d/%d %s x %s: %s", done, total, row["config"], row["dataset"], row["status"])
+
+    try:
+        rows, facts = run_batch(matrix, out, options, address=args.address, use_ray=use_ray, on_row=on_row)
+    finally:
+        if bar is not None:
+            bar.close()
+    failed = sum(r["status"] != "ok" for r in rows)
+    if args.json:
+        print(json.dumps({"facts": facts, "cells": rows}, default=str))
+    else:
+        print(markdown_table(rows))
+        print(f"\n{len(rows)} cells ({facts['skipped']} finished before, {failed} failed) on {facts['engine']} "
+              f"in {facts['wall_s']:.1f} s; tables in {out}/batch.md, batch.csv, batch.json")
+    return 0

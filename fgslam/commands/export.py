@@ -1,0 +1,40 @@
+"""``fgslam export RUN_DIR --colmap DIR | --ply FILE``: the map of a finished run as a COLMAP model
+(``DIR/sparse/0`` + ``DIR/images``) or a PLY point cloud (see :mod:`fgslam.export.run_export`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+HELP = "export a run's map as a COLMAP model (binary or text, with images) or a PLY point cloud"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run_dir", metavar="RUN_DIR", help="output folder of `fgslam run` (holds map.npz)")
+    target = parser.add_mutually_exclusive_group(required=True)
+    target.add_argument("--colmap", metavar="DIR", help="write a COLMAP model into DIR (sparse/0 and images/)")
+    target.add_argument("--ply", metavar="FILE", help="write the map's points as a PLY file")
+    parser.add_argument("--all-frames", action="store_true", help="COLMAP: every posed frame as an image, not only keyframes")
+    parser.add_argument("--colmap-format", choices=("bin", "txt"), default="bin", help="COLMAP: binary (default) or text files")
+    parser.add_argument("--no-images", action="store_true", help="COLMAP: the model only (do not read the dataset again)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    parser.add_argument("--json", action="store_true", help="print what was written as one JSON object")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..export.run_export import export_colmap, export_ply, open_run_folder
+
+    run_folder = open_run_folder(args.run_dir)
+    if args.ply:
+        result = export_ply(run_folder, args.ply, overwrite=args.overwrite)
+        text = f"wrote {result['points']} points to {result['ply']}"
+    else:
+        result = export_colmap(run_folder, args.colmap, all_frames=args.all_frames, fmt=args.colmap_format,
+                               images=not args.no_images, overwrite=args.overwrite)
+        text = (f"wrote COLMAP model {result['model']} ({result['format']}): {result['images']} images, "
+                f"{result['points']} points, {result['observations']} observations (median reprojection error "
+                f"{result['median_reprojection_px']:.2f} px; {result['dropped_observations']} observations and "
+                f"{result['dropped_points']} points left out)"
+                + (f"; {result['images_written']} images in {args.colmap}/images" if "images_written" in result else ""))
+    print(json.dumps(result) if args.json else text)
+    return 0

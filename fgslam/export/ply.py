@@ -1,0 +1,40 @@
+"""PLY point clouds (binary little-endian, x y z as float32 and red green blue as uchar)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def write_ply(path: str | Path, X_W: np.ndarray, colour: np.ndarray) -> Path:
+    """Write the finite points ``X_W (N, 3)`` with ``colour (N, 3) uint8`` to ``path``."""
+    X_W = np.asarray(X_W, dtype=np.float32).reshape(-1, 3)
+    colour = np.asarray(colour, dtype=np.uint8).reshape(-1, 3)
+    keep = np.all(np.isfinite(X_W), axis=1)
+    X_W, colour = X_W[keep], colour[keep]
+    vertex = np.empty(X_W.shape[0], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                            ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for i, name in enumerate("xyz"):
+        vertex[name] = X_W[:, i]
+    for i, name in enumerate(("red", "green", "blue")):
+        vertex[name] = colour[:, i]
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {vertex.shape[0]}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    path = Path(path)
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(vertex.tobytes())
+    return path
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a PLY written by :func:`write_ply`: ``(X_W (N, 3) float32, colour (N, 3) uint8)``."""
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    n = int(next(line for line in data[:end].decode("ascii").splitlines() if line.startswith("element vertex")).split()[-1])
+    vertex = np.frombuffer(data[end:], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                               ("red", "u1"), ("green", "u1"), ("blue", "u1")], count=n)
+    return (np.stack([vertex[c] for c in "xyz"], 1), np.stack([vertex[c] for c in ("red", "green", "blue")], 1))
