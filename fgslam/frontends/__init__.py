@@ -12,8 +12,8 @@ config section, the camera calibration, ``mono | stereo | rgbd``, and the run's 
 (:mod:`fgslam.slam` imports this module, never the reverse), and each family is imported only when
 its config class or builder is first needed, so importing :mod:`fgslam.frontends` stays cheap.
 
-Families: ``patch`` (DPVO / DPV-SLAM, issue 4) is implemented; ``dense`` (DROID-SLAM) and
-``pointmap`` (MASt3R-SLAM) are planned (no config section, no builder yet) and raise a
+Families: ``patch`` (DPVO / DPV-SLAM, issue 4) is implemented; ``pointmap`` (MASt3R-SLAM, issue 13)
+is implemented; ``dense`` (DROID-SLAM) is planned (no config section, no builder yet) and raises a
 :class:`~fgslam.errors.ConfigError` that says so.
 """
 
@@ -51,7 +51,9 @@ FAMILIES: tuple[FrontendFamily, ...] = (
                    config="fgslam.frontends.patch.config:PatchConfig",
                    builder="fgslam.frontends.patch.frontend:PatchFrontend"),
     FrontendFamily("dense", "the dense DROID-SLAM family"),
-    FrontendFamily("pointmap", "the MASt3R-SLAM pointmap family"),
+    FrontendFamily("pointmap", "the MASt3R-SLAM pointmap family",
+                   config="fgslam.frontends.pointmap.config:PointmapConfig",
+                   builder="fgslam.frontends.pointmap.frontend:PointmapFrontend"),
 )
 
 #: Every family name a config may give, implemented or not.

@@ -69,7 +69,7 @@ from ...factors.reprojection import ReprojectionConfig, reproject, reproject_edg
 from ...factors.robust import kernel_weight
 from ...factors.schur import BlockConfig, torch_threads
 from ...loop.closure import LoopClosureConfig
-from ...lie import sim3_matrix_components, sim3_matrix_parts
+from ...lie import sim3_matrix_components
 from ...backend.config import BackendConfig
 from ...backend.graph import Backend
 from ...backend.keys import pose_key
@@ -79,7 +79,9 @@ from .config import PatchConfig
 from .global_ba import GlobalBAProblem, global_bundle_adjustment
 from .graph import GraphFrame, PatchGraph
 from .proximity import Candidate, KeyframeStore, fundamental_inliers, held_frames, pose_filter
-from .records import AbsolutePose, InterpolatedPose, KeyframePose, PoseRecord, RelativePose, resolve_pose
+from ..records import AbsolutePose, InterpolatedPose, KeyframePose, PoseRecord, RelativePose, resolve_pose
+from ..records import rigid as _rigid
+from ..records import sim3_interp as _interp, sim3_power as _sim3_power
 from .source import make_source
 
 logger = logging.getLogger(__name__)
@@ -87,45 +89,6 @@ logger = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------------- helpers
-
-def _rigid(M: np.ndarray) -> np.ndarray:
-    """Rigid part ``[R | t]`` of a Sim(3) matrix ``[[s R, t], [0, 1]]``."""
-    out = np.array(M, dtype=np.float64, copy=True)
-    out[:3, :3] = sim3_matrix_parts(out)[0]
-    return out
-
-
-def _interp(Ta: np.ndarray, Tb: np.ndarray, alpha: float) -> np.ndarray:
-    """``Ta Exp(alpha Log(Ta^-1 Tb))`` on Sim(3) matrices."""
-    return Ta @ _sim3_power(np.linalg.inv(Ta) @ Tb, alpha)
-
-
-def _sim3_power(M: np.ndarray, alpha: float) -> np.ndarray:
-    """``Exp(alpha Log(M))`` of a Sim(3) matrix, through gtsam's ``Similarity3`` Logmap/Expmap (whose
-    tangent is ``fgslam.lie.Sim3``'s ``[w, u, lambda]``); per-frame motion model without torch."""
-    import gtsam
-
-    return _gtsam_matrix(gtsam.Similarity3.Expmap(alpha * gtsam.Similarity3.Logmap(_gtsam_sim3(M))))
-
-
-def _gtsam_sim3(M: np.ndarray):
-    """``gtsam.Similarity3`` of a Sim(3) matrix ``[[s R, t], [0, 1]]`` (R projected onto SO(3));
-    numpy twin of ``Sim3.from_matrix(M).to_gtsam()`` without the torch round trip (hot path)."""
-    import gtsam
-
-    R, t, s = sim3_matrix_parts(M, project=True)
-    return gtsam.Similarity3(gtsam.Rot3(R), t / s, s)
-
-
-def _gtsam_matrix(S) -> np.ndarray:
-    """Sim(3) matrix ``[[s R, t], [0, 1]]`` of a ``gtsam.Similarity3`` (gtsam acts as ``s (R p + t_g)``,
-    so ``t = s t_g``); numpy twin of ``Sim3.from_gtsam(S).matrix()``."""
-    s = float(S.scale())
-    M = np.eye(4)
-    M[:3, :3] = s * S.rotation().matrix()
-    M[:3, 3] = s * np.asarray(S.translation(), dtype=np.float64)
-    return M
-
 
 def select_patches(image: np.ndarray, count: int, border: int, grid: list[int], method: str,
                    rng: np.random.Generator, block: int = 8, score_width: int = 0) -> np.ndarray:

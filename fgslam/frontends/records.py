@@ -1,10 +1,13 @@
-"""Pose records of the patch frontend: how each input frame's pose is obtained (typed, immutable).
+"""Pose records of a frontend family: how each input frame's pose is obtained (typed, immutable).
+
+Shared by the families (patch, pointmap), with the numpy Sim(3) helpers their hot paths use
+(:func:`sim3_power`, :func:`sim3_interp`, :func:`rigid`, :func:`gtsam_sim3`, :func:`gtsam_matrix`).
 
 Every input frame id maps to a record, or to None while it has no pose (before initialisation, a
 dropped initialisation attempt):
 
-- :class:`KeyframePose`: a keyframe: its pose is the graph frame's (or, once finalised, the kept
-  frame's) ``T_WC``;
+- :class:`KeyframePose`: a keyframe: its pose is the keyframe's current ``T_WC`` (the family's
+  keyframe store, e.g. the patch graph frame or, once finalised, the kept frame);
 - :class:`AbsolutePose`: a pose of its own (a relocalised frame);
 - :class:`RelativePose`: ``T_WC = T_WC(ref) T_ref_frame`` (a removed keyframe, a stationary frame, a
   tracking failure: relative to the frame it was predicted from);
@@ -23,7 +26,47 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ...loop.closure import PoseCorrection
+from ..lie import sim3_matrix_parts
+from ..loop.closure import PoseCorrection
+
+
+def rigid(M: np.ndarray) -> np.ndarray:
+    """Rigid part ``[R | t]`` of a Sim(3) matrix ``[[s R, t], [0, 1]]``."""
+    out = np.array(M, dtype=np.float64, copy=True)
+    out[:3, :3] = sim3_matrix_parts(out)[0]
+    return out
+
+
+def gtsam_sim3(M: np.ndarray):
+    """``gtsam.Similarity3`` of a Sim(3) matrix ``[[s R, t], [0, 1]]`` (R projected onto SO(3));
+    numpy twin of ``Sim3.from_matrix(M).to_gtsam()`` without the torch round trip (hot path)."""
+    import gtsam
+
+    R, t, s = sim3_matrix_parts(M, project=True)
+    return gtsam.Similarity3(gtsam.Rot3(R), t / s, s)
+
+
+def gtsam_matrix(S) -> np.ndarray:
+    """Sim(3) matrix ``[[s R, t], [0, 1]]`` of a ``gtsam.Similarity3`` (gtsam acts as ``s (R p + t_g)``,
+    so ``t = s t_g``); numpy twin of ``Sim3.from_gtsam(S).matrix()``."""
+    s = float(S.scale())
+    M = np.eye(4)
+    M[:3, :3] = s * S.rotation().matrix()
+    M[:3, 3] = s * np.asarray(S.translation(), dtype=np.float64)
+    return M
+
+
+def sim3_power(M: np.ndarray, alpha: float) -> np.ndarray:
+    """``Exp(alpha Log(M))`` of a Sim(3) matrix, through gtsam's ``Similarity3`` Logmap/Expmap (whose
+    tangent is ``fgslam.lie.Sim3``'s ``[w, u, lambda]``); per-frame motion model without torch."""
+    import gtsam
+
+    return gtsam_matrix(gtsam.Similarity3.Expmap(alpha * gtsam.Similarity3.Logmap(gtsam_sim3(M))))
+
+
+def sim3_interp(Ta: np.ndarray, Tb: np.ndarray, alpha: float) -> np.ndarray:
+    """``Ta Exp(alpha Log(Ta^-1 Tb))`` on Sim(3) matrices."""
+    return Ta @ sim3_power(np.linalg.inv(Ta) @ Tb, alpha)
 
 
 class PoseRecord:
@@ -88,10 +131,8 @@ class InterpolatedPose(PoseRecord):
     alpha: float
 
     def pose(self, resolve, keyframe_pose, fid):
-        from .frontend import _interp
-
         Ta, Tb = resolve(self.a), resolve(self.b)
-        return None if Ta is None or Tb is None else _interp(Ta, Tb, self.alpha)
+        return None if Ta is None or Tb is None else sim3_interp(Ta, Tb, self.alpha)
 
 
 def resolve_pose(fid: int, records: dict, keyframe_pose: Callable[[int], np.ndarray],
