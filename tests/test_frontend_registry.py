@@ -59,18 +59,20 @@ def test_importing_the_registry_does_not_import_the_runner():
     code = ("import sys, fgslam.frontends as f; classes = f.family_config_classes(); "
             "print(' '.join(sorted(classes)), 'fgslam.slam' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    assert out == ["patch", "False"]
+    assert out == ["patch", "pointmap", "False"]
 
 
 def test_slam_config_sections_come_from_the_registry():
     names = [f.name for f in __import__("dataclasses").fields(SlamConfig)]
     sections = family_config_classes()
-    assert sections == {"patch": PatchConfig}
+    from fgslam.frontends.pointmap.config import PointmapConfig
+
+    assert sections == {"patch": PatchConfig, "pointmap": PointmapConfig}
     for family, cls in sections.items():
         assert family in names and isinstance(getattr(SlamConfig(), family), cls)
     # planned families have no section yet: their key is unknown, named in the error
-    assert {f.name for f in FAMILIES if f.config is None} == {"dense", "pointmap"}
-    for planned in ("dense", "pointmap"):
+    assert {f.name for f in FAMILIES if f.config is None} == {"dense"}
+    for planned in ("dense",):
         assert planned not in names
         with pytest.raises(ConfigError, match=f"unknown key '{planned}'"):
             load_slam_config("patch_mono", [f"{planned}.window=3"])
@@ -175,7 +177,8 @@ def test_a_new_family_is_one_registry_entry(tmp_path):
                           text=True, env=env)
     assert proc.returncode == 0, proc.stderr
     got = json.loads(proc.stdout)
-    assert got["fields"].index("toy") == got["fields"].index("patch") + 1  # family sections after dataset
+    # family sections after dataset, in registry order (patch, pointmap, then the toy appended)
+    assert got["fields"].index("toy") == got["fields"].index("pointmap") + 1 == got["fields"].index("patch") + 2
     assert (got["gain"], got["size"], got["patch"]) == (2.5, 7, 2)
     assert got["dump"] == {"gain": 2.5, "window": {"size": 7}}
     assert got["built"] == ["ToyConfig", "calib", "rgbd", got["services"]] and got["services"]

@@ -354,7 +354,7 @@ def test_bad_config_values():
 # --------------------------------------------------------------------------------------- registry
 
 
-@pytest.mark.parametrize("name", ["dense", "pointmap"])
+@pytest.mark.parametrize("name", ["dense"])
 def test_planned_frontends_say_not_implemented(name, synth_root):
     config = _config(f"frontend={name}")
     calib = open_slam_dataset(synth_root, config).calibration
