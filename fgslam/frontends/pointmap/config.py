@@ -76,7 +76,8 @@ class PointmapConfig:
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     block: PointmapBlockConfig = field(default_factory=PointmapBlockConfig)  # residual mode, sigmas, Huber (tracking too)
     image_width: int = ranged(320, ge=0)  # frames are resized to this width (aspect kept; 0: as the dataset gives them)
-    query_stride: int = ranged(1, ge=1)  # every this many pixels of a frame (both axes) are matched (MASt3R-SLAM subsamples)
+    query_stride: int = ranged(2, ge=1)  # every this many pixels of a frame (both axes) are matched (MASt3R-SLAM subsamples;
+    # 2: matching 42 ms CPU per 320x240 pair against 118 ms for every pixel, tools/bench_pointmap.py)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)

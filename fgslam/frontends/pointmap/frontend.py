@@ -154,6 +154,8 @@ class PointmapFrontend(Frontend):
         self._since_kf = 0
         self._init_fid: int | None = None
         self._in_source: list[int] = []  # frames whose source cache is loaded (oldest first)
+        self._prev_fid: int | None = None  # the previous frame when it was tracked (its pose is T_kf)
+        self._prev_kf: int | None = None  # ... and its keyframe
         self._failures = 0
         self._fid = 0
         self._loops_seen = 0
@@ -208,6 +210,8 @@ class PointmapFrontend(Frontend):
             logger.warning("pointmap frame %d: %s: %s; using the motion model", frame.index, type(exc).__name__, exc)
             status = self._fail(fid, frame, f"failed: {exc}")
         self._status_src[fid] = status.pose_source
+        tracked = status.pose_source in ("tracked", "relocalized") and self._kf is not None
+        self._prev_fid, self._prev_kf = (fid, self._kf.fid) if tracked else (None, None)
         self._release_source()
         return status
 
@@ -361,7 +365,7 @@ class PointmapFrontend(Frontend):
             keep.add(self._init_fid)
         newest = self._fid - 1
         for fid in list(self._in_source):
-            if fid not in keep and fid != newest:
+            if fid not in keep and fid != newest and fid != self._prev_fid:
                 self.source.remove_frame(fid)
                 self._in_source.remove(fid)
         for fid, kf in self._kfs.items():
@@ -449,10 +453,9 @@ class PointmapFrontend(Frontend):
         t0 = time.perf_counter()
         self._ensure_in_source(kf)
         if self.kind in ("rgbd", "stereo"):
-            if pair is None:  # the relative pose measured by PnP on the dense flow; the prediction when that fails
-                pair = self.source.predict(kf.fid, fid, None if self.config.tracking.measure_pose else rigid(T_pred))
-                if pair.T_CiCj is None:
-                    pair = self.source.predict(kf.fid, fid, rigid(T_pred))
+            if pair is None:
+                T_pred = self._measured_prediction(kf, fid, T_pred)
+                pair = self.source.predict(kf.fid, fid, rigid(T_pred))
             T0 = pair.T_CiCj
             a = 1.0
         else:
@@ -473,6 +476,19 @@ class PointmapFrontend(Frontend):
         C_f = torch.from_numpy(np.ascontiguousarray(pair.C_j, np.float32)).reshape(n)
         D_f = torch.from_numpy(np.ascontiguousarray(pair.D_j, np.float32)).reshape(n, -1)
         return X_ff, X_fk, C_f, D_f, T0
+
+    def _measured_prediction(self, kf: PointmapKeyframe, fid: int, T_pred: np.ndarray) -> np.ndarray:
+        """Metric sources: ``T_CkCf`` with the last step measured by PnP on the dense flow from the previous
+        frame (``T_CkCp T_CpCf``; from the keyframe itself right after a keyframe change), which stays
+        reliable at video rate where the flow to an older keyframe fails; ``T_pred`` when that fails."""
+        if not self.config.tracking.measure_pose:
+            return T_pred
+        prev = self._prev_fid
+        if prev is None or prev not in self._in_source or prev == kf.fid or self._prev_kf != kf.fid:
+            T = self.source.predict(kf.fid, fid, None).T_CiCj
+            return T_pred if T is None else np.asarray(T, np.float64)
+        T_step = self.source.predict(prev, fid, None).T_CiCj
+        return T_pred if T_step is None else T_pred @ np.asarray(T_step, np.float64)
 
     def _pair_scale(self, kf: PointmapKeyframe, pair) -> float | None:
         """Scale taking the pair's pointmap of k to k's canonical one: median ratio of the norms over the

@@ -12,7 +12,8 @@ primary's keyframes that are at least ``lag`` keyframes old and still in the bac
 removes redundant keyframes a few frames after adding them), gets their images from the primary
 (:meth:`~fgslam.backend.contributor.Contributor.keyframe_image`: grey image, intrinsics, depth), builds
 their pointmaps with a built-in source (``rgbd`` when the images carry depth, else the monocular
-two-view source against the previous pointmap keyframe, scaled to the backend's relative translation)
+two-view source against the previous pointmap keyframe, scaled to the backend's relative translation;
+images resized to ``pointmap.image_width``)
 and measures a pointmap edge to the previous one (:func:`.keyframes.measure_edge`: projective matching,
 the tracking solver as verification, SE(3): the primary holds the keyframe scales). Each edge is one
 :class:`~fgslam.factors.pointmap_block.PointmapBlock` under the owner ``pointmap``
@@ -28,6 +29,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field, replace
+from types import SimpleNamespace
 from typing import Any, Mapping
 
 import numpy as np
@@ -38,6 +40,7 @@ from ...config import ranged
 from ...errors import DataError, OptimizationError
 from ...factors.pointmap_block import PointmapBlock
 from .config import PointmapConfig
+from .frontend import WorkingCamera
 from .keyframes import PointmapKeyframe, measure_edge
 from .source import make_pointmap_source
 
@@ -72,6 +75,7 @@ class PointmapMix:
         self._source = None
         self._kind: str | None = None
         self._K: np.ndarray | None = None
+        self._cam: WorkingCamera | None = None
         self._warned = False
         self._seen = 0
         self.counts = {"keyframes": 0, "edges": 0, "rejected": 0, "no_image": 0}
@@ -106,6 +110,8 @@ class PointmapMix:
 
     def _step(self) -> None:
         b = self.backend
+        for kid in [k for k in self._kfs if not b.has_keyframe(k)]:  # removed by the primary
+            del self._kfs[kid]
         alive = [k for k in self._queue if b.has_keyframe(k)]
         self._queue = alive
         ready = alive[: max(len(alive) - self.options.lag, 0)]
@@ -114,8 +120,6 @@ class PointmapMix:
         self._queue = alive[len(ready):]
         for kf_id in ready[:: self.options.min_gap]:
             self._add(kf_id)
-        for kid in [k for k in self._kfs if not b.has_keyframe(k)]:  # removed by the primary
-            del self._kfs[kid]
         self._edges = {p: e for p, e in self._edges.items() if b.has_keyframe(p[0]) and b.has_keyframe(p[1])}
         cfg = self.options.pointmap
         b.set_blocks(OWNER, [PointmapBlock([e], cfg.block, self._K) for e in self._edges.values()])
@@ -134,10 +138,15 @@ class PointmapMix:
             self._kind = cfg.source_kind("rgbd" if img.depth is not None else "mono")
             if self._kind not in ("rgbd", "mono"):
                 raise DataError(f"{self.key}: mixing supports the rgbd and mono pointmap sources, not {self._kind}")
-            self._K = np.asarray(img.K, np.float64)
+            H0, W0 = img.image.shape[:2]
+            self._cam = WorkingCamera(SimpleNamespace(width=W0, height=H0, K=img.K), cfg.image_width, self._kind)
+            self._K = self._cam.K
             self._source = make_pointmap_source(replace(cfg.source, kind=self._kind), self._K)
-        H, W = img.image.shape[:2]
-        self._source.add_frame(kf_id, img.image, depth=img.depth if self._kind == "rgbd" else None)
+        grey = self._cam.image(img.image)
+        depth = self._cam.depth(img.depth) if self._kind == "rgbd" else None
+        img = replace(img, image=grey, depth=depth, K=self._K)
+        H, W = grey.shape[:2]
+        self._source.add_frame(kf_id, grey, depth=depth)
         prev = next(reversed(self._kfs.values()), None)
         T_WC = self.backend.pose_matrix(kf_id)
         if self._kind == "rgbd":
