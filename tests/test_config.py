@@ -195,6 +195,7 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.loop.bow:VocabularyTrainingConfig",
     "fgslam.backend.plugins:PositionPriorOptions",
     "fgslam.backend.plugins:PlanarMotionOptions",
+    "fgslam.frontends.pointmap.mix:PointmapMixOptions",
 )
 
 

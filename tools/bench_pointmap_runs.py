@@ -57,8 +57,7 @@ def reconstruction(fe, frames, alignment) -> dict:
     for kf in fe._kfs.values():  # the keyframes' true depth with their true poses
         f = by_time[kf.timestamp]
         depth = f.depth[::stride, ::stride]
-        K = np.asarray(f.calibration.K, float) / np.array([stride, stride, stride, stride])
-        K[2:] = (np.asarray(f.calibration.K[2:]) + 0.5) / stride - 0.5
+        K = np.asarray(f.calibration.K, float) / stride  # pixel (u, v) of the strided grid is (stride u, stride v)
         P = unproject_depth(depth, K).reshape(-1, 3)[depth.reshape(-1) > 0].astype(np.float64)
         ref.append(P @ f.T_WC_gt[:3, :3].T + f.T_WC_gt[:3, 3])
     Y = np.concatenate(ref)

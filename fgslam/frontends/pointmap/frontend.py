@@ -156,6 +156,7 @@ class PointmapFrontend(Frontend):
         self._in_source: list[int] = []  # frames whose source cache is loaded (oldest first)
         self._prev_fid: int | None = None  # the previous frame when it was tracked (its pose is T_kf)
         self._prev_kf: int | None = None  # ... and its keyframe
+        self._last_good = None  # (fid, frame, inputs, result, T_CkCf) of the last frame tracked against the keyframe
         self._failures = 0
         self._fid = 0
         self._loops_seen = 0
@@ -541,8 +542,15 @@ class PointmapFrontend(Frontend):
     def _track_frame(self, fid: int, frame, inputs, pair=None) -> FrameStatus:
         kf = self._kf
         res = self._track_against(kf, fid, self._T_kf, self._uv_prev, pair)
-        if res is None and not self.fixed_scale:
-            return self._track_pnp(fid, frame)
+        events = []
+        if not self._ok(res, self.config.tracking.min_valid_fraction) and self._promote_last():
+            events.append(f"keyframe {self._kf.fid} (look-back)")  # the last good frame became the keyframe
+            kf = self._kf
+            res = self._track_against(kf, fid, self._T_kf, None)
+        if not self._ok(res, self.config.tracking.min_valid_fraction) and self.kind == "mono":
+            status = self._track_pnp(fid, frame)  # no (usable) two-view pointmap: pose by PnP
+            status.events[:0] = events
+            return status
         if not self._ok(res, self.config.tracking.min_valid_fraction):
             found = self._relocalize(fid, frame)
             if found is None:
@@ -567,19 +575,42 @@ class PointmapFrontend(Frontend):
         self._times["bookkeeping"] += time.perf_counter() - t0
         new_kf = res["fraction"] < self.config.keyframe.new_fraction or (
             self.config.keyframe.max_gap > 0 and self._since_kf >= self.config.keyframe.max_gap)
-        events = []
+        self._last_good = None
         if new_kf:
-            T_WC = self._keyframe_T_WC(kf.fid) @ self._T_kf
-            new = self._new_keyframe(fid, frame, inputs, res["X_ff"], res["C_f"], T_WC, res["D_f"])
-            keep = even_subset(inl.nonzero().squeeze(1), self.config.graph.max_edge_matches)
-            edge = PointmapEdge(self.backend_key(kf.fid), self.backend_key(fid), res["X_k"][keep], res["X_f"][keep],
-                                res["w"][keep], res["uv"][keep])
-            self._kf, self._T_kf, self._uv_prev, self._since_kf = new, np.eye(4), None, 0
-            self._after_keyframe(new, (kf.fid, edge))
+            self._make_keyframe(kf, fid, frame, inputs, res)
             events.append(f"keyframe {fid}")
         else:
             self._records[fid] = RelativePose(kf.fid, self._T_kf.copy())
+            if source == "tracked":  # a keyframe candidate when the next frame no longer tracks against kf
+                self._last_good = (fid, frame, inputs, res, self._T_kf.copy())
         return self._status(fid, frame, source, new_kf, res["inliers"], events)
+
+    def _make_keyframe(self, kf: PointmapKeyframe, fid: int, frame, inputs, res) -> None:
+        """Frame ``fid`` (tracked against ``kf`` with result ``res``, relative pose ``self._T_kf``) becomes the
+        current keyframe, with an edge from ``kf`` made of the tracking's inlier matches."""
+        T_WC = self._keyframe_T_WC(kf.fid) @ self._T_kf
+        new = self._new_keyframe(fid, frame, inputs, res["X_ff"], res["C_f"], T_WC, res["D_f"])
+        keep = even_subset(res["inlier"].nonzero().squeeze(1), self.config.graph.max_edge_matches)
+        edge = PointmapEdge(self.backend_key(kf.fid), self.backend_key(fid), res["X_k"][keep], res["X_f"][keep],
+                            res["w"][keep], res["uv"][keep])
+        self._kf, self._T_kf, self._uv_prev, self._since_kf = new, np.eye(4), None, 0
+        self._after_keyframe(new, (kf.fid, edge))
+
+    def _promote_last(self) -> bool:
+        """Look-back keyframe: when a frame no longer tracks against the keyframe (the source's flow or the
+        two-view pair lost the overlap), the last frame that did becomes the keyframe (its records follow)
+        and the frame is tracked against it. False when there is no such frame."""
+        last, self._last_good = self._last_good, None
+        if last is None or last[0] not in self._in_source:
+            return False
+        pfid, pframe, pinputs, pres, T_kp = last
+        kf = self._kf
+        self._T_kf = T_kp
+        self._make_keyframe(kf, pfid, pframe, pinputs, pres)
+        self._records[pfid] = KeyframePose()
+        self._T_kf = np.linalg.inv(T_kp) @ T_kp  # the frame is predicted at the new keyframe's pose
+        self._prev_fid, self._prev_kf = pfid, pfid
+        return True
 
     def _pose_fusable(self, res) -> bool:
         return res["inliers"] >= self.config.tracking.min_matches
