@@ -78,6 +78,12 @@ class Frontend(abc.ABC):
         """Optional map points ``(X_W (M, 3) float, colour (M, 3) uint8)`` for PLY export."""
         return None
 
+    def keyframe_depths(self) -> dict[int, tuple[float, np.ndarray, np.ndarray | None]] | None:
+        """Optional dense depth per keyframe: kf id -> ``(timestamp, depth (H, W) float32 in the map's
+        units at image resolution (0: none), confidence (H, W) in [0, 1] or None)``; the runner writes
+        them as 16-bit PNGs with ``output.write_depth``."""
+        return None
+
     def loop_summary(self) -> dict | None:
         """Optional loop-closure counts for ``summary.json`` (loops verified / accepted, corrections
         applied, relocalisations, ...); None when the frontend runs no loop closure."""

@@ -30,6 +30,9 @@ class TrackingConfig:
     # metric sources: X_f^k from the pose measured by PnP on the source's dense flow (else from the previous
     # frame's relative pose: projective matching alone then only refines it within the descriptor window)
     measure_pose: bool = True
+    # start of projective matching: the previous frame's matches into the same keyframe (MASt3R-SLAM), or the
+    # projection of the predicted query points (exact for the predicted pose; the start after a keyframe change)
+    warm_start: Literal["previous", "projection"] = "previous"
     min_matches: int = ranged(200, ge=7)  # fewer valid matches: tracking failed (relocalisation)
     min_valid_fraction: float = ranged(0.05, ge=0, le=1)  # valid matches / valid query points below this: failed
     max_query_points: int = ranged(5000, ge=100)  # tracking uses at most this many valid matches (evenly strided)

@@ -514,6 +514,8 @@ class PointmapFrontend(Frontend):
         q = self.query
         qvalid = (C_f[q] >= self.config.tracking.min_confidence) & torch.isfinite(X_fk[q]).all(-1)
         t0 = time.perf_counter()
+        if self.config.tracking.warm_start == "projection":
+            warm = None  # match_frame starts from the projection of the query points
         m = match_frame(kf, X_fk[q], qvalid, D_f[q], warm, self.cam.K, self.config.matching, self.config.source.descriptor)
         t1 = time.perf_counter()
         self._times["matching"] += t1 - t0
