@@ -60,6 +60,7 @@ class GraphConfig:
     window: int = ranged(0, ge=0)  # newest keyframes optimised per new keyframe (0: all: the global optimisation)
     max_edge_matches: int = ranged(3000, ge=10)  # matches kept per edge (evenly strided); the block is 14x14 anyway
     min_edge_matches: int = ranged(100, ge=7)  # an edge (loop or relocalisation) needs this many valid matches
+    min_edge_inlier_ratio: float = ranged(0.5, ge=0, le=1)  # ... and this share of them inliers at the refined pose
     final_iterations: int = ranged(20, ge=0)  # global optimisation when the run ends (0: none)
 
 

@@ -121,7 +121,7 @@ def measure_edge(a: PointmapKeyframe, b: PointmapKeyframe, T_CaCb: np.ndarray, K
     """The edge (a, b) from the canonical pointmaps and the guess ``T_CaCb`` (4x4 Sim(3)): b's points moved
     into a, matched, the relative pose refined (:func:`~.tracking.track_pose`), inlier matches kept
     (at most ``graph.max_edge_matches``). None (logged) with fewer than ``graph.min_edge_matches`` valid
-    matches or inliers."""
+    matches or inliers, or less than ``graph.min_edge_inlier_ratio`` of the matches inliers."""
     T0 = Sim3.from_matrix(torch.as_tensor(np.asarray(T_CaCb, np.float64)))
     query = _grid(b.H, b.W, query_stride)
     X_b = b.X[query]
@@ -142,9 +142,9 @@ def measure_edge(a: PointmapKeyframe, b: PointmapKeyframe, T_CaCb: np.ndarray, K
     uv = m.uv[sel].to(torch.float64)
     Kt = torch.as_tensor(np.asarray(K, np.float64))
     tr: TrackResult = track_pose(T0, X_f, X_k, w, block, tracking, fixed_scale, uv, Kt)
-    if tr.num_inliers < graph.min_edge_matches:
-        logger.info("pointmap edge (%d, %d): %d robust inliers of %d matches (< %d); no edge", a.fid, b.fid,
-                    tr.num_inliers, n_valid, graph.min_edge_matches)
+    if tr.num_inliers < max(graph.min_edge_matches, graph.min_edge_inlier_ratio * len(sel)):
+        logger.info("pointmap edge (%d, %d): %d inliers of %d matches (< %d or %.0f %%); no edge", a.fid, b.fid,
+                    tr.num_inliers, len(sel), graph.min_edge_matches, 100 * graph.min_edge_inlier_ratio)
         return None
     keep = even_subset(tr.inlier.nonzero().squeeze(1), graph.max_edge_matches)
     edge = PointmapEdge(pose_key(a.fid), pose_key(b.fid), X_k[keep], X_f[keep], w[keep], uv[keep])
