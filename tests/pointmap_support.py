@@ -56,3 +56,33 @@ def true_correspondences(K, vi: View, vj: View):
 
 def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+
+
+def render_clip(root, frames: int, preset: str = "room-loop", extra: tuple[str, ...] = ()):
+    """Write a synthetic clip (320x240, ``frames`` frames) into ``root`` (a fresh folder) and return it."""
+    from fgslam.io.synth import write_sequence
+
+    write_sequence(SynthSequence(load_synth_config(preset, None, [f"frames={frames}", "camera.width=320",
+                                                                  "camera.height=240", *extra])), root)
+    return root
+
+
+def open_clip(root, mode: str):
+    """The frames of a written clip for sensor ``mode`` (right images for stereo, depth for RGB-D)."""
+    from fgslam.io.datasets import DatasetConfig, open_dataset
+
+    ds = open_dataset(root, config=DatasetConfig(load_right=mode == "stereo", load_depth=mode == "rgbd", load_imu=False))
+    return list(ds)
+
+
+def ate_percent(frontend, frames, align: str) -> tuple[float, float]:
+    """(ATE RMSE, ATE as % of the ground-truth path) of a frontend's trajectory over ``frames``."""
+    from fgslam.eval import EvalConfig, evaluate
+    from fgslam.io.trajectory import Trajectory
+
+    t, T, _ = frontend.trajectory()
+    gt = {f.timestamp: f.T_WC_gt for f in frames}
+    G = np.stack([gt[x] for x in t])
+    res = evaluate(Trajectory(t, G), Trajectory(t, T), EvalConfig(align=align))
+    path = float(np.linalg.norm(np.diff(G[:, :3, 3], axis=0), axis=1).sum())
+    return float(res.ate.rmse), 100.0 * float(res.ate.rmse) / path

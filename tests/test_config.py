@@ -199,6 +199,7 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.export.compare:CompareConfig",
     "fgslam.batch:BatchMatrix",
     "fgslam.batch:BatchOptions",
+    "fgslam.frontends.pointmap.mix:PointmapMixOptions",
 )
 
 

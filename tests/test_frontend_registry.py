@@ -59,20 +59,21 @@ def test_importing_the_registry_does_not_import_the_runner():
     code = ("import sys, fgslam.frontends as f; classes = f.family_config_classes(); "
             "print(' '.join(sorted(classes)), 'fgslam.slam' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    assert out == ["dense", "patch", "False"]
+    assert out == ["dense", "patch", "pointmap", "False"]
 
 
 def test_slam_config_sections_come_from_the_registry():
     names = [f.name for f in __import__("dataclasses").fields(SlamConfig)]
     sections = family_config_classes()
     from fgslam.frontends.dense import DenseConfig
+    from fgslam.frontends.pointmap.config import PointmapConfig
 
-    assert sections == {"patch": PatchConfig, "dense": DenseConfig}
+    assert sections == {"patch": PatchConfig, "dense": DenseConfig, "pointmap": PointmapConfig}
     for family, cls in sections.items():
         assert family in names and isinstance(getattr(SlamConfig(), family), cls)
-    # planned families have no section yet: their key is unknown, named in the error
-    assert {f.name for f in FAMILIES if f.config is None} == {"pointmap"}
-    for planned in ("pointmap",):
+    # every family of the registry is implemented: each has its section
+    assert {f.name for f in FAMILIES if f.config is None} == set()
+    for planned in ("orb",):
         assert planned not in names
         with pytest.raises(ConfigError, match=f"unknown key '{planned}'"):
             load_slam_config("patch_mono", [f"{planned}.window=3"])
@@ -177,8 +178,9 @@ def test_a_new_family_is_one_registry_entry(tmp_path):
                           text=True, env=env)
     assert proc.returncode == 0, proc.stderr
     got = json.loads(proc.stdout)
-    # family sections after dataset, in registry order (patch, dense, then the new one)
-    assert got["fields"].index("toy") == got["fields"].index("dense") + 1 == got["fields"].index("patch") + 2
+    # family sections after dataset, in registry order (patch, dense, pointmap, then the new one)
+    assert (got["fields"].index("toy") == got["fields"].index("pointmap") + 1 == got["fields"].index("dense") + 2
+            == got["fields"].index("patch") + 3)
     assert (got["gain"], got["size"], got["patch"]) == (2.5, 7, 2)
     assert got["dump"] == {"gain": 2.5, "window": {"size": 7}}
     assert got["built"] == ["ToyConfig", "calib", "rgbd", got["services"]] and got["services"]

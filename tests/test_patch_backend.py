@@ -11,7 +11,7 @@ import fgslam.backend.graph as backend_graph
 from fgslam.backend import Backend, BackendConfig
 from fgslam.config import load_config
 from fgslam.frontends.patch import PatchFrontend
-from fgslam.frontends.patch.records import RelativePose
+from fgslam.frontends.records import RelativePose
 from fgslam.slam import SlamConfig, open_slam_dataset, run_slam
 from patch_support import light_patch_config, open_frames, render_room
 

@@ -54,3 +54,37 @@ def test_euroc_static_stereo_reports_no_motion(shared_data):
     assert np.linalg.norm(pair.T_CiCj[:3, 3]) < 0.01  # m: the camera is static over the clip
     assert rotation_angle_deg(pair.T_CiCj[:3, :3]) < 0.3
     assert _matched_fraction(pair) > 0.5
+
+
+def test_frontend_on_7scenes_rgbd_slice(shared_data):
+    """The pointmap frontend over the first 30 frames (1 s) of 7-Scenes RGB-D: every frame tracked,
+    SE(3) ATE under 1 cm."""
+    from fgslam.eval import EvalConfig, evaluate
+    from fgslam.frontends.pointmap.frontend import PointmapFrontend
+    from fgslam.io.datasets import DatasetConfig, open_dataset
+    from fgslam.io.trajectory import Trajectory
+
+    frames = list(open_dataset(shared_data / "7scenes_redkitchen_0-599",
+                               config=DatasetConfig(load_imu=False, load_depth=True, end=30)))
+    fe = PointmapFrontend(sensor_mode="rgbd")
+    sources = [fe.process(f).pose_source for f in frames]
+    fe.finish()
+    assert sources == ["tracked"] * 30
+    t, T, _ = fe.trajectory()
+    G = np.stack([f.T_WC_gt for f in frames])
+    assert evaluate(Trajectory(t, G), Trajectory(t, T), EvalConfig(align="se3")).ate.rmse < 0.01
+
+
+def test_frontend_on_static_euroc_stereo(shared_data):
+    """The static EuRoC clip through the pointmap frontend (stereo source): under 1 cm of estimated motion."""
+    from fgslam.frontends.pointmap.frontend import PointmapFrontend
+    from fgslam.io.datasets import DatasetConfig, open_dataset
+
+    frames = list(open_dataset(shared_data / "euroc_v101_micro",
+                               config=DatasetConfig(load_imu=False, load_right=True, end=40)))
+    fe = PointmapFrontend(sensor_mode="stereo")
+    sources = [fe.process(f).pose_source for f in frames]
+    fe.finish()
+    assert "motion_model" not in sources
+    _, T, _ = fe.trajectory()
+    assert np.linalg.norm(T[:, :3, 3] - T[0, :3, 3], axis=1).max() < 0.01

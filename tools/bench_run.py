@@ -5,7 +5,8 @@ Cases (``--list``): KITTI 00 frames 0-199 monocular; 7-Scenes kitchen 0-599 mono
 each also with loop closure ``both``; EuRoC V1_01 micro clip (static camera) monocular and stereo,
 where the estimated motion extent is the figure of merit; synthetic ``room-loop`` monocular, stereo
 and RGB-D; the synthetic ``street-loop`` drive (1,100 frames) with loop closure (``street_loop``,
-not in the default set: it renders and runs for several minutes). Each case reports ATE
+not in the default set: it renders and runs for several minutes); the pointmap family's cases
+(``pm_*``, issue 13 targets; not in the default set: ``--cases pm_7scenes_rgbd,...``). Each case reports ATE
 (m and % of the ground-truth path, with the alignment used), frames/s overall and of the frontend,
 ms per frame of every frontend stage, the longest frame (``max_frame_s``), keyframes, failures, the estimate's motion extent, peak RSS,
 and whether the issue-4 target is met. Every case runs in its own process (peak RSS per case).
@@ -74,10 +75,20 @@ CASES: dict[str, Case] = {
     "room_rgbd": Case("patch_rgbd", SYNTH, ("ate_percent_of_path", 0.5, "SE(3) ATE <= 0.5% of path")),
     "street_loop": Case("patch_street_loop", STREET,
                         ("ate_rmse_m", 0.95, "loop closure both: <= 30% of the 3.18 m ATE without loop closure")),
+    # pointmap family (issue 13): frames matched at 320x240 (the presets' image_width)
+    "pm_7scenes_rgbd": Case("pointmap_7scenes_rgbd", "7scenes_redkitchen_0-599",
+                            ("ate_rmse_m", 0.04, "pointmap RGB-D SE(3) ATE <= 0.04 m, >= 5 frames/s")),
+    "pm_7scenes_mono": Case("pointmap_7scenes_mono", "7scenes_redkitchen_0-599",
+                            ("ate_rmse_m", 0.06, "pointmap monocular two-view Sim(3) ATE <= 0.06 m")),
+    "pm_euroc_stereo": Case("pointmap_euroc_stereo", "euroc_v101_micro",
+                            ("max_distance_from_start", 0.01, "pointmap stereo, static camera: <= 0.01 m of motion")),
+    "pm_room_rgbd": Case("pointmap_rgbd", SYNTH, ("ate_percent_of_path", 0.5, "pointmap RGB-D SE(3) ATE <= 0.5% of path")),
+    "pm_room_mono": Case("pointmap_mono", SYNTH, ("ate_percent_of_path", 1.5, "pointmap two-view Sim(3) ATE <= 1.5% of path")),
 }
-DEFAULT_CASES = [name for name in CASES if name != "street_loop"]
+POINTMAP_CASES = [name for name in CASES if name.startswith("pm_")]
+DEFAULT_CASES = [name for name in CASES if name != "street_loop" and name not in POINTMAP_CASES]
 # Speed targets of issue 4 (frames/s on the 2-core reference machine), by case.
-FPS_TARGETS = {"kitti00_mono": 10.0, "euroc_stereo": 20.0}
+FPS_TARGETS = {"kitti00_mono": 10.0, "euroc_stereo": 20.0, "pm_7scenes_rgbd": 5.0}
 
 
 def parse_args(argv=None) -> argparse.Namespace:

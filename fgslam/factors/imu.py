@@ -1,4 +1,4 @@
-"""IMU preintegration on Sim(3) keyframe poses (docs/design.md section 11).
+"""IMU preintegration on Sim(3) keyframe poses (docs/design.md section 13).
 
 Keyframe poses are ``gtsam.Similarity3`` T_WC (camera to world, acting as ``X -> s R X + t`` with
 ``t = s t_g``; docs/design.md section 3), while gtsam's ``CombinedImuFactor`` acts on the metric body

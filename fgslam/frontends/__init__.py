@@ -12,8 +12,9 @@ config section, the camera calibration, ``mono | stereo | rgbd``, and the run's 
 (:mod:`fgslam.slam` imports this module, never the reverse), and each family is imported only when
 its config class or builder is first needed, so importing :mod:`fgslam.frontends` stays cheap.
 
-Families: ``patch`` (DPVO / DPV-SLAM, issue 4) and ``dense`` (DROID-SLAM, issue 12) are implemented;
-``pointmap`` (MASt3R-SLAM) is planned (no config section, no builder yet) and raises a
+Families: ``patch`` (DPVO / DPV-SLAM, issue 4), ``dense`` (DROID-SLAM, issue 12) and ``pointmap``
+(MASt3R-SLAM, issue 13) are implemented. A family listed without a builder is planned (no config
+section, no builder yet) and raises a
 :class:`~fgslam.errors.ConfigError` that says so.
 """
 
@@ -53,7 +54,9 @@ FAMILIES: tuple[FrontendFamily, ...] = (
     FrontendFamily("dense", "the dense DROID-SLAM family",
                    config="fgslam.frontends.dense.config:DenseConfig",
                    builder="fgslam.frontends.dense.frontend:DenseFrontend"),
-    FrontendFamily("pointmap", "the MASt3R-SLAM pointmap family"),
+    FrontendFamily("pointmap", "the MASt3R-SLAM pointmap family",
+                   config="fgslam.frontends.pointmap.config:PointmapConfig",
+                   builder="fgslam.frontends.pointmap.frontend:PointmapFrontend"),
 )
 
 #: Every family name a config may give, implemented or not.
@@ -91,13 +94,13 @@ def make_frontend(name: str, config: Any, calibration: Any, sensor_mode: SensorM
     over the root config's.
 
     Raises:
-        ConfigError: ``name`` is planned but not implemented yet (``dense``, ``pointmap``) or unknown.
+        ConfigError: ``name`` is planned but not implemented yet (a registry entry without a builder) or unknown.
     """
     family = frontend_family(name)
     if not family.implemented:
         raise ConfigError(
-            f"frontend '{name}' ({family.title}) is not implemented yet: it has no issue of its own so far "
-            f"(the patch frontend of issue 4 is the one available); set frontend: patch"
+            f"frontend '{name}' ({family.title}) is not implemented yet: its registry entry has no builder "
+            f"(an issue of its own will add it); implemented: {', '.join(available_frontends())}"
         )
     section_class = import_object(family.config, f"frontend family '{name}' config")
     section = config

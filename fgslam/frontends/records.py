@@ -1,7 +1,7 @@
 """Pose records of the frontends: how each input frame's pose is obtained (typed, immutable).
 
-Shared by the patch and dense families (moved here from ``frontends/patch/records.py``), with the
-Sim(3) matrix helpers they both use (:func:`rigid`, :func:`sim3_power`, :func:`interpolate`).
+Shared by the patch, dense and pointmap families, with the
+Sim(3) matrix helpers they use (:func:`rigid`, :func:`sim3_power`, :func:`sim3_interp`).
 
 Every input frame id maps to a record, or to None while it has no pose (before initialisation, a
 dropped initialisation attempt):
@@ -36,7 +36,7 @@ def rigid(M: np.ndarray) -> np.ndarray:
     return out
 
 
-def interpolate(Ta: np.ndarray, Tb: np.ndarray, alpha: float) -> np.ndarray:
+def sim3_interp(Ta: np.ndarray, Tb: np.ndarray, alpha: float) -> np.ndarray:
     """``Ta Exp(alpha Log(Ta^-1 Tb))`` on Sim(3) matrices."""
     return Ta @ sim3_power(np.linalg.inv(Ta) @ Tb, alpha)
 
@@ -131,7 +131,7 @@ class InterpolatedPose(PoseRecord):
 
     def pose(self, resolve, keyframe_pose, fid):
         Ta, Tb = resolve(self.a), resolve(self.b)
-        return None if Ta is None or Tb is None else interpolate(Ta, Tb, self.alpha)
+        return None if Ta is None or Tb is None else sim3_interp(Ta, Tb, self.alpha)
 
 
 def resolve_pose(fid: int, records: dict, keyframe_pose: Callable[[int], np.ndarray],

@@ -69,7 +69,7 @@ from ...factors.reprojection import ReprojectionConfig, reproject, reproject_edg
 from ...factors.robust import kernel_weight
 from ...factors.schur import BlockConfig, torch_threads
 from ...loop.closure import LoopClosureConfig
-from ...lie import sim3_matrix_components, sim3_matrix_parts
+from ...lie import sim3_matrix_components
 from ...backend.config import BackendConfig
 from ...backend.graph import Backend
 from ...backend.keys import pose_key
@@ -79,8 +79,9 @@ from .config import PatchConfig
 from .global_ba import GlobalBAProblem, global_bundle_adjustment
 from .graph import GraphFrame, PatchGraph
 from .proximity import Candidate, KeyframeStore, fundamental_inliers, held_frames, pose_filter
-from ..records import (AbsolutePose, InterpolatedPose, KeyframePose, PoseRecord, RelativePose,
-                       interpolate, resolve_pose, rigid, sim3_power)
+from ..records import AbsolutePose, InterpolatedPose, KeyframePose, PoseRecord, RelativePose, resolve_pose
+from ..records import rigid as _rigid
+from ..records import sim3_interp as _interp, sim3_power as _sim3_power
 from .source import make_source
 
 logger = logging.getLogger(__name__)
@@ -88,10 +89,6 @@ logger = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------------- helpers
-
-# Sim(3) matrix helpers shared with the dense family (fgslam/frontends/records.py)
-_rigid, _interp, _sim3_power = rigid, interpolate, sim3_power
-
 
 def select_patches(image: np.ndarray, count: int, border: int, grid: list[int], method: str,
                    rng: np.random.Generator, block: int = 8, score_width: int = 0) -> np.ndarray:

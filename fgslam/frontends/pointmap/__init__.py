@@ -1,4 +1,5 @@
-"""Pointmap frontend (MASt3R-SLAM family): two-view pointmap sources (:mod:`.source`), dense
-descriptors (:mod:`.descriptors`) and iterative projective matching (:mod:`.matching`); the pose-only
-ray blocks it emits to the backend live in :mod:`fgslam.factors.pointmap_block`. Tracking, fusion,
-keyframing and the frontend itself do not exist yet (issue 13)."""
+"""Pointmap frontend (MASt3R-SLAM family, issue 13): two-view pointmap sources (:mod:`.source`), dense
+descriptors (:mod:`.descriptors`), iterative projective matching (:mod:`.matching`), tracking and fusion
+(:mod:`.tracking`), keyframes and edge measurement (:mod:`.keyframes`), the frontend (:mod:`.frontend`,
+config :mod:`.config`) and the mixed-family contributor (:mod:`.mix`); the pose-only ray blocks it emits
+to the backend live in :mod:`fgslam.factors.pointmap_block`."""

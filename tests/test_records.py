@@ -1,4 +1,4 @@
-"""Typed pose records of the patch frontend (fgslam.frontends.patch.records): resolution through
+"""Typed pose records shared by the frontend families (fgslam.frontends.records): resolution through
 references and re-expression under a pose correction."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from fgslam.frontends.patch.frontend import _interp
-from fgslam.frontends.patch.records import (AbsolutePose, InterpolatedPose, KeyframePose, RelativePose,
+from fgslam.frontends.records import sim3_interp as _interp
+from fgslam.frontends.records import (AbsolutePose, InterpolatedPose, KeyframePose, RelativePose,
                                             resolve_pose)
 from fgslam.loop.closure import PoseCorrection
 
