@@ -437,8 +437,8 @@ def test_cli_run_errors_are_clear(synth_root, tmp_path, capsys, cli_main):
     main = cli_main
     rc = main(["run", "patch_nonexistent", "--data", str(synth_root), "--out", str(tmp_path / "o")])
     assert rc == 2 and "no preset of that name" in capsys.readouterr().err
-    rc = main(["run", "patch_mono", "--data", str(synth_root), "--out", str(tmp_path / "o"), "-o", "frontend=pointmap"])
-    assert rc == 2 and "not implemented yet" in capsys.readouterr().err
+    rc = main(["run", "patch_mono", "--data", str(synth_root), "--out", str(tmp_path / "o"), "-o", "frontend=orb"])
+    assert rc == 2 and "key 'frontend': must be one of" in capsys.readouterr().err
     rc = main(["run", "patch_mono", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "o")])
     assert rc == 2 and "no such file" in capsys.readouterr().err
 
