@@ -11,7 +11,8 @@ zero) and hands GTSAM one ``HessianFactor`` on the free key. Blocks with structu
 inverse depths) are used with their structure held by the block itself: the caller builds them so.
 
 ``hold`` adds information on tangent components of the free key that the measurements do not fix or
-that the caller keeps (e.g. the log-scale of a frame tracked against a metric map: ``[0]*6 + [big]``).
+that the caller keeps (e.g. the log-scale of a frame tracked against a metric map: ``[0]*6 + [big]``);
+an infinite entry fixes its component exactly (its step is zero: SE(3) tracking on a Sim(3) key).
 """
 
 from __future__ import annotations
@@ -64,7 +65,13 @@ class MotionOnlyProblem:
                 H += piece.H[at:at + d, at:at + d]
                 g += piece.g[at:at + d]
         if self.hold is not None:
-            H = H + np.diag(self.hold)
+            fixed = np.isinf(self.hold)
+            H = H + np.diag(np.where(fixed, 0.0, self.hold))
+            if fixed.any():  # exactly fixed components: their step is zero
+                H[fixed, :] = 0.0
+                H[:, fixed] = 0.0
+                H[fixed, fixed] = 1.0
+                g[fixed] = 0.0
         return H, g, c
 
     def linearize(self):

@@ -155,6 +155,20 @@ class PointmapBlock:
             poses = self._poses(values)
             return [self._edge_terms(edge, poses, False)[0] for edge in self.edges]
 
+    def inliers(self, values, threshold: float) -> list[torch.Tensor]:
+        """Per edge, the matches that count as inliers at ``values``: valid residuals, weight > 0 and the
+        first row group's (ray / pixel) whitened norm at most ``threshold``."""
+        out = []
+        with torch_threads(self.config.threads):
+            poses = self._poses(values)
+            for edge in self.edges:
+                T_CiCj = poses[edge.key_i].inverse() @ poses[edge.key_j]
+                res = self._residuals(edge, T_CiCj)
+                e, _ = res.whitened()
+                a, b = _GROUPS[self.config.mode][0]
+                out.append(res.valid & (edge.weight > 0) & (torch.linalg.vector_norm(e[:, a:b], dim=-1) <= threshold))
+        return out
+
     def cost(self, values, structure=None) -> float:
         """GTSAM-convention cost ``sum rho(e)`` over every edge's row groups at ``values`` (no structure)."""
         with torch_threads(self.config.threads):

@@ -22,7 +22,9 @@ class TrackingConfig:
 
     iterations: int = ranged(10, ge=1)  # Gauss-Newton iterations at most
     step_tolerance: float = ranged(1e-5, gt=0)  # stop when the largest tangent step component is below this
-    damping: float = ranged(1e-6, ge=0)  # Marquardt damping: this times the Hessian's diagonal is added to it
+    damping: float = ranged(1e-6, gt=0)  # initial Marquardt damping: this times the Hessian's diagonal is added to it
+    lambda_factor: float = ranged(10.0, gt=1)  # damping raised by this after a step that raises the cost, lowered after one that lowers it
+    lambda_max: float = ranged(1e6, gt=0)  # no descent at this damping: converged
     # scale of the relative pose: free (Sim(3), the monocular two-view source's arbitrary scale per pair),
     # fixed (SE(3): metric RGB-D / stereo pointmaps), auto: fixed for metric sources, free otherwise
     scale: Literal["auto", "free", "fixed"] = "auto"

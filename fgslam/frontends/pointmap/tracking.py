@@ -2,15 +2,18 @@
 
 :func:`track_pose` estimates the relative pose ``T_CkCf`` of a frame f to its keyframe k from N matches
 (the frame's own points ``X_f^f`` at the query pixels, the keyframe's canonical points ``X_k^k`` at the
-matched pixels) by Gauss-Newton with iteratively reweighted least squares:
+matched pixels). The matches are one edge of the backend's pose-only
+:class:`~fgslam.factors.pointmap_block.PointmapBlock` between the keyframe (held at the identity) and
+the frame, so the residuals, their whitening by ``sqrt(q) / sigma`` (eq. 6) and the robust kernel
+(Huber) on each row group are the block's, one implementation each:
 
-- residuals of :mod:`fgslam.factors.pointmap` (one implementation each): ``ray`` mode, the unit-ray rows
-  and the weak distance row (eqs. 7-8; the distance row keeps a pure rotation well posed), or
-  ``calibrated`` mode (section 3.7), pixel rows and the log-depth row;
-- every row group whitened by ``sqrt(q) / sigma`` with the match confidence ``q`` (eq. 6) and weighted
-  by the robust kernel (Huber) of its whitened norm (:mod:`fgslam.factors.robust`), as the backend's
-  :class:`~fgslam.factors.pointmap_block.PointmapBlock` does for the same residuals;
-- Sim(3) (7 dof) or, for metric pointmaps, SE(3) (the scale column dropped).
+- ``ray`` mode: the unit-ray rows and the weak distance row (eqs. 7-8; the distance row keeps a pure
+  rotation well posed); ``calibrated`` mode (section 3.7): pixel rows and the log-depth row;
+- the pose is solved by the one Levenberg-Marquardt loop (:meth:`fgslam.backend.Backend.optimize_pose`'s
+  problem, :mod:`fgslam.backend.motion_only`) with Marquardt damping; each linearisation takes the
+  kernel's weights at the current residuals, which is the iteratively reweighted least squares of the
+  paper;
+- Sim(3) (7 dof) or, for metric pointmaps, SE(3) (the scale component held exactly).
 
 :func:`fuse_pointmap` is eq. 9: the keyframe's canonical pointmap becomes the confidence-weighted
 running average of its own points and the tracked frame's points moved into it (``T_CkCf X_f^f``) at the
@@ -22,11 +25,14 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
-from ...factors.pointmap import calibrated_residuals, ray_dist_residuals
-from ...factors.pointmap_block import PointmapBlockConfig
-from ...factors.robust import kernel_cost, kernel_weight
+from ...backend.keys import pose_key
+from ...backend.motion_only import optimize_pose
+from ...backend.solver import LMSettings
+from ...factors.pointmap_block import PointmapBlock, PointmapBlockConfig, PointmapEdge
+from ...factors.schur import POSE_DIM
 from ...lie import Sim3
 from .config import TrackingConfig
 
@@ -34,15 +40,17 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["TrackResult", "fuse_pointmap", "track_pose"]
 
-# row groups of each residual mode: (ray 3-vector, distance) / (pixel 2-vector, log depth)
-GROUPS = {"ray": ((0, 3), (3, 4)), "calibrated": ((0, 2), (2, 3))}
+#: the keyframe's and the frame's keys in the two-key tracking problem
+_KEY_K, _KEY_F = pose_key(0), pose_key(1)
+#: SE(3) tracking: the log-scale component of the frame's tangent held exactly
+_FIXED_SCALE = np.array([0.0] * (POSE_DIM - 1) + [np.inf])
 
 
 @dataclass
 class TrackResult:
     """Outcome of :func:`track_pose`: the relative pose, per-match inlier flags (the whitened norm of the
-    ray / pixel rows at most ``tracking.inlier_threshold``), the cost ``sum rho`` before and after, the iterations run and whether the step
-    fell below the tolerance."""
+    ray / pixel rows at most ``tracking.inlier_threshold``), the cost ``sum rho`` before and after, the
+    iterations run and whether the loop converged."""
 
     T_CkCf: Sim3
     inlier: torch.Tensor
@@ -56,14 +64,10 @@ class TrackResult:
         return int(self.inlier.sum())
 
 
-def _terms(T: Sim3, X_f, X_k, weight, uv_k, K, block: PointmapBlockConfig):
-    if block.mode == "ray":
-        res = ray_dist_residuals(T, X_f, X_k, weight, block.residual)
-    else:
-        res = calibrated_residuals(T, X_f, X_k, uv_k, K, weight, block.residual)
-    e, J = res.whitened()
-    norms = torch.stack([torch.linalg.vector_norm(e[:, a:b], dim=-1) for a, b in GROUPS[block.mode]], -1)
-    return e, J, norms, res.valid
+def _settings(config: TrackingConfig) -> LMSettings:
+    return LMSettings(max_iterations=config.iterations, lambda_initial=config.damping,
+                      lambda_factor=config.lambda_factor, lambda_max=config.lambda_max,
+                      step_tolerance=config.step_tolerance, damping="marquardt")
 
 
 def track_pose(T_init: Sim3, X_f_in_f: torch.Tensor, X_k_in_k: torch.Tensor, weight: torch.Tensor,
@@ -72,44 +76,18 @@ def track_pose(T_init: Sim3, X_f_in_f: torch.Tensor, X_k_in_k: torch.Tensor, wei
     """``T_CkCf`` from N matches (module docstring). ``X_f_in_f`` / ``X_k_in_k`` ``(N, 3)``, ``weight``
     ``(N,)`` match confidences q, ``uv_k`` ``(N, 2)`` matched keyframe pixels and ``K`` ``(4,)`` for the
     calibrated mode; all float64. ``fixed_scale``: SE(3) (the scale of ``T_init`` is kept)."""
-    rb = block.robust
-    n = 6 if fixed_scale else 7
-    T = T_init
-    initial = final = float("nan")
-    converged = False
-    it = 0
-    for it in range(1, config.iterations + 1):
-        e, J, norms, valid = _terms(T, X_f_in_f, X_k_in_k, weight, uv_k, K, block)
-        cost = float(kernel_cost(norms, rb.kind, rb.delta).sum())
-        if it == 1:
-            initial = cost
-        w = kernel_weight(norms, rb.kind, rb.delta)
-        row_w = torch.cat([w[:, g:g + 1].expand(-1, b - a) for g, (a, b) in enumerate(GROUPS[block.mode])], -1)
-        Jr = J.reshape(-1, 7)[:, :n]
-        wr = row_w.reshape(-1)
-        H = Jr.T @ (wr[:, None] * Jr)
-        g = Jr.T @ (wr * e.reshape(-1))
-        diag = torch.diagonal(H)
-        H = H + torch.diag(config.damping * diag + 1e-12 * diag.max().clamp_min(1.0))  # Marquardt: scale-invariant
-        try:
-            delta = -torch.linalg.solve(H, g)
-        except RuntimeError:  # singular (no valid match): no step
-            logger.debug("pointmap tracking: singular system at iteration %d", it)
-            break
-        if not bool(torch.isfinite(delta).all()):
-            break
-        xi = torch.zeros(7, dtype=delta.dtype)
-        xi[:n] = delta
-        T = T.retract(xi)
-        if float(delta.abs().max()) < config.step_tolerance:
-            converged = True
-            break
-    e, J, norms, valid = _terms(T, X_f_in_f, X_k_in_k, weight, uv_k, K, block)
-    final = float(kernel_cost(norms, rb.kind, rb.delta).sum())
-    if it == 0 or initial != initial:
-        initial = final
-    inlier = valid & (weight > 0) & (norms[:, 0] <= config.inlier_threshold)
-    return TrackResult(T, inlier, initial, final, it, converged)
+    import gtsam
+
+    edge = PointmapEdge(_KEY_K, _KEY_F, X_k_in_k, X_f_in_f, weight, uv_k if block.mode == "calibrated" else None)
+    pm = PointmapBlock([edge], block, None if K is None else K.numpy())
+    values = gtsam.Values()
+    values.insert(_KEY_K, gtsam.Similarity3())
+    values.insert(_KEY_F, T_init.to_gtsam())
+    result = optimize_pose([pm], values, _KEY_F, _settings(config), _FIXED_SCALE if fixed_scale else None)
+    report = result.report
+    T = Sim3.from_gtsam(result.values.atSimilarity3(_KEY_F))
+    (inlier,) = pm.inliers(result.values, config.inlier_threshold)
+    return TrackResult(T, inlier, report.initial_cost, report.final_cost, report.iterations, report.converged)
 
 
 def fuse_pointmap(X_canon: torch.Tensor, C_canon: torch.Tensor, index: torch.Tensor, X_new: torch.Tensor,
