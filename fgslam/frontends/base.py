@@ -107,3 +107,48 @@ class Frontend(abc.ABC):
         T_WC = rigid_poses(np.stack([backend.pose_matrix(k) for k in kf_ids])) if kf_ids else np.zeros((0, 4, 4))
         stamps = [backend.timestamp(k) for k in kf_ids]
         return MapExport(kf_ids, stamps, T_WC, points[0], points[1])
+
+
+#: the sensor modes a frontend family may be built for
+SENSOR_MODES: tuple[str, ...] = ("mono", "stereo", "rgbd")
+
+
+class BackendFrontend(Frontend):
+    """Plumbing shared by the families that feed the run's backend (patch, dense, pointmap): the checks
+    and services of their constructor, the per-input-frame bookkeeping of :meth:`process` (``_fid``,
+    ``_inputs``, ``_records``) and the stage times with the loop service's share. The families' own
+    work stays in their classes."""
+
+    def _attach(self, config, sensor_mode: str, map_config=None, backend=None) -> None:
+        """Validate ``config``, check ``sensor_mode`` and take the run's ``backend`` (a new one from
+        ``map_config`` when the frontend is built alone, as in tests). Sets ``config``, ``sensor_mode``,
+        ``backend`` and the empty input bookkeeping."""
+        from ..backend import Backend
+        from ..backend.config import BackendConfig
+        from ..errors import ConfigError
+
+        config.validate()
+        if sensor_mode not in SENSOR_MODES:
+            raise ConfigError(f"sensor mode must be {', '.join(SENSOR_MODES[:-1])} or {SENSOR_MODES[-1]}, "
+                              f"got {sensor_mode!r}")
+        self.config = config
+        self.sensor_mode = sensor_mode
+        self.backend = backend if backend is not None else Backend(map_config or BackendConfig())
+        self._records: dict = {}  # fid -> pose record (fgslam.frontends.records), None while it has no pose
+        self._inputs: list[tuple[int, float, int]] = []  # (fid, timestamp, index) per input frame
+        self._fid = 0
+
+    def _register_input(self, frame) -> int:
+        """A new frame id for ``frame``, recorded as an input without a pose yet."""
+        fid = self._fid
+        self._fid += 1
+        self._inputs.append((fid, float(frame.timestamp), int(frame.index)))
+        self._records[fid] = None
+        return fid
+
+    def stage_times(self) -> dict[str, float]:
+        """The frontend's own stage times (``_times``) plus the loop service's share in this thread."""
+        out = dict(self._times)
+        for stage, seconds in self.loops.stage_times().items():
+            out[stage] = out.get(stage, 0.0) + seconds
+        return out

@@ -54,7 +54,7 @@ from ...factors.reprojection import ReprojectionConfig
 from ...factors.schur import BlockConfig, POSE_DIM, torch_threads
 from ...lie import sim3_matrix_parts
 from ...loop.closure import LoopClosureConfig
-from ..base import FrameStatus, Frontend, SensorMode
+from ..base import BackendFrontend, FrameStatus, SensorMode
 from ..records import (AbsolutePose, KeyframePose, PoseRecord, RelativePose, gtsam_matrix, gtsam_sim3, resolve_pose,
                        rigid, sim3_power)
 from .config import DenseConfig
@@ -76,7 +76,7 @@ def _pool(a: np.ndarray, s: int) -> np.ndarray:
     return a.reshape(H // s, s, W // s, s, *a.shape[2:]).mean(axis=(1, 3))
 
 
-class DenseFrontend(Frontend):
+class DenseFrontend(BackendFrontend):
     """DROID-SLAM-style dense frontend (module docstring); builder of the ``dense`` family.
 
     Args as :class:`fgslam.frontends.patch.PatchFrontend`: ``config`` the ``dense`` section,
@@ -90,12 +90,7 @@ class DenseFrontend(Frontend):
     def __init__(self, config: DenseConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
                  map_config: BackendConfig | None = None, loop_config: LoopClosureConfig | None = None,
                  backend: Backend | None = None):
-        self.config = config or DenseConfig()
-        self.config.validate()
-        if sensor_mode not in ("mono", "stereo", "rgbd"):
-            raise ConfigError(f"sensor mode must be mono, stereo or rgbd, got {sensor_mode!r}")
-        self.sensor_mode = sensor_mode
-        self.backend = backend if backend is not None else Backend(map_config or BackendConfig())
+        self._attach(config or DenseConfig(), sensor_mode, map_config, backend)
         self.source = make_dense_source(self.config.source)
         self.stride = int(self.config.source.stride)
         self._reproj = ReprojectionConfig(min_depth=self.config.ba.min_depth)
@@ -103,11 +98,8 @@ class DenseFrontend(Frontend):
         self.graph: FrameGraph | None = None
         if calibration is not None:
             self._set_calibration(calibration)
-        self._records: dict[int, PoseRecord | None] = {}
-        self._inputs: list[tuple[int, float, int]] = []
         self._sources: dict[int, str] = {}
         self._final: dict[int, DenseKeyframeState] = {}  # keyframes of earlier maps (after a restart)
-        self._fid = 0
         self._initialized = False
         self._last_fid: int | None = None
         self._velocity = np.eye(4)
@@ -164,20 +156,11 @@ class DenseFrontend(Frontend):
     def counts(self) -> dict[str, int]:
         return dict(self._counts)
 
-    def stage_times(self) -> dict[str, float]:
-        out = dict(self._times)
-        for stage, seconds in self.loops.stage_times().items():
-            out[stage] = out.get(stage, 0.0) + seconds
-        return out
-
     def process(self, frame) -> FrameStatus:
         if self.calibration is None:
             self._set_calibration(frame.calibration)
         self._check_frame(frame)
-        fid = self._fid
-        self._fid += 1
-        self._inputs.append((fid, float(frame.timestamp), int(frame.index)))
-        self._records[fid] = None
+        fid = self._register_input(frame)
         if self._initialized:
             self.loops.poll()
         try:

@@ -73,7 +73,7 @@ from ...lie import sim3_matrix_components
 from ...backend.config import BackendConfig
 from ...backend.graph import Backend
 from ...backend.keys import pose_key
-from ..base import FrameStatus, Frontend, SensorMode
+from ..base import BackendFrontend, FrameStatus, SensorMode
 from .ba import PatchBlock
 from .config import PatchConfig
 from .global_ba import GlobalBAProblem, global_bundle_adjustment
@@ -199,7 +199,7 @@ class BackendFrame(GraphFrame):
         self._backend = None
 
 
-class PatchFrontend(Frontend):
+class PatchFrontend(BackendFrontend):
     """DPVO / DPV-SLAM-style patch frontend (see module docstring).
 
     Args:
@@ -229,12 +229,7 @@ class PatchFrontend(Frontend):
     def __init__(self, config: PatchConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
                  map_config: BackendConfig | None = None, loop_config: LoopClosureConfig | None = None,
                  backend: Backend | None = None):
-        self.config = config or PatchConfig()
-        self.config.validate()
-        if sensor_mode not in ("mono", "stereo", "rgbd"):
-            raise ConfigError(f"sensor mode must be mono, stereo or rgbd, got {sensor_mode!r}")
-        self.sensor_mode = sensor_mode
-        self.backend = backend if backend is not None else Backend(map_config or BackendConfig())
+        self._attach(config or PatchConfig(), sensor_mode, map_config, backend)
         self.map_config = self.backend.config
         self.source = make_source(self.config)
         self.calibration = None
@@ -244,8 +239,6 @@ class PatchFrontend(Frontend):
         self._rng = np.random.default_rng(self.config.graph.seed)
         self._initialized = False
         self._init: _InitState | None = None
-        self._records: dict[int, PoseRecord | None] = {}  # fid -> pose record (.records)
-        self._inputs: list[tuple[int, float, int]] = []  # (fid, timestamp, index) per input frame
         self._sources: dict[int, str] = {}
         self._velocity = np.eye(4)
         self._last_fid: int | None = None
@@ -256,7 +249,6 @@ class PatchFrontend(Frontend):
         self._map_start_fid: int | None = None  # first keyframe of the current map (since the last initialisation)
         self._reproj = ReprojectionConfig(min_depth=self.config.ba.min_depth)
         self._last_residual = np.zeros(0)
-        self._fid = 0
         self._finalised = 0  # keyframes that left the graph (pose final)
         self._keys: dict[int, int] = {}  # fid -> gtsam key cache (bounded to about the graph size)
         self._still: list[tuple[int, int, float]] = []  # stationary frames since the newest keyframe: (fid, keyframe fid, flow px)
@@ -294,12 +286,6 @@ class PatchFrontend(Frontend):
     def num_keyframes(self) -> int:
         return len(self.graph) + self._finalised
 
-    def stage_times(self) -> dict[str, float]:
-        out = dict(self._times)
-        for stage, seconds in self.loops.stage_times().items():  # the loop service's part in this thread
-            out[stage] = out.get(stage, 0.0) + seconds
-        return out
-
     @property
     def num_failures(self) -> int:
         """Frames whose pose came from the motion model (tracking failures)."""
@@ -309,10 +295,7 @@ class PatchFrontend(Frontend):
         if self.calibration is None:
             self._set_calibration(frame.calibration)
         self._check_frame(frame)
-        fid = self._fid
-        self._fid += 1
-        self._inputs.append((fid, float(frame.timestamp), int(frame.index)))
-        self._records[fid] = None
+        fid = self._register_input(frame)
         if self._initialized:
             self.loops.poll()  # safe point (no BA running); outside the numerical-trouble guard
         try:

@@ -59,7 +59,7 @@ from ...factors.pointmap_block import PointmapBlock, PointmapEdge
 from ...factors.schur import torch_threads
 from ...lie import Sim3
 from ...loop.closure import LoopClosureConfig
-from ..base import FrameStatus, Frontend, SensorMode
+from ..base import BackendFrontend, FrameStatus, SensorMode
 from ..records import AbsolutePose, InterpolatedPose, KeyframePose, PoseRecord, RelativePose, resolve_pose, rigid
 from .config import PointmapConfig
 from .keyframes import PointmapKeyframe, even_subset, match_frame, measure_edge, query_grid
@@ -108,7 +108,7 @@ def _matrix(T: Sim3) -> np.ndarray:
     return T.matrix().numpy().astype(np.float64)
 
 
-class PointmapFrontend(Frontend):
+class PointmapFrontend(BackendFrontend):
     """MASt3R-SLAM-style pointmap frontend (module docstring); a contributor of the run's backend.
 
     Args:
@@ -123,11 +123,7 @@ class PointmapFrontend(Frontend):
     def __init__(self, config: PointmapConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
                  map_config: BackendConfig | None = None, loop_config: LoopClosureConfig | None = None,
                  backend: Backend | None = None):
-        self.config = config or PointmapConfig()
-        self.config.validate()
-        if sensor_mode not in ("mono", "stereo", "rgbd"):
-            raise ConfigError(f"sensor mode must be mono, stereo or rgbd, got {sensor_mode!r}")
-        self.sensor_mode = sensor_mode
+        self._attach(config or PointmapConfig(), sensor_mode, map_config, backend)
         self.kind = self.config.source_kind(sensor_mode)
         if self.kind == "rgbd" and sensor_mode != "rgbd":
             raise ConfigError(f"pointmap.source.kind=rgbd needs sensor: rgbd (the run's sensor is {sensor_mode})")
@@ -135,15 +131,12 @@ class PointmapFrontend(Frontend):
             raise ConfigError(f"pointmap.source.kind=stereo needs sensor: stereo (the run's sensor is {sensor_mode})")
         scale = self.config.tracking.scale
         self.fixed_scale = (self.kind in ("rgbd", "stereo")) if scale == "auto" else scale == "fixed"
-        self.backend = backend if backend is not None else Backend(map_config or BackendConfig())
         if not self.fixed_scale and self.backend.config.gauge.hold_scale:
             # the pointmaps' scale is real (docs/design.md section 4): no per-keyframe log-scale priors
             logger.info("pointmap frontend: Sim(3) keyframes, map.gauge.hold_scale switched off")
             self.backend.config.gauge.hold_scale = False
         self.source = None
         self.cam: WorkingCamera | None = None
-        self._records: dict[int, PoseRecord | None] = {}
-        self._inputs: list[tuple[int, float, int]] = []  # (fid, timestamp, index)
         self._status_src: dict[int, str] = {}
         self._kfs: dict[int, PointmapKeyframe] = {}  # every keyframe, insertion order
         self._kf: PointmapKeyframe | None = None  # the current keyframe
@@ -158,7 +151,6 @@ class PointmapFrontend(Frontend):
         self._prev_kf: int | None = None  # ... and its keyframe
         self._last_good = None  # (fid, frame, inputs, result, T_CkCf) of the last frame tracked against the keyframe
         self._failures = 0
-        self._fid = 0
         self._loops_seen = 0
         self._times = {"source": 0.0, "matching": 0.0, "tracking": 0.0, "optimization": 0.0, "bookkeeping": 0.0}
         self._counts = {"keyframes": 0, "loop_edges": 0, "relocalized": 0, "pnp_tracked": 0, "failed": 0}
@@ -187,20 +179,11 @@ class PointmapFrontend(Frontend):
     def num_failures(self) -> int:
         return self._failures
 
-    def stage_times(self) -> dict[str, float]:
-        out = dict(self._times)
-        for stage, seconds in self.loops.stage_times().items():
-            out[stage] = out.get(stage, 0.0) + seconds
-        return out
-
     def process(self, frame) -> FrameStatus:
         if self.cam is None:
             self._set_calibration(frame.calibration)
         self._check_frame(frame)
-        fid = self._fid
-        self._fid += 1
-        self._inputs.append((fid, float(frame.timestamp), int(frame.index)))
-        self._records[fid] = None
+        fid = self._register_input(frame)
         if self._kf is not None:
             self.loops.poll()  # safe point: the closer's corrections
             self._loop_edges()
