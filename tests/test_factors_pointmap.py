@@ -352,3 +352,29 @@ def test_float32_agrees_with_float64(name):
     assert r32.r.dtype == torch.float32 and r32.J.dtype == torch.float32
     scale = r64.J.abs().amax(dim=-1, keepdim=True).clamp(min=1.0)
     assert ((r32.J.double() - r64.J) / scale).abs().max() < 1e-3
+
+
+def test_residuals_without_jacobians_are_the_same_residuals():
+    """A cost evaluation (``jacobians=False``) gives the same whitened residuals and mask, and no Jacobian."""
+    import numpy as _np
+
+    from fgslam.factors.pointmap import calibrated_residuals, point_residuals, ray_dist_residuals
+    from fgslam.lie import Sim3 as _Sim3
+
+    rng = _np.random.default_rng(11)
+    n = 50
+    X_k = torch.as_tensor(_np.stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), rng.uniform(2, 4, n)], -1))
+    X_f = X_k + torch.as_tensor(rng.normal(scale=0.05, size=(n, 3)))
+    X_f[3] = float("nan")
+    w = torch.as_tensor(rng.uniform(0.1, 1.0, n))
+    T = _Sim3.exp(torch.tensor([0.02, -0.01, 0.03, 0.05, 0.0, -0.02, 0.1], dtype=torch.float64))
+    uv = torch.as_tensor(rng.uniform(0, 300, (n, 2)))
+    K = torch.tensor([300.0, 300.0, 160.0, 120.0], dtype=torch.float64)
+    for f, extra in ((point_residuals, ()), (ray_dist_residuals, ()), (calibrated_residuals, (uv, K))):
+        full = f(T, X_f, X_k, *extra, w)
+        cheap = f(T, X_f, X_k, *extra, w, jacobians=False)
+        e_full, J_full = full.whitened()
+        e_cheap, J_cheap = cheap.whitened()
+        assert J_full is not None and J_cheap is None
+        assert torch.equal(e_full, e_cheap) and torch.equal(full.valid, cheap.valid)
+        assert not bool(cheap.valid[3])

@@ -81,7 +81,7 @@ class MatchResiduals:
     """
 
     r: Tensor
-    J: Tensor
+    J: Tensor | None  # None when asked for the residuals alone (cost evaluations)
     sqrt_info: Tensor
     valid: Tensor
 
@@ -90,9 +90,9 @@ class MatchResiduals:
         """Number of masked (degenerate) matches."""
         return int((~self.valid).sum())
 
-    def whitened(self) -> tuple[Tensor, Tensor]:
-        """Whitened residuals ``(..., N, m)`` and Jacobians ``(..., N, m, 7)``."""
-        return self.sqrt_info * self.r, self.sqrt_info[..., None] * self.J
+    def whitened(self) -> tuple[Tensor, Tensor | None]:
+        """Whitened residuals ``(..., N, m)`` and Jacobians ``(..., N, m, 7)`` (None without Jacobians)."""
+        return self.sqrt_info * self.r, None if self.J is None else self.sqrt_info[..., None] * self.J
 
 
 def as_sim3(T) -> Sim3:
@@ -164,19 +164,23 @@ def _finish(
     sigmas: Tensor,
     weight: Tensor,
     valid: Tensor,
+    jacobians: bool = True,
 ) -> MatchResiduals:
-    """Chain rule, whitening, and zeroing of the masked matches (NaN there is dropped).
+    """Chain rule, whitening, and zeroing of the masked matches (NaN there is dropped); without
+    ``jacobians`` the chain rule is skipped (``J`` is None: a cost evaluation).
 
     ``J = dr/dY s R [-[X_f]x, I, X_f]`` in fused form: with the rows ``a^T`` of
     ``A = dr/dY s R`` (one batched matmul per pose), ``J`` rows are
     ``[X_f x a, a, a . X_f]`` (since ``a^T (-[X]x) = (X x a)^T``).
     """
-    sR = T.s[..., None, None] * T.R
-    A = (dr_dY.flatten(-3, -2) @ sR).unflatten(-2, dr_dY.shape[-3:-1])
-    X = X_f[..., None, :].expand_as(A)
-    J = torch.cat((torch.linalg.cross(X, A, dim=-1), A, (A * X).sum(-1, keepdim=True)), dim=-1)
     zero = torch.zeros((), dtype=r.dtype, device=r.device)
-    J = torch.where(valid[..., None, None], J, zero)
+    J = None
+    if jacobians:
+        sR = T.s[..., None, None] * T.R
+        A = (dr_dY.flatten(-3, -2) @ sR).unflatten(-2, dr_dY.shape[-3:-1])
+        X = X_f[..., None, :].expand_as(A)
+        J = torch.cat((torch.linalg.cross(X, A, dim=-1), A, (A * X).sum(-1, keepdim=True)), dim=-1)
+        J = torch.where(valid[..., None, None], J, zero)
     r = torch.where(valid[..., None], r, zero)
     sqrt_w = torch.sqrt(torch.where(valid, weight, zero))
     sqrt_info = sqrt_w[..., None] / sigmas
@@ -192,6 +196,7 @@ def point_residuals(
     X_k_in_k: Tensor,
     weight: Tensor | None = None,
     config: PointmapResidualConfig | None = None,
+    jacobians: bool = True,
 ) -> MatchResiduals:
     """3-D point residual ``r = T_CkCf X_f_in_f - X_k_in_k`` (m = 3; paper eqs. 6, 14-15).
 
@@ -203,7 +208,7 @@ def point_residuals(
     T, X_f, Y, X_k, weight, valid = _prepare(T_CkCf, X_f_in_f, X_k_in_k, weight, cfg.min_norm)
     eye = torch.eye(3, dtype=Y.dtype, device=Y.device).expand(*Y.shape[:-1], 3, 3)
     sigmas = Y.new_tensor([cfg.sigma_point] * 3)
-    return _finish(Y - X_k, eye, T, X_f, sigmas, weight, valid)
+    return _finish(Y - X_k, eye, T, X_f, sigmas, weight, valid, jacobians)
 
 
 def ray_dist_residuals(
@@ -212,6 +217,7 @@ def ray_dist_residuals(
     X_k_in_k: Tensor,
     weight: Tensor | None = None,
     config: PointmapResidualConfig | None = None,
+    jacobians: bool = True,
 ) -> MatchResiduals:
     """Ray and distance residuals of the generic central camera (m = 4; eqs. 7, 10, 16-22).
 
@@ -238,7 +244,7 @@ def ray_dist_residuals(
     r = torch.cat((psi_Y - psi_k, (norm_Y - norm_k)[..., None]), dim=-1)
     dr_dY = torch.cat((dpsi_dY, psi_Y[..., None, :]), dim=-2)
     sigmas = Y.new_tensor([cfg.sigma_ray] * 3 + [cfg.sigma_dist])
-    return _finish(r, dr_dY, T, X_f, sigmas, weight, valid)
+    return _finish(r, dr_dY, T, X_f, sigmas, weight, valid, jacobians)
 
 
 def calibrated_residuals(
@@ -249,6 +255,7 @@ def calibrated_residuals(
     K: Tensor,
     weight: Tensor | None = None,
     config: PointmapResidualConfig | None = None,
+    jacobians: bool = True,
 ) -> MatchResiduals:
     """Calibrated pixel + log-depth residuals (m = 3; paper eqs. 11, 23-25).
 
@@ -279,7 +286,7 @@ def calibrated_residuals(
     dlogz_dY[..., 2] = 1.0 / z_Y
     dr_dY = torch.cat((duv_dY, dlogz_dY[..., None, :]), dim=-2)
     sigmas = Y.new_tensor([cfg.sigma_pixel] * 2 + [cfg.sigma_log_depth])
-    return _finish(r, dr_dY, T, X_f, sigmas, weight, valid)
+    return _finish(r, dr_dY, T, X_f, sigmas, weight, valid, jacobians)
 
 
 def relative_to_global(J_CkCf: Tensor, T_CkCf) -> tuple[Tensor, Tensor]:

@@ -127,17 +127,18 @@ class PointmapBlock:
         poses = Sim3.from_gtsam([values.atSimilarity3(key) for key in self.keys])
         return {key: poses[n] for n, key in enumerate(self.keys)}
 
-    def _residuals(self, edge: _Edge, T_CiCj: Sim3):
+    def _residuals(self, edge: _Edge, T_CiCj: Sim3, jacobians: bool = True):
         cfg = self.config
         if cfg.mode == "ray":
-            return ray_dist_residuals(T_CiCj, edge.X_j, edge.X_i, edge.weight, cfg.residual)
-        return calibrated_residuals(T_CiCj, edge.X_j, edge.X_i, edge.uv_i, self.K, edge.weight, cfg.residual)
+            return ray_dist_residuals(T_CiCj, edge.X_j, edge.X_i, edge.weight, cfg.residual, jacobians=jacobians)
+        return calibrated_residuals(T_CiCj, edge.X_j, edge.X_i, edge.uv_i, self.K, edge.weight, cfg.residual,
+                                    jacobians=jacobians)
 
     def _edge_terms(self, edge: _Edge, poses: dict[int, Sim3], jacobians: bool):
         """Whitened residuals ``(N, m)``, per-group whitened norms, kernel costs and weights, and (with
         ``jacobians``) the whitened Jacobian ``(N, m, 14)`` over ``(key_i, key_j)``."""
         T_CiCj = poses[edge.key_i].inverse() @ poses[edge.key_j]
-        res = self._residuals(edge, T_CiCj)
+        res = self._residuals(edge, T_CiCj, jacobians)
         e, Jw = res.whitened()
         rb = self.config.robust
         norms = torch.stack([torch.linalg.vector_norm(e[:, a:b], dim=-1) for a, b in _GROUPS[self.config.mode]], -1)
@@ -163,7 +164,7 @@ class PointmapBlock:
             poses = self._poses(values)
             for edge in self.edges:
                 T_CiCj = poses[edge.key_i].inverse() @ poses[edge.key_j]
-                res = self._residuals(edge, T_CiCj)
+                res = self._residuals(edge, T_CiCj, jacobians=False)
                 e, _ = res.whitened()
                 a, b = _GROUPS[self.config.mode][0]
                 out.append(res.valid & (edge.weight > 0) & (torch.linalg.vector_norm(e[:, a:b], dim=-1) <= threshold))
