@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 
+import pytest
 import torch
 
 
@@ -85,3 +86,12 @@ def official_dpvo_file(seed: int = 0) -> "OrderedDict[str, torch.Tensor]":
     out = OrderedDict(("module." + name, 0.05 * torch.randn(shape, generator=g)) for name, shape in dpvo_table())
     out["module.update.lmbda"] = torch.tensor([1e-3])
     return out
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Autouse in the test modules that import it: torch on one thread (the machine is shared)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)

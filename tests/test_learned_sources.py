@@ -19,16 +19,11 @@ from fgslam.frontends.patch.source import LearnedDPVOSource, Measurement
 from fgslam.nets.checkpoint import CheckpointError
 from fgslam.nets.config import DpvoNetConfig, DroidNetConfig
 from nets_support import official_dpvo_file, official_droid_file
+from nets_support import one_thread  # noqa: F401 (autouse fixture)
 
 H, W = 64, 80  # DROID: a multiple of 8 and at least 64 (4 pyramid levels)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 @pytest.fixture(scope="module")

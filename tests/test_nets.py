@@ -14,14 +14,9 @@ from fgslam.nets.dpvo import SoftAgg, VONet, neighbors, patch_correlation, pyram
 from fgslam.nets.droid import AltCorr, CorrVolume, DroidNet, GraphAgg, convex_upsample
 
 from nets_support import droid_table, dpvo_table, official_dpvo_file, official_droid_file
+from nets_support import one_thread  # noqa: F401 (autouse fixture)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 # ------------------------------------------------------------------------------ names and shapes

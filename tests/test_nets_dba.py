@@ -11,17 +11,12 @@ from fgslam.backend.keys import pose_key
 from fgslam.factors.dense import DenseBlock, DenseEdge, DenseKeyframe
 from fgslam.lie import Sim3
 from fgslam.nets.dba import DenseBAConfig, dense_ba_step, dense_cost, induced_coords
+from nets_support import one_thread  # noqa: F401 (autouse fixture)
 
 N, h, w = 4, 6, 8
 K = torch.tensor([9.0, 9.0, 3.5, 2.5], dtype=torch.float64)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 def scene(seed=0):
