@@ -70,3 +70,16 @@ def test_correction_reexpresses_the_records(fold):
         np.testing.assert_allclose(T_new, U[0] @ T_old, atol=1e-12)
     np.testing.assert_allclose(new[3].T_WC, corr.apply_pose(3, records[3].T_WC)[0], atol=0)
     assert not np.allclose(new[3].T_WC, records[3].T_WC)
+
+
+def test_per_frame_motion_composes_back_to_the_whole_motion():
+    """``steps`` applications of the per-frame motion take T_prev to T_new; one step is the motion itself."""
+    import gtsam as _gtsam
+
+    from fgslam.frontends.records import gtsam_matrix, per_frame_motion
+
+    T_prev = gtsam_matrix(_gtsam.Similarity3(_gtsam.Rot3.Expmap([0.1, -0.2, 0.05]), [0.3, 0.1, -0.2], 1.3))
+    T_new = gtsam_matrix(_gtsam.Similarity3(_gtsam.Rot3.Expmap([0.3, -0.1, 0.15]), [0.6, 0.2, 0.1], 1.1))
+    V = per_frame_motion(T_prev, T_new, 3)
+    np.testing.assert_allclose(T_prev @ V @ V @ V, T_new, atol=1e-9)
+    np.testing.assert_allclose(per_frame_motion(T_prev, T_new, 1), np.linalg.inv(T_prev) @ T_new, atol=1e-12)

@@ -36,6 +36,13 @@ def rigid(M: np.ndarray) -> np.ndarray:
     return out
 
 
+def per_frame_motion(T_prev: np.ndarray, T_new: np.ndarray, steps: int) -> np.ndarray:
+    """The constant per-frame motion ``(T_prev^-1 T_new)^(1 / steps)`` of a camera that went from
+    ``T_prev`` to ``T_new`` (Sim(3) ``T_WC``) over ``steps >= 1`` frames: a motion model's velocity."""
+    V = np.linalg.inv(T_prev) @ T_new
+    return V if steps <= 1 else sim3_power(V, 1.0 / steps)
+
+
 def sim3_interp(Ta: np.ndarray, Tb: np.ndarray, alpha: float) -> np.ndarray:
     """``Ta Exp(alpha Log(Ta^-1 Tb))`` on Sim(3) matrices."""
     return Ta @ sim3_power(np.linalg.inv(Ta) @ Tb, alpha)

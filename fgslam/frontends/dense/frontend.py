@@ -55,6 +55,7 @@ from ...factors.schur import BlockConfig, POSE_DIM, torch_threads
 from ...lie import sim3_matrix_parts
 from ...loop.closure import LoopClosureConfig
 from ..base import BackendFrontend, FrameStatus, SensorMode
+from ..records import per_frame_motion
 from ..records import (AbsolutePose, KeyframePose, PoseRecord, RelativePose, gtsam_matrix, gtsam_sim3, resolve_pose,
                        rigid, sim3_power)
 from .config import DenseConfig
@@ -274,9 +275,7 @@ class DenseFrontend(BackendFrontend):
         if self._last_fid is not None:
             T_prev, T_new = self._pose_of(self._last_fid), self._pose_of(fid)
             if T_prev is not None and T_new is not None:
-                steps = max(1, fid - self._last_fid)
-                V = np.linalg.inv(T_prev) @ T_new
-                self._velocity = V if steps == 1 else sim3_power(V, 1.0 / steps)
+                self._velocity = per_frame_motion(T_prev, T_new, fid - self._last_fid)
         self._last_fid = fid
 
     # ------------------------------------------------------------------ per frame

@@ -79,6 +79,7 @@ from .config import PatchConfig
 from .global_ba import GlobalBAProblem, global_bundle_adjustment
 from .graph import GraphFrame, PatchGraph
 from .proximity import Candidate, KeyframeStore, fundamental_inliers, held_frames, pose_filter
+from ..records import per_frame_motion
 from ..records import AbsolutePose, InterpolatedPose, KeyframePose, PoseRecord, RelativePose, resolve_pose
 from ..records import rigid as _rigid
 from ..records import sim3_interp as _interp, sim3_power as _sim3_power
@@ -423,9 +424,7 @@ class PatchFrontend(BackendFrontend):
         if self._last_fid is not None:
             T_prev, T_new = self._pose_of(self._last_fid), self._pose_of(fid)
             if T_prev is not None and T_new is not None:
-                steps = max(1, fid - self._last_fid)
-                V = np.linalg.inv(T_prev) @ T_new
-                self._velocity = V if steps == 1 else _sim3_power(V, 1.0 / steps)
+                self._velocity = per_frame_motion(T_prev, T_new, fid - self._last_fid)
         self._last_fid = fid
 
     def _frame_points(self, f: GraphFrame) -> tuple[np.ndarray, np.ndarray]:
