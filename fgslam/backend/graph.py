@@ -145,6 +145,32 @@ def jacobian_on(keys: list[int], dims: list[int], A: np.ndarray, b: np.ndarray):
                                      gtsam.VerticalBlockMatrix([int(d) for d in dims], Ab, True))
 
 
+def _eliminate_keys(gfg, keys: list[int], dims: dict[int, int], regularization: float, hint: str = ""):
+    """The linear graph ``gfg`` with ``keys`` eliminated (their Gaussian marginal on the keys they reach,
+    as the remaining factors): the one Schur elimination of variables out of the backend's linearised
+    graph (window marginal priors, marginalised attached keys). ``regularization > 0`` adds
+    ``regularization |dx|^2`` on each eliminated key first (directions no factor observes).
+
+    Raises:
+        OptimizationError: the system is indeterminate (names up to five keys; ``hint`` appended).
+    """
+    import gtsam
+
+    if regularization > 0:
+        for key in keys:
+            gfg.push_back(gtsam.JacobianFactor(key, np.sqrt(regularization) * np.eye(dims[key]), np.zeros(dims[key]),
+                                               gtsam.noiseModel.Unit.Create(dims[key])))
+    ordering = gtsam.Ordering()
+    for key in keys:
+        ordering.push_back(key)
+    try:
+        _, remaining = gfg.eliminatePartialSequential(ordering)
+    except RuntimeError as exc:  # gtsam's IndeterminateLinearSystemException
+        names = ", ".join(key_name(k) for k in keys[:5])
+        raise OptimizationError(f"marginalising {names}{', ...' if len(keys) > 5 else ''} failed ({exc}){hint}") from exc
+    return remaining
+
+
 class _Isam2Stepper:
     """Step provider of one optimisation: a ``gtsam.ISAM2`` holding the problem's built-in factors over
     the free keys; the linear extras (block pieces, restricted boundary factors) are swapped in as
@@ -484,17 +510,8 @@ class Backend:
             if restricted is not None:
                 gfg.push_back(restricted)
                 reached.update(k for k in free if k not in drop)
-        reg = self.config.window.marginal_regularization
-        for key in keys:  # directions no factor observes stay determinate
-            gfg.push_back(gtsam.JacobianFactor(key, np.sqrt(max(reg, 1e-12)) * np.eye(dims[key]), np.zeros(dims[key]),
-                                               gtsam.noiseModel.Unit.Create(dims[key])))
-        ordering = gtsam.Ordering()
-        for key in keys:
-            ordering.push_back(key)
-        try:
-            _, remaining = gfg.eliminatePartialSequential(ordering)
-        except RuntimeError as exc:  # gtsam's IndeterminateLinearSystemException
-            raise OptimizationError(f"marginalising {', '.join(key_name(k) for k in keys)} failed ({exc})") from exc
+        # directions no factor observes stay determinate: always a (tiny) regularisation here
+        remaining = _eliminate_keys(gfg, keys, dims, max(self.config.window.marginal_regularization, 1e-12))
         for handle, _, _ in touching:
             del self._factors[handle]
         for key in keys:
@@ -752,19 +769,7 @@ class Backend:
             outside.extend(k for k in keys if k not in free and k not in outside)
         reg = self.config.window.marginal_regularization
         dims = {int(k): int(d) for k, d in self._values.dims().items()}
-        if reg > 0:
-            for key in outside:
-                gfg.push_back(gtsam.JacobianFactor(key, np.sqrt(reg) * np.eye(dims[key]), np.zeros(dims[key]),
-                                                   gtsam.noiseModel.Unit.Create(dims[key])))
-        ordering = gtsam.Ordering()
-        for key in outside:
-            ordering.push_back(key)
-        try:
-            _, remaining = gfg.eliminatePartialSequential(ordering)
-        except RuntimeError as exc:  # gtsam's IndeterminateLinearSystemException
-            names = ", ".join(key_name(k) for k in outside[:5])
-            raise OptimizationError(f"marginalising {names}{', ...' if len(outside) > 5 else ''} failed ({exc}); "
-                                    f"set map.window.marginal_regularization > 0") from exc
+        remaining = _eliminate_keys(gfg, outside, dims, reg, hint="; set map.window.marginal_regularization > 0")
         lin_point = gtsam.Values(self._values)
         for key in self._values.keys():
             if int(key) not in free:
