@@ -136,6 +136,7 @@ class BackendFrontend(Frontend):
         self.backend = backend if backend is not None else Backend(map_config or BackendConfig())
         self._records: dict = {}  # fid -> pose record (fgslam.frontends.records), None while it has no pose
         self._inputs: list[tuple[int, float, int]] = []  # (fid, timestamp, index) per input frame
+        self._sources: dict[int, str] = {}  # fid -> pose source reported for it (default: tracked)
         self._fid = 0
 
     def _register_input(self, frame) -> int:
@@ -145,6 +146,27 @@ class BackendFrontend(Frontend):
         self._inputs.append((fid, float(frame.timestamp), int(frame.index)))
         self._records[fid] = None
         return fid
+
+    #: trajectory(): leave out frames whose resolved pose is not finite (else they are reported as they are)
+    _skip_nonfinite_poses: bool = False
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """Every input frame's pose from its record (keyframes read through ``_keyframe_T_WC``, which
+        the family defines), as a rigid ``T_WC``; frames without a pose are left out."""
+        from .records import resolve_pose, rigid
+
+        stamps, poses, sources = [], [], []
+        cache: dict = {}
+        for fid, stamp, _ in self._inputs:
+            T = resolve_pose(fid, self._records, self._keyframe_T_WC, cache)
+            if T is None or (self._skip_nonfinite_poses and not np.isfinite(T).all()):
+                continue
+            stamps.append(stamp)
+            poses.append(rigid(T))
+            sources.append(self._sources.get(fid, "tracked"))
+        if not poses:
+            return np.zeros(0), np.zeros((0, 4, 4)), []
+        return np.array(stamps), np.stack(poses), sources
 
     def stage_times(self) -> dict[str, float]:
         """The frontend's own stage times (``_times``) plus the loop service's share in this thread."""

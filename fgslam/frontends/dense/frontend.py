@@ -87,6 +87,7 @@ class DenseFrontend(BackendFrontend):
     """
 
     name = "dense"
+    _skip_nonfinite_poses = True  # a diverged motion-only solve leaves no pose (not a non-finite one)
 
     def __init__(self, config: DenseConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
                  map_config: BackendConfig | None = None, loop_config: LoopClosureConfig | None = None,
@@ -99,7 +100,6 @@ class DenseFrontend(BackendFrontend):
         self.graph: FrameGraph | None = None
         if calibration is not None:
             self._set_calibration(calibration)
-        self._sources: dict[int, str] = {}
         self._final: dict[int, DenseKeyframeState] = {}  # keyframes of earlier maps (after a restart)
         self._initialized = False
         self._last_fid: int | None = None
@@ -172,20 +172,6 @@ class DenseFrontend(BackendFrontend):
             status = self._fail(fid, frame, f"optimisation failed: {exc}")
         self._sources[fid] = status.pose_source
         return status
-
-    def trajectory(self) -> tuple[np.ndarray, np.ndarray, list[str]]:
-        stamps, poses, sources = [], [], []
-        cache: dict[int, np.ndarray | None] = {}
-        for fid, stamp, _ in self._inputs:
-            T = resolve_pose(fid, self._records, self._keyframe_T_WC, cache)
-            if T is None or not np.isfinite(T).all():
-                continue
-            stamps.append(stamp)
-            poses.append(rigid(T))
-            sources.append(self._sources.get(fid, "tracked"))
-        if not poses:
-            return np.zeros(0), np.zeros((0, 4, 4)), []
-        return np.array(stamps), np.stack(poses), sources
 
     def finish(self) -> None:
         self.loops.wait()

@@ -240,7 +240,6 @@ class PatchFrontend(BackendFrontend):
         self._rng = np.random.default_rng(self.config.graph.seed)
         self._initialized = False
         self._init: _InitState | None = None
-        self._sources: dict[int, str] = {}
         self._velocity = np.eye(4)
         self._last_fid: int | None = None
         self._lost = 0
@@ -318,20 +317,6 @@ class PatchFrontend(BackendFrontend):
         if self._initialized and status.pose_source == "tracked":
             self._prox_step()
         return status
-
-    def trajectory(self) -> tuple[np.ndarray, np.ndarray, list[str]]:
-        stamps, poses, sources = [], [], []
-        cache: dict[int, np.ndarray | None] = {}
-        for fid, stamp, _ in self._inputs:
-            T = self._resolve(fid, cache)
-            if T is None:
-                continue
-            stamps.append(stamp)
-            poses.append(_rigid(T))
-            sources.append(self._sources.get(fid, "tracked"))
-        if not poses:
-            return np.zeros(0), np.zeros((0, 4, 4)), []
-        return np.array(stamps), np.stack(poses), sources
 
     def keyframe_points(self) -> tuple[np.ndarray, np.ndarray] | None:
         chunks = [self._frame_points(f) for f in list(self._final.values()) + self.graph.frames]

@@ -137,7 +137,6 @@ class PointmapFrontend(BackendFrontend):
             self.backend.config.gauge.hold_scale = False
         self.source = None
         self.cam: WorkingCamera | None = None
-        self._status_src: dict[int, str] = {}
         self._kfs: dict[int, PointmapKeyframe] = {}  # every keyframe, insertion order
         self._kf: PointmapKeyframe | None = None  # the current keyframe
         self._edges: list[PointmapEdge] = []
@@ -193,25 +192,11 @@ class PointmapFrontend(BackendFrontend):
         except (OptimizationError, RuntimeError, np.linalg.LinAlgError, DataError) as exc:
             logger.warning("pointmap frame %d: %s: %s; using the motion model", frame.index, type(exc).__name__, exc)
             status = self._fail(fid, frame, f"failed: {exc}")
-        self._status_src[fid] = status.pose_source
+        self._sources[fid] = status.pose_source
         tracked = status.pose_source in ("tracked", "relocalized") and self._kf is not None
         self._prev_fid, self._prev_kf = (fid, self._kf.fid) if tracked else (None, None)
         self._release_source()
         return status
-
-    def trajectory(self) -> tuple[np.ndarray, np.ndarray, list[str]]:
-        stamps, poses, sources = [], [], []
-        cache: dict = {}
-        for fid, stamp, _ in self._inputs:
-            T = resolve_pose(fid, self._records, self._keyframe_T_WC, cache)
-            if T is None:
-                continue
-            stamps.append(stamp)
-            poses.append(rigid(T))
-            sources.append(self._status_src.get(fid, "tracked"))
-        if not poses:
-            return np.zeros(0), np.zeros((0, 4, 4)), []
-        return np.array(stamps), np.stack(poses), sources
 
     def finish(self) -> None:
         self.loops.finish()
@@ -424,7 +409,7 @@ class PointmapFrontend(BackendFrontend):
         for other, _, _ in self._inputs:  # frames between the two: interpolated
             if i0 < other < fid:
                 self._records[other] = InterpolatedPose(i0, fid, (other - i0) / (fid - i0))
-                self._status_src[other] = "tracked"
+                self._sources[other] = "tracked"
         self._T_kf, self._uv_prev, self._since_kf = pair.T_CiCj, None, 0
         status = self._track_frame(fid, frame, inputs, pair=pair)
         status.events.append("initialised")
