@@ -28,7 +28,10 @@ edges of every waiting loop (``global_ba_job``). The global BA runs in the backg
 (``run_in_thread``; else at once): a job whose solve is a picklable function (``in_process``, the
 patch family's) in a worker process of its own (spawned once per service: in a thread of the tracking
 process, the two would take turns on the interpreter lock and both slow down, the global BA about
-10x on the street drive), others in a thread. Its result is applied at the next safe point:
+10x on the street drive), others in a thread. Its result is applied at the safe point
+``global_ba_delay_frames`` polls after the one before its start (waiting for it there when it is not
+ready, so that a run gives the same bytes however fast the worker is; the classical closer's
+corrections likewise arrive ``correction_delay_frames`` polls after their keyframe):
 
 1. when the frontend started a new map since the snapshot, it is dropped (a correction applied
    since the snapshot, e.g. the classical closer's, is kept: the result is applied on top of it, as
@@ -86,6 +89,7 @@ class _Running:
     job: GlobalBAJob
     loops: list  # (query id, candidate id) of the loops whose edges it holds
     map_epoch: int
+    due_tick: int  # the safe point at which its result is applied (waiting for it there)
     started: float = field(default_factory=time.perf_counter)
     thread: Optional[threading.Thread] = None
     result: Any = None
@@ -118,6 +122,7 @@ class LoopService:
                             "relocalized": 0}
         self._last_added = -1  # newest keyframe id handed to the closer
         self._map_epoch = 0  # maps started by the contributor so far
+        self._tick = 0  # safe points (poll calls) so far
         self._running: Optional[_Running] = None
         self._pool: Optional[ProcessPoolExecutor] = None  # the global BA's worker process (in_process jobs)
         if self.proximity is not None:
@@ -146,14 +151,18 @@ class LoopService:
 
     # ------------------------------------------------------------------ safe point
     def poll(self) -> None:
-        """Apply the closer's newest correction and a finished global BA (at the safe point)."""
+        """One safe point: apply the closer's correction due now and the global BA due now (waiting
+        for either when it is not ready: results arrive at fixed safe points, module docstring)."""
+        self._tick += 1
         if self.closer is not None:
             t0 = time.perf_counter()
             self._apply_correction(self.closer.poll())
             self._times["loop"] += time.perf_counter() - t0
         run = self._running
-        if run is not None and (run.thread is None or not run.thread.is_alive()):
+        if run is not None and self._tick >= run.due_tick:
             t0 = time.perf_counter()
+            if run.thread is not None:
+                run.thread.join()
             self._finish_global_ba(run)
             self._times["proximity"] += time.perf_counter() - t0
 
@@ -263,7 +272,8 @@ class LoopService:
         if job is None:
             self._undo([(q, c) for q, c, _ in loops], "undone: no map for the global BA")
             return
-        self._start(_Running(job, [(q, c) for q, c, _ in loops], self._map_epoch))
+        self._start(_Running(job, [(q, c) for q, c, _ in loops], self._map_epoch,
+                             self._tick + self.config.global_ba_delay_frames))
 
     def _undo(self, loops: list, status: str) -> None:
         if not loops:
@@ -282,12 +292,14 @@ class LoopService:
         job = self.contributor.global_ba_job(loop_edges)
         if job is None:
             return False
-        run = _Running(job, [], self._map_epoch)
+        run = _Running(job, [], self._map_epoch, self._tick)
         self._solve(run)
         self._running = run
         return self._finish_global_ba(run)
 
     def _start(self, run: _Running) -> None:
+        """Solve in the background (``run_in_thread``) or at once; either way the result is applied at
+        the safe point ``run.due_tick``."""
         self._running = run
         if self.config.run_in_thread:
             if run.job.in_process and self._pool is None:  # (a search created it already)
@@ -296,7 +308,6 @@ class LoopService:
             run.thread.start()
         else:
             self._solve(run)
-            self._finish_global_ba(run)
 
     def _solve(self, run: _Running) -> None:
         """Solve the job (worker thread or caller); an exception is kept for the safe point."""

@@ -51,6 +51,16 @@ scale is a fixed gauge: patch, dense) the scale part ``s_k`` of ``U_k`` is folde
 (DPV-SLAM: ``d <- d / s_k``) and the pose keeps its old scale (:meth:`PoseCorrection.apply`); the
 closer then assumes that every correction handed out by :meth:`LoopCloser.poll` is applied (it
 rescales its stored loop measurements and applies the correction to its own pose table).
+
+Reproducible: the worker never reads the caller's live state. Every piece of work (a keyframe, a
+re-solve, the final solve, and the folding of the loop measurements after a correction was applied)
+is a job that carries the caller's pose table and the count of corrections applied when it was
+handed over, and the worker runs the jobs in that order. Each :meth:`LoopCloser.poll` is a tick; a
+job handed over at tick t is taken at tick ``t + correction_delay_frames`` (waiting for it there),
+its correction applied unless a later due job supersedes it. A correction solved before another one
+was applied is stale (it would correct twice): it is solved again on the current poses, as a new job.
+So the corrections, and the ticks at which they arrive, depend on the caller's calls alone, and
+``run_in_thread`` false (everything at once in the caller's thread) gives the same results.
 """
 
 from __future__ import annotations
@@ -59,6 +69,7 @@ import logging
 import math
 import queue
 import threading
+from collections import deque
 import time
 from dataclasses import dataclass, field
 from typing import Literal, Sequence
@@ -124,10 +135,14 @@ class LoopClosureConfig:
     verification: VerificationConfig = field(default_factory=VerificationConfig)
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     relocalization: RelocalizationConfig = field(default_factory=RelocalizationConfig)
-    run_in_thread: bool = True            # worker threads (classical closer, global BA); False: synchronous (tests, determinism)
+    run_in_thread: bool = True            # worker threads (classical closer, global BA); False: synchronous (same results)
+    # Reproducible runs: a background result is taken this many frames (safe points) after the frame
+    # that handed over its work, waiting there when it is not ready (never "when it happens to finish")
+    correction_delay_frames: int = ranged(3, ge=1, le=1000)  # classical closer: keyframe -> its correction
+    global_ba_delay_frames: int = ranged(10, ge=1, le=10000)  # proximity loop -> its global BA's result
     max_candidates: int = ranged(2, ge=1)  # accepted BoW candidates verified per query keyframe
     fold_scale: bool = True               # frontend folds the scale correction into depths
-    max_pose_graph_retries: int = ranged(3, ge=1)  # recomputations when a correction was applied mid-solve
+    max_pose_graph_retries: int = ranged(3, ge=1, le=100)  # re-solves of a correction computed before another was applied
     # Pose-graph throttle (module docstring): once a loop cluster has a correction, its further loops
     # are solved at most every solve_every described keyframes (1: after every verified loop) ...
     solve_every: int = ranged(5, ge=1)
@@ -271,6 +286,23 @@ class _Keyframe:
     features: KeyframeFeatures | None = None
 
 
+@dataclass
+class _Job:
+    """Work handed to the closer's worker at tick ``tick`` (module docstring, "Reproducible"):
+    ``keyframe`` (describe, detect, verify, maybe solve), ``fold`` (rescale the loop measurements by
+    ``factors``), ``solve`` (a re-solve), ``close`` (the final solve); ``poses`` and ``epoch`` are the
+    caller's pose table and corrections applied at submission."""
+
+    kind: str
+    tick: int
+    kf_id: int | None
+    poses: dict
+    epoch: int
+    factors: dict | None = None
+    correction: "PoseCorrection | None" = None
+    done: threading.Event = field(default_factory=threading.Event)
+
+
 # ----------------------------------------------------------------------------------- geometry
 
 def _as_matrix(T) -> np.ndarray:
@@ -394,9 +426,16 @@ class LoopCloser:
     pose graph holds every keyframe's scale, so corrections are SE(3) with nothing to fold (module
     docstring).
 
-    Thread safety: every method may be called from the frontend thread while the worker runs; all
-    shared state is behind one lock, and heavy work (ORB, matching, RANSAC, pose graph) runs outside
-    it on copies.
+    Determinism (module docstring, "Reproducible"): each call of :meth:`poll` is one *tick*. Work
+    handed over at tick t (a keyframe, a fold of the loop measurements, a re-solve) is a job that
+    carries a snapshot of the caller's pose table and the count of corrections applied so far; the
+    worker runs the jobs in order on those snapshots only, and the job's result is taken at tick
+    ``t + correction_delay_frames`` (waiting there for it when it is not ready). So what the caller
+    sees depends on its own calls alone, never on how fast the worker ran, and the threaded and the
+    synchronous mode give the same results.
+
+    Thread safety: every method is called from the frontend thread; the worker reads the keyframe
+    table behind one lock and otherwise owns its state (features, database, loops, throttle).
     """
 
     def __init__(self, config: LoopClosureConfig | None = None, recognizer: PlaceRecognizer | None = None,
@@ -410,12 +449,16 @@ class LoopCloser:
         self._reloc_recognizer = None                # own ORB extractor for the caller's thread
         self._keyframes: dict[int, _Keyframe] = {}
         self._last_id: int | None = None
-        self._order: list[int] = []                  # described keyframes, in processing order
+        # caller's side: its pose table, corrections applied, ticks, jobs whose results are not taken yet
         self._poses: dict[int, np.ndarray] = {}      # latest T_WC per keyframe (4x4)
+        self._epoch = 0                              # corrections handed out so far
+        self._tick = 0                               # calls of poll() so far
+        self._jobs: deque[_Job] = deque()
+        self._resolves = 0                           # consecutive re-solves of stale corrections
+        # worker's side (the caller reads it only when the worker is idle, or under the lock)
+        self._order: list[int] = []                  # described keyframes, in processing order
         self._loops: list[LoopRecord] = []
         self._log: list[Verification] = []
-        self._pending: PoseCorrection | None = None
-        self._epoch = 0                              # corrections handed out so far
         self._queue: queue.Queue = queue.Queue()
         self._closed = False
         self._error: BaseException | None = None
@@ -452,78 +495,99 @@ class LoopCloser:
             raise DataError(f"loop closure: keyframe {kf_id}: K must be (fx, fy, cx, cy) with fx, fy > 0")
         kf = _Keyframe(kf_id, float(timestamp), np.array(image, copy=True), K_arr,
                        tuple(int(n) for n in neighbours))
+        if self._closed:
+            raise DataError("loop closure: add_keyframe after close()")
+        if self._last_id is not None and kf_id <= self._last_id:
+            raise DataError(f"loop closure: keyframe id {kf_id} is not new and increasing "
+                            f"(last {self._last_id})")
+        self._last_id = kf_id
         with self._lock:
-            if self._closed:
-                raise DataError("loop closure: add_keyframe after close()")
-            if self._last_id is not None and kf_id <= self._last_id:
-                raise DataError(f"loop closure: keyframe id {kf_id} is not new and increasing "
-                                f"(last {self._last_id})")
-            self._last_id = kf_id
             self._keyframes[kf_id] = kf
-            self._poses[kf_id] = _as_matrix(T_WC)
-        if self._worker is not None:
-            self._queue.put(kf_id)
-        else:
-            self._process(kf_id)
+        self._poses[kf_id] = _as_matrix(T_WC)
+        self._submit("keyframe", kf_id=kf_id)
 
     def update_poses(self, T_WC_by_id: dict) -> None:
         """The frontend's latest keyframe poses (Sim3 or 4x4 each); unknown ids are ignored."""
         if not self._enabled:
             return
-        with self._lock:
-            for k, T in T_WC_by_id.items():
-                if int(k) in self._poses:
-                    self._poses[int(k)] = _as_matrix(T)
+        for k, T in T_WC_by_id.items():
+            if int(k) in self._poses:
+                self._poses[int(k)] = _as_matrix(T)
 
     def poll(self) -> PoseCorrection | None:
-        """The newest correction not yet handed out, or None (non-blocking). The caller must apply
-        it (module docstring); the closer applies it to its own pose table and loop measurements."""
+        """One tick: the newest correction among the jobs due now (handed over
+        ``correction_delay_frames`` ticks ago or earlier; all of them after :meth:`close`), or None.
+        Waits for a due job that is not finished. The caller must apply the correction (module
+        docstring); the closer applies it to its own pose table and, through the worker's queue, to
+        its loop measurements."""
         if not self._enabled:
             return None
-        self._raise_worker_error()
-        with self._lock:
-            corr, self._pending = self._pending, None
-            if corr is None:
-                return None
-            self._epoch += 1
-            self._poses, factors = corr.apply(self._poses)
-            if corr.fold_scale:
-                for loop in self._loops:            # measurements in the folded units
-                    sq, sc = factors[loop.query_id], factors[loop.candidate_id]
-                    M = loop.T_CqCc.copy()
-                    M[:3, 3] *= sq
-                    M[:3, :3] *= sq / sc
-                    loop.T_CqCc = M
-            return corr
+        self._tick += 1
+        newest: _Job | None = None
+        while self._jobs and (self._closed or self._jobs[0].tick + self.cfg.correction_delay_frames <= self._tick):
+            job = self._jobs.popleft()
+            job.done.wait()
+            self._raise_worker_error()
+            if job.correction is not None:
+                newest = job                          # a later solve supersedes an earlier one
+        if newest is None:
+            return None
+        corr = newest.correction
+        if newest.epoch != self._epoch:
+            # solved on poses from before a correction applied since: solve again on the current ones
+            if self._resolves < self.cfg.max_pose_graph_retries:
+                self._resolves += 1
+                logger.debug("loop correction superseded by an applied one; solving again")
+                self._submit("solve")
+                return self.poll() if self._closed else None
+            logger.warning("pose graph: corrections kept arriving; gave up after %d tries",
+                           self.cfg.max_pose_graph_retries)
+            return None
+        self._resolves = 0
+        self._epoch += 1
+        self._poses, factors = corr.apply(self._poses)
+        if corr.fold_scale:
+            self._submit("fold", factors=factors)     # loop measurements into the folded units, in order
+        return corr
+
+    def _submit(self, kind: str, kf_id: int | None = None, factors: dict | None = None) -> None:
+        """Hand a job to the worker (or run it now, synchronously or after close) with a snapshot of
+        the pose table and the corrections applied so far."""
+        job = _Job(kind, self._tick, kf_id, dict(self._poses), self._epoch, factors)
+        if kind != "fold":
+            self._jobs.append(job)
+        if self._worker is not None:
+            self._queue.put(job)
+        else:
+            self._run_job(job)
+            self._raise_worker_error()
 
     def relocalize(self, image: np.ndarray, K: Sequence[float]) -> tuple[int, np.ndarray] | None:
         """Find the keyframe an image (of a lost track) sees and its pose: ``(kf_id, T_WC 4x4)`` (the
         keyframe's Sim(3) scale) or None. Stricter than loop detection: raw score threshold, ORB
-        matches and PnP RANSAC on the keyframe's triangulated points. Runs in the caller's thread."""
+        matches and PnP RANSAC on the keyframe's triangulated points. Runs in the caller's thread
+        once the worker has described every keyframe handed to it (so the result does not depend on
+        the worker's speed)."""
         if not self._enabled:
             return None
         import cv2
 
+        self.wait_idle()
         rc = self.cfg.relocalization
         K_arr = np.asarray(K, dtype=np.float64).reshape(-1)
-        with self._lock:
-            if self._reloc_recognizer is None:
-                self._reloc_recognizer = PlaceRecognizer(self.cfg.bow, self._recognizer.vocabulary)
-            recognizer = self._reloc_recognizer
+        if self._reloc_recognizer is None:
+            self._reloc_recognizer = PlaceRecognizer(self.cfg.bow, self._recognizer.vocabulary)
+        recognizer = self._reloc_recognizer
         feats = recognizer.describe(image)
         if len(feats.uv) < rc.min_matches:
             logger.info("relocalisation: %d features (< %d)", len(feats.uv), rc.min_matches)
             return None
-        with self._lock:
-            results = self._recognizer.detector.database.query(feats.bow, rc.max_candidates,
-                                                               min_score=rc.min_score)
+        results = self._recognizer.detector.database.query(feats.bow, rc.max_candidates, min_score=rc.min_score)
         vc = self.cfg.verification
         Kmat = np.array([[K_arr[0], 0, K_arr[2]], [0, K_arr[1], K_arr[3]], [0, 0, 1]])
+        poses, order = dict(self._poses), list(self._order)
         for res in results:
-            with self._lock:
-                kf = self._keyframes.get(res.kf_id)
-                poses = dict(self._poses)
-                order = list(self._order)
+            kf = self._keyframes.get(res.kf_id)
             if kf is None or kf.features is None:
                 continue
             ia, ib = match_descriptors(feats.descriptors, kf.features.descriptors, vc.max_hamming, vc.ratio)
@@ -553,7 +617,8 @@ class LoopCloser:
         return None
 
     def wait_idle(self, timeout: float | None = None) -> bool:
-        """Block until every queued keyframe is processed; False on timeout (tests, shutdown)."""
+        """Block until every job handed to the worker is done; False on timeout (tests, shutdown).
+        Changes nothing of what :meth:`poll` returns when."""
         if self._worker is None:
             return True
         t_end = None if timeout is None else time.monotonic() + timeout
@@ -566,15 +631,17 @@ class LoopCloser:
 
     def close(self) -> None:
         """Process the queued keyframes, solve the pose graph with the loops verified since the last
-        solve (the following :meth:`poll` returns that final correction) and stop the worker."""
-        with self._lock:
+        solve (the following :meth:`poll` returns that final correction: after close every job is
+        due) and stop the worker."""
+        if not self._enabled or self._closed:
             self._closed = True
+            return
+        self._submit("close")
+        self._closed = True
         if self._worker is not None:
             self._queue.put(None)
             self._worker.join()
             self._worker = None
-        elif self._enabled and self._error is None:
-            self._solve_unsolved()
         self._raise_worker_error()
 
     # ------------------------------------------------------------------ diagnostics
@@ -596,19 +663,23 @@ class LoopCloser:
 
     @property
     def counts(self) -> dict[str, int]:
-        """``pose_graph_solves`` (calls of the pose-graph optimiser, retries included),
-        ``loop_clusters`` (runs of verified loops, see ``LoopClosureConfig.cluster_gap``) and
-        ``corrections`` (corrections queued for :meth:`poll`, superseded ones included)."""
+        """``pose_graph_solves`` (calls of the pose-graph optimiser), ``loop_clusters`` (runs of
+        verified loops, see ``LoopClosureConfig.cluster_gap``) and ``corrections`` (corrections
+        computed, superseded ones included)."""
         with self._lock:
             return dict(self._counts)
 
     def verify(self, query_id: int, candidate_id: int, bow_score: float = 0.0) -> Verification:
-        """Geometric verification of two described keyframes at the current poses (logged)."""
+        """Geometric verification of two described keyframes at the caller's current poses (logged;
+        waits for the worker first)."""
+        self.wait_idle()
+        return self._verify_logged(query_id, candidate_id, dict(self._poses), bow_score)
+
+    def _verify_logged(self, query_id: int, candidate_id: int, poses: dict, bow_score: float) -> Verification:
         with self._lock:
             q, c = self._keyframes.get(int(query_id)), self._keyframes.get(int(candidate_id))
             if q is None or c is None:
                 raise DataError(f"loop closure: verify({query_id}, {candidate_id}): unknown keyframe id")
-            poses = dict(self._poses)
             order = list(self._order)
         t0 = time.perf_counter()
         ver = self._verify(q, c, order, poses, bow_score)
@@ -627,20 +698,49 @@ class LoopCloser:
 
     def _run(self) -> None:
         while True:
-            kf_id = self._queue.get()
+            job = self._queue.get()
             try:
-                if kf_id is None:                     # close(): final solve, then stop
-                    self._solve_unsolved()
+                if job is None:                       # close(): stop
                     return
-                self._process(kf_id)
-            except BaseException as exc:            # surfaced in the frontend thread
-                logger.exception("loop closure worker failed on keyframe %s", kf_id)
-                self._error = exc
-                return
+                if self._error is None:
+                    self._run_job(job)
             finally:
+                job_done = job.done if job is not None else None
+                if job_done is not None:
+                    job_done.set()
                 self._queue.task_done()
 
-    def _process(self, kf_id: int) -> None:
+    def _run_job(self, job: "_Job") -> None:
+        """One job, in the worker (or the caller's thread when synchronous); a failure is kept for the
+        caller (raised at its next call)."""
+        try:
+            if job.kind == "keyframe":
+                self._process(job)
+            elif job.kind == "fold":
+                self._fold_loops(job.factors)
+            elif job.kind == "solve":
+                job.correction = self._solve(job.poses)
+            elif job.kind == "close":
+                job.correction = self._solve_unsolved(job.poses)
+        except BaseException as exc:                  # surfaced in the frontend thread
+            logger.exception("loop closure worker failed on a %s job", job.kind)
+            self._error = exc
+        finally:
+            job.done.set()
+
+    def _fold_loops(self, factors: dict) -> None:
+        """A correction with ``fold_scale`` was applied: the loop measurements verified before it
+        into the folded units of their keyframes."""
+        with self._lock:
+            for loop in self._loops:
+                sq, sc = factors.get(loop.query_id, 1.0), factors.get(loop.candidate_id, 1.0)
+                M = loop.T_CqCc.copy()
+                M[:3, 3] *= sq
+                M[:3, :3] *= sq / sc
+                loop.T_CqCc = M
+
+    def _process(self, job: "_Job") -> None:
+        kf_id = job.kf_id
         t0 = time.perf_counter()
         with self._lock:
             kf = self._keyframes[kf_id]
@@ -656,12 +756,12 @@ class LoopCloser:
             self._times["detect"] += time.perf_counter() - t1
         if result.status == "accepted":
             for cand in result.candidates[: self.cfg.max_candidates]:
-                ver = self.verify(kf_id, cand.kf_id, cand.score)
+                ver = self._verify_logged(kf_id, cand.kf_id, job.poses, cand.score)
                 if ver.accepted:
                     self._add_loop(pos, LoopRecord(kf_id, cand.kf_id, ver.T_CqCc, ver.n_inliers))
                     break
         if self._solve_due(pos):
-            self._solve_unsolved(pos)
+            job.correction = self._solve_unsolved(job.poses, pos)
 
     def _add_loop(self, pos: int, loop: LoopRecord) -> None:
         """Record a verified loop whose query is at position ``pos``; a new cluster when the previous
@@ -685,62 +785,56 @@ class LoopCloser:
             return (not corrected or pos - self._last_solve_pos >= self.cfg.solve_every
                     or pos - self._last_loop_pos > self.cfg.cluster_gap)
 
-    def _solve_unsolved(self, pos: int | None = None) -> None:
+    def _solve_unsolved(self, poses: dict, pos: int | None = None) -> PoseCorrection | None:
         """Solve if verified loops wait for it (``pos``: current position; None: the last one)."""
         with self._lock:
             if not self._unsolved:
-                return
+                return None
             self._unsolved = False
             self._last_solve_pos = len(self._order) - 1 if pos is None else pos
-        self._solve()
+        return self._solve(poses)
 
-    def _solve(self) -> None:
-        """Pose graph over every described keyframe with every verified loop; queues a correction
-        when it accepts at least one loop. Recomputed when a correction was handed out meanwhile."""
-        for _ in range(self.cfg.max_pose_graph_retries):
-            with self._lock:
-                epoch = self._epoch
-                ids = list(self._order)
-                T_old = np.stack([self._poses[k] for k in ids])
-                loops = [LoopRecord(l.query_id, l.candidate_id, l.T_CqCc.copy(), l.n_inliers) for l in self._loops]
-            t0 = time.perf_counter()
-            index = {k: i for i, k in enumerate(ids)}
-            T_WC = Sim3.from_matrix(torch.from_numpy(T_old))
-            Z = Sim3.from_matrix(torch.from_numpy(np.stack([l.T_CqCc for l in loops])))
-            with self._lock:
-                self._counts["pose_graph_solves"] += 1
-            try:
-                res = optimize_sim3_pose_graph(T_WC, [index[l.query_id] for l in loops],
-                                               [index[l.candidate_id] for l in loops], Z, self.cfg.pose_graph,
-                                               hold_scale=self.metric)
-            except (OptimizationError, ValueError) as exc:
-                # ValueError: optimize_sim3_pose_graph fails on a round that rejects every loop
-                logger.warning("pose graph over %d keyframes, %d loops failed: %s", len(ids), len(loops), exc)
-                return
-            dt = time.perf_counter() - t0
-            with self._lock:
-                self._times["pose_graph"] += dt
-                if self._epoch != epoch:            # a correction was applied meanwhile: redo
-                    continue
-                for rec, dec in zip(self._loops, res.loops):
-                    rec.status = dec.reason
-                statuses = [LoopRecord(l.query_id, l.candidate_id, l.T_CqCc.copy(), l.n_inliers, l.status)
-                            for l in self._loops]
-                n_acc = int(res.accepted.sum())
-                if n_acc == 0:
-                    logger.info("pose graph: no loop accepted yet (%d verified)", len(loops))
-                    return
-                T_new = res.T_WC.matrix().numpy()
-                updates = {k: T_new[i] @ np.linalg.inv(T_old[i]) for i, k in enumerate(ids)}
-                scale = {k: float(res.scale_correction[i]) for i, k in enumerate(ids)}
-                self._pending = PoseCorrection(updates, scale, {k: T_new[i] for i, k in enumerate(ids)},
-                                               statuses, self.cfg.fold_scale and not self.metric, n_acc, dt)
-                self._counts["corrections"] += 1
-                logger.info("loop correction ready: %d keyframes, %d/%d loops accepted (%.3f s)",
-                            len(ids), n_acc, len(loops), dt)
-                return
-        logger.warning("pose graph: corrections kept arriving; gave up after %d tries",
-                       self.cfg.max_pose_graph_retries)
+    def _solve(self, poses: dict) -> PoseCorrection | None:
+        """Pose graph over every described keyframe with every verified loop, from the pose table
+        ``poses`` (a job's snapshot); the correction when it accepts at least one loop."""
+        with self._lock:
+            ids = list(self._order)
+            loops = [LoopRecord(l.query_id, l.candidate_id, l.T_CqCc.copy(), l.n_inliers) for l in self._loops]
+            self._counts["pose_graph_solves"] += 1
+        if not ids or not loops:
+            return None
+        T_old = np.stack([poses[k] for k in ids])
+        t0 = time.perf_counter()
+        index = {k: i for i, k in enumerate(ids)}
+        T_WC = Sim3.from_matrix(torch.from_numpy(T_old))
+        Z = Sim3.from_matrix(torch.from_numpy(np.stack([l.T_CqCc for l in loops])))
+        try:
+            res = optimize_sim3_pose_graph(T_WC, [index[l.query_id] for l in loops],
+                                           [index[l.candidate_id] for l in loops], Z, self.cfg.pose_graph,
+                                           hold_scale=self.metric)
+        except (OptimizationError, ValueError) as exc:
+            # ValueError: optimize_sim3_pose_graph fails on a round that rejects every loop
+            logger.warning("pose graph over %d keyframes, %d loops failed: %s", len(ids), len(loops), exc)
+            return None
+        dt = time.perf_counter() - t0
+        with self._lock:
+            self._times["pose_graph"] += dt
+            for rec, dec in zip(self._loops, res.loops):
+                rec.status = dec.reason
+            statuses = [LoopRecord(l.query_id, l.candidate_id, l.T_CqCc.copy(), l.n_inliers, l.status)
+                        for l in self._loops]
+            n_acc = int(res.accepted.sum())
+            if n_acc == 0:
+                logger.info("pose graph: no loop accepted yet (%d verified)", len(loops))
+                return None
+            self._counts["corrections"] += 1
+        T_new = res.T_WC.matrix().numpy()
+        updates = {k: T_new[i] @ np.linalg.inv(T_old[i]) for i, k in enumerate(ids)}
+        scale = {k: float(res.scale_correction[i]) for i, k in enumerate(ids)}
+        logger.info("loop correction ready: %d keyframes, %d/%d loops accepted (%.3f s)",
+                    len(ids), n_acc, len(loops), dt)
+        return PoseCorrection(updates, scale, {k: T_new[i] for i, k in enumerate(ids)},
+                              statuses, self.cfg.fold_scale and not self.metric, n_acc, dt)
 
     # ------------------------------------------------------------------ verification
     def _neighbour_ids(self, kf: _Keyframe, order: list[int]) -> list[int]:

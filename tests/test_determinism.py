@@ -1,0 +1,103 @@
+"""Reproducible runs (issue 21): the same config on the same data gives the same bytes, however fast
+the background work is. Loop closure ``both`` on the 4 Hz room loop (classical corrections and a
+proximity global BA are both applied): a threaded run and a threaded run whose workers are slowed
+down on purpose write byte-identical trajectories and the same summary (times aside). (The
+synchronous mode, ``run_in_thread: false``, takes the results at the same frames and gives the same
+bytes too: tests/test_loop_closure.py compares the closer's two modes.)"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+
+from fgslam.backend.loop_service import LoopService
+from fgslam.loop.closure import LoopClosureConfig, LoopCloser
+from fgslam.slam import SUMMARY_FILE, SlamConfig, open_slam_dataset, run_slam
+from patch_support import light_patch_config
+
+RATE_HZ = 4.0
+EXTRA_FRAMES = 19  # frames past the first return to the start
+CLOSER_DELAY_S = 0.3  # injected: each job of the classical closer's worker starts this late
+GLOBAL_BA_DELAY_S = 2.0  # injected: each global BA starts this late
+TRAJECTORIES = ("trajectory_tum.txt", "trajectory_kitti.txt")
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    from fgslam.io.synth import SynthSequence, write_sequence
+    from fgslam.io.synth.presets import load_synth_config
+
+    cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={RATE_HZ}", "camera.width=320",
+                                                    "camera.height=240"])
+    cfg.frames = int(round(cfg.loop_duration_s() * RATE_HZ)) + 1 + EXTRA_FRAMES
+    root = tmp_path_factory.mktemp("room_loop_det") / "seq"
+    write_sequence(SynthSequence(cfg), root)
+    return root
+
+
+def _config(threaded: bool) -> SlamConfig:
+    cfg = SlamConfig(sensor="mono", patch=light_patch_config())
+    cfg.loop_closure = LoopClosureConfig(mode="both", run_in_thread=threaded)
+    cfg.output.plot = False
+    cfg.validate()
+    return cfg
+
+
+# what a summary may differ in between two runs of the same input: times, machine state, the folder
+_RUN_ONLY = {"fps", "fps_frontend", "stage_ms_per_frame", "peak_rss_mb", "load_average", "out_dir"}
+
+
+def _timeless(value):
+    """The summary without what measures the run rather than the estimate (times, load, memory)."""
+    if isinstance(value, dict):
+        return {k: _timeless(v) for k, v in value.items() if not (k.endswith("_s") or k in _RUN_ONLY)}
+    if isinstance(value, list):
+        return [_timeless(v) for v in value]
+    return value
+
+
+def _run(root, folder, threaded: bool):
+    cfg = _config(threaded)
+    run_slam(open_slam_dataset(root, cfg), cfg, folder, progress=False)
+    summary = json.loads((folder / SUMMARY_FILE).read_text())
+    return {name: (folder / name).read_bytes() for name in TRAJECTORIES}, summary
+
+
+@pytest.fixture(scope="module")
+def runs(room, tmp_path_factory, request):
+    out = {"threaded": _run(room, tmp_path_factory.mktemp("det_threaded"), True)}
+    mp = pytest.MonkeyPatch()
+    run_job, solve = LoopCloser._run_job, LoopService._solve
+
+    def slow_job(self, job):
+        time.sleep(CLOSER_DELAY_S)
+        run_job(self, job)
+
+    def slow_solve(self, run):
+        time.sleep(GLOBAL_BA_DELAY_S)
+        solve(self, run)
+
+    mp.setattr(LoopCloser, "_run_job", slow_job)
+    mp.setattr(LoopService, "_solve", slow_solve)
+    try:
+        out["slowed"] = _run(room, tmp_path_factory.mktemp("det_slowed"), True)
+    finally:
+        mp.undo()
+    return out
+
+
+def test_the_loops_of_the_clip_are_closed(runs):
+    """The comparison means something: both kinds of background result reach the estimate."""
+    loop = runs["threaded"][1]["loop"]
+    assert loop["mode"] == "both"
+    assert loop["corrections_applied"] >= 1
+    assert loop["proximity"]["global_ba_runs"] >= 1
+
+
+def test_a_slowed_worker_gives_the_same_bytes(runs):
+    fast, slow = runs["threaded"], runs["slowed"]
+    for name in TRAJECTORIES:
+        assert fast[0][name] == slow[0][name], name
+    assert _timeless(fast[1]) == _timeless(slow[1])
