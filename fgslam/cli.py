@@ -7,6 +7,7 @@ heavy imports (torch, gtsam, OpenCV) inside ``run`` so that ``fgslam --help`` st
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import sys
@@ -40,23 +41,37 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _setup_logging(verbose: bool, quiet: bool) -> None:
-    level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
-    logging.basicConfig(level=level, format=_LOG_FORMAT, datefmt="%H:%M:%S", stream=sys.stderr, force=True)
+@contextlib.contextmanager
+def _console_logging(verbose: bool, quiet: bool):
+    """The command's log lines on the current ``sys.stderr`` while it runs; the root logger's earlier
+    handlers and level come back afterwards (so that a caller of :func:`main`, e.g. a test with
+    captured output, is not left with a handler on a stream that it closes later)."""
+    root = logging.getLogger()
+    saved = root.handlers[:], root.level
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(_LOG_FORMAT, datefmt="%H:%M:%S"))
+    root.handlers = [handler]
+    root.setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
+    try:
+        yield
+    finally:
+        handler.flush()
+        root.handlers, level = saved
+        root.setLevel(level)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    _setup_logging(args.verbose, args.quiet)
-    try:
-        return int(args._run(args) or 0)
-    except FGSlamError as exc:
-        print(f"fgslam: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt as exc:  # Ctrl-C, or fgslam.errors.Interrupted (SIGINT/SIGTERM during a run)
-        print(f"fgslam: {str(exc) or 'interrupted'}", file=sys.stderr)
-        return getattr(exc, "exit_code", 130)
+    with _console_logging(args.verbose, args.quiet):
+        try:
+            return int(args._run(args) or 0)
+        except FGSlamError as exc:
+            print(f"fgslam: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt as exc:  # Ctrl-C, or fgslam.errors.Interrupted (SIGINT/SIGTERM during a run)
+            print(f"fgslam: {str(exc) or 'interrupted'}", file=sys.stderr)
+            return getattr(exc, "exit_code", 130)
 
 
 if __name__ == "__main__":  # pragma: no cover
