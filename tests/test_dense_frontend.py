@@ -21,6 +21,7 @@ from fgslam.frontends import make_frontend
 from fgslam.frontends.dense import DenseConfig, DenseFrontend
 from fgslam.frontends.dense.graph import select_global_edges
 from fgslam.io.trajectory import Trajectory
+from eval_support import assert_beats_doing_nothing
 from patch_support import render_room
 
 FRAMES = 40
@@ -62,6 +63,9 @@ def test_room_loop_accuracy_and_keyframe_depth(room, mode, align, bound):
     path = res.gt_path_length_m
     assert path > 0.5
     assert res.ate.rmse <= bound * path + FLOOR_M, f"{mode}: ATE {res.ate.rmse:.4f} m over {path:.2f} m"
+    # a moving clip (the EuRoC stereo clip of test_dense_real.py is static): measured ATE 2.7 / 2.5 / 2.1 mm
+    # for mono / stereo / RGB-D against 0.152 m standing still
+    assert_beats_doing_nothing(res.ate.rmse, ds.groundtruth, stamps, align)
     assert fe.num_keyframes() >= 5 and fe.counts["global_runs"] == 1
     times = fe.stage_times()
     assert {"flow", "tracking", "ba", "global"} <= set(times) and all(v >= 0 for v in times.values())

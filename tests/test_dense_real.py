@@ -3,7 +3,11 @@ resolution for 7-Scenes and EuRoC).
 
 Bounds are the issue's targets for the full sequences applied to the slices: 7-Scenes RGB-D SE(3)
 ATE <= 0.04 m and monocular Sim(3) ATE <= 0.04 m, EuRoC static clip stereo: <= 0.01 m of estimated
-motion; KITTI's start: see its test.
+motion; KITTI's start: see its test. On the 60-frame 7-Scenes slices a stationary estimate scores
+0.079 m, so the slices also have bounds of their own, measured with a 2.5x margin (RGB-D 0.0057 m,
+monocular 0.0112 m), and every estimate must beat doing nothing (tests/eval_support.py). A frontend that
+never moves passes the static EuRoC clip: the same frontend on a moving stereo clip must beat doing
+nothing in tests/test_dense_frontend.py::test_room_loop_accuracy_and_keyframe_depth.
 """
 
 from __future__ import annotations
@@ -14,6 +18,10 @@ from fgslam.eval import EvalConfig, evaluate
 from fgslam.frontends import make_frontend
 from fgslam.io.trajectory import Trajectory
 from fgslam.slam import load_slam_config, open_slam_dataset
+from eval_support import assert_beats_doing_nothing
+
+RGBD_SLICE_M = 0.015  # SE(3) ATE bound of the 60-frame RGB-D slice (measured 0.0057 m)
+MONO_SLICE_M = 0.025  # Sim(3) ATE bound of the 60-frame monocular slice (measured 0.0112 m)
 
 
 def run(path, preset, end):
@@ -35,6 +43,8 @@ def test_sevenscenes_rgbd_slice(shared_data):
     res, n = ate(ds, fe, "se3")
     assert fe.num_failures == 0 and n == 60
     assert res.ate.rmse <= 0.04, res.ate.rmse
+    assert res.ate.rmse <= RGBD_SLICE_M, res.ate.rmse
+    assert_beats_doing_nothing(res.ate.rmse, ds.groundtruth, fe.trajectory()[0], "se3")
     depths = fe.keyframe_depths()
     assert depths and all(d.shape == (240, 320) for _, d, _ in depths.values())
 
@@ -44,6 +54,8 @@ def test_sevenscenes_mono_slice(shared_data):
     res, n = ate(ds, fe, "sim3")
     assert fe.num_failures == 0 and n == 60
     assert res.ate.rmse <= 0.04, res.ate.rmse
+    assert res.ate.rmse <= MONO_SLICE_M, res.ate.rmse
+    assert_beats_doing_nothing(res.ate.rmse, ds.groundtruth, fe.trajectory()[0], "sim3")
 
 
 def test_kitti_mono_slice_tracks_the_drive(shared_data):
@@ -53,6 +65,7 @@ def test_kitti_mono_slice_tracks_the_drive(shared_data):
     ds, fe, statuses = run(shared_data / "kitti00_0-199", "dense_kitti_mono", 30)
     res, n = ate(ds, fe, "sim3")
     assert fe.num_failures == 0 and n == 30
+    assert_beats_doing_nothing(res.ate.rmse, ds.groundtruth, fe.trajectory()[0], "sim3")  # 0.19 m against 7.6 m
     assert res.ate.rmse <= 0.05 * res.gt_path_length_m, (res.ate.rmse, res.gt_path_length_m)
 
 

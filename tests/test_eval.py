@@ -512,3 +512,24 @@ def test_shipped_config_matches_the_defaults(repo_root):
     from fgslam.config import load_config
 
     assert load_config(EvalConfig, repo_root / "fgslam" / "configs" / "eval.yaml") == EvalConfig()
+
+
+def test_do_nothing_baseline_of_the_trajectory_tests():
+    """tests/eval_support.py: a stationary estimate scores the positions' RMS spread about their centroid
+    under SE(3) and Sim(3) alignment, and never beats itself."""
+    from eval_support import assert_beats_doing_nothing, do_nothing_ate, stationary
+
+    n = 30
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, 0, 3], T[:, 2, 3] = np.linspace(0, 3, n), np.sin(np.linspace(0, 3, n))
+    gt = Trajectory(np.arange(n) * 0.1, T)
+    spread = float(np.sqrt(np.mean(np.sum((T[:, :3, 3] - T[:, :3, 3].mean(0)) ** 2, axis=1))))
+    for align in ("se3", "sim3"):
+        assert do_nothing_ate(gt, gt.timestamps, align) == pytest.approx(spread, rel=1e-9)
+    assert do_nothing_ate(gt, gt.timestamps, "none") == pytest.approx(
+        float(np.sqrt(np.mean(np.sum((T[:, :3, 3] - T[0, :3, 3]) ** 2, axis=1)))), rel=1e-9)
+    still = stationary(gt, gt.timestamps)
+    ate = evaluate(gt, still, EvalConfig(align="se3")).ate.rmse
+    with pytest.raises(AssertionError, match="does not beat doing nothing"):
+        assert_beats_doing_nothing(ate, gt, gt.timestamps, "se3")
+    assert assert_beats_doing_nothing(0.1 * spread, gt, gt.timestamps, "se3") == pytest.approx(spread)

@@ -2,7 +2,9 @@
 
 Bounds are the issue's targets for the full sequences applied to the slices: KITTI monocular
 Sim(3) ATE <= 1 % of the path, 7-Scenes RGB-D SE(3) ATE <= 0.03 m and monocular Sim(3) ATE
-<= 0.05 m, EuRoC static clip: monocular never initialises, stereo reports <= 0.01 m of motion.
+<= 0.05 m, EuRoC static clip: monocular never initialises, stereo reports <= 0.01 m of motion; every
+estimate must also beat a stationary one (tests/eval_support.py). A frontend that never moves passes
+the static clip: the moving stereo case is tests/test_patch_frontend.py::test_room_loop_accuracy.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import numpy as np
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchConfig, PatchFrontend
 from fgslam.io.trajectory import Trajectory
+from eval_support import assert_beats_doing_nothing
 
 
 def run(path, mode, end, fmt="auto"):
@@ -28,6 +31,9 @@ def run(path, mode, end, fmt="auto"):
 def ate(ds, fe, align):
     stamps, poses, _ = fe.trajectory()
     res = evaluate(ds.groundtruth, Trajectory(stamps, poses), EvalConfig(align=align))
+    # every estimate beats standing still; measured: KITTI 0.228 m against 10.4 m, 7-Scenes RGB-D 0.0117 m
+    # and monocular 0.0059 m against 0.079 m
+    assert_beats_doing_nothing(res.ate.rmse, ds.groundtruth, stamps, align)
     return res
 
 

@@ -16,6 +16,7 @@ from fgslam.frontends import make_frontend
 from fgslam.frontends.pointmap.config import PointmapConfig
 from fgslam.frontends.pointmap.frontend import PointmapFrontend
 from fgslam.lie import sim3_matrix_parts
+from eval_support import assert_beats_doing_nothing, frames_groundtruth
 from pointmap_support import ate_percent, open_clip, render_clip
 
 FRAMES = 30
@@ -33,6 +34,11 @@ def _run(frames, mode, config=None):
     return fe, statuses
 
 
+def _beats_doing_nothing(fe, frames, ate, align):
+    """Measured on the 30-frame clip: RGB-D 1.6 mm, stereo 1.6 mm, mono 18.5 mm against 0.119 m standing still."""
+    assert_beats_doing_nothing(ate, frames_groundtruth(frames), fe.trajectory()[0], align)
+
+
 def _keyframe_config(gap=8):
     cfg = PointmapConfig()
     cfg.keyframe.max_gap = gap  # force keyframes on a short clip: edges and the backend's optimisation run
@@ -45,6 +51,7 @@ def test_rgbd_room_accuracy_keyframes_and_outputs(room):
     assert [s.pose_source for s in statuses] == ["tracked"] * FRAMES
     ate, pct = ate_percent(fe, frames, "se3")
     assert pct <= 0.5, (ate, pct)  # issue 13 target on room-loop RGB-D
+    _beats_doing_nothing(fe, frames, ate, "se3")
     # keyframes every 8 tracked frames, chained by edges in one pointmap block of the backend
     kfs = fe.backend.keyframe_ids
     assert len(kfs) == fe.num_keyframes() == 4
@@ -69,6 +76,7 @@ def test_stereo_room(room):
     assert all(s.pose_source == "tracked" for s in statuses)
     ate, pct = ate_percent(fe, frames, "se3")
     assert pct <= 1.0, (ate, pct)
+    _beats_doing_nothing(fe, frames, ate, "se3")  # a moving stereo clip (the EuRoC stereo clip is static)
 
 
 def test_mono_room_two_view(room):
@@ -79,6 +87,7 @@ def test_mono_room_two_view(room):
     assert "motion_model" not in sources and sources.count("tracked") >= FRAMES - 8
     ate, pct = ate_percent(fe, frames, "sim3")
     assert pct <= 5.0, (ate, pct)  # measured 3.9 % on this 30-frame clip (the full loop: tools/bench_pointmap.py)
+    _beats_doing_nothing(fe, frames, ate, "sim3")
     assert not fe.backend.config.gauge.hold_scale  # real per-keyframe scales: no scale priors
 
 
@@ -96,7 +105,7 @@ def test_bad_input_is_logged_never_raised(room, caplog):
         fe, statuses = _run(frames, "rgbd")
     sources = [s.pose_source for s in statuses]
     assert sources[4] == sources[5] == "motion_model"
-    assert sources[8:] == ["tracked", "tracked"] or "relocalized" in sources[8:]
+    assert sources[8:] == ["tracked", "tracked"]  # tracking again right after the bad frames
     assert fe.num_failures >= 2 and "tracking lost" in caplog.text
     t, T, _ = fe.trajectory()
     assert len(t) == 10 and np.isfinite(T).all()

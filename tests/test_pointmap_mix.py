@@ -11,6 +11,7 @@ import pytest
 from fgslam.backend.keys import pose_key
 from fgslam.errors import ConfigError
 from fgslam.frontends.pointmap.mix import PointmapMix
+from eval_support import assert_beats_doing_nothing
 from pointmap_support import render_clip
 
 FRAMES = 16
@@ -32,6 +33,12 @@ def _run(room, out, loop_mode, factors):
     return run_slam(open_slam_dataset(room, config), config, out, progress=False)
 
 
+def _groundtruth(room):
+    from fgslam.io.datasets import DatasetConfig, open_dataset
+
+    return open_dataset(room, config=DatasetConfig(load_imu=False)).groundtruth
+
+
 def test_pointmap_edges_join_the_patch_graph(room, tmp_path, monkeypatch):
     made = []
     original = PointmapMix.attach
@@ -51,7 +58,13 @@ def test_pointmap_edges_join_the_patch_graph(room, tmp_path, monkeypatch):
         (edge,) = block.edges
         assert all(mix.backend.has_key(k) for k in (edge.key_i, edge.key_j))
         assert edge.key_i in {pose_key(k) for k in mix.backend.keyframe_ids}
-    assert summary.ate_rmse < 0.01  # the mixed graph tracks the room as well as the patch family alone
+    assert summary.ate_rmse < 0.01
+    # as well as the patch family alone on the same clip (measured: ATE 0.0020 m mixed, 0.0043 m alone),
+    # both far better than doing nothing (0.072 m)
+    alone = _run(room, tmp_path / "alone", "classical", [])
+    assert alone.ate_rmse < 0.01 and summary.ate_rmse <= alone.ate_rmse, (summary.ate_rmse, alone.ate_rmse)
+    gt = _groundtruth(room)
+    assert_beats_doing_nothing(summary.ate_rmse, gt, gt.timestamps, "se3")
 
 
 def test_without_keyframe_images_it_logs_and_adds_nothing(room, tmp_path, caplog, monkeypatch):

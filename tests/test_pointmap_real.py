@@ -9,6 +9,7 @@ import pytest
 
 from fgslam.frontends.pointmap.matching import RayImage, match_pointmaps
 from fgslam.frontends.pointmap.source import PointmapSourceConfig, make_pointmap_source
+from eval_support import assert_beats_doing_nothing, frames_groundtruth
 from pointmap_support import rotation_angle_deg
 
 
@@ -58,7 +59,7 @@ def test_euroc_static_stereo_reports_no_motion(shared_data):
 
 def test_frontend_on_7scenes_rgbd_slice(shared_data):
     """The pointmap frontend over the first 30 frames (1 s) of 7-Scenes RGB-D: every frame tracked,
-    SE(3) ATE under 1 cm."""
+    SE(3) ATE under 1 cm and under half a stationary estimate's (1.4 cm over this slice)."""
     from fgslam.eval import EvalConfig, evaluate
     from fgslam.frontends.pointmap.frontend import PointmapFrontend
     from fgslam.io.datasets import DatasetConfig, open_dataset
@@ -71,12 +72,16 @@ def test_frontend_on_7scenes_rgbd_slice(shared_data):
     fe.finish()
     assert sources == ["tracked"] * 30
     t, T, _ = fe.trajectory()
-    G = np.stack([f.T_WC_gt for f in frames])
-    assert evaluate(Trajectory(t, G), Trajectory(t, T), EvalConfig(align="se3")).ate.rmse < 0.01
+    gt = frames_groundtruth(frames)
+    ate = evaluate(gt, Trajectory(t, T), EvalConfig(align="se3")).ate.rmse
+    assert ate < 0.01
+    assert_beats_doing_nothing(ate, gt, t, "se3")  # measured 0.0020 m against 0.0142 m standing still
 
 
 def test_frontend_on_static_euroc_stereo(shared_data):
-    """The static EuRoC clip through the pointmap frontend (stereo source): under 1 cm of estimated motion."""
+    """The static EuRoC clip through the pointmap frontend (stereo source): under 1 cm of estimated motion.
+    A frontend that never moves passes this; the same frontend on a moving stereo clip must beat doing
+    nothing: tests/test_pointmap_frontend.py::test_stereo_room."""
     from fgslam.frontends.pointmap.frontend import PointmapFrontend
     from fgslam.io.datasets import DatasetConfig, open_dataset
 

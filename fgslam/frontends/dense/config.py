@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
 
 from ...config import ranged
 from ...errors import ConfigError
@@ -91,7 +90,6 @@ class DenseConfig:
     ba: DenseBAConfig = field(default_factory=DenseBAConfig)
     tracking: DenseTrackingConfig = field(default_factory=DenseTrackingConfig)
     global_ba: DenseGlobalConfig = field(default_factory=DenseGlobalConfig)
-    filler: Literal["relative", "reoptimize"] = "relative"  # non-keyframe poses: relative to their keyframe from the tracking-time motion-only optimisation, or re-optimised at the end against the final keyframes
     point_confidence: float = ranged(0.5, ge=0, le=1)  # keyframe_points / depth PNG: grid pixels with confidence below this are left out
     threads: int = ranged(1, ge=0)  # torch threads of the frontend (0: torch's default)
 
