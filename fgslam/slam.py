@@ -62,7 +62,7 @@ import numpy as np
 
 from .backend.config import BackendConfig
 from .backend.imu import ImuServiceConfig
-from .config import check_ranges, ranged, to_dict, with_sections
+from .config import MAX_FRAMES, MAX_SCALAR, MAX_THREADS, check_ranges, ranged, to_dict, with_sections
 from .errors import ConfigError, DataError, EvaluationError, FGSlamError, Interrupted
 from .eval import EvalConfig, EvalResult, evaluate
 from .export.rerun import RerunConfig
@@ -123,9 +123,9 @@ class SlamConfig:
 
     frontend: Literal[FRONTEND_NAMES] = "patch"  # frontend family (pointmap: not implemented yet)
     sensor: SensorName = "mono"  # mono | stereo (needs right images) | rgbd (needs depth)
-    threads: int = ranged(0, ge=0)  # torch and OpenCV threads for the run (0: leave the library defaults); stages may set their own
-    log_interval_frames: int = ranged(100, ge=1)  # a progress line at least every this many frames
-    log_interval_s: float = ranged(10.0, gt=0)  # ... or every this many seconds, whichever comes first
+    threads: int = ranged(0, ge=0, le=MAX_THREADS)  # torch and OpenCV threads for the run (0: leave the library defaults); stages may set their own
+    log_interval_frames: int = ranged(100, ge=1, le=MAX_FRAMES)  # a progress line at least every this many frames
+    log_interval_s: float = ranged(10.0, gt=0, le=MAX_SCALAR)  # ... or every this many seconds, whichever comes first
     auto_align: bool = True  # evaluation alignment from the sensor (sim3 mono, se3 stereo/rgbd); false: eval.align
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     # (here: one section per frontend family, e.g. patch: PatchConfig, from the frontend registry)
@@ -193,12 +193,8 @@ def check_image_size(dataset: Dataset) -> None:
         return
     raw = dataset.raw_calibration
     source = f" from {raw.width}x{raw.height}" if raw is not None else ""
-    if cfg.resize_width or cfg.resize_height:
-        how = f"dataset.resize_width={cfg.resize_width}, dataset.resize_height={cfg.resize_height}"
-    else:
-        how = f"dataset.resize_scale={cfg.resize_scale:g}"
     raise ConfigError(
-        f"{how} gives {width}x{height} images{source}"
+        f"{cfg.resize_text()} gives {width}x{height} images{source}"
         f"{f' (after cropping to a multiple of {cfg.crop_multiple})' if cfg.crop_multiple > 1 else ''}; "
         f"both sides must be at least dataset.min_image_side={cfg.min_image_side} pixels"
     )
