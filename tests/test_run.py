@@ -739,6 +739,27 @@ def test_cli_refuses_infinite_and_huge_values_at_once(override, key, synth_root,
     assert time.perf_counter() - start < 10 and not out.exists()
 
 
+def test_cli_refuses_a_run_whose_memory_estimate_exceeds_the_limit(synth_root, tmp_path, capsys, cli_main, monkeypatch):
+    """Sizes each inside its range whose product is not (4096 patches x 200 frames x 199 edges each):
+    refused from the estimate (fgslam/memory.py) before any frame, naming the keys and the GiB."""
+    from fgslam.frontends.patch.frontend import PatchFrontend
+
+    processed = []
+    monkeypatch.setattr(PatchFrontend, "process", lambda self, frame: processed.append(frame.index))
+    out = tmp_path / "out"
+    rc = _cli_run(cli_main, synth_root, out, "-o", "patch.graph.patches_per_frame=4096",
+                  "-o", "patch.graph.removal_window=200", "-o", "patch.graph.patch_lifetime=199")
+    err = _one_error_line(capsys.readouterr().err)
+    assert rc == 2 and processed == [] and not (out / SUMMARY_FILE).exists()
+    assert re.search(r"estimated peak memory [\d.]+ GiB exceeds max_memory_gib=16 \(largest part: patch graph edges", err)
+    assert "patch.graph.patches_per_frame=4096" in err
+    # the limit is a config field: the same sizes fit a larger one
+    sizes = ("patch.graph.patches_per_frame=4096", "patch.graph.removal_window=200", "patch.graph.patch_lifetime=199")
+    with pytest.raises(ConfigError, match="exceeds max_memory_gib=16"):
+        open_slam_dataset(synth_root, _config(*sizes))
+    assert len(open_slam_dataset(synth_root, _config(*sizes, "max_memory_gib=1024"))) == N_FRAMES
+
+
 def test_cli_rejects_a_border_larger_than_the_image(synth_root, tmp_path, capsys, cli_main, monkeypatch):
     from fgslam.frontends.patch.frontend import PatchFrontend
 

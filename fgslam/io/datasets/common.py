@@ -342,6 +342,12 @@ class Dataset:
         if self._indices.size == 0:
             raise DataError(f"{self.root}: empty selection: start={cfg.start}, end={cfg.end} of {n_raw} frames")
         calib = self.raw_calibration.validate(self.calibration_source)
+        out_w, out_h = cfg.output_size(calib.width, calib.height)
+        if max(out_w, out_h) > MAX_IMAGE_SIDE:  # before the remap tables (8 bytes per output pixel) are built
+            raise ConfigError(
+                f"{cfg.resize_text()} gives {out_w}x{out_h} images from {calib.width}x{calib.height} "
+                f"({self.calibration_source}); at most {MAX_IMAGE_SIDE} pixels a side are supported: "
+                f"set dataset.resize_width or dataset.resize_scale to make them smaller")
         self._undistorter = Undistorter(
             calib,
             rectify=cfg.rectify_stereo,
