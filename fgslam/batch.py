@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from .config import from_dict, ranged, read_yaml
+from .config import MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, from_dict, ranged, read_yaml
 from .errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
@@ -79,7 +79,7 @@ class BatchMatrix:
     configs: dict[str, Any] = field(default_factory=dict)  # name -> ConfigEntry mapping, or a preset name
     datasets: dict[str, Any] = field(default_factory=dict)  # name -> DatasetEntry mapping, or a folder
     overrides: list[str] = field(default_factory=list)  # for every cell
-    cpus: int = ranged(1, ge=1)  # CPUs per cell (Ray resources; the run's `threads`)
+    cpus: int = ranged(1, ge=1, le=MAX_THREADS)  # CPUs per cell (Ray resources; the run's `threads`)
     out: str = ""  # output folder (default: beside the matrix file, named after it)
 
     def validate(self) -> None:
@@ -103,9 +103,9 @@ def _entry(cls, main_key: str, value: Any, prefix: str):
 class BatchOptions:
     """How ``fgslam batch`` runs its cells."""
 
-    workers: int = ranged(2, ge=1)  # local Ray: CPUs given to the instance = workers x cpus
-    connect_timeout_s: float = ranged(5.0, gt=0)  # an unreachable --address fails after this long
-    object_store_mb: int = ranged(128, ge=80)  # local Ray's object store (cells return small dicts)
+    workers: int = ranged(2, ge=1, le=MAX_THREADS)  # local Ray: CPUs given to the instance = workers x cpus
+    connect_timeout_s: float = ranged(5.0, gt=0, le=MAX_SCALAR)  # an unreachable --address fails after this long
+    object_store_mb: int = ranged(128, ge=80, le=MAX_MEMORY_MIB)  # local Ray's object store (cells return small dicts)
 
 
 def load_matrix(path: str | Path) -> tuple[BatchMatrix, Path]:

@@ -5,9 +5,12 @@ in ``fgslam/configs/`` (the presets) sets some of them; ``-o section.key=value``
 not fit the dataclass (an unknown key, a string where a float belongs, a value outside a ``Literal``)
 is a :class:`~fgslam.errors.ConfigError` naming the key and where it came from.
 
-Numeric fields declare their allowed range with :func:`ranged` (``x: float = ranged(1.0, gt=0)``);
+Numeric fields declare their allowed range with :func:`ranged` (``x: float = ranged(1.0, gt=0, le=MAX_SCALAR)``);
 loading rejects a value outside it, naming the key, before any work starts. A range on a list or
-tuple field applies to each item.
+tuple field applies to each item. Every numeric field has a finite upper bound (one of the ``MAX_*``
+constants below or a tighter one of its own): a value no real use needs to exceed, so that a typo
+such as ``patches_per_frame=100000000`` is refused at load time instead of exhausting memory. Infinity
+and NaN are never valid values of a numeric field.
 
 Supported field types: ``bool``, ``int``, ``float``, ``str``, ``pathlib.Path``, ``Literal[...]``,
 ``Optional[T]`` / ``T | None``, ``list[T]``, ``tuple[T, ...]``, ``tuple[T1, T2]``, ``dict[str, T]``
@@ -34,6 +37,44 @@ T = TypeVar("T")
 #: Metadata key under which :func:`ranged` stores a field's :class:`Range`.
 RANGE_KEY = "fgslam_range"
 
+# Upper bounds of the numeric config fields (``ranged(..., le=MAX_...)``): each is far above any real
+# use, and low enough that a typo or an absurd value is refused at load time rather than exhausting
+# memory or time. A field with a tighter natural bound (a probability, an angle) declares that instead.
+#: px: image widths, heights and sizes (resize targets, network input widths), and pixel
+#: distances stored as integers (borders, strides, windows, disparities)
+MAX_IMAGE_SIDE = 8192
+#: patches (or points) tracked per frame
+MAX_PATCHES_PER_FRAME = 4096
+#: iterations, rounds, steps, retries of any solver or loop
+MAX_ITERATIONS = 10_000
+#: threads, workers, CPUs
+MAX_THREADS = 1024
+#: random seeds (numpy's legacy seeding accepts 32 bits)
+MAX_SEED = 2**32 - 1
+#: ns: a timestamp (int64 nanoseconds)
+MAX_TIME_NS = 2**63 - 1
+#: s: clock offsets between two sources (large enough for an epoch-to-zero offset)
+MAX_TIME_OFFSET_S = 1e10
+#: frame indices, frame counts and intervals in frames
+MAX_FRAMES = 10_000_000
+#: sliding windows of frames or keyframes (the optimised / active part of a graph)
+MAX_WINDOW = 1000
+#: keyframe counts, gaps and intervals in keyframes
+MAX_KEYFRAMES = 100_000
+#: pyramid levels (image, mip, vocabulary tree)
+MAX_LEVELS = 32
+#: percentages
+MAX_PERCENT = 100
+#: MiB of memory a config may ask for
+MAX_MEMORY_MIB = 1 << 20
+#: counts of features, matches, points, edges, rows
+MAX_COUNT = 10_000_000
+#: Levenberg-Marquardt damping values (initial, bounds)
+MAX_LAMBDA = 1e16
+#: any other real quantity: sigmas, thresholds, tolerances, ratios, weights, distances (px or m),
+#: durations (s), rates (Hz), densities
+MAX_SCALAR = 1e6
+
 
 @dataclasses.dataclass(frozen=True)
 class Range:
@@ -45,7 +86,7 @@ class Range:
     lt: float | None = None
 
     def contains(self, value: float) -> bool:
-        if not math.isfinite(value) and not (value == math.inf and self.le is None and self.lt is None):
+        if not math.isfinite(value):  # inf and nan are never valid, bounded or not
             return False
         return ((self.ge is None or value >= self.ge) and (self.gt is None or value > self.gt)
                 and (self.le is None or value <= self.le) and (self.lt is None or value < self.lt))
@@ -175,6 +216,9 @@ def _convert(value: Any, tp: Any, key: str, source: str) -> Any:
             if type(None) in args:
                 return None
             raise fail("null is not allowed")
+        options = [a for a in args if a is not type(None)]
+        if len(options) == 1:  # Optional[T]: T's own error (say, "must be a finite number")
+            return _convert(value, options[0], key, source)
         errors = []
         for option in args:
             if option is type(None):
@@ -222,8 +266,8 @@ def _convert(value: Any, tp: Any, key: str, source: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise fail("expected a number")
-        if math.isnan(float(value)):
-            raise fail("NaN is not a valid value")
+        if not math.isfinite(float(value)):
+            raise fail("must be a finite number")
         return float(value)
     if tp is str:
         if not isinstance(value, str):

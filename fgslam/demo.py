@@ -18,7 +18,7 @@ from typing import Literal
 
 import yaml
 
-from .config import load_config, ranged, to_dict
+from .config import MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, MAX_SEED, load_config, ranged, to_dict
 from .io.synth import SynthSequence, write_sequence
 from .io.synth.presets import load_synth_config
 from .presets import configs_dir
@@ -32,11 +32,11 @@ class DemoSceneConfig:
     """The synthetic sequence the demo renders (one loop at 10 Hz: the demo must stay short)."""
 
     preset: Literal["room-loop", "street-loop", "orbit", "highway", "low-texture"] = "room-loop"  # synthetic scene and motion
-    frames: int = ranged(201, ge=2)  # rendered frames (room-loop: one loop lasts 20 s: 201 frames at 10 Hz, 401 at 20 Hz)
-    rate_hz: float = ranged(10.0, gt=0)  # camera frame rate (the motion's speed is fixed: a lower rate, larger steps)
-    width: int = ranged(640, ge=32)  # image width (px)
-    height: int = ranged(480, ge=32)  # image height (px)
-    seed: int = ranged(0, ge=0)  # scene layout / texture seed
+    frames: int = ranged(201, ge=2, le=MAX_FRAMES)  # rendered frames (room-loop: one loop lasts 20 s: 201 frames at 10 Hz, 401 at 20 Hz)
+    rate_hz: float = ranged(10.0, gt=0, le=MAX_SCALAR)  # camera frame rate (the motion's speed is fixed: a lower rate, larger steps)
+    width: int = ranged(640, ge=32, le=MAX_IMAGE_SIDE)  # image width (px)
+    height: int = ranged(480, ge=32, le=MAX_IMAGE_SIDE)  # image height (px)
+    seed: int = ranged(0, ge=0, le=MAX_SEED)  # scene layout / texture seed
 
 
 @dataclass

@@ -29,7 +29,7 @@ from typing import Literal
 
 import numpy as np
 
-from .config import check_ranges, ranged
+from .config import MAX_FRAMES, MAX_SCALAR, MAX_TIME_OFFSET_S, check_ranges, ranged
 from .errors import ConfigError, EvaluationError
 from .io.trajectory import Trajectory
 
@@ -48,12 +48,12 @@ class EvalConfig:
     """Tunables of :func:`evaluate`."""
 
     association: Literal["timestamp", "index"] = "timestamp"  # nearest one-to-one | index (KITTI, same length)
-    max_time_diff: float = ranged(0.02, ge=0)  # s, largest |t_gt - (t_est + time_offset)| accepted as a match
-    time_offset: float = ranged(0.0)  # s, added to the estimate's timestamps before association
+    max_time_diff: float = ranged(0.02, ge=0, le=MAX_SCALAR)  # s, largest |t_gt - (t_est + time_offset)| accepted as a match
+    time_offset: float = ranged(0.0, ge=-MAX_TIME_OFFSET_S, le=MAX_TIME_OFFSET_S)  # s, added to the estimate's timestamps before association
     align: Literal["se3", "sim3", "none", "first-pose"] = "se3"  # alignment of the estimate to the ground truth
-    align_num_poses: int | None = ranged(None, ge=1)  # align on the first n associated poses only (None: all)
-    rpe_delta_frames: int = ranged(1, ge=1)  # frame step of the per-frame RPE
-    rpe_delta_meters: float | None = ranged(1.0, gt=0)  # path distance (m) of the per-distance RPE; None: skip
+    align_num_poses: int | None = ranged(None, ge=1, le=MAX_FRAMES)  # align on the first n associated poses only (None: all)
+    rpe_delta_frames: int = ranged(1, ge=1, le=MAX_FRAMES)  # frame step of the per-frame RPE
+    rpe_delta_meters: float | None = ranged(1.0, gt=0, le=MAX_SCALAR)  # path distance (m) of the per-distance RPE; None: skip
     kitti_metrics: bool = False  # also compute KITTI t_rel / r_rel over the 100..800 m segments
 
     def validate(self) -> None:

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from .backend.solver import LMSettings, NonlinearProblem, levenberg_marquardt
-from .config import check_ranges, ranged
+from .config import MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, check_ranges, ranged
 from .errors import ConfigError, DataError, FormatError, OptimizationError
 from .io.g2o import PoseGraph, read_g2o, write_g2o
 
@@ -45,15 +45,15 @@ class PGOConfig:
     own LM the same settings (benchmarks, tests)."""
 
     init: Literal["chordal", "as-is"] = "chordal"  # chordal: InitializePose3 (3-D) / LAGO (2-D); as-is: file poses
-    max_iterations: int = ranged(100, ge=0)  # LM iteration cap
-    relative_error_tol: float = ranged(1e-5, ge=0)  # stop when the relative cost decrease falls below this
-    absolute_error_tol: float = ranged(1e-5, ge=0)  # stop when the absolute cost decrease falls below this
-    error_tol: float = ranged(0.0, ge=0)  # stop when the cost falls below this
-    lambda_initial: float = ranged(1e-5, gt=0)  # initial LM damping
-    lambda_factor: float = ranged(10.0, gt=1)  # damping multiplier on a rejected/accepted step
-    lambda_upper_bound: float = ranged(1e5, gt=0)  # LM gives up when the damping exceeds this
+    max_iterations: int = ranged(100, ge=0, le=MAX_ITERATIONS)  # LM iteration cap
+    relative_error_tol: float = ranged(1e-5, ge=0, le=MAX_SCALAR)  # stop when the relative cost decrease falls below this
+    absolute_error_tol: float = ranged(1e-5, ge=0, le=MAX_SCALAR)  # stop when the absolute cost decrease falls below this
+    error_tol: float = ranged(0.0, ge=0, le=MAX_SCALAR)  # stop when the cost falls below this
+    lambda_initial: float = ranged(1e-5, gt=0, le=MAX_LAMBDA)  # initial LM damping
+    lambda_factor: float = ranged(10.0, gt=1, le=MAX_SCALAR)  # damping multiplier on a rejected/accepted step
+    lambda_upper_bound: float = ranged(1e5, gt=0, le=MAX_LAMBDA)  # LM gives up when the damping exceeds this
     ordering: Literal["COLAMD", "METIS"] = "COLAMD"  # elimination ordering
-    prior_variance: float = ranged(1e-6, gt=0)  # variance of every tangent component of the gauge prior
+    prior_variance: float = ranged(1e-6, gt=0, le=MAX_SCALAR)  # variance of every tangent component of the gauge prior
     # Edges whose information matrix is not positive definite: reject the file, or drop them (counted).
     indefinite_information: Literal["error", "drop"] = "error"
 

@@ -62,7 +62,7 @@ import numpy as np
 
 from .backend.config import BackendConfig
 from .backend.imu import ImuServiceConfig
-from .config import check_ranges, ranged, to_dict, with_sections
+from .config import MAX_FRAMES, MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, check_ranges, ranged, to_dict, with_sections
 from .errors import ConfigError, DataError, EvaluationError, FGSlamError, Interrupted
 from .eval import EvalConfig, EvalResult, evaluate
 from .export.rerun import RerunConfig
@@ -71,6 +71,7 @@ from .frontends.base import FrameStatus, Frontend
 from .io.datasets import Dataset, DatasetConfig, open_dataset
 from .io.trajectory import Trajectory, write_trajectory
 from .loop.closure import LoopClosureConfig
+from .memory import check_run_memory
 
 logger = logging.getLogger(__name__)
 
@@ -123,9 +124,9 @@ class SlamConfig:
 
     frontend: Literal[FRONTEND_NAMES] = "patch"  # frontend family (pointmap: not implemented yet)
     sensor: SensorName = "mono"  # mono | stereo (needs right images) | rgbd (needs depth)
-    threads: int = ranged(0, ge=0)  # torch and OpenCV threads for the run (0: leave the library defaults); stages may set their own
-    log_interval_frames: int = ranged(100, ge=1)  # a progress line at least every this many frames
-    log_interval_s: float = ranged(10.0, gt=0)  # ... or every this many seconds, whichever comes first
+    threads: int = ranged(0, ge=0, le=MAX_THREADS)  # torch and OpenCV threads for the run (0: leave the library defaults); stages may set their own
+    log_interval_frames: int = ranged(100, ge=1, le=MAX_FRAMES)  # a progress line at least every this many frames
+    log_interval_s: float = ranged(10.0, gt=0, le=MAX_SCALAR)  # ... or every this many seconds, whichever comes first
     auto_align: bool = True  # evaluation alignment from the sensor (sim3 mono, se3 stereo/rgbd); false: eval.align
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     # (here: one section per frontend family, e.g. patch: PatchConfig, from the frontend registry)
@@ -135,6 +136,7 @@ class SlamConfig:
     output: OutputConfig = field(default_factory=OutputConfig)
     # loop closure (mode off | proximity | classical | both); off by default
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    max_memory_gib: float = ranged(16.0, gt=0, le=MAX_MEMORY_MIB / 1024)  # a run whose estimated peak memory (fgslam/memory.py) exceeds this is refused before any work
     # user factor plugins, [{class: "package.module:ClassName", options: {...}}] (fgslam/backend/plugins.py)
     factors: list[dict[str, Any]] = field(default_factory=list)
 
@@ -176,11 +178,13 @@ def dataset_config_for(config: SlamConfig) -> DatasetConfig:
 
 
 def open_slam_dataset(path: str | Path, config: SlamConfig, fmt: str = "auto") -> Dataset:
-    """Open the dataset at ``path`` for ``config`` and check it has what ``config.sensor`` needs
-    and images of at least ``dataset.min_image_side`` pixels."""
+    """Open the dataset at ``path`` for ``config`` and check it has what ``config.sensor`` needs,
+    images of at least ``dataset.min_image_side`` pixels, and an estimated peak memory within
+    ``max_memory_gib`` (:mod:`fgslam.memory`)."""
     dataset = open_dataset(path, fmt, dataset_config_for(config))
     check_sensor(dataset, config.sensor)
     check_image_size(dataset)
+    check_run_memory(config, dataset)
     return dataset
 
 
@@ -193,12 +197,8 @@ def check_image_size(dataset: Dataset) -> None:
         return
     raw = dataset.raw_calibration
     source = f" from {raw.width}x{raw.height}" if raw is not None else ""
-    if cfg.resize_width or cfg.resize_height:
-        how = f"dataset.resize_width={cfg.resize_width}, dataset.resize_height={cfg.resize_height}"
-    else:
-        how = f"dataset.resize_scale={cfg.resize_scale:g}"
     raise ConfigError(
-        f"{how} gives {width}x{height} images{source}"
+        f"{cfg.resize_text()} gives {width}x{height} images{source}"
         f"{f' (after cropping to a multiple of {cfg.crop_multiple})' if cfg.crop_multiple > 1 else ''}; "
         f"both sides must be at least dataset.min_image_side={cfg.min_image_side} pixels"
     )
@@ -414,6 +414,7 @@ def run_slam(
     check_ranges(config)
     check_sensor(dataset, config.sensor)
     check_image_size(dataset)
+    check_run_memory(config, dataset)
     out = prepare_output_dir(out_dir, dataset.root)
     if frontend is None:
         from .backend import Backend

@@ -178,7 +178,10 @@ import importlib  # noqa: E402
 import types  # noqa: E402
 import typing  # noqa: E402
 
-from fgslam.config import check_ranges, field_range, ranged  # noqa: E402
+import math  # noqa: E402
+import re  # noqa: E402
+
+from fgslam.config import MAX_COUNT, MAX_SCALAR, Range, check_ranges, field_range, ranged  # noqa: E402
 
 #: Config dataclasses used in code but not reachable from a preset root (factor tunables, vocabulary training).
 EXTRA_CONFIG_CLASSES = (
@@ -200,6 +203,7 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.batch:BatchMatrix",
     "fgslam.batch:BatchOptions",
     "fgslam.frontends.pointmap.mix:PointmapMixOptions",
+    "fgslam.nets.dba:DenseBAConfig",
 )
 
 
@@ -238,30 +242,58 @@ def _is_numeric(tp) -> bool:
     return False
 
 
+def _has_finite_upper_bound(f: dataclasses.Field) -> bool:
+    rng = field_range(f)
+    upper = None if rng is None else (rng.le if rng.le is not None else rng.lt)
+    return upper is not None and math.isfinite(upper)
+
+
 def unranged_numeric_fields(cls: type) -> list[str]:
+    """Numeric fields of ``cls`` without a ranged(...) of a finite upper bound (issue 21: every
+    numeric value has one that real use never needs to exceed)."""
     hints = typing.get_type_hints(cls)
     return [f"{cls.__module__}.{cls.__name__}.{f.name}" for f in dataclasses.fields(cls)
-            if _is_numeric(hints[f.name]) and field_range(f) is None]
+            if _is_numeric(hints[f.name]) and not _has_finite_upper_bound(f)]
 
 
 def test_every_numeric_config_field_declares_its_range():
     classes = _config_classes()
     assert len(classes) > 30  # the walk reaches the nested sections (patch.*, loop_closure.bow.*, synth presets...)
     missing = [name for cls in classes for name in unranged_numeric_fields(cls)]
-    assert not missing, f"numeric config fields without ranged(...): {missing}"
+    assert not missing, f"numeric config fields without ranged(..., le=...) (a finite upper bound): {missing}"
 
 
 def test_the_range_walk_catches_a_missing_range():
     @dataclass
     class Probe:
         a: int = 3
-        b: Optional[float] = ranged(None, gt=0)
+        b: Optional[float] = ranged(None, gt=0, le=MAX_SCALAR)
         c: list[float] = field(default_factory=lambda: [1.0])
         d: tuple[int, int] = (1, 2)
         e: bool = True
         f: str = "x"
+        g: float = ranged(1.0, gt=0)  # a range without an upper bound
+        h: int = ranged(1, ge=0, lt=MAX_COUNT)
 
-    assert [n.rsplit(".", 1)[1] for n in unranged_numeric_fields(Probe)] == ["a", "c", "d"]
+    assert [n.rsplit(".", 1)[1] for n in unranged_numeric_fields(Probe)] == ["a", "c", "d", "g"]
+
+
+def test_the_walk_reaches_every_config_class_that_declares_ranges():
+    """Every dataclass of fgslam/ with a ranged(...) field is reached by the walk above (from the
+    preset roots or the extras), so none escapes the upper-bound test."""
+    import ast
+
+    package = Path(importlib.import_module("fgslam").__file__).parent
+    walked = {f"{c.__module__}:{c.__qualname__}" for c in _config_classes()}
+    walked |= {f"{b.__module__}:{b.__qualname__}" for c in _config_classes() for b in c.__mro__}  # bases
+    declared = set()
+    for path in package.rglob("*.py"):
+        text = path.read_text()
+        module = ".".join(path.relative_to(package.parent).with_suffix("").parts).removesuffix(".__init__")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ClassDef) and "ranged(" in (ast.get_source_segment(text, node) or ""):
+                declared.add(f"{module}:{node.name}")
+    assert not declared - walked, f"config classes the walk misses (add them to EXTRA_CONFIG_CLASSES): {sorted(declared - walked)}"
 
 
 def test_every_default_lies_in_its_range():
@@ -303,6 +335,55 @@ def test_ranges_hold_for_configs_built_in_code():
 
     with pytest.raises(ConfigError, match=r"key 'patch.ba.pixel_sigma': must be > 0"):
         PatchConfig(ba=BAConfig(pixel_sigma=0.0)).validate()
+
+
+#: Infinite values of issue 21 that ran to a garbage trajectory with exit 0 (test_run checks them on the CLI).
+ISSUE21_INFINITE = [
+    ("patch.ba.pixel_sigma=.inf", "patch.ba.pixel_sigma"),
+    ("dense.graph.motion_filter_flow=.inf", "dense.graph.motion_filter_flow"),
+    ("map.window.lambda_factor=.inf", "map.window.lambda_factor"),
+    ("imu.noise_inflation=.inf", "imu.noise_inflation"),
+]
+
+#: Values of issue 21 far beyond any real use (memory exhaustion, unkillable runs); test_run checks them on the CLI.
+ISSUE21_TOO_LARGE = [
+    ("dataset.resize_width=100000", "dataset.resize_width"),
+    ("patch.graph.patches_per_frame=100000000", "patch.graph.patches_per_frame"),
+    ("pointmap.image_width=100000", "pointmap.image_width"),
+]
+
+
+@pytest.mark.parametrize("override, key", ISSUE21_INFINITE + [
+    ("patch.ba.pixel_sigma=-.inf", "patch.ba.pixel_sigma"),
+    ("eval.time_offset=.inf", "eval.time_offset"),  # a field without a lower bound
+    ("imu.gyroscope_noise_density=.inf", "imu.gyroscope_noise_density"),  # an Optional[float]
+    ("loop_closure.pose_graph.loop_sigmas=[0.01, 0.01, 0.01, 0.1, 0.1, .inf, 0.01]", "loop_closure.pose_graph.loop_sigmas[5]"),
+    ("patch.ba.pixel_sigma=.nan", "patch.ba.pixel_sigma"),
+])
+def test_infinity_and_nan_are_refused_naming_the_key(override, key):
+    from fgslam.slam import load_slam_config
+
+    with pytest.raises(ConfigError, match=rf"key '{re.escape(key)}': must be a finite number \(got -?(inf|nan)\)"):
+        load_slam_config("patch_mono", [override])
+
+
+@pytest.mark.parametrize("override, key", ISSUE21_TOO_LARGE)
+def test_values_beyond_any_real_use_are_refused_naming_the_key(override, key):
+    from fgslam.slam import load_slam_config
+
+    with pytest.raises(ConfigError, match=rf"key '{key}': must be >= \d+ and <= \d+ \(got \d+\)"):
+        load_slam_config("patch_mono", [override])
+
+
+def test_infinity_is_refused_by_every_range_also_for_configs_built_in_code():
+    from fgslam.frontends.patch.config import BAConfig, PatchConfig
+
+    for rng in (Range(), Range(gt=0), Range(ge=1), Range(ge=0, le=1)):
+        assert not rng.contains(math.inf) and not rng.contains(-math.inf) and not rng.contains(math.nan)
+    with pytest.raises(ConfigError, match=r"key 'patch.ba.pixel_sigma': must be > 0 and <= 1e\+06 \(got inf\)"):
+        PatchConfig(ba=BAConfig(pixel_sigma=math.inf)).validate()
+    with pytest.raises(ConfigError, match=r"key 'solver.tolerance': must be a finite number"):
+        load_config(RootConfig, None, ["solver.tolerance=.inf"])  # an unranged float too
 
 
 def test_range_text_and_limits():

@@ -37,7 +37,7 @@ from fgslam.slam import (
     open_slam_dataset,
     run_slam,
 )
-from test_config import ISSUE9_OUT_OF_RANGE
+from test_config import ISSUE9_OUT_OF_RANGE, ISSUE21_INFINITE, ISSUE21_TOO_LARGE
 
 N_FRAMES = 16
 REPO = Path(__file__).resolve().parents[1]
@@ -724,16 +724,52 @@ def test_cli_rejects_out_of_range_values_before_any_work(override, key, synth_ro
     assert not out.exists()  # refused before the output folder was even made
 
 
+@pytest.mark.parametrize("override, key", ISSUE21_INFINITE + ISSUE21_TOO_LARGE)
+def test_cli_refuses_infinite_and_huge_values_at_once(override, key, synth_root, tmp_path, capsys, cli_main):
+    """Issue 21: .inf ran to a garbage trajectory with exit 0; resize_width=100000 grew to 24 GB,
+    patches_per_frame=100000000 to 6.7 GB, pointmap.image_width=100000 posted no frame: each is now
+    one error line naming the key, exit 2, before the output folder is made."""
+    out = tmp_path / "out"
+    preset = "pointmap_mono" if key.startswith("pointmap.") else "dense_mono" if key.startswith("dense.") else "patch_mono"
+    start = time.perf_counter()
+    rc = _cli_run(cli_main, synth_root, out, "-o", override, preset=preset)
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert f"key '{key}': must be" in _one_error_line(err)
+    assert time.perf_counter() - start < 10 and not out.exists()
+
+
+def test_cli_refuses_a_run_whose_memory_estimate_exceeds_the_limit(synth_root, tmp_path, capsys, cli_main, monkeypatch):
+    """Sizes each inside its range whose product is not (4096 patches x 200 frames x 199 edges each):
+    refused from the estimate (fgslam/memory.py) before any frame, naming the keys and the GiB."""
+    from fgslam.frontends.patch.frontend import PatchFrontend
+
+    processed = []
+    monkeypatch.setattr(PatchFrontend, "process", lambda self, frame: processed.append(frame.index))
+    out = tmp_path / "out"
+    rc = _cli_run(cli_main, synth_root, out, "-o", "patch.graph.patches_per_frame=4096",
+                  "-o", "patch.graph.removal_window=200", "-o", "patch.graph.patch_lifetime=199")
+    err = _one_error_line(capsys.readouterr().err)
+    assert rc == 2 and processed == [] and not (out / SUMMARY_FILE).exists()
+    assert re.search(r"estimated peak memory [\d.]+ GiB exceeds max_memory_gib=16 \(largest part: patch graph edges", err)
+    assert "patch.graph.patches_per_frame=4096" in err
+    # the limit is a config field: the same sizes fit a larger one
+    sizes = ("patch.graph.patches_per_frame=4096", "patch.graph.removal_window=200", "patch.graph.patch_lifetime=199")
+    with pytest.raises(ConfigError, match="exceeds max_memory_gib=16"):
+        open_slam_dataset(synth_root, _config(*sizes))
+    assert len(open_slam_dataset(synth_root, _config(*sizes, "max_memory_gib=1024"))) == N_FRAMES
+
+
 def test_cli_rejects_a_border_larger_than_the_image(synth_root, tmp_path, capsys, cli_main, monkeypatch):
     from fgslam.frontends.patch.frontend import PatchFrontend
 
     processed = []
     monkeypatch.setattr(PatchFrontend, "process", lambda self, frame: processed.append(frame.index))
-    rc = _cli_run(cli_main, synth_root, tmp_path / "out", "-o", "patch.graph.border=10000")
+    rc = _cli_run(cli_main, synth_root, tmp_path / "out", "-o", "patch.graph.border=5000")
     err = capsys.readouterr().err
     assert rc == 2
     err = _one_error_line(err)
-    assert "patch.graph.border=10000" in err and "96x72" in err
+    assert "patch.graph.border=5000" in err and "96x72" in err
     assert processed == [] and not (tmp_path / "out" / SUMMARY_FILE).exists()
     # a border that leaves room is accepted (the largest one: 2 * 35 < 72)
     calib = open_slam_dataset(synth_root, _config()).calibration

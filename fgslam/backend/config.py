@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from ..config import ranged
+from ..config import MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, ranged
 from ..errors import ConfigError
 
 #: Accepted spellings of ``map.solver`` and the solver they name (``python_lm``: the name before the
@@ -26,11 +26,11 @@ class GaugeConfig:
     # factor is invariant along the gauge: with Sim(3) loop constraints that change keyframe scales,
     # turn hold_scale off (pointmap) or fold the correction into the depths and call set_pose().
     fix_anchor: bool = True  # 7-dof prior on the anchor keyframe at its pose when it became anchor (set_gauge)
-    anchor_sigma: float = ranged(1e-3, gt=0)  # sigma of the anchor prior (tangent units)
+    anchor_sigma: float = ranged(1e-3, gt=0, le=MAX_SCALAR)  # sigma of the anchor prior (tangent units)
     hold_scale: bool = True  # log-scale prior on every free keyframe at its scale when an optimisation starts
-    scale_sigma: float = ranged(1e-3, gt=0)  # sigma of the log-scale priors
+    scale_sigma: float = ranged(1e-3, gt=0, le=MAX_SCALAR)  # sigma of the log-scale priors
     world_scale_range: bool = True  # fix the distance between the scale pair of keyframes (monocular)
-    range_sigma: float = ranged(1e-3, gt=0)  # sigma of that range constraint, relative to the initial distance
+    range_sigma: float = ranged(1e-3, gt=0, le=MAX_SCALAR)  # sigma of that range constraint, relative to the initial distance
 
 
 @dataclass
@@ -43,19 +43,19 @@ class WindowConfig:
     # window keys they connect to. Contributors' blocks and the gauge are never marginalised: a
     # frontend rebuilds its blocks (with the frames it holds fixed) for every optimisation.
     leaving: Literal["fixed", "marginalize"] = "fixed"
-    marginal_regularization: float = ranged(1e-9, ge=0)  # precision added to eliminated keys (directions no factor observes)
+    marginal_regularization: float = ranged(1e-9, ge=0, le=MAX_SCALAR)  # precision added to eliminated keys (directions no factor observes)
     # A window runs a few LM iterations per frame (the frontend's count, e.g. patch.ba.iterations):
-    lambda_factor: float = ranged(1000.0, gt=1)  # LM damping multiplier after a rejected step (the pose Hessian dwarfs damping below ~1e4: x10 retries the same step)
-    refine_steps: int = ranged(0, ge=0)  # structure Gauss-Newton steps at fixed poses before/after a window optimisation (LM updates the structure jointly anyway)
+    lambda_factor: float = ranged(1000.0, gt=1, le=MAX_SCALAR)  # LM damping multiplier after a rejected step (the pose Hessian dwarfs damping below ~1e4: x10 retries the same step)
+    refine_steps: int = ranged(0, ge=0, le=MAX_ITERATIONS)  # structure Gauss-Newton steps at fixed poses before/after a window optimisation (LM updates the structure jointly anyway)
 
 
 @dataclass
 class PoseGraphCorrectionConfig:
     """Odometry terms of :meth:`~fgslam.backend.Backend.correct_pose_graph` (tangent [w(3), u(3), log s])."""
 
-    rotation_sigma: float = ranged(1e-2, gt=0)  # rad, between consecutive keyframes
-    translation_sigma: float = ranged(1e-1, gt=0)  # in the keyframes' local units
-    log_scale_sigma: float = ranged(1e-2, gt=0)  # log-scale between consecutive keyframes
+    rotation_sigma: float = ranged(1e-2, gt=0, le=MAX_SCALAR)  # rad, between consecutive keyframes
+    translation_sigma: float = ranged(1e-1, gt=0, le=MAX_SCALAR)  # in the keyframes' local units
+    log_scale_sigma: float = ranged(1e-2, gt=0, le=MAX_SCALAR)  # log-scale between consecutive keyframes
 
 
 @dataclass
@@ -63,18 +63,18 @@ class BackendConfig:
     """Solver choice and tolerances of :class:`fgslam.backend.Backend` (YAML section ``map``)."""
 
     solver: Literal["lm", "python_lm", "isam2"] = "lm"  # lm (python_lm: alias) or isam2 (fgslam/backend/graph.py)
-    max_iterations: int = ranged(30, ge=1)  # LM iterations per optimisation unless the caller gives its own count
-    relative_tolerance: float = ranged(1e-10, ge=0)  # stop when the relative cost decrease falls below this
-    absolute_tolerance: float = ranged(1e-14, ge=0)  # stop when the cost falls below this
-    step_tolerance: float = ranged(1e-12, ge=0)  # stop when the largest tangent step component falls below this
-    lambda_initial: float = ranged(1e-6, gt=0)  # initial LM damping (identity, on the pose tangents)
-    lambda_factor: float = ranged(10.0, gt=1)  # LM damping multiplier on rejection / divisor on acceptance (global, pose graph; windows: window.lambda_factor)
-    lambda_min: float = ranged(1e-12, gt=0)  # smallest LM damping
-    lambda_max: float = ranged(1e8, gt=0)  # LM gives up (converged) when rejected steps push lambda above this
-    refine_steps: int = ranged(2, ge=0)  # structure Gauss-Newton steps at fixed poses before and after a global optimisation (windows: window.refine_steps)
+    max_iterations: int = ranged(30, ge=1, le=MAX_ITERATIONS)  # LM iterations per optimisation unless the caller gives its own count
+    relative_tolerance: float = ranged(1e-10, ge=0, le=MAX_SCALAR)  # stop when the relative cost decrease falls below this
+    absolute_tolerance: float = ranged(1e-14, ge=0, le=MAX_SCALAR)  # stop when the cost falls below this
+    step_tolerance: float = ranged(1e-12, ge=0, le=MAX_SCALAR)  # stop when the largest tangent step component falls below this
+    lambda_initial: float = ranged(1e-6, gt=0, le=MAX_LAMBDA)  # initial LM damping (identity, on the pose tangents)
+    lambda_factor: float = ranged(10.0, gt=1, le=MAX_SCALAR)  # LM damping multiplier on rejection / divisor on acceptance (global, pose graph; windows: window.lambda_factor)
+    lambda_min: float = ranged(1e-12, gt=0, le=MAX_LAMBDA)  # smallest LM damping
+    lambda_max: float = ranged(1e8, gt=0, le=MAX_LAMBDA)  # LM gives up (converged) when rejected steps push lambda above this
+    refine_steps: int = ranged(2, ge=0, le=MAX_ITERATIONS)  # structure Gauss-Newton steps at fixed poses before and after a global optimisation (windows: window.refine_steps)
     refine_each_iteration: bool = False  # also refine after every accepted step (else: joint updates only)
-    max_backtracks: int = ranged(6, ge=0)  # step halvings when an isam2 step raises the true cost
-    threads: int = ranged(1, ge=0)  # torch threads during optimisation (small dense solves: 1 is fastest)
+    max_backtracks: int = ranged(6, ge=0, le=MAX_ITERATIONS)  # step halvings when an isam2 step raises the true cost
+    threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads during optimisation (small dense solves: 1 is fastest)
     gauge: GaugeConfig = field(default_factory=GaugeConfig)
     window: WindowConfig = field(default_factory=WindowConfig)
     pose_graph: PoseGraphCorrectionConfig = field(default_factory=PoseGraphCorrectionConfig)

@@ -46,7 +46,7 @@ from typing import Any, Literal, Optional
 
 import numpy as np
 
-from ..config import ranged
+from ..config import MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, MAX_WINDOW, ranged
 from ..errors import ConfigError, DataError, OptimizationError
 from ..factors.imu import (ImuNoise, body_pose, combined_params, imu_factor_on_sim3, integration_steps,
                            preintegrate, sim3_from_body_pose)
@@ -64,30 +64,30 @@ EUROC_NOISE = {"gyroscope_noise_density": 1.6968e-4, "gyroscope_random_walk": 1.
 class ImuInitConfig:
     """Initialisation of the IMU state (module docstring)."""
 
-    static_window_s: float = ranged(0.5, gt=0)  # s of samples at the start tested for a still IMU
+    static_window_s: float = ranged(0.5, gt=0, le=MAX_SCALAR)  # s of samples at the start tested for a still IMU
     # still = the means of static_chunks consecutive chunks of that window agree (vibration averages out:
     # EuRoC V1_01's MAV on the ground reads 0.8 m/s^2 of per-sample accel spread, 0.05 m/s^2 between chunk means)
-    static_chunks: int = ranged(5, ge=2)
-    static_gyro_std: float = ranged(0.01, gt=0)  # rad/s: largest per-axis spread of the chunks' mean rates
-    static_accel_std: float = ranged(0.1, gt=0)  # m/s^2: largest per-axis spread of the chunks' mean specific forces
+    static_chunks: int = ranged(5, ge=2, le=MAX_KEYFRAMES)
+    static_gyro_std: float = ranged(0.01, gt=0, le=MAX_SCALAR)  # rad/s: largest per-axis spread of the chunks' mean rates
+    static_accel_std: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # m/s^2: largest per-axis spread of the chunks' mean specific forces
     static_metric_start: bool = True  # a metric map (stereo/RGB-D) with a still start initialises at once (velocity 0)
-    keyframes: int = ranged(10, ge=3)  # fewest keyframes of the visual-inertial initialisation
-    min_duration_s: float = ranged(3.0, gt=0)  # monocular: s of the newest keyframes it uses (the scale needs accelerations)
-    metric_min_duration_s: float = ranged(1.0, gt=0)  # metric maps (stereo, RGB-D; no scale to estimate): the same
-    spacing_s: float = ranged(0.3, ge=0)  # s between the keyframes it uses (longer baselines: less attenuation of the scale by visual noise)
+    keyframes: int = ranged(10, ge=3, le=MAX_KEYFRAMES)  # fewest keyframes of the visual-inertial initialisation
+    min_duration_s: float = ranged(3.0, gt=0, le=MAX_SCALAR)  # monocular: s of the newest keyframes it uses (the scale needs accelerations)
+    metric_min_duration_s: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # metric maps (stereo, RGB-D; no scale to estimate): the same
+    spacing_s: float = ranged(0.3, ge=0, le=MAX_SCALAR)  # s between the keyframes it uses (longer baselines: less attenuation of the scale by visual noise)
     # monocular: the scale re-estimated (gravity known) over the keyframes since the initialisation
     # this many seconds after it; the map is rescaled when it changed by more than refine_min_change
-    refine_at_s: list[float] = ranged(default_factory=lambda: [3.0, 6.0, 9.0, 12.0, 15.0], gt=0)
-    refine_min_change: float = ranged(0.01, ge=0)  # relative scale change worth a rescale
-    max_scale_rel_sigma: float = ranged(0.05, gt=0)  # monocular: the scale's relative standard deviation (least squares) must be below this
-    gyro_bias_iterations: int = ranged(5, ge=1)  # Gauss-Newton iterations of the gyroscope bias
-    gravity_tolerance: float = ranged(0.1, gt=0)  # relative |g| error beyond which the unconstrained solve is rejected
-    min_scale: float = ranged(1e-3, gt=0)  # monocular: smallest plausible metric scale (map units -> m)
-    max_scale: float = ranged(1e3, gt=0)  # monocular: largest plausible metric scale
-    bias_gyro_sigma: float = ranged(1e-2, gt=0)  # rad/s: prior on the initial gyroscope bias
-    bias_accel_sigma: float = ranged(0.1, gt=0)  # m/s^2: prior on the initial accelerometer bias
-    velocity_sigma: float = ranged(0.1, gt=0)  # m/s: prior on the initial velocity
-    restart_velocity_sigma: float = ranged(1.0, gt=0)  # m/s: prior on the velocity of a keyframe starting a new chain
+    refine_at_s: list[float] = ranged(default_factory=lambda: [3.0, 6.0, 9.0, 12.0, 15.0], gt=0, le=MAX_SCALAR)
+    refine_min_change: float = ranged(0.01, ge=0, le=MAX_SCALAR)  # relative scale change worth a rescale
+    max_scale_rel_sigma: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # monocular: the scale's relative standard deviation (least squares) must be below this
+    gyro_bias_iterations: int = ranged(5, ge=1, le=MAX_ITERATIONS)  # Gauss-Newton iterations of the gyroscope bias
+    gravity_tolerance: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # relative |g| error beyond which the unconstrained solve is rejected
+    min_scale: float = ranged(1e-3, gt=0, le=MAX_SCALAR)  # monocular: smallest plausible metric scale (map units -> m)
+    max_scale: float = ranged(1e3, gt=0, le=MAX_SCALAR)  # monocular: largest plausible metric scale
+    bias_gyro_sigma: float = ranged(1e-2, gt=0, le=MAX_SCALAR)  # rad/s: prior on the initial gyroscope bias
+    bias_accel_sigma: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # m/s^2: prior on the initial accelerometer bias
+    velocity_sigma: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # m/s: prior on the initial velocity
+    restart_velocity_sigma: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # m/s: prior on the velocity of a keyframe starting a new chain
 
 
 @dataclass
@@ -95,22 +95,22 @@ class ImuServiceConfig:
     """IMU fusion (YAML section ``imu`` of a run config; presets ``configs/*inertial*.yaml``)."""
 
     enabled: bool = False  # fuse the dataset's IMU (the inertial presets switch it on; a dataset without IMU is then an error)
-    gravity: float = ranged(9.81, gt=0)  # m/s^2, magnitude of gravity
+    gravity: float = ranged(9.81, gt=0, le=MAX_SCALAR)  # m/s^2, magnitude of gravity
     # continuous-time noise (null: the dataset's imu0/sensor.yaml, else EuRoC's ADIS16448 values)
-    gyroscope_noise_density: Optional[float] = ranged(None, gt=0)  # rad / s / sqrt(Hz)
-    accelerometer_noise_density: Optional[float] = ranged(None, gt=0)  # m / s^2 / sqrt(Hz)
-    gyroscope_random_walk: Optional[float] = ranged(None, gt=0)  # rad / s^2 / sqrt(Hz)
-    accelerometer_random_walk: Optional[float] = ranged(None, gt=0)  # m / s^3 / sqrt(Hz)
-    noise_inflation: float = ranged(1.0, ge=1)  # multiplies the white-noise densities (unmodelled vibration, timing)
-    integration_sigma: float = ranged(1e-4, gt=0)  # gtsam integration covariance sigma
+    gyroscope_noise_density: Optional[float] = ranged(None, gt=0, le=MAX_SCALAR)  # rad / s / sqrt(Hz)
+    accelerometer_noise_density: Optional[float] = ranged(None, gt=0, le=MAX_SCALAR)  # m / s^2 / sqrt(Hz)
+    gyroscope_random_walk: Optional[float] = ranged(None, gt=0, le=MAX_SCALAR)  # rad / s^2 / sqrt(Hz)
+    accelerometer_random_walk: Optional[float] = ranged(None, gt=0, le=MAX_SCALAR)  # m / s^3 / sqrt(Hz)
+    noise_inflation: float = ranged(1.0, ge=1, le=MAX_SCALAR)  # multiplies the white-noise densities (unmodelled vibration, timing)
+    integration_sigma: float = ranged(1e-4, gt=0, le=MAX_SCALAR)  # gtsam integration covariance sigma
     history: Literal["window", "full"] = "window"  # window: marginalise old velocities/biases; full: keep (isam2)
-    window_keyframes: int = ranged(20, ge=3)  # linked keyframes kept with history: window
+    window_keyframes: int = ranged(20, ge=3, le=MAX_WINDOW)  # linked keyframes kept with history: window
     # velocities and biases of every linked keyframe (the IMU window) are free in each window optimisation,
     # also where the frontend holds the keyframe's pose fixed (else they are fixed with it: overconfident)
     free_window_states: bool = True
-    max_gap_s: float = ranged(0.05, gt=0)  # s: a larger gap between samples (or to a frame time) is a bad interval
-    max_interval_s: float = ranged(5.0, gt=0)  # s: longest keyframe interval given an IMU factor
-    max_bridge_s: float = ranged(3.0, ge=0)  # s: IMU prediction from the newest linked keyframe up to this long
+    max_gap_s: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # s: a larger gap between samples (or to a frame time) is a bad interval
+    max_interval_s: float = ranged(5.0, gt=0, le=MAX_SCALAR)  # s: longest keyframe interval given an IMU factor
+    max_bridge_s: float = ranged(3.0, ge=0, le=MAX_SCALAR)  # s: IMU prediction from the newest linked keyframe up to this long
     init: ImuInitConfig = field(default_factory=ImuInitConfig)
 
     def noise(self, dataset_noise: Optional[dict] = None) -> ImuNoise:

@@ -51,7 +51,7 @@ from typing import Any, Optional, Protocol, TypeVar, Union
 
 import numpy as np
 
-from ..config import from_dict, ranged
+from ..config import MAX_COUNT, MAX_KEYFRAMES, MAX_SCALAR, MAX_TIME_OFFSET_S, from_dict, ranged
 from ..errors import ConfigError, FGSlamError
 from ..factors.planar import fit_plane, planar_factor, plane_in_keyframe, plane_in_world, plane_of_keyframe, unit_up
 from ..factors.position import camera_centre, position_noise, position_prior_factor
@@ -276,15 +276,15 @@ class PositionPriorOptions:
     """Options of :class:`PositionPrior` (``factors[i].options``)."""
 
     file: Optional[Path] = None  # positions file, 't x y z' per line (seconds on the dataset's clock, metres); required
-    sigma: Union[float, list[float]] = ranged(1.0, gt=0)  # metres: one (isotropic) or a list of three (x, y, z)
-    time_offset: float = ranged(0.0)  # seconds added to the file's times to put them on the dataset's clock
-    max_dt: float = ranged(0.1, gt=0)  # s: a sample becomes a prior on the keyframe nearest in time when that close
-    huber_k: Optional[float] = ranged(None, gt=0)  # whitened Huber threshold against outlier fixes (null: Gaussian)
-    min_samples: int = ranged(10, ge=3)  # samples matched to keyframes before the map is aligned to the positions
-    min_spread: float = ranged(20.0, gt=0)  # m: largest principal standard deviation of those samples before aligning
+    sigma: Union[float, list[float]] = ranged(1.0, gt=0, le=MAX_SCALAR)  # metres: one (isotropic) or a list of three (x, y, z)
+    time_offset: float = ranged(0.0, ge=-MAX_TIME_OFFSET_S, le=MAX_TIME_OFFSET_S)  # seconds added to the file's times to put them on the dataset's clock
+    max_dt: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # s: a sample becomes a prior on the keyframe nearest in time when that close
+    huber_k: Optional[float] = ranged(None, gt=0, le=MAX_SCALAR)  # whitened Huber threshold against outlier fixes (null: Gaussian)
+    min_samples: int = ranged(10, ge=3, le=MAX_COUNT)  # samples matched to keyframes before the map is aligned to the positions
+    min_spread: float = ranged(20.0, gt=0, le=MAX_SCALAR)  # m: largest principal standard deviation of those samples before aligning
     # m: second principal standard deviation before aligning: a straight path leaves the rotation about it open
-    min_lateral_spread: float = ranged(3.0, ge=0)
-    correct_every: int = ranged(10, ge=0)  # a pose-graph correction after every this many new priors (0: only at the end)
+    min_lateral_spread: float = ranged(3.0, ge=0, le=MAX_SCALAR)
+    correct_every: int = ranged(10, ge=0, le=MAX_KEYFRAMES)  # a pose-graph correction after every this many new priors (0: only at the end)
     align_scale: bool = True  # the alignment estimates the map's scale (monocular); false: rigid (stereo, RGB-D maps)
 
 
@@ -487,11 +487,11 @@ class PlanarMotionOptions:
 
     # the ground normal in camera coordinates (the camera's up axis): (0, -1, 0) for a level
     # forward-looking camera with y down; include the mount's pitch and roll (calibrated)
-    up_axis: list[float] = ranged(default_factory=lambda: [0.0, -1.0, 0.0])  # finite; not all zero (checked)
-    height_sigma: float = ranged(0.05, gt=0)  # world units (metres in a metric map): camera height above the plane
-    tilt_sigma: float = ranged(0.01, gt=0)  # rad (sine of the angle): roll and pitch across the plane
-    refit_every: int = ranged(10, ge=1)  # new keyframes between two fits of the plane to every keyframe
-    refit_tolerance: float = ranged(0.1, gt=0)  # rebuild the factors when a fit moves the plane by more than this many sigmas
+    up_axis: list[float] = ranged(default_factory=lambda: [0.0, -1.0, 0.0], ge=-MAX_SCALAR, le=MAX_SCALAR)  # finite; not all zero (checked)
+    height_sigma: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # world units (metres in a metric map): camera height above the plane
+    tilt_sigma: float = ranged(0.01, gt=0, le=MAX_SCALAR)  # rad (sine of the angle): roll and pitch across the plane
+    refit_every: int = ranged(10, ge=1, le=MAX_KEYFRAMES)  # new keyframes between two fits of the plane to every keyframe
+    refit_tolerance: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # rebuild the factors when a fit moves the plane by more than this many sigmas
     # a Sim(3) pose-graph correction over every keyframe at the end, then a last fit: only where other
     # factors hold the scale (PositionPrior): alone, the pose graph's free scale shrinks the map to lower
     # the height residuals (street drive: ATE 2.7 -> 10.8 m)

@@ -29,7 +29,7 @@ from typing import Literal
 
 import numpy as np
 
-from ..config import ranged
+from ..config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_KEYFRAMES, MAX_SCALAR, MAX_SEED, MAX_THREADS, ranged
 from ..errors import DataError
 from .map import RunMap
 
@@ -45,21 +45,21 @@ IMAGES_SUBDIR = "images"
 class ColmapExportConfig:
     """What a COLMAP export keeps of the map."""
 
-    max_reprojection_px: float = ranged(4.0, gt=0)  # drop observations farther than this from the point's projection (COLMAP's own filter: 4 px)
-    min_track_length: int = ranged(2, ge=1)  # points seen by fewer keyframes (after the filter) are left out
-    min_depth: float = ranged(0.0, ge=0)  # drop observations of points at or behind this depth (map units)
+    max_reprojection_px: float = ranged(4.0, gt=0, le=MAX_SCALAR)  # drop observations farther than this from the point's projection (COLMAP's own filter: 4 px)
+    min_track_length: int = ranged(2, ge=1, le=MAX_KEYFRAMES)  # points seen by fewer keyframes (after the filter) are left out
+    min_depth: float = ranged(0.0, ge=0, le=MAX_SCALAR)  # drop observations of points at or behind this depth (map units)
 
 
 @dataclass
 class ColmapSfmConfig:
     """pycolmap's SfM as ``fgslam compare-colmap`` runs it."""
 
-    max_num_features: int = ranged(8192, ge=16)  # SIFT features per image
-    max_image_size: int = ranged(3200, ge=16)  # SIFT: larger images are downscaled (COLMAP's default)
-    overlap: int = ranged(10, ge=1)  # sequential matching: each image against the next this many
-    num_threads: int = ranged(-1, ge=-1)  # -1: every core
-    min_model_size: int = ranged(10, ge=3)  # smallest model the mapper keeps
-    random_seed: int = ranged(0, ge=-1)  # mapper's RANSAC seed (-1: random)
+    max_num_features: int = ranged(8192, ge=16, le=MAX_COUNT)  # SIFT features per image
+    max_image_size: int = ranged(3200, ge=16, le=MAX_IMAGE_SIDE)  # SIFT: larger images are downscaled (COLMAP's default)
+    overlap: int = ranged(10, ge=1, le=MAX_KEYFRAMES)  # sequential matching: each image against the next this many
+    num_threads: int = ranged(-1, ge=-1, le=MAX_THREADS)  # -1: every core
+    min_model_size: int = ranged(10, ge=3, le=MAX_COUNT)  # smallest model the mapper keeps
+    random_seed: int = ranged(0, ge=-1, le=MAX_SEED)  # mapper's RANSAC seed (-1: random)
 
 
 # ------------------------------------------------------------------------------------------------ export

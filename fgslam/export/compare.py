@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from ..config import ranged
+from ..config import MAX_COUNT, MAX_SCALAR, ranged
 from ..errors import DataError, EvaluationError
 from .colmap import ColmapSfmConfig, run_colmap_sfm
 
@@ -42,8 +42,8 @@ class CompareConfig:
     """``fgslam compare-colmap`` settings (the fgslam run's own config is its preset)."""
 
     colmap: ColmapSfmConfig = field(default_factory=ColmapSfmConfig)
-    max_cloud_points: int = ranged(200000, ge=100)  # clouds are subsampled (evenly) to this many points for the distances
-    max_point_range_factor: float = ranged(10.0, gt=0)  # cloud metrics leave out points farther from every camera of their run than this x the cloud's median such distance
+    max_cloud_points: int = ranged(200000, ge=100, le=MAX_COUNT)  # clouds are subsampled (evenly) to this many points for the distances
+    max_point_range_factor: float = ranged(10.0, gt=0, le=MAX_SCALAR)  # cloud metrics leave out points farther from every camera of their run than this x the cloud's median such distance
 
 
 PRESET_BY_FORMAT = {"kitti": "patch_kitti_mono", "7scenes": "patch_7scenes_mono", "euroc": "patch_euroc_mono"}

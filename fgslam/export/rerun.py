@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from ..config import ranged
+from ..config import MAX_FRAMES, MAX_SCALAR, ranged
 from ..errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
@@ -32,10 +32,10 @@ LIVE = "live"  # --rerun live: stream to a running viewer (rerun's default addre
 class RerunConfig:
     """What a rerun log of a run holds (``output.rerun``)."""
 
-    image_every: int = ranged(5, ge=1)  # log every n-th frame's image
-    map_every: int = ranged(50, ge=1)  # log the trajectory, keyframe points and loops every n frames
+    image_every: int = ranged(5, ge=1, le=MAX_FRAMES)  # log every n-th frame's image
+    map_every: int = ranged(50, ge=1, le=MAX_FRAMES)  # log the trajectory, keyframe points and loops every n frames
     jpeg_quality: int = ranged(80, ge=1, le=100)  # images are logged JPEG-encoded at this quality
-    point_radius: float = ranged(0.01, gt=0)  # keyframe points' radius (map units)
+    point_radius: float = ranged(0.01, gt=0, le=MAX_SCALAR)  # keyframe points' radius (map units)
 
 
 def rerun_available() -> bool:

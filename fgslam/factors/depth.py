@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from ..camera import StereoRig
-from ..config import ranged
+from ..config import MAX_SCALAR, ranged
 from ..errors import ConfigError
 from .reprojection import ReprojectionConfig, ReprojectionResult, reproject_inv_depth
 
@@ -48,7 +48,7 @@ class DepthPriorConfig:
     depth rows of the patch frontend's observation model). The patch frontend fills it from
     ``patch.ba.depth_prior_sigma`` and ``patch.ba.depth_noise``."""
 
-    sigma: float = ranged(0.05, gt=0)  # relative (noise: relative) or in 1/m of inverse depth (noise: inverse)
+    sigma: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # relative (noise: relative) or in 1/m of inverse depth (noise: inverse)
     noise: Literal["relative", "inverse"] = "relative"  # relative: sigma_d = sigma * d_sensor (sigma_z grows with z); inverse: sigma_d = sigma (sigma_z grows with z^2, Kinect)
 
 

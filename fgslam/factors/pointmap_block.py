@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from ..backend.blocks import LinearPiece
-from ..config import ranged
+from ..config import MAX_THREADS, ranged
 from ..errors import DataError
 from ..lie import Sim3
 from .pointmap import PointmapResidualConfig, calibrated_residuals, ray_dist_residuals, relative_to_global
@@ -57,7 +57,7 @@ class PointmapBlockConfig:
     mode: Literal["ray", "calibrated"] = "ray"  # ray + distance rows, or pixel + log-depth rows (needs K and uv_i)
     residual: PointmapResidualConfig = field(default_factory=PointmapResidualConfig)
     robust: RobustConfig = field(default_factory=RobustConfig)  # kernel on each row group's whitened norm; min_confidence drops matches
-    threads: int = ranged(1, ge=0)  # torch intra-op threads while linearising (0: torch's setting)
+    threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch intra-op threads while linearising (0: torch's setting)
 
 
 @dataclass

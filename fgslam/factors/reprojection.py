@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import ranged
+from ..config import MAX_SCALAR, ranged
 from ..errors import DataError
 
 __all__ = [
@@ -70,7 +70,7 @@ __all__ = [
 class ReprojectionConfig:
     """Tunables of the inverse-depth reprojection residual."""
 
-    min_depth: float = ranged(0.2, gt=0)  # smallest valid depth in the target camera, camera-frame units (DROID-SLAM's MIN_DEPTH)
+    min_depth: float = ranged(0.2, gt=0, le=MAX_SCALAR)  # smallest valid depth in the target camera, camera-frame units (DROID-SLAM's MIN_DEPTH)
 
 
 @dataclass

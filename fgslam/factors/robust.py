@@ -23,7 +23,7 @@ from typing import Literal, NamedTuple
 
 import torch
 
-from ..config import ranged
+from ..config import MAX_SCALAR, ranged
 from ..errors import ConfigError
 
 KernelKind = Literal["none", "huber", "cauchy", "tukey"]
@@ -37,9 +37,9 @@ class RobustConfig:
     kind: KernelKind = "huber"
     # Kernel threshold in whitened units: 1.345 is Huber's 95%-efficiency constant under Gaussian
     # noise (Cauchy: 2.3849, Tukey: 4.6851 for the same efficiency).
-    delta: float = ranged(1.345, gt=0)
+    delta: float = ranged(1.345, gt=0, le=MAX_SCALAR)
     # Measurements whose confidence is below this get zero weight (MASt3R's q_min; 0 keeps all).
-    min_confidence: float = ranged(0.0, ge=0)
+    min_confidence: float = ranged(0.0, ge=0, le=MAX_SCALAR)
 
 
 class RobustWeights(NamedTuple):

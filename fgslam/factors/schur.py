@@ -55,7 +55,7 @@ import numpy as np
 import torch
 
 from ..backend.blocks import LinearPiece
-from ..config import ranged
+from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, ranged
 from ..errors import OptimizationError
 from ..lie import Sim3
 from .reprojection import ReprojectionConfig, reproject, reproject_inv_depth
@@ -399,12 +399,12 @@ class BlockResiduals:
 class BlockConfig:
     """Tunables shared by visual blocks."""
 
-    structure_damping: float = ranged(0.0, ge=0)  # lambda_s added to each structure's information C_p
-    min_information: float = ranged(1e-12, ge=0)  # structures with C_p at or below this are not eliminated
-    refine_steps: int = ranged(2, ge=0)  # per-structure Gauss-Newton steps of refine_structure() at fixed poses
-    min_structure: float = ranged(1e-6, gt=0)  # lower clamp of the structure (inverse depth stays positive)
-    threads: int = ranged(1, ge=0)  # torch threads inside linearize/cost/refine (small dense work: 1 is fastest)
-    per_edge_min_rows: int = ranged(2048, ge=1)  # evaluate edge by edge (pose pair broadcast) when edges average this many rows
+    structure_damping: float = ranged(0.0, ge=0, le=MAX_LAMBDA)  # lambda_s added to each structure's information C_p
+    min_information: float = ranged(1e-12, ge=0, le=MAX_SCALAR)  # structures with C_p at or below this are not eliminated
+    refine_steps: int = ranged(2, ge=0, le=MAX_ITERATIONS)  # per-structure Gauss-Newton steps of refine_structure() at fixed poses
+    min_structure: float = ranged(1e-6, gt=0, le=MAX_SCALAR)  # lower clamp of the structure (inverse depth stays positive)
+    threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads inside linearize/cost/refine (small dense work: 1 is fastest)
+    per_edge_min_rows: int = ranged(2048, ge=1, le=MAX_COUNT)  # evaluate edge by edge (pose pair broadcast) when edges average this many rows
 
 
 class VisualBlock(abc.ABC):

@@ -35,7 +35,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..config import check_ranges, ranged
+from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LEVELS, MAX_SCALAR, MAX_SEED, check_ranges, ranged
 from ..errors import DataError, FormatError
 from .features import DESCRIPTOR_BYTES, OrbConfig
 
@@ -55,10 +55,10 @@ _INDEX_BUFFER_POSTINGS = 1 << 15              # postings buffered before they jo
 class VocabularyTrainingConfig:
     """Hierarchical k-majority training tunables."""
 
-    branching: int = ranged(10, ge=2)  # children per node (k)
-    depth: int = ranged(5, ge=1)  # levels below the root (L); at most k^L words
-    max_iterations: int = ranged(10, ge=1)  # assign/update rounds of k-majority per node
-    seed: int = ranged(0, ge=0)  # seeding of k-means++ draws
+    branching: int = ranged(10, ge=2, le=MAX_COUNT)  # children per node (k)
+    depth: int = ranged(5, ge=1, le=MAX_LEVELS)  # levels below the root (L); at most k^L words
+    max_iterations: int = ranged(10, ge=1, le=MAX_ITERATIONS)  # assign/update rounds of k-majority per node
+    seed: int = ranged(0, ge=0, le=MAX_SEED)  # seeding of k-means++ draws
 
     def validate(self) -> None:
         check_ranges(self, "vocabulary.")
@@ -68,16 +68,16 @@ class VocabularyTrainingConfig:
 class LoopDetectionConfig:
     """DBoW2-style loop detection thresholds (keyframe counts are database entries)."""
 
-    min_features: int = ranged(50, ge=0)  # keyframes with fewer ORB features neither query nor count
-    min_gap_keyframes: int = ranged(30, ge=0)  # candidates must be at least this many keyframes older
-    min_gap_seconds: float = ranged(0.0, ge=0)  # ... and at least this many seconds older (when timed)
-    max_results: int = ranged(50, ge=1)  # best raw-scored entries examined per query
+    min_features: int = ranged(50, ge=0, le=MAX_COUNT)  # keyframes with fewer ORB features neither query nor count
+    min_gap_keyframes: int = ranged(30, ge=0, le=MAX_KEYFRAMES)  # candidates must be at least this many keyframes older
+    min_gap_seconds: float = ranged(0.0, ge=0, le=MAX_SCALAR)  # ... and at least this many seconds older (when timed)
+    max_results: int = ranged(50, ge=1, le=MAX_KEYFRAMES)  # best raw-scored entries examined per query
     min_prior_score: float = ranged(0.005, ge=0, le=1)  # skip the query when s(current, previous kf) is below this
-    min_normalized_score: float = ranged(0.6, ge=0)  # s(current, candidate) / s(current, previous kf) threshold
+    min_normalized_score: float = ranged(0.6, ge=0, le=MAX_SCALAR)  # s(current, candidate) / s(current, previous kf) threshold
     # (DBoW2 uses 0.3; 0.6 gave precision 1.0 at recall 0.88-0.97 on held-out synthetic revisits)
-    island_max_gap: int = ranged(3, ge=0)  # candidates at most this many keyframes apart form one island
-    min_consistent: int = ranged(3, ge=1)  # consecutive queries with consistent islands to accept
-    consistency_max_gap: int = ranged(5, ge=0)  # keyframes between islands of consecutive queries
+    island_max_gap: int = ranged(3, ge=0, le=MAX_KEYFRAMES)  # candidates at most this many keyframes apart form one island
+    min_consistent: int = ranged(3, ge=1, le=MAX_KEYFRAMES)  # consecutive queries with consistent islands to accept
+    consistency_max_gap: int = ranged(5, ge=0, le=MAX_KEYFRAMES)  # keyframes between islands of consecutive queries
 
     def validate(self) -> None:
         check_ranges(self, "detection.")

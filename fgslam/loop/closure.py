@@ -77,7 +77,7 @@ from typing import Literal, Sequence
 import numpy as np
 import torch
 
-from ..config import check_ranges, ranged
+from ..config import MAX_COUNT, MAX_FRAMES, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
 from ..errors import ConfigError, DataError, OptimizationError
 from ..lie import Sim3, sim3_matrix_parts
 from .bow import BowConfig, KeyframeFeatures, PlaceRecognizer
@@ -99,13 +99,13 @@ class VerificationConfig:
 
     max_hamming: int = ranged(64, ge=1, le=256)  # ORB match: largest Hamming distance (of 256 bits)
     ratio: float = ranged(0.8, gt=0, le=1)  # Lowe ratio test: best < ratio x second best
-    min_matches: int = ranged(40, ge=1)  # ORB matches q <-> c needed before triangulation
-    max_epipolar_px: float = ranged(2.0, gt=0)  # neighbour matches: distance to the epipolar line (pixels)
+    min_matches: int = ranged(40, ge=1, le=MAX_COUNT)  # ORB matches q <-> c needed before triangulation
+    max_epipolar_px: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # neighbour matches: distance to the epipolar line (pixels)
     min_parallax_deg: float = ranged(2.0, gt=0, lt=180)  # triangulation: smallest angle between the two rays
-    max_reprojection_px: float = ranged(2.0, gt=0)  # triangulation: largest reprojection error in either view
-    min_triangulated: int = ranged(30, ge=1)  # matched features with a 3-D point needed per side
-    max_neighbours: int = ranged(4, ge=1)  # neighbours tried per keyframe for triangulation
-    min_points: int = ranged(25, ge=1)  # q <-> c matches with a 3-D point on both sides
+    max_reprojection_px: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # triangulation: largest reprojection error in either view
+    min_triangulated: int = ranged(30, ge=1, le=MAX_COUNT)  # matched features with a 3-D point needed per side
+    max_neighbours: int = ranged(4, ge=1, le=MAX_KEYFRAMES)  # neighbours tried per keyframe for triangulation
+    min_points: int = ranged(25, ge=1, le=MAX_COUNT)  # q <-> c matches with a 3-D point on both sides
     ransac: Sim3RansacConfig = field(default_factory=Sim3RansacConfig)
 
     def validate(self) -> None:
@@ -117,11 +117,11 @@ class RelocalizationConfig:
     """Relocalisation of a lost frame against the keyframe database (stricter than loop detection)."""
 
     min_score: float = ranged(0.05, ge=0, le=1)  # raw DBoW2 L1 score a candidate needs
-    max_candidates: int = ranged(5, ge=1)  # best-scored keyframes verified at most
-    min_matches: int = ranged(50, ge=4)  # ORB matches image <-> keyframe
-    min_inliers: int = ranged(40, ge=4)  # PnP RANSAC inliers
-    pnp_reprojection_px: float = ranged(3.0, gt=0)  # PnP RANSAC inlier threshold
-    pnp_iterations: int = ranged(200, ge=1)  # PnP RANSAC hypotheses
+    max_candidates: int = ranged(5, ge=1, le=MAX_KEYFRAMES)  # best-scored keyframes verified at most
+    min_matches: int = ranged(50, ge=4, le=MAX_COUNT)  # ORB matches image <-> keyframe
+    min_inliers: int = ranged(40, ge=4, le=MAX_COUNT)  # PnP RANSAC inliers
+    pnp_reprojection_px: float = ranged(3.0, gt=0, le=MAX_SCALAR)  # PnP RANSAC inlier threshold
+    pnp_iterations: int = ranged(200, ge=1, le=MAX_ITERATIONS)  # PnP RANSAC hypotheses
     pnp_confidence: float = ranged(0.999, gt=0, lt=1)  # PnP RANSAC early-stop confidence
 
 
@@ -138,15 +138,15 @@ class LoopClosureConfig:
     run_in_thread: bool = True            # worker threads (classical closer, global BA); False: synchronous (same results)
     # Reproducible runs: a background result is taken this many frames (safe points) after the frame
     # that handed over its work, waiting there when it is not ready (never "when it happens to finish")
-    correction_delay_frames: int = ranged(3, ge=1, le=1000)  # classical closer: keyframe -> its correction
-    global_ba_delay_frames: int = ranged(10, ge=1, le=10000)  # proximity loop -> its global BA's result
-    max_candidates: int = ranged(2, ge=1)  # accepted BoW candidates verified per query keyframe
+    correction_delay_frames: int = ranged(3, ge=1, le=MAX_FRAMES)  # classical closer: keyframe -> its correction
+    global_ba_delay_frames: int = ranged(10, ge=1, le=MAX_FRAMES)  # proximity loop -> its global BA's result
+    max_candidates: int = ranged(2, ge=1, le=MAX_KEYFRAMES)  # accepted BoW candidates verified per query keyframe
     fold_scale: bool = True               # frontend folds the scale correction into depths
-    max_pose_graph_retries: int = ranged(3, ge=1, le=100)  # re-solves of a correction computed before another was applied
+    max_pose_graph_retries: int = ranged(3, ge=1, le=MAX_ITERATIONS)  # re-solves of a correction computed before another was applied
     # Pose-graph throttle (module docstring): once a loop cluster has a correction, its further loops
     # are solved at most every solve_every described keyframes (1: after every verified loop) ...
-    solve_every: int = ranged(5, ge=1)
-    cluster_gap: int = ranged(10, ge=1)  # ... a loop > this many keyframes after the last one: new cluster
+    solve_every: int = ranged(5, ge=1, le=MAX_KEYFRAMES)
+    cluster_gap: int = ranged(10, ge=1, le=MAX_KEYFRAMES)  # ... a loop > this many keyframes after the last one: new cluster
 
     def validate(self) -> None:
         if self.mode not in LOOP_MODES:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import check_ranges, ranged
+from ..config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_LEVELS, MAX_SCALAR, check_ranges, ranged
 from ..errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
@@ -30,15 +30,15 @@ DESCRIPTOR_BYTES = 32  # ORB rBRIEF: 256 bits
 class OrbConfig:
     """ORB extraction tunables."""
 
-    n_features: int = ranged(1000, ge=1)  # keypoints kept per image (upper bound)
-    scale_factor: float = ranged(1.2, gt=1)  # pyramid decimation ratio between levels
-    n_levels: int = ranged(8, ge=1)  # pyramid levels
+    n_features: int = ranged(1000, ge=1, le=MAX_COUNT)  # keypoints kept per image (upper bound)
+    scale_factor: float = ranged(1.2, gt=1, le=MAX_SCALAR)  # pyramid decimation ratio between levels
+    n_levels: int = ranged(8, ge=1, le=MAX_LEVELS)  # pyramid levels
     fast_threshold: int = ranged(20, ge=0, le=255)  # FAST corner intensity threshold (grey levels)
-    edge_threshold: int = ranged(31, ge=0)  # border (pixels) without keypoints; >= patch_size for descriptors
-    patch_size: int = ranged(31, ge=2)  # rBRIEF patch size (pixels at the keypoint's level)
-    grid_rows: int = ranged(4, ge=1)  # spreading grid; 1 x 1 disables spreading
-    grid_cols: int = ranged(8, ge=1)
-    oversample: float = ranged(3.0, ge=1)  # ORB detects this many times n_features before spreading
+    edge_threshold: int = ranged(31, ge=0, le=MAX_IMAGE_SIDE)  # border (pixels) without keypoints; >= patch_size for descriptors
+    patch_size: int = ranged(31, ge=2, le=MAX_IMAGE_SIDE)  # rBRIEF patch size (pixels at the keypoint's level)
+    grid_rows: int = ranged(4, ge=1, le=MAX_IMAGE_SIDE)  # spreading grid; 1 x 1 disables spreading
+    grid_cols: int = ranged(8, ge=1, le=MAX_IMAGE_SIDE)
+    oversample: float = ranged(3.0, ge=1, le=MAX_SCALAR)  # ORB detects this many times n_features before spreading
 
     def validate(self) -> None:
         check_ranges(self, "orb.")

@@ -9,7 +9,7 @@ from typing import Literal
 
 import torch
 
-from ..config import ranged
+from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_SCALAR, MAX_THREADS, ranged
 from ..errors import ConfigError
 
 __all__ = ["DpvoNetConfig", "DroidNetConfig", "NetRuntimeConfig", "network_runtime", "resolve_device"]
@@ -19,8 +19,8 @@ __all__ = ["DpvoNetConfig", "DroidNetConfig", "NetRuntimeConfig", "network_runti
 class NetRuntimeConfig:
     """How a learned update operator runs."""
 
-    iterations: int = ranged(1, ge=1)  # update-operator iterations per measurement call (per new frame's update)
-    threads: int = ranged(1, ge=0)  # torch CPU threads while the network runs (0: leave torch's setting)
+    iterations: int = ranged(1, ge=1, le=MAX_ITERATIONS)  # update-operator iterations per measurement call (per new frame's update)
+    threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch CPU threads while the network runs (0: leave torch's setting)
     device: Literal["auto", "cpu", "cuda"] = "auto"  # auto: CUDA when present, else CPU
 
 
@@ -29,8 +29,8 @@ class DroidNetConfig(NetRuntimeConfig):
     """DROID-SLAM's network as the dense source (``dense.source.kind: droid``)."""
 
     correlation: Literal["alt", "features", "volume"] = "alt"  # alt: chunk_edges edges' all-pairs volumes at a time; features: chunked, no volume (pooled target features, slower); volume: every edge's volume at once
-    chunk_edges: int = ranged(8, ge=1)  # alt / features: edges correlated at a time (memory: chunk * (h w)^2 or chunk * h w * 64 * 128 floats)
-    motion_clamp: float = ranged(64.0, gt=0)  # grid px: the motion features are clamped to +- this (DROID: 64)
+    chunk_edges: int = ranged(8, ge=1, le=MAX_COUNT)  # alt / features: edges correlated at a time (memory: chunk * (h w)^2 or chunk * h w * 64 * 128 floats)
+    motion_clamp: float = ranged(64.0, gt=0, le=MAX_SCALAR)  # grid px: the motion features are clamped to +- this (DROID: 64)
 
 
 @dataclass

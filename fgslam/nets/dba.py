@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..config import ranged
+from ..config import MAX_LAMBDA, MAX_SCALAR, ranged
 from ..factors.reprojection import ReprojectionConfig, reproject, reproject_inv_depth
 from ..factors.schur import eliminate_structure
 from ..lie import Sim3
@@ -37,10 +37,10 @@ POSE_DOF = 6  # rotation and translation; the scale column (lambda) is held
 class DenseBAConfig:
     """Damping of the differentiable dense BA step (DROID-SLAM's training BA)."""
 
-    lm: float = ranged(1e-4, ge=0)  # Levenberg-Marquardt: + lm * diag(H) on the poses
-    ep: float = ranged(0.1, ge=0)  # + ep on every pose diagonal entry
-    min_inv_depth: float = ranged(1e-3, gt=0)  # inverse depths are clamped to at least this after a step
-    min_information: float = ranged(1e-9, ge=0)  # pixels with less depth information are not updated
+    lm: float = ranged(1e-4, ge=0, le=MAX_LAMBDA)  # Levenberg-Marquardt: + lm * diag(H) on the poses
+    ep: float = ranged(0.1, ge=0, le=MAX_SCALAR)  # + ep on every pose diagonal entry
+    min_inv_depth: float = ranged(1e-3, gt=0, le=MAX_SCALAR)  # inverse depths are clamped to at least this after a step
+    min_information: float = ranged(1e-9, ge=0, le=MAX_SCALAR)  # pixels with less depth information are not updated
     reprojection: ReprojectionConfig = None  # validity of reprojections (None: the frontends' default)
 
     def __post_init__(self) -> None:

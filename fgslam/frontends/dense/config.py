@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ...config import ranged
+from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, ranged
 from ...errors import ConfigError
 from ...factors.depth import DepthPriorConfig
 from .source import DenseFlowConfig, DenseSourceConfig
@@ -21,48 +21,48 @@ def _default_source() -> DenseSourceConfig:
 class DenseGraphConfig:
     """Frame graph: keyframe selection, edges, removal (DROID-SLAM section 3.4)."""
 
-    motion_filter_flow: float = ranged(12.0, ge=0)  # image px: a frame becomes a keyframe when the mean flow from the newest keyframe exceeds this
-    neighbours: int = ranged(3, ge=1)  # a new keyframe is connected (both ways) to this many nearest keyframes by flow distance
-    temporal_radius: int = ranged(2, ge=1)  # ... and always to this many previous keyframes
-    max_edge_distance: float = ranged(80.0, gt=0)  # image px: no edge between keyframes whose flow distance exceeds this
-    active_keyframes: int = ranged(12, ge=3)  # keyframes in the active graph (older ones leave it, kept for the global optimisation)
-    remove_threshold: float = ranged(6.0, ge=0)  # image px: the second newest keyframe is removed when its flow distance to the one before is below this (0: never)
-    init_keyframes: int = ranged(6, ge=2)  # monocular: keyframes collected before the initialisation (stereo / RGB-D: 2)
-    distance_stride: int = ranged(2, ge=1)  # grid pixels subsampled by this when computing flow distances
+    motion_filter_flow: float = ranged(12.0, ge=0, le=MAX_SCALAR)  # image px: a frame becomes a keyframe when the mean flow from the newest keyframe exceeds this
+    neighbours: int = ranged(3, ge=1, le=MAX_KEYFRAMES)  # a new keyframe is connected (both ways) to this many nearest keyframes by flow distance
+    temporal_radius: int = ranged(2, ge=1, le=MAX_KEYFRAMES)  # ... and always to this many previous keyframes
+    max_edge_distance: float = ranged(80.0, gt=0, le=MAX_SCALAR)  # image px: no edge between keyframes whose flow distance exceeds this
+    active_keyframes: int = ranged(12, ge=3, le=MAX_WINDOW)  # keyframes in the active graph (older ones leave it, kept for the global optimisation)
+    remove_threshold: float = ranged(6.0, ge=0, le=MAX_SCALAR)  # image px: the second newest keyframe is removed when its flow distance to the one before is below this (0: never)
+    init_keyframes: int = ranged(6, ge=2, le=MAX_WINDOW)  # monocular: keyframes collected before the initialisation (stereo / RGB-D: 2)
+    distance_stride: int = ranged(2, ge=1, le=MAX_IMAGE_SIDE)  # grid pixels subsampled by this when computing flow distances
 
 
 @dataclass
 class DenseBAConfig:
     """Local dense bundle adjustment through the backend's window optimisation."""
 
-    window: int = ranged(4, ge=1)  # newest keyframes with free poses (the rest of the active graph is held fixed)
-    rounds: int = ranged(1, ge=1)  # measure/optimise rounds per new keyframe
-    iterations: int = ranged(2, ge=1)  # LM iterations per round
-    remeasure: int = ranged(2, ge=1)  # edges touching the newest this many keyframes are re-measured each round (the others keep their last measurement)
-    per_edge_min_rows: int = ranged(256, ge=1)  # block evaluation edge by edge (pose pair broadcast) above this many rows per edge
-    init_rounds: int = ranged(5, ge=1)  # rounds of the initialisation
-    init_iterations: int = ranged(4, ge=1)  # LM iterations per initialisation round
-    pixel_sigma: float = ranged(1.0, gt=0)  # image px: standard deviation of a fully confident flow measurement
-    damping: float = ranged(1e-4, ge=0)  # DROID's per-pixel damping eta added to each inverse depth's information (built-in source)
-    min_depth: float = ranged(0.05, gt=0)  # smallest valid depth in a target camera (map units)
-    huber: float = ranged(2.0, ge=0)  # image px: Huber threshold on the residual after a round (0: off)
+    window: int = ranged(4, ge=1, le=MAX_WINDOW)  # newest keyframes with free poses (the rest of the active graph is held fixed)
+    rounds: int = ranged(1, ge=1, le=MAX_ITERATIONS)  # measure/optimise rounds per new keyframe
+    iterations: int = ranged(2, ge=1, le=MAX_ITERATIONS)  # LM iterations per round
+    remeasure: int = ranged(2, ge=1, le=MAX_ITERATIONS)  # edges touching the newest this many keyframes are re-measured each round (the others keep their last measurement)
+    per_edge_min_rows: int = ranged(256, ge=1, le=MAX_COUNT)  # block evaluation edge by edge (pose pair broadcast) above this many rows per edge
+    init_rounds: int = ranged(5, ge=1, le=MAX_ITERATIONS)  # rounds of the initialisation
+    init_iterations: int = ranged(4, ge=1, le=MAX_ITERATIONS)  # LM iterations per initialisation round
+    pixel_sigma: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # image px: standard deviation of a fully confident flow measurement
+    damping: float = ranged(1e-4, ge=0, le=MAX_LAMBDA)  # DROID's per-pixel damping eta added to each inverse depth's information (built-in source)
+    min_depth: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # smallest valid depth in a target camera (map units)
+    huber: float = ranged(2.0, ge=0, le=MAX_SCALAR)  # image px: Huber threshold on the residual after a round (0: off)
     depth_prior: DepthPriorConfig = field(default_factory=DepthPriorConfig)  # RGB-D inverse-depth prior (sigma, noise model)
-    depth_edge: float = ranged(0.1, ge=0)  # RGB-D: sensor depths in grid blocks whose relative depth spread exceeds this are dropped (edges, misregistration; 0: off)
-    stereo_weight: float = ranged(1.0, ge=0)  # weight of the left-right rows relative to a flow edge
+    depth_edge: float = ranged(0.1, ge=0, le=MAX_SCALAR)  # RGB-D: sensor depths in grid blocks whose relative depth spread exceeds this are dropped (edges, misregistration; 0: off)
+    stereo_weight: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # weight of the left-right rows relative to a flow edge
 
 
 @dataclass
 class DenseTrackingConfig:
     """Per-frame motion-only tracking against the newest keyframe (motion filter, non-keyframe poses)."""
 
-    iterations: int = ranged(6, ge=1)  # LM iterations of the motion-only optimisation
-    rounds: int = ranged(1, ge=1)  # flow measurement rounds (each re-started from the pose just found)
+    iterations: int = ranged(6, ge=1, le=MAX_ITERATIONS)  # LM iterations of the motion-only optimisation
+    rounds: int = ranged(1, ge=1, le=MAX_ITERATIONS)  # flow measurement rounds (each re-started from the pose just found)
     motion_damping: float = ranged(0.8, ge=0, le=1)  # constant-velocity prediction damping (1: undamped)
     min_confident: float = ranged(0.03, ge=0, le=1)  # a frame whose share of confident grid pixels is below this is a tracking failure
     min_textured: float = ranged(0.03, ge=0, le=1)  # a frame whose share of textured grid blocks is below this is a tracking failure (blank, blurred, covered)
-    texture_gradient: float = ranged(1.0, ge=0)  # grey levels per px: a grid block is textured when its RMS gradient exceeds this
+    texture_gradient: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # grey levels per px: a grid block is textured when its RMS gradient exceeds this
     confident_weight: float = ranged(0.2, ge=0, le=1)  # a grid pixel is confident when its flow confidence exceeds this
-    max_lost: int = ranged(10, ge=1)  # consecutive failures before the map is restarted (relocalised when loop closure can)
+    max_lost: int = ranged(10, ge=1, le=MAX_KEYFRAMES)  # consecutive failures before the map is restarted (relocalised when loop closure can)
 
 
 @dataclass
@@ -70,15 +70,15 @@ class DenseGlobalConfig:
     """Global optimisation (DROID-SLAM's backend) through the backend: edges rebuilt from the
     keyframes' flow-distance matrix (temporal first, then by distance, Chebyshev NMS)."""
 
-    every: int = ranged(0, ge=0)  # run after every this many new keyframes (0: only at the end)
+    every: int = ranged(0, ge=0, le=MAX_KEYFRAMES)  # run after every this many new keyframes (0: only at the end)
     final: bool = True  # run once at the end of the sequence
-    iterations: int = ranged(4, ge=1)  # LM iterations per measure/optimise round
-    rounds: int = ranged(1, ge=1)  # measure/optimise rounds
-    temporal_radius: int = ranged(2, ge=1)  # edges between keyframes this close in order always
-    nms_radius: int = ranged(1, ge=0)  # Chebyshev non-maximum suppression of the proximity edges (keyframe indices)
-    max_distance: float = ranged(60.0, gt=0)  # image px: proximity edges only below this flow distance
-    max_edges: int = ranged(2000, ge=1)  # memory bound: edges of one global optimisation
-    max_keyframes: int = ranged(400, ge=2)  # memory bound: keyframes whose images are kept for re-measurement (older ones keep their last edges)
+    iterations: int = ranged(4, ge=1, le=MAX_ITERATIONS)  # LM iterations per measure/optimise round
+    rounds: int = ranged(1, ge=1, le=MAX_ITERATIONS)  # measure/optimise rounds
+    temporal_radius: int = ranged(2, ge=1, le=MAX_KEYFRAMES)  # edges between keyframes this close in order always
+    nms_radius: int = ranged(1, ge=0, le=MAX_KEYFRAMES)  # Chebyshev non-maximum suppression of the proximity edges (keyframe indices)
+    max_distance: float = ranged(60.0, gt=0, le=MAX_SCALAR)  # image px: proximity edges only below this flow distance
+    max_edges: int = ranged(2000, ge=1, le=MAX_COUNT)  # memory bound: edges of one global optimisation
+    max_keyframes: int = ranged(400, ge=2, le=MAX_KEYFRAMES)  # memory bound: keyframes whose images are kept for re-measurement (older ones keep their last edges)
 
 
 @dataclass
@@ -91,7 +91,7 @@ class DenseConfig:
     tracking: DenseTrackingConfig = field(default_factory=DenseTrackingConfig)
     global_ba: DenseGlobalConfig = field(default_factory=DenseGlobalConfig)
     point_confidence: float = ranged(0.5, ge=0, le=1)  # keyframe_points / depth PNG: grid pixels with confidence below this are left out
-    threads: int = ranged(1, ge=0)  # torch threads of the frontend (0: torch's default)
+    threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads of the frontend (0: torch's default)
 
     def validate(self) -> None:
         if self.ba.window >= self.graph.active_keyframes:

@@ -37,7 +37,7 @@ from typing import Literal, Optional
 import cv2
 import numpy as np
 
-from ...config import ranged
+from ...config import MAX_IMAGE_SIDE, MAX_SCALAR, ranged
 from ...errors import ConfigError, DataError
 from ...nets.config import DroidNetConfig
 from ..checkpoints import LearnedSlot, load_learned
@@ -58,11 +58,11 @@ class DenseFlowConfig:
     preset: Literal["ultrafast", "fast", "medium"] = "medium"  # DIS preset (speed vs accuracy)
     image_scale: float = ranged(0.5, gt=0, le=1)  # DIS runs on the images resized by this factor
     warm_start: bool = True  # start DIS from the flow the current poses and depths induce
-    fb_sigma: float = ranged(1.0, gt=0)  # image px: forward-backward confidence exp(-0.5 (e_fb / sigma)^2)
-    fb_max: float = ranged(4.0, gt=0)  # image px: a block whose mean forward-backward error exceeds this gets 0
-    photo_sigma: float = ranged(12.0, gt=0)  # grey levels: photometric confidence exp(-0.5 (e / sigma)^2), e = block mean |I_j(p + f) - I_i(p)|
-    aperture_gradient: float = ranged(3.0, ge=0)  # grey levels per px: per-axis confidence G / (G + a^2), G = block mean squared gradient along the axis; 0: off
-    border: float = ranged(0.0, ge=0)  # grid px: targets closer than this to the image border (or outside) get 0
+    fb_sigma: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # image px: forward-backward confidence exp(-0.5 (e_fb / sigma)^2)
+    fb_max: float = ranged(4.0, gt=0, le=MAX_SCALAR)  # image px: a block whose mean forward-backward error exceeds this gets 0
+    photo_sigma: float = ranged(12.0, gt=0, le=MAX_SCALAR)  # grey levels: photometric confidence exp(-0.5 (e / sigma)^2), e = block mean |I_j(p + f) - I_i(p)|
+    aperture_gradient: float = ranged(3.0, ge=0, le=MAX_SCALAR)  # grey levels per px: per-axis confidence G / (G + a^2), G = block mean squared gradient along the axis; 0: off
+    border: float = ranged(0.0, ge=0, le=MAX_IMAGE_SIDE)  # grid px: targets closer than this to the image border (or outside) get 0
 
 
 @dataclass
@@ -71,7 +71,7 @@ class DenseSourceConfig:
 
     kind: Literal["flow", "droid", "learned"] = "flow"  # built-in dense flow, or DROID's learned update operator (droid; learned: the same)
     checkpoint: Optional[str] = None  # learned: path of the DROID-SLAM weights (droid.pth)
-    stride: int = ranged(8, ge=1)  # image pixels per grid pixel (DROID: 8)
+    stride: int = ranged(8, ge=1, le=MAX_IMAGE_SIDE)  # image pixels per grid pixel (DROID: 8)
     flow: DenseFlowConfig = field(default_factory=DenseFlowConfig)
     droid: DroidNetConfig = field(default_factory=DroidNetConfig)  # kind droid: iterations, threads, device
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
-from ...config import check_ranges, ranged
+from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_PATCHES_PER_FRAME, MAX_SCALAR, MAX_SEED, MAX_THREADS, MAX_WINDOW, check_ranges, ranged
 from ...errors import ConfigError
 from ...factors.depth import DepthPriorConfig
 from ...nets.config import DpvoNetConfig
@@ -21,19 +21,19 @@ from ...nets.config import DpvoNetConfig
 class GraphConfig:
     """Patch graph (DPV-SLAM section 3.1)."""
 
-    patches_per_frame: int = ranged(96, ge=8)  # K random p x p patches per frame, one inverse depth each
-    patch_size: int = ranged(3, ge=1)  # p: samples per patch side
-    patch_stride: int = ranged(7, ge=1)  # pixels between patch samples: the tracked footprint is p * stride pixels
+    patches_per_frame: int = ranged(96, ge=8, le=MAX_PATCHES_PER_FRAME)  # K random p x p patches per frame, one inverse depth each
+    patch_size: int = ranged(3, ge=1, le=MAX_IMAGE_SIDE)  # p: samples per patch side
+    patch_stride: int = ranged(7, ge=1, le=MAX_IMAGE_SIDE)  # pixels between patch samples: the tracked footprint is p * stride pixels
     selection: Literal["corners", "random"] = "corners"  # corners: strongest min-eigenvalue pixels spread over a grid; random: uniform (DPVO)
-    selection_grid: list[int] = ranged(default_factory=lambda: [8, 4], ge=1)  # cells across x, down y; each cell yields the same share of patches
-    candidate_block: int = ranged(8, ge=1)  # corners: one candidate (local maximum) per block of this many pixels square
-    score_width: int = ranged(640, ge=0)  # corners: response computed on the image resized to at most this width (0: full resolution)
-    border: int = ranged(12, ge=0)  # patch centres keep this many pixels from the image border
-    seed: int = ranged(0, ge=0)  # random generator seed of patch selection
-    patch_lifetime: int = ranged(5, ge=1)  # a patch gets edges to frames at most this many graph frames away
-    removal_window: int = ranged(10, ge=2)  # edges whose source frame is this many graph frames old become inactive
-    optimization_window: int = ranged(6, ge=2)  # latest graph frames whose poses are optimised (older ones fixed)
-    max_inactive_edges: int = ranged(500_000, ge=0)  # bound of the inactive-edge store kept for global optimisation (oldest dropped)
+    selection_grid: list[int] = ranged(default_factory=lambda: [8, 4], ge=1, le=MAX_IMAGE_SIDE)  # cells across x, down y; each cell yields the same share of patches
+    candidate_block: int = ranged(8, ge=1, le=MAX_IMAGE_SIDE)  # corners: one candidate (local maximum) per block of this many pixels square
+    score_width: int = ranged(640, ge=0, le=MAX_IMAGE_SIDE)  # corners: response computed on the image resized to at most this width (0: full resolution)
+    border: int = ranged(12, ge=0, le=MAX_IMAGE_SIDE)  # patch centres keep this many pixels from the image border
+    seed: int = ranged(0, ge=0, le=MAX_SEED)  # random generator seed of patch selection
+    patch_lifetime: int = ranged(5, ge=1, le=MAX_WINDOW)  # a patch gets edges to frames at most this many graph frames away
+    removal_window: int = ranged(10, ge=2, le=MAX_WINDOW)  # edges whose source frame is this many graph frames old become inactive
+    optimization_window: int = ranged(6, ge=2, le=MAX_WINDOW)  # latest graph frames whose poses are optimised (older ones fixed)
+    max_inactive_edges: int = ranged(500_000, ge=0, le=MAX_COUNT)  # bound of the inactive-edge store kept for global optimisation (oldest dropped)
 
     def validate(self) -> None:
         if self.removal_window <= self.patch_lifetime:
@@ -66,14 +66,14 @@ class LKConfig:
     """Built-in pyramidal Lucas-Kanade measurement source (``source: lk``)."""
 
     scale: float = ranged(0.0, ge=0, le=1)  # LK runs on images resized by this factor; 0: automatic, the largest factor <= 1 giving width <= auto_width
-    auto_width: int = ranged(640, ge=16)  # image width (px) the automatic scale aims at
+    auto_width: int = ranged(640, ge=16, le=MAX_IMAGE_SIDE)  # image width (px) the automatic scale aims at
     levels: int = ranged(3, ge=0, le=10)  # pyramid levels above the LK resolution
-    iterations: int = ranged(20, ge=1)  # LK iterations per level
-    epsilon: float = ranged(0.02, gt=0)  # LK stops when the update is below this many pixels
-    min_eigen: float = ranged(1e-4, ge=0)  # cv2 minEigThreshold: windows with less texture are rejected
-    fb_threshold: float = ranged(1.0, gt=0)  # forward-backward error (px) above which a track is rejected
-    fb_sigma: float = ranged(0.5, gt=0)  # forward-backward error (px) at which the confidence halves
-    error_sigma: float = ranged(12.0, gt=0)  # mean absolute intensity error (grey levels) at which the confidence halves
+    iterations: int = ranged(20, ge=1, le=MAX_ITERATIONS)  # LK iterations per level
+    epsilon: float = ranged(0.02, gt=0, le=MAX_SCALAR)  # LK stops when the update is below this many pixels
+    min_eigen: float = ranged(1e-4, ge=0, le=MAX_SCALAR)  # cv2 minEigThreshold: windows with less texture are rejected
+    fb_threshold: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # forward-backward error (px) above which a track is rejected
+    fb_sigma: float = ranged(0.5, gt=0, le=MAX_SCALAR)  # forward-backward error (px) at which the confidence halves
+    error_sigma: float = ranged(12.0, gt=0, le=MAX_SCALAR)  # mean absolute intensity error (grey levels) at which the confidence halves
     min_confidence: float = ranged(0.05, ge=0, le=1)  # tracks below this confidence are rejected
 
 
@@ -81,26 +81,26 @@ class LKConfig:
 class BAConfig:
     """Local bundle adjustment over the optimisation window."""
 
-    iterations: int = ranged(1, ge=1)  # Levenberg-Marquardt iterations per update round while tracking
-    init_iterations: int = ranged(15, ge=1)  # iterations per update round at initialisation
-    rounds: int = ranged(2, ge=1)  # update rounds per frame: measure (re-track bad edges), then optimise
-    init_rounds: int = ranged(3, ge=1)  # update rounds at initialisation
-    pixel_sigma: float = ranged(1.0, gt=0)  # standard deviation (px) of a full-confidence measurement
-    huber_delta: float = ranged(2.0, gt=0)  # Huber threshold on the whitened residual (sigma units)
-    outlier_threshold: float = ranged(6.0, gt=0)  # edges with a residual above this (px) after BA get zero weight
-    retrack_threshold: float = ranged(2.0, ge=0)  # new edges with a residual above this (px) are re-tracked from the new reprojection
-    min_depth: float = ranged(0.05, gt=0)  # smallest valid depth in a target camera (map units; stereo/RGB-D: metres)
-    depth_prior_sigma: float = ranged(0.05, gt=0)  # RGB-D: sensor-depth noise, relative (depth_noise: relative) or in 1/m of inverse depth (inverse)
-    depth_min: float = ranged(0.1, ge=0)  # RGB-D: sensor depths at or below this (m) are invalid
-    depth_max: float = ranged(10.0, gt=0)  # RGB-D: sensor depths above this (m) are invalid
-    depth_window: int = ranged(2, ge=0)  # RGB-D: half-size (px) of the window whose median is the patch's sensor depth
-    depth_max_spread: float = ranged(0.1, ge=0)  # RGB-D: (max - min) / median depth in that window above which it is a discontinuity (no prior)
-    stereo_init_steps: int = ranged(5, ge=0)  # stereo: per-patch depth Gauss-Newton steps on the first frame's right-image edges
+    iterations: int = ranged(1, ge=1, le=MAX_ITERATIONS)  # Levenberg-Marquardt iterations per update round while tracking
+    init_iterations: int = ranged(15, ge=1, le=MAX_ITERATIONS)  # iterations per update round at initialisation
+    rounds: int = ranged(2, ge=1, le=MAX_ITERATIONS)  # update rounds per frame: measure (re-track bad edges), then optimise
+    init_rounds: int = ranged(3, ge=1, le=MAX_ITERATIONS)  # update rounds at initialisation
+    pixel_sigma: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # standard deviation (px) of a full-confidence measurement
+    huber_delta: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # Huber threshold on the whitened residual (sigma units)
+    outlier_threshold: float = ranged(6.0, gt=0, le=MAX_SCALAR)  # edges with a residual above this (px) after BA get zero weight
+    retrack_threshold: float = ranged(2.0, ge=0, le=MAX_SCALAR)  # new edges with a residual above this (px) are re-tracked from the new reprojection
+    min_depth: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # smallest valid depth in a target camera (map units; stereo/RGB-D: metres)
+    depth_prior_sigma: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # RGB-D: sensor-depth noise, relative (depth_noise: relative) or in 1/m of inverse depth (inverse)
+    depth_min: float = ranged(0.1, ge=0, le=MAX_SCALAR)  # RGB-D: sensor depths at or below this (m) are invalid
+    depth_max: float = ranged(10.0, gt=0, le=MAX_SCALAR)  # RGB-D: sensor depths above this (m) are invalid
+    depth_window: int = ranged(2, ge=0, le=MAX_IMAGE_SIDE)  # RGB-D: half-size (px) of the window whose median is the patch's sensor depth
+    depth_max_spread: float = ranged(0.1, ge=0, le=MAX_SCALAR)  # RGB-D: (max - min) / median depth in that window above which it is a discontinuity (no prior)
+    stereo_init_steps: int = ranged(5, ge=0, le=MAX_ITERATIONS)  # stereo: per-patch depth Gauss-Newton steps on the first frame's right-image edges
     stereo_cross_edges: bool = False  # stereo: also edges into the right images of other frames (else own right image only)
-    threads: int = ranged(1, ge=0)  # torch threads during BA (small dense work: 1 is fastest)
+    threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads during BA (small dense work: 1 is fastest)
     depth_model: Literal["prior", "observation"] = "prior"  # RGB-D: prior on each patch's inverse depth in its source frame (DROID-SLAM), or sensor depth as a measurement of every observation, source and targets (ORB-SLAM3 RGB-D: virtual right-camera pixel u - f b / z)
     depth_noise: Literal["relative", "inverse"] = "relative"  # RGB-D (local and global BA): relative: sigma_d = depth_prior_sigma * d (sigma_z grows with z); inverse: sigma_d = depth_prior_sigma in 1/m (sigma_z grows with z^2, Kinect)
-    depth_virtual_baseline: float = ranged(0.08, gt=0)  # RGB-D observation model: baseline (m) of the virtual right camera (sets the pixel scale of the depth rows)
+    depth_virtual_baseline: float = ranged(0.08, gt=0, le=MAX_SCALAR)  # RGB-D observation model: baseline (m) of the virtual right camera (sets the pixel scale of the depth rows)
     measured_huber: bool = False  # a fresh measurement enters the next BA Huber-weighted by its distance from the reprojection it was measured from (else at full weight until that BA's residuals weigh it)
 
     def depth_noise_model(self) -> DepthPriorConfig:
@@ -113,40 +113,40 @@ class BAConfig:
 class TrackingConfig:
     """Initialisation, motion model, keyframes, failure handling."""
 
-    init_min_parallax: float = ranged(6.0, ge=0)  # mono: median rotation-compensated flow (px) needed to initialise
-    init_min_tracks: int = ranged(30, ge=5)  # mono: tracks of the reference patches needed to keep waiting on one reference
-    init_min_frames: int = ranged(3, ge=2)  # mono: frames (reference included) collected before initialising
-    init_max_frames: int = ranged(8, ge=2)  # mono: frames kept in the initialisation window (older ones subsampled)
-    init_ransac_threshold: float = ranged(1.0, gt=0)  # mono: essential-matrix RANSAC threshold (px)
+    init_min_parallax: float = ranged(6.0, ge=0, le=MAX_SCALAR)  # mono: median rotation-compensated flow (px) needed to initialise
+    init_min_tracks: int = ranged(30, ge=5, le=MAX_COUNT)  # mono: tracks of the reference patches needed to keep waiting on one reference
+    init_min_frames: int = ranged(3, ge=2, le=MAX_WINDOW)  # mono: frames (reference included) collected before initialising
+    init_max_frames: int = ranged(8, ge=2, le=MAX_WINDOW)  # mono: frames kept in the initialisation window (older ones subsampled)
+    init_ransac_threshold: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # mono: essential-matrix RANSAC threshold (px)
     init_min_inlier_ratio: float = ranged(0.6, ge=0, le=1)  # mono: essential-matrix inlier share needed to initialise
     motion_damping: float = ranged(0.5, ge=0, le=1)  # damped constant velocity: predicted step = damping * last step (DPVO 0.5)
-    keyframe_index: int = ranged(3, ge=1)  # frame this many graph frames before the newest is tested for removal
-    keyframe_threshold: float = ranged(20.0, ge=0)  # mean flow (px) between its neighbours below which it is removed
-    min_valid_edges: int = ranged(24, ge=3)  # fewer valid measurements into a new frame is a tracking failure
-    max_motion_model_frames: int = ranged(30, ge=1)  # consecutive failures after which the map re-initialises
-    motion_filter_flow: float = ranged(1.0, ge=0)  # median flow (px) of the newest keyframe's patches into a new frame below which the frame is stationary: not added to the graph, posed from that keyframe (0: off)
+    keyframe_index: int = ranged(3, ge=1, le=MAX_WINDOW)  # frame this many graph frames before the newest is tested for removal
+    keyframe_threshold: float = ranged(20.0, ge=0, le=MAX_SCALAR)  # mean flow (px) between its neighbours below which it is removed
+    min_valid_edges: int = ranged(24, ge=3, le=MAX_COUNT)  # fewer valid measurements into a new frame is a tracking failure
+    max_motion_model_frames: int = ranged(30, ge=1, le=MAX_KEYFRAMES)  # consecutive failures after which the map re-initialises
+    motion_filter_flow: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # median flow (px) of the newest keyframe's patches into a new frame below which the frame is stationary: not added to the graph, posed from that keyframe (0: off)
     min_inlier_ratio: float = ranged(0.5, ge=0, le=1)  # share of a new frame's measurements that must be BA inliers; fewer: motion its own reprojections contradict, a tracking failure
     median_of_measured: bool = False  # mono: new patches get the median inverse depth of the previous frame's patches that have a BA-inlier measurement (else of all of them: the unmeasured ones keep their initial value, which then stays the median)
-    min_measured_patches: int = ranged(8, ge=1)  # median_of_measured: fewer measured patches than this: the median of all of them
+    min_measured_patches: int = ranged(8, ge=1, le=MAX_COUNT)  # median_of_measured: fewer measured patches than this: the median of all of them
 
 
 @dataclass
 class GlobalBAConfig:
     """Tunables of :func:`global_bundle_adjustment`."""
 
-    iterations: int = ranged(10, ge=1)  # Levenberg-Marquardt iterations per robust round
-    robust_rounds: int = ranged(2, ge=1)  # rounds, each re-weighting the edges from the previous one's residuals
+    iterations: int = ranged(10, ge=1, le=MAX_ITERATIONS)  # Levenberg-Marquardt iterations per robust round
+    robust_rounds: int = ranged(2, ge=1, le=MAX_ITERATIONS)  # rounds, each re-weighting the edges from the previous one's residuals
     huber_first_round: bool = True  # round 1 Huber-weighted from the initial residuals (no outlier cut); else plain least squares
-    huber_delta: float = ranged(2.0, gt=0)  # Huber threshold on the whitened residual (later rounds)
-    outlier_threshold: float = ranged(6.0, gt=0)  # edges above this many pixels after a round get zero weight
-    lambda_initial: float = ranged(1e-4, gt=0)  # Marquardt damping: H + lambda diag(H)
-    lambda_factor: float = ranged(10.0, gt=1)  # damping multiplier on rejection / divisor on acceptance
-    lambda_max: float = ranged(1e4, gt=0)  # rejected steps pushing lambda above this end the round (at a minimum)
-    relative_tolerance: float = ranged(1e-6, ge=0)  # stop a round when the relative cost decrease falls below this
-    min_structure: float = ranged(1e-6, gt=0)  # inverse depths are clamped to at least this
-    min_information: float = ranged(1e-12, ge=0)  # patches with less information are not updated
-    chunk_edges: int = ranged(200_000, ge=1)  # edges linearised per batch (bounds memory: about 300 bytes per edge)
-    threads: int = ranged(0, ge=0)  # torch threads; 0: every core (large batched work, unlike the local BA; tracking waits for it)
+    huber_delta: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # Huber threshold on the whitened residual (later rounds)
+    outlier_threshold: float = ranged(6.0, gt=0, le=MAX_SCALAR)  # edges above this many pixels after a round get zero weight
+    lambda_initial: float = ranged(1e-4, gt=0, le=MAX_LAMBDA)  # Marquardt damping: H + lambda diag(H)
+    lambda_factor: float = ranged(10.0, gt=1, le=MAX_SCALAR)  # damping multiplier on rejection / divisor on acceptance
+    lambda_max: float = ranged(1e4, gt=0, le=MAX_LAMBDA)  # rejected steps pushing lambda above this end the round (at a minimum)
+    relative_tolerance: float = ranged(1e-6, ge=0, le=MAX_SCALAR)  # stop a round when the relative cost decrease falls below this
+    min_structure: float = ranged(1e-6, gt=0, le=MAX_SCALAR)  # inverse depths are clamped to at least this
+    min_information: float = ranged(1e-12, ge=0, le=MAX_SCALAR)  # patches with less information are not updated
+    chunk_edges: int = ranged(200_000, ge=1, le=MAX_COUNT)  # edges linearised per batch (bounds memory: about 300 bytes per edge)
+    threads: int = ranged(0, ge=0, le=MAX_THREADS)  # torch threads; 0: every core (large batched work, unlike the local BA; tracking waits for it)
 
     def validate(self) -> None:
         check_ranges(self, "patch.proximity.ba.")
@@ -165,19 +165,19 @@ class ProximityConfig:
     RANSAC, then a global bundle adjustment runs over every active, inactive and loop edge.
     """
 
-    min_gap: int = ranged(30, ge=1)  # keyframes between a query and a candidate at least
-    radius: float = ranged(0.5, gt=0)  # candidate camera centres at most this many median query depths away
+    min_gap: int = ranged(30, ge=1, le=MAX_KEYFRAMES)  # keyframes between a query and a candidate at least
+    radius: float = ranged(0.5, gt=0, le=MAX_SCALAR)  # candidate camera centres at most this many median query depths away
     max_angle_deg: float = ranged(30.0, gt=0, le=180)  # angle between the optical axes at most
-    max_flow_px: float = ranged(60.0, gt=0)  # mean reprojected displacement of the candidate's patches in the query at most
+    max_flow_px: float = ranged(60.0, gt=0, le=MAX_SCALAR)  # mean reprojected displacement of the candidate's patches in the query at most
     min_overlap: float = ranged(0.5, ge=0, le=1)  # share of the candidate's patches that reproject into the query image at least
-    old_neighbours: int = ranged(1, ge=0)  # keyframes on each side of the candidate whose patches also get loop edges
-    new_neighbours: int = ranged(1, ge=0)  # graph frames on each side of the query that also get loop edges
-    ransac_threshold_px: float = ranged(1.5, gt=0)  # fundamental-matrix RANSAC threshold on the loop measurements
-    min_loop_edges: int = ranged(60, ge=8)  # verified loop measurements needed
+    old_neighbours: int = ranged(1, ge=0, le=MAX_KEYFRAMES)  # keyframes on each side of the candidate whose patches also get loop edges
+    new_neighbours: int = ranged(1, ge=0, le=MAX_KEYFRAMES)  # graph frames on each side of the query that also get loop edges
+    ransac_threshold_px: float = ranged(1.5, gt=0, le=MAX_SCALAR)  # fundamental-matrix RANSAC threshold on the loop measurements
+    min_loop_edges: int = ranged(60, ge=8, le=MAX_COUNT)  # verified loop measurements needed
     min_inlier_ratio: float = ranged(0.5, ge=0, le=1)  # share of valid loop measurements that must be RANSAC inliers
     min_ba_inlier_ratio: float = ranged(0.6, ge=0, le=1)  # share of loop edges with non-zero weight after the global BA (else undone)
-    cooldown: int = ranged(10, ge=0)  # keyframes after an accepted proximity loop during which no other is searched
-    max_stored_keyframes: int = ranged(5000, ge=1)  # keyframe images kept (PNG in memory) for loop edges; oldest dropped
+    cooldown: int = ranged(10, ge=0, le=MAX_KEYFRAMES)  # keyframes after an accepted proximity loop during which no other is searched
+    max_stored_keyframes: int = ranged(5000, ge=1, le=MAX_KEYFRAMES)  # keyframe images kept (PNG in memory) for loop edges; oldest dropped
     ba: GlobalBAConfig = field(default_factory=GlobalBAConfig)
 
 
@@ -188,7 +188,7 @@ class PatchConfig:
     source: Literal["lk", "dpvo", "learned"] = "lk"  # measurement source: built-in Lucas-Kanade or the DPVO network (dpvo; learned: the same)
     checkpoint: Optional[str] = None  # dpvo source: path of the DPVO checkpoint (dpvo.pth)
     dpvo: DpvoNetConfig = field(default_factory=DpvoNetConfig)  # dpvo source: iterations, threads, device
-    threads: int = ranged(1, ge=0)  # torch threads of the frontend (flow/bookkeeping)
+    threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads of the frontend (flow/bookkeeping)
     graph: GraphConfig = field(default_factory=GraphConfig)
     lk: LKConfig = field(default_factory=LKConfig)
     ba: BAConfig = field(default_factory=BAConfig)

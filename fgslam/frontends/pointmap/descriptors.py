@@ -29,7 +29,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ...config import ranged
+from ...config import MAX_IMAGE_SIDE, MAX_SCALAR, ranged
 from ...errors import DataError
 
 __all__ = ["DescriptorConfig", "dense_descriptors"]
@@ -42,9 +42,9 @@ class DescriptorConfig:
     """Which dense descriptor, and its scales (module docstring)."""
 
     kind: Literal["patch", "gradient"] = "patch"  # normalised local patch, or gradient-orientation histograms
-    sigma: float = ranged(1.0, gt=0)  # px: Gaussian smoothing before sampling (gradient: of the orientation channels)
-    step: int = ranged(2, ge=1)  # px: spacing of the samples (patch: 4x4 grid; gradient: 2x2 cells)
-    texture: float = ranged(4.0, gt=0)  # grey levels: contrast at which the confidence Q is 1/2
+    sigma: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # px: Gaussian smoothing before sampling (gradient: of the orientation channels)
+    step: int = ranged(2, ge=1, le=MAX_IMAGE_SIDE)  # px: spacing of the samples (patch: 4x4 grid; gradient: 2x2 cells)
+    texture: float = ranged(4.0, gt=0, le=MAX_SCALAR)  # grey levels: contrast at which the confidence Q is 1/2
 
 
 def _shifted(img: np.ndarray, dx: int, dy: int) -> np.ndarray:

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...config import ranged
+from ...config import MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, ranged
 from ...errors import DataError
 from ...factors.schur import torch_threads
 
@@ -49,18 +49,18 @@ __all__ = ["MatchingConfig", "PointmapMatches", "RayImage", "match_pointmaps", "
 class MatchingConfig:
     """Iterative projective matching and descriptor refinement (defaults: MASt3R-SLAM's where it has one)."""
 
-    max_iterations: int = ranged(10, ge=1)  # LM iterations per pixel (paper: 10)
-    lambda_initial: float = ranged(1e-3, gt=0)  # per-pixel Marquardt damping at the start
-    lambda_factor: float = ranged(10.0, gt=1)  # damping divided by this after a good step, multiplied after a bad one
-    step_tolerance: float = ranged(1e-3, ge=0)  # px: a pixel whose step is below this has converged
-    max_distance: float = ranged(0.1, gt=0)  # matched points further apart than this times the query's norm are invalid
-    max_ray_error: float = ranged(0.02, gt=0)  # final unit-ray error (~rad) above this: invalid (ray left the image)
-    refine_radius: int = ranged(1, ge=0)  # px: descriptor search window radius around the LM solution (0: no refinement)
-    refine_dilations: list[int] = ranged(default_factory=lambda: [4, 2, 1], ge=1)  # window spacings, coarse to fine
+    max_iterations: int = ranged(10, ge=1, le=MAX_ITERATIONS)  # LM iterations per pixel (paper: 10)
+    lambda_initial: float = ranged(1e-3, gt=0, le=MAX_LAMBDA)  # per-pixel Marquardt damping at the start
+    lambda_factor: float = ranged(10.0, gt=1, le=MAX_SCALAR)  # damping divided by this after a good step, multiplied after a bad one
+    step_tolerance: float = ranged(1e-3, ge=0, le=MAX_SCALAR)  # px: a pixel whose step is below this has converged
+    max_distance: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # matched points further apart than this times the query's norm are invalid
+    max_ray_error: float = ranged(0.02, gt=0, le=MAX_SCALAR)  # final unit-ray error (~rad) above this: invalid (ray left the image)
+    refine_radius: int = ranged(1, ge=0, le=MAX_IMAGE_SIDE)  # px: descriptor search window radius around the LM solution (0: no refinement)
+    refine_dilations: list[int] = ranged(default_factory=lambda: [4, 2, 1], ge=1, le=MAX_IMAGE_SIDE)  # window spacings, coarse to fine
     # (radius 1 at spacings 4, 2, 1 reaches 7 px with 27 candidates: measured in tools/bench_pointmap.py)
     compile: bool = False  # fuse the LM step and the refinement with torch.compile (needs a C++ compiler;
     # compiles once per process, ~25 s under load; measured 2.5x less CPU per match: tools/bench_pointmap.py --compile)
-    threads: int = ranged(1, ge=0)  # torch intra-op threads while matching (0: torch's setting); 1: measured
+    threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch intra-op threads while matching (0: torch's setting); 1: measured
     # 10x faster than 2 threads on the loaded 2-core machine (tools/bench_pointmap.py)
 
 

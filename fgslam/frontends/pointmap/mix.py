@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from ...backend.plugins import parse_options
-from ...config import ranged
+from ...config import MAX_KEYFRAMES, ranged
 from ...errors import DataError, OptimizationError
 from ...factors.pointmap_block import PointmapBlock
 from .config import PointmapConfig
@@ -55,8 +55,8 @@ OWNER = "pointmap"
 class PointmapMixOptions:
     """Options of :class:`PointmapMix` (``factors[i].options``)."""
 
-    lag: int = ranged(3, ge=0)  # a primary keyframe is used once this many newer keyframes exist (it has settled)
-    min_gap: int = ranged(1, ge=1)  # at least this many primary keyframes between two pointmap keyframes
+    lag: int = ranged(3, ge=0, le=MAX_KEYFRAMES)  # a primary keyframe is used once this many newer keyframes exist (it has settled)
+    min_gap: int = ranged(1, ge=1, le=MAX_KEYFRAMES)  # at least this many primary keyframes between two pointmap keyframes
     pointmap: PointmapConfig = field(default_factory=PointmapConfig)  # source (auto: rgbd with depth, else mono), matching, residuals
 
 

@@ -31,7 +31,7 @@ from typing import Iterator, NamedTuple, Optional
 
 import numpy as np
 
-from ...config import check_ranges, ranged
+from ...config import MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, check_ranges, ranged
 from ...errors import ConfigError, DataError
 from ..calibration import Calibration, Undistorter
 from ..frame import Frame, FrameReadError, ImuSamples
@@ -46,16 +46,16 @@ NS_PER_S = 1_000_000_000  # nanoseconds per second (EuRoC timestamps are integer
 class DatasetConfig:
     """How a dataset is opened (all loaders). Loadable with ``fgslam.config.load_config``."""
 
-    start: int = ranged(0, ge=0)  # first raw frame index used
-    end: Optional[int] = ranged(None, ge=1)  # one past the last raw frame index used (None: to the end)
-    stride: int = ranged(1, ge=1)  # use every stride-th raw frame
+    start: int = ranged(0, ge=0, le=MAX_FRAMES)  # first raw frame index used
+    end: Optional[int] = ranged(None, ge=1, le=MAX_FRAMES)  # one past the last raw frame index used (None: to the end)
+    stride: int = ranged(1, ge=1, le=MAX_FRAMES)  # use every stride-th raw frame
     rectify_stereo: bool = True  # rectify stereo pairs (else undistort each camera on its own)
     undistort_alpha: float = ranged(0.0, ge=0, le=1)  # 0: output has only valid pixels; 1: keeps all source pixels
     resize_scale: float = ranged(1.0, ge=0.05, le=4)  # scale factor of the output image (ignored when resize_width/height set)
-    resize_width: int = ranged(0, ge=0)  # output width before cropping (0: from resize_height/aspect or scale)
-    resize_height: int = ranged(0, ge=0)  # output height before cropping (0: from resize_width/aspect or scale)
-    crop_multiple: int = ranged(8, ge=0)  # centre-crop output to multiples of this (network frontends need 8); 0 or 1: off
-    min_image_side: int = ranged(32, ge=8)  # a SLAM run needs output images (resized, cropped) at least this many px a side
+    resize_width: int = ranged(0, ge=0, le=MAX_IMAGE_SIDE)  # output width before cropping (0: from resize_height/aspect or scale)
+    resize_height: int = ranged(0, ge=0, le=MAX_IMAGE_SIDE)  # output height before cropping (0: from resize_width/aspect or scale)
+    crop_multiple: int = ranged(8, ge=0, le=MAX_IMAGE_SIDE)  # centre-crop output to multiples of this (network frontends need 8); 0 or 1: off
+    min_image_side: int = ranged(32, ge=8, le=MAX_IMAGE_SIDE)  # a SLAM run needs output images (resized, cropped) at least this many px a side
     load_rgb: bool = True  # also return the RGB image of colour sources
     load_right: bool = True  # read the right image of stereo sources
     load_depth: bool = True  # read depth of RGB-D sources
@@ -64,12 +64,12 @@ class DatasetConfig:
     groundtruth_file: Optional[str] = None  # ground-truth file overriding the default location
     tum_camera: Optional[str] = None  # fr1|fr2|fr3 for TUM RGB-D (None: from the folder name, else fr1)
     sequence: Optional[str] = None  # 7-Scenes sequence folder (None: the first seq-NN)
-    association_max_dt: float = ranged(0.02, gt=0)  # s, TUM rgb/depth association (the benchmark's associate.py)
-    stereo_max_dt: float = ranged(0.001, gt=0)  # s, EuRoC cam0/cam1/depth0 timestamp matching
-    gt_max_gap: float = ranged(0.1, gt=0)  # s, largest ground-truth sample gap a frame pose is interpolated across
-    gt_snap_dt: float = ranged(0.001, gt=0)  # s, a frame this close outside the ground-truth time range snaps to its end
+    association_max_dt: float = ranged(0.02, gt=0, le=MAX_SCALAR)  # s, TUM rgb/depth association (the benchmark's associate.py)
+    stereo_max_dt: float = ranged(0.001, gt=0, le=MAX_SCALAR)  # s, EuRoC cam0/cam1/depth0 timestamp matching
+    gt_max_gap: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # s, largest ground-truth sample gap a frame pose is interpolated across
+    gt_snap_dt: float = ranged(0.001, gt=0, le=MAX_SCALAR)  # s, a frame this close outside the ground-truth time range snaps to its end
     max_skipped_fraction: float = ranged(0.1, ge=0, lt=1)  # iteration fails when more corrupt frames than this fraction
-    default_rate_hz: float = ranged(30.0, gt=0)  # frame rate of image folders without timestamps.txt or rate_hz
+    default_rate_hz: float = ranged(30.0, gt=0, le=MAX_SCALAR)  # frame rate of image folders without timestamps.txt or rate_hz
 
     def validate(self) -> None:
         check_ranges(self)
@@ -77,6 +77,12 @@ class DatasetConfig:
             raise ConfigError(f"end ({self.end}) must be > start ({self.start})")
         if self.tum_camera is not None and self.tum_camera not in ("fr1", "fr2", "fr3"):
             raise ConfigError(f"tum_camera must be fr1, fr2 or fr3, got {self.tum_camera!r}")
+
+    def resize_text(self) -> str:
+        """The keys that set the output size, with their values (for error messages)."""
+        if self.resize_width or self.resize_height:
+            return f"dataset.resize_width={self.resize_width}, dataset.resize_height={self.resize_height}"
+        return f"dataset.resize_scale={self.resize_scale:g}"
 
     def output_size(self, width: int, height: int) -> tuple[int, int]:
         """Output size before cropping for a raw ``width x height`` image."""
@@ -336,6 +342,12 @@ class Dataset:
         if self._indices.size == 0:
             raise DataError(f"{self.root}: empty selection: start={cfg.start}, end={cfg.end} of {n_raw} frames")
         calib = self.raw_calibration.validate(self.calibration_source)
+        out_w, out_h = cfg.output_size(calib.width, calib.height)
+        if max(out_w, out_h) > MAX_IMAGE_SIDE:  # before the remap tables (8 bytes per output pixel) are built
+            raise ConfigError(
+                f"{cfg.resize_text()} gives {out_w}x{out_h} images from {calib.width}x{calib.height} "
+                f"({self.calibration_source}); at most {MAX_IMAGE_SIDE} pixels a side are supported: "
+                f"set dataset.resize_width or dataset.resize_scale to make them smaller")
         self._undistorter = Undistorter(
             calib,
             rectify=cfg.rectify_stereo,

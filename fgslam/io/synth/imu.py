@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...config import ranged
+from ...config import MAX_SCALAR, ranged
 from .trajectory import BodyState
 
 STANDARD_GRAVITY = 9.81  # m/s^2, the value the generator uses for |g_W| (TEAM.md contract)
@@ -25,14 +25,14 @@ STANDARD_GRAVITY = 9.81  # m/s^2, the value the generator uses for |g_W| (TEAM.m
 class ImuConfig:
     """IMU rate and noise (continuous-time densities as in EuRoC's imu0/sensor.yaml)."""
 
-    rate_hz: float = ranged(200.0, gt=0)
-    gyroscope_noise_density: float = ranged(1.6968e-4, ge=0)  # rad / s / sqrt(Hz)
-    gyroscope_random_walk: float = ranged(1.9393e-5, ge=0)  # rad / s^2 / sqrt(Hz)
-    accelerometer_noise_density: float = ranged(2.0e-3, ge=0)  # m / s^2 / sqrt(Hz)
-    accelerometer_random_walk: float = ranged(3.0e-3, ge=0)  # m / s^3 / sqrt(Hz)
-    initial_gyro_bias: list[float] = ranged(default_factory=lambda: [0.001, -0.002, 0.0015])  # rad/s
-    initial_accel_bias: list[float] = ranged(default_factory=lambda: [0.02, -0.01, 0.03])  # m/s^2
-    gravity: float = ranged(STANDARD_GRAVITY, gt=0)  # |g_W| along -z of the world
+    rate_hz: float = ranged(200.0, gt=0, le=MAX_SCALAR)
+    gyroscope_noise_density: float = ranged(1.6968e-4, ge=0, le=MAX_SCALAR)  # rad / s / sqrt(Hz)
+    gyroscope_random_walk: float = ranged(1.9393e-5, ge=0, le=MAX_SCALAR)  # rad / s^2 / sqrt(Hz)
+    accelerometer_noise_density: float = ranged(2.0e-3, ge=0, le=MAX_SCALAR)  # m / s^2 / sqrt(Hz)
+    accelerometer_random_walk: float = ranged(3.0e-3, ge=0, le=MAX_SCALAR)  # m / s^3 / sqrt(Hz)
+    initial_gyro_bias: list[float] = ranged(default_factory=lambda: [0.001, -0.002, 0.0015], ge=-MAX_SCALAR, le=MAX_SCALAR)  # rad/s
+    initial_accel_bias: list[float] = ranged(default_factory=lambda: [0.02, -0.01, 0.03], ge=-MAX_SCALAR, le=MAX_SCALAR)  # m/s^2
+    gravity: float = ranged(STANDARD_GRAVITY, gt=0, le=MAX_SCALAR)  # |g_W| along -z of the world
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ...config import check_ranges, ranged
+from ...config import MAX_COUNT, MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, MAX_SEED, MAX_TIME_NS, check_ranges, ranged
 from ...errors import ConfigError
 from .imu import ImuConfig
 from .render import RenderConfig
@@ -60,134 +60,134 @@ STYLE_WALL, STYLE_GROUND, STYLE_OBJECT = 0, 1, 2
 class CameraConfig:
     """Rectified stereo pair (same intrinsics) and its mounting on the body (IMU) frame."""
 
-    width: int = ranged(640, ge=8)
-    height: int = ranged(480, ge=8)
+    width: int = ranged(640, ge=8, le=MAX_IMAGE_SIDE)
+    height: int = ranged(480, ge=8, le=MAX_IMAGE_SIDE)
     hfov_deg: float = ranged(90.0, gt=0, lt=170)  # horizontal field of view; fx = fy = (width / 2) / tan(hfov / 2)
-    rate_hz: float = ranged(20.0, gt=0)
-    baseline: float = ranged(0.11, gt=0)  # metres; cam1 sits at +baseline along the x axis of cam0
+    rate_hz: float = ranged(20.0, gt=0, le=MAX_SCALAR)
+    baseline: float = ranged(0.11, gt=0, le=MAX_SCALAR)  # metres; cam1 sits at +baseline along the x axis of cam0
     mount_rpy_deg: list[float] = ranged(default_factory=lambda: [0.8, -1.5, 1.2], ge=-180, le=180)  # small rotation
     # (roll, pitch, yaw about the camera x, y, z axes) applied after the nominal forward-looking mount
-    t_BS: list[float] = ranged(default_factory=lambda: [0.06, -0.02, 0.03])  # cam0 origin in body (m)
+    t_BS: list[float] = ranged(default_factory=lambda: [0.06, -0.02, 0.03], ge=-MAX_SCALAR, le=MAX_SCALAR)  # cam0 origin in body (m)
     colour: bool = False                # write RGB PNGs (per-surface tints) instead of grey
-    depth_scale: float = ranged(1000.0, gt=0)  # depth PNG units per metre (0 = invalid, > 65535 -> 0)
+    depth_scale: float = ranged(1000.0, gt=0, le=MAX_SCALAR)  # depth PNG units per metre (0 = invalid, > 65535 -> 0)
 
 
 @dataclass
 class RoomConfig:
     """room-loop scene and motion."""
 
-    size: list[float] = ranged(default_factory=lambda: [8.0, 6.0, 3.0], gt=0)  # room x, y, z extents (m)
-    n_boxes: int = ranged(10, ge=0)  # furniture boxes
-    box_size_range: list[float] = ranged(default_factory=lambda: [0.3, 1.4], gt=0)  # horizontal sizes
-    box_height_range: list[float] = ranged(default_factory=lambda: [0.3, 2.0], gt=0)
-    path_radii: list[float] = ranged(default_factory=lambda: [1.3, 0.9], gt=0)  # ellipse of the path (m)
-    path_clearance: float = ranged(0.9, ge=0)  # minimum gap between the path ellipse and furniture (m)
-    height: float = ranged(1.4, gt=0)  # mean body height (m)
-    loop_duration_s: float = ranged(20.0, gt=0)
-    jitter: float = ranged(1.0, ge=0)  # scale of the hand-held wobble (0: smooth ellipse + turn)
-    wall_density: float = ranged(160.0, gt=0)  # texels per metre
-    box_density: float = ranged(200.0, gt=0)
+    size: list[float] = ranged(default_factory=lambda: [8.0, 6.0, 3.0], gt=0, le=MAX_SCALAR)  # room x, y, z extents (m)
+    n_boxes: int = ranged(10, ge=0, le=MAX_COUNT)  # furniture boxes
+    box_size_range: list[float] = ranged(default_factory=lambda: [0.3, 1.4], gt=0, le=MAX_SCALAR)  # horizontal sizes
+    box_height_range: list[float] = ranged(default_factory=lambda: [0.3, 2.0], gt=0, le=MAX_SCALAR)
+    path_radii: list[float] = ranged(default_factory=lambda: [1.3, 0.9], gt=0, le=MAX_SCALAR)  # ellipse of the path (m)
+    path_clearance: float = ranged(0.9, ge=0, le=MAX_SCALAR)  # minimum gap between the path ellipse and furniture (m)
+    height: float = ranged(1.4, gt=0, le=MAX_SCALAR)  # mean body height (m)
+    loop_duration_s: float = ranged(20.0, gt=0, le=MAX_SCALAR)
+    jitter: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # scale of the hand-held wobble (0: smooth ellipse + turn)
+    wall_density: float = ranged(160.0, gt=0, le=MAX_SCALAR)  # texels per metre
+    box_density: float = ranged(200.0, gt=0, le=MAX_SCALAR)
 
 
 @dataclass
 class LowTextureConfig(RoomConfig):
     """low-texture scene (the room-loop motion and room fields, plain styles) and its doors."""
 
-    n_boxes: int = ranged(3, ge=0)  # plain cabinets
-    box_size_range: list[float] = ranged(default_factory=lambda: [0.5, 1.2], gt=0)
-    box_height_range: list[float] = ranged(default_factory=lambda: [0.8, 1.8], gt=0)
-    wall_density: float = ranged(100.0, gt=0)  # texels per metre (grout lines need ~1 texel)
-    box_density: float = ranged(60.0, gt=0)
-    n_doors: int = ranged(5, ge=0)  # doors on the walls
-    door_size: list[float] = ranged(default_factory=lambda: [0.9, 2.05], gt=0)  # width, height (m)
-    door_margin: float = ranged(0.4, ge=0)  # minimum distance of a door from a wall corner and from another door (m)
-    door_offset: float = ranged(0.003, gt=0)  # the door leaf stands this far in front of its wall (m)
+    n_boxes: int = ranged(3, ge=0, le=MAX_COUNT)  # plain cabinets
+    box_size_range: list[float] = ranged(default_factory=lambda: [0.5, 1.2], gt=0, le=MAX_SCALAR)
+    box_height_range: list[float] = ranged(default_factory=lambda: [0.8, 1.8], gt=0, le=MAX_SCALAR)
+    wall_density: float = ranged(100.0, gt=0, le=MAX_SCALAR)  # texels per metre (grout lines need ~1 texel)
+    box_density: float = ranged(60.0, gt=0, le=MAX_SCALAR)
+    n_doors: int = ranged(5, ge=0, le=MAX_COUNT)  # doors on the walls
+    door_size: list[float] = ranged(default_factory=lambda: [0.9, 2.05], gt=0, le=MAX_SCALAR)  # width, height (m)
+    door_margin: float = ranged(0.4, ge=0, le=MAX_SCALAR)  # minimum distance of a door from a wall corner and from another door (m)
+    door_offset: float = ranged(0.003, gt=0, le=MAX_SCALAR)  # the door leaf stands this far in front of its wall (m)
 
 
 @dataclass
 class StreetConfig:
     """street-loop scene and motion."""
 
-    half_size: list[float] = ranged(default_factory=lambda: [100.0, 60.0], gt=0)  # road centre-line box (m)
-    corner_radius: float = ranged(20.0, gt=0)
-    harmonics: int = ranged(40, ge=1)  # Fourier harmonics of the road centre line
-    loop_duration_s: float = ranged(100.0, gt=0)
-    jitter: float = ranged(1.0, ge=0)  # scale of the body bounce / sway
-    camera_height: float = ranged(1.6, gt=0)  # body height above ground (m)
-    road_band: float = ranged(11.0, gt=0)  # half-width of the high-resolution ground band (m)
-    ground_tile: float = ranged(10.0, gt=0)  # size of the ground texture tiles (m)
-    ground_density: float = ranged(24.0, gt=0)
-    far_ground_density: float = ranged(2.0, gt=0)
-    setback: float = ranged(9.0, gt=0)  # facade distance from the road centre line (m)
-    building_width_range: list[float] = ranged(default_factory=lambda: [10.0, 24.0], gt=0)
-    building_depth_range: list[float] = ranged(default_factory=lambda: [8.0, 14.0], gt=0)
-    building_height_range: list[float] = ranged(default_factory=lambda: [6.0, 24.0], gt=0)
-    building_gap_range: list[float] = ranged(default_factory=lambda: [0.0, 5.0], ge=0)
-    facade_density: float = ranged(28.0, gt=0)
-    side_density: float = ranged(12.0, gt=0)  # building faces perpendicular to the road
-    back_density: float = ranged(2.0, gt=0)  # faces that never face the road
+    half_size: list[float] = ranged(default_factory=lambda: [100.0, 60.0], gt=0, le=MAX_SCALAR)  # road centre-line box (m)
+    corner_radius: float = ranged(20.0, gt=0, le=MAX_SCALAR)
+    harmonics: int = ranged(40, ge=1, le=MAX_COUNT)  # Fourier harmonics of the road centre line
+    loop_duration_s: float = ranged(100.0, gt=0, le=MAX_SCALAR)
+    jitter: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # scale of the body bounce / sway
+    camera_height: float = ranged(1.6, gt=0, le=MAX_SCALAR)  # body height above ground (m)
+    road_band: float = ranged(11.0, gt=0, le=MAX_SCALAR)  # half-width of the high-resolution ground band (m)
+    ground_tile: float = ranged(10.0, gt=0, le=MAX_SCALAR)  # size of the ground texture tiles (m)
+    ground_density: float = ranged(24.0, gt=0, le=MAX_SCALAR)
+    far_ground_density: float = ranged(2.0, gt=0, le=MAX_SCALAR)
+    setback: float = ranged(9.0, gt=0, le=MAX_SCALAR)  # facade distance from the road centre line (m)
+    building_width_range: list[float] = ranged(default_factory=lambda: [10.0, 24.0], gt=0, le=MAX_SCALAR)
+    building_depth_range: list[float] = ranged(default_factory=lambda: [8.0, 14.0], gt=0, le=MAX_SCALAR)
+    building_height_range: list[float] = ranged(default_factory=lambda: [6.0, 24.0], gt=0, le=MAX_SCALAR)
+    building_gap_range: list[float] = ranged(default_factory=lambda: [0.0, 5.0], ge=0, le=MAX_SCALAR)
+    facade_density: float = ranged(28.0, gt=0, le=MAX_SCALAR)
+    side_density: float = ranged(12.0, gt=0, le=MAX_SCALAR)  # building faces perpendicular to the road
+    back_density: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # faces that never face the road
     parked_car_prob: float = ranged(0.35, ge=0, le=1)  # probability of a parked car per 8 m of kerb
-    kerb_offset: float = ranged(4.8, ge=0)  # parked car centre distance from the centre line (m)
-    pole_spacing: float = ranged(25.0, gt=0)  # mean distance between poles (m)
-    object_density: float = ranged(48.0, gt=0)
+    kerb_offset: float = ranged(4.8, ge=0, le=MAX_SCALAR)  # parked car centre distance from the centre line (m)
+    pole_spacing: float = ranged(25.0, gt=0, le=MAX_SCALAR)  # mean distance between poles (m)
+    object_density: float = ranged(48.0, gt=0, le=MAX_SCALAR)
 
 
 @dataclass
 class OrbitConfig:
     """orbit scene and motion."""
 
-    hall_size: list[float] = ranged(default_factory=lambda: [16.0, 16.0, 6.0], gt=0)
-    n_boxes: int = ranged(8, ge=0)
-    cluster_radius: float = ranged(1.0, ge=0)  # box centres within this radius of the origin (m)
-    box_size_range: list[float] = ranged(default_factory=lambda: [0.3, 0.9], gt=0)  # box sides (m)
-    radius: float = ranged(3.5, gt=0)  # orbit radius (m)
-    height: float = ranged(1.5, gt=0)  # mean camera height (m)
-    target_height: float = ranged(0.5, ge=0)  # height of the looked-at point (m)
-    loop_duration_s: float = ranged(15.0, gt=0)
-    jitter: float = ranged(1.0, ge=0)  # scale of the height / pitch oscillation
-    wall_density: float = ranged(40.0, gt=0)
-    floor_density: float = ranged(100.0, gt=0)
-    box_density: float = ranged(200.0, gt=0)
+    hall_size: list[float] = ranged(default_factory=lambda: [16.0, 16.0, 6.0], gt=0, le=MAX_SCALAR)
+    n_boxes: int = ranged(8, ge=0, le=MAX_COUNT)
+    cluster_radius: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # box centres within this radius of the origin (m)
+    box_size_range: list[float] = ranged(default_factory=lambda: [0.3, 0.9], gt=0, le=MAX_SCALAR)  # box sides (m)
+    radius: float = ranged(3.5, gt=0, le=MAX_SCALAR)  # orbit radius (m)
+    height: float = ranged(1.5, gt=0, le=MAX_SCALAR)  # mean camera height (m)
+    target_height: float = ranged(0.5, ge=0, le=MAX_SCALAR)  # height of the looked-at point (m)
+    loop_duration_s: float = ranged(15.0, gt=0, le=MAX_SCALAR)
+    jitter: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # scale of the height / pitch oscillation
+    wall_density: float = ranged(40.0, gt=0, le=MAX_SCALAR)
+    floor_density: float = ranged(100.0, gt=0, le=MAX_SCALAR)
+    box_density: float = ranged(200.0, gt=0, le=MAX_SCALAR)
 
 
 @dataclass
 class HighwayConfig:
     """highway scene and motion (x along the road at t = 0, y left, metres)."""
 
-    speed: float = ranged(27.0, gt=0)  # forward speed along x (m/s); the bend adds a little
-    duration_s: float = ranged(20.0, gt=0)  # period of the lateral bend (default frame count: one period + 1)
-    bend_amplitude: float = ranged(12.0, ge=0)  # lateral offset of the S-bend, y = A (1 - cos(2 pi t / duration)) (m)
-    jitter: float = ranged(1.0, ge=0)  # scale of the body bounce / sway
-    camera_height: float = ranged(1.6, gt=0)  # body height above the road (m)
-    lookahead: float = ranged(300.0, ge=0)  # road and roadside continue this far beyond the last frame (m)
-    behind: float = ranged(30.0, ge=0)  # ... and start this far behind the first (m)
-    road_band: float = ranged(12.0, gt=0)  # half-width of the high-resolution ground band (m)
-    ground_tile: float = ranged(10.0, gt=0)  # size of the ground texture tiles (m)
-    ground_density: float = ranged(16.0, gt=0)  # texels per metre of the road band
-    far_ground_density: float = ranged(1.0, gt=0)  # texels per metre of the ground beyond the band
-    far_ground_margin: float = ranged(600.0, gt=0)  # the coarse ground extends this far around the road (m)
-    rail_offset: float = ranged(7.5, gt=0)  # guard rails' distance from the road centre line (m)
-    rail_size: list[float] = ranged(default_factory=lambda: [0.3, 0.8], gt=0)  # rail (width, height) (m)
-    rail_segment: float = ranged(12.0, gt=0)  # length of a straight rail segment (m)
+    speed: float = ranged(27.0, gt=0, le=MAX_SCALAR)  # forward speed along x (m/s); the bend adds a little
+    duration_s: float = ranged(20.0, gt=0, le=MAX_SCALAR)  # period of the lateral bend (default frame count: one period + 1)
+    bend_amplitude: float = ranged(12.0, ge=0, le=MAX_SCALAR)  # lateral offset of the S-bend, y = A (1 - cos(2 pi t / duration)) (m)
+    jitter: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # scale of the body bounce / sway
+    camera_height: float = ranged(1.6, gt=0, le=MAX_SCALAR)  # body height above the road (m)
+    lookahead: float = ranged(300.0, ge=0, le=MAX_SCALAR)  # road and roadside continue this far beyond the last frame (m)
+    behind: float = ranged(30.0, ge=0, le=MAX_SCALAR)  # ... and start this far behind the first (m)
+    road_band: float = ranged(12.0, gt=0, le=MAX_SCALAR)  # half-width of the high-resolution ground band (m)
+    ground_tile: float = ranged(10.0, gt=0, le=MAX_SCALAR)  # size of the ground texture tiles (m)
+    ground_density: float = ranged(16.0, gt=0, le=MAX_SCALAR)  # texels per metre of the road band
+    far_ground_density: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # texels per metre of the ground beyond the band
+    far_ground_margin: float = ranged(600.0, gt=0, le=MAX_SCALAR)  # the coarse ground extends this far around the road (m)
+    rail_offset: float = ranged(7.5, gt=0, le=MAX_SCALAR)  # guard rails' distance from the road centre line (m)
+    rail_size: list[float] = ranged(default_factory=lambda: [0.3, 0.8], gt=0, le=MAX_SCALAR)  # rail (width, height) (m)
+    rail_segment: float = ranged(12.0, gt=0, le=MAX_SCALAR)  # length of a straight rail segment (m)
     rail_gap_prob: float = ranged(0.25, ge=0, le=1)  # probability that a segment is left out
-    pole_offset: float = ranged(9.5, gt=0)  # lamp poles' distance from the centre line (m)
-    pole_spacing: float = ranged(45.0, gt=0)  # mean distance between poles on each side (m)
-    pole_size: list[float] = ranged(default_factory=lambda: [0.3, 0.3, 9.0], gt=0)  # pole box (m)
-    sign_spacing: float = ranged(160.0, gt=0)  # mean distance between sign boards on each side (m)
-    sign_offset: float = ranged(11.0, gt=0)  # sign boards' distance from the centre line (m)
-    sign_size: list[float] = ranged(default_factory=lambda: [4.5, 0.2, 2.5], gt=0)  # board (along x, thick, height) (m)
-    sign_height: float = ranged(4.0, ge=0)  # bottom edge of a sign board above the road (m)
-    building_distance: list[float] = ranged(default_factory=lambda: [60.0, 220.0], gt=0)  # lateral range of building centres (m)
-    building_spacing: float = ranged(100.0, gt=0)  # mean distance between buildings on each side (m)
-    building_size_range: list[float] = ranged(default_factory=lambda: [12.0, 40.0], gt=0)  # horizontal sides (m)
-    building_height_range: list[float] = ranged(default_factory=lambda: [8.0, 35.0], gt=0)
-    hill_distance: list[float] = ranged(default_factory=lambda: [350.0, 700.0], gt=0)  # lateral / ahead range of hill centres (m)
-    hill_spacing: float = ranged(250.0, gt=0)  # mean distance between hills on each side (m)
-    hill_size_range: list[float] = ranged(default_factory=lambda: [200.0, 500.0], gt=0)  # hill widths (m)
-    hill_height_range: list[float] = ranged(default_factory=lambda: [40.0, 140.0], gt=0)
-    object_density: float = ranged(48.0, gt=0)  # texels per metre of rails, poles, signs
-    building_density: float = ranged(6.0, gt=0)
-    hill_density: float = ranged(2.0, gt=0)
+    pole_offset: float = ranged(9.5, gt=0, le=MAX_SCALAR)  # lamp poles' distance from the centre line (m)
+    pole_spacing: float = ranged(45.0, gt=0, le=MAX_SCALAR)  # mean distance between poles on each side (m)
+    pole_size: list[float] = ranged(default_factory=lambda: [0.3, 0.3, 9.0], gt=0, le=MAX_SCALAR)  # pole box (m)
+    sign_spacing: float = ranged(160.0, gt=0, le=MAX_SCALAR)  # mean distance between sign boards on each side (m)
+    sign_offset: float = ranged(11.0, gt=0, le=MAX_SCALAR)  # sign boards' distance from the centre line (m)
+    sign_size: list[float] = ranged(default_factory=lambda: [4.5, 0.2, 2.5], gt=0, le=MAX_SCALAR)  # board (along x, thick, height) (m)
+    sign_height: float = ranged(4.0, ge=0, le=MAX_SCALAR)  # bottom edge of a sign board above the road (m)
+    building_distance: list[float] = ranged(default_factory=lambda: [60.0, 220.0], gt=0, le=MAX_SCALAR)  # lateral range of building centres (m)
+    building_spacing: float = ranged(100.0, gt=0, le=MAX_SCALAR)  # mean distance between buildings on each side (m)
+    building_size_range: list[float] = ranged(default_factory=lambda: [12.0, 40.0], gt=0, le=MAX_SCALAR)  # horizontal sides (m)
+    building_height_range: list[float] = ranged(default_factory=lambda: [8.0, 35.0], gt=0, le=MAX_SCALAR)
+    hill_distance: list[float] = ranged(default_factory=lambda: [350.0, 700.0], gt=0, le=MAX_SCALAR)  # lateral / ahead range of hill centres (m)
+    hill_spacing: float = ranged(250.0, gt=0, le=MAX_SCALAR)  # mean distance between hills on each side (m)
+    hill_size_range: list[float] = ranged(default_factory=lambda: [200.0, 500.0], gt=0, le=MAX_SCALAR)  # hill widths (m)
+    hill_height_range: list[float] = ranged(default_factory=lambda: [40.0, 140.0], gt=0, le=MAX_SCALAR)
+    object_density: float = ranged(48.0, gt=0, le=MAX_SCALAR)  # texels per metre of rails, poles, signs
+    building_density: float = ranged(6.0, gt=0, le=MAX_SCALAR)
+    hill_density: float = ranged(2.0, gt=0, le=MAX_SCALAR)
 
 
 @dataclass
@@ -195,9 +195,9 @@ class SynthConfig:
     """Everything the generator needs; ``default_config(preset)`` gives the preset's defaults."""
 
     preset: str = "room-loop"
-    frames: int = ranged(401, ge=1)  # camera frames (default: one loop period + 1)
-    seed: int = ranged(0, ge=0)
-    start_time_ns: int = ranged(1_600_000_000_000_000_000, ge=0)  # timestamp of frame 0
+    frames: int = ranged(401, ge=1, le=MAX_FRAMES)  # camera frames (default: one loop period + 1)
+    seed: int = ranged(0, ge=0, le=MAX_SEED)
+    start_time_ns: int = ranged(1_600_000_000_000_000_000, ge=0, le=MAX_TIME_NS)  # timestamp of frame 0
     camera: CameraConfig = field(default_factory=CameraConfig)
     imu: ImuConfig = field(default_factory=ImuConfig)
     texture: TextureConfig = field(default_factory=TextureConfig)
@@ -207,9 +207,9 @@ class SynthConfig:
     street: StreetConfig = field(default_factory=StreetConfig)
     orbit: OrbitConfig = field(default_factory=OrbitConfig)
     highway: HighwayConfig = field(default_factory=HighwayConfig)
-    stop_frame: int = ranged(0, ge=0)  # stop-and-go: camera frame at which the body comes to rest (any preset)
-    stop_frames: int = ranged(0, ge=0)  # stop-and-go: frames the body stays at rest (0: no stop); the motion after it is delayed
-    stop_ramp_s: float = ranged(1.0, gt=0)  # stop-and-go: seconds of smooth deceleration before and acceleration after the stop
+    stop_frame: int = ranged(0, ge=0, le=MAX_FRAMES)  # stop-and-go: camera frame at which the body comes to rest (any preset)
+    stop_frames: int = ranged(0, ge=0, le=MAX_FRAMES)  # stop-and-go: frames the body stays at rest (0: no stop); the motion after it is delayed
+    stop_ramp_s: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # stop-and-go: seconds of smooth deceleration before and acceleration after the stop
 
     def validate(self) -> None:
         if self.preset not in PRESET_NAMES:

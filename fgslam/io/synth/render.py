@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...config import ranged
+from ...config import MAX_SCALAR, ranged
 from ...errors import ConfigError
 from .scene import SceneArrays
 from .texture import TextureAtlas
@@ -27,10 +27,10 @@ _EDGE_MARGIN = 1.001  # texel coordinates are clamped to [0, size - margin] so x
 class RenderConfig:
     """Renderer tunables."""
 
-    near: float = ranged(0.05, gt=0)  # near clipping distance along the optical axis (m)
+    near: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # near clipping distance along the optical axis (m)
     sky_grey: float = ranged(200.0, ge=0, le=255)  # grey value (0-255) of rays that hit nothing
-    mip_bias: float = ranged(0.0)  # added to log2(texel footprint) before choosing the mip level
-    edge_tolerance: float = ranged(1e-4, ge=0)  # m; quads are grown by this much so float32 rounding leaves no
+    mip_bias: float = ranged(0.0, ge=-MAX_SCALAR, le=MAX_SCALAR)  # added to log2(texel footprint) before choosing the mip level
+    edge_tolerance: float = ranged(1e-4, ge=0, le=MAX_SCALAR)  # m; quads are grown by this much so float32 rounding leaves no
     # cracks between adjacent quads (ground tiles, box faces)
 
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ...config import ranged
+from ...config import MAX_IMAGE_SIDE, MAX_LEVELS, MAX_SCALAR, ranged
 from ...errors import ConfigError
 from .scene import SceneArrays
 
@@ -43,14 +43,14 @@ class PlainTextureConfig:
 
     albedo: list[float] = ranged(default_factory=lambda: [0.92, 0.8, 0.45], ge=0, le=1)  # plain, tiles, door
     noise: float = ranged(0.01, ge=0, le=1)  # std of the faint smooth noise (fraction of the grey range)
-    noise_cell_m: float = ranged(0.3, gt=0)  # cell size of that noise (one octave: no fine detail)
-    tile_size_m: float = ranged(0.6, gt=0)  # floor tile side
-    tile_line_width_m: float = ranged(0.008, gt=0)  # grout line width
+    noise_cell_m: float = ranged(0.3, gt=0, le=MAX_SCALAR)  # cell size of that noise (one octave: no fine detail)
+    tile_size_m: float = ranged(0.6, gt=0, le=MAX_SCALAR)  # floor tile side
+    tile_line_width_m: float = ranged(0.008, gt=0, le=MAX_SCALAR)  # grout line width
     tile_line_depth: float = ranged(0.1, ge=0, le=1)  # grout darkening (fraction of the albedo): faint
-    door_frame_m: float = ranged(0.06, ge=0)  # width of the door's frame band along its border
+    door_frame_m: float = ranged(0.06, ge=0, le=MAX_SCALAR)  # width of the door's frame band along its border
     door_frame_depth: float = ranged(0.25, ge=0, le=1)  # darkening of the frame band (fraction of the albedo)
-    handle_size_m: list[float] = ranged(default_factory=lambda: [0.12, 0.03], gt=0)  # handle (width, height)
-    handle_position_m: list[float] = ranged(default_factory=lambda: [0.12, 1.0], ge=0)  # handle centre from the
+    handle_size_m: list[float] = ranged(default_factory=lambda: [0.12, 0.03], gt=0, le=MAX_SCALAR)  # handle (width, height)
+    handle_position_m: list[float] = ranged(default_factory=lambda: [0.12, 1.0], ge=0, le=MAX_SCALAR)  # handle centre from the
     # door's far edge (along u) and from its bottom (along v)
     handle_albedo: float = ranged(0.1, ge=0, le=1)
 
@@ -59,22 +59,22 @@ class PlainTextureConfig:
 class TextureConfig:
     """Tunables of the procedural textures (lengths in metres on the surface)."""
 
-    noise_cells_m: list[float] = ranged(default_factory=lambda: [1.6, 0.7, 0.3, 0.12, 0.05, 0.02], gt=0)
+    noise_cells_m: list[float] = ranged(default_factory=lambda: [1.6, 0.7, 0.3, 0.12, 0.05, 0.02], gt=0, le=MAX_SCALAR)
     noise_persistence: float = ranged(0.75, gt=0, le=1)  # amplitude ratio between successive (finer) octaves
-    blobs_per_m2: float = ranged(1.5, ge=0)  # random filled ellipses / rectangles per square metre
-    blob_size_m: tuple[float, float] = ranged((0.04, 0.45), gt=0)  # range of blob half-axes
-    lines_per_m2: float = ranged(0.8, ge=0)  # random line segments per square metre
-    text_per_m2: float = ranged(0.6, ge=0)  # random glyph strings per square metre
-    text_height_m: tuple[float, float] = ranged((0.04, 0.25), gt=0)  # range of glyph heights
+    blobs_per_m2: float = ranged(1.5, ge=0, le=MAX_SCALAR)  # random filled ellipses / rectangles per square metre
+    blob_size_m: tuple[float, float] = ranged((0.04, 0.45), gt=0, le=MAX_SCALAR)  # range of blob half-axes
+    lines_per_m2: float = ranged(0.8, ge=0, le=MAX_SCALAR)  # random line segments per square metre
+    text_per_m2: float = ranged(0.6, ge=0, le=MAX_SCALAR)  # random glyph strings per square metre
+    text_height_m: tuple[float, float] = ranged((0.04, 0.25), gt=0, le=MAX_SCALAR)  # range of glyph heights
     contrast: float = ranged(0.8, ge=0, le=1)  # final grey range fraction of [0, 255] before shading
-    light_dir_W: tuple[float, float, float] = ranged((0.35, 0.55, 0.76))  # directional light (normalised)
+    light_dir_W: tuple[float, float, float] = ranged((0.35, 0.55, 0.76), ge=-MAX_SCALAR, le=MAX_SCALAR)  # directional light (normalised)
     ambient: float = ranged(0.55, ge=0, le=1)  # shading = ambient + (1 - ambient) * max(0, n . l)
-    max_texture_side: int = ranged(4096, ge=1)  # texels; the density of a quad is lowered to fit
-    max_levels: int = ranged(7, ge=1)  # mip levels at most (level 0 = full resolution)
-    min_level_side: int = ranged(4, ge=1)  # stop the pyramid before a side gets smaller than this
+    max_texture_side: int = ranged(4096, ge=1, le=MAX_IMAGE_SIDE)  # texels; the density of a quad is lowered to fit
+    max_levels: int = ranged(7, ge=1, le=MAX_LEVELS)  # mip levels at most (level 0 = full resolution)
+    min_level_side: int = ranged(4, ge=1, le=MAX_IMAGE_SIDE)  # stop the pyramid before a side gets smaller than this
     colour_saturation: float = ranged(0.35, ge=0, le=1)  # spread of per-quad RGB tints when colour is rendered
     # multiplier of the mark counts (blobs, lines, text) per style: wall, ground, small object
-    style_mark_scale: list[float] = ranged(default_factory=lambda: [1.0, 1.0, 4.0], ge=0)
+    style_mark_scale: list[float] = ranged(default_factory=lambda: [1.0, 1.0, 4.0], ge=0, le=MAX_SCALAR)
     plain: PlainTextureConfig = field(default_factory=PlainTextureConfig)  # low-texture styles
 
 
