@@ -102,14 +102,18 @@ def _entry(cls, main_key: str, value: Any, prefix: str):
     return from_dict(cls, value, source="matrix", prefix=prefix)
 
 
+MAX_WAIT_S = 3600.0  # upper bound of the waits below (an hour)
+
+
 @dataclass
 class BatchOptions:
-    """How ``fgslam batch`` runs its cells."""
+    """How ``fgslam batch`` runs its cells (an --address that is not Ray fails after
+    ``connect_timeout_s`` too: it does not answer the HTTP/2 preface)."""
+    init_timeout_s: float = ranged(60.0, gt=0, le=MAX_WAIT_S)  # joining the cluster at --address fails after this
+    poll_s: float = ranged(1.0, gt=0, le=MAX_WAIT_S)  # the wait for a finished cell wakes this often (signals handled then)
 
     workers: int = ranged(2, ge=1)  # local Ray: CPUs given to the instance = workers x cpus
-    connect_timeout_s: float = ranged(5.0, gt=0)  # an unreachable --address, or one that is not Ray, fails after this
-    init_timeout_s: float = ranged(60.0, gt=0)  # joining the cluster at --address (a child's ray.init) fails after this
-    poll_s: float = ranged(1.0, gt=0)  # the wait for the next finished cell wakes this often (signals are handled then)
+    connect_timeout_s: float = ranged(5.0, gt=0)  # an unreachable --address fails after this long
     object_store_mb: int = ranged(128, ge=80)  # local Ray's object store (cells return small dicts)
 
 

@@ -225,23 +225,12 @@ def check_image_size(dataset: Dataset) -> None:
     )
 
 
-def previous_run_outputs(out_dir: str | Path) -> list[Path]:
-    """The outputs of a previous run in ``out_dir`` (:data:`RUN_OUTPUT_FILES` and ``depth/``)."""
-    out = Path(out_dir)
-    found = [out / name for name in RUN_OUTPUT_FILES if (out / name).is_file()]
-    return found + ([out / DEPTH_DIR] if (out / DEPTH_DIR).is_dir() else [])
-
-
-def prepare_output_dir(out_dir: str | Path, data: str | Path | None = None, overwrite: bool = False) -> Path:
+def prepare_output_dir(out_dir: str | Path, data: str | Path | None = None) -> Path:
     """Create the output folder and check that it is writable, before any work.
 
-    A folder holding a previous run's outputs (:func:`previous_run_outputs`) is refused unless
-    ``overwrite``; then those outputs are removed (other files are left alone), so that no output
-    of the previous run is ever taken for one of the new run's.
-
     Raises ConfigError when it is the dataset folder ``data`` or inside it (outputs would mix with
-    the input data) or holds a previous run's outputs without ``overwrite``, DataError when it cannot
-    be created or written (a file in the way, no permission, a read-only or full file system)."""
+    the input data), DataError when it cannot be created or written (a file in the way, no
+    permission, a read-only or full file system)."""
     out = Path(out_dir)
     if data is not None:
         out_abs, data_abs = out.resolve(), Path(data).resolve()
@@ -253,6 +242,32 @@ def prepare_output_dir(out_dir: str | Path, data: str | Path | None = None, over
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise DataError(f"{out}: cannot create the output folder: {exc.strerror or exc}") from exc
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".fgslam-write-test-", dir=out)
+        try:
+            os.write(fd, b"fgslam")
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+            os.unlink(probe)
+    except OSError as exc:
+        raise DataError(f"{out}: the output folder is not writable: {exc.strerror or exc}") from exc
+    return out
+
+
+def previous_run_outputs(out_dir: str | Path) -> list[Path]:
+    """The outputs of a previous run in ``out_dir`` (:data:`RUN_OUTPUT_FILES` and ``depth/``)."""
+    out = Path(out_dir)
+    found = [out / name for name in RUN_OUTPUT_FILES if (out / name).is_file()]
+    return found + ([out / DEPTH_DIR] if (out / DEPTH_DIR).is_dir() else [])
+
+
+def clear_previous_outputs(out_dir: str | Path, overwrite: bool) -> None:
+    """Refuse an output folder that holds a previous run's outputs (:func:`previous_run_outputs`)
+    unless ``overwrite``; then remove those outputs (other files are left alone), so that no output
+    of the previous run is ever taken for one of the new run's. ConfigError naming the folder and
+    ``--overwrite``; DataError when one cannot be removed."""
+    out = Path(out_dir)
     previous = previous_run_outputs(out)
     if previous and not overwrite:
         names = ", ".join(p.name for p in previous)
@@ -265,17 +280,6 @@ def prepare_output_dir(out_dir: str | Path, data: str | Path | None = None, over
             raise DataError(f"{path}: cannot remove the previous run's output: {exc.strerror or exc}") from exc
     if previous:
         logger.info("removed the previous run's outputs in %s: %s", out, ", ".join(p.name for p in previous))
-    try:
-        fd, probe = tempfile.mkstemp(prefix=".fgslam-write-test-", dir=out)
-        try:
-            os.write(fd, b"fgslam")
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-            os.unlink(probe)
-    except OSError as exc:
-        raise DataError(f"{out}: the output folder is not writable: {exc.strerror or exc}") from exc
-    return out
 
 
 def check_sensor(dataset: Dataset, sensor: str) -> None:
@@ -443,7 +447,7 @@ def run_slam(
         rerun: log the run to rerun: a ``.rrd`` file, or ``live`` for a running viewer
             (:mod:`fgslam.export.rerun`; the rerun SDK is an optional extra).
         overwrite: replace the outputs of a previous run in ``out_dir`` (removed before the run
-            starts); without it such a folder is a ConfigError (:func:`prepare_output_dir`).
+            starts); without it such a folder is a ConfigError (:func:`clear_previous_outputs`).
 
     Returns:
         The :class:`RunSummary` also written to ``summary.json``.
@@ -463,7 +467,8 @@ def run_slam(
     check_ranges(config)
     check_sensor(dataset, config.sensor)
     check_image_size(dataset)
-    out = prepare_output_dir(out_dir, dataset.root, overwrite)
+    out = prepare_output_dir(out_dir, dataset.root)
+    clear_previous_outputs(out, overwrite)  # refused, or removed before the run starts
     if frontend is None:
         from .backend import Backend
         from .frontends import make_frontend

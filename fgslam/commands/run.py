@@ -40,15 +40,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..slam import load_slam_config, open_slam_dataset, prepare_output_dir, run_slam
+    from ..slam import clear_previous_outputs, load_slam_config, open_slam_dataset, prepare_output_dir, run_slam
 
     config = load_slam_config(args.config, args.overrides)
     if args.rerun:
         from ..export.rerun import check_rerun_target
 
         check_rerun_target(args.rerun)
-    # before any work: writable, not the dataset folder nor inside it, no previous run's outputs unless --overwrite
-    prepare_output_dir(args.out, args.data, args.overwrite)
+    prepare_output_dir(args.out, args.data)  # before any work: writable, not the dataset folder nor inside it
+    clear_previous_outputs(args.out, args.overwrite)  # and no previous run's outputs unless --overwrite
     dataset = open_slam_dataset(args.data, config, args.format)
 
     def report(summary) -> None:  # also when the run then fails or is interrupted (the error line follows)
