@@ -17,9 +17,11 @@ Each cell (config, dataset) is one ``fgslam run`` into ``OUT/<config>/<dataset>/
 (an optional extra) each cell is one Ray task with ``cpus`` CPUs on a local Ray instance
 (``workers`` cells at a time) or on the cluster at ``address``; Ray schedules them (no scheduler
 of fgslam's own). Without Ray the cells run one after another in this process (said in the log).
-A failing cell records its error in the table and never stops the batch; a cell whose folder
-already holds a successful ``summary.json`` is not run again (its summary is read back), so
-running a batch again completes what failed or is missing.
+A failing cell (a run that gave no frame a pose included) records its whole error in the table
+and never stops the batch; a cell whose folder already holds a successful ``summary.json`` is not
+run again (its summary is read back), so running a batch again completes what failed or is
+missing: a failed cell is run again over its previous attempt's outputs (``overwrite``).
+SIGTERM or Ctrl-C stop the batch; the tables of the cells finished by then are written.
 
 Outputs in ``OUT``: ``batch.json`` (every cell's row), ``batch.csv`` and ``batch.md`` (a Markdown
 table of ATE and frames/s per cell).
@@ -32,6 +34,7 @@ import io
 import json
 import logging
 import os
+import signal
 import socket
 import time
 from dataclasses import dataclass, field
@@ -99,13 +102,27 @@ def _entry(cls, main_key: str, value: Any, prefix: str):
     return from_dict(cls, value, source="matrix", prefix=prefix)
 
 
+MAX_WAIT_S = 3600.0  # upper bound of the waits below (an hour)
+
+
 @dataclass
 class BatchOptions:
-    """How ``fgslam batch`` runs its cells."""
+    """How ``fgslam batch`` runs its cells (an --address that is not Ray fails after
+    ``connect_timeout_s`` too: it does not answer the HTTP/2 preface)."""
+    init_timeout_s: float = ranged(60.0, gt=0, le=MAX_WAIT_S)  # joining the cluster at --address fails after this
+    poll_s: float = ranged(1.0, gt=0, le=MAX_WAIT_S)  # the wait for a finished cell wakes this often (signals handled then)
 
     workers: int = ranged(2, ge=1, le=MAX_THREADS)  # local Ray: CPUs given to the instance = workers x cpus
     connect_timeout_s: float = ranged(5.0, gt=0, le=MAX_SCALAR)  # an unreachable --address fails after this long
     object_store_mb: int = ranged(128, ge=80, le=MAX_MEMORY_MIB)  # local Ray's object store (cells return small dicts)
+
+
+#: The HTTP/2 client connection preface and an empty SETTINGS frame (RFC 9113 sections 3.4, 6.5): the
+#: Ray head's GCS and Ray Client ports speak gRPC, i.e. HTTP/2, and answer with a SETTINGS frame.
+HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes((0, 0, 0, 4, 0, 0, 0, 0, 0))
+HTTP2_FRAME_HEADER = 9  # bytes of an HTTP/2 frame header: length (3), type (1), flags (1), stream (4)
+HTTP2_SETTINGS = 4  # the SETTINGS frame type
+MAX_PORT = 65535
 
 
 def load_matrix(path: str | Path) -> tuple[BatchMatrix, Path]:
@@ -162,8 +179,8 @@ def finished_row(cell: dict[str, Any]) -> Optional[dict[str, Any]]:
         summary = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    if summary.get("error") or summary.get("output_errors"):
-        return None
+    if summary.get("error") or summary.get("output_errors") or not summary.get("frames_with_pose"):
+        return None  # failed, or no frame got a pose (summaries of older versions did not call that an error)
     return _row(cell, summary, skipped=True)
 
 
@@ -189,7 +206,8 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     try:
         config = load_slam_config(cell["preset"], cell["overrides"])
         dataset = open_slam_dataset(cell["data"], config, cell["format"])
-        result = run_slam(dataset, config, cell["out"], progress=False)
+        # the batch owns its cell folders: a cell not finished before is run again over its last attempt
+        result = run_slam(dataset, config, cell["out"], progress=False, overwrite=True)
         summary = result.to_dict()
         return _row(cell, json.loads(json.dumps(summary, default=str)))
     except Exception as exc:  # noqa: BLE001 - a failing cell is recorded, the batch goes on
@@ -205,29 +223,92 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
 
 
 def ray_available() -> bool:
-    try:
-        import ray  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    """Whether Ray is installed (found without importing it: importing Ray takes seconds)."""
+    import importlib.util
+
+    return importlib.util.find_spec("ray") is not None
 
 
 def check_address(address: str, timeout_s: float) -> None:
-    """Fail within ``timeout_s`` when the Ray address ``host:port`` (or ``ray://host:port``) does not
-    accept connections (Ray's own connection attempts retry for minutes)."""
+    """Fail within about ``timeout_s`` when the Ray address ``host:port`` (or ``ray://host:port``) does
+    not accept connections or does not speak Ray's protocol (gRPC over HTTP/2: its answer to the
+    HTTP/2 preface is a SETTINGS frame); Ray's own connection attempts retry for minutes. DataError
+    (ConfigError for an address that is not host:port), one line naming the address."""
     if address in ("auto", "local"):
         return
     target = address.split("://", 1)[-1]
     host, _, port = target.rpartition(":")
-    if not host or not port.isdigit():
-        raise ConfigError(f"--address {address!r}: expected host:port (or ray://host:port, or auto)")
+    if not host or not port.isdigit() or not 0 < int(port) <= MAX_PORT:
+        raise ConfigError(f"--address {address!r}: expected host:port (or ray://host:port, or auto) with a port "
+                          f"from 1 to {MAX_PORT}")
+    not_ray = ("give the Ray head's address (its GCS port, default 6379) or leave out --address for a local Ray")
     try:
-        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
-            pass
+        conn = socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s)
     except OSError as exc:
-        why = "timed out" if isinstance(exc, TimeoutError) or isinstance(exc, socket.timeout) else (exc.strerror or str(exc))
+        why = "timed out" if isinstance(exc, (TimeoutError, socket.timeout)) else (exc.strerror or str(exc))
         raise DataError(f"Ray cluster at {address} cannot be reached ({why} after at most {timeout_s:g} s); "
                         "start it (`ray start --head`) or leave out --address for a local Ray") from exc
+    answer = b""
+    try:
+        with conn:
+            conn.settimeout(timeout_s)
+            conn.sendall(HTTP2_PREFACE)
+            while len(answer) < HTTP2_FRAME_HEADER:
+                chunk = conn.recv(HTTP2_FRAME_HEADER - len(answer))
+                if not chunk:
+                    break
+                answer += chunk
+    except OSError as exc:
+        timed_out = isinstance(exc, (TimeoutError, socket.timeout))
+        why = f"no answer within {timeout_s:g} s" if timed_out else (exc.strerror or str(exc))
+        raise DataError(f"{address} accepts connections but does not answer as a Ray cluster ({why}); "
+                        f"{not_ray}") from exc
+    if len(answer) < HTTP2_FRAME_HEADER or answer[3] != HTTP2_SETTINGS:
+        raise DataError(f"{address} accepts connections but is not a Ray cluster (its answer is not gRPC/HTTP/2); "
+                        f"{not_ray}")
+
+
+#: What the child process of :func:`_probe_ray_init` runs: join the cluster at ``argv[1]`` and leave.
+_PROBE_RAY_INIT = ("import sys, ray; ray.init(address=sys.argv[1], include_dashboard=False, log_to_driver=False, "
+                   "configure_logging=False); ray.shutdown()")
+
+
+def _probe_ray_init(address: str, timeout_s: float) -> None:
+    """Join the cluster at ``address`` once in a child process, killed after ``timeout_s``: Ray's own
+    attempts retry for minutes inside its C++ client (no signal handled, no thread can stop them), so
+    only a process of its own bounds them. DataError, one line naming the address, on failure."""
+    import subprocess
+    import sys
+
+    logger.info("joining the Ray cluster at %s (at most %g s)", address, timeout_s)
+    try:
+        proc = subprocess.run([sys.executable, "-c", _PROBE_RAY_INIT, address], capture_output=True, text=True,
+                              timeout=timeout_s, stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired as exc:
+        raise DataError(f"Ray cluster at {address}: joining it did not finish within {timeout_s:g} s "
+                        "(BatchOptions.init_timeout_s); check that the address is the Ray head's") from exc
+    if proc.returncode != 0:
+        last = (proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"])[-1]
+        raise DataError(f"Ray cluster at {address}: joining it failed: {last}")
+
+
+def _init_ray(kwargs: dict[str, Any], address: str | None, timeout_s: float) -> None:
+    """``ray.init(**kwargs)``; a cluster at ``address`` is first joined once by a child process
+    bounded by ``timeout_s`` (:func:`_probe_ray_init`). The batch's SIGTERM handler is kept (ray.init
+    installs its own, a ``sys.exit``)."""
+    import ray
+
+    if address:
+        _probe_ray_init(address, timeout_s)
+    handler = signal.getsignal(signal.SIGTERM)
+    try:
+        ray.init(**kwargs)
+    except Exception as exc:  # noqa: BLE001 - any error of Ray's: one line naming the address
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise DataError(f"Ray at {address or 'a local instance'}: ray.init failed: {type(exc).__name__}: {first}") \
+            from exc
+    finally:
+        signal.signal(signal.SIGTERM, handler)
 
 
 def run_batch(matrix: BatchMatrix, out: Path, options: BatchOptions | None = None, address: str | None = None,
@@ -239,6 +320,13 @@ def run_batch(matrix: BatchMatrix, out: Path, options: BatchOptions | None = Non
     (ConfigError when it is not installed)."""
     options = options or BatchOptions()
     matrix.validate()
+    have_ray = ray_available()
+    if use_ray and not have_ray:
+        raise ConfigError("Ray is not installed: install the extra (pip install 'fgslam[batch]') or run without --ray")
+    if address and not have_ray:
+        raise ConfigError(f"--address {address}: Ray is not installed (pip install 'fgslam[batch]')")
+    if address and use_ray is not False:
+        check_address(address, options.connect_timeout_s)  # first: a wrong address fails within seconds
     cells = cells_of(matrix, out)
     check_cells(cells)
     out.mkdir(parents=True, exist_ok=True)
@@ -252,11 +340,6 @@ def run_batch(matrix: BatchMatrix, out: Path, options: BatchOptions | None = Non
             todo.append(i)
     if rows:
         logger.info("%d of %d cells finished before: not run again", len(rows), len(cells))
-    have_ray = ray_available()
-    if use_ray and not have_ray:
-        raise ConfigError("Ray is not installed: install the extra (pip install 'fgslam[batch]') or run without --ray")
-    if address and not have_ray:
-        raise ConfigError(f"--address {address}: Ray is not installed (pip install 'fgslam[batch]')")
     engine = "ray" if (use_ray if use_ray is not None else have_ray) else "sequential"
     if engine == "sequential" and use_ray is None:
         logger.warning("Ray is not installed: running the %d cells one after another (pip install 'fgslam[batch]' "
@@ -275,11 +358,23 @@ def run_batch(matrix: BatchMatrix, out: Path, options: BatchOptions | None = Non
 
     facts: dict[str, Any] = {"engine": engine, "cells": len(cells), "run": len(todo), "skipped": len(cells) - len(todo),
                              "load_average_start": [round(v, 2) for v in os.getloadavg()]}
-    if engine == "ray" and todo:
-        facts.update(_run_ray(cells, todo, matrix.cpus, options, address, record))
-    else:
-        for i in todo:
-            record(i, run_cell(cells[i]))
+    from .errors import Interrupted
+    from .slam import StopOnSignal
+
+    try:
+        with StopOnSignal((signal.SIGTERM,)):  # SIGTERM (and Ctrl-C) stop the batch; the finished rows are kept
+            if engine == "ray" and todo:
+                facts.update(_run_ray(cells, todo, matrix.cpus, options, address, record))
+            else:
+                for i in todo:
+                    record(i, run_cell(cells[i]))
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        name = signal.Signals(signum).name
+        facts.update(wall_s=time.perf_counter() - t0, interrupted=name)
+        write_tables(out, [rows[i] for i in sorted(rows)], facts)
+        raise Interrupted(f"interrupted by {name}: {done} of {len(cells)} cells done (rows in {out / BATCH_JSON})",
+                          signum) from exc
     facts["wall_s"] = time.perf_counter() - t0
     ordered = [rows[i] for i in range(len(cells))]
     write_tables(out, ordered, facts)
@@ -289,8 +384,6 @@ def run_batch(matrix: BatchMatrix, out: Path, options: BatchOptions | None = Non
 def _run_ray(cells, todo, cpus, options: BatchOptions, address, record) -> dict[str, Any]:
     import ray
 
-    if address:
-        check_address(address, options.connect_timeout_s)
     started_here = not ray.is_initialized()
     if started_here:
         kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
@@ -299,15 +392,15 @@ def _run_ray(cells, todo, cpus, options: BatchOptions, address, record) -> dict[
         else:
             kwargs.update(num_cpus=options.workers * cpus, object_store_memory=options.object_store_mb * 1024 * 1024)
         t0 = time.perf_counter()
-        ray.init(**kwargs)
+        _init_ray(kwargs, address, options.init_timeout_s)
         startup_s = time.perf_counter() - t0
     else:
         startup_s = 0.0
     try:
         task = ray.remote(num_cpus=cpus, max_retries=0)(run_cell)
         pending = {task.remote(cells[i]): i for i in todo}
-        while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1)
+        while pending:  # with a timeout: a signal (SIGTERM, Ctrl-C) is handled while cells run
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=options.poll_s)
             for ref in ready:
                 i = pending.pop(ref)
                 try:
@@ -333,6 +426,11 @@ def _fmt(value: Any, digits: int = 3) -> str:
     return str(value)
 
 
+def _markdown_text(text: str) -> str:
+    """``text`` whole, on one line, as the content of a Markdown table cell (``|`` escaped)."""
+    return " ".join(text.split()).replace("|", "\\|")
+
+
 def markdown_table(rows: list[dict[str, Any]]) -> str:
     """ATE and frames/s per cell: one row per config, one column per dataset."""
     configs = list(dict.fromkeys(r["config"] for r in rows))
@@ -346,7 +444,7 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
             if r is None:
                 cells.append("-")
             elif r["status"] != "ok":
-                cells.append(f"failed: {str(r['error'])[:60]}")
+                cells.append(f"failed: {_markdown_text(str(r['error']))}")
             else:
                 ate = "-" if r["ate_m"] is None else f"ATE {r['ate_m']:.3f} m ({r['align']})"
                 cells.append(f"{ate}, {r['fps']:.1f} frames/s")

@@ -330,6 +330,16 @@ def to_dict(obj: Any) -> Any:
     return obj
 
 
+def yaml_error_text(exc: Exception, source: str) -> str:
+    """One line for a YAML syntax error: ``source:line: invalid YAML: problem (context)``, naming
+    ``source`` (a file, or the ``-o`` override) where PyYAML says ``"<unicode string>"``."""
+    mark = getattr(exc, "problem_mark", None)
+    where = f":{mark.line + 1}" if mark is not None else ""
+    problem = getattr(exc, "problem", None) or str(exc).strip().splitlines()[0]
+    context = getattr(exc, "context", None)
+    return f"{source}{where}: invalid YAML: {problem}" + (f" ({context})" if context else "")
+
+
 def read_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping; errors name the file (and the line for syntax errors)."""
     path = Path(path)
@@ -338,9 +348,7 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f":{mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"{path}{where}: invalid YAML: {getattr(exc, 'problem', exc)}") from exc
+        raise ConfigError(yaml_error_text(exc, str(path))) from exc
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -359,7 +367,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     try:
         value = yaml.safe_load(raw) if raw.strip() else ""
     except yaml.YAMLError as exc:
-        raise ConfigError(f"override '{text}': value is not valid YAML: {exc}") from exc
+        raise ConfigError(yaml_error_text(exc, f"-o override '{text}' (value)")) from exc
     return key.split("."), value
 
 

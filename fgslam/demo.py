@@ -80,7 +80,7 @@ def run_demo(config: DemoConfig, out_dir, progress: bool = True) -> dict:
     t0 = time.perf_counter()
     rendered = render_scene(config.scene, out / "sequence")
     dataset = open_slam_dataset(out / "sequence", config.slam, "euroc")
-    summary = run_slam(dataset, config.slam, out / "run", progress=progress).to_dict()
+    summary = run_slam(dataset, config.slam, out / "run", progress=progress, overwrite=True).to_dict()  # the demo's own run folder
     return {"scene": to_dict(config.scene), "sequence": rendered, "total_s": time.perf_counter() - t0,
             "summary": summary}
 

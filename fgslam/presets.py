@@ -49,6 +49,32 @@ def available_presets() -> list[str]:
     return sorted(p.stem for p in folder.glob("*.yaml")) if folder.is_dir() else []
 
 
+#: The comment line that describes a run preset in one line (the first line of its file), read by
+#: ``fgslam run --help``: what data the preset is for.
+DESCRIPTION_PREFIX = "# description:"
+
+
+def preset_description(path: Path) -> str:
+    """The one-line description of a preset file (its ``# description:`` line among the leading
+    comments), "" when it has none."""
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            if not line.startswith("#"):
+                break
+            if line.startswith(DESCRIPTION_PREFIX):
+                return line[len(DESCRIPTION_PREFIX):].strip()
+    return ""
+
+
+def run_presets() -> dict[str, str]:
+    """The presets of ``fgslam run`` (every frontend family's ``<family>_*.yaml``), name -> description."""
+    from .frontends import FRONTEND_NAMES
+
+    folder = configs_dir()
+    return {name: preset_description(folder / f"{name}.yaml") for name in available_presets()
+            if name.split("_", 1)[0] in FRONTEND_NAMES}
+
+
 def resolve_preset(name_or_path: str | Path) -> Path:
     """An existing YAML path as given, else the preset ``fgslam/configs/<name>.yaml`` for a bare name such as
     ``patch_kitti_mono`` (or ``patch_kitti_mono.yaml``); ConfigError listing the presets otherwise."""

@@ -25,11 +25,18 @@ exists is written first (partial trajectory from the frontend, else from the per
 estimates, and a summary with the error), then a :class:`RunError` (or the dataset's own
 :class:`~fgslam.errors.DataError`) is raised.
 
-Stopping: SIGINT (Ctrl-C) and, while :func:`run_slam` runs, SIGTERM (batch schedulers, ``timeout``)
-stop the loop at once; the partial outputs and a summary naming the signal are written, then
-:class:`~fgslam.errors.Interrupted` is raised (``exit_code`` 130 / 143). A SIGTERM arriving while the
-outputs are being written is logged and the writing completes. The SIGTERM handler is installed
-only for the duration of the run and the previous one is restored.
+Stopping: SIGINT (Ctrl-C) and SIGTERM (batch schedulers, ``timeout``) stop the loop at once; the
+partial outputs and a summary naming the signal are written, ``on_summary`` reports it, then
+:class:`~fgslam.errors.Interrupted` is raised (``exit_code`` 130 / 143). A further signal (a second
+Ctrl-C) arriving while the outputs are written and reported is logged ("stopping: writing outputs,
+please wait") and ignored: they are completed. The handlers are installed only for the duration of
+the run and the previous ones are restored.
+
+No result: a run that ends without a pose for any frame writes its summary with the reason as its
+``error`` (:func:`no_pose_reason`) and raises :class:`NoPoseError`.
+
+Previous outputs: an ``out_dir`` that holds a previous run's outputs (:data:`RUN_OUTPUT_FILES`,
+``depth/``) is refused unless ``overwrite``, which removes them before the run starts.
 
 Outputs are never lost to one failure: the output folder is checked (created, writable, not the
 dataset folder nor inside it) before any work, and every output (each trajectory format, plot, PLY,
@@ -48,7 +55,9 @@ import json
 import logging
 import math
 import os
+import re
 import resource
+import shutil
 import signal
 import tempfile
 import threading
@@ -85,6 +94,14 @@ SUMMARY_FILE = "summary.json"
 PLOT_FILE = "trajectory.png"
 PLY_FILE = "points.ply"
 MAP_FILE = "map.npz"  # fgslam.export.map.MAP_FILE
+DEPTH_DIR = "depth"  # depth/<kf:06d>.png per keyframe (output.write_depth)
+#: What a run writes into its output folder (a previous run's outputs: refused, or removed with overwrite).
+RUN_OUTPUT_FILES = (TUM_FILE, KITTI_FILE, KITTI_TIMES_FILE, SUMMARY_FILE, SUMMARY_FILE + ".tmp", PLOT_FILE, PLY_FILE,
+                    MAP_FILE)
+#: Images with a side above this many pixels are named as the likely reason when no frame got a
+#: pose (the frontends are tuned for VGA to KITTI-width images; resize with dataset.resize_width).
+LARGE_IMAGE_SIDE = 4096
+SUGGESTED_RESIZE_WIDTH = 640  # the dataset.resize_width that hint suggests (VGA width)
 
 BYTES_PER_KIB = 1024  # ru_maxrss is in KiB on Linux
 BYTES_PER_MIB = 1024 * 1024
@@ -98,6 +115,10 @@ class RunError(FGSlamError):
 
 class OutputError(FGSlamError):
     """An output of a run could not be written (the others and, when possible, summary.json were)."""
+
+
+class NoPoseError(FGSlamError):
+    """A run that ended without a pose for any frame: no result (summary.json says why)."""
 
 
 @dataclass
@@ -234,6 +255,33 @@ def prepare_output_dir(out_dir: str | Path, data: str | Path | None = None) -> P
     return out
 
 
+def previous_run_outputs(out_dir: str | Path) -> list[Path]:
+    """The outputs of a previous run in ``out_dir`` (:data:`RUN_OUTPUT_FILES` and ``depth/``)."""
+    out = Path(out_dir)
+    found = [out / name for name in RUN_OUTPUT_FILES if (out / name).is_file()]
+    return found + ([out / DEPTH_DIR] if (out / DEPTH_DIR).is_dir() else [])
+
+
+def clear_previous_outputs(out_dir: str | Path, overwrite: bool) -> None:
+    """Refuse an output folder that holds a previous run's outputs (:func:`previous_run_outputs`)
+    unless ``overwrite``; then remove those outputs (other files are left alone), so that no output
+    of the previous run is ever taken for one of the new run's. ConfigError naming the folder and
+    ``--overwrite``; DataError when one cannot be removed."""
+    out = Path(out_dir)
+    previous = previous_run_outputs(out)
+    if previous and not overwrite:
+        names = ", ".join(p.name for p in previous)
+        raise ConfigError(f"output folder {out} holds the outputs of a previous run ({names}); "
+                          "use --overwrite to replace them, or another --out")
+    for path in previous:
+        try:
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+        except OSError as exc:
+            raise DataError(f"{path}: cannot remove the previous run's output: {exc.strerror or exc}") from exc
+    if previous:
+        logger.info("removed the previous run's outputs in %s: %s", out, ", ".join(p.name for p in previous))
+
+
 def check_sensor(dataset: Dataset, sensor: str) -> None:
     """Raise ConfigError when ``dataset`` lacks the images ``sensor`` needs (stereo: right images,
     rgbd: depth maps)."""
@@ -269,8 +317,8 @@ class RunSummary:
     pose_sources: dict[str, int]  # final trajectory: tracked / motion_model / ...
     failures: dict[str, int]  # tracking (motion-model poses), no_pose, skipped_corrupt, nonfinite_pose
     failure_frames: list[int]  # dataset indices of the frames whose pose came from the motion model
-    skipped_frames: list[dict[str, Any]]  # corrupt frames skipped by the dataset: index and reason
-    events: dict[str, int]  # frontend events by kind (text before the first ':')
+    skipped_frames: list[dict[str, Any]]  # frames skipped by the dataset (unreadable, wrong size): index and reason
+    events: dict[str, int]  # frontend events by kind (event_kind: text before the first ':', numbers stripped)
     wall_s: float
     cpu_s: float  # CPU time (user + system, all threads) of the run: comparable across machine loads
     fps: float  # frames processed per second of wall time (reading included)
@@ -384,6 +432,7 @@ def run_slam(
     frontend: Optional[Frontend] = None,
     on_summary: Optional[Callable[[RunSummary], None]] = None,
     rerun: Optional[str] = None,
+    overwrite: bool = False,
 ) -> RunSummary:
     """Run SLAM over ``dataset`` with ``config`` and write the outputs into ``out_dir``.
 
@@ -397,18 +446,22 @@ def run_slam(
             raises (the command line prints its report there).
         rerun: log the run to rerun: a ``.rrd`` file, or ``live`` for a running viewer
             (:mod:`fgslam.export.rerun`; the rerun SDK is an optional extra).
+        overwrite: replace the outputs of a previous run in ``out_dir`` (removed before the run
+            starts); without it such a folder is a ConfigError (:func:`clear_previous_outputs`).
 
     Returns:
         The :class:`RunSummary` also written to ``summary.json``.
 
     Raises:
         ConfigError: the dataset lacks what the sensor mode needs, the frontend is not available, or
-            the output folder is the dataset folder or inside it.
+            the output folder is the dataset folder or inside it, or holds a previous run's outputs
+            (without ``overwrite``).
         RunError: the frontend raised (partial outputs and a summary with the error were written).
         DataError: the dataset failed mid-run (too many corrupt frames; partial outputs written), or
             the output folder cannot be created or written.
         Interrupted: SIGINT or SIGTERM stopped the run (partial outputs and summary written).
         OutputError: an output could not be written (every other one was).
+        NoPoseError: the run ended without a pose for any frame (no result; the summary says why).
     """
     config.validate()
     check_ranges(config)
@@ -416,6 +469,7 @@ def run_slam(
     check_image_size(dataset)
     check_run_memory(config, dataset)
     out = prepare_output_dir(out_dir, dataset.root)
+    clear_previous_outputs(out, overwrite)  # refused, or removed before the run starts
     if frontend is None:
         from .backend import Backend
         from .frontends import make_frontend
@@ -431,21 +485,21 @@ def run_slam(
     load_average = [round(v, 2) for v in os.getloadavg()]
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
     state = _RunState()
-    with _StopOnSignal((signal.SIGTERM,)) as stopper:
+    with StopOnSignal((signal.SIGTERM, signal.SIGINT)) as stopper:
         t_start, cpu_start = time.perf_counter(), _cpu_seconds()
         saved_threads = _set_threads(config.threads)
         try:
             error = _loop(dataset, frontend, config, state, progress)
         finally:
-            stopper.finishing = True  # from here on a SIGTERM is logged and the outputs are completed
+            stopper.finishing = True  # from here on a signal is logged and the outputs and report are completed
             _restore_threads(saved_threads)
         state.wall_s, state.cpu_s = time.perf_counter() - t_start, _cpu_seconds() - cpu_start
         summary, error = _finalize(dataset, gt, frontend, config, state, out, load_average, error)
-    if on_summary is not None:
-        try:
-            on_summary(summary)
-        except Exception:  # noqa: BLE001 - a failing report (closed pipe...) never hides the run's own outcome
-            logger.exception("reporting the run summary failed")
+        if on_summary is not None:  # still under the handlers: a second Ctrl-C never cuts the report
+            try:
+                on_summary(summary)
+            except Exception:  # noqa: BLE001 - a failing report (closed pipe...) never hides the run's own outcome
+                logger.exception("reporting the run summary failed")
     written = _outputs_text(out, summary)
     if error is not None:
         exc, where = error
@@ -459,6 +513,8 @@ def run_slam(
             raise DataError(f"{dataset.root}: reading the dataset failed: {type(exc).__name__}: {exc} "
                             f"({written})") from exc
         raise RunError(f"frontend '{config.frontend}' failed {where}: {type(exc).__name__}: {exc} ({written})") from exc
+    if summary.frames_with_pose == 0:
+        raise NoPoseError(f"{summary.error} ({written})")
     if summary.output_errors:
         raise OutputError(f"the run finished but {written}")
     return summary
@@ -493,18 +549,19 @@ def _outputs_text(out: Path, summary: RunSummary) -> str:
     return f"could not write {len(errors)} output(s) in {out} ({failed}); written: {kept}{see}"
 
 
-class _StopOnSignal:
+class StopOnSignal:
     """While active (a ``with`` block in the main thread), the given signals raise
-    :class:`~fgslam.errors.Interrupted` as Ctrl-C raises ``KeyboardInterrupt``; once ``finishing`` is
-    set, a further one is logged and ignored so that the outputs are completed. The previous
-    handlers are restored on exit (none is installed outside the main thread, where Python cannot)."""
+    :class:`~fgslam.errors.Interrupted` (a ``KeyboardInterrupt``); once ``finishing`` is set (the
+    loop has stopped: the outputs and the report are being written), a further one, a second
+    Ctrl-C included, is logged and ignored so that they are completed. The previous handlers are
+    restored on exit (none is installed outside the main thread, where Python cannot)."""
 
     def __init__(self, signums: tuple[int, ...]) -> None:
         self.signums = signums
         self.finishing = False
         self._previous: dict[int, Any] = {}
 
-    def __enter__(self) -> "_StopOnSignal":
+    def __enter__(self) -> "StopOnSignal":
         if threading.current_thread() is not threading.main_thread():
             logger.debug("not in the main thread: no handler for %s", [signal.Signals(s).name for s in self.signums])
             return self
@@ -515,9 +572,9 @@ class _StopOnSignal:
     def _handle(self, signum: int, frame: Any) -> None:
         name = signal.Signals(signum).name
         if self.finishing:
-            logger.warning("%s received while the outputs are written: completing them first", name)
+            logger.warning("%s received: stopping: writing outputs, please wait", name)
             return
-        logger.warning("%s received: stopping the run and writing the partial outputs", name)
+        logger.warning("%s received: stopping: writing outputs, please wait", name)
         raise Interrupted(name, signum)
 
     def __exit__(self, *exc_info: Any) -> None:
@@ -570,9 +627,22 @@ def _loop(
     return None
 
 
+#: What varies inside one kind of event: numbers (ids, counts, values) and parentheses holding one.
+_EVENT_VARYING = re.compile(r"\([^()]*\d[^()]*\)|[-+]?\d+(?:\.\d+)?\s*%?")
+
+
+def event_kind(event: str) -> str:
+    """The kind of a frontend event, the key it is counted under in ``summary.json`` ``events``: the
+    text before the first ``:`` without the numbers in it (``"keyframe 12 removed"`` and
+    ``"keyframe removed: 12"`` -> ``"keyframe removed"``, ``"waiting for parallax (1.2 px)"`` ->
+    ``"waiting for parallax"``)."""
+    kind = " ".join(_EVENT_VARYING.sub(" ", event.split(":", 1)[0]).split())
+    return kind or "event"
+
+
 def _record(status: FrameStatus, timestamp: float, state: _RunState) -> None:
     for event in status.events:
-        state.events[event.split(":", 1)[0].strip()] += 1
+        state.events[event_kind(event)] += 1
         logger.debug("frame %d: %s", status.index, event)
     if status.pose_source == "motion_model":
         state.failure_frames.append(status.index)
@@ -697,10 +767,8 @@ def _finalize(
         if _write_output("kitti", kitti_paths, lambda: write_trajectory(kitti_paths[0], traj, "kitti", kitti_paths[1]),
                          outputs, output_errors):
             outputs["kitti_times"] = str(out / KITTI_TIMES_FILE)
-    else:
-        why = "before the error" if errors else "(the frontend never initialised)"
-        notes.append(f"no frame got a pose {why}: no trajectory files written")
-        logger.warning("no frame got a pose %s: no trajectory written", why)
+    elif errors:  # without an error the summary's error says why (no_pose_reason)
+        notes.append("no frame got a pose before the error: no trajectory files written")
 
     result = evaluation = None
     if gt is not None and traj is not None:
@@ -729,7 +797,7 @@ def _finalize(
     if points is not None:
         _write_output("ply", [out / PLY_FILE], lambda: _write_points(out / PLY_FILE, points), outputs, output_errors)
     _write_keyframe_depths(frontend, config, out, outputs, output_errors, notes)
-    if config.output.write_map:
+    if config.output.write_map and traj is not None:  # no pose, no map (and no note that would blame the frontend)
         _write_map(out / MAP_FILE, dataset, frontend, config, state, outputs, output_errors, notes)
     if config.output.plot and traj is not None:
         _write_output("plot", [out / PLOT_FILE], lambda: _plot(out / PLOT_FILE, gt, traj, result, config),
@@ -749,6 +817,8 @@ def _finalize(
         error_text = f"interrupted by {interrupted} {first_error[1]}"
     elif first_error is not None:
         error_text = f"{first_error[1]}: {type(first_error[0]).__name__}: {first_error[0]}"
+    elif traj is None:  # ran to the end without a result: an error too (batch reruns it, the exit is non-zero)
+        error_text = no_pose_reason(dataset, config, state)  # the caller's error line (NoPoseError) says it
     outputs["summary"] = str(out / SUMMARY_FILE)
     summary = RunSummary(
         out_dir=str(out),
@@ -793,6 +863,26 @@ def _finalize(
                          outputs, output_errors):
         logger.error("%s could not be written; the run summary is only on the console", out / SUMMARY_FILE)
     return summary, first_error
+
+
+def no_pose_reason(dataset: Dataset, config: SlamConfig, state: _RunState) -> str:
+    """One line on why a run that ended normally gave no frame a pose: the frames the frontend saw,
+    what it reported (its events by kind) and, for images larger than :data:`LARGE_IMAGE_SIDE`, the
+    config keys that resize them."""
+    n, skipped = state.frames_processed, len(dataset.skipped_frames)
+    seen = f"{n} frame{'s' if n != 1 else ''} processed of {len(dataset)}"
+    if skipped:
+        seen += f", {skipped} skipped (unreadable or of the wrong size)"
+    text = f"no frame got a pose: frontend '{config.frontend}' ({config.sensor}) never initialised in {seen}"
+    if state.events:
+        text += " (events: " + ", ".join(f"{kind} x{count}" for kind, count in state.events.most_common()) + ")"
+    width, height = int(dataset.calibration.width), int(dataset.calibration.height)
+    if max(width, height) > LARGE_IMAGE_SIDE:
+        text += (f"; the images are {width}x{height}, too large: resize them, e.g. "
+                 f"-o dataset.resize_width={SUGGESTED_RESIZE_WIDTH} (or dataset.resize_scale)")
+    elif n == 0:
+        text += "; no frame could be read"
+    return text
 
 
 def _write_map(path: Path, dataset: Dataset, frontend: Frontend, config: SlamConfig, state: _RunState,
@@ -885,8 +975,6 @@ def _auto_plane(traj: Trajectory) -> str:
     a, b = sorted(np.argsort(extent)[-2:])
     return "xyz"[a] + "xyz"[b]
 
-
-DEPTH_DIR = "depth"
 
 
 def _write_keyframe_depths(frontend: Frontend, config: SlamConfig, out: Path, outputs: dict[str, str],

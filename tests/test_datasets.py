@@ -466,8 +466,10 @@ def test_all_invalid_depth_is_on_the_console_of_a_run(tmp_path, capsys):
 
     _zero_depth_7scenes(tmp_path / "zero", n=3)
     rc = cli.main(["run", "patch_7scenes_rgbd", "--data", str(tmp_path / "zero"), "--out", str(tmp_path / "out")])
-    assert rc == 0
-    assert "RGB-D: no valid depth in 3 frames" in capsys.readouterr().err
+    assert rc == 2  # no frame got a pose: no result (issue 21)
+    err = capsys.readouterr().err
+    assert "RGB-D: no valid depth in 3 frames" in err
+    assert err.strip().splitlines()[-1].startswith("fgslam: error: no frame got a pose")
 
 
 def test_too_many_corrupt_frames_fail(tmp_path):
@@ -500,7 +502,7 @@ def test_calibration_not_matching_image_size(tmp_path):
     write_folder(tmp_path / "g", n=12, w=64, h=48)
     cv2.imwrite(str(tmp_path / "g" / "img_0005.png"), _texture(40, 64, 0))
     ds = open_dataset(tmp_path / "g")
-    with pytest.raises(FrameReadError, match="img_0005.png: image is 64x40"):
+    with pytest.raises(FrameReadError, match=r"img_0005.png: frame 5 is 64x40, expected 64x48 \(the calibration's size\)"):
         ds[5]
     assert len(list(ds)) == 11 and ds.skipped_frames[0][0] == 5
 

@@ -30,6 +30,7 @@ from fgslam.slam import (
     PLY_FILE,
     SUMMARY_FILE,
     TUM_FILE,
+    NoPoseError,
     RunError,
     SlamConfig,
     check_sensor,
@@ -136,7 +137,7 @@ def _run(synth_root, tmp_path, sensor="mono", frontend_kwargs=None, overrides=()
     rng = np.random.default_rng(1)
     S = _random_sim3(rng, scale if sensor == "mono" else 1.0)
     fe = FakeFrontend(S, noise, rng, **(frontend_kwargs or {}))
-    summary = run_slam(ds, config, tmp_path / "out", progress=True, frontend=fe)
+    summary = run_slam(ds, config, tmp_path / "out", progress=True, frontend=fe, overwrite=True)  # reruns: on purpose
     return summary, fe, ds
 
 
@@ -215,8 +216,9 @@ def test_text_report(synth_root, tmp_path):
                  "flow 1.0, ba 2.0 ms/frame", "1 tracking", "2 without pose", "sim3 alignment, scale 2.0000",
                  "% of the", str(tmp_path / "out")):
         assert part in text, part
-    summary, _, _ = _run(synth_root, tmp_path, frontend_kwargs={"init_frames": N_FRAMES})
-    assert "never initialised" in format_report(summary.to_dict())
+    with pytest.raises(NoPoseError):
+        _run(synth_root, tmp_path, frontend_kwargs={"init_frames": N_FRAMES})
+    assert "never initialised" in format_report(json.loads((tmp_path / "out" / SUMMARY_FILE).read_text()))
 
 
 def test_noise_gives_matching_ate(synth_root, tmp_path):
@@ -264,14 +266,19 @@ def test_ply_written_when_requested(synth_root, tmp_path):
     assert summary.outputs["ply"].endswith(PLY_FILE)
 
 
-def test_never_initialised_writes_summary_without_trajectory(synth_root, tmp_path):
-    summary, _, _ = _run(synth_root, tmp_path, frontend_kwargs={"init_frames": N_FRAMES + 1})
+def test_never_initialised_writes_summary_without_trajectory_and_fails(synth_root, tmp_path):
+    """No frame got a pose: the summary is written with the reason as its error, and the run fails."""
+    with pytest.raises(NoPoseError) as info:
+        _run(synth_root, tmp_path, frontend_kwargs={"init_frames": N_FRAMES + 1})
     out = tmp_path / "out"
     assert not (out / TUM_FILE).exists()
     data = json.loads((out / SUMMARY_FILE).read_text())
     assert data["frames_with_pose"] == 0 and data["failures"]["no_pose"] == N_FRAMES
     assert data["evaluation"] is None and data["motion"]["path_length"] == 0.0
-    assert any("never initialised" in n for n in data["notes"])
+    assert data["error"].startswith(f"no frame got a pose: frontend 'patch' (mono) never initialised in {N_FRAMES} "
+                                    f"frames processed of {N_FRAMES} (events: waiting x{N_FRAMES})")
+    assert str(info.value).startswith(data["error"])
+    assert not any("exports no map" in n for n in data["notes"])  # no result: no note blaming the frontend
 
 
 # --------------------------------------------------------------------------------------- errors
@@ -310,7 +317,7 @@ def test_dataset_failing_mid_run_leaves_partial_outputs(synth_root, tmp_path):
     images = sorted((root / "mav0" / "cam0" / "data").glob("*.png"))
     for i in (8, 9):  # 2 of 16 corrupt: more than max_skipped_fraction = 0.1 allows
         images[i].write_bytes(b"")
-    with pytest.raises(DataError, match="unreadable, more than allowed"):
+    with pytest.raises(DataError, match=r"2 of the first 10 frames \(of 16\) skipped: 2 unreadable; more than allowed"):
         _run(root, tmp_path)
     data = json.loads((tmp_path / "out" / SUMMARY_FILE).read_text())
     assert "while reading the dataset" in data["error"]
@@ -593,6 +600,56 @@ def test_cli_run_killed_mid_run(long_root, tmp_path, signame, rc):
     traj = read_trajectory(out / TUM_FILE, "tum")
     assert 4 <= len(traj) == data["frames_with_pose"] < 120
     assert f"interrupted by {signame}" in stdout and "outputs:" in stdout  # the console report still comes
+
+
+SLOW_PLOT_S = 3.0  # the plot takes this long in the next test: the second Ctrl-C surely lands while it is written
+SECOND_SIGINT_AFTER_S = 0.3  # the trial's two Ctrl-C
+
+
+def test_cli_run_two_ctrl_c_lose_nothing(long_root, tmp_path):
+    """Two SIGINTs 0.3 s apart: the second, while the outputs are written, is logged and ignored;
+    summary.json, the plot and the console report are all there; exit 130 with one line."""
+    import signal
+    import subprocess
+    import sys
+    import threading
+
+    out = tmp_path / "out"
+    slow_plot = (  # the child's plot takes SLOW_PLOT_S: the writing of the outputs is under way at the second signal
+        "import sys, time\n"
+        "import fgslam.io.plot as plot\n"
+        "draw = plot.plot_trajectories\n"
+        f"plot.plot_trajectories = lambda *a, **k: (time.sleep({SLOW_PLOT_S}), draw(*a, **k))[1]\n"
+        "from fgslam.cli import main\n"
+        "sys.exit(main(sys.argv[1:]))\n")
+    cmd = [sys.executable, "-c", slow_plot, "run", "patch_rgbd", "--data", str(long_root), "--out", str(out),
+           "-o", "log_interval_frames=1"]
+    defaults = lambda: [signal.signal(s, signal.SIG_DFL) for s in (signal.SIGINT, signal.SIGTERM)]  # noqa: E731
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=defaults)
+    watchdog = threading.Timer(300, proc.kill)
+    watchdog.start()
+    try:
+        stderr_lines = []
+        for line in proc.stderr:
+            stderr_lines.append(line)
+            if "frame 4/120" in line:
+                proc.send_signal(signal.SIGINT)
+                time.sleep(SECOND_SIGINT_AFTER_S)
+                proc.send_signal(signal.SIGINT)
+                break
+        stdout, rest = proc.communicate()
+    finally:
+        watchdog.cancel()
+    err = "".join(stderr_lines) + rest
+    assert (out / SUMMARY_FILE).is_file() and (out / PLOT_FILE).is_file() and (out / TUM_FILE).is_file(), err[-3000:]
+    data = json.loads((out / SUMMARY_FILE).read_text())
+    assert data["interrupted"] == "SIGINT" and 4 <= data["frames_processed"] < 120
+    assert "interrupted by SIGINT" in stdout and "outputs:" in stdout  # the console report
+    assert proc.returncode == 130, err[-3000:]
+    assert "Traceback" not in err
+    assert "stopping: writing outputs, please wait" in err
+    errors = [ln for ln in err.splitlines() if ln.startswith("fgslam:")]
+    assert len(errors) == 1 and errors[0].startswith("fgslam: interrupted by SIGINT"), errors
 
 
 # --------------------------------------------------------------------------------------- outputs are never lost

@@ -44,7 +44,7 @@ def _run(root: Path, preset: str, out: Path, overrides: list[str]):
     try:
         cfg = load_slam_config(preset, overrides)
         ds = open_slam_dataset(root, cfg)
-        summary = run_slam(ds, cfg, out, progress=False)
+        summary = run_slam(ds, cfg, out, progress=False, overwrite=True)  # the benchmark's own folder
     finally:
         imu_mod.with_imu = original
     path = out / "trajectory_tum.txt"

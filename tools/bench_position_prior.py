@@ -63,7 +63,8 @@ def main() -> None:
         config = load_slam_config(preset, args.overrides)
         if config.factors:
             config.factors = gps_factor
-        summary = run_slam(open_slam_dataset(data, config), config, args.work / name, progress=False)
+        summary = run_slam(open_slam_dataset(data, config), config, args.work / name, progress=False,
+                           overwrite=True)  # the benchmark's own work folder: reruns replace
         est = read_trajectory(args.work / name / "trajectory_tum.txt", "tum")
         run = {"keyframes": summary.keyframes, "cpu_s": summary.cpu_s, "frames_with_pose": summary.frames_with_pose}
         for align in ("se3", "sim3"):

@@ -160,7 +160,7 @@ def run_case(name: str, args: argparse.Namespace) -> dict:
     load_before = os.getloadavg()
     error = None
     try:
-        s = run_slam(dataset, config, out, progress=False).to_dict()
+        s = run_slam(dataset, config, out, progress=False, overwrite=True).to_dict()  # --keep-outputs reruns replace
     except Exception as exc:  # noqa: BLE001 - the benchmark reports failures instead of stopping
         error = f"{type(exc).__name__}: {exc}"
         summary_path = out / "summary.json"

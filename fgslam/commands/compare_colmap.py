@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
     from pathlib import Path
 
-    from ..errors import ConfigError
+    from ..errors import ConfigError, DataError
     from ..export.compare import CompareConfig, compare_colmap, preset_for
     from ..io.datasets import DatasetConfig, open_dataset
     from ..slam import load_slam_config, open_slam_dataset, prepare_output_dir
@@ -61,6 +61,9 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(report, default=float))
     else:
         print(format_report(report))
+    if report["colmap"].get("error"):  # no comparison: the report says so, and the command fails
+        raise DataError(f"{report['colmap']['error']} ({report['colmap']['models']} models; see {out / 'colmap'}): "
+                        f"no comparison, report in {report['outputs']['json']}")
     return 0
 
 
@@ -73,9 +76,12 @@ def format_report(r: dict) -> str:
         f"{fg['points']} points, ATE {fmt(fg.get('ate_m'))} (on COLMAP's frames {fmt(fg.get('ate_on_colmap_frames_m'))})",
         f"  COLMAP: {cm['wall_s']:.1f} s wall ({cm['cpu_s']:.1f} s CPU), {cm['registered_frames']} frames registered "
         f"({cm['models']} models), {cm['points']} points, ATE {fmt(cm.get('ate_m'))}",
-        f"  ratio:  COLMAP / fgslam time {r['speed_ratio_wall']:.1f}x wall, {r['speed_ratio_cpu']:.1f}x CPU"
-        + (f"; ATE fgslam / COLMAP {r['ate_ratio']:.2f}" if r.get("ate_ratio") is not None else ""),
     ]
+    if cm.get("error"):
+        lines.append(f"  ratio:  none ({cm['error']})")
+    else:
+        lines.append(f"  ratio:  COLMAP / fgslam time {r['speed_ratio_wall']:.1f}x wall, {r['speed_ratio_cpu']:.1f}x CPU"
+                     + (f"; ATE fgslam / COLMAP {r['ate_ratio']:.2f}" if r.get("ate_ratio") is not None else ""))
     if r.get("clouds"):
         d = r["clouds"]["fgslam_against_colmap"]
         lines.append(f"  clouds: fgslam against COLMAP: accuracy {d['accuracy_mean']:.4f} (median {d['accuracy_median']:.4f}), "

@@ -17,9 +17,18 @@ FORMAT_CHOICES = ("auto", "tum", "euroc", "kitti", "tartanair", "7scenes", "fold
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("config", metavar="CONFIG", help="SlamConfig YAML file or preset name (e.g. patch_kitti_mono)")
+    from ..presets import run_presets
+
+    presets = run_presets()  # each preset's own "# description:" line
+    width = max(map(len, presets), default=0)
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = "presets (CONFIG), and the data each is for:\n" + "\n".join(
+        f"  {name:<{width}}  {text}" for name, text in presets.items())
+    parser.add_argument("config", metavar="CONFIG", help="SlamConfig YAML file or preset name (listed below)")
     parser.add_argument("--data", required=True, metavar="PATH", help="dataset folder (or video file)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the outputs of a previous run in --out (without it such a folder is an error)")
     parser.add_argument("--format", default="auto", choices=FORMAT_CHOICES, help="dataset loader (default: detect)")
     parser.add_argument("-o", "--override", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a SlamConfig field, e.g. -o sensor=rgbd -o dataset.end=100 (repeatable)")
@@ -31,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..slam import load_slam_config, open_slam_dataset, prepare_output_dir, run_slam
+    from ..slam import clear_previous_outputs, load_slam_config, open_slam_dataset, prepare_output_dir, run_slam
 
     config = load_slam_config(args.config, args.overrides)
     if args.rerun:
@@ -39,12 +48,14 @@ def run(args: argparse.Namespace) -> int:
 
         check_rerun_target(args.rerun)
     prepare_output_dir(args.out, args.data)  # before any work: writable, not the dataset folder nor inside it
+    clear_previous_outputs(args.out, args.overwrite)  # and no previous run's outputs unless --overwrite
     dataset = open_slam_dataset(args.data, config, args.format)
 
     def report(summary) -> None:  # also when the run then fails or is interrupted (the error line follows)
         print(json.dumps(summary.to_dict(), default=str) if args.json else format_report(summary.to_dict()), flush=True)
 
-    run_slam(dataset, config, args.out, progress=not args.no_progress, on_summary=report, rerun=args.rerun)
+    run_slam(dataset, config, args.out, progress=not args.no_progress, on_summary=report, rerun=args.rerun,
+             overwrite=args.overwrite)
     return 0
 
 
@@ -63,7 +74,7 @@ def format_report(s: dict) -> str:
         lines.append(f"  stages:     {stages} ms/frame")
     f = s["failures"]
     lines.append(f"  failures:   {f['tracking']} tracking (motion-model poses), {f['no_pose']} without pose, "
-                 f"{f['skipped_corrupt']} corrupt frames skipped")
+                 f"{f['skipped_corrupt']} frames skipped (unreadable or of the wrong size)")
     loop = s.get("loop")
     if loop:
         parts = []

@@ -145,7 +145,8 @@ def compare_colmap(dataset, slam_config, out: Path, config: CompareConfig | None
     names = write_frames(dataset, image_dir)
     write_s = time.perf_counter() - t0
 
-    summary = run_slam(dataset, slam_config, out / "fgslam", progress=progress)
+    # the compare folder is the command's (refused when not empty unless --overwrite): replace a previous run in it
+    summary = run_slam(dataset, slam_config, out / "fgslam", progress=progress, overwrite=True)
     sfm = run_colmap_sfm(image_dir, out / "colmap", dataset.calibration.K, config.colmap, sorted(names))
 
     gt = dataset.groundtruth
@@ -163,8 +164,12 @@ def compare_colmap(dataset, slam_config, out: Path, config: CompareConfig | None
                    "points": 0 if sfm.model is None else int(sfm.model.X_W.shape[0]),
                    "settings": asdict(config.colmap)},
     }
-    report["speed_ratio_wall"] = report["colmap"]["wall_s"] / max(summary.wall_s, 1e-9)
-    report["speed_ratio_cpu"] = report["colmap"]["cpu_s"] / max(summary.cpu_s, 1e-9)
+    if report["colmap"]["registered_frames"] == 0:  # nothing to compare against: no ratio of times
+        report["colmap"]["error"] = f"COLMAP registered no frame of {len(names)}"
+        report["speed_ratio_wall"] = report["speed_ratio_cpu"] = None
+    else:
+        report["speed_ratio_wall"] = report["colmap"]["wall_s"] / max(summary.wall_s, 1e-9)
+        report["speed_ratio_cpu"] = report["colmap"]["cpu_s"] / max(summary.cpu_s, 1e-9)
 
     fg_traj = read_trajectory(out / "fgslam" / TUM_FILE, "tum") if (out / "fgslam" / TUM_FILE).is_file() else None
     cm_traj = None if sfm.model is None else sfm.model.trajectory(names)

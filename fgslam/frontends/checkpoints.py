@@ -32,9 +32,12 @@ def checkpoint_path(slot: LearnedSlot, checkpoint: str | None) -> Path:
     """The configured checkpoint of ``slot``, checked: no checkpoint configured is a ConfigError, a
     missing file or an absent package a DataError, each naming the key and the built-in alternative."""
     if checkpoint is None:
-        raise ConfigError(f"{slot.selected} needs {slot.key} (path of the {slot.network} weights {slot.weights}); "
-                          f"the built-in alternative is {slot.builtin}")
+        raise ConfigError(f"{slot.selected} needs {slot.key}, the path of the {slot.network} weights "
+                          f"({slot.weights}); the built-in alternative is {slot.builtin}")
     path = Path(checkpoint).expanduser()
+    if path.is_dir():
+        raise DataError(f"{slot.network} checkpoint {path} ({slot.key}) is a folder; a file is expected "
+                        f"({slot.weights}), or use {slot.builtin}")
     if not path.is_file():
         raise DataError(f"{slot.network} checkpoint {path} not found ({slot.key}); fgslam downloads nothing: get "
                         f"{slot.weights} from the {slot.network} project, or use {slot.builtin}")

@@ -238,11 +238,13 @@ def read_yaml_file(path: str | Path) -> dict:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
         raise DataError(f"{path}: cannot read file: {exc}") from exc
-    lines = [ln for ln in text.splitlines() if not ln.startswith("%YAML")]
+    from ..config import yaml_error_text
+
+    lines = ["" if ln.startswith("%YAML") else ln for ln in text.splitlines()]  # blank: line numbers kept
     try:
         data = yaml.safe_load("\n".join(lines))
     except yaml.YAMLError as exc:
-        raise DataError(f"{path}: invalid YAML: {exc}") from exc
+        raise DataError(yaml_error_text(exc, str(path))) from exc
     if not isinstance(data, dict):
         raise DataError(f"{path}: expected a YAML mapping at the top level")
     return data

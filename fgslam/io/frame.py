@@ -89,3 +89,8 @@ class Frame:
 
 class FrameReadError(DataError):
     """One frame could not be read (unreadable/corrupt file); iteration skips and counts it."""
+
+
+class FrameSizeError(FrameReadError):
+    """One frame (or its right image or depth map) is not of the calibration's size; iteration skips
+    and counts it as a frame of the wrong size (not as unreadable)."""

@@ -43,6 +43,8 @@ class CheckpointError(DataError):
 def read_state_dict(path: str | Path) -> "OrderedDict[str, torch.Tensor]":
     """The tensors of a ``.pth`` file (``weights_only``: no code from the file runs)."""
     path = Path(path).expanduser()
+    if path.is_dir():
+        raise CheckpointError(f"checkpoint {path} is a folder; a file (.pth) is expected")
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} not found")
     try:

@@ -34,7 +34,7 @@ import numpy as np
 from ...config import MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, check_ranges, ranged
 from ...errors import ConfigError, DataError
 from ..calibration import Calibration, Undistorter
-from ..frame import Frame, FrameReadError, ImuSamples
+from ..frame import Frame, FrameReadError, FrameSizeError, ImuSamples
 from ..trajectory import Trajectory, read_times_file
 
 logger = logging.getLogger(__name__)
@@ -445,21 +445,25 @@ class Dataset:
         n = len(self)
         max_skipped = int(self.config.max_skipped_fraction * n)
         recorded = {i for i, _ in self.skipped_frames}
-        skipped_now = 0
+        skipped_now = wrong_size = 0
         depth_frames = empty_depth = 0
         for i in range(n):
             try:
                 frame = self._frame(i, prev_t)
             except FrameReadError as exc:
                 skipped_now += 1
+                wrong_size += isinstance(exc, FrameSizeError)
                 if i not in recorded:
                     self.skipped_frames.append((i, str(exc)))
                     recorded.add(i)
                 logger.warning("skipping frame %d: %s", i, exc)
                 if skipped_now > max_skipped:
+                    kinds = [f"{k} {what}" for k, what in ((skipped_now - wrong_size, "unreadable"),
+                                                           (wrong_size, "of the wrong size")) if k]
                     raise DataError(
-                        f"{self.root}: {skipped_now} of {n} frames unreadable, more than allowed "
-                        f"(max_skipped_fraction={self.config.max_skipped_fraction}); last: {exc}"
+                        f"{self.root}: {skipped_now} of the first {i + 1} frames (of {n}) skipped: "
+                        f"{', '.join(kinds)}; more than allowed (max_skipped_fraction="
+                        f"{self.config.max_skipped_fraction}: at most {max_skipped} of {n}); last: {exc}"
                     ) from exc
                 continue
             prev_t = frame.timestamp
@@ -490,7 +494,8 @@ class Dataset:
         where = raw.path or f"{self.root} frame {raw_index}"
         h, w = raw.image.shape[:2]
         if (w, h) != (calib.width, calib.height):
-            raise FrameReadError(f"{where}: image is {w}x{h}, calibration expects {calib.width}x{calib.height}")
+            raise FrameSizeError(f"{where}: frame {index} is {w}x{h}, expected {calib.width}x{calib.height} "
+                                 "(the calibration's size)")
         grey, rgb = to_grey_and_rgb(raw.image, cfg.load_rgb, raw.path)
         und = self._undistorter
         frame = Frame(
@@ -505,12 +510,15 @@ class Dataset:
         if raw.right is not None and self.has_stereo:
             rh, rw = raw.right.shape[:2]
             if (rw, rh) != (calib.right.width, calib.right.height):
-                raise FrameReadError(f"{where}: right image is {rw}x{rh}, calibration expects {calib.right.width}x{calib.right.height}")
+                raise FrameSizeError(f"{where}: the right image of frame {index} is {rw}x{rh}, expected "
+                                     f"{calib.right.width}x{calib.right.height} (the calibration's size)")
             frame.image_right = und.right(to_grey_and_rgb(raw.right, False, raw.path)[0])
         if raw.depth is not None and self.has_depth:
             dh, dw = raw.depth.shape[:2]
             if (dw, dh) != (calib.width, calib.height) or raw.depth.ndim != 2:
-                raise FrameReadError(f"{where}: depth map is {raw.depth.shape}, calibration expects {calib.height}x{calib.width}")
+                shape = "x".join(str(v) for v in raw.depth.shape[1::-1] + raw.depth.shape[2:])
+                raise FrameSizeError(f"{where}: the depth map of frame {index} is {shape}, expected "
+                                     f"{calib.width}x{calib.height} (the calibration's size, one channel)")
             depth = np.asarray(raw.depth, dtype=np.float32)
             depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0))
             frame.depth = und.depth(depth)
