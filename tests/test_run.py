@@ -563,18 +563,13 @@ def _render_seq(tmp_path_factory, name: str, overrides: list[str]) -> Path:
     return root
 
 
-@pytest.mark.parametrize("signame, rc", [("SIGTERM", 143), ("SIGINT", 130)])
-def test_cli_run_killed_mid_run(long_root, tmp_path, signame, rc):
-    """``fgslam run`` in a subprocess gets the signal after a few frames: partial trajectory,
-    summary.json naming the signal, the console report, one clean error line, exit 128 + signal."""
+def _signalled_run(cmd: list[str], signals: list[int], at_line: str = "frame 4/120"):
+    """Run ``cmd`` in a subprocess and send it ``signals`` (``SECOND_SIGINT_AFTER_S`` apart) once its
+    stderr shows ``at_line``; returns (exit status, stdout, stderr lines)."""
     import signal
     import subprocess
-    import sys
     import threading
 
-    out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "fgslam", "run", "patch_rgbd", "--data", str(long_root), "--out", str(out),
-           "-o", "log_interval_frames=1"]
     # default dispositions in the child, as from a terminal (a background job of a non-interactive shell ignores SIGINT)
     defaults = lambda: [signal.signal(s, signal.SIG_DFL) for s in (signal.SIGINT, signal.SIGTERM)]  # noqa: E731
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=defaults)
@@ -584,14 +579,30 @@ def test_cli_run_killed_mid_run(long_root, tmp_path, signame, rc):
         stderr_lines = []
         for line in proc.stderr:
             stderr_lines.append(line)
-            if "frame 4/120" in line:
-                proc.send_signal(getattr(signal, signame))
+            if at_line in line:
+                for k, sig in enumerate(signals):
+                    if k:
+                        time.sleep(SECOND_SIGINT_AFTER_S)
+                    proc.send_signal(sig)
                 break
         stdout, rest = proc.communicate()
     finally:
         watchdog.cancel()
-    stderr_lines += rest.splitlines(keepends=True)
-    assert proc.returncode == rc, "".join(stderr_lines[-5:])
+    return proc.returncode, stdout, stderr_lines + rest.splitlines(keepends=True)
+
+
+@pytest.mark.parametrize("signame, rc", [("SIGTERM", 143), ("SIGINT", 130)])
+def test_cli_run_killed_mid_run(long_root, tmp_path, signame, rc):
+    """``fgslam run`` in a subprocess gets the signal after a few frames: partial trajectory,
+    summary.json naming the signal, the console report, one clean error line, exit 128 + signal."""
+    import signal
+    import sys
+
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "fgslam", "run", "patch_rgbd", "--data", str(long_root), "--out", str(out),
+           "-o", "log_interval_frames=1"]
+    returncode, stdout, stderr_lines = _signalled_run(cmd, [getattr(signal, signame)])
+    assert returncode == rc, "".join(stderr_lines[-5:])
     errors = [ln for ln in stderr_lines if ln.startswith("fgslam:")]
     assert len(errors) == 1 and re.match(rf"fgslam: interrupted by {signame} (at frame|after frame|while reading the dataset)", errors[0])
     assert "Traceback" not in "".join(stderr_lines)
@@ -610,9 +621,7 @@ def test_cli_run_two_ctrl_c_lose_nothing(long_root, tmp_path):
     """Two SIGINTs 0.3 s apart: the second, while the outputs are written, is logged and ignored;
     summary.json, the plot and the console report are all there; exit 130 with one line."""
     import signal
-    import subprocess
     import sys
-    import threading
 
     out = tmp_path / "out"
     slow_plot = (  # the child's plot takes SLOW_PLOT_S: the writing of the outputs is under way at the second signal
@@ -624,28 +633,13 @@ def test_cli_run_two_ctrl_c_lose_nothing(long_root, tmp_path):
         "sys.exit(main(sys.argv[1:]))\n")
     cmd = [sys.executable, "-c", slow_plot, "run", "patch_rgbd", "--data", str(long_root), "--out", str(out),
            "-o", "log_interval_frames=1"]
-    defaults = lambda: [signal.signal(s, signal.SIG_DFL) for s in (signal.SIGINT, signal.SIGTERM)]  # noqa: E731
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=defaults)
-    watchdog = threading.Timer(300, proc.kill)
-    watchdog.start()
-    try:
-        stderr_lines = []
-        for line in proc.stderr:
-            stderr_lines.append(line)
-            if "frame 4/120" in line:
-                proc.send_signal(signal.SIGINT)
-                time.sleep(SECOND_SIGINT_AFTER_S)
-                proc.send_signal(signal.SIGINT)
-                break
-        stdout, rest = proc.communicate()
-    finally:
-        watchdog.cancel()
-    err = "".join(stderr_lines) + rest
+    returncode, stdout, stderr_lines = _signalled_run(cmd, [signal.SIGINT, signal.SIGINT])
+    err = "".join(stderr_lines)
     assert (out / SUMMARY_FILE).is_file() and (out / PLOT_FILE).is_file() and (out / TUM_FILE).is_file(), err[-3000:]
     data = json.loads((out / SUMMARY_FILE).read_text())
     assert data["interrupted"] == "SIGINT" and 4 <= data["frames_processed"] < 120
     assert "interrupted by SIGINT" in stdout and "outputs:" in stdout  # the console report
-    assert proc.returncode == 130, err[-3000:]
+    assert returncode == 130, err[-3000:]
     assert "Traceback" not in err
     assert "stopping: writing outputs, please wait" in err
     errors = [ln for ln in err.splitlines() if ln.startswith("fgslam:")]
