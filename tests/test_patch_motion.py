@@ -111,7 +111,10 @@ def _check_alternating(fe, statuses):
     ("patch_kitti_mono", "kitti00_0-199", (0, 3), ("patch.ba.pixel_sigma=1.01",)),
     ("patch_kitti_mono", "kitti00_0-199", (0, 3), ("patch.tracking.min_inlier_ratio=0.45",)),
     ("patch_kitti_mono", "kitti00_0-199", (10, 14), ("patch.ba.pixel_sigma=1.01",)),
-])
+    # Huber-weighted fresh measurements: before the motion check, 65 initial baselines away
+    ("patch_kitti_mono", "kitti00_0-199", (0, 3), ("patch.ba.measured_huber=true",)),
+], ids=["kitti-10-14", "kitti-50-52", "patch_mono-10-14", "7scenes-100-110", "kitti-0-3-sigma", "kitti-0-3-inliers",
+        "kitti-10-14-sigma", "kitti-0-3-measured_huber"])
 def test_alternating_images_other_pairs_and_presets(shared_data, tmp_path, preset, data, pair, overrides):
     """Two frames alternating, for other frame pairs, presets and slightly different settings: every
     reversal of the tracked motion is an implausible-motion failure whatever the inlier share, so the

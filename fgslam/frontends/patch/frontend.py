@@ -1321,8 +1321,8 @@ class PatchFrontend(BackendFrontend):
     def apply_correction(self, correction: PoseCorrection) -> None:
         """Graph and finalised keyframes ``T_WC <- U_k T_WC`` with the folded scale in their patch
         inverse depths (sensor depths stay as measured); non-keyframe records re-expressed
-        (:meth:`.records.PoseRecord.corrected`) and the motion model's velocity in its reference's
-        folded units."""
+        (:meth:`.records.PoseRecord.corrected`) and the motion model's velocity (and the motion
+        check's held reference) in its reference's folded units."""
         for f in list(self.graph.frames) + list(self._final.values()):
             f.T_WC, s = correction.apply_pose(f.fid, f.T_WC)
             if s != 1.0:
@@ -1331,7 +1331,10 @@ class PatchFrontend(BackendFrontend):
             if rec is not None:
                 self._records[fid] = rec.corrected(fid, correction)
         if self._last_fid is not None and correction.fold_scale:
-            self._velocity = PoseCorrection.fold_relative(self._velocity, correction.update_for(self._last_fid)[1])
+            update = correction.update_for(self._last_fid)[1]
+            self._velocity = PoseCorrection.fold_relative(self._velocity, update)
+            if self._motion_reference is not None:
+                self._motion_reference = PoseCorrection.fold_relative(self._motion_reference, update)
 
     def proximity_candidate(self, query_kf_id: int, candidate_kf_ids: list[int]) -> Candidate | None:
         """The best proximity candidate of settled keyframe ``query_kf_id`` among ``candidate_kf_ids``
