@@ -252,6 +252,10 @@ class PatchFrontend(BackendFrontend):
         self._finalised = 0  # keyframes that left the graph (pose final)
         self._keys: dict[int, int] = {}  # fid -> gtsam key cache (bounded to about the graph size)
         self._still: list[tuple[int, int, float]] = []  # stationary frames since the newest keyframe: (fid, keyframe fid, flow px)
+        # per-frame motion (Sim(3)) that a frame rejected as implausible motion contradicted, held as the
+        # reference of the motion check until a frame is tracked again, though stationary frames after
+        # that frame restart the motion model from rest (None: the motion model's velocity is the reference)
+        self._motion_reference: np.ndarray | None = None
         # optional pose prediction at a timestamp (4x4 T_WC or None), set by the run's IMU service
         # (fgslam/backend/imu.py): the motion prior of tracking, and the pose of a frame whose visual
         # tracking fails (pose_source "imu": bridged, not a failure)
@@ -394,16 +398,18 @@ class PatchFrontend(BackendFrontend):
                            T_WC=None if T is None else _rigid(T), pose_source=source,
                            is_keyframe=is_keyframe, num_valid=int(num_valid), events=list(events or []))
 
-    def _predict(self, timestamp: float | None = None) -> np.ndarray:
+    def _predict(self, timestamp: float | None = None, velocity: np.ndarray | None = None,
+                 damping: float | None = None) -> np.ndarray:
         """The motion prior's pose at ``timestamp`` when it gives one, else the damped constant-velocity
-        prediction from the last posed frame."""
+        prediction from the last posed frame (per-frame motion ``velocity``, None: the motion model's;
+        ``damping``, None: ``tracking.motion_damping``)."""
         if self.motion_prior is not None and timestamp is not None:
             T_prior = self.motion_prior(float(timestamp))
             if T_prior is not None:
                 return T_prior
         T_last = self._pose_of(self._last_fid)
-        damping = self.config.tracking.motion_damping
-        return T_last @ _sim3_power(self._velocity, damping)
+        damping = self.config.tracking.motion_damping if damping is None else damping
+        return T_last @ _sim3_power(self._velocity if velocity is None else velocity, damping)
 
     def _update_velocity(self, fid: int) -> None:
         if self._last_fid is not None:
@@ -972,15 +978,21 @@ class PatchFrontend(BackendFrontend):
         if cfg.ba.measured_huber:
             self._huber_from(done, kf_pred[g.patch[done]])
         saved = [(f.T_WC.copy(), f.inv_depth.copy()) for f in g.frames[:-1]], g.robust[: g.num_edges - len(idx)].copy()
+        # the motion the implausible-motion check expects (undamped: the camera's last motion, or the one a
+        # rejected frame contradicted), relative to the newest keyframe before the BA moves it
+        T_ref = self._predict(frame.timestamp, self._motion_reference, damping=1.0)
+        T_CkCref = np.linalg.inv(last.T_WC) @ T_ref
         self._times["bookkeeping"] += time.perf_counter() - t0
         valid = self._rounds(idx, cfg.ba.rounds, cfg.ba.iterations, init=False, new_fid=fid, premeasured=done)
-        ratio = self._inlier_ratio(fid)
-        if valid < cfg.tracking.min_valid_edges or ratio < cfg.tracking.min_inlier_ratio:
+        implausible = None if valid < cfg.tracking.min_valid_edges else self._implausible(fid, last, T_CkCref)
+        if valid < cfg.tracking.min_valid_edges or implausible is not None:
             self._drop_new_frame(fid, saved)
-            reason = (f"tracking lost: {valid} valid measurements" if valid < cfg.tracking.min_valid_edges else
-                      f"implausible motion: {ratio:.0%} of the measurements are inliers after BA")
+            if implausible is not None and self._motion_reference is None:
+                self._motion_reference = self._velocity.copy()
+            reason = f"tracking lost: {valid} valid measurements" if implausible is None else implausible
             return self._fail(fid, frame, reason, T_pred)
         self._lost = 0
+        self._motion_reference = None
         t0 = time.perf_counter()
         events = []
         self._place_still(fid, flow)
@@ -991,6 +1003,42 @@ class PatchFrontend(BackendFrontend):
         self._update_velocity(fid)
         self._times["bookkeeping"] += time.perf_counter() - t0
         return self._status(fid, frame, "tracked", is_keyframe=True, num_valid=valid, events=events)
+
+    def _implausible(self, fid: int, kf: GraphFrame, T_CkCref: np.ndarray) -> str | None:
+        """Why the motion of the BA'd new frame ``fid`` is implausible, or None: too few of its
+        measurements are BA inliers, or its tracked motion contradicts the expected motion
+        ``T_CkCref`` (relative to the newest keyframe ``kf`` as it was before the BA; the motion
+        model's prediction, or with the motion reference held after a rejected frame, the prediction
+        with that motion; :meth:`_motion_contradiction`). The caller drops such a frame: it never
+        becomes a keyframe, moves the window or sets the velocity, and takes the motion model's pose."""
+        tcfg = self.config.tracking
+        ratio = self._inlier_ratio(fid)
+        if ratio < tcfg.min_inlier_ratio:
+            return f"implausible motion: {ratio:.0%} of the measurements are inliers after BA"
+        T_CkCnew = np.linalg.inv(kf.T_WC) @ self.graph.frame(fid).T_WC
+        contradiction, deviation_px = self._motion_contradiction(kf, T_CkCref, T_CkCnew)
+        if contradiction > tcfg.max_motion_contradiction and deviation_px > tcfg.min_contradiction_px:
+            return (f"implausible motion: tracked motion contradicts the motion model "
+                    f"({contradiction:.2f} times the motion, {deviation_px:.0f} px)")
+        return None
+
+    def _motion_contradiction(self, kf: GraphFrame, T_CkCpred: np.ndarray, T_CkCnew: np.ndarray) -> tuple[float, float]:
+        """How far the tracked motion ``T_CkCnew`` departs from the predicted ``T_CkCpred`` (both
+        relative to keyframe ``kf``), measured on ``kf``'s patches reprojected through both (in
+        pixels: rotation and translation alike, scale-free): (median |tracked flow - predicted flow|
+        over the larger of the median tracked and predicted flows, that median distance in px).
+        The ratio is 0 when the prediction held, about 1 for a start from rest, a stop or a turn at a
+        right angle, about 2 when the motion reversed (a stream jumping back and forth); (0, 0) when
+        neither motion moves the patches or none reprojects through both."""
+        uv_pred, ok_pred = self._reproject_to(kf, kf.T_WC @ T_CkCpred)
+        uv_new, ok_new = self._reproject_to(kf, kf.T_WC @ T_CkCnew)
+        ok = ok_pred & ok_new
+        if not ok.any():
+            return 0.0, 0.0
+        flow_pred, flow_new = uv_pred[ok] - kf.uv[ok], uv_new[ok] - kf.uv[ok]
+        motion = max(float(np.median(np.linalg.norm(flow_pred, axis=1))), float(np.median(np.linalg.norm(flow_new, axis=1))))
+        deviation = float(np.median(np.linalg.norm(uv_new[ok] - uv_pred[ok], axis=1)))
+        return (deviation / motion if motion > 0 else 0.0), deviation
 
     def _inlier_ratio(self, fid: int) -> float:
         """Share of the measured left-image edges into and from frame ``fid`` that the last BA kept
@@ -1092,6 +1140,7 @@ class PatchFrontend(BackendFrontend):
         self._init = None
         self._lost = 0
         self._still = []
+        self._motion_reference = None
 
     def _remove_redundant(self) -> int | None:
         """DPVO keyframe removal: drop the frame ``keyframe_index`` positions before the newest when
@@ -1272,8 +1321,8 @@ class PatchFrontend(BackendFrontend):
     def apply_correction(self, correction: PoseCorrection) -> None:
         """Graph and finalised keyframes ``T_WC <- U_k T_WC`` with the folded scale in their patch
         inverse depths (sensor depths stay as measured); non-keyframe records re-expressed
-        (:meth:`.records.PoseRecord.corrected`) and the motion model's velocity in its reference's
-        folded units."""
+        (:meth:`.records.PoseRecord.corrected`) and the motion model's velocity (and the motion
+        check's held reference) in its reference's folded units."""
         for f in list(self.graph.frames) + list(self._final.values()):
             f.T_WC, s = correction.apply_pose(f.fid, f.T_WC)
             if s != 1.0:
@@ -1282,7 +1331,10 @@ class PatchFrontend(BackendFrontend):
             if rec is not None:
                 self._records[fid] = rec.corrected(fid, correction)
         if self._last_fid is not None and correction.fold_scale:
-            self._velocity = PoseCorrection.fold_relative(self._velocity, correction.update_for(self._last_fid)[1])
+            update = correction.update_for(self._last_fid)[1]
+            self._velocity = PoseCorrection.fold_relative(self._velocity, update)
+            if self._motion_reference is not None:
+                self._motion_reference = PoseCorrection.fold_relative(self._motion_reference, update)
 
     def proximity_candidate(self, query_kf_id: int, candidate_kf_ids: list[int]) -> Candidate | None:
         """The best proximity candidate of settled keyframe ``query_kf_id`` among ``candidate_kf_ids``
