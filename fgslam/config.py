@@ -121,7 +121,11 @@ def _check_range(value: Any, rng: Range, key: str, source: str) -> None:
     for item in items:
         if item is None or isinstance(item, bool) or not isinstance(item, (int, float)):
             continue
-        if not rng.contains(float(item)):
+        try:
+            inside = rng.contains(float(item))
+        except OverflowError:  # an integer too large for a float is outside every finite range
+            inside = False
+        if not inside:
             raise ConfigError(f"{source}: key '{key}': must be {rng.text()} (got {value!r})")
 
 
@@ -266,9 +270,13 @@ def _convert(value: Any, tp: Any, key: str, source: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise fail("expected a number")
-        if not math.isfinite(float(value)):
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond any float
+            raise fail("must be a finite number") from None
+        if not math.isfinite(number):
             raise fail("must be a finite number")
-        return float(value)
+        return number
     if tp is str:
         if not isinstance(value, str):
             raise fail("expected a string")

@@ -73,6 +73,11 @@ DENSE_FLOW_BYTES_PER_PIXEL = 40
 
 #: B per pointmap pixel of a keyframe: canonical float32 points (12 B), confidence (4 B), colour (3 B)
 POINTMAP_KEYFRAME_BYTES_PER_PIXEL = 20
+#: Share of the frames that become keyframes, for what grows with the keyframes (pointmap keyframes,
+#: loop-closure descriptors): at most 8 % measured (pointmap 52 of 723 hand-held frames; patch on
+#: KITTI and 7-Scenes 5-30 % but it keeps no per-keyframe image), 25 % for a margin. Assuming every
+#: frame a keyframe refused honest long sequences (10,000 frames at 512 px over 16 GiB).
+KEYFRAME_SHARE = 0.25
 #: B per pointmap pixel of a frame whose source caches stay loaded: two 16-dimensional float32
 #: descriptors with confidences, the flow / depth maps
 POINTMAP_SOURCE_BYTES_PER_PIXEL = 160
@@ -133,8 +138,7 @@ def estimate_run_memory(config: SlamConfig, width: int, height: int, frames: int
     raw_w, raw_h = raw_size if raw_size is not None else (width, height)
     px = float(width) * float(height)
     ds = config.dataset
-    size_keys = ([f"dataset.resize_width={ds.resize_width}", f"dataset.resize_height={ds.resize_height}"]
-                 if ds.resize_width or ds.resize_height else [f"dataset.resize_scale={ds.resize_scale:g}"])
+    size_keys = ds.resize_keys()
     stereo, rgbd = config.sensor == "stereo", config.sensor == "rgbd"
     cams = 2 if stereo else 1
     frame_px_bytes = (GREY_BYTES + RGB_BYTES * (ds.load_rgb and config.output.write_ply)
@@ -155,7 +159,7 @@ def estimate_run_memory(config: SlamConfig, width: int, height: int, frames: int
         parts += _pointmap_parts(family, width, height, frames, size_keys)
     if config.loop_closure.mode in ("classical", "both"):
         n = config.loop_closure.bow.orb.n_features
-        parts.append(MemoryPart("loop-closure keyframes", float(frames) * n * ORB_FEATURE_BYTES,
+        parts.append(MemoryPart("loop-closure keyframes", KEYFRAME_SHARE * frames * n * ORB_FEATURE_BYTES,
                                 [f"loop_closure.bow.orb.n_features={n}"]))
     return MemoryEstimate(parts)
 
@@ -227,8 +231,8 @@ def _pointmap_parts(cfg, width: int, height: int, frames: int, size_keys: list[s
     keys = [f"pointmap.image_width={cfg.image_width}"] + (size_keys if cfg.image_width <= 0 else [])
     keep = cfg.keyframe.keep_source_frames
     return [
-        MemoryPart(f"pointmap keyframes ({pw}x{ph}, up to {frames})", frames * ppx * POINTMAP_KEYFRAME_BYTES_PER_PIXEL,
-                   keys),
+        MemoryPart(f"pointmap keyframes ({pw}x{ph}, {KEYFRAME_SHARE:.0%} of {frames} frames)",
+                   KEYFRAME_SHARE * frames * ppx * POINTMAP_KEYFRAME_BYTES_PER_PIXEL, keys),
         MemoryPart("pointmap frames", ppx * ((keep + 1) * POINTMAP_SOURCE_BYTES_PER_PIXEL + POINTMAP_MATCHING_BYTES_PER_PIXEL),
                    [*keys, f"pointmap.keyframe.keep_source_frames={keep}"]),
     ]

@@ -262,17 +262,20 @@ def previous_run_outputs(out_dir: str | Path) -> list[Path]:
     return found + ([out / DEPTH_DIR] if (out / DEPTH_DIR).is_dir() else [])
 
 
-def clear_previous_outputs(out_dir: str | Path, overwrite: bool) -> None:
+def clear_previous_outputs(out_dir: str | Path, overwrite: bool, remove: bool = True) -> None:
     """Refuse an output folder that holds a previous run's outputs (:func:`previous_run_outputs`)
-    unless ``overwrite``; then remove those outputs (other files are left alone), so that no output
-    of the previous run is ever taken for one of the new run's. ConfigError naming the folder and
-    ``--overwrite``; DataError when one cannot be removed."""
+    unless ``overwrite``; then (``remove``) remove those outputs (other files are left alone), so that
+    no output of the previous run is ever taken for one of the new run's. ``remove=False`` only
+    checks (the CLI, before the dataset is opened: a run that cannot start keeps the old outputs).
+    ConfigError naming the folder and ``--overwrite``; DataError when one cannot be removed."""
     out = Path(out_dir)
     previous = previous_run_outputs(out)
     if previous and not overwrite:
         names = ", ".join(p.name for p in previous)
         raise ConfigError(f"output folder {out} holds the outputs of a previous run ({names}); "
                           "use --overwrite to replace them, or another --out")
+    if not remove:
+        return
     for path in previous:
         try:
             shutil.rmtree(path) if path.is_dir() else path.unlink()
@@ -490,6 +493,8 @@ def run_slam(
         saved_threads = _set_threads(config.threads)
         try:
             error = _loop(dataset, frontend, config, state, progress)
+            if error is not None:
+                _abort(frontend)
         finally:
             stopper.finishing = True  # from here on a signal is logged and the outputs and report are completed
             _restore_threads(saved_threads)
@@ -518,6 +523,15 @@ def run_slam(
     if summary.output_errors:
         raise OutputError(f"the run finished but {written}")
     return summary
+
+
+def _abort(frontend: Frontend) -> None:
+    """Stop the frontend's background work without waiting for it (a stopped or failed run); a
+    failure there is logged, never raised: the outputs are written next."""
+    try:
+        frontend.abort()
+    except (Exception, KeyboardInterrupt):  # noqa: BLE001 - the run's own outcome is reported
+        logger.exception("stopping the background work failed")
 
 
 def _with_imu(frontend: Frontend, config: SlamConfig, dataset: Dataset) -> Frontend:
@@ -572,8 +586,9 @@ class StopOnSignal:
     def _handle(self, signum: int, frame: Any) -> None:
         name = signal.Signals(signum).name
         if self.finishing:
-            logger.warning("%s received: stopping: writing outputs, please wait", name)
+            logger.warning("%s received again: still stopping: writing outputs, please wait", name)
             return
+        self.finishing = True  # set before raising: a second signal, however soon, never cuts the stop short
         logger.warning("%s received: stopping: writing outputs, please wait", name)
         raise Interrupted(name, signum)
 

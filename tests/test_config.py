@@ -375,6 +375,16 @@ def test_values_beyond_any_real_use_are_refused_naming_the_key(override, key):
         load_slam_config("patch_mono", [override])
 
 
+@pytest.mark.parametrize("override, key", [("patch.graph.patches_per_frame=1" + "0" * 400, "patch.graph.patches_per_frame"),
+                                           ("patch.ba.pixel_sigma=1" + "0" * 400, "patch.ba.pixel_sigma")])
+def test_integers_beyond_any_float_are_refused_naming_the_key(override, key):
+    """An integer too large for a float (an OverflowError before) is a ConfigError naming the key."""
+    from fgslam.slam import load_slam_config
+
+    with pytest.raises(ConfigError, match=rf"key '{re.escape(key)}': must be"):
+        load_slam_config("patch_mono", [override])
+
+
 def test_infinity_is_refused_by_every_range_also_for_configs_built_in_code():
     from fgslam.frontends.patch.config import BAConfig, PatchConfig
 

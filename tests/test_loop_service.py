@@ -379,3 +379,35 @@ def test_several_loops_verified_during_a_global_ba_get_one_global_ba_each():
     assert [job.loop_edges["src"].tolist() for job in toy.jobs] == [[10, 0], [14, 0], [18, 0]]
     assert service.proximity_loops == [(10, 0, "accepted"), (14, 0, "accepted"), (18, 0, "accepted")]
     assert service.proximity_counts["global_ba_runs"] == 3
+
+
+CANCEL_SOLVE_S = 120.0  # a global BA far longer than the test may take
+
+
+def test_cancel_ends_a_running_global_ba_in_its_worker_process_at_once(monkeypatch):
+    """A stopped run (SIGTERM, a failure) does not wait for a running global BA: cancel() ends its
+    worker process, drops the result and marks its loop undone."""
+    import functools
+
+    toy = ToyMap(10)
+    make_job = toy.global_ba_job
+
+    def slow_job(loop_edges):
+        job = make_job(loop_edges)
+        job.solve, job.in_process = functools.partial(time.sleep, CANCEL_SOLVE_S), True  # picklable: the worker process
+        return job
+
+    monkeypatch.setattr(toy, "global_ba_job", slow_job)
+    service = _proximity_service(toy)
+    service.search(9)
+    assert service.busy
+    processes = list(service._pool._processes.values())
+    assert processes
+    t0 = time.monotonic()
+    service.cancel()
+    assert time.monotonic() - t0 < CANCEL_SOLVE_S / 4
+    assert not service.busy and toy.events == []
+    for process in processes:
+        process.join(timeout=WAIT_S)
+        assert not process.is_alive()
+    assert service.summary({})["proximity"]["undone"] == 1

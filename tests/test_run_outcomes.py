@@ -139,6 +139,13 @@ def test_a_rerun_into_a_previous_out_is_refused_and_overwrite_removes_the_old_ou
     assert main(args) == 2
     line = _error_line(capsys.readouterr().err)
     assert str(out) in line and "--overwrite" in line and "previous run" in line
+    # --overwrite with a run that cannot start (its config is refused, or its dataset does not open):
+    # the previous run's outputs stay
+    assert main(args + ["--overwrite", "-o", "dataset.resize_width=9000"]) == 2
+    assert "dataset.resize_width" in _error_line(capsys.readouterr().err)
+    assert main(["run", "patch_mono", "--data", str(tmp_path / "missing"), "--out", str(out), "--overwrite"]) == 2
+    assert "missing" in _error_line(capsys.readouterr().err)
+    assert old <= {p.name for p in out.iterdir()}
     # --overwrite with a run that gives no pose: none of the previous run's outputs is left beside its summary
     assert main(args + ["--overwrite", "-o", "dataset.end=1"]) == 2
     assert "no frame got a pose" in _error_line(capsys.readouterr().err)

@@ -397,6 +397,20 @@ class LoopService:
             self._apply_correction(self.closer.poll())
             self._times["loop"] += time.perf_counter() - t0
 
+    def cancel(self) -> None:
+        """Stop at once (an interrupted or failed run): a running global BA is dropped and its worker
+        process ended, the closer's worker stops after its current job; nothing more is applied."""
+        if self._running is not None:
+            self._undo(self._running.loops, "undone: the run stopped")
+            self._running = None
+        if self._pool is not None:
+            for process in list(getattr(self._pool, "_processes", {}).values()):  # a running solve is not waited for
+                process.terminate()
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+        if self.closer is not None:
+            self.closer.cancel()
+
     def summary(self, index: dict[int, int] | None = None) -> dict | None:
         """Loop-closure counts for the run summary (None when off); ``index`` maps keyframe ids to the
         input frame indices reported in ``loop_frames`` (-1: unknown)."""

@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
 
         check_rerun_target(args.rerun)
     prepare_output_dir(args.out, args.data)  # before any work: writable, not the dataset folder nor inside it
-    clear_previous_outputs(args.out, args.overwrite)  # and no previous run's outputs unless --overwrite
+    clear_previous_outputs(args.out, args.overwrite, remove=False)  # no previous run's outputs unless --overwrite
     dataset = open_slam_dataset(args.data, config, args.format)
 
     def report(summary) -> None:  # also when the run then fails or is interrupted (the error line follows)

@@ -71,6 +71,10 @@ class Frontend(abc.ABC):
     def finish(self) -> None:
         """Called once after the last frame (final global optimisation, flush background work)."""
 
+    def abort(self) -> None:
+        """Stop background work at once, without applying it (an interrupted or failed run: its
+        outputs are written from what the frontend holds now). Default: nothing runs in the background."""
+
     def stage_times(self) -> dict[str, float]:
         """Accumulated wall time in seconds per stage (e.g. ``flow``, ``ba``, ``bookkeeping``)."""
         return {}
@@ -167,6 +171,11 @@ class BackendFrontend(Frontend):
         if not poses:
             return np.zeros(0), np.zeros((0, 4, 4)), []
         return np.array(stamps), np.stack(poses), sources
+
+    def abort(self) -> None:
+        """Stop the loop service's background work (a running global BA's worker process, the
+        closer's thread) without applying it."""
+        self.loops.cancel()
 
     def stage_times(self) -> dict[str, float]:
         """The frontend's own stage times (``_times``) plus the loop service's share in this thread."""

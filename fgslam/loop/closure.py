@@ -293,7 +293,7 @@ class _Job:
     ``factors``), ``solve`` (a re-solve), ``close`` (the final solve); ``poses`` and ``epoch`` are the
     caller's pose table and corrections applied at submission."""
 
-    kind: str
+    kind: Literal["keyframe", "fold", "solve", "close"]
     tick: int
     kf_id: int | None
     poses: dict
@@ -542,6 +542,7 @@ class LoopCloser:
                 return self.poll() if self._closed else None
             logger.warning("pose graph: corrections kept arriving; gave up after %d tries",
                            self.cfg.max_pose_graph_retries)
+            self._resolves = 0
             return None
         self._resolves = 0
         self._epoch += 1
@@ -559,6 +560,7 @@ class LoopCloser:
         if self._worker is not None:
             self._queue.put(job)
         else:
+            self._raise_worker_error()            # nothing runs after a failed job
             self._run_job(job)
             self._raise_worker_error()
 
@@ -636,13 +638,33 @@ class LoopCloser:
         if not self._enabled or self._closed:
             self._closed = True
             return
-        self._submit("close")
+        try:
+            self._submit("close")
+        finally:
+            self._closed = True
+            if self._worker is not None:
+                self._queue.put(None)
+                self._worker.join()
+                self._worker = None
+        self._raise_worker_error()
+
+    def cancel(self) -> None:
+        """Stop the worker after its current job without running the queued ones (an interrupted or
+        failed run); nothing more is handed out."""
         self._closed = True
+        self._jobs.clear()
         if self._worker is not None:
+            while True:                               # drop the queued jobs
+                try:
+                    job = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if job is not None:
+                    job.done.set()
+                self._queue.task_done()
             self._queue.put(None)
             self._worker.join()
             self._worker = None
-        self._raise_worker_error()
 
     # ------------------------------------------------------------------ diagnostics
     @property
@@ -722,6 +744,8 @@ class LoopCloser:
                 job.correction = self._solve(job.poses)
             elif job.kind == "close":
                 job.correction = self._solve_unsolved(job.poses)
+            else:
+                raise ValueError(f"loop closure: unknown job kind {job.kind!r}")
         except BaseException as exc:                  # surfaced in the frontend thread
             logger.exception("loop closure worker failed on a %s job", job.kind)
             self._error = exc

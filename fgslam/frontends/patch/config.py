@@ -127,7 +127,7 @@ class TrackingConfig:
     motion_filter_flow: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # median flow (px) of the newest keyframe's patches into a new frame below which the frame is stationary: not added to the graph, posed from that keyframe (0: off)
     min_inlier_ratio: float = ranged(0.5, ge=0, le=1)  # share of a new frame's measurements that must be BA inliers; fewer: motion its own reprojections contradict, a tracking failure
     max_motion_contradiction: float = ranged(1.5, gt=0, le=2)  # a new frame whose tracked motion departs from the expected (undamped constant-velocity) motion by more than this many times the larger of the two motions (newest keyframe's patches reprojected: 0 as expected, 1 for a start or stop, 2 for a full reversal) ...
-    min_contradiction_px: float = ranged(20.0, ge=0, le=1000)  # ... and by more than this median distance (px) is implausible motion, a tracking failure (7-Scenes hand-held reversals: at most 12 px; alternating KITTI / 7-Scenes frames: 29-83 px)
+    min_contradiction_px: float = ranged(20.0, ge=0, le=MAX_IMAGE_SIDE)  # ... and by more than this median distance (px) is implausible motion, a tracking failure (7-Scenes hand-held reversals: at most 12 px; alternating KITTI / 7-Scenes frames: 29-83 px)
     median_of_measured: bool = False  # mono: new patches get the median inverse depth of the previous frame's patches that have a BA-inlier measurement (else of all of them: the unmeasured ones keep their initial value, which then stays the median)
     min_measured_patches: int = ranged(8, ge=1, le=MAX_COUNT)  # median_of_measured: fewer measured patches than this: the median of all of them
 

@@ -78,11 +78,15 @@ class DatasetConfig:
         if self.tum_camera is not None and self.tum_camera not in ("fr1", "fr2", "fr3"):
             raise ConfigError(f"tum_camera must be fr1, fr2 or fr3, got {self.tum_camera!r}")
 
+    def resize_keys(self) -> list[str]:
+        """The keys that set the output size, with their values (``key=value`` each)."""
+        if self.resize_width or self.resize_height:
+            return [f"dataset.resize_width={self.resize_width}", f"dataset.resize_height={self.resize_height}"]
+        return [f"dataset.resize_scale={self.resize_scale:g}"]
+
     def resize_text(self) -> str:
         """The keys that set the output size, with their values (for error messages)."""
-        if self.resize_width or self.resize_height:
-            return f"dataset.resize_width={self.resize_width}, dataset.resize_height={self.resize_height}"
-        return f"dataset.resize_scale={self.resize_scale:g}"
+        return ", ".join(self.resize_keys())
 
     def output_size(self, width: int, height: int) -> tuple[int, int]:
         """Output size before cropping for a raw ``width x height`` image."""
