@@ -203,6 +203,7 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     from .slam import load_slam_config, open_slam_dataset, run_slam
 
     summary = None
+    started_ns = time.time_ns()
     try:
         config = load_slam_config(cell["preset"], cell["overrides"])
         dataset = open_slam_dataset(cell["data"], config, cell["format"])
@@ -212,8 +213,9 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
         return _row(cell, json.loads(json.dumps(summary, default=str)))
     except Exception as exc:  # noqa: BLE001 - a failing cell is recorded, the batch goes on
         path = Path(cell["out"]) / SUMMARY_FILE
-        try:
-            summary = json.loads(path.read_text()) if path.is_file() else None
+        try:  # the summary this attempt wrote (partial outputs), never an earlier attempt's
+            fresh = path.is_file() and path.stat().st_mtime_ns >= started_ns
+            summary = json.loads(path.read_text()) if fresh else None
         except (OSError, ValueError):
             summary = None
         return _row(cell, summary, error=f"{type(exc).__name__}: {exc}")

@@ -125,3 +125,18 @@ def test_without_ray_runs_sequentially_and_says_so(tmp_path, clip, monkeypatch, 
         run_batch(matrix, tmp_path / "out3", address="127.0.0.1:1")
     with pytest.raises(DataError):
         batch.check_address("127.0.0.1:1", 1.0)
+
+
+def test_a_failing_cell_never_reports_an_earlier_attempts_figures(tmp_path):
+    """A cell whose dataset does not open this time: its row has the error and none of the figures of
+    the summary.json an earlier attempt left in the cell's folder."""
+    from fgslam.batch import run_cell
+
+    out = tmp_path / "cell"
+    out.mkdir()
+    (out / "summary.json").write_text(json.dumps({"fps": 99.0, "frames_processed": 40,
+                                                  "evaluation": {"ate_rmse_m": 0.01}}))
+    row = run_cell({"config": "mono", "dataset": "gone", "preset": "patch_mono", "overrides": LIGHT,
+                    "data": str(tmp_path / "no_such_folder"), "format": "auto", "out": str(out)})
+    assert row["status"] == "failed" and "no_such_folder" in row["error"]
+    assert row["fps"] is None and row["ate_m"] is None and row["frames"] is None
