@@ -29,6 +29,7 @@ import argparse
 import json
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -101,7 +102,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--synth-rate", type=float, default=20.0, help="frame rate (Hz) of the synthetic sequence")
     p.add_argument("--synth-dir", type=Path, default=Path(tempfile.gettempdir()) / "fgslam_bench_synth",
                    help="cache folder of the synthetic renders (reused when the scene is the same)")
-    p.add_argument("--keep-outputs", type=Path, default=None, help="write each run's outputs to DIR/<case>")
+    p.add_argument("--keep-outputs", type=Path, default=None, help="write each run's outputs to DIR/<case>/new (and DIR/<case>/baseline)")
     p.add_argument("--baseline", type=Path, default=None,
                    help="fgslam source tree to run side by side (its fgslam/ package and presets), e.g. a git worktree of main")
     p.add_argument("-o", "--override", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -156,21 +157,26 @@ def run_case(name: str, args: argparse.Namespace) -> dict:
     config = load_slam_config(preset, list(case_overrides) + args.overrides)
     root = case_root(CASES[name], args)
     dataset = open_slam_dataset(root, config)
-    out = args.keep_outputs / name if args.keep_outputs else Path(tempfile.mkdtemp(prefix=f"bench_{name}_"))
+    code = Path(fgslam.__file__).resolve().parents[1]  # the source tree that runs (this one or --baseline's)
+    side = "new" if code == REPO.resolve() else "baseline"
+    out = args.keep_outputs / name / side if args.keep_outputs else Path(tempfile.mkdtemp(prefix=f"bench_{name}_"))
+    if out.is_dir():  # --keep-outputs reruns replace (a baseline tree may predate run_slam's overwrite)
+        shutil.rmtree(out)
     load_before = os.getloadavg()
     error = None
+    started_ns = time.time_ns()
     try:
-        s = run_slam(dataset, config, out, progress=False, overwrite=True).to_dict()  # --keep-outputs reruns replace
+        s = run_slam(dataset, config, out, progress=False).to_dict()
     except Exception as exc:  # noqa: BLE001 - the benchmark reports failures instead of stopping
         error = f"{type(exc).__name__}: {exc}"
         summary_path = out / "summary.json"
-        if not summary_path.is_file():
+        if not summary_path.is_file() or summary_path.stat().st_mtime_ns < started_ns:
             return {"case": name, "preset": preset, "data": str(root), "error": error}
         s = json.loads(summary_path.read_text())
     ev = s["evaluation"] or {}
     result = {
         "case": name,
-        "code": str(Path(fgslam.__file__).resolve().parents[1]),  # the source tree that ran
+        "code": str(code),  # the source tree that ran
         "preset": preset,
         "overrides": list(case_overrides) + args.overrides,
         "data": str(root),
