@@ -70,13 +70,14 @@ from typing import Any, Callable, Literal, Optional
 import numpy as np
 
 from .backend.config import BackendConfig
-from .backend.imu import ImuServiceConfig
+from .services.imu import ImuServiceConfig
 from .config import MAX_FRAMES, MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, check_ranges, ranged, to_dict, with_sections
 from .errors import ConfigError, DataError, EvaluationError, FGSlamError, Interrupted
 from .eval import EvalConfig, EvalResult, evaluate
 from .export.rerun import RerunConfig
 from .frontends import FRONTEND_NAMES, family_config_classes
 from .frontends.base import FrameStatus, Frontend
+from .system import SlamSystem
 from .io.datasets import Dataset, DatasetConfig, open_dataset
 from .io.trajectory import Trajectory, write_trajectory
 from .loop.closure import LoopClosureConfig
@@ -152,17 +153,17 @@ class SlamConfig:
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     # (here: one section per frontend family, e.g. patch: PatchConfig, from the frontend registry)
     map: BackendConfig = field(default_factory=BackendConfig)  # the run's backend (fgslam/backend)
-    imu: ImuServiceConfig = field(default_factory=ImuServiceConfig)  # IMU fusion (fgslam/backend/imu.py; inertial presets)
+    imu: ImuServiceConfig = field(default_factory=ImuServiceConfig)  # IMU fusion (fgslam/services/imu.py; inertial presets)
     eval: EvalConfig = field(default_factory=EvalConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     # loop closure (mode off | proximity | classical | both); off by default
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     max_memory_gib: float = ranged(16.0, gt=0, le=MAX_MEMORY_MIB / 1024)  # a run whose estimated peak memory (fgslam/memory.py) exceeds this is refused before any work
-    # user factor plugins, [{class: "package.module:ClassName", options: {...}}] (fgslam/backend/plugins.py)
+    # user factor plugins, [{class: "package.module:ClassName", options: {...}}] (fgslam/services/plugins.py)
     factors: list[dict[str, Any]] = field(default_factory=list)
 
     def validate(self) -> None:
-        from .backend.plugins import validate_factor_entries
+        from .services.plugins import validate_factor_entries
 
         self.loop_closure.validate()
         validate_factor_entries(self.factors)
@@ -171,10 +172,6 @@ class SlamConfig:
         """The config section of frontend family ``name`` (default: ``frontend``); None for a family
         without one (planned families)."""
         return getattr(self, name or self.frontend, None)
-
-    def frontend_services(self) -> dict[str, Any]:
-        """What the runner hands every frontend builder besides its own section (keyword arguments)."""
-        return {"map_config": self.map, "loop_config": self.loop_closure}
 
     def alignment(self) -> str:
         """Alignment used for the ATE: the sensor's (auto) or ``eval.align``."""
@@ -473,18 +470,9 @@ def run_slam(
     check_run_memory(config, dataset)
     out = prepare_output_dir(out_dir, dataset.root)
     clear_previous_outputs(out, overwrite)  # refused, or removed before the run starts
-    if frontend is None:
-        from .backend import Backend
-        from .frontends import make_frontend
-
-        backend = Backend(config.map)  # one per run, fed by the frontend
-        frontend = make_frontend(config.frontend, config, dataset.calibration, config.sensor, backend=backend)
-    frontend = _with_imu(frontend, config, dataset)  # IMU service on the backend when imu.enabled
-    if config.factors:  # user factor plugins on the frontend's backend (fgslam/backend/plugins.py)
-        from .backend.plugins import with_plugins
-
-        frontend = with_plugins(frontend, config.factors, dataset.timestamps)
-    frontend = _with_rerun(frontend, rerun, dataset, config)
+    system = SlamSystem.build(config, dataset.calibration, frontend=frontend, timestamps=dataset.timestamps,
+                              has_imu=dataset.has_imu, imu_noise=getattr(dataset, "imu_noise", None),
+                              where=str(dataset.root), rerun=rerun)
     load_average = [round(v, 2) for v in os.getloadavg()]
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
     state = _RunState()
@@ -492,14 +480,14 @@ def run_slam(
         t_start, cpu_start = time.perf_counter(), _cpu_seconds()
         saved_threads = _set_threads(config.threads)
         try:
-            error = _loop(dataset, frontend, config, state, progress)
+            error = _loop(dataset, system, config, state, progress)
             if error is not None:
-                _abort(frontend)
+                _abort(system)
         finally:
             stopper.finishing = True  # from here on a signal is logged and the outputs and report are completed
             _restore_threads(saved_threads)
         state.wall_s, state.cpu_s = time.perf_counter() - t_start, _cpu_seconds() - cpu_start
-        summary, error = _finalize(dataset, gt, frontend, config, state, out, load_average, error)
+        summary, error = _finalize(dataset, gt, system, config, state, out, load_average, error)
         if on_summary is not None:  # still under the handlers: a second Ctrl-C never cuts the report
             try:
                 on_summary(summary)
@@ -525,31 +513,13 @@ def run_slam(
     return summary
 
 
-def _abort(frontend: Frontend) -> None:
-    """Stop the frontend's background work without waiting for it (a stopped or failed run); a
-    failure there is logged, never raised: the outputs are written next."""
+def _abort(system: SlamSystem) -> None:
+    """Stop the run's background work without waiting for it (a stopped or failed run); a failure
+    there is logged, never raised: the outputs are written next."""
     try:
-        frontend.abort()
+        system.abort()
     except (Exception, KeyboardInterrupt):  # noqa: BLE001 - the run's own outcome is reported
         logger.exception("stopping the background work failed")
-
-
-def _with_imu(frontend: Frontend, config: SlamConfig, dataset: Dataset) -> Frontend:
-    """The frontend with the IMU service fed each frame's ``frame.imu`` (``imu.enabled``), else itself;
-    DataError when the dataset has no IMU (fgslam/backend/imu.py)."""
-    if not config.imu.enabled:
-        return frontend
-    from .backend.imu import with_imu
-
-    return with_imu(frontend, config.imu, dataset.calibration, dataset.has_imu, config.sensor,
-                    getattr(dataset, "imu_noise", None), where=str(dataset.root))
-def _with_rerun(frontend: Frontend, target: Optional[str], dataset: Dataset, config: SlamConfig) -> Frontend:
-    """The frontend logging to rerun when ``target`` is given (fgslam/export/rerun.py), else itself."""
-    if not target:
-        return frontend
-    from .export.rerun import with_rerun
-
-    return with_rerun(frontend, target, dataset.calibration, config.output.rerun)
 
 
 def _outputs_text(out: Path, summary: RunSummary) -> str:
@@ -599,9 +569,9 @@ class StopOnSignal:
 
 
 def _loop(
-    dataset: Dataset, frontend: Frontend, config: SlamConfig, state: _RunState, progress: bool
+    dataset: Dataset, system: SlamSystem, config: SlamConfig, state: _RunState, progress: bool
 ) -> Optional[tuple[BaseException, str]]:
-    """Iterate the dataset through the frontend; returns ``(exception, where)`` instead of raising
+    """Iterate the dataset through the system's frame skeleton; returns ``(exception, where)`` instead of raising
     (an exception anywhere, an interrupt included, stops the loop and is returned with its place)."""
     meter = _Progress(len(dataset), config.log_interval_frames, config.log_interval_s, progress)
     frames = iter(dataset)
@@ -620,7 +590,7 @@ def _loop(
             state.frames_read += 1
             state.frame_paths[frame.index] = "" if frame.path is None else str(frame.path)
             where = f"at frame {frame.index}" + (f" ({frame.path})" if frame.path is not None else "")
-            status = frontend.process(frame)
+            status = system.step(frame)
             frame_s = time.perf_counter() - t_frontend
             state.frontend_s += frame_s
             state.max_frame_s = max(state.max_frame_s, frame_s)
@@ -628,13 +598,13 @@ def _loop(
             state.frames_processed += 1
             where = f"after frame {frame.index}"
             _record(status, frame.timestamp, state)
-            meter.update(state.frames_processed, frontend.num_keyframes(), len(state.failure_frames))
+            meter.update(state.frames_processed, system.frontend.num_keyframes(), len(state.failure_frames))
         where = "in finish() after the last frame"
         t_frontend = time.perf_counter()
-        frontend.finish()
+        system.finish()
         state.frontend_s += time.perf_counter() - t_frontend
         t_frontend = None
-        meter.update(state.frames_processed, frontend.num_keyframes(), len(state.failure_frames), force=True)
+        meter.update(state.frames_processed, system.frontend.num_keyframes(), len(state.failure_frames), force=True)
     except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - reported with partial outputs
         if t_frontend is not None:
             state.frontend_s += time.perf_counter() - t_frontend
@@ -760,7 +730,7 @@ def _evaluation_dict(result: EvalResult) -> dict[str, Any]:
 def _finalize(
     dataset: Dataset,
     gt: Optional[Trajectory],
-    frontend: Frontend,
+    system: SlamSystem,
     config: SlamConfig,
     state: _RunState,
     out: Path,
@@ -772,6 +742,7 @@ def _finalize(
     loop's, or one raised by the frontend's end-of-run queries, which never prevents the writing)."""
     notes: list[str] = []
     errors: list[tuple[BaseException, str]] = [] if error is None else [error]
+    frontend = system.frontend
     traj, sources = _final_trajectory(frontend, state, notes, errors)
     outputs: dict[str, str] = {}
     output_errors: dict[str, str] = {}
@@ -800,9 +771,9 @@ def _finalize(
     loop = None
     points = None
     try:
-        stage_s = {k: float(v) for k, v in frontend.stage_times().items()}
+        stage_s = {k: float(v) for k, v in system.stage_times().items()}
         keyframes = int(frontend.num_keyframes())
-        loop = frontend.loop_summary()
+        loop = system.loop_summary()
         if config.output.write_ply:
             points = frontend.keyframe_points()
             if points is None:

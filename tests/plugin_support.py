@@ -97,7 +97,7 @@ class DriftingOdometry:
         b.optimize_window(free, self.iterations)
 
     def process(self, k: int) -> None:
-        """The frontend interface of a run (fgslam.backend.plugins.with_plugins wraps it)."""
+        """The frontend interface of a run (the system steps it: see :func:`plugin_system`)."""
         self.step(k)
 
     def finish(self) -> None:
@@ -124,13 +124,23 @@ class DriftingOdometry:
                 self._add_factor(i, j)
 
 
-def run_drive(frontend, n: int) -> np.ndarray:
-    """Feed ``n`` keyframes through ``frontend`` (a DriftingOdometry, possibly wrapped with plugins),
-    finish, and return the backend's final keyframe poses (n, 4, 4)."""
+def plugin_system(odometry, entries, timestamps=None):
+    """The run's system around ``odometry`` (a DriftingOdometry, or one without ``apply_correction``)
+    with the factor plugins of ``entries`` (none: no plugin service); it steps keyframe numbers as frames."""
+    from fgslam.services.plugins import FactorPlugins
+    from fgslam.system import SlamSystem
+
+    plugins = FactorPlugins(entries, odometry.backend, timestamps, contributor=odometry) if entries else None
+    return SlamSystem(odometry, odometry.backend, plugins=plugins)
+
+
+def run_drive(system, n: int) -> np.ndarray:
+    """Feed ``n`` keyframes through ``system`` (:func:`plugin_system`), finish, and return the
+    backend's final keyframe poses (n, 4, 4)."""
     for k in range(n):
-        frontend.process(k)
-    frontend.finish()
-    return np.array([frontend.backend.pose_matrix(k) for k in range(n)])
+        system.step(k)
+    system.finish()
+    return np.array([system.backend.pose_matrix(k) for k in range(n)])
 
 
 def ate_se3(T_est: np.ndarray, T_true: np.ndarray) -> float:

@@ -21,6 +21,7 @@ from fgslam.frontends import make_frontend
 from fgslam.frontends.dense import DenseConfig, DenseFrontend
 from fgslam.frontends.dense.graph import select_global_edges
 from fgslam.io.trajectory import Trajectory
+from fgslam.backend import Backend, BackendConfig
 from eval_support import assert_beats_doing_nothing
 from patch_support import render_room
 
@@ -41,7 +42,7 @@ def load(root, mode, depth=False):
 
 
 def run(frames, mode, config=None):
-    fe = DenseFrontend(config or DenseConfig(), sensor_mode=mode)
+    fe = DenseFrontend(config or DenseConfig(), sensor_mode=mode, backend=Backend(BackendConfig()))
     statuses = [fe.process(f) for f in frames]
     fe.finish()
     return fe, statuses
@@ -135,9 +136,9 @@ def test_registry_presets_swap_and_runner_outputs(room, tmp_path):
     config = load_slam_config("patch_rgbd", ["frontend=dense", "dense.ba.window=4", "output.write_depth=true",
                                              "output.write_ply=true", "output.plot=false"])
     assert config.frontend == "dense" and config.dense.ba.window == 4
-    assert isinstance(make_frontend("dense", config, None, "rgbd"), DenseFrontend)
+    assert isinstance(make_frontend("dense", config, None, "rgbd", backend=Backend(BackendConfig())), DenseFrontend)
     with pytest.raises(ConfigError, match="dense.ba.window"):
-        make_frontend("dense", load_slam_config("dense_mono", ["dense.ba.window=20"]), None, "mono")
+        make_frontend("dense", load_slam_config("dense_mono", ["dense.ba.window=20"]), None, "mono", backend=Backend(BackendConfig()))
     summary = run_slam(open_slam_dataset(room, config), config, tmp_path / "out", progress=False)
     assert summary.frontend == "dense" and summary.frames_with_pose == FRAMES
     pngs = sorted((tmp_path / "out" / "depth").glob("*.png"))

@@ -15,9 +15,9 @@ from __future__ import annotations
 import numpy as np
 
 from fgslam.eval import EvalConfig, evaluate
-from fgslam.frontends import make_frontend
 from fgslam.io.trajectory import Trajectory
 from fgslam.slam import load_slam_config, open_slam_dataset
+from fgslam.system import SlamSystem, run_frames
 from eval_support import assert_beats_doing_nothing
 
 RGBD_SLICE_M = 0.015  # SE(3) ATE bound of the 60-frame RGB-D slice (measured 0.0057 m)
@@ -27,10 +27,9 @@ MONO_SLICE_M = 0.025  # Sim(3) ATE bound of the 60-frame monocular slice (measur
 def run(path, preset, end):
     config = load_slam_config(preset, ["dataset.load_rgb=false"] + ([f"dataset.end={end}"] if end else []))
     ds = open_slam_dataset(path, config)
-    fe = make_frontend("dense", config, ds.calibration, config.sensor)
-    statuses = [fe.process(f) for f in ds]
-    fe.finish()
-    return ds, fe, statuses
+    system = SlamSystem.build(config, ds.calibration)
+    statuses = run_frames(system, ds)
+    return ds, system.frontend, statuses
 
 
 def ate(ds, fe, align):

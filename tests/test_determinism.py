@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from fgslam.backend.loop_service import LoopService
+from fgslam.services.loops import LoopService
 from fgslam.loop.closure import LoopClosureConfig, LoopCloser
 from fgslam.slam import SUMMARY_FILE, SlamConfig, open_slam_dataset, run_slam
 from patch_support import light_patch_config

@@ -46,22 +46,25 @@ def test_run_writes_a_rerun_log(tmp_path):
 def test_loop_edges_between_keyframe_centres(tmp_path):
     pytest.importorskip("rerun", reason="rerun is an optional extra (pip install 'fgslam[rerun]')")
     from fgslam.backend import Backend, BackendConfig
-    from fgslam.export.rerun import FrontendWithRerun
+    from fgslam.export.rerun import RerunView, loop_segments
     from fgslam.loop.closure import LoopRecord
+    from fgslam.services.loops import LoopService
 
     backend = Backend(BackendConfig())
     for k in range(4):
         T = np.eye(4)
         T[:3, 3] = (k, 0.0, 0.0)
         backend.add_keyframe(k, T, float(k))
-    closer = SimpleNamespace(loops=[LoopRecord(3, 0, np.eye(4), 50, "accepted"), LoopRecord(2, 0, np.eye(4), 9, "rejected")])
-    service = SimpleNamespace(closer=closer, proximity_loops=[(2, 1, "accepted"), (3, 9, "accepted")])
-    frontend = SimpleNamespace(loops=service, backend=backend, keyframe_points=lambda: None, finish=lambda: None)
+    classical = [LoopRecord(3, 0, np.eye(4), 50, "accepted"), LoopRecord(2, 0, np.eye(4), 9, "rejected")]
+    service = SimpleNamespace(verified_loops=lambda: classical, proximity=object(),
+                              proximity_loops=[(2, 1, "accepted"), (3, 9, "accepted")])
+    pairs = LoopService.accepted_pairs(service)  # the service's own method on a stand-in
+    assert pairs == [(3, 0), (2, 1), (3, 9)]
     calibration = SimpleNamespace(K=np.array([100.0, 100.0, 50.0, 40.0]), width=100, height=80)
-    logged = FrontendWithRerun(frontend, str(tmp_path / "l.rrd"), calibration)
-    segments = logged.loop_segments()  # keyframe 9 is not in the backend: skipped
+    view = RerunView(str(tmp_path / "l.rrd"), calibration)
+    segments = loop_segments(pairs, backend)  # keyframe 9 is not in the backend: skipped
     np.testing.assert_allclose(np.array(segments), [[[3, 0, 0], [0, 0, 0]], [[2, 0, 0], [1, 0, 0]]])
-    logged.finish()
+    view.close(None, segments)
     assert _rows(tmp_path / "l.rrd")["/world/loops"] == 1
 
 

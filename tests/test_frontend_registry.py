@@ -22,6 +22,7 @@ from fgslam.errors import ConfigError
 from fgslam.frontends import FAMILIES, FRONTEND_NAMES, family_config_classes, frontend_family, make_frontend
 from fgslam.frontends.patch.config import PatchConfig
 from fgslam.slam import SlamConfig, load_slam_config
+from fgslam.backend import Backend, BackendConfig
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -99,12 +100,13 @@ def test_patch_section_keeps_its_yaml_key_overrides_and_dump(tmp_path):
 
 def test_make_frontend_takes_the_section_or_the_root_config():
     config = load_slam_config(None, ["patch.graph.patches_per_frame=40"])
-    from_root = make_frontend("patch", config, None, "mono")
-    from_section = make_frontend("patch", config.patch, None, "mono", **config.frontend_services())
+    backend = Backend(config.map)
+    from_root = make_frontend("patch", config, None, "mono", backend=backend)
+    from_section = make_frontend("patch", config.patch, None, "mono", backend=backend)
     assert from_root.config is config.patch and from_section.config is config.patch
-    assert from_root.map_config is config.map and from_section.map_config is config.map
+    assert from_root.backend is backend and from_section.backend is backend
     with pytest.raises(TypeError, match="must be a PatchConfig"):
-        make_frontend("patch", {"graph": {}}, None, "mono")
+        make_frontend("patch", {"graph": {}}, None, "mono", backend=Backend(BackendConfig()))
     with pytest.raises(ConfigError, match="unknown frontend 'orb'"):
         frontend_family("orb")
 
@@ -126,8 +128,8 @@ class ToyConfig:
     window: ToyWindow = field(default_factory=ToyWindow)
 
 
-def build(section, calibration, sensor_mode, **services):
-    return {"section": section, "calibration": calibration, "sensor_mode": sensor_mode, "services": sorted(services)}
+def build(section, calibration, sensor_mode, backend):
+    return {"section": section, "calibration": calibration, "sensor_mode": sensor_mode, "backend": type(backend).__name__}
 '''
 
 TOY_RUN = '''
@@ -145,9 +147,10 @@ from fgslam.config import to_dict
 from fgslam.errors import ConfigError
 from fgslam.presets import load_preset_file
 from fgslam.slam import SlamConfig, load_slam_config
+from fgslam.backend import Backend
 
 config = load_slam_config(sys.argv[1], ["toy.window.size=7"])
-built = registry.make_frontend(config.frontend, config, "calib", config.sensor)
+built = registry.make_frontend(config.frontend, config, "calib", config.sensor, backend=Backend(config.map))
 errors = []
 for bad in (["toy.nope=1"], ["toy.gain=0"]):
     try:
@@ -158,8 +161,7 @@ print(json.dumps({
     "fields": [f.name for f in dataclasses.fields(SlamConfig)],
     "gain": config.toy.gain, "size": config.toy.window.size, "patch": config.patch.ba.iterations,
     "dump": to_dict(config)["toy"],
-    "built": [type(built["section"]).__name__, built["calibration"], built["sensor_mode"], built["services"]],
-    "services": sorted(config.frontend_services()),
+    "built": [type(built["section"]).__name__, built["calibration"], built["sensor_mode"], built["backend"]],
     "preset_class": type(load_preset_file(sys.argv[1])).__name__,
     "errors": errors,
 }))
@@ -183,6 +185,6 @@ def test_a_new_family_is_one_registry_entry(tmp_path):
             == got["fields"].index("patch") + 3)
     assert (got["gain"], got["size"], got["patch"]) == (2.5, 7, 2)
     assert got["dump"] == {"gain": 2.5, "window": {"size": 7}}
-    assert got["built"] == ["ToyConfig", "calib", "rgbd", got["services"]] and got["services"]
+    assert got["built"] == ["ToyConfig", "calib", "rgbd", "Backend"]
     assert got["preset_class"] == "SlamConfig"
     assert "unknown key 'toy.nope'" in got["errors"][0] and "key 'toy.gain': must be > 0" in got["errors"][1]

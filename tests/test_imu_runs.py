@@ -1,5 +1,5 @@
 """Visual-inertial runs of the patch frontend on moving synthetic data with simulated IMU
-(fgslam/backend/imu.py through the runner): stereo-inertial, a 2 s stretch of black frames bridged by
+(fgslam/services/imu.py through the runner): stereo-inertial, a 2 s stretch of black frames bridged by
 the IMU, monocular-inertial initialisation and metric rescale."""
 
 import shutil
@@ -72,7 +72,7 @@ def test_black_frames_are_bridged_by_the_imu(room, tmp_path):
 def test_mono_inertial_initialises_and_rescales_to_metric(room, tmp_path, caplog):
     import logging
 
-    caplog.set_level(logging.INFO, logger="fgslam.backend.imu")
+    caplog.set_level(logging.INFO, logger="fgslam.services.imu")
     ds, summary, est = _run(room, "patch_mono_inertial", tmp_path / "mono",
                             ["imu.init.min_duration_s=2.0", "imu.init.max_scale_rel_sigma=0.1"])
     assert "initialised (visual-inertial)" in caplog.text

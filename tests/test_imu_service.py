@@ -1,4 +1,4 @@
-"""The IMU service (fgslam/backend/imu.py) and the backend's attached keys: static initialisation on
+"""The IMU service (fgslam/services/imu.py) and the backend's attached keys: static initialisation on
 the real EuRoC clip, bad IMU streams, keys attached to keyframes, marginalisation into a prior."""
 
 import logging
@@ -8,8 +8,8 @@ import pytest
 
 gtsam = pytest.importorskip("gtsam")
 
-from fgslam.backend import Backend
-from fgslam.backend.imu import ImuService, ImuServiceConfig, with_imu
+from fgslam.backend import Backend, BackendConfig
+from fgslam.services.imu import ImuService, ImuServiceConfig, make_imu_service
 from fgslam.backend.keys import bias_key, velocity_key
 from fgslam.errors import DataError
 from fgslam.io.frame import ImuSamples
@@ -101,7 +101,7 @@ def test_still_synthetic_stream_initialises_and_links_keyframes(solver, history)
 @pytest.mark.parametrize("kind", ["gap", "out_of_order", "missing", "nonfinite", "not_covering"])
 def test_bad_streams_are_logged_and_fall_back_to_vision(kind, caplog):
     backend, service = _service(max_gap_s=0.02)  # samples every 5 ms
-    caplog.set_level(logging.WARNING, logger="fgslam.backend.imu")
+    caplog.set_level(logging.WARNING, logger="fgslam.services.imu")
     for k in range(1, 41):
         t = k * 0.05
         ts = np.arange(t - 0.045, t + 1e-9, 0.005)
@@ -135,10 +135,11 @@ def test_inertial_config_without_imu_is_a_data_error(shared_data):
     from fgslam.frontends.patch import PatchFrontend
 
     ds = _euroc(shared_data, load_imu=False)
-    frontend = PatchFrontend(calibration=ds.calibration, sensor_mode="mono")
+    backend = Backend(BackendConfig())
+    frontend = PatchFrontend(calibration=ds.calibration, sensor_mode="mono", backend=backend)
     with pytest.raises(DataError, match="has no IMU samples"):
-        with_imu(frontend, ImuServiceConfig(enabled=True), ds.calibration, ds.has_imu, "mono")
-    assert with_imu(frontend, ImuServiceConfig(enabled=False), ds.calibration, False, "mono") is frontend
+        make_imu_service(ImuServiceConfig(enabled=True), backend, ds.calibration, ds.has_imu, "mono", contributor=frontend)
+    assert make_imu_service(ImuServiceConfig(enabled=False), backend, ds.calibration, False, "mono") is None
 
 
 def test_removed_keyframe_merges_intervals_and_window_marginalises():

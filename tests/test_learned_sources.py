@@ -18,6 +18,7 @@ from fgslam.frontends.patch import PatchConfig, make_source
 from fgslam.frontends.patch.source import LearnedDPVOSource, Measurement
 from fgslam.nets.checkpoint import CheckpointError
 from fgslam.nets.config import DpvoNetConfig, DroidNetConfig
+from fgslam.backend import Backend, BackendConfig
 from nets_support import official_dpvo_file, official_droid_file
 from nets_support import one_thread  # noqa: F401 (autouse fixture)
 
@@ -228,7 +229,7 @@ def _dpvo_room_run(ckpts, frames, revise):
     cfg = light_patch_config(4.0)
     cfg.source, cfg.checkpoint = "dpvo", str(ckpts / "dpvo.pth")
     cfg.graph.patches_per_frame = 32
-    fe = PatchFrontend(cfg, sensor_mode="rgbd")
+    fe = PatchFrontend(cfg, sensor_mode="rgbd", backend=Backend(BackendConfig()))
     assert isinstance(fe.source, LearnedDPVOSource)
     frame_of_image = {id(f.image): n for n, f in enumerate(frames)}
     frame_of_features, confidences = {}, []

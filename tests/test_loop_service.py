@@ -1,5 +1,5 @@
-"""The loop-closure service (fgslam.backend.loop_service) through the contributor contract
-(fgslam.backend.contributor), with toy contributors instead of the patch frontend:
+"""The loop-closure service (fgslam.services.loops) through the contributor contract
+(fgslam.services.contributor), with toy contributors instead of the patch frontend:
 
 - a classical one that only keeps keyframe images and drifted poses and records the corrections it
   is given, driving the classical closer on a synthetic room-loop drive (the project's renderer);
@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from geometry_support import rigid, rot_y
 
-from fgslam.backend.contributor import Contributor, GlobalBAJob, KeyframeImage, PoseCorrection, ProximityContributor
-from fgslam.backend.loop_service import LoopService
+from fgslam.services.contributor import Contributor, GlobalBAJob, KeyframeImage, PoseCorrection, ProximityContributor
+from fgslam.services.loops import LoopService
 from fgslam.errors import OptimizationError
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory

@@ -11,6 +11,7 @@ import pytest
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.io.trajectory import Trajectory
+from fgslam.backend import Backend, BackendConfig
 from patch_support import light_patch_config, open_frames, render_room
 
 FRAMES = 40
@@ -26,7 +27,7 @@ def test_blank_frames_use_motion_model_and_recover(room, mode):
     ds, frames = open_frames(room, mode)
     blank = set(range(22, 25))
     fed = [dataclasses.replace(f, image=np.full_like(f.image, 90)) if f.index in blank else f for f in frames]
-    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode=mode)
+    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode=mode, backend=Backend(BackendConfig()))
     statuses = [fe.process(f) for f in fed]
     for s in statuses:
         if s.index in blank:
@@ -48,14 +49,14 @@ def test_static_camera_never_initialises_mono(room):
                             image=np.clip(frames[0].image + rng.normal(0, 1.0, frames[0].image.shape), 0, 255).astype(np.uint8))
         for i in range(25)
     ]
-    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="mono")
+    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="mono", backend=Backend(BackendConfig()))
     statuses = [fe.process(f) for f in still]
     assert all(s.pose_source == "initializing" and s.T_WC is None for s in statuses)
     assert fe.trajectory()[1].shape == (0, 4, 4)
     assert fe.num_keyframes() == 0
     # the same static input in stereo gives a pose per frame with (almost) no motion
     _, sframes = open_frames(room, "stereo")
-    fe_s = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="stereo")
+    fe_s = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="stereo", backend=Backend(BackendConfig()))
     for i in range(15):
         fe_s.process(dataclasses.replace(sframes[0], index=i, timestamp=sframes[0].timestamp + 0.05 * i))
     _, poses, _ = fe_s.trajectory()
@@ -65,7 +66,7 @@ def test_static_camera_never_initialises_mono(room):
 
 def test_too_short_sequence_reports_no_poses(room):
     _, frames = open_frames(room, "mono")
-    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="mono")
+    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="mono", backend=Backend(BackendConfig()))
     statuses = [fe.process(f) for f in frames[:2]]
     assert [s.pose_source for s in statuses] == ["initializing", "initializing"]
     stamps, poses, sources = fe.trajectory()
@@ -78,7 +79,7 @@ def test_long_loss_reinitialises_without_crash(room):
     fed = [dataclasses.replace(f, image=np.full_like(f.image, 90)) if f.index in blank else f for f in frames]
     cfg = light_patch_config(keyframe_threshold=6.0)
     cfg.tracking.max_motion_model_frames = 2
-    fe = PatchFrontend(cfg, sensor_mode="rgbd")
+    fe = PatchFrontend(cfg, sensor_mode="rgbd", backend=Backend(BackendConfig()))
     statuses = [fe.process(f) for f in fed]
     assert any("re-initialising" in e for s in statuses for e in s.events)
     assert fe.num_failures >= 3

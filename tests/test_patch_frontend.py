@@ -13,6 +13,7 @@ import pytest
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.io.trajectory import Trajectory
+from fgslam.backend import Backend, BackendConfig
 from eval_support import assert_beats_doing_nothing
 from patch_support import light_patch_config, render_room
 
@@ -32,7 +33,7 @@ def load(root, mode):
 
 
 def run(ds, mode, config=None, frames=None):
-    fe = PatchFrontend(config or light_patch_config(), sensor_mode=mode)
+    fe = PatchFrontend(config or light_patch_config(), sensor_mode=mode, backend=Backend(BackendConfig()))
     statuses = [fe.process(f) for f in (frames if frames is not None else ds)]
     fe.finish()
     return fe, statuses

@@ -17,11 +17,12 @@ import numpy as np
 import pytest
 
 from fgslam.errors import ConfigError
-from fgslam.frontends import make_frontend
+from fgslam.system import SlamSystem
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.loop.closure import LoopClosureConfig
 from fgslam.presets import config_class_for, load_preset_file
 from fgslam.slam import SUMMARY_FILE, SlamConfig, load_slam_config, open_slam_dataset, run_slam
+from fgslam.backend import Backend, BackendConfig
 from patch_support import light_patch_config
 
 RATE_HZ = 4.0
@@ -101,15 +102,23 @@ def _closer_threads() -> int:
     return sum(t.name == "fgslam-loop-closer" for t in threading.enumerate())
 
 
+def _system(config=None, calibration=None, loop_config=None) -> SlamSystem:
+    """A patch frontend on its own backend in a system with loop closure from ``loop_config``."""
+    fe = PatchFrontend(config or light_patch_config(), calibration, "mono", backend=Backend(BackendConfig()))
+    return SlamSystem.around(fe, loop_config)
+
+
 def test_mode_off_creates_no_closer(room):
     before = _closer_threads()
-    assert PatchFrontend(light_patch_config()).closer is None  # no loop config: off
-    fe = PatchFrontend(light_patch_config(), loop_config=LoopClosureConfig(mode="off"))
-    assert fe.closer is None and fe.loop_summary() is None and "loop" not in fe.stage_times()
+    system = _system()  # no loop config: off
+    assert system.loops is None and not system.frontend.loops.enabled
+    system = _system(loop_config=LoopClosureConfig(mode="off"))
+    assert system.loops is None and system.loop_summary() is None and "loop" not in system.stage_times()
     assert _closer_threads() == before
-    fe = PatchFrontend(light_patch_config(), loop_config=LoopClosureConfig(mode="classical", run_in_thread=True))
-    assert fe.closer is not None and _closer_threads() == before + 1
-    fe.finish()  # stops the worker
+    system = _system(loop_config=LoopClosureConfig(mode="classical", run_in_thread=True))
+    assert system.loops.closer is not None and system.frontend.loops is system.loops
+    assert _closer_threads() == before + 1
+    system.finish()  # stops the worker
     assert _closer_threads() == before
 
 
@@ -117,9 +126,9 @@ def test_registry_and_presets_pass_the_loop_config(room):
     root, _ = room
     cfg = slam_config("classical")
     ds = open_slam_dataset(root, cfg)
-    fe = make_frontend("patch", cfg, ds.calibration, "mono")
-    assert fe.closer is not None and fe.loop_config is cfg.loop_closure
-    assert make_frontend("patch", SlamConfig(), ds.calibration, "mono").closer is None  # default: off
+    system = SlamSystem.build(cfg, ds.calibration)
+    assert system.loops.closer is not None and system.loops.config is cfg.loop_closure
+    assert SlamSystem.build(SlamConfig(), ds.calibration).loops is None  # default: off
     assert load_preset_file("patch_street_loop").loop_closure.mode == "both"
     assert load_preset_file("patch_mono").loop_closure.mode == "off"
     assert config_class_for(Path("loop_street.yaml")) is LoopClosureConfig  # loop_*.yaml presets
@@ -137,9 +146,9 @@ def test_bare_yaml_off_selects_mode_off():
     assert load_slam_config("patch_street_loop", ["loop_closure.mode=off"]).loop_closure.mode == "off"
 
 
-def test_bad_mode_in_the_frontend():
+def test_bad_mode_in_the_system():
     with pytest.raises(ConfigError, match="mode"):
-        PatchFrontend(light_patch_config(), loop_config=LoopClosureConfig(mode="sometimes"))
+        _system(loop_config=LoopClosureConfig(mode="sometimes"))
 
 
 def test_relocalisation_after_a_jump_back(room):
@@ -156,14 +165,14 @@ def test_relocalisation_after_a_jump_back(room):
     T_gt = seq.camera_poses(np.array(order) / RATE_HZ)
     cfg = light_patch_config()
     cfg.tracking.max_motion_model_frames = 2
-    fe = PatchFrontend(cfg, cal, "mono", loop_config=LoopClosureConfig(mode="classical", run_in_thread=False))
+    system = _system(cfg, cal, LoopClosureConfig(mode="classical", run_in_thread=False))
     statuses = []
     for i in range(len(order)):
         image = np.clip(seq.render_view(T_gt[i]).image, 0, 255).astype(np.uint8)
-        statuses.append(fe.process(Frame(i, i, i / RATE_HZ, image, cal)))
+        statuses.append(system.step(Frame(i, i, i / RATE_HZ, image, cal)))
     first_pass_T = {s.index: s.T_WC for s in statuses[:first_pass]}
-    fe.finish()
-    summary = fe.loop_summary()
+    system.finish()
+    summary = system.loop_summary()
     assert summary["relocalization_attempts"] >= 1 and summary["relocalized"] == 1
     reloc = [s for s in statuses if s.pose_source == "relocalized"]
     assert len(reloc) == 1 and "relocalised" in reloc[0].events
@@ -200,36 +209,36 @@ def test_proximity_loop_closed_at_the_return_and_cuts_ate(room, runs):
 
 @pytest.fixture(scope="module")
 def prox_frontend(room):
-    """A PatchFrontend run frame by frame over the clip with proximity loop closure (for its state)."""
+    """A PatchFrontend run frame by frame over the clip with proximity loop closure (for its state), and its system."""
     from fgslam.io.calibration import Calibration
     from fgslam.io.frame import Frame
 
     _, seq = room
     cal = Calibration(seq.cfg.camera.width, seq.cfg.camera.height, np.array(seq.K))
-    fe = PatchFrontend(light_patch_config(), cal, "mono", loop_config=LoopClosureConfig(mode="proximity"))
+    system = _system(light_patch_config(), cal, LoopClosureConfig(mode="proximity"))
     T_gt = seq.camera_poses(np.arange(seq.cfg.frames) / RATE_HZ)
     for i in range(seq.cfg.frames):
         image = np.clip(seq.render_view(T_gt[i]).image, 0, 255).astype(np.uint8)
-        fe.process(Frame(i, i, i / RATE_HZ, image, cal))
-    fe.finish()
-    return fe, T_gt
+        system.step(Frame(i, i, i / RATE_HZ, image, cal))
+    system.finish()
+    return system.frontend, T_gt, system
 
 
 def test_proximity_loop_edges_join_the_inactive_store(prox_frontend):
-    fe, _ = prox_frontend
+    fe, _, system = prox_frontend
     store = fe.inactive_edges()
-    first = min(fe.loops.proximity_loops, key=lambda rec: rec[0])
+    first = min(system.loops.proximity_loops, key=lambda rec: rec[0])
     q_fid, c_fid, status = first
     assert status == "accepted"
     loop = (store["src"] == c_fid) | (store["tgt"] == c_fid)
     loop &= np.abs(store["src"] - store["tgt"]) > fe.config.proximity.min_gap
     assert loop.sum() >= fe.config.proximity.min_loop_edges
-    assert fe.closer is None and fe.loop_summary()["mode"] == "proximity"
+    assert system.loops.closer is None and system.loop_summary()["mode"] == "proximity"
 
 
 def test_wrong_proximity_candidate_is_rejected_by_verification(prox_frontend):
     """A candidate on the far side of the room (no shared view) gets no verified loop edges."""
-    fe, T_gt = prox_frontend
+    fe, T_gt, system = prox_frontend
     q = fe.graph.frames[len(fe.graph) // 2]
     if q.features is None:  # the newest graph frames keep their source features
         q = next(f for f in reversed(fe.graph.frames) if f.features is not None)
@@ -244,7 +253,7 @@ def test_wrong_proximity_candidate_is_rejected_by_verification(prox_frontend):
 def test_inconsistent_loop_edges_are_undone(prox_frontend):
     """Loop edges whose observations are random pixels: the global BA keeps too few of them, so its
     result is discarded and the map is unchanged."""
-    fe, _ = prox_frontend
+    fe, _, system = prox_frontend
     rng = np.random.default_rng(0)
     a, b = fe.graph.frames[0], fe.graph.frames[-1]
     n = fe.config.graph.patches_per_frame
@@ -254,7 +263,7 @@ def test_inconsistent_loop_edges_are_undone(prox_frontend):
             "confidence": np.ones(n, np.float32), "inv_depth": a.inv_depth.astype(np.float32)}
     before = {f.fid: f.T_WC.copy() for f in fe.graph.frames}
     stored = fe.graph.inactive.count
-    assert fe.loops.run_global_ba(fake) is False
+    assert system.loops.run_global_ba(fake) is False
     assert all(np.array_equal(f.T_WC, before[f.fid]) for f in fe.graph.frames)
     assert fe.graph.inactive.count == stored
 
@@ -345,9 +354,9 @@ def test_textureless_proximity_candidate_is_rejected(prox_frontend):
     (and its neighbours') stored images blank (no texture) no loop edge survives."""
     from fgslam.frontends.patch.lk import LKFeatures
 
-    fe, _ = prox_frontend
+    fe, _, system = prox_frontend
     q = next(f for f in reversed(fe.graph.frames) if f.features is not None and f.fid in fe._prox_store)
-    cand = fe.proximity_candidate(q.fid, fe.loops.eligible_candidates(q.fid))
+    cand = fe.proximity_candidate(q.fid, system.loops.eligible_candidates(q.fid))
     assert cand is not None and fe.long_range_edges(q.fid, cand.fid) is not None
     old = [cand.fid] + fe._prox_store.neighbours(cand.fid, fe.config.proximity.old_neighbours)
     saved = {fid: fe._prox_store.get(fid) for fid in old}

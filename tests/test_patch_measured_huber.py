@@ -11,6 +11,7 @@ from fgslam.frontends.patch import PatchConfig, PatchFrontend
 from fgslam.frontends.patch.graph import GraphFrame
 from fgslam.frontends.patch.source import Measurement, MeasurementSource
 from fgslam.io.calibration import Calibration
+from fgslam.backend import Backend, BackendConfig
 
 K = 8  # patches per frame (the smallest allowed)
 OFFSETS = np.array([[0.5, 0.0], [0.0, 20.0], [-8.0, 0.0], [0.0, 0.0], [1.5, 1.5], [3.0, -4.0], [0.0, -1.0], [40.0, 30.0]])  # measured minus predicted (px)
@@ -33,7 +34,7 @@ def _frontend(measured_huber: bool) -> PatchFrontend:
     cfg = PatchConfig()
     cfg.graph.patches_per_frame = K
     cfg.ba.measured_huber = measured_huber
-    fe = PatchFrontend(cfg, Calibration(width=320, height=240, K=np.array([200.0, 200.0, 160.0, 120.0])))
+    fe = PatchFrontend(cfg, Calibration(width=320, height=240, K=np.array([200.0, 200.0, 160.0, 120.0])), backend=Backend(BackendConfig()))
     fe.source = _OffsetSource()
     uv = np.array([[100.0, 100.0], [200.0, 100.0], [150.0, 150.0], [220.0, 170.0],
                    [120.0, 60.0], [250.0, 80.0], [80.0, 180.0], [180.0, 120.0]])

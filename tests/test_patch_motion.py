@@ -13,6 +13,7 @@ from fgslam.errors import OptimizationError
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.io.trajectory import Trajectory
+from fgslam.backend import Backend, BackendConfig
 from eval_support import assert_beats_doing_nothing
 from patch_support import light_patch_config, open_frames, render_room
 
@@ -42,15 +43,14 @@ def _seven_scenes_clip(src, dst, order):
 
 
 def _run_preset(path, preset, overrides=()):
-    from fgslam.frontends import make_frontend
     from fgslam.slam import load_slam_config, open_slam_dataset
+    from fgslam.system import SlamSystem, run_frames
 
     cfg = load_slam_config(preset, list(overrides))
     ds = open_slam_dataset(path, cfg)
-    fe = make_frontend(cfg.frontend, cfg, ds.calibration, cfg.sensor)
-    statuses = [fe.process(f) for f in ds]
-    fe.finish()
-    return ds, fe, statuses
+    system = SlamSystem.build(cfg, ds.calibration)
+    statuses = run_frames(system, ds)
+    return ds, system.frontend, statuses
 
 
 def _ate(ds, fe, align):
@@ -141,7 +141,7 @@ def test_failed_initial_optimisation_resets_cleanly(room, monkeypatch):
     """A mono initialisation whose map optimisation raises leaves no frames in the graph: the next
     initialisation succeeds (before the fix: "frame ids must increase" at a later frame)."""
     ds, frames = open_frames(room, "mono")
-    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="mono")
+    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="mono", backend=Backend(BackendConfig()))
     optimize = PatchFrontend._optimize
     calls = {"failed": 0}
 
@@ -176,7 +176,7 @@ def room_stop(tmp_path_factory):
 def test_synthetic_stop_and_go(room_stop, mode):
     """While the camera stands still no keyframe is added and the pose holds; tracking goes on after."""
     ds, frames = open_frames(room_stop, mode)
-    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode=mode)
+    fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode=mode, backend=Backend(BackendConfig()))
     statuses = [fe.process(f) for f in frames]
     assert fe.num_failures == 0
     rest = statuses[16:26]  # frames 15-25 are at rest; frame 15 may still become the keyframe they refer to

@@ -14,6 +14,7 @@ import numpy as np
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchConfig, PatchFrontend
 from fgslam.io.trajectory import Trajectory
+from fgslam.backend import Backend, BackendConfig
 from eval_support import assert_beats_doing_nothing
 
 
@@ -22,7 +23,7 @@ def run(path, mode, end, fmt="auto"):
 
     ds = open_dataset(path, fmt, DatasetConfig(end=end, load_right=mode == "stereo", load_depth=mode == "rgbd",
                                                load_imu=False, load_rgb=False))
-    fe = PatchFrontend(PatchConfig(), sensor_mode=mode)
+    fe = PatchFrontend(PatchConfig(), sensor_mode=mode, backend=Backend(BackendConfig()))
     statuses = [fe.process(f) for f in ds]
     fe.finish()
     return ds, fe, statuses

@@ -15,6 +15,7 @@ from fgslam.frontends.patch.ba import PatchBlock
 from fgslam.io.trajectory import Trajectory
 from fgslam.lie import Sim3, sim3_matrix_parts, so3_exp
 from fgslam.backend.keys import pose_key
+from fgslam.backend import Backend, BackendConfig
 from patch_support import light_patch_config, render_room
 
 FRAMES = 48
@@ -34,7 +35,7 @@ def _open(root):
 
 def _run(root, config):
     ds = _open(root)
-    fe = PatchFrontend(config, sensor_mode="rgbd")
+    fe = PatchFrontend(config, sensor_mode="rgbd", backend=Backend(BackendConfig()))
     for frame in ds:
         fe.process(frame)
     fe.finish()
@@ -153,7 +154,7 @@ def test_depth_model_names_are_checked(field, value):
     cfg = light_patch_config()
     setattr(cfg.ba, field, value)
     with pytest.raises(ConfigError, match=f"patch.ba.depth_model must be prior\\|observation"):
-        PatchFrontend(cfg, sensor_mode="rgbd")
+        PatchFrontend(cfg, sensor_mode="rgbd", backend=Backend(BackendConfig()))
 
 
 
@@ -164,7 +165,7 @@ def test_global_ba_depth_priors_follow_the_noise_model(room, noise, sigma, monke
     cfg = light_patch_config()
     cfg.ba.depth_noise = noise
     cfg.ba.depth_prior_sigma = sigma
-    fe = PatchFrontend(cfg, sensor_mode="rgbd")
+    fe = PatchFrontend(cfg, sensor_mode="rgbd", backend=Backend(BackendConfig()))
     for i, frame in enumerate(_open(room)):
         fe.process(frame)
         if i >= 12:

@@ -1,4 +1,4 @@
-"""Factor plugins (fgslam/backend/plugins.py): loading by dotted path with errors naming the config
+"""Factor plugins (fgslam/services/plugins.py): loading by dotted path with errors naming the config
 key, option validation, the positions file reader's errors, factors on unknown keys, and the two
 built-in plugins on synthetic drives fed keyframe by keyframe into a backend by a drifting odometry."""
 
@@ -13,7 +13,7 @@ import yaml
 
 from fgslam.backend.config import BackendConfig
 from fgslam.backend.graph import Backend
-from fgslam.backend.plugins import (
+from fgslam.services.plugins import (
     PlanarMotion,
     PositionPrior,
     attach_plugins,
@@ -21,7 +21,6 @@ from fgslam.backend.plugins import (
     build_plugins,
     finish_plugins,
     load_plugin_class,
-    with_plugins,
 )
 from fgslam.config import load_config
 from fgslam.errors import ConfigError, DataError, FormatError, OptimizationError
@@ -29,10 +28,11 @@ from fgslam.eval import umeyama
 from fgslam.io.positions import read_positions
 from fgslam.slam import SlamConfig
 
-from plugin_support import DriftingOdometry, NoContributor, ate_se3, drive, path_length, run_drive, write_positions
+from plugin_support import (DriftingOdometry, NoContributor, ate_se3, drive, path_length, plugin_system, run_drive,
+                            write_positions)
 
-POSITION_PRIOR = "fgslam.backend.plugins:PositionPrior"
-PLANAR = "fgslam.backend.plugins:PlanarMotion"
+POSITION_PRIOR = "fgslam.services.plugins:PositionPrior"
+PLANAR = "fgslam.services.plugins:PlanarMotion"
 
 
 def make_backend(solver: str = "lm"):
@@ -65,11 +65,11 @@ class NoAttach:
 
 
 @pytest.mark.parametrize("spec, message", [
-    ("fgslam.backend.plugins.PositionPrior", "expected 'package.module:ClassName'"),
+    ("fgslam.services.plugins.PositionPrior", "expected 'package.module:ClassName'"),
     (42, "expected 'package.module:ClassName'"),
     ("no_such_package.factors:Thing", "module 'no_such_package.factors' does not import: ModuleNotFoundError"),
-    ("fgslam.backend.plugins:NoSuchClass", "module 'fgslam.backend.plugins' has no class 'NoSuchClass'"),
-    ("fgslam.backend.plugins:FACTORS_KEY", "is not a class"),
+    ("fgslam.services.plugins:NoSuchClass", "module 'fgslam.services.plugins' has no class 'NoSuchClass'"),
+    ("fgslam.services.plugins:FACTORS_KEY", "is not a class"),
     ("test_plugins:NoAttach", "lacks the method attach(backend)"),
 ])
 def test_plugin_class_errors_name_the_config_key(spec, message):
@@ -138,14 +138,18 @@ def test_factors_need_a_frontend_that_feeds_a_backend():
         def process(self, frame):
             return frame
 
-    frontend = NoBackend()
-    assert with_plugins(frontend, []) is frontend
+    from fgslam.slam import SlamConfig
+    from fgslam.system import SlamSystem
+
+    config = SlamConfig()
+    assert SlamSystem.build(config, None, frontend=NoBackend()).plugins is None
+    config.factors = [{"class": PLANAR}]
     with pytest.raises(ConfigError, match="factors: frontend 'toy' feeds no backend"):
-        with_plugins(frontend, [{"class": PLANAR}])
+        SlamSystem.build(config, None, frontend=NoBackend())
 
 
-def test_with_plugins_polls_after_each_frame_and_corrections_reach_the_frontend(tmp_path):
-    """The run's wrapper: the alignment happens at a poll after a frame (not inside add_keyframe), and the
+def test_plugins_poll_after_each_frame_and_corrections_reach_the_frontend(tmp_path):
+    """The run's system: the alignment happens at a poll after a frame (not inside add_keyframe), and the
     uniform correction reaches the contributor (its scale folded into its measurements)."""
     t, T_true, _, _ = drive("street-loop", seconds=40.0, keyframe_dt=0.3)
     gps = write_positions(tmp_path / "gps.txt", t, T_true, 1.0, 1.0, np.random.default_rng(0))
@@ -153,11 +157,11 @@ def test_with_plugins_polls_after_each_frame_and_corrections_reach_the_frontend(
                                 initial_scale=0.3)
     seen = []
     odometry.apply_correction = lambda c, f=odometry.apply_correction: (seen.append(c), f(c))
-    frontend = with_plugins(odometry, [{"class": POSITION_PRIOR, "options": {"file": str(gps), "max_dt": 0.2,
-                                                                               "correct_every": 0}}], timestamps=t)
-    plugin = frontend.plugins[0]
+    system = plugin_system(odometry, [{"class": POSITION_PRIOR, "options": {"file": str(gps), "max_dt": 0.2,
+                                                                             "correct_every": 0}}], timestamps=t)
+    plugin = system.plugins.plugins[0]
     for k in range(len(t)):
-        frontend.process(k)
+        system.step(k)
         if plugin.aligned:
             break
     assert plugin.aligned and len(seen) == 2  # the alignment, then a pose-graph correction
@@ -268,10 +272,10 @@ def run_position_drive(tmp_path, preset, use_plugin, seed=0, scale_drift=0.02, c
     odometry = DriftingOdometry(make_backend(solver), t, T_true, np.random.default_rng(seed + 1), scale_drift=scale_drift,
                                 first_pose=np.eye(4), initial_scale=0.3)
     factors = [{"class": POSITION_PRIOR, "options": {"file": str(gps), "sigma": 1.0, "max_dt": 0.2, **options}}]
-    frontend = with_plugins(odometry if contributor else NoContributor(odometry), factors if use_plugin else [],
-                            timestamps=t)
-    est = run_drive(frontend, len(t))
-    return est, T_true, (frontend.plugins[0] if use_plugin else None)
+    system = plugin_system(odometry if contributor else NoContributor(odometry), factors if use_plugin else [],
+                           timestamps=t)
+    est = run_drive(system, len(t))
+    return est, T_true, (system.plugins.plugins[0] if use_plugin else None)
 
 
 @pytest.mark.parametrize("preset, contributor, solver", [("street-loop", True, "lm"), ("highway", True, "lm"),
@@ -324,7 +328,7 @@ def test_planar_motion_brings_height_and_tilt_errors_to_noise_level():
         odometry = DriftingOdometry(make_backend(), t, T_true, np.random.default_rng(1), rot_sigma=0.003,
                                     trans_sigma=0.02)
         factors = [{"class": PLANAR, "options": {"up_axis": up_C.tolist(), "height_sigma": 0.05, "tilt_sigma": 0.01}}]
-        est = run_drive(with_plugins(odometry, factors if use else []), len(t))
+        est = run_drive(plugin_system(odometry, factors if use else []), len(t))
         results[use] = planar_errors(est, T_true, up_C)
     (h_free, tilt_free), (h_planar, tilt_planar) = results[False], results[True]
     assert h_free > 10 * step_noise and tilt_free > 2 * wobble  # the odometry alone drifts
@@ -387,9 +391,9 @@ def test_position_prior_and_planar_motion_together(tmp_path):
                                 first_pose=np.eye(4), initial_scale=0.3)
     factors = [{"class": POSITION_PRIOR, "options": {"file": str(gps), "max_dt": 0.2}},
                {"class": PLANAR, "options": {"up_axis": up_C.tolist(), "height_sigma": 0.05, "tilt_sigma": 0.01}}]
-    frontend = with_plugins(odometry, factors, timestamps=t)
-    est = run_drive(frontend, len(t))
-    position, planar = frontend.plugins
+    system = plugin_system(odometry, factors, timestamps=t)
+    est = run_drive(system, len(t))
+    position, planar = system.plugins.plugins
     assert position.aligned and planar.rebuilds >= 1
     assert ate_se3(est, T_true) <= 0.01 * path_length(T_true)
     height, tilt = planar_errors(est, T_true, up_C)

@@ -16,6 +16,7 @@ from fgslam.frontends import make_frontend
 from fgslam.frontends.pointmap.config import PointmapConfig
 from fgslam.frontends.pointmap.frontend import PointmapFrontend
 from fgslam.lie import sim3_matrix_parts
+from fgslam.backend import Backend, BackendConfig
 from eval_support import assert_beats_doing_nothing, frames_groundtruth
 from pointmap_support import ate_percent, open_clip, render_clip
 
@@ -28,7 +29,7 @@ def room(tmp_path_factory):
 
 
 def _run(frames, mode, config=None):
-    fe = PointmapFrontend(config or PointmapConfig(), sensor_mode=mode)
+    fe = PointmapFrontend(config or PointmapConfig(), sensor_mode=mode, backend=Backend(BackendConfig()))
     statuses = [fe.process(f) for f in frames]
     fe.finish()
     return fe, statuses
@@ -134,7 +135,7 @@ def test_frontend_pointmap_from_any_preset(room, tmp_path):
     assert summary["frontend"] == "pointmap" and summary["frames_processed"] == 12
     assert result.ate_rmse < 0.01
     assert (tmp_path / "run" / "points.ply").stat().st_size > 1000
-    fe = make_frontend("pointmap", config, open_clip(room, "rgbd")[0].calibration, "rgbd")
+    fe = make_frontend("pointmap", config, open_clip(room, "rgbd")[0].calibration, "rgbd", backend=Backend(BackendConfig()))
     assert isinstance(fe, PointmapFrontend) and fe.kind == "rgbd" and fe.fixed_scale
 
 
@@ -144,7 +145,7 @@ def test_sensor_and_source_mismatch_is_a_config_error():
     cfg = PointmapConfig()
     cfg.source.kind = "rgbd"
     with pytest.raises(ConfigError, match="needs sensor: rgbd"):
-        PointmapFrontend(cfg, sensor_mode="mono")
+        PointmapFrontend(cfg, sensor_mode="mono", backend=Backend(BackendConfig()))
     cfg.keyframe.new_fraction = 0.01
     with pytest.raises(ConfigError, match="new_fraction"):
-        PointmapFrontend(cfg, sensor_mode="rgbd")
+        PointmapFrontend(cfg, sensor_mode="rgbd", backend=Backend(BackendConfig()))

@@ -9,6 +9,7 @@ import pytest
 
 from fgslam.frontends.pointmap.matching import RayImage, match_pointmaps
 from fgslam.frontends.pointmap.source import PointmapSourceConfig, make_pointmap_source
+from fgslam.backend import Backend, BackendConfig
 from eval_support import assert_beats_doing_nothing, frames_groundtruth
 from pointmap_support import rotation_angle_deg
 
@@ -67,7 +68,7 @@ def test_frontend_on_7scenes_rgbd_slice(shared_data):
 
     frames = list(open_dataset(shared_data / "7scenes_redkitchen_0-599",
                                config=DatasetConfig(load_imu=False, load_depth=True, end=30)))
-    fe = PointmapFrontend(sensor_mode="rgbd")
+    fe = PointmapFrontend(sensor_mode="rgbd", backend=Backend(BackendConfig()))
     sources = [fe.process(f).pose_source for f in frames]
     fe.finish()
     assert sources == ["tracked"] * 30
@@ -87,7 +88,7 @@ def test_frontend_on_static_euroc_stereo(shared_data):
 
     frames = list(open_dataset(shared_data / "euroc_v101_micro",
                                config=DatasetConfig(load_imu=False, load_right=True, end=40)))
-    fe = PointmapFrontend(sensor_mode="stereo")
+    fe = PointmapFrontend(sensor_mode="stereo", backend=Backend(BackendConfig()))
     sources = [fe.process(f).pose_source for f in frames]
     fe.finish()
     assert "motion_model" not in sources

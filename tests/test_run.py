@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fgslam.backend import Backend, BackendConfig
 from fgslam.config import load_config
 from fgslam.errors import ConfigError, DataError, FGSlamError
 from fgslam.frontends import FRONTEND_NAMES, make_frontend
@@ -370,13 +371,13 @@ def test_planned_frontends_say_not_implemented(synth_root, monkeypatch):
     monkeypatch.setattr(frontends, "FAMILIES", frontends.FAMILIES + (frontends.FrontendFamily("sketch", "a sketched family"),))
     calib = open_slam_dataset(synth_root, _config()).calibration
     with pytest.raises(ConfigError, match="frontend 'sketch'.*not implemented yet.*issue"):
-        make_frontend("sketch", None, calib, "mono")
+        make_frontend("sketch", None, calib, "mono", backend=Backend(BackendConfig()))
 
 
 def test_unknown_frontend_name(synth_root):
     calib = open_slam_dataset(synth_root, _config()).calibration
     with pytest.raises(ConfigError, match="unknown frontend 'orb'"):
-        make_frontend("orb", _config(), calib, "mono")
+        make_frontend("orb", _config(), calib, "mono", backend=Backend(BackendConfig()))
 
 
 def test_registry_import_is_lazy():
@@ -824,9 +825,9 @@ def test_cli_rejects_a_border_larger_than_the_image(synth_root, tmp_path, capsys
     assert processed == [] and not (tmp_path / "out" / SUMMARY_FILE).exists()
     # a border that leaves room is accepted (the largest one: 2 * 35 < 72)
     calib = open_slam_dataset(synth_root, _config()).calibration
-    PatchFrontend(_config("patch.graph.border=35").patch, calib)
+    PatchFrontend(_config("patch.graph.border=35").patch, calib, backend=Backend(BackendConfig()))
     with pytest.raises(ConfigError, match=r"patch.graph.border=36 .*96x72"):
-        PatchFrontend(_config("patch.graph.border=36").patch, calib)
+        PatchFrontend(_config("patch.graph.border=36").patch, calib, backend=Backend(BackendConfig()))
 
 
 def test_resized_images_keep_a_minimum_size(synth_root, tmp_path, capsys, cli_main):

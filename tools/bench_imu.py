@@ -1,4 +1,4 @@
-"""Benchmark visual-inertial SLAM (issue 14; fgslam/backend/imu.py); prints one JSON object.
+"""Benchmark visual-inertial SLAM (issue 14; fgslam/services/imu.py); prints one JSON object.
 
 Usage: python tools/bench_imu.py [--euroc DIR] [--synth-frames N] [--work DIR] [--skip-synth] [-o key=value ...]
 
@@ -29,24 +29,23 @@ import numpy as np
 
 
 def _run(root: Path, preset: str, out: Path, overrides: list[str]):
-    import fgslam.backend.imu as imu_mod
+    import fgslam.services.imu as imu_mod
     from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
 
     captured = {}
-    original = imu_mod.with_imu
+    original = imu_mod.make_imu_service
 
-    def capture(frontend, *args, **kwargs):
-        wrapped = original(frontend, *args, **kwargs)
-        captured["service"] = getattr(wrapped, "imu_service", None)
-        return wrapped
+    def capture(*args, **kwargs):
+        captured["service"] = original(*args, **kwargs)
+        return captured["service"]
 
-    imu_mod.with_imu = capture
+    imu_mod.make_imu_service = capture
     try:
         cfg = load_slam_config(preset, overrides)
         ds = open_slam_dataset(root, cfg)
         summary = run_slam(ds, cfg, out, progress=False, overwrite=True)  # the benchmark's own folder
     finally:
-        imu_mod.with_imu = original
+        imu_mod.make_imu_service = original
     path = out / "trajectory_tum.txt"
     est = np.loadtxt(path, ndmin=2) if path.is_file() else np.zeros((0, 8))  # no pose at all: no file
     return ds, summary, est, captured.get("service")
@@ -81,7 +80,7 @@ def _motion(est) -> dict:
 
 def euroc_static(root: Path, work: Path, overrides: list[str]) -> dict:
     from fgslam.backend import Backend
-    from fgslam.backend.imu import ImuService, ImuServiceConfig
+    from fgslam.services.imu import ImuService, ImuServiceConfig
     from fgslam.io.datasets import DatasetConfig, open_dataset
 
     ds = open_dataset(root, config=DatasetConfig(load_right=False, load_imu=True))

@@ -47,8 +47,10 @@ def _patch_run(n_frames: int, baseline: bool = True, threaded: bool = True) -> d
     loop closure classical (and, with ``baseline``, off): ATE (sim3) over all frames of each run."""
     import torch
 
+    from fgslam.backend import Backend, BackendConfig
     from fgslam.frontends.patch import PatchConfig, PatchFrontend
     from fgslam.io.calibration import Calibration
+    from fgslam.system import SlamSystem
     from fgslam.io.frame import Frame
     from fgslam.io.synth import SynthSequence, default_config
 
@@ -68,15 +70,15 @@ def _patch_run(n_frames: int, baseline: bool = True, threaded: bool = True) -> d
         return round(_ate(ts, T_gt[idx], T), 3)
 
     for mode in ("classical", "off") if baseline else ("classical",):
-        fe = PatchFrontend(PatchConfig(), cal, "mono",
-                           loop_config=LoopClosureConfig(mode=mode, run_in_thread=threaded))
+        fe = PatchFrontend(PatchConfig(), cal, "mono", backend=Backend(BackendConfig()))
+        system = SlamSystem.around(fe, LoopClosureConfig(mode=mode, run_in_thread=threaded))
         t0 = time.perf_counter()
         for i in range(n_frames):
-            fe.process(Frame(i, i, float(t[i]), images[i], cal))
-        fe.finish()
+            system.step(Frame(i, i, float(t[i]), images[i], cal))
+        system.finish()
         run = {"wall_s": round(time.perf_counter() - t0, 1), "keyframes": fe.num_keyframes(),
                "tracking_failures": fe.num_failures, "ate_m": ate(fe.trajectory())}
-        summary = fe.loop_summary()
+        summary = system.loop_summary()
         if summary is not None:
             summary["closer_s"] = {k: round(v, 2) for k, v in summary["closer_s"].items()}
             run["loop"] = summary

@@ -34,6 +34,7 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(args.threads)
+    from fgslam.backend import Backend, BackendConfig
     from fgslam.config import from_dict
     from fgslam.eval import EvalConfig, evaluate
     from fgslam.frontends.patch import PatchConfig, PatchFrontend
@@ -54,7 +55,7 @@ def main() -> int:
     ds = open_dataset(args.data, config=DatasetConfig(
         start=args.start, end=args.end, load_right=args.sensor == "stereo", load_depth=args.sensor == "rgbd",
         load_imu=False, load_rgb=False))
-    fe = PatchFrontend(config, sensor_mode=args.sensor)
+    fe = PatchFrontend(config, sensor_mode=args.sensor, backend=Backend(BackendConfig()))
     t0 = time.perf_counter()
     c0 = time.process_time()
     n = 0

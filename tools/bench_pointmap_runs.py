@@ -69,6 +69,7 @@ def reconstruction(fe, frames, alignment) -> dict:
 
 
 def run(root: Path, source: str, overrides: list[str]) -> dict:
+    from fgslam.backend import Backend, BackendConfig
     from fgslam.config import from_dict, to_dict
     from fgslam.eval import EvalConfig, evaluate
     from fgslam.frontends.pointmap.config import PointmapConfig
@@ -88,7 +89,7 @@ def run(root: Path, source: str, overrides: list[str]) -> dict:
     config = from_dict(PointmapConfig, data)
     frames = list(open_dataset(root, config=DatasetConfig(load_right=source == "stereo", load_depth=True,
                                                           load_imu=False)))
-    fe = PointmapFrontend(config, sensor_mode="mono" if source == "mono" else source)
+    fe = PointmapFrontend(config, sensor_mode="mono" if source == "mono" else source, backend=Backend(BackendConfig()))
     load_before = os.getloadavg()
     c0, t0 = time.process_time(), time.perf_counter()
     sources = {}

@@ -28,7 +28,7 @@ from fgslam.io.synth.presets import load_synth_config
 from fgslam.io.trajectory import read_trajectory
 from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
 
-POSITION_PRIOR = "fgslam.backend.plugins:PositionPrior"
+POSITION_PRIOR = "fgslam.services.plugins:PositionPrior"
 
 
 def write_positions(path: Path, t: np.ndarray, T_WC: np.ndarray, rate_hz: float, sigma: float, seed: int) -> Path:

@@ -2,9 +2,8 @@
 
 Modules: :mod:`.keys` (gtsam keys of keyframe poses and other variables), :mod:`.blocks` (the
 contract of a frontend's measurement blocks), :mod:`.solver` (the one Levenberg-Marquardt loop),
-:mod:`.config` (``BackendConfig``, the ``map`` section), :mod:`.graph` (``Backend``),
-:mod:`.contributor` (what shared services need from a frontend), :mod:`.loop_service` (loop
-closure as a service), :mod:`.plugins` (user factor plugins).
+:mod:`.config` (``BackendConfig``, the ``map`` section), :mod:`.graph` (``Backend``). The services
+that add factors to it (loop closure, IMU, plugins) are :mod:`fgslam.services`.
 Importing this package imports no gtsam or torch (each module imports them where used; the names
 below are resolved lazily).
 """

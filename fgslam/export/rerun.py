@@ -2,12 +2,13 @@
 running viewer): frames, camera poses, the trajectory, keyframe points and loop edges.
 
 rerun is an optional extra (``pip install 'fgslam[rerun]'``); without it ``--rerun`` is a clear
-error before the run starts. The logger wraps the run's frontend (any :class:`Frontend`): after every
-``process(frame)`` it logs the camera (pinhole + pose) on the ``frame`` timeline (and the frame's
-time on ``time``), the frame's image every ``image_every`` frames (JPEG), and every ``map_every``
-frames (and after ``finish``) the trajectory so far, the frontend's keyframe points and the
-accepted loop edges (from the shared loop service: classical and proximity loops) as segments
-between keyframe centres. Entities: ``world/camera`` (+ ``/image``), ``world/trajectory``,
+error before the run starts. :class:`RerunView` is a peer service of the run's system
+(:class:`fgslam.system.SlamSystem`): after every frame the system hands it the frame and its status,
+and it logs the camera (pinhole + pose) on the ``frame`` timeline (and the frame's time on
+``time``), the frame's image every ``image_every`` frames (JPEG); every ``map_every`` frames (and at
+the end) the system hands it the map: the frontend's keyframe points and the accepted loop edges
+(classical and proximity loops) as segments between keyframe centres, which the view logs with the
+trajectory so far. Entities: ``world/camera`` (+ ``/image``), ``world/trajectory``,
 ``world/points``, ``world/loops``.
 """
 
@@ -59,14 +60,12 @@ def check_rerun_target(target: str) -> None:
         raise DataError(f"--rerun {target}: folder {path.parent} does not exist")
 
 
-class FrontendWithRerun:
-    """The run's frontend, logging to rerun after each frame and at the end (see the module docstring).
-    Everything else is the frontend's own."""
+class RerunView:
+    """A run's rerun log (see the module docstring); ``target`` is a ``.rrd`` file or ``live``."""
 
-    def __init__(self, frontend: Any, target: str, calibration: Any, config: RerunConfig | None = None) -> None:
+    def __init__(self, target: str, calibration: Any, config: RerunConfig | None = None) -> None:
         import rerun as rr
 
-        self._frontend = frontend
         self._rr = rr
         self.config = config or RerunConfig()
         self.target = target
@@ -84,30 +83,23 @@ class FrontendWithRerun:
         self.rec.log("world/camera/image", rr.Pinhole(focal_length=[K[0], K[1]], principal_point=[K[2], K[3]],
                                                       resolution=list(self._size)), static=True)
 
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._frontend, name)
+    def map_due(self) -> bool:
+        """Whether the map is logged with the frame just logged (every ``map_every`` frames)."""
+        return self._frames % self.config.map_every == 0
 
-    def process(self, frame: Any) -> Any:
-        status = self._frontend.process(frame)
+    def close(self, points: tuple[np.ndarray, np.ndarray] | None, segments: list[np.ndarray]) -> None:
+        """Log the final map and close the log (a ``.rrd`` file gets its footer); a failure is logged."""
         try:
-            self._log_frame(frame, status)
-        except Exception as exc:  # noqa: BLE001 - a viewer problem never stops the run
-            logger.warning("rerun logging failed at frame %d: %s: %s", frame.index, type(exc).__name__, exc)
-        return status
-
-    def finish(self) -> Any:
-        out = self._frontend.finish()
-        try:
-            self._log_map()
+            self.log_map(points, segments)
             self.rec.flush()
             if self.target != LIVE:
-                self.rec.disconnect()  # closes the .rrd file (with its footer)
-        except Exception as exc:  # noqa: BLE001
+                self.rec.disconnect()
+        except Exception as exc:  # noqa: BLE001 - a viewer problem never stops the run
             logger.warning("rerun logging failed at the end: %s: %s", type(exc).__name__, exc)
-        return out
 
     # ------------------------------------------------------------------ logging
-    def _log_frame(self, frame: Any, status: Any) -> None:
+    def log_frame(self, frame: Any, status: Any) -> None:
+        """Log one frame: its camera pose (when it has one) and every ``image_every``-th image."""
         rr, rec, cfg = self._rr, self.rec, self.config
         rec.set_time("frame", sequence=int(frame.index))
         rec.set_time("time", duration=float(frame.timestamp))
@@ -123,43 +115,21 @@ class FrontendWithRerun:
             ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
             if ok:
                 rec.log("world/camera/image", rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
-        if self._frames % cfg.map_every == 0:
-            self._log_map()
 
-    def _log_map(self) -> None:
+    def log_map(self, points: tuple[np.ndarray, np.ndarray] | None, segments: list[np.ndarray]) -> None:
+        """Log the trajectory so far, the map points ``(X_W, colour)`` and loop ``segments``."""
         rr, rec, cfg = self._rr, self.rec, self.config
         if len(self._positions) >= 2:
             rec.log("world/trajectory", rr.LineStrips3D([np.stack(self._positions)]))
-        points = self._frontend.keyframe_points()
         if points is not None and len(points[0]):
             rec.log("world/points", rr.Points3D(np.asarray(points[0], dtype=np.float32),
                                                 colors=np.asarray(points[1], dtype=np.uint8), radii=cfg.point_radius))
-        segments = self.loop_segments()
         if segments:
             rec.log("world/loops", rr.LineStrips3D(segments, colors=[255, 64, 64]))
 
-    def loop_segments(self) -> list[np.ndarray]:
-        """Accepted loop edges as (2, 3) segments between keyframe centres (classical and proximity
-        loops of the shared loop service; keyframes no longer in the backend are skipped)."""
-        service = getattr(self._frontend, "loops", None)
-        backend = getattr(self._frontend, "backend", None)
-        if service is None or backend is None:
-            return []
-        pairs = []
-        closer = getattr(service, "closer", None)
-        if closer is not None:
-            pairs += [(r.query_id, r.candidate_id) for r in closer.loops if r.status == "accepted"]
-        pairs += [(q, c) for q, c, status in getattr(service, "proximity_loops", []) if status == "accepted"]
-        segments = []
-        for q, c in pairs:
-            if backend.has_keyframe(q) and backend.has_keyframe(c):
-                segments.append(np.stack([backend.pose_matrix(q)[:3, 3], backend.pose_matrix(c)[:3, 3]]))
-        return segments
 
-
-def with_rerun(frontend: Any, target: str | None, calibration: Any, config: RerunConfig | None = None) -> Any:
-    """The frontend wrapped by :class:`FrontendWithRerun` when ``target`` is given, else itself."""
-    if not target:
-        return frontend
-    check_rerun_target(target)
-    return FrontendWithRerun(frontend, target, calibration, config)
+def loop_segments(pairs: list[tuple[int, int]], backend: Any) -> list[np.ndarray]:
+    """Loop edges ``(query id, candidate id)`` as (2, 3) segments between the keyframe centres of
+    ``backend`` (pairs with a keyframe no longer in the backend are skipped)."""
+    return [np.stack([backend.pose_matrix(q)[:3, 3], backend.pose_matrix(c)[:3, 3]]) for q, c in pairs
+            if backend.has_keyframe(q) and backend.has_keyframe(c)]

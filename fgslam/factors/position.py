@@ -13,7 +13,7 @@ composition gives ``t' = t / e^lambda + R V(w, lambda) u`` and ``s' = s e^lambda
     dr/d[w, u, lambda] = [0, s R, 0]                            (3, 7), exact
 
 The measurement is in the world frame of the map; a monocular map must first be brought into the
-measurements' frame (see :class:`fgslam.backend.plugins.PositionPrior`).
+measurements' frame (see :class:`fgslam.services.plugins.PositionPrior`).
 """
 
 from __future__ import annotations

@@ -6,11 +6,13 @@ builder, both as lazy ``"module:attr"`` paths. Adding a family is one entry here
 ``SlamConfig`` gets a section named after each family that has a config class (see
 :func:`family_config_classes`), and presets named ``<family>_*.yaml`` load into it.
 
-A builder is called as ``builder(section, calibration, sensor_mode, **services)``: the family's own
-config section, the camera calibration, ``mono | stereo | rgbd``, and the run's shared services
-(today ``map_config``, ``loop_config`` and the run's ``backend``) as keywords. The registry knows nothing of the runner
-(:mod:`fgslam.slam` imports this module, never the reverse), and each family is imported only when
-its config class or builder is first needed, so importing :mod:`fgslam.frontends` stays cheap.
+A builder is called as ``builder(section, calibration, sensor_mode, backend=backend)``: the family's
+own config section, the camera calibration, ``mono | stereo | rgbd``, and the run's backend (the
+frontend builds no backend and no service: the system, :class:`fgslam.system.SlamSystem`, owns them
+and connects the loop service through :meth:`~fgslam.frontends.base.Frontend.connect`). The registry
+knows nothing of the system (:mod:`fgslam.system` imports this module, never the reverse), and each
+family is imported only when its config class or builder is first needed, so importing
+:mod:`fgslam.frontends` stays cheap.
 
 Families: ``patch`` (DPVO / DPV-SLAM, issue 4), ``dense`` (DROID-SLAM, issue 12) and ``pointmap``
 (MASt3R-SLAM, issue 13) are implemented. A family listed without a builder is planned (no config
@@ -35,7 +37,7 @@ class FrontendFamily:
     name: str  # frontend: <name> in a run config, and the name of its config section
     title: str  # what it is, for messages ("the DPVO / DPV-SLAM patch family")
     config: Optional[str] = None  # "module:Class" of its section dataclass; None: planned, no section yet
-    builder: Optional[str] = None  # "module:callable": builder(section, calibration, sensor_mode, **services)
+    builder: Optional[str] = None  # "module:callable": builder(section, calibration, sensor_mode, backend=backend)
 
     def __post_init__(self) -> None:
         if self.builder is not None and self.config is None:
@@ -83,15 +85,13 @@ def family_config_classes() -> dict[str, type]:
             if f.config is not None}
 
 
-def make_frontend(name: str, config: Any, calibration: Any, sensor_mode: SensorMode, **services: Any) -> Frontend:
-    """Build frontend family ``name`` for images described by ``calibration`` in ``sensor_mode``
-    (mono | stereo | rgbd).
+def make_frontend(name: str, config: Any, calibration: Any, sensor_mode: SensorMode, backend: Any) -> Frontend:
+    """Build frontend family ``name`` on the run's ``backend`` for images described by ``calibration``
+    in ``sensor_mode`` (mono | stereo | rgbd).
 
     ``config`` is the family's own section (an instance of its config class, or None for its
     defaults) or a root config holding the family sections, such as :class:`fgslam.slam.SlamConfig`:
-    any object with ``family_section(name)`` and ``frontend_services()``, whose services are then
-    passed too. Keyword ``services`` (``map_config``, ``loop_config``, ...) go to the builder and win
-    over the root config's.
+    any object with ``family_section(name)``.
 
     Raises:
         ConfigError: ``name`` is planned but not implemented yet (a registry entry without a builder) or unknown.
@@ -105,13 +105,12 @@ def make_frontend(name: str, config: Any, calibration: Any, sensor_mode: SensorM
     section_class = import_object(family.config, f"frontend family '{name}' config")
     section = config
     if config is not None and not isinstance(config, section_class):
-        if not (hasattr(config, "family_section") and hasattr(config, "frontend_services")):
+        if not hasattr(config, "family_section"):
             raise TypeError(f"make_frontend('{name}', ...): config must be a {section_class.__name__}, None, or a "
-                            f"root config with family_section() and frontend_services(), got {type(config).__name__}")
-        services = {**config.frontend_services(), **services}
+                            f"root config with family_section(), got {type(config).__name__}")
         section = config.family_section(name)
     builder = import_object(family.builder, f"frontend family '{name}' builder")
-    return builder(section, calibration, sensor_mode, **services)
+    return builder(section, calibration, sensor_mode, backend=backend)
 
 
 __all__ = ["FAMILIES", "FRONTEND_NAMES", "FrameStatus", "Frontend", "FrontendFamily", "PoseSource", "SensorMode",

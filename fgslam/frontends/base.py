@@ -1,16 +1,21 @@
-"""The contract between the SLAM runner and a frontend family (dense, patch, pointmap).
+"""The contract between the system (:class:`fgslam.system.SlamSystem`) and a frontend family.
 
-A frontend consumes :class:`fgslam.io.frame.Frame` objects one at a time, owns its measurement
-source and its slice of the map, and reports per-frame status. The runner (``fgslam.slam``) is
-frontend-agnostic: it iterates a dataset, calls :meth:`Frontend.process`, and at the end asks for
-the poses of every input frame with :meth:`Frontend.trajectory`.
+A frontend only measures: it consumes :class:`fgslam.io.frame.Frame` objects one at a time, owns
+its measurement source and its slice of the map (patches, depth maps, pointmaps), decides keyframes
+and sets its measurement blocks on the run's backend, which the system hands it. It constructs no
+backend and no service. The system owns the backend and the services (loop closure, IMU, plugins,
+live view) and runs the per-frame skeleton around :meth:`Frontend.process`; the frontend reaches
+loop closure only through the narrow :class:`LoopPort` the system connects (:meth:`Frontend.connect`),
+and the services reach the frontend only through :mod:`fgslam.services.contributor`.
+
+At the end the system asks for the poses of every input frame with :meth:`Frontend.trajectory`.
 """
 
 from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Callable, Literal, Optional, Protocol
 
 import numpy as np
 
@@ -47,11 +52,110 @@ class FrameStatus:
     events: list[str] = field(default_factory=list)
 
 
+class LoopPort(Protocol):
+    """What a frontend may ask of loop closure while it measures a frame (the system's
+    :class:`fgslam.services.loops.LoopService` implements it; :data:`NO_LOOPS` until connected)."""
+
+    @property
+    def enabled(self) -> bool: ...  # classical or proximity loops run
+
+    @property
+    def classical(self) -> bool: ...  # the classical closer (retrieval, relocalisation) runs
+
+    @property
+    def proximity(self) -> Any: ...  # the proximity gates, None when proximity loops are off
+
+    def add_keyframe(self, kf_id: int, neighbours: Any = ()) -> bool: ...
+
+    def update_poses(self, T_WC_by_id: dict) -> None: ...
+
+    def relocalize(self, image: np.ndarray, K: Any) -> tuple[int, np.ndarray] | None: ...
+
+    def map_reset(self) -> None: ...
+
+    def keyframe_settled(self, kf_id: int) -> None: ...
+
+    def search(self, query: int) -> None: ...
+
+    def verified_loops(self) -> list: ...  # the classical closer's verified loops so far
+
+
+class NoLoops:
+    """The :class:`LoopPort` of a frontend without loop closure: every request is a no-op."""
+
+    enabled = False
+    classical = False
+    proximity = None
+
+    def add_keyframe(self, kf_id: int, neighbours: Any = ()) -> bool:
+        return False
+
+    def update_poses(self, T_WC_by_id: dict) -> None:
+        return None
+
+    def relocalize(self, image: np.ndarray, K: Any) -> tuple[int, np.ndarray] | None:
+        return None
+
+    def map_reset(self) -> None:
+        return None
+
+    def keyframe_settled(self, kf_id: int) -> None:
+        return None
+
+    def search(self, query: int) -> None:
+        return None
+
+    def verified_loops(self) -> list:
+        return []
+
+
+#: the loop port of every frontend until the system connects its loop service
+NO_LOOPS = NoLoops()
+
+#: a motion prior: ``T_WC`` (4x4) predicted at a timestamp, or None (the IMU service's ``predict``)
+MotionPrior = Callable[[float], Optional[np.ndarray]]
+
+
 class Frontend(abc.ABC):
-    """A frontend family. Constructed by the runner with its config section and the sensor mode."""
+    """A frontend family, built by the system (:func:`fgslam.frontends.make_frontend`) with its
+    config section, the calibration, the sensor mode and the run's backend.
+
+    The system calls, in this order: :meth:`connect` once; per frame, when :attr:`map_started`,
+    the loop service's safe point and then :meth:`corrections_applied`, then :meth:`process`; at the
+    end :meth:`finish` (hand over the last keyframes), the loop service's last correction, then
+    :meth:`finish_map` (final optimisation)."""
 
     #: registry name (``dense``, ``patch``, ``pointmap``)
     name: str = ""
+    #: the map has a metric scale (stereo / RGB-D): loop corrections are SE(3)
+    metric_scale: bool = False
+    #: the proximity-loop gates of the family (None: the family closes no proximity loops)
+    proximity_gates: Any = None
+    #: the loop-closure port (:meth:`connect`)
+    loops: LoopPort = NO_LOOPS
+
+    def connect(self, loops: LoopPort | None = None, motion_prior: MotionPrior | None = None) -> None:
+        """Take the run's loop-closure port and motion prior (the system calls it once, before the
+        first frame). A family that predicts poses uses ``motion_prior`` when it has one."""
+        self.loops = loops if loops is not None else NO_LOOPS
+        if motion_prior is not None:
+            self.motion_prior = motion_prior
+
+    @property
+    def map_started(self) -> bool:
+        """Whether the frontend has a map, so that the system runs the services' safe point before
+        the next frame (default: after the first frame)."""
+        return False
+
+    def corrections_applied(self) -> None:
+        """Called right after the loop service's safe point (corrections applied), before the frame."""
+
+    def frame_indices(self) -> dict[int, int]:
+        """Frame id -> dataset index of every input frame (the loop summary reports indices)."""
+        return {}
+
+    def add_loop_counts(self, summary: dict) -> None:
+        """Add the family's own loop counts to the loop service's ``summary`` (default: none)."""
 
     @abc.abstractmethod
     def process(self, frame) -> FrameStatus:
@@ -69,11 +173,11 @@ class Frontend(abc.ABC):
         """Keyframes currently in the map."""
 
     def finish(self) -> None:
-        """Called once after the last frame (final global optimisation, flush background work)."""
+        """Called once after the last frame: hand the last keyframes to the loop port (the system
+        then applies the loop service's last correction and calls :meth:`finish_map`)."""
 
-    def abort(self) -> None:
-        """Stop background work at once, without applying it (an interrupted or failed run: its
-        outputs are written from what the frontend holds now). Default: nothing runs in the background."""
+    def finish_map(self) -> None:
+        """Called once after the last loop correction (final optimisation, the closing log line)."""
 
     def stage_times(self) -> dict[str, float]:
         """Accumulated wall time in seconds per stage (e.g. ``flow``, ``ba``, ``bookkeeping``)."""
@@ -87,11 +191,6 @@ class Frontend(abc.ABC):
         """Optional dense depth per keyframe: kf id -> ``(timestamp, depth (H, W) float32 in the map's
         units at image resolution (0: none), confidence (H, W) in [0, 1] or None)``; the runner writes
         them as 16-bit PNGs with ``output.write_depth``."""
-        return None
-
-    def loop_summary(self) -> dict | None:
-        """Optional loop-closure counts for ``summary.json`` (loops verified / accepted, corrections
-        applied, relocalisations, ...); None when the frontend runs no loop closure."""
         return None
 
     def map_export(self):
@@ -119,29 +218,32 @@ SENSOR_MODES: tuple[str, ...] = ("mono", "stereo", "rgbd")
 
 class BackendFrontend(Frontend):
     """Plumbing shared by the families that feed the run's backend (patch, dense, pointmap): the checks
-    and services of their constructor, the per-input-frame bookkeeping of :meth:`process` (``_fid``,
-    ``_inputs``, ``_records``) and the stage times with the loop service's share. The families' own
-    work stays in their classes."""
+    of their constructor and the per-input-frame bookkeeping of :meth:`process` (``_fid``, ``_inputs``,
+    ``_records``). The families' own work stays in their classes."""
 
-    def _attach(self, config, sensor_mode: str, map_config=None, backend=None) -> None:
-        """Validate ``config``, check ``sensor_mode`` and take the run's ``backend`` (a new one from
-        ``map_config`` when the frontend is built alone, as in tests). Sets ``config``, ``sensor_mode``,
-        ``backend`` and the empty input bookkeeping."""
-        from ..backend import Backend
-        from ..backend.config import BackendConfig
+    def _attach(self, config, sensor_mode: str, backend) -> None:
+        """Validate ``config``, check ``sensor_mode`` and take the run's ``backend``. Sets ``config``,
+        ``sensor_mode``, ``backend`` and the empty input bookkeeping."""
         from ..errors import ConfigError
 
         config.validate()
         if sensor_mode not in SENSOR_MODES:
             raise ConfigError(f"sensor mode must be {', '.join(SENSOR_MODES[:-1])} or {SENSOR_MODES[-1]}, "
                               f"got {sensor_mode!r}")
+        if backend is None:
+            raise ConfigError(f"frontend '{self.name}' needs the run's backend (built by fgslam.system.SlamSystem, "
+                              "or fgslam.backend.Backend(config) in a test)")
         self.config = config
         self.sensor_mode = sensor_mode
-        self.backend = backend if backend is not None else Backend(map_config or BackendConfig())
+        self.metric_scale = sensor_mode != "mono"
+        self.backend = backend
         self._records: dict = {}  # fid -> pose record (fgslam.frontends.records), None while it has no pose
         self._inputs: list[tuple[int, float, int]] = []  # (fid, timestamp, index) per input frame
         self._sources: dict[int, str] = {}  # fid -> pose source reported for it (default: tracked)
         self._fid = 0
+
+    def frame_indices(self) -> dict[int, int]:
+        return {fid: idx for fid, _, idx in self._inputs}
 
     def _register_input(self, frame) -> int:
         """A new frame id for ``frame``, recorded as an input without a pose yet."""
@@ -172,14 +274,6 @@ class BackendFrontend(Frontend):
             return np.zeros(0), np.zeros((0, 4, 4)), []
         return np.array(stamps), np.stack(poses), sources
 
-    def abort(self) -> None:
-        """Stop the loop service's background work (a running global BA's worker process, the
-        closer's thread) without applying it."""
-        self.loops.cancel()
-
     def stage_times(self) -> dict[str, float]:
-        """The frontend's own stage times (``_times``) plus the loop service's share in this thread."""
-        out = dict(self._times)
-        for stage, seconds in self.loops.stage_times().items():
-            out[stage] = out.get(stage, 0.0) + seconds
-        return out
+        """The frontend's own stage times (``_times``)."""
+        return dict(self._times)

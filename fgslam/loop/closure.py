@@ -201,7 +201,7 @@ class LoopRecord:
 class PoseCorrection:
     """A Sim(3) correction of keyframe poses (see the module docstring for how to apply it): from the
     classical closer's pose graph, or from a global bundle adjustment that ran on a snapshot
-    (:mod:`fgslam.backend.loop_service`). ``LoopCorrection`` is its former name.
+    (:mod:`fgslam.services.loops`). ``LoopCorrection`` is its former name.
 
     ``T_update[k]`` = ``T_WC_new_k T_WC_old_k^-1`` (4x4 Sim(3), world frame) for every keyframe of
     the snapshot; ``scale[k]`` = its scale ``s_new_k / s_old_k``; ``T_WC_new[k]`` the corrected

@@ -43,17 +43,14 @@ import cv2
 import numpy as np
 import torch
 
-from ...backend.config import BackendConfig
-from ...backend.contributor import KeyframeImage, PoseCorrection
+from ...services.contributor import KeyframeImage, PoseCorrection
 from ...backend.graph import Backend
 from ...backend.keys import pose_key
-from ...backend.loop_service import LoopService
 from ...errors import ConfigError, DataError, OptimizationError
 from ...factors.dense import DenseBlock, DenseBlockConfig, DenseEdge, DenseKeyframe, DenseSourceBlock, DenseStereo
 from ...factors.reprojection import ReprojectionConfig
 from ...factors.schur import BlockConfig, POSE_DIM, torch_threads
 from ...lie import sim3_matrix_parts
-from ...loop.closure import LoopClosureConfig
 from ..base import BackendFrontend, FrameStatus, SensorMode
 from ..records import per_frame_motion
 from ..records import (AbsolutePose, KeyframePose, PoseRecord, RelativePose, gtsam_matrix, gtsam_sim3, resolve_pose,
@@ -81,18 +78,17 @@ class DenseFrontend(BackendFrontend):
     """DROID-SLAM-style dense frontend (module docstring); builder of the ``dense`` family.
 
     Args as :class:`fgslam.frontends.patch.PatchFrontend`: ``config`` the ``dense`` section,
-    ``calibration`` (None: the first frame's), ``sensor_mode`` mono | stereo | rgbd, ``map_config`` /
-    ``backend`` (the run's backend; every keyframe pose lives there), ``loop_config`` (the shared
-    :class:`~fgslam.backend.loop_service.LoopService`; this frontend is its contributor).
+    ``calibration`` (None: the first frame's), ``sensor_mode`` mono | stereo | rgbd, ``backend`` (the
+    run's backend; every keyframe pose lives there). Loop closure reaches it through the loop port the
+    system connects (the frontend is the loop service's contributor).
     """
 
     name = "dense"
     _skip_nonfinite_poses = True  # a diverged motion-only solve leaves no pose (not a non-finite one)
 
     def __init__(self, config: DenseConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
-                 map_config: BackendConfig | None = None, loop_config: LoopClosureConfig | None = None,
                  backend: Backend | None = None):
-        self._attach(config or DenseConfig(), sensor_mode, map_config, backend)
+        self._attach(config or DenseConfig(), sensor_mode, backend)
         self.source = make_dense_source(self.config.source)
         self.stride = int(self.config.source.stride)
         self._reproj = ReprojectionConfig(min_depth=self.config.ba.min_depth)
@@ -110,7 +106,6 @@ class DenseFrontend(BackendFrontend):
                         "global_runs": 0, "low_confidence_frames": 0, "low_texture_frames": 0}
         self._new_since_global = 0
         self._times = {"flow": 0.0, "tracking": 0.0, "ba": 0.0, "global": 0.0, "bookkeeping": 0.0}
-        self.loops = LoopService(self, loop_config, metric=self.sensor_mode != "mono")
         self._pending_origin: np.ndarray | None = None  # pose of the next map's first keyframe after a restart
         self._init_frames: dict[int, tuple[int, np.ndarray]] = {}  # monocular, before initialisation: fid -> (keyframe, image)
 
@@ -162,8 +157,6 @@ class DenseFrontend(BackendFrontend):
             self._set_calibration(frame.calibration)
         self._check_frame(frame)
         fid = self._register_input(frame)
-        if self._initialized:
-            self.loops.poll()
         try:
             with torch_threads(self.config.threads):
                 status = self._process(fid, frame)
@@ -173,17 +166,18 @@ class DenseFrontend(BackendFrontend):
         self._sources[fid] = status.pose_source
         return status
 
+    @property
+    def map_started(self) -> bool:
+        return self._initialized
+
     def finish(self) -> None:
-        self.loops.wait()
         if self._initialized and self.config.global_ba.final and len(self.graph.keyframes) >= 3:
             self._global()
         self._feed_loops(all_keyframes=True)
-        self.loops.finish()
+
+    def finish_map(self) -> None:
         logger.info("dense frontend: %d frames, %d keyframes, %d tracking failures, counts %s",
                     len(self._inputs), self.num_keyframes(), self._failures, self._counts)
-
-    def loop_summary(self) -> dict | None:
-        return self.loops.summary({fid: idx for fid, _, idx in self._inputs})
 
     def keyframe_depths(self) -> dict[int, tuple[float, np.ndarray, np.ndarray | None]] | None:
         """Keyframe id -> (timestamp, depth (H, W) float32 in map units, confidence (H, W) in [0, 1]):
@@ -355,7 +349,7 @@ class DenseFrontend(BackendFrontend):
         self._counts["map_restarts"] += 1
         self._feed_loops(all_keyframes=True)
         T = self._pose_of(fid)
-        found = self.loops.relocalize(frame.image, self.K) if self.loops.closer is not None else None
+        found = self.loops.relocalize(frame.image, self.K)
         if found is not None:
             T = np.asarray(found[1], dtype=np.float64)
             self._records[fid] = AbsolutePose(T)
@@ -743,7 +737,7 @@ class DenseFrontend(BackendFrontend):
 
     # ------------------------------------------------------------------ loop closure (contributor contract)
     def _feed_loops(self, all_keyframes: bool = False) -> None:
-        if self.loops.closer is None or self.graph is None:
+        if not self.loops.classical or self.graph is None:
             return
         g = self.graph
         active = set(g.active)

@@ -43,8 +43,9 @@ map, removed frames relative to a neighbour, frames buffered during initialisati
 frames before a successful initialisation are omitted.
 
 Loop closure, classical and proximity with the global bundle adjustment, is the shared service
-:class:`fgslam.backend.loop_service.LoopService` (``self.loops``); the frontend is its contributor
-(:mod:`fgslam.backend.contributor`: keyframe images and poses, :meth:`PatchFrontend.apply_correction`,
+:class:`fgslam.services.loops.LoopService` that the system owns and connects as the frontend's loop port
+(``self.loops``); the frontend is its contributor
+(:mod:`fgslam.services.contributor`: keyframe images and poses, :meth:`PatchFrontend.apply_correction`,
 long-range edges, the global BA's snapshot and hand-over). Finalised keyframes (out of the graph)
 keep their pose and patches for it (``_final``). Non-keyframes' poses are typed records
 (:mod:`.records`).
@@ -61,16 +62,13 @@ from functools import partial
 import numpy as np
 import torch
 
-from ...backend.contributor import GlobalBAJob, KeyframeImage, PoseCorrection
-from ...backend.loop_service import LoopService
+from ...services.contributor import GlobalBAJob, KeyframeImage, PoseCorrection
 from ...errors import ConfigError, OptimizationError
 from ...factors.depth import depth_priors, inv_depth_sigma
 from ...factors.reprojection import ReprojectionConfig, reproject, reproject_edges
 from ...factors.robust import kernel_weight
 from ...factors.schur import BlockConfig, torch_threads
-from ...loop.closure import LoopClosureConfig
 from ...lie import sim3_matrix_components
-from ...backend.config import BackendConfig
 from ...backend.graph import Backend
 from ...backend.keys import pose_key
 from ..base import BackendFrontend, FrameStatus, SensorMode
@@ -208,12 +206,9 @@ class PatchFrontend(BackendFrontend):
         calibration: the frames' :class:`fgslam.io.calibration.Calibration` (undistorted pinhole;
             a right camera and ``T_CLCR`` for stereo); None: taken from the first frame.
         sensor_mode: ``mono``, ``stereo`` (needs right images) or ``rgbd`` (needs depth).
-        map_config: settings of the backend the frontend builds when none is handed in (None:
-            :class:`fgslam.backend.BackendConfig` defaults); ignored with ``backend``.
-        loop_config: loop closure (:class:`fgslam.loop.closure.LoopClosureConfig`, run by the shared
-            :class:`~fgslam.backend.loop_service.LoopService`); None: loop closure off.
-        backend: the run's :class:`fgslam.backend.Backend` (built by the runner from ``config.map``);
-            None: the frontend builds its own from ``map_config``.
+        backend: the run's :class:`fgslam.backend.Backend` (the system builds it from ``map``).
+
+    Loop closure reaches it through the loop port the system connects (:meth:`connect`).
 
     Keyframes: every graph frame is a backend keyframe from when it enters the graph (added with its
     timestamp) until it leaves as redundant or rejected (removed); finalised frames stay. The local
@@ -228,10 +223,9 @@ class PatchFrontend(BackendFrontend):
     name = "patch"
 
     def __init__(self, config: PatchConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
-                 map_config: BackendConfig | None = None, loop_config: LoopClosureConfig | None = None,
                  backend: Backend | None = None):
-        self._attach(config or PatchConfig(), sensor_mode, map_config, backend)
-        self.map_config = self.backend.config
+        self._attach(config or PatchConfig(), sensor_mode, backend)
+        self.proximity_gates = self.config.proximity
         self.source = make_source(self.config)
         self.calibration = None
         if calibration is not None:
@@ -257,10 +251,11 @@ class PatchFrontend(BackendFrontend):
         # that frame restart the motion model from rest (None: the motion model's velocity is the reference)
         self._motion_reference: np.ndarray | None = None
         # optional pose prediction at a timestamp (4x4 T_WC or None), set by the run's IMU service
-        # (fgslam/backend/imu.py): the motion prior of tracking, and the pose of a frame whose visual
+        # (fgslam/services/imu.py): the motion prior of tracking, and the pose of a frame whose visual
         # tracking fails (pose_source "imu": bridged, not a failure)
         self.motion_prior = None
-        self._loop_init(loop_config)
+        self._loop_images: dict[int, tuple] = {}  # fid -> (image, timestamp, depth) while it may become a loop keyframe
+        self._prox_store: KeyframeStore | None = None  # settled keyframes' packed source features (long-range edges)
 
     # ------------------------------------------------------------------ calibration
     def _set_calibration(self, calibration) -> None:
@@ -300,8 +295,6 @@ class PatchFrontend(BackendFrontend):
             self._set_calibration(frame.calibration)
         self._check_frame(frame)
         fid = self._register_input(frame)
-        if self._initialized:
-            self.loops.poll()  # safe point (no BA running); outside the numerical-trouble guard
         try:
             with torch_threads(self.config.threads):
                 if not self._initialized:
@@ -366,10 +359,14 @@ class PatchFrontend(BackendFrontend):
             track_uv=np.concatenate([np.concatenate(src_uv), e_uv[e_ok]]),
         )
 
+    @property
+    def map_started(self) -> bool:
+        return self._initialized
+
     def finish(self) -> None:
-        self.loops.wait()  # a running global BA is applied before the last keyframes go to the closer
         self._loop_feed_keyframes(all_frames=True)
-        self.loops.finish()
+
+    def finish_map(self) -> None:
         logger.info("patch frontend: %d frames, %d keyframes, %d tracking failures",
                     len(self._inputs), self.num_keyframes(), self._failures)
 
@@ -1206,22 +1203,14 @@ class PatchFrontend(BackendFrontend):
         self._finalised += 1
 
     # ------------------------------------------------------------------ loop closure: the service's hooks
-    def _loop_init(self, loop_config: LoopClosureConfig | None) -> None:
-        """The shared loop-closure service (classical closer when ``mode`` is classical or both;
-        proximity loops when proximity or both) with this frontend as its contributor."""
-        self.loops = LoopService(self, loop_config, metric=self.sensor_mode != "mono",  # metric: SE(3) corrections
-                                 proximity=self.config.proximity)
-        self.loop_config = self.loops.config
-        self._loop_images: dict[int, tuple] = {}  # fid -> (image, timestamp, depth) while it may become a loop keyframe
-        self._prox_store: KeyframeStore | None = None  # settled keyframes' packed source features (long-range edges)
+    def connect(self, loops=None, motion_prior=None) -> None:
+        """Take the loop port (and motion prior); with proximity loops on, keep settled keyframes'
+        packed source features for long-range edges."""
+        super().connect(loops, motion_prior)
+        self._prox_store = None
         if self.loops.proximity is not None:
             self._prox_store = KeyframeStore(self.config.proximity.max_stored_keyframes)
-            self._times["proximity"] = 0.0
-
-    @property
-    def closer(self):
-        """The classical :class:`~fgslam.loop.closure.LoopCloser` (None: off)."""
-        return self.loops.closer
+            self._times.setdefault("proximity", 0.0)
 
     def inactive_edges(self) -> dict:
         """The bounded store of inactive edges (see :class:`~.graph.InactiveEdges`)."""
@@ -1229,7 +1218,7 @@ class PatchFrontend(BackendFrontend):
 
     def _loop_keep_image(self, fid: int, frame) -> None:
         """Keep the image of frame ``fid`` while it is in the graph (or buffered for initialisation)."""
-        if self.loops.closer is None:
+        if not self.loops.classical:
             return
         self._loop_images[fid] = (frame.image, float(frame.timestamp), frame.depth)
         if self._init is not None:
@@ -1243,7 +1232,7 @@ class PatchFrontend(BackendFrontend):
         """Hand keyframes that can no longer be removed (graph positions below
         ``len - 1 - keyframe_index``; every graph frame with ``all_frames``) to the closer, then the
         latest graph poses."""
-        if self.loops.closer is None:
+        if not self.loops.classical:
             return
         g = self.graph
         final = len(g) if all_frames else len(g) - 1 - self.config.tracking.keyframe_index
@@ -1269,11 +1258,9 @@ class PatchFrontend(BackendFrontend):
             logger.info("frame %d relocalised on keyframe %d", frame.index, kf_id)
         return T_WC
 
-    def loop_summary(self) -> dict | None:
-        out = self.loops.summary({fid: idx for fid, _, idx in self._inputs})
-        if out is not None and self._prox_store is not None:
-            out["proximity"]["stored_keyframes"] = len(self._prox_store.order) - self._prox_store.dropped
-        return out
+    def add_loop_counts(self, summary: dict) -> None:
+        if self._prox_store is not None and "proximity" in summary:
+            summary["proximity"]["stored_keyframes"] = len(self._prox_store.order) - self._prox_store.dropped
 
     def _prox_step(self) -> None:
         """Store newly settled keyframes (their packed source features, for long-range edges) and search
@@ -1296,7 +1283,7 @@ class PatchFrontend(BackendFrontend):
         if query is not None:
             self.loops.search(query.fid)
 
-    # ------------------------------------------------------------------ contributor contract (fgslam.backend.contributor)
+    # ------------------------------------------------------------------ contributor contract (fgslam.services.contributor)
     def _keyframe(self, fid: int) -> GraphFrame | None:
         """The keyframe ``fid`` (in the graph or finalised), or None."""
         f = self._final.get(fid)

@@ -34,7 +34,7 @@ on the source's dense flow against k's canonical pointmap (pose only, no fusion,
 monocular map starts when a pair (first frame, later frame) has ``tracking.init_min_confident`` of its
 pixels confident; frames before it get no pose.
 
-Loop closure is the shared :class:`~fgslam.backend.loop_service.LoopService` (classical: BoW retrieval,
+Loop closure is the shared :class:`~fgslam.services.loops.LoopService` (classical: BoW retrieval,
 verification, Sim(3) pose graph, corrections through :meth:`apply_correction`); each loop it accepts is
 measured as a pointmap edge (:func:`.keyframes.measure_edge`, accepted with ``graph.min_edge_matches``)
 and joins the global optimisation. Non-keyframe poses are :mod:`fgslam.frontends.records` relative to
@@ -50,15 +50,12 @@ import cv2
 import numpy as np
 import torch
 
-from ...backend.config import BackendConfig
-from ...backend.contributor import KeyframeImage, PoseCorrection
+from ...services.contributor import KeyframeImage, PoseCorrection
 from ...backend.graph import Backend
-from ...backend.loop_service import LoopService
 from ...errors import ConfigError, DataError, OptimizationError
 from ...factors.pointmap_block import PointmapBlock, PointmapEdge
 from ...factors.schur import torch_threads
 from ...lie import Sim3
-from ...loop.closure import LoopClosureConfig
 from ..base import BackendFrontend, FrameStatus, SensorMode
 from ..records import AbsolutePose, InterpolatedPose, KeyframePose, PoseRecord, RelativePose, resolve_pose, rigid
 from .config import PointmapConfig
@@ -115,15 +112,15 @@ class PointmapFrontend(BackendFrontend):
         config: the ``pointmap`` section (defaults when None).
         calibration: the frames' calibration (None: from the first frame).
         sensor_mode: ``mono``, ``stereo`` or ``rgbd`` (``source.kind: auto`` follows it).
-        map_config / loop_config / backend: the run's services (as for every family).
+        backend: the run's backend (as for every family; loop closure reaches it through the loop
+            port the system connects).
     """
 
     name = "pointmap"
 
     def __init__(self, config: PointmapConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
-                 map_config: BackendConfig | None = None, loop_config: LoopClosureConfig | None = None,
                  backend: Backend | None = None):
-        self._attach(config or PointmapConfig(), sensor_mode, map_config, backend)
+        self._attach(config or PointmapConfig(), sensor_mode, backend)
         self.kind = self.config.source_kind(sensor_mode)
         if self.kind == "rgbd" and sensor_mode != "rgbd":
             raise ConfigError(f"pointmap.source.kind=rgbd needs sensor: rgbd (the run's sensor is {sensor_mode})")
@@ -131,6 +128,7 @@ class PointmapFrontend(BackendFrontend):
             raise ConfigError(f"pointmap.source.kind=stereo needs sensor: stereo (the run's sensor is {sensor_mode})")
         scale = self.config.tracking.scale
         self.fixed_scale = (self.kind in ("rgbd", "stereo")) if scale == "auto" else scale == "fixed"
+        self.metric_scale = self.fixed_scale  # loop corrections are SE(3) on a fixed-scale map
         if not self.fixed_scale and self.backend.config.gauge.hold_scale:
             # the pointmaps' scale is real (docs/design.md section 4): no per-keyframe log-scale priors
             logger.info("pointmap frontend: Sim(3) keyframes, map.gauge.hold_scale switched off")
@@ -153,7 +151,6 @@ class PointmapFrontend(BackendFrontend):
         self._loops_seen = 0
         self._times = {"source": 0.0, "matching": 0.0, "tracking": 0.0, "optimization": 0.0, "bookkeeping": 0.0}
         self._counts = {"keyframes": 0, "loop_edges": 0, "relocalized": 0, "pnp_tracked": 0, "failed": 0}
-        self.loops = LoopService(self, loop_config, metric=self.fixed_scale)
         if calibration is not None:
             self._set_calibration(calibration)
 
@@ -183,9 +180,6 @@ class PointmapFrontend(BackendFrontend):
             self._set_calibration(frame.calibration)
         self._check_frame(frame)
         fid = self._register_input(frame)
-        if self._kf is not None:
-            self.loops.poll()  # safe point: the closer's corrections
-            self._loop_edges()
         try:
             with torch_threads(self.config.threads), torch.no_grad():
                 status = self._process(fid, frame)
@@ -198,8 +192,14 @@ class PointmapFrontend(BackendFrontend):
         self._release_source()
         return status
 
-    def finish(self) -> None:
-        self.loops.finish()
+    @property
+    def map_started(self) -> bool:
+        return self._kf is not None
+
+    def corrections_applied(self) -> None:
+        self._loop_edges()
+
+    def finish_map(self) -> None:
         self._loop_edges()
         if self.config.graph.final_iterations > 0 and len(self._kfs) > 1:
             t0 = time.perf_counter()
@@ -252,11 +252,8 @@ class PointmapFrontend(BackendFrontend):
             out[kf.fid] = (kf.timestamp, z, conf)
         return out
 
-    def loop_summary(self) -> dict | None:
-        out = self.loops.summary({fid: idx for fid, _, idx in self._inputs})
-        if out is not None:
-            out["pointmap_loop_edges"] = self._counts["loop_edges"]
-        return out
+    def add_loop_counts(self, summary: dict) -> None:
+        summary["pointmap_loop_edges"] = self._counts["loop_edges"]
 
     # ------------------------------------------------------------------ contributor contract
     def keyframe_image(self, kf_id: int) -> KeyframeImage | None:
@@ -676,10 +673,9 @@ class PointmapFrontend(BackendFrontend):
 
     def _loop_edges(self) -> None:
         """A pointmap edge for each loop the loop service accepted since the last call."""
-        closer = self.loops.closer
-        if closer is None:
+        if not self.loops.classical:
             return
-        loops = closer.loops
+        loops = self.loops.verified_loops()
         new = loops[self._loops_seen:]
         self._loops_seen = len(loops)
         added = False

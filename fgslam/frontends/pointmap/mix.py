@@ -1,6 +1,6 @@
 """Mixing families (issue 13 item 9): pointmap edges between another family's keyframes, in the same graph.
 
-:class:`PointmapMix` is a factor plugin (``fgslam/backend/plugins.py``), selected by config beside any
+:class:`PointmapMix` is a factor plugin (``fgslam/services/plugins.py``), selected by config beside any
 primary frontend that feeds the backend (the patch family today)::
 
     factors:
@@ -10,7 +10,7 @@ primary frontend that feeds the backend (the patch family today)::
 It registers ``backend.on_keyframe`` and, at the safe point after every frame (``poll``), takes the
 primary's keyframes that are at least ``lag`` keyframes old and still in the backend (the patch family
 removes redundant keyframes a few frames after adding them), gets their images from the primary
-(:meth:`~fgslam.backend.contributor.Contributor.keyframe_image`: grey image, intrinsics, depth), builds
+(:meth:`~fgslam.services.contributor.Contributor.keyframe_image`: grey image, intrinsics, depth), builds
 their pointmaps with a built-in source (``rgbd`` when the images carry depth, else the monocular
 two-view source against the previous pointmap keyframe, scaled to the backend's relative translation;
 images resized to ``pointmap.image_width``)
@@ -35,7 +35,7 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
-from ...backend.plugins import parse_options
+from ...services.plugins import parse_options
 from ...config import MAX_KEYFRAMES, ranged
 from ...errors import DataError, OptimizationError
 from ...factors.pointmap_block import PointmapBlock

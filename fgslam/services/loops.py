@@ -1,11 +1,14 @@
 """Loop closure as a shared service: classical loops (retrieval, verification, Sim(3) pose graph),
 relocalisation, and proximity loops closed by a global bundle adjustment (DPV-SLAM sections 3.3 and
 3.2), beside tracking, for any frontend that implements the contributor contract
-(:mod:`fgslam.backend.contributor`).
+(:mod:`fgslam.services.contributor`).
 
-The frontend holds one :class:`LoopService` and calls it at fixed points of its frame loop:
+The run's system (:class:`fgslam.system.SlamSystem`) holds one :class:`LoopService`, runs
+:meth:`LoopService.poll`, :meth:`LoopService.wait` and :meth:`LoopService.finish`, and connects it to
+the frontend as its loop port (:class:`fgslam.frontends.base.LoopPort`), through which the frontend
+calls the rest at fixed points of its frame loop:
 
-- :meth:`LoopService.poll` at its *safe point* (before a frame is tracked, no optimisation running):
+- :meth:`LoopService.poll` at the *safe point* (before a frame is tracked, no optimisation running):
   the classical closer's newest correction and a finished global BA are applied there, through
   ``contributor.apply_correction`` (and, for the global BA, ``contributor.apply_global_ba`` first);
 - :meth:`LoopService.add_keyframe` for each keyframe whose pose is final or about to be (the service
@@ -17,7 +20,7 @@ The frontend holds one :class:`LoopService` and calls it at fixed points of its 
   frontend starts a new map, :meth:`LoopService.finish` at the end.
 
 Classical (``mode`` classical or both): :class:`fgslam.loop.closure.LoopCloser` in its worker thread;
-a correction is a :class:`~fgslam.backend.contributor.PoseCorrection` (metric maps: SE(3)).
+a correction is a :class:`~fgslam.services.contributor.PoseCorrection` (metric maps: SE(3)).
 
 Proximity (``mode`` proximity or both): the newest settled keyframe is a query unless the
 ``cooldown`` of the last verified loop lasts; the contributor picks the best candidate among the
@@ -101,8 +104,8 @@ class LoopService:
     """Loop closure beside one contributor (see the module docstring).
 
     Args:
-        contributor: the frontend (:class:`~fgslam.backend.contributor.Contributor`; for proximity
-            loops a :class:`~fgslam.backend.contributor.ProximityContributor`).
+        contributor: the frontend (:class:`~fgslam.services.contributor.Contributor`; for proximity
+            loops a :class:`~fgslam.services.contributor.ProximityContributor`).
         config: ``loop_closure`` (None: off).
         metric: the map has a metric scale (stereo / RGB-D): classical corrections are SE(3).
         proximity: the family's proximity gates (needed when ``config.proximity``).
@@ -139,6 +142,22 @@ class LoopService:
     @property
     def enabled(self) -> bool:
         return self.closer is not None or self.proximity is not None
+
+    @property
+    def classical(self) -> bool:
+        """Whether the classical closer (retrieval, verification, relocalisation) runs."""
+        return self.closer is not None
+
+    def verified_loops(self) -> list:
+        """The classical closer's verified loops so far (oldest first; empty without the closer)."""
+        return [] if self.closer is None else self.closer.loops
+
+    def accepted_pairs(self) -> list[tuple[int, int]]:
+        """``(query id, candidate id)`` of every accepted loop, classical then proximity."""
+        pairs = [(r.query_id, r.candidate_id) for r in self.verified_loops() if r.status == "accepted"]
+        if self.proximity is not None:
+            pairs += [(q, c) for q, c, status in self.proximity_loops if status == "accepted"]
+        return pairs
 
     @property
     def busy(self) -> bool:

@@ -3,7 +3,7 @@
 A run's ``factors`` section lists plugins::
 
     factors:
-      - class: fgslam.backend.plugins:PositionPrior      # "package.module:ClassName"
+      - class: fgslam.services.plugins:PositionPrior      # "package.module:ClassName"
         options: {file: gps.txt, sigma: 1.0}
       - class: my_package.my_factors:WheelOdometry
         options: {...}
@@ -206,45 +206,23 @@ def apply_correction(backend: Any, correction: Any) -> None:
         backend.set_pose(kf_id, T_new)
 
 
-class FrontendWithPlugins:
-    """A frontend whose run also drives the factor plugins: after every ``process(frame)`` (the
-    frontend's safe point: no optimisation running) ``poll``, and after ``finish()`` the plugins'
-    ``finish`` (its last corrections reach the frontend before its final trajectory is read).
-    Everything else is the frontend's own."""
+class FactorPlugins:
+    """The run's factor plugins (a ``factors`` list), a service of the run's system: built and attached
+    to ``backend`` before the first frame (``check_run(timestamps)`` first), :meth:`poll` after each
+    frame (the safe point: no optimisation running) and :meth:`finish` after the last (its corrections
+    reach ``contributor``, the frontend, before its final trajectory is read)."""
 
-    def __init__(self, frontend: Any, plugins: Sequence[Any], backend: Any) -> None:
-        self._frontend = frontend
-        self.plugins = list(plugins)
-        self._plugin_backend = backend
+    def __init__(self, entries: Sequence[Any], backend: Any, timestamps: Optional[np.ndarray] = None,
+                 contributor: Any = None) -> None:
+        self.plugins = build_plugins(entries)
+        contributors = [contributor] if callable(getattr(contributor, "apply_correction", None)) else []
+        self.target = attach_plugins(self.plugins, backend, timestamps, contributors)
 
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._frontend, name)
+    def poll(self) -> None:
+        poll_plugins(self.plugins, self.target)
 
-    def process(self, frame: Any) -> Any:
-        status = self._frontend.process(frame)
-        poll_plugins(self.plugins, self._plugin_backend)
-        return status
-
-    def finish(self) -> Any:
-        out = self._frontend.finish()
-        finish_plugins(self.plugins, self._plugin_backend)
-        return out
-
-
-def with_plugins(frontend: Any, entries: Sequence[Any], timestamps: Optional[np.ndarray] = None) -> Any:
-    """The run's frontend with the plugins of a ``factors`` list attached to its backend
-    (``frontend.backend``) and the frontend as the contributor their corrections reach; the frontend
-    itself when the list is empty. ConfigError naming ``factors`` when the frontend feeds no backend."""
-    if not entries:
-        return frontend
-    backend = getattr(frontend, "backend", None)
-    if backend is None:
-        raise ConfigError(f"{FACTORS_KEY}: frontend '{getattr(frontend, 'name', type(frontend).__name__)}' feeds no "
-                          "backend, so factor plugins cannot apply; remove the factors section")
-    plugins = build_plugins(entries)
-    contributors = [frontend] if callable(getattr(frontend, "apply_correction", None)) else []
-    handle = attach_plugins(plugins, backend, timestamps, contributors)
-    return FrontendWithPlugins(frontend, plugins, handle)
+    def finish(self) -> None:
+        finish_plugins(self.plugins, self.target)
 
 
 def uniform_correction(backend: Any, U: np.ndarray) -> Any:

@@ -1,7 +1,7 @@
 """The contributor contract: what shared services (loop closure, relocalisation) need from a frontend.
 
 A frontend family that feeds the backend implements :class:`Contributor`; the loop-closure service
-(:class:`fgslam.backend.loop_service.LoopService`) talks to it only through these methods, so the
+(:class:`fgslam.services.loops.LoopService`) talks to it only through these methods, so the
 patch, dense and pointmap families (or two of them on one graph) share one service.
 
 - :meth:`Contributor.keyframe_image`: the keyframe's grey image, intrinsics and (RGB-D) depth, for

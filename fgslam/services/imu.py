@@ -47,10 +47,10 @@ from typing import Any, Literal, Optional
 import numpy as np
 
 from ..config import MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, MAX_WINDOW, ranged
-from ..errors import ConfigError, DataError, OptimizationError
+from ..errors import DataError
 from ..factors.imu import (ImuNoise, body_pose, combined_params, imu_factor_on_sim3, integration_steps,
                            preintegrate, sim3_from_body_pose)
-from .keys import bias_key, pose_key, velocity_key
+from ..backend.keys import bias_key, pose_key, velocity_key
 
 logger = logging.getLogger(__name__)
 
@@ -683,7 +683,7 @@ class ImuService:
         nav = pim.predict(gtsam.NavState(T_WB, v), bias)
         S = sim3_from_body_pose(nav.pose(), self.T_CB, float(self.backend.pose(kf).scale()))
         self.stats.predictions += 1
-        from .graph import similarity3_matrix
+        from ..backend.graph import similarity3_matrix
 
         return similarity3_matrix(S)
 
@@ -706,52 +706,22 @@ class ImuService:
 # ----------------------------------------------------------------------------------------- the run
 
 
-class FrontendWithImu:
-    """A frontend whose run feeds the IMU service: each frame's samples before ``process(frame)``, the
-    service's ``poll`` after it (the safe point). Everything else is the frontend's own."""
-
-    def __init__(self, frontend: Any, service: ImuService) -> None:
-        self._frontend = frontend
-        self.imu_service = service
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._frontend, name)
-
-    def process(self, frame: Any) -> Any:
-        self.imu_service.feed(frame.imu, frame.timestamp)
-        status = self._frontend.process(frame)
-        try:
-            self.imu_service.poll()
-        except (OptimizationError, RuntimeError, np.linalg.LinAlgError) as exc:  # numerical trouble: vision goes on
-            logger.warning("IMU: initialisation step after frame %s failed (%s); retrying later", frame.index, exc)
-        return status
-
-    def finish(self) -> Any:
-        out = self._frontend.finish()
-        logger.info("IMU: %s", self.imu_service.summary())
-        return out
-
-
-def with_imu(frontend: Any, config: ImuServiceConfig, calibration: Any, has_imu: bool, sensor: str,
-             dataset_noise: Optional[dict] = None, where: str = "the dataset") -> Any:
-    """The run's frontend with an :class:`ImuService` on its backend (``config.enabled``), else the
-    frontend itself. ConfigError when the frontend feeds no backend; DataError when ``where`` has no IMU
-    or its calibration no ``T_BC``. A frontend with a ``motion_prior`` attribute gets the service's
-    :meth:`ImuService.predict`."""
+def make_imu_service(config: ImuServiceConfig, backend: Any, calibration: Any, has_imu: bool, sensor: str,
+                     contributor: Any = None, dataset_noise: Optional[dict] = None,
+                     where: str = "the dataset") -> Optional[ImuService]:
+    """The run's :class:`ImuService` on ``backend`` (``config.enabled``), else None. DataError when
+    ``where`` has no IMU or its calibration no ``T_BC``. ``contributor`` (the frontend, when it has
+    ``apply_correction``) gets the service's scale corrections."""
     if not config.enabled:
-        return frontend
+        return None
     if not has_imu:
         raise DataError(f"imu.enabled (an inertial preset) but {where} has no IMU samples; use a vision-only preset "
                         "or a dataset with an IMU stream (EuRoC layout mav0/imu0/data.csv)")
     T_BC = getattr(calibration, "T_BC", None)
     if T_BC is None:
         raise DataError(f"imu.enabled but the calibration of {where} has no camera-IMU transform T_BC")
-    backend = getattr(frontend, "backend", None)
-    if backend is None:
-        raise ConfigError(f"imu.enabled: frontend '{getattr(frontend, 'name', type(frontend).__name__)}' feeds no backend")
-    contributor = frontend if callable(getattr(frontend, "apply_correction", None)) else None
+    if not callable(getattr(contributor, "apply_correction", None)):
+        contributor = None
     service = ImuService(config, backend, T_BC, metric=sensor in ("stereo", "rgbd"), contributor=contributor,
                          dataset_noise=dataset_noise)
-    if hasattr(frontend, "motion_prior"):
-        frontend.motion_prior = service.predict
-    return FrontendWithImu(frontend, service)
+    return service
