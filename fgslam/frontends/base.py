@@ -14,6 +14,7 @@ At the end the system asks for the poses of every input frame with :meth:`Fronte
 from __future__ import annotations
 
 import abc
+import contextlib
 from dataclasses import dataclass, field
 from typing import Any, Callable, Literal, Optional, Protocol
 
@@ -244,6 +245,39 @@ class BackendFrontend(Frontend):
 
     def frame_indices(self) -> dict[int, int]:
         return {fid: idx for fid, _, idx in self._inputs}
+
+    # ------------------------------------------------------------------ the per-frame skeleton
+    #: the exceptions of numerical trouble (gtsam/torch/numpy...) that fail one frame, never the run
+    _numerical_errors: tuple[type[BaseException], ...] = (RuntimeError, np.linalg.LinAlgError)
+
+    def process(self, frame) -> FrameStatus:
+        """The one per-frame skeleton of the families: the calibration from the first frame when none
+        was given, the frame checked (``_check_frame``) and registered, then the family's measurement
+        (``_measure_frame``) under its numerical guard: numerical trouble (``_numerical_errors``) fails the
+        frame (``_recover``: the motion model, counted as a failure), never the run; then
+        ``_after_frame``."""
+        if not self._has_calibration():
+            self._set_calibration(frame.calibration)
+        self._check_frame(frame)
+        fid = self._register_input(frame)
+        try:
+            with self._measuring():
+                status = self._measure_frame(fid, frame)
+        except self._numerical_errors as exc:
+            status = self._recover(fid, frame, exc)
+        self._sources[fid] = status.pose_source
+        self._after_frame(fid, frame, status)
+        return status
+
+    def _has_calibration(self) -> bool:
+        return self.calibration is not None
+
+    def _measuring(self):
+        """The context of one frame's measurement (the families: their torch thread count)."""
+        return contextlib.nullcontext()
+
+    def _after_frame(self, fid: int, frame, status: FrameStatus) -> None:
+        """After the frame's status is known (outside the numerical guard); default nothing."""
 
     def _register_input(self, frame) -> int:
         """A new frame id for ``frame``, recorded as an input without a pose yet."""

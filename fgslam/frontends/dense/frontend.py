@@ -152,19 +152,14 @@ class DenseFrontend(BackendFrontend):
     def counts(self) -> dict[str, int]:
         return dict(self._counts)
 
-    def process(self, frame) -> FrameStatus:
-        if self.calibration is None:
-            self._set_calibration(frame.calibration)
-        self._check_frame(frame)
-        fid = self._register_input(frame)
-        try:
-            with torch_threads(self.config.threads):
-                status = self._process(fid, frame)
-        except (OptimizationError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
-            logger.warning("frame %d: dense frontend failed (%s); using the motion model", frame.index, exc)
-            status = self._fail(fid, frame, f"optimisation failed: {exc}")
-        self._sources[fid] = status.pose_source
-        return status
+    _numerical_errors = (OptimizationError, RuntimeError, np.linalg.LinAlgError, cv2.error)
+
+    def _measuring(self):
+        return torch_threads(self.config.threads)
+
+    def _recover(self, fid: int, frame, exc: BaseException) -> FrameStatus:
+        logger.warning("frame %d: dense frontend failed (%s); using the motion model", frame.index, exc)
+        return self._fail(fid, frame, f"optimisation failed: {exc}")
 
     @property
     def map_started(self) -> bool:
@@ -259,7 +254,7 @@ class DenseFrontend(BackendFrontend):
         self._last_fid = fid
 
     # ------------------------------------------------------------------ per frame
-    def _process(self, fid: int, frame) -> FrameStatus:
+    def _measure_frame(self, fid: int, frame) -> FrameStatus:
         g = self.graph
         if not g.keyframes:  # the first keyframe of a map
             T0 = self._pending_origin if self._pending_origin is not None else np.eye(4)

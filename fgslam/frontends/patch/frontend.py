@@ -290,30 +290,27 @@ class PatchFrontend(BackendFrontend):
         """Frames whose pose came from the motion model (tracking failures)."""
         return self._failures
 
-    def process(self, frame) -> FrameStatus:
-        if self.calibration is None:
-            self._set_calibration(frame.calibration)
-        self._check_frame(frame)
-        fid = self._register_input(frame)
-        try:
-            with torch_threads(self.config.threads):
-                if not self._initialized:
-                    status = self._initialize(fid, frame)
-                else:
-                    status = self._track(fid, frame)
-        except (OptimizationError, RuntimeError, np.linalg.LinAlgError) as exc:  # numerical trouble (gtsam/torch/numpy): never crash on one frame
-            logger.warning("frame %d: optimisation failed (%s); using the motion model", frame.index, exc)
-            if not self._initialized:
-                self._abandon_initialisation()
-            elif self.graph.frames and self.graph.frames[-1].fid == fid:
-                self._leave(self.graph.remove_frame(fid))
-            status = self._fail(fid, frame, f"optimisation failed: {exc}")
-        self._sources[fid] = status.pose_source
+    _numerical_errors = (OptimizationError, RuntimeError, np.linalg.LinAlgError)
+
+    def _measuring(self):
+        return torch_threads(self.config.threads)
+
+    def _measure_frame(self, fid: int, frame) -> FrameStatus:
+        return self._initialize(fid, frame) if not self._initialized else self._track(fid, frame)
+
+    def _recover(self, fid: int, frame, exc: BaseException) -> FrameStatus:
+        logger.warning("frame %d: optimisation failed (%s); using the motion model", frame.index, exc)
+        if not self._initialized:
+            self._abandon_initialisation()
+        elif self.graph.frames and self.graph.frames[-1].fid == fid:
+            self._leave(self.graph.remove_frame(fid))
+        return self._fail(fid, frame, f"optimisation failed: {exc}")
+
+    def _after_frame(self, fid: int, frame, status: FrameStatus) -> None:
         self._loop_keep_image(fid, frame)
         self._loop_feed_keyframes()
         if self._initialized and status.pose_source == "tracked":
             self._prox_step()
-        return status
 
     def keyframe_points(self) -> tuple[np.ndarray, np.ndarray] | None:
         chunks = [self._frame_points(f) for f in list(self._final.values()) + self.graph.frames]

@@ -43,6 +43,7 @@ their keyframe.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 
@@ -175,22 +176,24 @@ class PointmapFrontend(BackendFrontend):
     def num_failures(self) -> int:
         return self._failures
 
-    def process(self, frame) -> FrameStatus:
-        if self.cam is None:
-            self._set_calibration(frame.calibration)
-        self._check_frame(frame)
-        fid = self._register_input(frame)
-        try:
-            with torch_threads(self.config.threads), torch.no_grad():
-                status = self._process(fid, frame)
-        except (OptimizationError, RuntimeError, np.linalg.LinAlgError, DataError) as exc:
-            logger.warning("pointmap frame %d: %s: %s; using the motion model", frame.index, type(exc).__name__, exc)
-            status = self._fail(fid, frame, f"failed: {exc}")
-        self._sources[fid] = status.pose_source
+    _numerical_errors = (OptimizationError, RuntimeError, np.linalg.LinAlgError, DataError)
+
+    def _has_calibration(self) -> bool:
+        return self.cam is not None
+
+    @contextlib.contextmanager
+    def _measuring(self):
+        with torch_threads(self.config.threads), torch.no_grad():
+            yield
+
+    def _recover(self, fid: int, frame, exc: BaseException) -> FrameStatus:
+        logger.warning("pointmap frame %d: %s: %s; using the motion model", frame.index, type(exc).__name__, exc)
+        return self._fail(fid, frame, f"failed: {exc}")
+
+    def _after_frame(self, fid: int, frame, status: FrameStatus) -> None:
         tracked = status.pose_source in ("tracked", "relocalized") and self._kf is not None
         self._prev_fid, self._prev_kf = (fid, self._kf.fid) if tracked else (None, None)
         self._release_source()
-        return status
 
     @property
     def map_started(self) -> bool:
@@ -341,7 +344,7 @@ class PointmapFrontend(BackendFrontend):
     def _ensure_in_source(self, kf: PointmapKeyframe) -> None:
         self._add_to_source(kf.fid, kf.grey, kf.depth, kf.right)
 
-    def _process(self, fid: int, frame) -> FrameStatus:
+    def _measure_frame(self, fid: int, frame) -> FrameStatus:
         grey = self.cam.image(frame.image)
         depth = self.cam.depth(frame.depth) if self.kind == "rgbd" else None
         right = self.cam.image(frame.image_right) if self.kind == "stereo" else None
