@@ -335,7 +335,7 @@ class RunSummary:
     load_average: list[float]  # os.getloadavg() at the start (shared machines)
     error: Optional[str] = None
     notes: list[str] = field(default_factory=list)
-    loop: Optional[dict[str, Any]] = None  # frontend.loop_summary(): loop closure counts (None: off)
+    loop: Optional[dict[str, Any]] = None  # SlamSystem.loop_summary(): loop closure counts (None: off)
     interrupted: Optional[str] = None  # the signal that stopped the run (SIGINT, SIGTERM), None when it ran to the end
     output_errors: dict[str, str] = field(default_factory=dict)  # output kind -> why it could not be written
 
