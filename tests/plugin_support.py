@@ -135,7 +135,7 @@ def run_drive(frontend, n: int) -> np.ndarray:
 
 def ate_se3(T_est: np.ndarray, T_true: np.ndarray) -> float:
     """RMS position error after the best rigid (no scale) alignment."""
-    from fgslam.eval import umeyama
+    from fgslam.geometry import umeyama
 
     a = umeyama(T_est[:, :3, 3], T_true[:, :3, 3], with_scale=False)
     aligned = T_est[:, :3, 3] @ a.R.T + a.t

@@ -25,7 +25,7 @@ from fgslam.backend.plugins import (
 )
 from fgslam.config import load_config
 from fgslam.errors import ConfigError, DataError, FormatError, OptimizationError
-from fgslam.eval import umeyama
+from fgslam.geometry import umeyama
 from fgslam.io.positions import read_positions
 from fgslam.slam import SlamConfig
 

@@ -11,7 +11,7 @@ Contents of the optimisation problem:
 - built-in gtsam factors (``BetweenFactorSimilarity3`` loops, plugin priors, IMU...) added by handle
   with :meth:`Backend.add_factor`, each with an ``owner``; they persist until removed (or until a
   keyframe they touch is removed);
-- contributors' measurement blocks (:class:`fgslam.backend.blocks.Block`, e.g. the patch frontend's
+- contributors' measurement blocks (:class:`fgslam.factors.blocks.Block`, e.g. the patch frontend's
   Schur-reduced :class:`~fgslam.frontends.patch.ba.PatchBlock`), set per owner with
   :meth:`Backend.set_blocks`; blocks of different owners on the same keys add up;
 - gauge factors the backend maintains itself (docs/design.md section 4, :class:`GaugeConfig`): a
