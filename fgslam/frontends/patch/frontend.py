@@ -332,7 +332,7 @@ class PatchFrontend(BackendFrontend):
         """Keyframes (graph and finalised) and one point per patch of positive inverse depth, with
         its track: the source keyframe's patch centre plus every measured left-image edge of the
         patch into another keyframe (active and inactive edges; pixel where the source measured it)."""
-        from ...export.map import MapExport, rigid_poses
+        from ...mapdata import MapExport, rigid_poses
 
         frames = sorted(list(self._final.values()) + self.graph.frames, key=lambda f: f.fid)
         if not frames:
