@@ -15,7 +15,8 @@ from fgslam.errors import ConfigError, DataError
 from fgslam.frontends.dense.source import (DenseFlowSource, DenseSourceConfig, FlowRevision, LearnedDroidSource,
                                            make_dense_source)
 from fgslam.frontends.patch import PatchConfig, make_source
-from fgslam.frontends.patch.source import LearnedDPVOSource, Measurement
+from fgslam.frontends.patch.measurement import Measurement
+from fgslam.frontends.patch.source import LearnedDPVOSource
 from fgslam.nets.checkpoint import CheckpointError
 from fgslam.nets.config import DpvoNetConfig, DroidNetConfig
 from nets_support import official_dpvo_file, official_droid_file

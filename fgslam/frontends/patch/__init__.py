@@ -3,7 +3,8 @@ local bundle adjustment over Sim(3) keyframe poses. See :mod:`.frontend`."""
 
 from .config import BAConfig, GraphConfig, LKConfig, PatchConfig, TrackingConfig
 from .frontend import PatchFrontend
-from .source import MeasurementSource, make_source
+from .measurement import MeasurementSource
+from .source import make_source
 
 __all__ = ["BAConfig", "GraphConfig", "LKConfig", "PatchConfig", "PatchFrontend", "TrackingConfig",
            "MeasurementSource", "make_source"]
