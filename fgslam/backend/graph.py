@@ -58,7 +58,7 @@ import numpy as np
 from ..errors import OptimizationError
 from ..factors.range import camera_centre, range_factor
 from ..factors.schur import POSE_DIM, torch_threads
-from ..lie import Sim3
+from ..lie import Sim3, gtsam_matrix, gtsam_sim3
 from .config import BackendConfig, GaugeConfig
 from .keys import key_name, pose_key
 from .solver import LMSettings, NonlinearProblem, levenberg_marquardt
@@ -87,23 +87,13 @@ def as_similarity3(T_WC):
         return T_WC
     if isinstance(T_WC, Sim3):
         return T_WC.to_gtsam()
-    from ..lie import sim3_matrix_parts
-
     M = np.asarray(T_WC, dtype=np.float64)
     if M.shape != (4, 4) or not np.isfinite(M).all():
         raise OptimizationError(f"a pose must be a finite 4x4 Sim(3) matrix, a Sim3 or a gtsam.Similarity3, got shape {M.shape}")
-    R, t, s = sim3_matrix_parts(M, project=True)
-    return gtsam.Similarity3(gtsam.Rot3(R), t / s, s)
+    return gtsam_sim3(M)
 
 
-def similarity3_matrix(S) -> np.ndarray:
-    """Sim(3) matrix ``[[s R, t], [0, 1]]`` of a ``gtsam.Similarity3`` (gtsam acts as ``s (R p + t_g)``,
-    so ``t = s t_g``)."""
-    s = float(S.scale())
-    M = np.eye(4)
-    M[:3, :3] = s * S.rotation().matrix()
-    M[:3, 3] = s * np.asarray(S.translation(), dtype=np.float64)
-    return M
+similarity3_matrix = gtsam_matrix  # backend/imu.py's name for it, until it imports fgslam.lie.gtsam_matrix
 
 
 def _restricted_factor(gf, keys: tuple[int, ...], free: set, dims: dict):
@@ -532,7 +522,7 @@ class Backend:
 
     def pose_matrix(self, kf_id: int) -> np.ndarray:
         """Current T_WC of keyframe ``kf_id`` as a (4, 4) Sim(3) matrix."""
-        return similarity3_matrix(self.pose(kf_id))
+        return gtsam_matrix(self.pose(kf_id))
 
     def poses(self, kf_ids: Iterable[int] | None = None) -> Sim3:
         """Current T_WC of ``kf_ids`` (default all, in insertion order) as a batched fgslam Sim3."""
@@ -882,7 +872,7 @@ class Backend:
         logger.debug("pose graph over %d keyframes: cost %.6g -> %.6g in %d iterations", len(ids),
                      report.initial_cost, report.final_cost, report.iterations)
         at = problem.values.atSimilarity3
-        return {kf: similarity3_matrix(at(pose_key(kf))) for kf in ids}
+        return {kf: gtsam_matrix(at(pose_key(kf))) for kf in ids}
 
     def pose_graph_problem(self, kf_ids: Iterable[int] | None = None):
         """``(graph, values, ids)`` of the pose-graph correction over ``kf_ids``:
