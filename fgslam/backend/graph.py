@@ -61,6 +61,7 @@ from ..factors.schur import POSE_DIM, torch_threads
 from ..lie import Sim3, gtsam_matrix, gtsam_sim3
 from .config import BackendConfig, GaugeConfig
 from .keys import key_name, pose_key
+from .pose_graph import anchor_prior, diagonal_model
 from .solver import LMSettings, NonlinearProblem, levenberg_marquardt
 
 logger = logging.getLogger(__name__)
@@ -893,7 +894,7 @@ class Backend:
             return graph, values, ids
         pg = self.config.pose_graph
         sigmas = np.array([pg.rotation_sigma] * 3 + [pg.translation_sigma] * 3 + [pg.log_scale_sigma])
-        odometry = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+        odometry = diagonal_model(sigmas)
         keys = [pose_key(kf) for kf in ids]
         poses = [self._values.atSimilarity3(key) for key in keys]
         if len(ids) == len(self._keyframes) and self._values.size() == len(ids):
@@ -908,8 +909,7 @@ class Backend:
         for factor, fkeys, _ in self._factors.values():
             if all(k in key_set for k in fkeys):
                 add(factor)
-        add(gtsam.PriorFactorSimilarity3(keys[0], poses[0],
-                                         gtsam.noiseModel.Isotropic.Sigma(POSE_DIM, self.config.gauge.anchor_sigma)))
+        add(anchor_prior(keys[0], poses[0], self.config.gauge.anchor_sigma))
         return graph, values, ids
 
 

@@ -71,12 +71,12 @@ from ...factors.schur import BlockConfig, torch_threads
 from ...loop.closure import LoopClosureConfig
 from ...lie import sim3_matrix_components
 from ...backend.config import BackendConfig
+from ...backend.global_ba import GlobalBAProblem, global_bundle_adjustment
 from ...backend.graph import Backend
 from ...backend.keys import pose_key
 from ..base import BackendFrontend, FrameStatus, SensorMode
 from .ba import PatchBlock
 from .config import PatchConfig
-from .global_ba import GlobalBAProblem, global_bundle_adjustment
 from .graph import GraphFrame, PatchGraph
 from .proximity import Candidate, KeyframeStore, fundamental_inliers, held_frames, pose_filter
 from ..records import per_frame_motion
