@@ -12,7 +12,7 @@ import numpy as np
 from fgslam.backend.graph import as_similarity3
 from fgslam.frontends.base import FrameStatus, Frontend
 from fgslam.backend.keys import pose_key
-from fgslam.io.synth.presets import build_trajectory, default_config
+from fgslam.io.synth.scenarios import build_trajectory, default_config
 from fgslam.io.synth.sequence import camera_mount
 from fgslam.loop.closure import LoopCorrection
 

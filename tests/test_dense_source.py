@@ -28,7 +28,7 @@ from fgslam.frontends.dense.source import (
     make_dense_source,
 )
 from fgslam.io.synth import SynthSequence
-from fgslam.io.synth.presets import load_synth_config
+from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.lie import Sim3
 
 S = 8  # grid stride

@@ -53,7 +53,7 @@ def _folder(root: Path, n: int, width: int, height: int, black: bool = False) ->
 def room(tmp_path_factory) -> Path:
     """A small textured room-loop render (stereo, depth, ground truth)."""
     from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     root = tmp_path_factory.mktemp("room") / "seq"
     write_sequence(SynthSequence(load_synth_config("room-loop", None, [

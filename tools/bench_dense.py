@@ -28,7 +28,7 @@ from fgslam.factors.dense import DenseBlock, DenseEdge, DenseKeyframe, pixel_gri
 from fgslam.factors.reprojection import reproject
 from fgslam.frontends.dense.source import DenseFlowSource, grid_intrinsics
 from fgslam.io.synth import SynthSequence
-from fgslam.io.synth.presets import load_synth_config
+from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.lie import Sim3
 
 STRIDE = 8

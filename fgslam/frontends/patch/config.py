@@ -19,7 +19,7 @@ from ...nets.config import DpvoNetConfig
 
 
 @dataclass
-class GraphConfig:
+class PatchGraphConfig:
     """Patch graph (DPV-SLAM section 3.1)."""
 
     patches_per_frame: int = ranged(96, ge=8, le=MAX_PATCHES_PER_FRAME)  # K random p x p patches per frame, one inverse depth each
@@ -111,7 +111,7 @@ class BAConfig:
 
 
 @dataclass
-class TrackingConfig:
+class PatchTrackingConfig:
     """Initialisation, motion model, keyframes, failure handling."""
 
     init_min_parallax: float = ranged(6.0, ge=0, le=MAX_SCALAR)  # mono: median rotation-compensated flow (px) needed to initialise
@@ -170,10 +170,10 @@ class PatchConfig:
     checkpoint: Optional[str] = None  # dpvo source: path of the DPVO checkpoint (dpvo.pth)
     dpvo: DpvoNetConfig = field(default_factory=DpvoNetConfig)  # dpvo source: iterations, threads, device
     threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads of the frontend (flow/bookkeeping)
-    graph: GraphConfig = field(default_factory=GraphConfig)
+    graph: PatchGraphConfig = field(default_factory=PatchGraphConfig)
     lk: LKConfig = field(default_factory=LKConfig)
     ba: BAConfig = field(default_factory=BAConfig)
-    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    tracking: PatchTrackingConfig = field(default_factory=PatchTrackingConfig)
     proximity: ProximityConfig = field(default_factory=ProximityConfig)
 
     def validate(self) -> None:
