@@ -46,7 +46,7 @@ import torch
 
 from fgslam.config import check_ranges, ranged
 from fgslam.errors import FGSlamError
-from fgslam.frontends.dense.source import grid_intrinsics
+from fgslam.frontends.flow import grid_intrinsics
 from fgslam.io.synth import SynthSequence
 from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.lie import Sim3

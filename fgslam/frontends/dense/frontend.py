@@ -59,7 +59,8 @@ from ..records import per_frame_motion
 from ..records import AbsolutePose, KeyframePose, PoseRecord, RelativePose, resolve_pose, rigid, sim3_power
 from .config import DenseConfig
 from .graph import DenseKeyframeState, EdgeMeasurement, FrameGraph, select_global_edges
-from .source import grid_intrinsics, make_dense_source
+from ..flow import grid_intrinsics
+from .source import make_dense_source
 
 logger = logging.getLogger(__name__)
 
