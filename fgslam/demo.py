@@ -20,7 +20,7 @@ import yaml
 
 from .config import MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, MAX_SEED, load_config, ranged, to_dict
 from .io.synth import SynthSequence, write_sequence
-from .io.synth.presets import load_synth_config
+from .io.synth.scenarios import load_synth_config
 from .presets import configs_dir
 from .slam import SlamConfig, open_slam_dataset, run_slam
 

@@ -455,13 +455,11 @@ class Sim3:
     def to_gtsam(self):
         """``gtsam.Similarity3(Rot3(R), t/s, s)`` for an unbatched element, else a flat list
         (row-major over the batch); float64, lower-precision rotations projected onto SO(3)."""
-        import gtsam
-
         shape = self.shape
         R = _rotations_for_gtsam(self.R.detach().expand(*shape, 3, 3)).reshape(-1, 3, 3).numpy()
         t = self.t.detach().expand(*shape, 3).to(torch.float64).cpu().reshape(-1, 3).numpy()
         s = self.s.detach().expand(shape).to(torch.float64).cpu().reshape(-1).numpy()
-        out = [gtsam.Similarity3(gtsam.Rot3(R[i]), t[i] / s[i], float(s[i])) for i in range(R.shape[0])]
+        out = [similarity3(R[i], t[i], float(s[i])) for i in range(R.shape[0])]
         return out[0] if shape == () else out
 
     @staticmethod
@@ -569,6 +567,32 @@ def sim3_matrix_parts(M: np.ndarray, project: bool = False) -> tuple[np.ndarray,
         U[:, 2] *= np.sign(np.linalg.det(U @ Vt))
         R = U @ Vt
     return R, M[:3, 3].copy(), s
+
+
+def similarity3(R: np.ndarray, t: np.ndarray, s: float):
+    """``gtsam.Similarity3`` of rotation ``R``, translation ``t`` and scale ``s`` of the matrix
+    ``[[s R, t], [0, 1]]`` (gtsam acts as ``s (R p + t_g)``, so ``t_g = t / s``): the one conversion
+    into gtsam, used by :meth:`Sim3.to_gtsam` and :func:`gtsam_sim3`."""
+    import gtsam
+
+    return gtsam.Similarity3(gtsam.Rot3(R), t / s, s)
+
+
+def gtsam_sim3(M: np.ndarray):
+    """``gtsam.Similarity3`` of a Sim(3) matrix ``[[s R, t], [0, 1]]`` (R projected onto SO(3));
+    numpy twin of ``Sim3.from_matrix(M).to_gtsam()`` without the torch round trip (hot path)."""
+    R, t, s = sim3_matrix_parts(M, project=True)
+    return similarity3(R, t, s)
+
+
+def gtsam_matrix(S) -> np.ndarray:
+    """Sim(3) matrix ``[[s R, t], [0, 1]]`` of a ``gtsam.Similarity3`` (``t = s t_g``); numpy twin of
+    ``Sim3.from_gtsam(S).matrix()``."""
+    s = float(S.scale())
+    M = np.eye(4)
+    M[:3, :3] = s * S.rotation().matrix()
+    M[:3, 3] = s * np.asarray(S.translation(), dtype=np.float64)
+    return M
 
 
 def sim3_matrix_components(M) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -25,7 +25,6 @@ from .errors import ConfigError
 
 if TYPE_CHECKING:
     from .io.datasets import Dataset
-    from .slam import SlamConfig
 
 logger = logging.getLogger(__name__)
 
@@ -129,9 +128,10 @@ def _fit_width(width: int, height: int, target: int) -> tuple[int, int]:
     return target, max(1, round(height * target / width))
 
 
-def estimate_run_memory(config: SlamConfig, width: int, height: int, frames: int,
+def estimate_run_memory(config, width: int, height: int, frames: int,
                         raw_size: tuple[int, int] | None = None) -> MemoryEstimate:
-    """Peak memory of running ``config`` on ``frames`` frames of ``width x height`` output images
+    """Peak memory of running ``config`` (a :class:`fgslam.slam.SlamConfig`: the runner imports this
+    module, so it is not imported here) on ``frames`` frames of ``width x height`` output images
     (after resizing and cropping; ``raw_size``: the images as read, default the output size).
 
     A pure function of the config and the sizes: no dataset, no allocation."""
@@ -238,8 +238,8 @@ def _pointmap_parts(cfg, width: int, height: int, frames: int, size_keys: list[s
     ]
 
 
-def check_run_memory(config: SlamConfig, dataset: Dataset) -> MemoryEstimate:
-    """:func:`estimate_run_memory` for ``dataset`` (its output image size, raw image size and frame
+def check_run_memory(config, dataset: Dataset) -> MemoryEstimate:
+    """:func:`estimate_run_memory` of the run config ``config`` for ``dataset`` (its output image size, raw image size and frame
     count, all known once it is open), refused with a ConfigError naming the keys of the largest
     part when it exceeds ``max_memory_gib``; returns the estimate otherwise."""
     calib, raw = dataset.calibration, dataset.raw_calibration

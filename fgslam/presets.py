@@ -25,7 +25,7 @@ PRESET_CLASSES: dict[str, str] = {
     "pgo": "fgslam.pgo:PGOConfig",
     "eval": "fgslam.eval:EvalConfig",
     "dataset": "fgslam.io.datasets.common:DatasetConfig",
-    "synth": "fgslam.io.synth.presets:SynthConfig",
+    "synth": "fgslam.io.synth.scenarios:SynthConfig",
     "map": "fgslam.backend.config:BackendConfig",
     "bow": "fgslam.loop.bow:BowConfig",
     "loop": "fgslam.loop.closure:LoopClosureConfig",

@@ -144,7 +144,7 @@ class SlamConfig:
     after the family and placed after ``dataset`` (``patch: PatchConfig``): they come from the
     registry :data:`fgslam.frontends.FAMILIES`, so a new family needs no edit here."""
 
-    frontend: Literal[FRONTEND_NAMES] = "patch"  # frontend family (pointmap: not implemented yet)
+    frontend: Literal[FRONTEND_NAMES] = "patch"  # frontend family: patch, dense or pointmap
     sensor: SensorName = "mono"  # mono | stereo (needs right images) | rgbd (needs depth)
     threads: int = ranged(0, ge=0, le=MAX_THREADS)  # torch and OpenCV threads for the run (0: leave the library defaults); stages may set their own
     log_interval_frames: int = ranged(100, ge=1, le=MAX_FRAMES)  # a progress line at least every this many frames

@@ -22,7 +22,7 @@ def light_patch_config(keyframe_threshold: float = 8.0) -> PatchConfig:
 def render_room(tmp_path_factory, name: str, overrides: list[str]):
     """Render a synthetic room-loop clip (``load_synth_config`` overrides) into a fresh temp folder."""
     from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     root = tmp_path_factory.mktemp(name)
     write_sequence(SynthSequence(load_synth_config("room-loop", overrides=overrides)), root)

@@ -12,7 +12,7 @@ import numpy as np
 from fgslam.backend.graph import as_similarity3
 from fgslam.frontends.base import FrameStatus, Frontend
 from fgslam.backend.keys import pose_key
-from fgslam.io.synth.presets import build_trajectory, default_config
+from fgslam.io.synth.scenarios import build_trajectory, default_config
 from fgslam.io.synth.sequence import camera_mount
 from fgslam.loop.closure import LoopCorrection
 
@@ -145,7 +145,7 @@ def run_drive(system, n: int) -> np.ndarray:
 
 def ate_se3(T_est: np.ndarray, T_true: np.ndarray) -> float:
     """RMS position error after the best rigid (no scale) alignment."""
-    from fgslam.eval import umeyama
+    from fgslam.geometry import umeyama
 
     a = umeyama(T_est[:, :3, 3], T_true[:, :3, 3], with_scale=False)
     aligned = T_est[:, :3, 3] @ a.R.T + a.t

@@ -10,7 +10,7 @@ import numpy as np
 
 from fgslam.frontends.pointmap.source import unproject_depth
 from fgslam.io.synth import SynthSequence
-from fgslam.io.synth.presets import load_synth_config
+from fgslam.io.synth.scenarios import load_synth_config
 
 
 def room_sequence() -> SynthSequence:

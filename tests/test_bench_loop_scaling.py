@@ -93,7 +93,7 @@ def test_ba_problem_is_consistent(bench):
 
 
 def test_global_ba_part_in_process(bench):
-    pytest.importorskip("fgslam.frontends.patch.global_ba")
+    pytest.importorskip("fgslam.backend.global_ba")
     entry = bench.bench_global_ba(110, 0, _small_ba(bench))
     json.dumps(entry)
     assert entry["linear_solver"] == "gtsam"

@@ -10,7 +10,7 @@ import pytest
 
 from fgslam.cli import main
 from fgslam.export.compare import cloud_distances
-from fgslam.io.synth.presets import load_synth_config
+from fgslam.io.synth.scenarios import load_synth_config
 from eval_support import BEAT_FACTOR
 
 FRAMES = 40

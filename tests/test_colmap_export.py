@@ -13,7 +13,8 @@ from fgslam.export.colmap import (
     reprojection_errors,
     write_model,
 )
-from fgslam.export.map import MapExport, RunMap, load_run_map, save_run_map
+from fgslam.export.map import RunMap, load_run_map, save_run_map
+from fgslam.mapdata import MapExport
 
 K = np.array([300.0, 310.0, 159.5, 119.5])
 W, H = 320, 240

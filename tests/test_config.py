@@ -203,7 +203,7 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.batch:BatchMatrix",
     "fgslam.batch:BatchOptions",
     "fgslam.frontends.pointmap.mix:PointmapMixOptions",
-    "fgslam.nets.dba:DenseBAConfig",
+    "fgslam.nets.dba:DenseBAStepConfig",
 )
 
 
@@ -297,7 +297,7 @@ def test_the_walk_reaches_every_config_class_that_declares_ranges():
 
 
 def test_every_default_lies_in_its_range():
-    from fgslam.io.synth.presets import PRESET_NAMES, default_config
+    from fgslam.io.synth.scenarios import PRESET_NAMES, default_config
 
     for cls in _config_classes():
         check_ranges(cls(), source=cls.__name__)  # ConfigError naming the field otherwise

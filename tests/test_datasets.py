@@ -667,7 +667,7 @@ def test_info_command(tmp_path, capsys):
 def test_synthetic_sequence_from_generator_loads(tmp_path):
     """Engineer H's generator writes the EuRoC layout + depth0; this loader must read it exactly."""
     synth = pytest.importorskip("fgslam.io.synth")
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     cfg = load_synth_config("room-loop", None, ["frames=4", "camera.width=96", "camera.height=64"])
     seq = synth.SynthSequence(cfg)

@@ -23,7 +23,7 @@ RETURN_TOLERANCE = 1.05  # the loop run's error at the return may exceed the loo
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
     from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={RATE_HZ}", "camera.width=320",
                                                     "camera.height=240"])

@@ -17,18 +17,10 @@ from fgslam.errors import ConfigError, DataError
 from fgslam.factors.dense import DenseBlock, DenseBlockConfig, DenseEdge, DenseKeyframe
 from fgslam.factors.depth import DepthPriorConfig
 from fgslam.factors.reprojection import reproject
-from fgslam.frontends.dense.source import (
-    DenseFlowConfig,
-    DenseFlowSource,
-    DenseSourceConfig,
-    LearnedDroidSource,
-    grid_intrinsics,
-    grid_to_image,
-    image_to_grid,
-    make_dense_source,
-)
+from fgslam.frontends.dense.source import DenseSourceConfig, LearnedDroidSource, make_dense_source
+from fgslam.frontends.flow import DenseFlowConfig, DenseFlowSource, grid_intrinsics, grid_to_image, image_to_grid
 from fgslam.io.synth import SynthSequence
-from fgslam.io.synth.presets import load_synth_config
+from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.lie import Sim3
 
 S = 8  # grid stride

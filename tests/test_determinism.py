@@ -27,7 +27,7 @@ TRAJECTORIES = ("trajectory_tum.txt", "trajectory_kitti.txt")
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
     from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={RATE_HZ}", "camera.width=320",
                                                     "camera.height=240"])

@@ -15,8 +15,8 @@ from fgslam.eval import (
     evaluate,
     kitti_relative_errors,
     rotation_angle,
-    umeyama,
 )
+from fgslam.geometry import umeyama
 from fgslam.io.plot import plot_trajectories
 from fgslam.io.trajectory import Trajectory, read_trajectory, write_trajectory
 

@@ -28,7 +28,7 @@ def _rows(path) -> dict[str, int]:
 def test_run_writes_a_rerun_log(tmp_path):
     pytest.importorskip("rerun", reason="rerun is an optional extra (pip install 'fgslam[rerun]')")
     from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     root = tmp_path / "room"
     write_sequence(SynthSequence(load_synth_config("room-loop", overrides=[

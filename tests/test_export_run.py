@@ -20,7 +20,7 @@ FRAMES = 40
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory) -> Path:
     from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     root = tmp_path_factory.mktemp("room")
     write_sequence(SynthSequence(load_synth_config("room-loop", overrides=[

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from dense_support import gauge_graph, solve
-from fgslam.backend.blocks import Block, LinearPiece, StructureBlock
+from fgslam.factors.blocks import Block, LinearPiece, StructureBlock
 from fgslam.backend.keys import pose_key
 from fgslam.factors.dense import DenseBlock, DenseBlockConfig, DenseEdge, DenseKeyframe, DenseSourceBlock, pixel_grid
 from fgslam.factors.depth import DepthPriorConfig

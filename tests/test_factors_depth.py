@@ -123,8 +123,8 @@ def test_local_and_global_ba_carry_the_same_prior_cost_and_information(noise, si
     import gtsam
 
     from fgslam.frontends.patch.ba import PatchBlock
-    from fgslam.frontends.patch.config import GlobalBAConfig
-    from fgslam.frontends.patch.global_ba import GlobalBAProblem, global_bundle_adjustment
+    from fgslam.backend.config import GlobalBAConfig
+    from fgslam.backend.global_ba import GlobalBAProblem, global_bundle_adjustment
     from fgslam.backend.keys import pose_key
 
     K = np.array([200.0, 200.0, 160.0, 120.0])

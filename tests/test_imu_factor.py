@@ -119,7 +119,7 @@ def test_preintegrated_factor_against_synthetic_ground_truth():
     factor at the true poses (as Sim(3) camera poses with an arbitrary keyframe scale), velocities and
     biases is chi-square consistent (15 dof), and a 5 cm position error is not."""
     from fgslam.io.synth import SynthSequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     seq = SynthSequence(load_synth_config("room-loop", overrides=["frames=21"]))
     imu = seq.imu

@@ -12,10 +12,11 @@ import torch
 
 from fgslam.config import load_config
 from fgslam.errors import ConfigError, DataError
-from fgslam.frontends.dense.source import (DenseFlowSource, DenseSourceConfig, FlowRevision, LearnedDroidSource,
-                                           make_dense_source)
+from fgslam.frontends.dense.source import DenseSourceConfig, LearnedDroidSource, make_dense_source
+from fgslam.frontends.flow import DenseFlowSource, FlowRevision
 from fgslam.frontends.patch import PatchConfig, make_source
-from fgslam.frontends.patch.source import LearnedDPVOSource, Measurement
+from fgslam.frontends.patch.measurement import Measurement
+from fgslam.frontends.patch.source import LearnedDPVOSource
 from fgslam.nets.checkpoint import CheckpointError
 from fgslam.nets.config import DpvoNetConfig, DroidNetConfig
 from fgslam.backend import Backend, BackendConfig

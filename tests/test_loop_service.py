@@ -72,7 +72,7 @@ class ToyKeyframes:
 @pytest.fixture(scope="module")
 def room():
     from fgslam.io.synth import SynthSequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={RATE_HZ}", "camera.width=320",
                                                     "camera.height=240"])

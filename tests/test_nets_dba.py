@@ -10,7 +10,7 @@ import torch
 from fgslam.backend.keys import pose_key
 from fgslam.factors.dense import DenseBlock, DenseEdge, DenseKeyframe
 from fgslam.lie import Sim3
-from fgslam.nets.dba import DenseBAConfig, dense_ba_step, dense_cost, induced_coords
+from fgslam.nets.dba import DenseBAStepConfig, dense_ba_step, dense_cost, induced_coords
 from nets_support import one_thread  # noqa: F401 (autouse fixture)
 
 N, h, w = 4, 6, 8
@@ -61,7 +61,7 @@ def test_steps_converge_to_the_truth_and_keep_the_gauge_poses():
     weight = torch.ones_like(target)
     est_poses, est_depth = perturb(poses, depth, g)
     eta = torch.full((N, h, w), 1e-3, dtype=torch.float64)
-    config = DenseBAConfig(lm=1e-4, ep=1e-6)
+    config = DenseBAStepConfig(lm=1e-4, ep=1e-6)
     costs = [float(dense_cost(est_poses, est_depth, K, ii, jj, target, weight))]
     for _ in range(8):
         est_poses, est_depth = dense_ba_step(est_poses, est_depth, K, ii, jj, target, weight, eta, fixed=(0, 1),

@@ -1,4 +1,4 @@
-"""Global bundle adjustment of the patch graph (fgslam.frontends.patch.global_ba): its sparse
+"""Global bundle adjustment of the patch graph (fgslam.backend.global_ba): its sparse
 per-source-frame Schur reduction against the dense PatchBlock reduction, recovery of the truth,
 outlier handling, a drifted chain closed by loop edges, and bad input."""
 
@@ -8,15 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from fgslam.backend.config import GlobalBAConfig
+from fgslam.backend.global_ba import GlobalBAProblem, _Problem, global_bundle_adjustment
 from fgslam.errors import OptimizationError
-from fgslam.frontends.patch.ba import PatchBlock
-from fgslam.frontends.patch.global_ba import (
-    GlobalBAConfig,
-    GlobalBAProblem,
-    _Problem,
-    global_bundle_adjustment,
-)
 from fgslam.factors.reprojection import ReprojectionConfig, reproject
+from fgslam.frontends.patch.ba import PatchBlock
 from fgslam.lie import Sim3
 
 K = np.array([300.0, 300.0, 160.0, 120.0])

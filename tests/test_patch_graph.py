@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from fgslam.errors import ConfigError, DataError
-from fgslam.frontends.patch.config import GraphConfig, PatchConfig
+from fgslam.frontends.patch.config import PatchGraphConfig, PatchConfig
 from fgslam.frontends.patch.graph import GraphFrame, InactiveEdges, PatchGraph
 from fgslam.frontends.patch.source import make_source
 
@@ -22,7 +22,7 @@ def _frame(fid: int) -> GraphFrame:
 
 
 def _graph(lifetime=3, removal=5, max_inactive=10_000) -> PatchGraph:
-    cfg = GraphConfig(patches_per_frame=K, patch_lifetime=lifetime, removal_window=removal, optimization_window=4)
+    cfg = PatchGraphConfig(patches_per_frame=K, patch_lifetime=lifetime, removal_window=removal, optimization_window=4)
     return PatchGraph(cfg, max_inactive)
 
 
@@ -99,7 +99,7 @@ def test_inactive_store_is_bounded():
 
 def test_config_validation_and_learned_source_errors(tmp_path):
     with pytest.raises(ConfigError, match="removal_window"):
-        PatchConfig(graph=GraphConfig(patch_lifetime=10, removal_window=10)).validate()
+        PatchConfig(graph=PatchGraphConfig(patch_lifetime=10, removal_window=10)).validate()
     with pytest.raises(ConfigError, match="source=lk"):
         make_source(PatchConfig(source="learned"))
     missing = tmp_path / "dpvo.pth"

@@ -7,7 +7,8 @@ import numpy as np
 import torch
 
 from fgslam.frontends.patch.ba import PatchBlock
-from fgslam.frontends.records import gtsam_matrix as _gtsam_matrix, gtsam_sim3 as _gtsam_sim3, sim3_interp as _interp, sim3_power as _sim3_power
+from fgslam.frontends.records import sim3_interp as _interp, sim3_power as _sim3_power
+from fgslam.lie import gtsam_matrix as _gtsam_matrix, gtsam_sim3 as _gtsam_sim3
 from fgslam.lie import Sim3
 from fgslam.backend.keys import pose_key
 

@@ -34,7 +34,7 @@ MIN_GAP_S = 10.0  # ... and at least this far apart in time (half the loop)
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
     from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={RATE_HZ}", "camera.width=320",
                                                     "camera.height=240"])

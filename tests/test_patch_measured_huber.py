@@ -9,7 +9,7 @@ import pytest
 
 from fgslam.frontends.patch import PatchConfig, PatchFrontend
 from fgslam.frontends.patch.graph import GraphFrame
-from fgslam.frontends.patch.source import Measurement, MeasurementSource
+from fgslam.frontends.patch.measurement import Measurement, MeasurementSource
 from fgslam.io.calibration import Calibration
 from fgslam.backend import Backend, BackendConfig
 

@@ -24,7 +24,7 @@ from fgslam.services.plugins import (
 )
 from fgslam.config import load_config
 from fgslam.errors import ConfigError, DataError, FormatError, OptimizationError
-from fgslam.eval import umeyama
+from fgslam.geometry import umeyama
 from fgslam.io.positions import read_positions
 from fgslam.slam import SlamConfig
 
@@ -347,7 +347,7 @@ def test_run_with_position_prior_preset_on_a_synthetic_street_drive(tmp_path):
     the dataset's clock. The summary's SE(3) ATE (no scale) is <= 1 % of the path; a file whose times
     miss the run is refused before the first frame, naming the file."""
     from fgslam.io.synth import SynthSequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
     from fgslam.io.synth.writer import write_sequence
     from fgslam.presets import load_preset_file
     from fgslam.slam import open_slam_dataset, run_slam

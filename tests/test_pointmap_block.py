@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.backend.blocks import Block
+from fgslam.factors.blocks import Block
 from fgslam.backend.keys import pose_key
 from fgslam.backend.solver import LMSettings, levenberg_marquardt
 from fgslam.errors import DataError

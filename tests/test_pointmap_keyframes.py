@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from fgslam.factors.pointmap_block import PointmapBlockConfig
-from fgslam.frontends.pointmap.config import GraphConfig, TrackingConfig
+from fgslam.frontends.pointmap.config import PointmapGraphConfig, PointmapTrackingConfig
 from fgslam.frontends.pointmap.keyframes import PointmapKeyframe, measure_edge
 from fgslam.frontends.pointmap.matching import MatchingConfig
 from fgslam.frontends.pointmap.descriptors import DescriptorConfig
@@ -27,7 +27,7 @@ def _keyframe(seq, view) -> PointmapKeyframe:
 
 
 def _measure(a, b, T, K, fixed_scale=True):
-    return measure_edge(a, b, T, K, PointmapBlockConfig(), TrackingConfig(), GraphConfig(), MatchingConfig(),
+    return measure_edge(a, b, T, K, PointmapBlockConfig(), PointmapTrackingConfig(), PointmapGraphConfig(), MatchingConfig(),
                         DescriptorConfig(), fixed_scale, query_stride=2)
 
 
@@ -40,14 +40,14 @@ def test_edge_from_a_perturbed_pose_reaches_the_truth():
     T_guess[:3, :3] = so3_exp(torch.tensor([0.0, 0.01, 0.0], dtype=torch.float64)).numpy() @ T_guess[:3, :3]
     T_guess[:3, 3] += [0.02, -0.01, 0.0]
     meas = _measure(a, b, T_guess, seq.K)
-    assert meas is not None and meas.num_inliers >= GraphConfig().min_edge_matches
+    assert meas is not None and meas.num_inliers >= PointmapGraphConfig().min_edge_matches
     T = meas.T_CaCb.matrix().numpy()
     assert rotation_angle_deg(T[:3, :3].T @ T_true[:3, :3]) < 0.1
     assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 0.005  # m (from 2.2 cm and 0.6 degree off)
     e = meas.edge
     resid = Sim3.from_matrix(torch.as_tensor(T_true)).act(torch.as_tensor(e.X_j_in_j)) - torch.as_tensor(e.X_i_in_i)
     assert float(resid.norm(dim=-1).median()) < 0.02  # matched points agree under the true pose
-    assert len(e.X_i_in_i) <= GraphConfig().max_edge_matches
+    assert len(e.X_i_in_i) <= PointmapGraphConfig().max_edge_matches
 
 
 def test_no_edge_from_a_wrong_pose():

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from fgslam.factors.pointmap_block import PointmapBlockConfig
-from fgslam.frontends.pointmap.config import TrackingConfig
+from fgslam.frontends.pointmap.config import PointmapTrackingConfig
 from fgslam.frontends.pointmap.tracking import fuse_pointmap, track_pose
 from fgslam.lie import Sim3
 
@@ -54,7 +54,7 @@ def test_ray_mode_recovers_a_sim3_with_outliers():
     does not; the outliers are not inliers."""
     T_true, X_f, X_k, _ = _case([0.02, -0.05, 0.01, 0.1, -0.03, 0.05, 0.2], outliers=0.05)
     w = torch.ones(len(X_f), dtype=torch.float64)
-    res = track_pose(_identity(), X_f, X_k, w, PointmapBlockConfig(mode="ray"), TrackingConfig(iterations=30), False)
+    res = track_pose(_identity(), X_f, X_k, w, PointmapBlockConfig(mode="ray"), PointmapTrackingConfig(iterations=30), False)
     rot, trans, scale = _error(res.T_CkCf, T_true)
     # the scale comes from the weak distance row alone (sigma_dist = 10 keeps it in Huber's quadratic
     # region), so wrong matches bias it like least squares: 5 % outliers 30 % too far -> about 1 %
@@ -64,21 +64,21 @@ def test_ray_mode_recovers_a_sim3_with_outliers():
     assert res.inlier[n_out:].float().mean() > 0.99 and res.inlier[:n_out].float().mean() < 0.2
     plain = PointmapBlockConfig(mode="ray")
     plain.robust.kind = "none"
-    ls = track_pose(_identity(), X_f, X_k, w, plain, TrackingConfig(iterations=30), False)
+    ls = track_pose(_identity(), X_f, X_k, w, plain, PointmapTrackingConfig(iterations=30), False)
     assert _error(ls.T_CkCf, T_true)[1] > 5 * trans
 
 
 def test_calibrated_mode_and_fixed_scale():
     T_true, X_f, X_k, uv = _case([0.01, 0.03, -0.02, -0.08, 0.02, 0.04, 0.0])
     w = torch.ones(len(X_f), dtype=torch.float64)
-    res = track_pose(_identity(), X_f, X_k, w, PointmapBlockConfig(mode="calibrated"), TrackingConfig(), True, uv, K)
+    res = track_pose(_identity(), X_f, X_k, w, PointmapBlockConfig(mode="calibrated"), PointmapTrackingConfig(), True, uv, K)
     rot, trans, scale = _error(res.T_CkCf, T_true)
     assert rot < 1e-5 and trans < 1e-4
     assert abs(float(res.T_CkCf.s) - 1.0) < 1e-12  # SE(3): the scale never moves
     # with the true relative pose scaled, SE(3) tracking cannot reach it, Sim(3) tracking does
     T_s, X_f2, X_k2, uv2 = _case([0.01, 0.03, -0.02, -0.08, 0.02, 0.04, 0.1])
-    fixed = track_pose(_identity(), X_f2, X_k2, w, PointmapBlockConfig(mode="calibrated"), TrackingConfig(), True, uv2, K)
-    free = track_pose(_identity(), X_f2, X_k2, w, PointmapBlockConfig(mode="calibrated"), TrackingConfig(), False, uv2, K)
+    fixed = track_pose(_identity(), X_f2, X_k2, w, PointmapBlockConfig(mode="calibrated"), PointmapTrackingConfig(), True, uv2, K)
+    free = track_pose(_identity(), X_f2, X_k2, w, PointmapBlockConfig(mode="calibrated"), PointmapTrackingConfig(), False, uv2, K)
     assert _error(free.T_CkCf, T_s)[2] < 1e-4 and _error(fixed.T_CkCf, T_s)[2] > 0.09
 
 
@@ -86,7 +86,7 @@ def test_pure_rotation_stays_well_posed():
     """Zero translation: the ray rows alone leave the scale free along t = 0; the distance row fixes it."""
     T_true, X_f, X_k, _ = _case([0.0, 0.08, 0.02, 0.0, 0.0, 0.0, 0.0])
     w = torch.ones(len(X_f), dtype=torch.float64)
-    res = track_pose(_identity(), X_f, X_k, w, PointmapBlockConfig(mode="ray"), TrackingConfig(iterations=30), False)
+    res = track_pose(_identity(), X_f, X_k, w, PointmapBlockConfig(mode="ray"), PointmapTrackingConfig(iterations=30), False)
     rot, trans, scale = _error(res.T_CkCf, T_true)
     assert rot < 1e-5 and trans < 1e-3 and scale < 1e-3 and torch.isfinite(res.T_CkCf.matrix()).all()
 
@@ -99,10 +99,10 @@ def test_confidence_weighting_and_degenerate_matches():
     X_k_bad[:500] = torch.nan
     X_k_bad[500:1000] *= 2.0
     w[500:1000] = 0.0  # wrong but zero confidence
-    res = track_pose(_identity(), X_f, X_k_bad, w, PointmapBlockConfig(mode="ray"), TrackingConfig(iterations=30), False)
+    res = track_pose(_identity(), X_f, X_k_bad, w, PointmapBlockConfig(mode="ray"), PointmapTrackingConfig(iterations=30), False)
     assert max(_error(res.T_CkCf, T_true)) < 1e-3
     assert not bool(res.inlier[:1000].any())
-    none = track_pose(_identity(), X_f, X_k, torch.zeros_like(w), PointmapBlockConfig(mode="ray"), TrackingConfig(), False)
+    none = track_pose(_identity(), X_f, X_k, torch.zeros_like(w), PointmapBlockConfig(mode="ray"), PointmapTrackingConfig(), False)
     assert torch.allclose(none.T_CkCf.matrix(), _identity().matrix()) and none.num_inliers == 0
 
 

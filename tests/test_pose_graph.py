@@ -60,7 +60,7 @@ def _true_loops(T_gt: Sim3, sigma, pairs):
 
 
 def _ate(T_gt: Sim3, T: Sim3) -> float:
-    from fgslam.eval import umeyama
+    from fgslam.geometry import umeyama
 
     al = umeyama(T.t.numpy(), T_gt.t.numpy(), with_scale=True)
     return float(np.sqrt(np.mean(np.sum((T.t.numpy() @ (al.s * al.R).T + al.t - T_gt.t.numpy()) ** 2, axis=1))))

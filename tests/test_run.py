@@ -21,7 +21,7 @@ from fgslam.errors import ConfigError, DataError, FGSlamError
 from fgslam.frontends import FRONTEND_NAMES, make_frontend
 from fgslam.frontends.base import FrameStatus, Frontend
 from fgslam.io.synth import SynthSequence, write_sequence
-from fgslam.io.synth.presets import load_synth_config
+from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.io.trajectory import read_trajectory
 from fgslam.presets import configs_dir, resolve_preset
 from fgslam.slam import (

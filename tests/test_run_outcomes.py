@@ -53,7 +53,7 @@ def _folder(root: Path, n: int, width: int, height: int, black: bool = False) ->
 def room(tmp_path_factory) -> Path:
     """A small textured room-loop render (stereo, depth, ground truth)."""
     from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     root = tmp_path_factory.mktemp("room") / "seq"
     write_sequence(SynthSequence(load_synth_config("room-loop", None, [
@@ -297,10 +297,10 @@ def test_joining_a_cluster_that_never_answers_fails_after_the_init_timeout(tmp_p
 
 
 def test_compare_colmap_without_a_registered_frame_fails_without_a_ratio(tmp_path, room, capsys, monkeypatch):
-    import fgslam.export.compare as compare
+    import fgslam.export.colmap as colmap
     from fgslam.export.colmap import SfmResult
 
-    monkeypatch.setattr(compare, "run_colmap_sfm", lambda *a, **k: SfmResult(None, 0, {"total": 30.0}, 40.0))
+    monkeypatch.setattr(colmap, "run_colmap_sfm", lambda *a, **k: SfmResult(None, 0, {"total": 30.0}, 40.0))
     out = tmp_path / "cmp"
     assert main(["-q", "compare-colmap", "--data", str(room), "--frames", "16", "--out", str(out), "--no-progress"]) == 2
     captured = capsys.readouterr()

@@ -11,7 +11,7 @@ import pytest
 from geometry_support import transfer_pixels
 
 from fgslam.io.synth import SynthSequence
-from fgslam.io.synth.presets import load_synth_config
+from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.io.synth.texture import STYLE_DOOR, STYLE_PLAIN, STYLE_TILES, PlainTextureConfig, make_plain_texture
 
 SIZE = ["camera.width=320", "camera.height=240"]

@@ -16,12 +16,12 @@ from typing import Optional
 import gtsam
 import numpy as np
 
-from fgslam.backend.graph import as_similarity3
 from fgslam.backend.keys import pose_key
 from fgslam.config import ranged
 from fgslam.errors import ConfigError
 from fgslam.frontends.base import BackendFrontend, FrameStatus
 from fgslam.frontends.records import KeyframePose
+from fgslam.lie import gtsam_sim3
 from fgslam.services.contributor import KeyframeImage, PoseCorrection
 
 
@@ -72,7 +72,7 @@ class ToyFrontend(BackendFrontend):
             T_WC = self.backend.pose_matrix(fid - 1) @ T_CpCf
             self.backend.add_keyframe(fid, T_WC, float(frame.timestamp))
             self.backend.add_factor(gtsam.BetweenFactorSimilarity3(pose_key(fid - 1), pose_key(fid),
-                                                                   as_similarity3(T_CpCf), self._noise),
+                                                                   gtsam_sim3(T_CpCf), self._noise),
                                     owner=self.name)
             self.backend.optimize_window(self.backend.keyframe_ids[-self.config.window:], self.config.iterations)
         self._T_WC_gt_prev = T_WC_gt

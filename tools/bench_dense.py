@@ -5,7 +5,7 @@ of edges to its ``--edges`` nearest neighbours each way, with the grid of a W x 
 inverse depths per keyframe): ms per ``linearize`` (all pieces), ``cost`` and ``refine_structure`` (one
 step), and ns per measurement row of ``linearize``.
 
-Part 2, ``fgslam.frontends.dense.source.DenseFlowSource.revise`` on rendered ``room-loop`` frames
+Part 2, ``fgslam.frontends.flow.DenseFlowSource.revise`` on rendered ``room-loop`` frames
 (4 frames apart): ms per edge (forward and backward DIS, warps, confidences), best of ``--repeat``.
 
 Usage: OMP_NUM_THREADS=1 .venv/bin/python tools/bench_dense.py [--keyframes 8] [--edges 2] [--repeat 3]
@@ -26,9 +26,9 @@ from bench_factors import best_time  # tools/ is on the path of a script run fro
 from fgslam.backend.keys import pose_key
 from fgslam.factors.dense import DenseBlock, DenseEdge, DenseKeyframe, pixel_grid
 from fgslam.factors.reprojection import reproject
-from fgslam.frontends.dense.source import DenseFlowSource, grid_intrinsics
+from fgslam.frontends.flow import DenseFlowSource, grid_intrinsics
 from fgslam.io.synth import SynthSequence
-from fgslam.io.synth.presets import load_synth_config
+from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.lie import Sim3
 
 STRIDE = 8

@@ -115,7 +115,7 @@ def euroc_static(root: Path, work: Path, overrides: list[str]) -> dict:
 
 def synthetic(work: Path, frames: int, overrides: list[str]) -> dict:
     from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     root = work / f"room_{frames}"
     if not (root / "mav0").is_dir():

@@ -12,7 +12,7 @@ Parts (``--parts``), each measured at every N of ``--keyframes`` (default 100 10
 - ``pose_graph``: one ``optimize_sim3_pose_graph`` call over N keyframes on laps of a closed path
   (:func:`lap_trajectory`) with the drift and true + false loop simulation of
   tools/bench_pose_graph.py (one loop per ``--loop-every`` revisit keyframes); ATE before / after.
-- ``global_ba``: ``fgslam.frontends.patch.global_ba.global_bundle_adjustment`` on a synthetic
+- ``global_ba``: ``fgslam.backend.global_ba.global_bundle_adjustment`` on a synthetic
   patch-graph problem (:func:`make_ba_problem`): the same kind of lap trajectory, 96 patches per
   keyframe (centres uniform in a 640 x 480 image, depths uniform in 2-30 m) observed in the frames
   at most 5 positions before and after (in-image projections only, 0.5 px Gaussian noise) plus
@@ -356,7 +356,8 @@ def bench_global_ba(n: int, seed: int, cfg: BAScenarioConfig, threads: int = 1, 
     """Build the problem for ``n`` keyframes and time one ``global_bundle_adjustment`` call
     (``GlobalBAConfig`` defaults with ``threads`` and the fields in ``ba_options``)."""
     from fgslam.config import from_dict
-    from fgslam.frontends.patch.global_ba import GlobalBAConfig, GlobalBAProblem, global_bundle_adjustment
+    from fgslam.backend.config import GlobalBAConfig
+    from fgslam.backend.global_ba import GlobalBAProblem, global_bundle_adjustment
 
     t0 = time.perf_counter()
     scn = make_ba_problem(n, cfg, seed)

@@ -135,7 +135,7 @@ def setup_hint(scripts: Path) -> str:
 def highway_root(args: argparse.Namespace) -> Path:
     """Render (or reuse) the synthetic highway clip; returns its root (EuRoC layout)."""
     from fgslam.demo import DemoSceneConfig, render_scene
-    from fgslam.io.synth.presets import default_config
+    from fgslam.io.synth.scenarios import default_config
 
     cam = default_config("highway").camera
     scene = DemoSceneConfig(preset="highway", frames=args.highway_frames, rate_hz=cam.rate_hz, width=cam.width,

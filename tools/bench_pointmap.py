@@ -38,7 +38,7 @@ from fgslam.frontends.pointmap.descriptors import DescriptorConfig, dense_descri
 from fgslam.frontends.pointmap.matching import MatchingConfig, RayImage, match_pointmaps
 from fgslam.frontends.pointmap.source import PointmapSourceConfig, make_pointmap_source, unproject_depth
 from fgslam.io.synth import SynthSequence
-from fgslam.io.synth.presets import load_synth_config
+from fgslam.io.synth.scenarios import load_synth_config
 
 FRAMES = (40, 52)
 

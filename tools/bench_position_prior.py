@@ -24,7 +24,7 @@ import numpy as np
 
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.io.synth import SynthSequence, write_sequence
-from fgslam.io.synth.presets import load_synth_config
+from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.io.trajectory import read_trajectory
 from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
 

@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from fgslam.io.synth import SynthSequence
-from fgslam.io.synth.presets import PRESET_NAMES, load_synth_config
+from fgslam.io.synth.scenarios import PRESET_NAMES, load_synth_config
 
 SIZES = ((320, 240), (640, 480))
 

@@ -127,7 +127,7 @@ def synth_root(args: argparse.Namespace) -> Path:
 def street_root(args: argparse.Namespace) -> Path:
     """Render (or reuse) the synthetic street-loop drive with the preset's own camera; returns its root."""
     from fgslam.demo import DemoSceneConfig, render_scene
-    from fgslam.io.synth.presets import default_config
+    from fgslam.io.synth.scenarios import default_config
 
     camera = default_config("street-loop").camera
     scene = DemoSceneConfig(preset="street-loop", frames=STREET_FRAMES, rate_hz=camera.rate_hz,

@@ -242,7 +242,7 @@ def main() -> None:
     tmp = None
     if not args.skip_synth:
         from fgslam.io.synth import SynthSequence, write_sequence
-        from fgslam.io.synth.presets import load_synth_config
+        from fgslam.io.synth.scenarios import load_synth_config
 
         tmp = tempfile.TemporaryDirectory()
         write_sequence(SynthSequence(load_synth_config("room-loop", overrides=[

@@ -46,13 +46,13 @@ import torch
 
 from fgslam.config import check_ranges, ranged
 from fgslam.errors import FGSlamError
-from fgslam.frontends.dense.source import grid_intrinsics
+from fgslam.frontends.flow import grid_intrinsics
 from fgslam.io.synth import SynthSequence
-from fgslam.io.synth.presets import load_synth_config
+from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.lie import Sim3
 from fgslam.nets.checkpoint import load_droid, save_checkpoint
 from fgslam.nets.config import resolve_device
-from fgslam.nets.dba import DenseBAConfig, dense_ba_step, induced_coords
+from fgslam.nets.dba import DenseBAStepConfig, dense_ba_step, induced_coords
 from fgslam.nets.droid import CorrVolume, DroidNet, coords_grid
 
 STRIDE = 8
@@ -196,7 +196,7 @@ def unroll(net: DroidNet, pool: ClipPool, clip: list[int], cfg: TrainConfig, dev
     coords0 = coords_grid(h, w, device=device)[None].expand(len(ii), h, w, 2)
     coords1, valid = induced_coords(poses, depth, K, ii, jj)
     target = coords1.float().to(device)
-    ba = DenseBAConfig()
+    ba = DenseBAStepConfig()
     losses = []
     for _ in range(cfg.iterations):
         poses = Sim3(poses.R.detach(), poses.t.detach(), poses.s.detach())

@@ -1,9 +1,12 @@
 """The persistent GTSAM backend that every frontend feeds (docs/design.md section 8).
 
-Modules: :mod:`.keys` (gtsam keys of keyframe poses and other variables), :mod:`.blocks` (the
-contract of a frontend's measurement blocks), :mod:`.solver` (the one Levenberg-Marquardt loop),
-:mod:`.config` (``BackendConfig``, the ``map`` section), :mod:`.graph` (``Backend``). The services
-that add factors to it (loop closure, IMU, plugins) are :mod:`fgslam.services`.
+Modules: :mod:`.keys` (gtsam keys of keyframe poses and other variables), :mod:`.solver` (the one
+Levenberg-Marquardt loop), :mod:`.config` (``BackendConfig``, the ``map`` section), :mod:`.graph`
+(``Backend``), :mod:`.pose_graph` (Sim(3) pose graphs, loop closure's included), :mod:`.global_ba`
+(the patch map's global bundle adjustment), :mod:`.motion_only` (one pose against fixed structure).
+The contract of a frontend's measurement blocks (``Block``, ``LinearPiece``) is
+:mod:`fgslam.factors.blocks`, below the backend; the services that add factors to it (loop
+closure, IMU, plugins) are :mod:`fgslam.services`.
 Importing this package imports no gtsam or torch (each module imports them where used; the names
 below are resolved lazily).
 """
@@ -15,7 +18,7 @@ import importlib
 _EXPORTS = {
     "Backend": ".graph", "OptimizeReport": ".graph",
     "BackendConfig": ".config", "GaugeConfig": ".config", "WindowConfig": ".config",
-    "Block": ".blocks", "LinearPiece": ".blocks",
+    "Block": "..factors.blocks", "LinearPiece": "..factors.blocks",
     "pose_key": ".keys", "key_name": ".keys",
 }
 

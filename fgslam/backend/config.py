@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from ..config import MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, ranged
+from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, check_ranges, ranged
 from ..errors import ConfigError
 
 #: Accepted spellings of ``map.solver`` and the solver they name (``python_lm``: the name before the
@@ -90,3 +90,26 @@ class BackendConfig:
     def validate(self) -> None:
         """Raise :class:`ConfigError` naming the key of an invalid choice."""
         _ = self.solver_kind
+
+
+@dataclass
+class GlobalBAConfig:
+    """Tunables of :func:`fgslam.backend.global_ba.global_bundle_adjustment` (the patch frontend's
+    ``patch.proximity.ba``)."""
+
+    iterations: int = ranged(10, ge=1, le=MAX_ITERATIONS)  # Levenberg-Marquardt iterations per robust round
+    robust_rounds: int = ranged(2, ge=1, le=MAX_ITERATIONS)  # rounds, each re-weighting the edges from the previous one's residuals
+    huber_first_round: bool = True  # round 1 Huber-weighted from the initial residuals (no outlier cut); else plain least squares
+    huber_delta: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # Huber threshold on the whitened residual (later rounds)
+    outlier_threshold: float = ranged(6.0, gt=0, le=MAX_SCALAR)  # edges above this many pixels after a round get zero weight
+    lambda_initial: float = ranged(1e-4, gt=0, le=MAX_LAMBDA)  # Marquardt damping: H + lambda diag(H)
+    lambda_factor: float = ranged(10.0, gt=1, le=MAX_SCALAR)  # damping multiplier on rejection / divisor on acceptance
+    lambda_max: float = ranged(1e4, gt=0, le=MAX_LAMBDA)  # rejected steps pushing lambda above this end the round (at a minimum)
+    relative_tolerance: float = ranged(1e-6, ge=0, le=MAX_SCALAR)  # stop a round when the relative cost decrease falls below this
+    min_structure: float = ranged(1e-6, gt=0, le=MAX_SCALAR)  # inverse depths are clamped to at least this
+    min_information: float = ranged(1e-12, ge=0, le=MAX_SCALAR)  # patches with less information are not updated
+    chunk_edges: int = ranged(200_000, ge=1, le=MAX_COUNT)  # edges linearised per batch (bounds memory: about 300 bytes per edge)
+    threads: int = ranged(0, ge=0, le=MAX_THREADS)  # torch threads; 0: every core (large batched work, unlike the local BA; tracking waits for it)
+
+    def validate(self) -> None:
+        check_ranges(self, "patch.proximity.ba.")

@@ -11,7 +11,7 @@ Contents of the optimisation problem:
 - built-in gtsam factors (``BetweenFactorSimilarity3`` loops, plugin priors, IMU...) added by handle
   with :meth:`Backend.add_factor`, each with an ``owner``; they persist until removed (or until a
   keyframe they touch is removed);
-- contributors' measurement blocks (:class:`fgslam.backend.blocks.Block`, e.g. the patch frontend's
+- contributors' measurement blocks (:class:`fgslam.factors.blocks.Block`, e.g. the patch frontend's
   Schur-reduced :class:`~fgslam.frontends.patch.ba.PatchBlock`), set per owner with
   :meth:`Backend.set_blocks`; blocks of different owners on the same keys add up;
 - gauge factors the backend maintains itself (docs/design.md section 4, :class:`GaugeConfig`): a
@@ -58,9 +58,10 @@ import numpy as np
 from ..errors import OptimizationError
 from ..factors.range import camera_centre, range_factor
 from ..factors.schur import POSE_DIM, torch_threads
-from ..lie import Sim3
+from ..lie import Sim3, gtsam_matrix, gtsam_sim3
 from .config import BackendConfig, GaugeConfig
 from .keys import key_name, pose_key
+from .pose_graph import anchor_prior, diagonal_model
 from .solver import LMSettings, NonlinearProblem, levenberg_marquardt
 
 logger = logging.getLogger(__name__)
@@ -87,23 +88,12 @@ def as_similarity3(T_WC):
         return T_WC
     if isinstance(T_WC, Sim3):
         return T_WC.to_gtsam()
-    from ..lie import sim3_matrix_parts
-
     M = np.asarray(T_WC, dtype=np.float64)
     if M.shape != (4, 4) or not np.isfinite(M).all():
         raise OptimizationError(f"a pose must be a finite 4x4 Sim(3) matrix, a Sim3 or a gtsam.Similarity3, got shape {M.shape}")
-    R, t, s = sim3_matrix_parts(M, project=True)
-    return gtsam.Similarity3(gtsam.Rot3(R), t / s, s)
+    return gtsam_sim3(M)
 
 
-def similarity3_matrix(S) -> np.ndarray:
-    """Sim(3) matrix ``[[s R, t], [0, 1]]`` of a ``gtsam.Similarity3`` (gtsam acts as ``s (R p + t_g)``,
-    so ``t = s t_g``)."""
-    s = float(S.scale())
-    M = np.eye(4)
-    M[:3, :3] = s * S.rotation().matrix()
-    M[:3, 3] = s * np.asarray(S.translation(), dtype=np.float64)
-    return M
 
 
 def _restricted_factor(gf, keys: tuple[int, ...], free: set, dims: dict):
@@ -532,7 +522,7 @@ class Backend:
 
     def pose_matrix(self, kf_id: int) -> np.ndarray:
         """Current T_WC of keyframe ``kf_id`` as a (4, 4) Sim(3) matrix."""
-        return similarity3_matrix(self.pose(kf_id))
+        return gtsam_matrix(self.pose(kf_id))
 
     def poses(self, kf_ids: Iterable[int] | None = None) -> Sim3:
         """Current T_WC of ``kf_ids`` (default all, in insertion order) as a batched fgslam Sim3."""
@@ -882,7 +872,7 @@ class Backend:
         logger.debug("pose graph over %d keyframes: cost %.6g -> %.6g in %d iterations", len(ids),
                      report.initial_cost, report.final_cost, report.iterations)
         at = problem.values.atSimilarity3
-        return {kf: similarity3_matrix(at(pose_key(kf))) for kf in ids}
+        return {kf: gtsam_matrix(at(pose_key(kf))) for kf in ids}
 
     def pose_graph_problem(self, kf_ids: Iterable[int] | None = None):
         """``(graph, values, ids)`` of the pose-graph correction over ``kf_ids``:
@@ -903,7 +893,7 @@ class Backend:
             return graph, values, ids
         pg = self.config.pose_graph
         sigmas = np.array([pg.rotation_sigma] * 3 + [pg.translation_sigma] * 3 + [pg.log_scale_sigma])
-        odometry = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+        odometry = diagonal_model(sigmas)
         keys = [pose_key(kf) for kf in ids]
         poses = [self._values.atSimilarity3(key) for key in keys]
         if len(ids) == len(self._keyframes) and self._values.size() == len(ids):
@@ -918,8 +908,7 @@ class Backend:
         for factor, fkeys, _ in self._factors.values():
             if all(k in key_set for k in fkeys):
                 add(factor)
-        add(gtsam.PriorFactorSimilarity3(keys[0], poses[0],
-                                         gtsam.noiseModel.Isotropic.Sigma(POSE_DIM, self.config.gauge.anchor_sigma)))
+        add(anchor_prior(keys[0], poses[0], self.config.gauge.anchor_sigma))
         return graph, values, ids
 
 

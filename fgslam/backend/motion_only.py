@@ -5,7 +5,7 @@ filler, MASt3R-SLAM section 3.3's tracking) is a small problem: one free ``Simil
 key of the blocks held at its value. It runs on the one Levenberg-Marquardt loop of
 :mod:`fgslam.backend.solver` like every other solve; this module is only the :class:`LMProblem` for it.
 
-A block (:class:`fgslam.backend.blocks.Block`) linearises into pieces over all of its keys; the problem
+A block (:class:`fgslam.factors.blocks.Block`) linearises into pieces over all of its keys; the problem
 keeps each piece's rows and columns of the free key (the other keys are fixed, so their tangents are
 zero) and hands GTSAM one ``HessianFactor`` on the free key. Blocks with structure (the dense block's
 inverse depths) are used with their structure held by the block itself: the caller builds them so.

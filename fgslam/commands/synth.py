@@ -26,7 +26,7 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     from ..io.synth import SynthSequence, write_sequence
-    from ..io.synth.presets import load_synth_config
+    from ..io.synth.scenarios import load_synth_config
 
     overrides = list(args.overrides or [])
     for key, value in (("frames", args.frames), ("seed", args.seed), ("camera.width", args.width),

@@ -16,10 +16,10 @@ pixel (:func:`fgslam.factors.schur.schur_reduce`), with DROID's per-pixel dampin
 depth block (eq. 5: ``C + eta``, the damping the learned update operator predicts; a constant from the
 config otherwise).
 
-Blocks (the backend's contract, :mod:`fgslam.backend.blocks`):
+Blocks (the backend's contract, :mod:`fgslam.factors.blocks`):
 
 - :class:`DenseSourceBlock`: one source keyframe with all its outgoing edges; its Schur-reduced system
-  is one :class:`~fgslam.backend.blocks.LinearPiece` over the source key and its targets.
+  is one :class:`~fgslam.factors.blocks.LinearPiece` over the source key and its targets.
 - :class:`DenseBlock`: several source keyframes (a window, or the whole map for global optimisation);
   ``pieces="per_source"`` gives one piece per source keyframe (what GTSAM's sparse elimination wants),
   ``"merged"`` one piece over all keys (a small window).
@@ -40,7 +40,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from ..backend.blocks import LinearPiece
+from .blocks import LinearPiece
 from ..lie import Sim3
 from .depth import DepthPriorConfig, depth_prior, depth_priors
 from .reprojection import ReprojectionConfig, reproject_inv_depth

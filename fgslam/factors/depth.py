@@ -12,7 +12,7 @@ free ``s`` the stereo term still is consistent: its Jacobian w.r.t. the target k
 RGB-D prior: the one implementation of the sensor noise model (:func:`inv_depth_sigma`, relative
 or inverse), of the priors' selection and weights (:func:`depth_priors`) and of their residual and
 Jacobian (:func:`depth_prior`); the patch frontend's local (``frontends/patch/ba.py``) and global
-(``frontends/patch/global_ba.py``) bundle adjustments both use it.
+(``backend/global_ba.py``) bundle adjustments both use it.
 
 Tangent conventions as in ``fgslam.factors.reprojection``: right perturbation, gtsam Similarity3
 order ``[w, u, lambda]``.

@@ -19,7 +19,7 @@ group's whitened norm ``e``: the cost is ``sum rho(e)`` and the IRLS weight ``w(
 Gauss-Newton Hessian.
 
 The block has no structure (``has_structure = False``): every edge's N matches are summed into one
-:class:`~fgslam.backend.blocks.LinearPiece` over its two keys (14 x 14; GTSAM's factor from it has at
+:class:`~fgslam.factors.blocks.LinearPiece` over its two keys (14 x 14; GTSAM's factor from it has at
 most 15 rows: :func:`fgslam.factors.schur.to_gaussian_factor`), which is the per-edge block compressed to
 a few rows of MASt3R-SLAM's second-order backend.
 """
@@ -34,7 +34,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from ..backend.blocks import LinearPiece
+from .blocks import LinearPiece
 from ..config import MAX_THREADS, ranged
 from ..errors import DataError
 from ..lie import Sim3
@@ -105,7 +105,7 @@ class _Edge:
 
 class PointmapBlock:
     """Pose-only block of pointmap edges (module docstring): the backend's block contract
-    (:class:`fgslam.backend.blocks.Block`) with ``has_structure = False``; one linear piece per edge."""
+    (:class:`fgslam.factors.blocks.Block`) with ``has_structure = False``; one linear piece per edge."""
 
     has_structure = False
 

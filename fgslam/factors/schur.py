@@ -31,7 +31,7 @@ from it. The 4.3.0 wheel's JacobianFactor and HessianFactor constructors take at
 cost above.
 
 Blocks: :class:`VisualBlock` owns measurements and structure and offers ``linearize(values) ->
-[LinearPiece(keys, H, g, c)]`` (:class:`fgslam.backend.blocks.Block`), ``back_substitute(delta)``, ``cost(values)`` and ``refine_structure(values)``
+[LinearPiece(keys, H, g, c)]`` (:class:`fgslam.factors.blocks.Block`), ``back_substitute(delta)``, ``cost(values)`` and ``refine_structure(values)``
 (``values``: a ``gtsam.Values`` of Similarity3 T_WC). :class:`InverseDepthBlock` implements it with
 ``fgslam.factors.reprojection``; a frontend builds one block per source keyframe (its inverse-depth
 map or patches, with all outgoing edges) and hands it to ``fgslam.backend.Backend.set_blocks``::
@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..backend.blocks import LinearPiece
+from .blocks import LinearPiece
 from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, ranged
 from ..errors import OptimizationError
 from ..lie import Sim3
@@ -416,7 +416,7 @@ class VisualBlock(abc.ABC):
     """
 
     keys: tuple[int, ...]
-    has_structure = True  # fgslam.backend.blocks.Block: the structure is eliminated in linearize()
+    has_structure = True  # fgslam.factors.blocks.Block: the structure is eliminated in linearize()
     slots: torch.Tensor  # (N, S) pose slots of each measurement
     struct_idx: torch.Tensor  # (N,) structure of each measurement
     groups: SlotGroups

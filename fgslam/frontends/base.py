@@ -195,7 +195,7 @@ class Frontend(abc.ABC):
         return None
 
     def map_export(self):
-        """The map a run saves for ``fgslam export`` (:class:`fgslam.export.map.MapExport`: keyframe
+        """The map a run saves for ``fgslam export`` (:class:`fgslam.mapdata.MapExport`: keyframe
         ids, timestamps, rigid ``T_WC``, points with colour and tracks), or None.
 
         Default: the points of :meth:`keyframe_points` without tracks, and the keyframes of the
@@ -204,7 +204,7 @@ class Frontend(abc.ABC):
         points = self.keyframe_points()
         if points is None:
             return None
-        from ..export.map import MapExport, rigid_poses
+        from ..mapdata import MapExport, rigid_poses
 
         backend = getattr(self, "backend", None)
         kf_ids = [] if backend is None else sorted(backend.keyframe_ids)

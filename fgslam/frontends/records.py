@@ -25,7 +25,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ..lie import sim3_matrix_parts
+from ..lie import gtsam_matrix, gtsam_sim3, sim3_matrix_parts
 from ..loop.closure import PoseCorrection
 
 
@@ -54,25 +54,6 @@ def sim3_power(M: np.ndarray, alpha: float) -> np.ndarray:
     import gtsam
 
     return gtsam_matrix(gtsam.Similarity3.Expmap(alpha * gtsam.Similarity3.Logmap(gtsam_sim3(M))))
-
-
-def gtsam_sim3(M: np.ndarray):
-    """``gtsam.Similarity3`` of a Sim(3) matrix ``[[s R, t], [0, 1]]`` (R projected onto SO(3));
-    numpy twin of ``Sim3.from_matrix(M).to_gtsam()`` without the torch round trip (hot path)."""
-    import gtsam
-
-    R, t, s = sim3_matrix_parts(M, project=True)
-    return gtsam.Similarity3(gtsam.Rot3(R), t / s, s)
-
-
-def gtsam_matrix(S) -> np.ndarray:
-    """Sim(3) matrix ``[[s R, t], [0, 1]]`` of a ``gtsam.Similarity3`` (gtsam acts as ``s (R p + t_g)``,
-    so ``t = s t_g``); numpy twin of ``Sim3.from_gtsam(S).matrix()``."""
-    s = float(S.scale())
-    M = np.eye(4)
-    M[:3, :3] = s * S.rotation().matrix()
-    M[:3, 3] = s * np.asarray(S.translation(), dtype=np.float64)
-    return M
 
 
 class PoseRecord:

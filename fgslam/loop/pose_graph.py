@@ -61,7 +61,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -69,7 +69,7 @@ import torch
 
 from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, check_ranges, ranged
 from ..errors import ConfigError, OptimizationError
-from ..factors.sim3 import SIM3_DOF, make_between_factors, sim3_between_residual
+from ..factors.sim3 import SIM3_DOF, sim3_between_residual
 from ..lie import Sim3
 
 logger = logging.getLogger(__name__)
@@ -247,14 +247,6 @@ def loop_chi2(T_WC: Sim3, loop_i: np.ndarray, loop_j: np.ndarray, T_CiCj: Sim3, 
     return ((r / sig) ** 2).sum(-1).numpy()
 
 
-def _robust_model(gtsam, sigmas: np.ndarray, cfg: PoseGraphConfig):
-    base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, dtype=np.float64))
-    if cfg.robust_kernel == "none":
-        return base
-    kernel = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}
-    return gtsam.noiseModel.Robust.Create(kernel[cfg.robust_kernel].Create(cfg.robust_param), base)
-
-
 def smooth_sigmas(T_WC: Sim3, cfg: PoseGraphConfig) -> np.ndarray:
     """(K-1, 7) sigmas of the smoothness terms (see ``PoseGraphConfig.smooth_sigmas_per_distance``)."""
     sig = np.asarray(cfg.smooth_sigmas, dtype=np.float64)
@@ -295,69 +287,41 @@ def _loop_groups(loop_i: np.ndarray, loop_j: np.ndarray, members: np.ndarray, wi
 
 
 class _LoopGraph:
-    """gtsam side of the solve: prior + smoothness built once, loop factors (plain and robust) per
-    candidate loop, LM solves (the backend's loop on GTSAM factors) on a chosen subset, chi-square of
-    every candidate at a solution."""
+    """The backend's loop-closure graph (:class:`fgslam.backend.pose_graph.LoopPoseGraph`) with this
+    module's settings: LM settings of :class:`PoseGraphConfig`, chi-square of every candidate loop."""
 
     def __init__(self, T_WC: Sim3, loop_i, loop_j, T_CiCj: Sim3, cfg: PoseGraphConfig, hold_scale: bool):
-        import gtsam
+        from ..backend.pose_graph import LoopPoseGraph
 
-        self.gtsam, self.cfg, self.K = gtsam, cfg, T_WC.shape[0]
+        self.cfg = cfg
+        self.graph = LoopPoseGraph(T_WC, loop_i, loop_j, T_CiCj, smooth_sigmas(T_WC, cfg), cfg.loop_sigmas,
+                                   cfg.prior_sigma, cfg.hold_scale_sigma if hold_scale else None,
+                                   cfg.robust_kernel, cfg.robust_param)
         self.loop_i, self.loop_j, self.T_CiCj = loop_i, loop_j, T_CiCj
-        self.initial = gtsam.Values()
-        for k, pose in enumerate(T_WC.to_gtsam()):
-            self.initial.insert(k, pose)
-        self.base = gtsam.NonlinearFactorGraph()
-        prior_model = gtsam.noiseModel.Isotropic.Sigma(SIM3_DOF, cfg.prior_sigma)
-        self.base.add(gtsam.PriorFactorSimilarity3(0, T_WC[0].to_gtsam(), prior_model))
-        if hold_scale:  # log-scale only: zero precision on rotation and translation
-            precisions = np.zeros(SIM3_DOF)
-            precisions[SIM3_DOF - 1] = cfg.hold_scale_sigma**-2
-            scale_model = gtsam.noiseModel.Diagonal.Precisions(precisions)
-            for k, pose in enumerate(T_WC.to_gtsam()):
-                if k > 0:
-                    self.base.add(gtsam.PriorFactorSimilarity3(k, pose, scale_model))
-        if self.K > 1:
-            keys = np.arange(self.K)
-            Z_smooth = T_WC[:-1].inverse() @ T_WC[1:]
-            for f in make_between_factors(keys[:-1], keys[1:], Z_smooth, sigmas=smooth_sigmas(T_WC, cfg)):
-                self.base.add(f)
-        Z = T_CiCj.to_gtsam() if loop_i.size else []
-        self.factors = {}
-        for robust in (False, True):
-            kernel_cfg = cfg if robust else replace(cfg, robust_kernel="none")
-            model = _robust_model(gtsam, np.asarray(cfg.loop_sigmas), kernel_cfg)
-            self.factors[robust] = [
-                gtsam.BetweenFactorSimilarity3(int(i), int(j), z, model) for i, j, z in zip(loop_i, loop_j, Z)
-            ]
-        self.iterations = 0
-        self.lm_time_s = 0.0
+        self.initial, self.base = self.graph.initial, self.graph.base
+
+    @property
+    def iterations(self) -> int:
+        return self.graph.iterations
+
+    @property
+    def lm_time_s(self) -> float:
+        return self.graph.lm_time_s
 
     def solve(self, active: np.ndarray, start, robust: bool = True, max_iterations: int | None = None):
         """LM on prior + smoothness + the ``active`` loops from ``start``; returns (graph, values)."""
-        from ..backend.solver import LMSettings, NonlinearProblem, levenberg_marquardt
+        from ..backend.solver import LMSettings
 
-        gtsam, cfg = self.gtsam, self.cfg
-        graph = gtsam.NonlinearFactorGraph(self.base)
-        for c in np.flatnonzero(active):
-            graph.add(self.factors[robust][c])
+        cfg = self.cfg
         settings = LMSettings(
             max_iterations=cfg.max_iterations if max_iterations is None else max_iterations,
             lambda_initial=cfg.lambda_initial, lambda_factor=cfg.lambda_factor, lambda_max=cfg.lambda_max,
             relative_tolerance=cfg.relative_error_tol, absolute_decrease_tolerance=cfg.absolute_error_tol,
         )
-        problem = NonlinearProblem(graph, start)
-        t0 = time.perf_counter()
-        try:
-            report = levenberg_marquardt(problem, settings)
-        except RuntimeError as exc:
-            raise OptimizationError(f"Sim(3) pose graph: LM failed on {self.K} keyframes: {exc}") from exc
-        self.lm_time_s += time.perf_counter() - t0
-        self.iterations += report.iterations
-        return graph, problem.values
+        return self.graph.solve(active, start, settings, robust)
 
     def poses(self, values) -> Sim3:
-        return Sim3.from_gtsam([values.atSimilarity3(k) for k in range(self.K)])
+        return self.graph.poses(values)
 
     def chi2(self, values) -> np.ndarray:
         return loop_chi2(self.poses(values), self.loop_i, self.loop_j, self.T_CiCj, self.cfg.loop_sigmas)

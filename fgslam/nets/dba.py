@@ -28,13 +28,13 @@ from ..factors.reprojection import ReprojectionConfig, reproject, reproject_inv_
 from ..factors.schur import eliminate_structure
 from ..lie import Sim3
 
-__all__ = ["DenseBAConfig", "dense_ba_step", "dense_cost", "induced_coords"]
+__all__ = ["DenseBAStepConfig", "dense_ba_step", "dense_cost", "induced_coords"]
 
 POSE_DOF = 6  # rotation and translation; the scale column (lambda) is held
 
 
 @dataclass
-class DenseBAConfig:
+class DenseBAStepConfig:
     """Damping of the differentiable dense BA step (DROID-SLAM's training BA)."""
 
     lm: float = ranged(1e-4, ge=0, le=MAX_LAMBDA)  # Levenberg-Marquardt: + lm * diag(H) on the poses
@@ -55,9 +55,9 @@ def _grid(h: int, w: int, like: torch.Tensor) -> torch.Tensor:
 
 
 def induced_coords(poses: Sim3, inv_depth: torch.Tensor, K: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor,
-                   config: DenseBAConfig | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                   config: DenseBAStepConfig | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Each grid pixel of ``i`` reprojected into ``j`` for edges ``(ii, jj)``: ``(E, h, w, 2)`` and validity."""
-    config = config or DenseBAConfig()
+    config = config or DenseBAStepConfig()
     N, h, w = inv_depth.shape
     uv = _grid(h, w, inv_depth)[None].expand(len(ii), h, w, 2)
     Ti, Tj = poses[ii], poses[jj]
@@ -77,9 +77,9 @@ def _linearize(poses, inv_depth, K, ii, jj, target, config):
 
 
 def dense_cost(poses: Sim3, inv_depth: torch.Tensor, K: torch.Tensor, ii, jj, target, weight,
-               config: DenseBAConfig | None = None) -> torch.Tensor:
+               config: DenseBAStepConfig | None = None) -> torch.Tensor:
     """``0.5 sum w r^2`` (the dense block's cost, GTSAM convention)."""
-    config = config or DenseBAConfig()
+    config = config or DenseBAStepConfig()
     res = _linearize(poses, inv_depth, K, ii, jj, target, config)
     w = torch.where(res.valid[..., None], weight, torch.zeros_like(weight))
     return 0.5 * (w * res.residual ** 2).sum()
@@ -87,14 +87,14 @@ def dense_cost(poses: Sim3, inv_depth: torch.Tensor, K: torch.Tensor, ii, jj, ta
 
 def dense_ba_step(poses: Sim3, inv_depth: torch.Tensor, K: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor,
                   target: torch.Tensor, weight: torch.Tensor, eta: torch.Tensor, fixed: Sequence[int],
-                  config: DenseBAConfig | None = None) -> tuple[Sim3, torch.Tensor]:
+                  config: DenseBAStepConfig | None = None) -> tuple[Sim3, torch.Tensor]:
     """One damped Gauss-Newton step (module docstring).
 
     ``poses`` ``(N,)`` Sim(3) ``T_WC``; ``inv_depth`` ``(N, h, w)``; ``K`` ``(4,)`` grid intrinsics;
     ``target``, ``weight`` ``(E, h, w, 2)`` (``p*_ij`` and ``w_ij``); ``eta`` ``(N, h, w)`` depth damping;
     ``fixed`` pose indices held. Returns the new poses and inverse depths (differentiable in every input).
     """
-    config = config or DenseBAConfig()
+    config = config or DenseBAStepConfig()
     N, h, w = inv_depth.shape
     dt = inv_depth.dtype
     free = [n for n in range(N) if n not in set(int(f) for f in fixed)]

@@ -683,9 +683,9 @@ class ImuService:
         nav = pim.predict(gtsam.NavState(T_WB, v), bias)
         S = sim3_from_body_pose(nav.pose(), self.T_CB, float(self.backend.pose(kf).scale()))
         self.stats.predictions += 1
-        from ..backend.graph import similarity3_matrix
+        from ..lie import gtsam_matrix
 
-        return similarity3_matrix(S)
+        return gtsam_matrix(S)
 
     def velocity(self, kf_id: int) -> Optional[np.ndarray]:
         return np.asarray(self.backend.values_of([velocity_key(kf_id)]).atPoint3(velocity_key(kf_id))) \

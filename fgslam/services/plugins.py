@@ -409,7 +409,7 @@ class PositionPrior:
         return ids, centres, positions
 
     def _try_align(self) -> bool:
-        from ..eval import umeyama
+        from ..geometry import umeyama
 
         ids, centres, positions = self._pairs()
         if len(ids) < self.options.min_samples:

@@ -7,7 +7,8 @@ from dataclasses import dataclass, field
 from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, ranged
 from ...errors import ConfigError
 from ...factors.depth import DepthPriorConfig
-from .source import DenseFlowConfig, DenseSourceConfig
+from ..flow import DenseFlowConfig
+from .source import DenseSourceConfig
 
 
 def _default_source() -> DenseSourceConfig:

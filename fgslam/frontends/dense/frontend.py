@@ -50,14 +50,14 @@ from ...errors import ConfigError, DataError, OptimizationError
 from ...factors.dense import DenseBlock, DenseBlockConfig, DenseEdge, DenseKeyframe, DenseSourceBlock, DenseStereo
 from ...factors.reprojection import ReprojectionConfig
 from ...factors.schur import BlockConfig, POSE_DIM, torch_threads
-from ...lie import sim3_matrix_parts
+from ...lie import gtsam_matrix, gtsam_sim3, sim3_matrix_parts
 from ..base import BackendFrontend, FrameStatus, SensorMode
 from ..records import per_frame_motion
-from ..records import (AbsolutePose, KeyframePose, PoseRecord, RelativePose, gtsam_matrix, gtsam_sim3, resolve_pose,
-                       rigid, sim3_power)
+from ..records import AbsolutePose, KeyframePose, PoseRecord, RelativePose, resolve_pose, rigid, sim3_power
 from .config import DenseConfig
 from .graph import DenseKeyframeState, EdgeMeasurement, FrameGraph, select_global_edges
-from .source import grid_intrinsics, make_dense_source
+from ..flow import grid_intrinsics
+from .source import make_dense_source
 
 logger = logging.getLogger(__name__)
 

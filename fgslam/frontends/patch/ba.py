@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ...backend.blocks import LinearPiece
+from ...factors.blocks import LinearPiece
 from ...errors import OptimizationError
 from ...factors.depth import depth_prior
 from ...factors.reprojection import ReprojectionConfig, reproject_edges

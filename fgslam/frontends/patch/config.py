@@ -12,13 +12,14 @@ from dataclasses import dataclass, field
 from typing import Literal, Optional
 
 from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_PATCHES_PER_FRAME, MAX_SCALAR, MAX_SEED, MAX_THREADS, MAX_WINDOW, check_ranges, ranged
+from ...backend.config import GlobalBAConfig
 from ...errors import ConfigError
 from ...factors.depth import DepthPriorConfig
 from ...nets.config import DpvoNetConfig
 
 
 @dataclass
-class GraphConfig:
+class PatchGraphConfig:
     """Patch graph (DPV-SLAM section 3.1)."""
 
     patches_per_frame: int = ranged(96, ge=8, le=MAX_PATCHES_PER_FRAME)  # K random p x p patches per frame, one inverse depth each
@@ -110,7 +111,7 @@ class BAConfig:
 
 
 @dataclass
-class TrackingConfig:
+class PatchTrackingConfig:
     """Initialisation, motion model, keyframes, failure handling."""
 
     init_min_parallax: float = ranged(6.0, ge=0, le=MAX_SCALAR)  # mono: median rotation-compensated flow (px) needed to initialise
@@ -130,28 +131,6 @@ class TrackingConfig:
     min_contradiction_px: float = ranged(20.0, ge=0, le=MAX_IMAGE_SIDE)  # ... and by more than this median distance (px) is implausible motion, a tracking failure (7-Scenes hand-held reversals: at most 12 px; alternating KITTI / 7-Scenes frames: 29-83 px)
     median_of_measured: bool = False  # mono: new patches get the median inverse depth of the previous frame's patches that have a BA-inlier measurement (else of all of them: the unmeasured ones keep their initial value, which then stays the median)
     min_measured_patches: int = ranged(8, ge=1, le=MAX_COUNT)  # median_of_measured: fewer measured patches than this: the median of all of them
-
-
-@dataclass
-class GlobalBAConfig:
-    """Tunables of :func:`global_bundle_adjustment`."""
-
-    iterations: int = ranged(10, ge=1, le=MAX_ITERATIONS)  # Levenberg-Marquardt iterations per robust round
-    robust_rounds: int = ranged(2, ge=1, le=MAX_ITERATIONS)  # rounds, each re-weighting the edges from the previous one's residuals
-    huber_first_round: bool = True  # round 1 Huber-weighted from the initial residuals (no outlier cut); else plain least squares
-    huber_delta: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # Huber threshold on the whitened residual (later rounds)
-    outlier_threshold: float = ranged(6.0, gt=0, le=MAX_SCALAR)  # edges above this many pixels after a round get zero weight
-    lambda_initial: float = ranged(1e-4, gt=0, le=MAX_LAMBDA)  # Marquardt damping: H + lambda diag(H)
-    lambda_factor: float = ranged(10.0, gt=1, le=MAX_SCALAR)  # damping multiplier on rejection / divisor on acceptance
-    lambda_max: float = ranged(1e4, gt=0, le=MAX_LAMBDA)  # rejected steps pushing lambda above this end the round (at a minimum)
-    relative_tolerance: float = ranged(1e-6, ge=0, le=MAX_SCALAR)  # stop a round when the relative cost decrease falls below this
-    min_structure: float = ranged(1e-6, gt=0, le=MAX_SCALAR)  # inverse depths are clamped to at least this
-    min_information: float = ranged(1e-12, ge=0, le=MAX_SCALAR)  # patches with less information are not updated
-    chunk_edges: int = ranged(200_000, ge=1, le=MAX_COUNT)  # edges linearised per batch (bounds memory: about 300 bytes per edge)
-    threads: int = ranged(0, ge=0, le=MAX_THREADS)  # torch threads; 0: every core (large batched work, unlike the local BA; tracking waits for it)
-
-    def validate(self) -> None:
-        check_ranges(self, "patch.proximity.ba.")
 
 
 @dataclass
@@ -191,10 +170,10 @@ class PatchConfig:
     checkpoint: Optional[str] = None  # dpvo source: path of the DPVO checkpoint (dpvo.pth)
     dpvo: DpvoNetConfig = field(default_factory=DpvoNetConfig)  # dpvo source: iterations, threads, device
     threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads of the frontend (flow/bookkeeping)
-    graph: GraphConfig = field(default_factory=GraphConfig)
+    graph: PatchGraphConfig = field(default_factory=PatchGraphConfig)
     lk: LKConfig = field(default_factory=LKConfig)
     ba: BAConfig = field(default_factory=BAConfig)
-    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    tracking: PatchTrackingConfig = field(default_factory=PatchTrackingConfig)
     proximity: ProximityConfig = field(default_factory=ProximityConfig)
 
     def validate(self) -> None:

@@ -69,12 +69,12 @@ from ...factors.reprojection import ReprojectionConfig, reproject, reproject_edg
 from ...factors.robust import kernel_weight
 from ...factors.schur import BlockConfig, torch_threads
 from ...lie import sim3_matrix_components
+from ...backend.global_ba import GlobalBAProblem, global_bundle_adjustment
 from ...backend.graph import Backend
 from ...backend.keys import pose_key
 from ..base import BackendFrontend, FrameStatus, SensorMode
 from .ba import PatchBlock
 from .config import PatchConfig
-from .global_ba import GlobalBAProblem, global_bundle_adjustment
 from .graph import GraphFrame, PatchGraph
 from .proximity import Candidate, KeyframeStore, fundamental_inliers, held_frames, pose_filter
 from ..records import per_frame_motion
@@ -322,7 +322,7 @@ class PatchFrontend(BackendFrontend):
         """Keyframes (graph and finalised) and one point per patch of positive inverse depth, with
         its track: the source keyframe's patch centre plus every measured left-image edge of the
         patch into another keyframe (active and inactive edges; pixel where the source measured it)."""
-        from ...export.map import MapExport, rigid_poses
+        from ...mapdata import MapExport, rigid_poses
 
         frames = sorted(list(self._final.values()) + self.graph.frames, key=lambda f: f.fid)
         if not frames:

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from .config import GraphConfig
+from .config import PatchGraphConfig
 
 
 @dataclass
@@ -91,7 +91,7 @@ class InactiveEdges:
 class PatchGraph:
     """Frames, patches and active edges (see module docstring)."""
 
-    def __init__(self, config: GraphConfig, max_inactive_edges: int):
+    def __init__(self, config: PatchGraphConfig, max_inactive_edges: int):
         self.config = config
         self.frames: list[GraphFrame] = []
         self.inactive = InactiveEdges(max_inactive_edges)

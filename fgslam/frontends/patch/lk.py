@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import LKConfig
-from .source import Measurement, MeasurementSource
+from .measurement import Measurement, MeasurementSource
 
 
 @dataclass

@@ -1,4 +1,5 @@
-"""Measurement sources of the patch frontend: the interface, the learned DPVO slot, the factory.
+"""Measurement sources of the patch frontend: the learned DPVO slot and the factory (the interface
+is :mod:`.measurement`).
 
 A source turns an edge (i, k, j) of the patch graph, given the patch centre ``uv_src`` in frame i
 and its current reprojection ``uv_pred`` in frame j, into a target ``uv`` (the BA observation;
@@ -9,58 +10,16 @@ w_ikj; 0 marks a rejected measurement). Sources cache per-frame work in the obje
 
 from __future__ import annotations
 
-import abc
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ...errors import ConfigError, DataError
 from ..checkpoints import LearnedSlot, load_learned
+from .measurement import Measurement, MeasurementSource
 
 if TYPE_CHECKING:
     from .config import PatchConfig
-
-
-@dataclass
-class Measurement:
-    """``uv`` (n, 2) float64 target pixels, ``confidence`` (n,) in [0, 1] (0: rejected),
-    ``fb_error`` (n,) forward-backward error in pixels (0 where the source has none)."""
-
-    uv: np.ndarray
-    confidence: np.ndarray
-    fb_error: np.ndarray
-
-
-class MeasurementSource(abc.ABC):
-    """Where edge measurements come from (built-in Lucas-Kanade or a learned update operator)."""
-
-    name: str = ""
-
-    @abc.abstractmethod
-    def prepare(self, image: np.ndarray):
-        """Per-frame features of a grey uint8 image (H, W) (pyramids, feature maps...)."""
-
-    @abc.abstractmethod
-    def measure(self, src, tgt, uv_src: np.ndarray, uv_pred: np.ndarray) -> Measurement:
-        """Measure n patches of the frame with features ``src`` in the frame with features ``tgt``.
-
-        ``uv_src`` (n, 2) patch centres in the source image, ``uv_pred`` (n, 2) their current
-        reprojection in the target image (the starting point).
-        """
-
-    def pack(self, features):
-        """A compact copy of per-frame features kept for long-range (loop) edges; default: as is."""
-        return features
-
-    def unpack(self, packed):
-        """Features back from :meth:`pack`."""
-        return packed
-
-    def measure_batch(self, requests: list) -> list[Measurement]:
-        """Measure ``[(src, tgt, uv_src, uv_pred), ...]`` (one frame's edges, grouped by frame
-        pair); sources override this to share work between requests."""
-        return [self.measure(*request) for request in requests]
 
 
 class LearnedDPVOSource(MeasurementSource):

@@ -16,7 +16,7 @@ from .source import PointmapSourceConfig
 
 
 @dataclass
-class TrackingConfig:
+class PointmapTrackingConfig:
     """Frame-to-keyframe tracking (MASt3R-SLAM section 3.3): Gauss-Newton IRLS on the residuals of
     ``block.mode`` (ray + distance, or calibrated pixel + log depth), Huber, confidence weighting."""
 
@@ -55,7 +55,7 @@ class KeyframeConfig:
 
 
 @dataclass
-class GraphConfig:
+class PointmapGraphConfig:
     """Keyframe graph and global optimisation through the backend (section 3.5)."""
 
     iterations: int = ranged(10, ge=1, le=MAX_ITERATIONS)  # LM iterations per new keyframe (the backend stops early on convergence)
@@ -67,7 +67,7 @@ class GraphConfig:
 
 
 @dataclass
-class RelocalizationConfig:
+class PointmapRelocalizationConfig:
     """Relocalisation when tracking fails (section 3.6)."""
 
     recent_keyframes: int = ranged(3, ge=0, le=MAX_KEYFRAMES)  # besides retrieval (loop service), try the newest this many keyframes
@@ -84,10 +84,10 @@ class PointmapConfig:
     image_width: int = ranged(320, ge=0, le=MAX_IMAGE_SIDE)  # frames are resized to this width (aspect kept; 0: as the dataset gives them)
     query_stride: int = ranged(2, ge=1, le=MAX_IMAGE_SIDE)  # every this many pixels of a frame (both axes) are matched (MASt3R-SLAM subsamples;
     # 2: matching 42 ms CPU per 320x240 pair against 118 ms for every pixel, tools/bench_pointmap.py)
-    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    tracking: PointmapTrackingConfig = field(default_factory=PointmapTrackingConfig)
     keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
-    graph: GraphConfig = field(default_factory=GraphConfig)
-    relocalization: RelocalizationConfig = field(default_factory=RelocalizationConfig)
+    graph: PointmapGraphConfig = field(default_factory=PointmapGraphConfig)
+    relocalization: PointmapRelocalizationConfig = field(default_factory=PointmapRelocalizationConfig)
     ply_stride: int = ranged(4, ge=1, le=MAX_IMAGE_SIDE)  # keyframe_points(): every this many pixels of each canonical pointmap
     ply_min_confidence: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # ... whose fused confidence reaches this
     threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads of the frontend (0: torch's setting)

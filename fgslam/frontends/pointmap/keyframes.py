@@ -24,7 +24,7 @@ import torch
 from ...backend.keys import pose_key
 from ...factors.pointmap_block import PointmapBlockConfig, PointmapEdge
 from ...lie import Sim3
-from .config import GraphConfig, TrackingConfig
+from .config import PointmapGraphConfig, PointmapTrackingConfig
 from .descriptors import DescriptorConfig, dense_descriptors
 from .matching import MatchingConfig, PointmapMatches, RayImage, match_pointmaps
 from .tracking import TrackResult, track_pose
@@ -116,7 +116,7 @@ class EdgeMeasurement:
 
 
 def measure_edge(a: PointmapKeyframe, b: PointmapKeyframe, T_CaCb: np.ndarray, K, block: PointmapBlockConfig,
-                 tracking: TrackingConfig, graph: GraphConfig, matching: MatchingConfig, descriptors: DescriptorConfig,
+                 tracking: PointmapTrackingConfig, graph: PointmapGraphConfig, matching: MatchingConfig, descriptors: DescriptorConfig,
                  fixed_scale: bool, query_stride: int = 1) -> EdgeMeasurement | None:
     """The edge (a, b) from the canonical pointmaps and the guess ``T_CaCb`` (4x4 Sim(3)): b's points moved
     into a, matched, the relative pose refined (:func:`~.tracking.track_pose`), inlier matches kept

@@ -20,7 +20,7 @@ Built-in sources (no learned weights):
 
 For the metric sources ``X_j^i = T_CiCj X_j^j`` with ``T_CiCj`` given by the caller (e.g. the tracker's
 prediction) or estimated by PnP (RANSAC) on the dense flow's confident correspondences with i's
-depth. The dense flow is :class:`fgslam.frontends.dense.source.DenseFlowSource` at full resolution
+depth. The dense flow is :class:`fgslam.frontends.flow.DenseFlowSource` at full resolution
 (stride 1: no pooling), with its forward-backward, photometric and aperture confidences.
 
 - :class:`Mast3rPointmapSource` (``mast3r``): the slot of MASt3R itself; it needs the ``mast3r``
@@ -44,7 +44,7 @@ import numpy as np
 from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_PERCENT, MAX_SCALAR, ranged
 from ...errors import ConfigError, DataError
 from ..checkpoints import LearnedSlot, require_checkpoint
-from ..dense.source import DenseFlowConfig, DenseFlowSource
+from ..flow import DenseFlowConfig, DenseFlowSource
 from .descriptors import DescriptorConfig, dense_descriptors
 
 logger = logging.getLogger(__name__)

@@ -34,7 +34,7 @@ from ...backend.solver import LMSettings
 from ...factors.pointmap_block import PointmapBlock, PointmapBlockConfig, PointmapEdge
 from ...factors.schur import POSE_DIM
 from ...lie import Sim3
-from .config import TrackingConfig
+from .config import PointmapTrackingConfig
 
 logger = logging.getLogger(__name__)
 
@@ -64,14 +64,14 @@ class TrackResult:
         return int(self.inlier.sum())
 
 
-def _settings(config: TrackingConfig) -> LMSettings:
+def _settings(config: PointmapTrackingConfig) -> LMSettings:
     return LMSettings(max_iterations=config.iterations, lambda_initial=config.damping,
                       lambda_factor=config.lambda_factor, lambda_max=config.lambda_max,
                       step_tolerance=config.step_tolerance, damping="marquardt")
 
 
 def track_pose(T_init: Sim3, X_f_in_f: torch.Tensor, X_k_in_k: torch.Tensor, weight: torch.Tensor,
-               block: PointmapBlockConfig, config: TrackingConfig, fixed_scale: bool,
+               block: PointmapBlockConfig, config: PointmapTrackingConfig, fixed_scale: bool,
                uv_k: torch.Tensor | None = None, K: torch.Tensor | None = None) -> TrackResult:
     """``T_CkCf`` from N matches (module docstring). ``X_f_in_f`` / ``X_k_in_k`` ``(N, 3)``, ``weight``
     ``(N,)`` match confidences q, ``uv_k`` ``(N, 2)`` matched keyframe pixels and ``K`` ``(4,)`` for the

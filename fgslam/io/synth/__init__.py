@@ -1,7 +1,7 @@
 """Synthetic sequences with exact ground truth: textured ray-cast scenes, stereo, depth and IMU,
 written in the EuRoC layout (see :mod:`.writer`)."""
 
-from .presets import PRESET_NAMES, SynthConfig, default_config
+from .scenarios import PRESET_NAMES, SynthConfig, default_config
 from .sequence import StereoFrame, SynthSequence
 from .writer import WriteSummary, write_sequence
 

@@ -18,7 +18,7 @@ from functools import cached_property
 import numpy as np
 
 from .imu import ImuData, simulate_imu
-from .presets import CameraConfig, SynthConfig, build_scene, build_trajectory
+from .scenarios import CameraConfig, SynthConfig, build_scene, build_trajectory
 from .render import Renderer, RenderOutput
 from .texture import build_atlas
 from .trajectory import BodyState, euler_zyx_to_R

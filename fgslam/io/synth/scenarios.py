@@ -1,4 +1,5 @@
-"""Configuration of the synthetic generator and the three presets (scene + trajectory builders).
+"""Configuration of the synthetic generator and its scene presets (scene + trajectory builders; not
+the SLAM run presets of :mod:`fgslam.presets`).
 
 Presets:
 

@@ -1,6 +1,10 @@
 """Global bundle adjustment of a patch graph (DPV-SLAM sec. 3.2): every keyframe pose and every
 patch inverse depth of the active and inactive edges, with a sparse reduced camera system.
 
+The backend's part: the problem as plain arrays and its solve (a picklable top-level function, run
+in a worker process); the patch frontend builds the problem from its graph
+(:meth:`fgslam.frontends.patch.frontend.PatchFrontend.global_ba_job`).
+
 Problem (:class:`GlobalBAProblem`): F frames with Sim(3) poses ``T_WC`` (4x4 ``[[s R, t], [0, 1]]``;
 the scale of each pose is *held*: the update is SE(3), tangent ``[w, u]`` of ``fgslam.lie.Sim3``'s
 ``[w, u, lambda]`` with lambda = 0, right perturbation ``T <- T Exp(xi)``), P patches (each owned by
@@ -42,14 +46,14 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ...backend.solver import LMSettings, levenberg_marquardt
-from ...errors import OptimizationError
-from ...factors.depth import depth_prior
-from ...factors.reprojection import ReprojectionConfig, reproject_edges
-from ...factors.robust import kernel_weight
-from ...factors.schur import eliminate_structure, information_inverse, to_gaussian_factor, torch_threads
-from ...lie import Sim3, sim3_matrix_components
+from ..errors import OptimizationError
+from ..factors.depth import depth_prior
+from ..factors.reprojection import ReprojectionConfig, reproject_edges
+from ..factors.robust import kernel_weight
+from ..factors.schur import eliminate_structure, information_inverse, to_gaussian_factor, torch_threads
+from ..lie import Sim3, sim3_matrix_components
 from .config import GlobalBAConfig
+from .solver import LMSettings, levenberg_marquardt
 
 logger = logging.getLogger(__name__)
 
