@@ -2,7 +2,7 @@
 frontend, monocular) on it, evaluate against the exact ground truth and report.
 
 Configuration: :class:`DemoConfig`, preset ``fgslam/configs/demo.yaml``, with two sections: ``scene``
-(:class:`DemoSceneConfig`: what is rendered) and ``slam`` (a :class:`fgslam.slam.SlamConfig`: what
+(:class:`DemoSceneConfig`: what is rendered) and ``slam`` (a :class:`fgslam.runconfig.SlamConfig`: what
 is run). ``-o scene.frames=200`` / ``-o slam.patch.ba.iterations=3`` override.
 
 Outputs under the demo folder: ``sequence/`` (the rendered EuRoC-layout sequence, reused when a

@@ -130,7 +130,7 @@ def _fit_width(width: int, height: int, target: int) -> tuple[int, int]:
 
 def estimate_run_memory(config, width: int, height: int, frames: int,
                         raw_size: tuple[int, int] | None = None) -> MemoryEstimate:
-    """Peak memory of running ``config`` (a :class:`fgslam.slam.SlamConfig`: the runner imports this
+    """Peak memory of running ``config`` (a :class:`fgslam.runconfig.SlamConfig`: the runner imports this
     module, so it is not imported here) on ``frames`` frames of ``width x height`` output images
     (after resizing and cropping; ``raw_size``: the images as read, default the output size).
 

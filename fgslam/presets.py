@@ -33,7 +33,7 @@ PRESET_CLASSES: dict[str, str] = {
 }
 
 #: The run config every frontend family's presets (``<family>_*.yaml``) fill.
-RUN_CONFIG_CLASS = "fgslam.slam:SlamConfig"
+RUN_CONFIG_CLASS = "fgslam.runconfig:SlamConfig"
 
 
 def configs_dir() -> Path:

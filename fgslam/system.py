@@ -77,7 +77,7 @@ class SlamSystem:
     def build(cls, config: Any, calibration: Any, *, frontend: Optional[Frontend] = None,
               timestamps: Optional[np.ndarray] = None, has_imu: bool = False, imu_noise: Optional[dict] = None,
               where: str = "the dataset", rerun: Optional[str] = None) -> "SlamSystem":
-        """The system of a run config (:class:`fgslam.slam.SlamConfig`): a backend from ``map``, the
+        """The system of a run config (:class:`fgslam.runconfig.SlamConfig`): a backend from ``map``, the
         ``frontend`` family built on it (or the given frontend), and the services the config turns on.
 
         Raises:

@@ -29,7 +29,7 @@ POSITION_SIGMA_M = 0.3  # coarse positions: their noise and the prior's sigma (m
 def room(tmp_path_factory):
     """The synthetic room loop in RGB-D, past its return to the start."""
     from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
+    from fgslam.io.synth.scenarios import load_synth_config
 
     cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={RATE_HZ}", "camera.width=320",
                                                     "camera.height=240"])

@@ -725,6 +725,7 @@ def test_full_disk_on_the_summary_still_reports_on_the_console(synth_root, tmp_p
 
 
 def test_output_folder_checked_before_any_work(synth_root, tmp_path, capsys, cli_main, monkeypatch):
+    import fgslam.outputs
     import fgslam.slam
 
     def no_work(*args, **kwargs):
@@ -741,7 +742,7 @@ def test_output_folder_checked_before_any_work(synth_root, tmp_path, capsys, cli
     def unwritable(*args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(fgslam.slam.tempfile, "mkstemp", unwritable)
+    monkeypatch.setattr(fgslam.outputs.tempfile, "mkstemp", unwritable)
     rc = _cli_run(cli_main, synth_root, tmp_path / "ro")
     err = capsys.readouterr().err
     assert rc == 2 and "not writable: Permission denied" in _one_error_line(err)

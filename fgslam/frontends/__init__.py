@@ -90,7 +90,7 @@ def make_frontend(name: str, config: Any, calibration: Any, sensor_mode: SensorM
     in ``sensor_mode`` (mono | stereo | rgbd).
 
     ``config`` is the family's own section (an instance of its config class, or None for its
-    defaults) or a root config holding the family sections, such as :class:`fgslam.slam.SlamConfig`:
+    defaults) or a root config holding the family sections, such as :class:`fgslam.runconfig.SlamConfig`:
     any object with ``family_section(name)``.
 
     Raises:

@@ -46,7 +46,7 @@ class GlobalBAJob:
     a background thread, so nothing in it may alias the contributor's live state).
 
     ``solve()`` returns a result with ``T_WC`` (F, 4, 4) and ``robust`` (N,) (0: the edge lost its
-    weight), e.g. :func:`fgslam.frontends.patch.global_ba.global_bundle_adjustment` bound to its
+    weight), e.g. :func:`fgslam.backend.global_ba.global_bundle_adjustment` bound to its
     problem. ``kf_ids[i]`` is the keyframe of problem frame i, ``T_WC`` their poses at the snapshot;
     ``is_loop`` marks the problem's loop edges (the gate ``min_ba_inlier_ratio`` acts on them);
     ``context`` is the contributor's own data for :meth:`ProximityContributor.apply_global_ba`.
