@@ -1,4 +1,5 @@
-"""Tests of fgslam.factors.schur: exact structure elimination, square-root form, gtsam factors, blocks."""
+"""Tests of fgslam.factors.schur (exact structure elimination, square-root form, gtsam factors) and of
+fgslam.factors.visual_block (blocks)."""
 
 import gtsam
 import numpy as np
@@ -7,14 +8,13 @@ import torch
 
 from fgslam.factors.schur import (
     POSE_DIM,
-    BlockConfig,
-    InverseDepthBlock,
     SlotGroups,
     factorize_psd,
     schur_reduce,
     structure_gauss_newton_step,
     to_gaussian_factor,
 )
+from fgslam.factors.visual_block import BlockConfig, InverseDepthBlock
 from fgslam.lie import Sim3
 
 D = POSE_DIM
