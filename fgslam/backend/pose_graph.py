@@ -3,7 +3,8 @@ graph of :func:`fgslam.loop.pose_graph.optimize_sim3_pose_graph`.
 
 :func:`anchor_prior` (the 7-dof prior that fixes the gauge) and :func:`diagonal_model` (diagonal
 sigmas, optionally inside a robust kernel) serve both :meth:`fgslam.backend.optimizer.Optimizer.pose_graph_problem`
-and :class:`LoopPoseGraph`; both solve with the one LM loop (:func:`fgslam.backend.solver.levenberg_marquardt`).
+and :class:`LoopPoseGraph`; both solve with the one LM loop (:func:`fgslam.backend.solver.levenberg_marquardt`),
+the backend's optionally with iSAM2 steps (:class:`PoseGraphIsam2`).
 """
 
 from __future__ import annotations
