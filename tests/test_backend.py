@@ -11,7 +11,8 @@ from fgslam.backend import Backend, BackendConfig, GaugeConfig, LinearPiece, key
 from fgslam.backend.config import WindowConfig
 from fgslam.errors import OptimizationError
 from fgslam.factors.reprojection import reproject
-from fgslam.factors.schur import POSE_DIM, BlockConfig, InverseDepthBlock, torch_threads
+from fgslam.factors.schur import POSE_DIM, torch_threads
+from fgslam.factors.visual_block import BlockConfig, InverseDepthBlock
 from fgslam.lie import Sim3
 D = POSE_DIM
 NUM_KF = 5

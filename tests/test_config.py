@@ -189,7 +189,7 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.factors.reprojection:ReprojectionConfig",
     "fgslam.factors.depth:DepthPriorConfig",
     "fgslam.factors.robust:RobustConfig",
-    "fgslam.factors.schur:BlockConfig",
+    "fgslam.factors.visual_block:BlockConfig",
     "fgslam.factors.dense:DenseBlockConfig",
     "fgslam.frontends.dense.source:DenseSourceConfig",
     "fgslam.factors.pointmap_block:PointmapBlockConfig",

@@ -13,7 +13,8 @@ from fgslam.backend.keys import pose_key
 from fgslam.factors.dense import DenseBlock, DenseBlockConfig, DenseEdge, DenseKeyframe, DenseSourceBlock, pixel_grid
 from fgslam.factors.depth import DepthPriorConfig
 from fgslam.factors.reprojection import reproject
-from fgslam.factors.schur import POSE_DIM, BlockConfig
+from fgslam.factors.schur import POSE_DIM
+from fgslam.factors.visual_block import BlockConfig
 from fgslam.lie import Sim3
 
 D = POSE_DIM

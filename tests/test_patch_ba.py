@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.factors.schur import InverseDepthBlock, schur_reduce
+from fgslam.factors.schur import schur_reduce
+from fgslam.factors.visual_block import InverseDepthBlock
 from fgslam.frontends.patch.ba import PatchBlock
 from fgslam.lie import Sim3
 from fgslam.backend import Backend, BackendConfig, GaugeConfig, pose_key

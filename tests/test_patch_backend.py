@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import fgslam.backend.graph as backend_graph
-from fgslam.backend import Backend, BackendConfig
+import fgslam.backend.optimizer as backend_optimizer
+import fgslam.backend.window as backend_window
+from fgslam.backend import Backend, BackendConfig, pose_key
 from fgslam.config import load_config
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.frontends.records import RelativePose
@@ -38,7 +39,7 @@ def test_graph_frames_are_backend_keyframes_and_poses_live_in_the_backend(room):
         assert len(blocks) <= 1
         if blocks:
             with_block += 1
-            assert set(blocks[0].keys) <= {backend_graph.pose_key(f.fid) for f in fe.graph.frames}
+            assert set(blocks[0].keys) <= {pose_key(f.fid) for f in fe.graph.frames}
     assert with_block > FRAMES // 2
     assert any("removed" in e for e in events)  # a redundant keyframe left the graph (and the backend)
     graph_fids = [f.fid for f in fe.graph.frames]
@@ -64,18 +65,18 @@ def test_local_ba_uses_the_backends_settings(room, monkeypatch):
     map.window.lambda_factor and the frontend's own iteration count."""
     ds, frames = open_frames(room, "mono")
     seen = []
-    real = backend_graph.levenberg_marquardt
+    real = backend_optimizer.levenberg_marquardt
 
     def spy(problem, settings, propose=None, ordering_cache=None, initial_cost=None):
         seen.append((settings, propose))
         return real(problem, settings, propose=propose, ordering_cache=ordering_cache, initial_cost=initial_cost)
 
-    monkeypatch.setattr(backend_graph, "levenberg_marquardt", spy)
+    monkeypatch.setattr(backend_optimizer, "levenberg_marquardt", spy)
     config = BackendConfig()
     config.window.lambda_factor = 7.0
     config.lambda_factor = 3.0
     patch = light_patch_config()
-    fe = PatchFrontend(patch, sensor_mode="mono", map_config=config)
+    fe = PatchFrontend(patch, sensor_mode="mono", backend=Backend(config))
     for f in frames[:20]:
         fe.process(f)
     assert seen
@@ -90,7 +91,7 @@ def test_map_solver_isam2_runs_the_patch_frontend_end_to_end(room, tmp_path, mon
     built = []
     steps = []
     real_init = Backend.__init__
-    real_call = backend_graph._Isam2Stepper.__call__
+    real_call = backend_window.Isam2Stepper.__call__
 
     def init_spy(self, config=None):
         built.append(self)
@@ -101,7 +102,7 @@ def test_map_solver_isam2_runs_the_patch_frontend_end_to_end(room, tmp_path, mon
         return real_call(self, gfg)
 
     monkeypatch.setattr(Backend, "__init__", init_spy)
-    monkeypatch.setattr(backend_graph._Isam2Stepper, "__call__", call_spy)
+    monkeypatch.setattr(backend_window.Isam2Stepper, "__call__", call_spy)
     config = load_config(SlamConfig, None, ["sensor=mono", "map.solver=isam2", "output.plot=false"])
     config.patch = light_patch_config()
     ds = open_slam_dataset(room, config)

@@ -1,4 +1,5 @@
-"""Tests of fgslam.factors.schur: exact structure elimination, square-root form, gtsam factors, blocks."""
+"""Tests of fgslam.factors.schur (exact structure elimination, square-root form, gtsam factors) and of
+fgslam.factors.visual_block (blocks)."""
 
 import gtsam
 import numpy as np
@@ -7,14 +8,14 @@ import torch
 
 from fgslam.factors.schur import (
     POSE_DIM,
-    BlockConfig,
-    InverseDepthBlock,
     SlotGroups,
     factorize_psd,
+    jacobian_factor,
     schur_reduce,
     structure_gauss_newton_step,
     to_gaussian_factor,
 )
+from fgslam.factors.visual_block import BlockConfig, InverseDepthBlock
 from fgslam.lie import Sim3
 
 D = POSE_DIM
@@ -151,6 +152,23 @@ def test_gtsam_factor_without_constant_differs_by_a_constant(kind):
         offsets.append(0.5 * sys_.model(torch.as_tensor(dx)) - factor.error(vv))
     np.testing.assert_allclose(offsets, offsets[0], rtol=1e-9)
     assert offsets[0] > 0  # the left-out part: 0.5 (c - b^T b) >= 0
+
+
+def test_jacobian_factor_on_keys_of_mixed_dimensions():
+    """One key dimension per key (a pose, a velocity, a bias...): the error is ``0.5 |A x - rhs|^2``."""
+    dims = [D, 3, 6, D]
+    keys = list(range(len(dims)))
+    rng = np.random.default_rng(9)
+    A = rng.standard_normal((20, sum(dims)))
+    rhs = rng.standard_normal(20)
+    factor = jacobian_factor(keys, A, rhs, dims)
+    x = rng.standard_normal(sum(dims))
+    vv = gtsam.VectorValues()
+    for key, part in zip(keys, np.split(x, np.cumsum(dims)[:-1])):
+        vv.insert(key, part)
+    assert factor.error(vv) == pytest.approx(0.5 * float(np.sum((A @ x - rhs) ** 2)), rel=1e-12)
+    with pytest.raises(ValueError, match="do not match"):
+        jacobian_factor(keys, A, rhs, dims[:-1])
 
 
 # ---------------------------------------------------------------------------------------------- blocks

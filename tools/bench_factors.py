@@ -26,7 +26,8 @@ import time
 import torch
 
 from fgslam.factors.reprojection import reproject_inv_depth
-from fgslam.factors.schur import BlockConfig, InverseDepthBlock, SlotGroups, schur_reduce
+from fgslam.factors.schur import SlotGroups, schur_reduce
+from fgslam.factors.visual_block import BlockConfig, InverseDepthBlock
 from fgslam.lie import Sim3
 from fgslam.backend import Backend, BackendConfig, GaugeConfig, pose_key
 

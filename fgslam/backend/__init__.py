@@ -2,7 +2,8 @@
 
 Modules: :mod:`.keys` (gtsam keys of keyframe poses and other variables), :mod:`.solver` (the one
 Levenberg-Marquardt loop), :mod:`.config` (``BackendConfig``, the ``map`` section), :mod:`.graph`
-(``Backend``), :mod:`.pose_graph` (Sim(3) pose graphs, loop closure's included), :mod:`.global_ba`
+(``Backend``: the :mod:`.store` with its :mod:`.gauge` and :mod:`.optimizer`, whose problem of one
+optimisation is :mod:`.window`'s), :mod:`.pose_graph` (Sim(3) pose graphs, loop closure's included), :mod:`.global_ba`
 (the patch map's global bundle adjustment), :mod:`.motion_only` (one pose against fixed structure).
 The contract of a frontend's measurement blocks (``Block``, ``LinearPiece``) is
 :mod:`fgslam.factors.blocks`, below the backend; the services that add factors to it (loop
@@ -16,7 +17,7 @@ from __future__ import annotations
 import importlib
 
 _EXPORTS = {
-    "Backend": ".graph", "OptimizeReport": ".graph",
+    "Backend": ".graph", "OptimizeReport": ".optimizer",
     "BackendConfig": ".config", "GaugeConfig": ".config", "WindowConfig": ".config",
     "Block": "..factors.blocks", "LinearPiece": "..factors.blocks",
     "pose_key": ".keys", "key_name": ".keys",

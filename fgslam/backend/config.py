@@ -62,7 +62,7 @@ class PoseGraphCorrectionConfig:
 class BackendConfig:
     """Solver choice and tolerances of :class:`fgslam.backend.Backend` (YAML section ``map``)."""
 
-    solver: Literal["lm", "python_lm", "isam2"] = "lm"  # lm (python_lm: alias) or isam2 (fgslam/backend/graph.py)
+    solver: Literal["lm", "python_lm", "isam2"] = "lm"  # lm (python_lm: alias) or isam2 (fgslam/backend/window.py)
     max_iterations: int = ranged(30, ge=1, le=MAX_ITERATIONS)  # LM iterations per optimisation unless the caller gives its own count
     relative_tolerance: float = ranged(1e-10, ge=0, le=MAX_SCALAR)  # stop when the relative cost decrease falls below this
     absolute_tolerance: float = ranged(1e-14, ge=0, le=MAX_SCALAR)  # stop when the cost falls below this

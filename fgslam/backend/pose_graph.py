@@ -2,8 +2,9 @@
 graph of :func:`fgslam.loop.pose_graph.optimize_sim3_pose_graph`.
 
 :func:`anchor_prior` (the 7-dof prior that fixes the gauge) and :func:`diagonal_model` (diagonal
-sigmas, optionally inside a robust kernel) serve both :meth:`fgslam.backend.graph.Backend.pose_graph_problem`
-and :class:`LoopPoseGraph`; both solve with the one LM loop (:func:`fgslam.backend.solver.levenberg_marquardt`).
+sigmas, optionally inside a robust kernel) serve both :meth:`fgslam.backend.optimizer.Optimizer.pose_graph_problem`
+and :class:`LoopPoseGraph`; both solve with the one LM loop (:func:`fgslam.backend.solver.levenberg_marquardt`),
+the backend's optionally with iSAM2 steps (:class:`PoseGraphIsam2`).
 """
 
 from __future__ import annotations
@@ -39,6 +40,34 @@ def diagonal_model(sigmas: np.ndarray, kernel: RobustKernel = "none", kernel_par
         return base
     estimator = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}
     return gtsam.noiseModel.Robust.Create(estimator[kernel].Create(kernel_param), base)
+
+
+class PoseGraphIsam2:
+    """iSAM2 step provider of a pose graph (only built-in factors: iSAM2 relinearises them itself)."""
+
+    def __init__(self, graph, values):
+        import gtsam
+
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(0.0)
+        params.relinearizeSkip = 1
+        self.isam = gtsam.ISAM2(params)
+        self.graph, self.values = graph, values
+        self.started = False
+        self.problem = None
+
+    def bind(self, problem):
+        self.problem = problem
+        return self
+
+    def __call__(self, gfg):
+        if not self.started:
+            self.isam.update(self.graph, self.values)
+            self.started = True
+        else:
+            self.isam.update()
+        current = self.problem.values if self.problem is not None else self.values
+        return current.localCoordinates(self.isam.calculateEstimate())
 
 
 class LoopPoseGraph:

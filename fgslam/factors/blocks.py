@@ -5,7 +5,7 @@ Schur complement when linearised: docs/design.md section 5) and touches a set of
 backend adds the blocks' linear pieces to the linearised GTSAM graph, so two contributors may add
 blocks on the same keys. A pose-only block (the pointmap family's ray factors) has no structure.
 
-:class:`fgslam.factors.schur.VisualBlock` satisfies :class:`Block` with structure.
+:class:`fgslam.factors.visual_block.VisualBlock` satisfies :class:`Block` with structure.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ plus a flow revision) and a per-pixel, per-axis confidence ``w_ij``. The cost (G
         (+ 0.5 sum_i sum_p w_prior (d_i(p) - 1 / z_sensor_i(p))^2     RGB-D, fgslam.factors.depth)
 
 Residuals and Jacobians come from :func:`fgslam.factors.reprojection.reproject_inv_depth` (one row per
-pixel and edge, :class:`fgslam.factors.schur.InverseDepthBlock` evaluates them); the RGB-D term from
+pixel and edge, :class:`fgslam.factors.visual_block.InverseDepthBlock` evaluates them); the RGB-D term from
 :func:`fgslam.factors.depth.depth_prior` (rows with no pose Jacobian). Each depth couples only to its
 own rows, so the depth block of the normal equations is diagonal and the Schur complement is taken per
 pixel (:func:`fgslam.factors.schur.schur_reduce`), with DROID's per-pixel damping ``eta`` added to the
@@ -44,16 +44,8 @@ from .blocks import LinearPiece
 from ..lie import Sim3
 from .depth import DepthPriorConfig, depth_prior, depth_priors
 from .reprojection import ReprojectionConfig, reproject_inv_depth
-from .schur import (
-    POSE_DIM,
-    BlockConfig,
-    BlockResiduals,
-    InverseDepthBlock,
-    SlotGroups,
-    VisualBlock,
-    schur_reduce,
-    torch_threads,
-)
+from .schur import POSE_DIM, SlotGroups, schur_reduce, torch_threads
+from .visual_block import BlockConfig, BlockResiduals, InverseDepthBlock, VisualBlock
 
 logger = logging.getLogger(__name__)
 
@@ -122,7 +114,7 @@ class DenseSourceBlock(VisualBlock):
     """One source keyframe ``i`` (its inverse-depth map is the structure) with its outgoing edges.
 
     Keys: ``(key_i, targets...)`` in the order of the edges. Rows: one per pixel and edge (from an
-    :class:`~fgslam.factors.schur.InverseDepthBlock`), then one per pixel with a valid sensor depth
+    :class:`~fgslam.factors.visual_block.InverseDepthBlock`), then one per pixel with a valid sensor depth
     (RGB-D prior; pose slots ``(0, 0)`` with zero pose Jacobians, so it only enters the depth block).
     """
 

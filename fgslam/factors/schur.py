@@ -30,37 +30,21 @@ from it. The 4.3.0 wheel's JacobianFactor and HessianFactor constructors take at
 ``VerticalBlockMatrix``, which takes any number. Either factor's ``error(dx)`` equals the reduced
 cost above.
 
-Blocks: :class:`VisualBlock` owns measurements and structure and offers ``linearize(values) ->
-[LinearPiece(keys, H, g, c)]`` (:class:`fgslam.factors.blocks.Block`), ``back_substitute(delta)``, ``cost(values)`` and ``refine_structure(values)``
-(``values``: a ``gtsam.Values`` of Similarity3 T_WC). :class:`InverseDepthBlock` implements it with
-``fgslam.factors.reprojection``; a frontend builds one block per source keyframe (its inverse-depth
-map or patches, with all outgoing edges) and hands it to ``fgslam.backend.Backend.set_blocks``::
-
-    block = InverseDepthBlock(keys=[pose_key(i), pose_key(j1), pose_key(j2)],
-                              source_slot=zeros, target_slot=slot_of_each_row, uv_source=uv_i,
-                              uv_target=uv_i_reprojected_plus_flow, struct_idx=pixel_or_patch_id,
-                              weights=confidences, K=K, inverse_depth=d_i)
+The blocks that own structure and linearise through this elimination are
+:mod:`fgslam.factors.visual_block`'s.
 """
 
 from __future__ import annotations
 
-import abc
 import contextlib
 import functools
-import logging
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from .blocks import LinearPiece
-from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, ranged
 from ..errors import OptimizationError
-from ..lie import Sim3
-from .reprojection import ReprojectionConfig, reproject, reproject_inv_depth
-
-logger = logging.getLogger(__name__)
 
 POSE_DIM = 7  # dimension of gtsam.Similarity3's tangent space [w, u, lambda]
 
@@ -324,9 +308,9 @@ def factorize_psd(H: np.ndarray, g: np.ndarray, c: float, rank_tolerance: float 
     return A, b, float(np.sqrt(max(e2, 0.0)))
 
 
-def jacobian_factor(keys: Sequence[int], A: np.ndarray, rhs: np.ndarray, dim: int = POSE_DIM):
-    """The Gaussian factor ``0.5 |A x - rhs|^2`` on any number of keys of dimension ``dim``
-    (``A`` (m, dim * k), columns in key order).
+def jacobian_factor(keys: Sequence[int], A: np.ndarray, rhs: np.ndarray, dim: int | Sequence[int] = POSE_DIM):
+    """The Gaussian factor ``0.5 |A x - rhs|^2`` on any number of keys of dimension ``dim`` (one for
+    every key, or one per key: mixed dimensions) (``A`` (m, sum of the dimensions), columns in key order).
 
     The 4.3.0 wheel's ``JacobianFactor`` constructors take at most 3 keys; a
     ``gtsam.GaussianConditional`` built from a ``VerticalBlockMatrix`` takes any number, *is* a
@@ -335,13 +319,14 @@ def jacobian_factor(keys: Sequence[int], A: np.ndarray, rhs: np.ndarray, dim: in
     import gtsam
 
     k = len(keys)
+    dims = [int(dim)] * k if np.ndim(dim) == 0 else [int(d) for d in dim]
     A = np.asarray(A, dtype=np.float64)
-    if A.ndim != 2 or A.shape[1] != dim * k or np.shape(rhs) != (A.shape[0],):
-        raise ValueError(f"A {A.shape} / rhs {np.shape(rhs)} do not match {k} keys of dimension {dim}")
+    if len(dims) != k or A.ndim != 2 or A.shape[1] != sum(dims) or np.shape(rhs) != (A.shape[0],):
+        raise ValueError(f"A {A.shape} / rhs {np.shape(rhs)} do not match {k} keys of dimensions {dims}")
     Ab = np.empty((A.shape[0], A.shape[1] + 1))
     Ab[:, :-1] = A
     Ab[:, -1] = rhs
-    return gtsam.GaussianConditional([int(key) for key in keys], k, gtsam.VerticalBlockMatrix([dim] * k, Ab, True))
+    return gtsam.GaussianConditional([int(key) for key in keys], k, gtsam.VerticalBlockMatrix(dims, Ab, True))
 
 
 def to_gaussian_factor(keys: Sequence[int], H: np.ndarray, g: np.ndarray, c: float | None, kind: str = "hessian",
@@ -372,271 +357,3 @@ def to_gaussian_factor(keys: Sequence[int], H: np.ndarray, g: np.ndarray, c: flo
         b = np.concatenate([b, [-e]])
     factor = jacobian_factor(keys, A, -b, dim)
     return factor if kind == "jacobian" else gtsam.HessianFactor(factor)
-
-
-# ----------------------------------------------------------------------------------------------
-# Visual blocks
-# ----------------------------------------------------------------------------------------------
-
-
-@dataclass
-class BlockResiduals:
-    """Weighted residuals of a block at given poses/structure (shapes as in :func:`schur_reduce`).
-
-    ``J`` is a list of S pose-Jacobian columns (N, m, 7) (see :func:`schur_reduce`); ``E`` and
-    ``J`` are None when Jacobians were not requested; ``num_invalid`` counts measurements that
-    got zero weight because they are degenerate (behind a camera, non-finite...).
-    """
-
-    r: torch.Tensor
-    weights: torch.Tensor
-    E: torch.Tensor | None = None
-    J: list[torch.Tensor] | None = None
-    num_invalid: int = 0
-
-
-@dataclass
-class BlockConfig:
-    """Tunables shared by visual blocks."""
-
-    structure_damping: float = ranged(0.0, ge=0, le=MAX_LAMBDA)  # lambda_s added to each structure's information C_p
-    min_information: float = ranged(1e-12, ge=0, le=MAX_SCALAR)  # structures with C_p at or below this are not eliminated
-    refine_steps: int = ranged(2, ge=0, le=MAX_ITERATIONS)  # per-structure Gauss-Newton steps of refine_structure() at fixed poses
-    min_structure: float = ranged(1e-6, gt=0, le=MAX_SCALAR)  # lower clamp of the structure (inverse depth stays positive)
-    threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads inside linearize/cost/refine (small dense work: 1 is fastest)
-    per_edge_min_rows: int = ranged(2048, ge=1, le=MAX_COUNT)  # evaluate edge by edge (pose pair broadcast) when edges average this many rows
-
-
-class VisualBlock(abc.ABC):
-    """Measurements on ``k`` pose keys with their own scalar structure, eliminated when linearised.
-
-    Subclasses implement :meth:`evaluate`; rows must be stored grouped by pose-slot tuple
-    (``self.slots`` sorted, ``self.groups`` set) so that linearisation needs no sort.
-    The block's state is its structure (P,) (float64 torch tensor).
-    """
-
-    keys: tuple[int, ...]
-    has_structure = True  # fgslam.factors.blocks.Block: the structure is eliminated in linearize()
-    slots: torch.Tensor  # (N, S) pose slots of each measurement
-    struct_idx: torch.Tensor  # (N,) structure of each measurement
-    groups: SlotGroups
-    config: BlockConfig
-
-    def __init__(self) -> None:
-        self._system: SchurSystem | None = None
-
-    # --- to implement
-    @abc.abstractmethod
-    def evaluate(self, poses: Sim3, structure: torch.Tensor, jacobians: bool) -> BlockResiduals:
-        """Residuals (N, m) and weights (N, m) at ``poses`` (k,) (T_WC of the block's keys) and
-        ``structure`` (P,); with ``jacobians`` also E (N, m) and pose Jacobians J (S tensors (N, m, 7))."""
-
-    @property
-    @abc.abstractmethod
-    def structure(self) -> torch.Tensor:
-        """Current structure (P,)."""
-
-    @abc.abstractmethod
-    def set_structure(self, structure: torch.Tensor) -> None:
-        """Replace the structure (projected by :meth:`clamp_structure`)."""
-
-    def clamp_structure(self, structure: torch.Tensor) -> torch.Tensor:
-        """Project a structure onto its valid domain (default: unchanged)."""
-        return structure
-
-    # --- generic machinery
-    @property
-    def num_structs(self) -> int:
-        return int(self.structure.shape[0])
-
-    def poses_from_values(self, values) -> Sim3:
-        """The block's poses (k,) from a ``gtsam.Values`` holding Similarity3 at ``self.keys``."""
-        return Sim3.from_gtsam([values.atSimilarity3(key) for key in self.keys])
-
-    def linearize(self, values) -> list[LinearPiece]:
-        """``[LinearPiece(keys, H, g, c)]``: the Schur-reduced system at ``values`` and the current
-        structure; the reduced GTSAM-convention cost model is ``0.5 (dx^T H dx + 2 g^T dx + c)``."""
-        with torch_threads(self.config.threads):
-            res = self.evaluate(self.poses_from_values(values), self.structure, jacobians=True)
-            self._system = schur_reduce(
-                res.r, res.J, self.slots, res.E, self.struct_idx, res.weights, len(self.keys),
-                self.num_structs, self.config.structure_damping, self.groups, self.config.min_information,
-            )
-        sys_ = self._system
-        return [LinearPiece(self.keys, sys_.H.numpy(), sys_.g.numpy(), sys_.c)]
-
-    def back_substitute(self, delta) -> torch.Tensor:
-        """Structure update (P,) for the pose update ``delta`` (gtsam.VectorValues or (7k,) array)
-        at the last linearisation point."""
-        if self._system is None:
-            raise OptimizationError("back_substitute() called before linearize()")
-        if not isinstance(delta, (np.ndarray, torch.Tensor)):
-            delta = np.concatenate([delta.at(key) for key in self.keys])
-        return self._system.back_substitute(torch.as_tensor(np.asarray(delta), dtype=torch.float64))
-
-    def cost(self, values, structure: torch.Tensor | None = None) -> float:
-        """GTSAM-convention cost ``0.5 sum w r^2`` at ``values`` and ``structure`` (default: current)."""
-        structure = self.structure if structure is None else structure
-        with torch_threads(self.config.threads):
-            res = self.evaluate(self.poses_from_values(values), structure, jacobians=False)
-            return 0.5 * float(per_structure_cost(res.r, self.struct_idx, res.weights, self.num_structs).sum())
-
-    def refine_structure(self, values, steps: int | None = None) -> float:
-        """Per-structure Gauss-Newton at fixed poses, warm-started from the current structure.
-
-        A structure keeps a step only where its own cost does not increase. Returns the block's
-        GTSAM-convention cost after refinement.
-        """
-        steps = self.config.refine_steps if steps is None else steps
-        if steps <= 0:
-            return self.cost(values)
-        with torch_threads(self.config.threads):
-            poses = self.poses_from_values(values)
-            d = self.structure.clone()
-            res = self.evaluate(poses, d, jacobians=True)
-            cost_p = per_structure_cost(res.r, self.struct_idx, res.weights, self.num_structs)
-            for it in range(steps):
-                step = structure_gauss_newton_step(
-                    res.r, res.E, self.struct_idx, res.weights, self.num_structs,
-                    self.config.structure_damping, self.config.min_information,
-                )
-                trial = self.clamp_structure(d + step)
-                res_t = self.evaluate(poses, trial, jacobians=True)
-                cost_t = per_structure_cost(res_t.r, self.struct_idx, res_t.weights, self.num_structs)
-                better = cost_t <= cost_p
-                d = torch.where(better, trial, d)
-                cost_p = torch.where(better, cost_t, cost_p)
-                if bool(better.all()):
-                    res = res_t
-                elif it + 1 < steps:
-                    res = self.evaluate(poses, d, jacobians=True)
-            self.set_structure(d)
-            return 0.5 * float(cost_p.sum())
-
-
-class InverseDepthBlock(VisualBlock):
-    """Inverse-depth reprojection measurements with one inverse depth per structure variable.
-
-    Measurement ``n``: source pixel ``uv_source[n]`` of the keyframe in pose slot
-    ``source_slot[n]``, carrying inverse depth ``structure[struct_idx[n]]``, observed at
-    ``uv_target[n]`` in the keyframe of slot ``target_slot[n]``, with weights ``weights[n]`` (2,)
-    (per-axis confidences, DROID's w_ij; or (N,) shared by both axes). Residual and Jacobians come
-    from :func:`fgslam.factors.reprojection.reproject_inv_depth` (tangent [w, u, lambda], right
-    perturbation). Dense DROID pixels: one structure per pixel of the source keyframe and one
-    measurement per pixel and edge. DPV-SLAM patches: one structure per patch and ``p*p``
-    measurements (its pixels, :func:`~fgslam.factors.reprojection.flatten_patches`) per patch and edge.
-    Rows with invalid geometry (behind a camera...) get zero weight and are counted in
-    ``num_invalid`` after each evaluation.
-
-    Args:
-        keys: gtsam keys of the k poses (Similarity3 T_WC) the block touches; slots index into them.
-        K: (4,) intrinsics ``[fx, fy, cx, cy]`` shared by all keyframes of the block.
-        inverse_depth: (P,) initial structure.
-    """
-
-    def __init__(
-        self,
-        keys: Sequence[int],
-        source_slot: torch.Tensor,
-        target_slot: torch.Tensor,
-        uv_source: torch.Tensor,
-        uv_target: torch.Tensor,
-        struct_idx: torch.Tensor,
-        weights: torch.Tensor,
-        K: torch.Tensor,
-        inverse_depth: torch.Tensor,
-        config: BlockConfig | None = None,
-        reprojection: ReprojectionConfig | None = None,
-    ):
-        super().__init__()
-        dtype = torch.float64
-        self.keys = tuple(int(k) for k in keys)
-        self.config = config or BlockConfig()
-        self.reprojection = reprojection or ReprojectionConfig()
-        n = int(uv_source.shape[0])
-        weights = torch.as_tensor(weights, dtype=dtype)
-        if weights.ndim == 1:
-            weights = weights[:, None].expand(n, 2)
-        slots = torch.stack([torch.as_tensor(source_slot).long(), torch.as_tensor(target_slot).long()], dim=1)
-        if n and (int(slots.min()) < 0 or int(slots.max()) >= len(self.keys)):
-            raise ValueError(f"pose slots must lie in [0, {len(self.keys)}), got [{int(slots.min())}, {int(slots.max())}]")
-        order, self.groups = SlotGroups.sort_rows(slots)
-        self._order = order  # internal row r holds input measurement order[r]
-        self.slots = slots[order]
-        self.uv_source = torch.as_tensor(uv_source, dtype=dtype)[order]
-        self.uv_target = torch.as_tensor(uv_target, dtype=dtype)[order]
-        self.struct_idx = torch.as_tensor(struct_idx).long()[order]
-        self.weights = self._checked_weights(weights[order])
-        self.K = torch.as_tensor(K, dtype=dtype)
-        self._structure = torch.zeros(0, dtype=dtype)
-        self.set_structure(torch.as_tensor(inverse_depth, dtype=dtype))
-        self.num_invalid = 0
-
-    @staticmethod
-    def _checked_weights(weights: torch.Tensor) -> torch.Tensor:
-        if bool((weights < 0).any()) or not bool(torch.isfinite(weights).all()):
-            raise ValueError("weights must be finite and non-negative")
-        return weights.contiguous()
-
-    def set_observations(self, uv_target: torch.Tensor | None = None, weights: torch.Tensor | None = None) -> None:
-        """Replace observed target pixels (N, 2) and/or weights (N, 2) or (N,), given in the order
-        of the constructor's measurements (e.g. new flow revisions and confidences of an update)."""
-        if uv_target is not None:
-            self.uv_target = torch.as_tensor(uv_target, dtype=torch.float64)[self._order]
-        if weights is not None:
-            weights = torch.as_tensor(weights, dtype=torch.float64)
-            if weights.ndim == 1:
-                weights = weights[:, None].expand(weights.shape[0], 2)
-            self.weights = self._checked_weights(weights[self._order])
-
-    @property
-    def structure(self) -> torch.Tensor:
-        return self._structure
-
-    def clamp_structure(self, structure: torch.Tensor) -> torch.Tensor:
-        """Inverse depths clamped to ``config.min_structure`` (a step never flips a point behind its camera)."""
-        return structure.to(torch.float64).clamp_min(self.config.min_structure)
-
-    def set_structure(self, structure: torch.Tensor) -> None:
-        self._structure = self.clamp_structure(structure)
-
-    def evaluate(self, poses: Sim3, structure: torch.Tensor, jacobians: bool) -> BlockResiduals:
-        dtype = torch.float64
-        d_rows = structure.to(dtype)[self.struct_idx]
-        R, t, s = poses.R.to(dtype), poses.t.to(dtype), poses.s.to(dtype)
-        n = int(self.uv_source.shape[0])
-        if n >= self.config.per_edge_min_rows * max(len(self.groups.slots), 1):
-            # few large edges: one call per edge with the pose pair broadcast over its rows
-            parts = [
-                (lo, hi, (R[si], t[si], s[si]), (R[sj], t[sj], s[sj]))
-                for (lo, hi), (si, sj) in zip(zip(self.groups.bounds[:-1], self.groups.bounds[1:]), self.groups.slots)
-            ]
-        else:
-            # many small edges: one call with per-row poses
-            si, sj = self.slots[:, 0], self.slots[:, 1]
-            parts = [(0, n, (R[si], t[si], s[si]), (R[sj], t[sj], s[sj]))]
-        rs, valids, Es, Jis, Jjs = [], [], [], [], []
-        for lo, hi, T_i, T_j in parts:
-            uv_s, d_s, uv_t = self.uv_source[lo:hi], d_rows[lo:hi], self.uv_target[lo:hi]
-            if jacobians:
-                res = reproject_inv_depth(uv_s, d_s, T_i, T_j, self.K, uv_t, config=self.reprojection)
-                rs.append(res.residual)
-                valids.append(res.valid)
-                Es.append(res.J_d)
-                Jis.append(res.J_Ti)
-                Jjs.append(res.J_Tj)
-            else:
-                uv, ok = reproject(uv_s, d_s, T_i, T_j, self.K, config=self.reprojection)
-                res_g = uv - uv_t
-                ok = ok & torch.isfinite(res_g).all(-1)
-                rs.append(torch.where(ok[:, None], res_g, torch.zeros((), dtype=dtype)))
-                valids.append(ok)
-        cat = (lambda xs: xs[0]) if len(parts) == 1 else (lambda xs: torch.cat(xs))
-        r, valid = cat(rs), cat(valids)
-        self.num_invalid = int(valid.numel() - int(valid.sum()))
-        if self.num_invalid:
-            logger.debug("inverse-depth block: %d of %d measurements invalid (zero weight)", self.num_invalid, n)
-        weights = torch.where(valid[:, None], self.weights, torch.zeros((), dtype=dtype))
-        if not jacobians:
-            return BlockResiduals(r=r, weights=weights, num_invalid=self.num_invalid)
-        return BlockResiduals(r=r, weights=weights, E=cat(Es), J=[cat(Jis), cat(Jjs)], num_invalid=self.num_invalid)

@@ -49,7 +49,8 @@ from ...backend.keys import pose_key
 from ...errors import ConfigError, DataError, OptimizationError
 from ...factors.dense import DenseBlock, DenseBlockConfig, DenseEdge, DenseKeyframe, DenseSourceBlock, DenseStereo
 from ...factors.reprojection import ReprojectionConfig
-from ...factors.schur import BlockConfig, POSE_DIM, torch_threads
+from ...factors.schur import POSE_DIM, torch_threads
+from ...factors.visual_block import BlockConfig
 from ...lie import gtsam_matrix, gtsam_sim3, sim3_matrix_parts
 from ..base import BackendFrontend, FrameStatus, SensorMode
 from ..records import per_frame_motion

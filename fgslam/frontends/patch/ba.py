@@ -19,7 +19,7 @@ length ``L`` (``Q`` groups), so pose-pair quantities are computed once per group
 one batched matrix product; padding rows have zero weight. Left-image groups come first, so
 :func:`~fgslam.factors.reprojection.reproject_edges` evaluates each image side on a contiguous
 slice. Depth priors go through :func:`fgslam.factors.depth.depth_prior`. The row order seen by the
-:class:`~fgslam.factors.schur.VisualBlock` machinery is the ``Q * L`` padded edge rows followed by
+:class:`~fgslam.factors.visual_block.VisualBlock` machinery is the ``Q * L`` padded edge rows followed by
 the priors. The reduction is exactly :func:`fgslam.factors.schur.schur_reduce`'s (same
 ``SchurSystem`` for back-substitution).
 """
@@ -33,15 +33,8 @@ from ...factors.blocks import LinearPiece
 from ...errors import OptimizationError
 from ...factors.depth import depth_prior
 from ...factors.reprojection import ReprojectionConfig, reproject_edges
-from ...factors.schur import (
-    POSE_DIM,
-    BlockConfig,
-    BlockResiduals,
-    SlotGroups,
-    VisualBlock,
-    eliminate_structure,
-    torch_threads,
-)
+from ...factors.schur import POSE_DIM, SlotGroups, eliminate_structure, torch_threads
+from ...factors.visual_block import BlockConfig, BlockResiduals, VisualBlock
 from ...lie import Sim3
 
 

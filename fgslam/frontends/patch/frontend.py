@@ -67,7 +67,8 @@ from ...errors import ConfigError, OptimizationError
 from ...factors.depth import depth_priors, inv_depth_sigma
 from ...factors.reprojection import ReprojectionConfig, reproject, reproject_edges
 from ...factors.robust import kernel_weight
-from ...factors.schur import BlockConfig, torch_threads
+from ...factors.schur import torch_threads
+from ...factors.visual_block import BlockConfig
 from ...lie import sim3_matrix_components
 from ...backend.global_ba import GlobalBAProblem, global_bundle_adjustment
 from ...backend.graph import Backend
