@@ -69,6 +69,7 @@ class NoAttach:
     (42, "expected 'package.module:ClassName'"),
     ("no_such_package.factors:Thing", "module 'no_such_package.factors' does not import: ModuleNotFoundError"),
     ("fgslam.services.plugins:NoSuchClass", "module 'fgslam.services.plugins' has no class 'NoSuchClass'"),
+    ("fgslam.backend.plugins:PositionPrior", "moved to 'fgslam.services.plugins'"),
     ("fgslam.services.plugins:FACTORS_KEY", "is not a class"),
     ("test_plugins:NoAttach", "lacks the method attach(backend)"),
 ])

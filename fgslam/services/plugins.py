@@ -79,6 +79,10 @@ def plugin_key(index: int) -> str:
     return f"{FACTORS_KEY}[{index}]"
 
 
+#: plugin modules of earlier releases -> where they are now (a config naming the old one gets told)
+MOVED_MODULES = {"fgslam.backend.plugins": "fgslam.services.plugins"}
+
+
 def load_plugin_class(spec: Any, key: str) -> type:
     """The class named by ``spec`` (``"package.module:ClassName"``); ConfigError naming ``<key>.class``
     when it is malformed, does not import, names no class there, or the class lacks ``attach``."""
@@ -86,6 +90,9 @@ def load_plugin_class(spec: Any, key: str) -> type:
     if not isinstance(spec, str) or spec.count(":") != 1 or not all(spec.split(":")):
         raise ConfigError(f"{where}: expected 'package.module:ClassName', got {spec!r}")
     module_name, class_name = spec.split(":")
+    if module_name in MOVED_MODULES:
+        raise ConfigError(f"{where}: module '{module_name}' moved to '{MOVED_MODULES[module_name]}' "
+                          f"(write '{MOVED_MODULES[module_name]}:{class_name}')")
     try:
         module = importlib.import_module(module_name)
     except Exception as exc:  # noqa: BLE001 - any failure while importing user code is reported with the key
