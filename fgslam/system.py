@@ -25,7 +25,7 @@ fixed point of the frame sequence, so a run gives the same bytes however fast th
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Optional, Protocol
 
 import numpy as np
 
@@ -34,6 +34,11 @@ from .frontends.base import FrameStatus, Frontend
 
 if TYPE_CHECKING:
     from .backend import Backend
+    from .backend.config import BackendConfig
+    from .export.rerun import RerunConfig
+    from .io.calibration import Calibration
+    from .io.frame import Frame
+    from .services.imu import ImuServiceConfig
     from .export.rerun import RerunView
     from .loop.closure import LoopClosureConfig
     from .services.imu import ImuService
@@ -44,6 +49,24 @@ logger = logging.getLogger(__name__)
 
 # numerical trouble in a service's safe point (gtsam/numpy): logged, the visual run goes on
 _NUMERICAL_ERRORS = (OptimizationError, RuntimeError, np.linalg.LinAlgError)
+
+
+class RunOutputSettings(Protocol):
+    rerun: "RerunConfig"
+
+
+class RunSettings(Protocol):
+    """What :meth:`SlamSystem.build` reads of a run config (:class:`fgslam.runconfig.SlamConfig`)."""
+
+    frontend: str
+    sensor: str
+    map: "BackendConfig"
+    loop_closure: "LoopClosureConfig"
+    imu: "ImuServiceConfig"
+    factors: list
+    output: RunOutputSettings
+
+    def family_section(self, name: str | None = None) -> Any: ...
 
 
 class SlamSystem:
@@ -74,7 +97,7 @@ class SlamSystem:
 
     # ------------------------------------------------------------------ building
     @classmethod
-    def build(cls, config: Any, calibration: Any, *, frontend: Optional[Frontend] = None,
+    def build(cls, config: RunSettings, calibration: Optional["Calibration"], *, frontend: Optional[Frontend] = None,
               timestamps: Optional[np.ndarray] = None, has_imu: bool = False, imu_noise: Optional[dict] = None,
               where: str = "the dataset", rerun: Optional[str] = None) -> "SlamSystem":
         """The system of a run config (:class:`fgslam.runconfig.SlamConfig`): a backend from ``map``, the
@@ -135,7 +158,7 @@ class SlamSystem:
                            proximity=getattr(frontend, "proximity_gates", None))
 
     # ------------------------------------------------------------------ the run
-    def step(self, frame: Any) -> FrameStatus:
+    def step(self, frame: "Frame") -> FrameStatus:
         """One frame through the skeleton (module docstring); returns the frontend's status."""
         if self.imu is not None:
             self.imu.feed(frame.imu, frame.timestamp)
@@ -205,7 +228,7 @@ class SlamSystem:
 
         return loop_segments(self.loops.accepted_pairs(), self.backend)
 
-    def _view_frame(self, frame: Any, status: FrameStatus) -> None:
+    def _view_frame(self, frame: "Frame", status: FrameStatus) -> None:
         try:
             self.view.log_frame(frame, status)
             if self.view.map_due():
@@ -214,7 +237,7 @@ class SlamSystem:
             logger.warning("rerun logging failed at frame %d: %s: %s", frame.index, type(exc).__name__, exc)
 
 
-def run_frames(system: SlamSystem, frames: Sequence[Any]) -> list[FrameStatus]:
+def run_frames(system: SlamSystem, frames: Iterable["Frame"]) -> list[FrameStatus]:
     """Every frame through ``system`` then :meth:`SlamSystem.finish` (tests, tools); the statuses."""
     statuses = [system.step(frame) for frame in frames]
     system.finish()
