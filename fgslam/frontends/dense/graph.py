@@ -75,6 +75,10 @@ class FrameGraph:
         for e in [e for e in self.edges if fid in e]:
             del self.edges[e]
 
+    def ensure_edge(self, edge: tuple[int, int]) -> None:
+        """Add ``edge`` unmeasured (NaN targets, zero weights) unless the graph has it."""
+        self.edges.setdefault(edge, EdgeMeasurement(np.full(self.shape + (2,), np.nan), np.zeros(self.shape + (2,))))
+
     def active_edges(self) -> list[tuple[int, int]]:
         act = set(self.active)
         return [e for e in self.edges if e[0] in act and e[1] in act]

@@ -1,0 +1,110 @@
+"""The dense frontend's frame-to-keyframe tracking: the motion-only pose of a frame against a keyframe's
+held inverse-depth map (step 1 of :mod:`.frontend`), and the re-tracking of the frames tracked before
+the monocular initialisation."""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from ...backend.keys import pose_key
+from ...factors.dense import DenseEdge, DenseKeyframe, DenseSourceBlock
+from ...factors.schur import POSE_DIM
+from ...lie import sim3_matrix_parts
+from ...lie import gtsam_matrix, gtsam_sim3
+from ..records import RelativePose
+from .graph import DenseKeyframeState
+from .weights import block_config, huber_weight, information
+
+if TYPE_CHECKING:
+    from .frontend import DenseFrontend
+
+#: information added to every inverse depth in the motion-only optimisation (holds the keyframe's map)
+_HOLD_DEPTH = 1e12
+#: information on the frame's log-scale in the motion-only optimisation (unobservable there)
+_HOLD_SCALE = 1e8
+_HOLD_SCALE_ONLY = np.array([0.0] * (POSE_DIM - 1) + [_HOLD_SCALE])
+
+
+class DenseTracker:
+    """Motion-only tracking of frames against the keyframes of ``frontend`` (its graph, source, backend,
+    pose records and stage times)."""
+
+    def __init__(self, frontend: "DenseFrontend"):
+        self.fe = frontend
+
+    def track(self, kf_fid: int, fid: int, T_WC_pred: np.ndarray) -> tuple[np.ndarray, float, int, bool]:
+        """Motion-only pose of frame ``fid`` against keyframe ``kf_fid``: (T_WC, mean measured flow in
+        image px over confident pixels, confident grid pixels, success)."""
+        import gtsam
+
+        fe = self.fe
+        cfg = fe.config.tracking
+        g = fe.graph
+        kf = g.keyframes[kf_fid]
+        T_WCk = fe._keyframe_T_WC(kf_fid)
+        # the frame starts at the keyframe's scale (its scale is unobservable here)
+        R, t, _ = sim3_matrix_parts(T_WC_pred, project=True)
+        s_kf = float(sim3_matrix_parts(T_WCk)[2])
+        T_WC = np.eye(4)
+        T_WC[:3, :3] = s_kf * R
+        T_WC[:3, 3] = t
+        key_kf, key_f = pose_key(kf_fid), pose_key(fid)
+        flow, n_conf, rev = np.inf, 0, None
+        for _ in range(cfg.rounds):
+            t0 = time.perf_counter()
+            induced = self.induced_to(kf, T_WCk, T_WC)
+            (rev,) = fe.source.revise([(kf_fid, fid)], induced[None])
+            fe._times["flow"] += time.perf_counter() - t0
+            weight = rev.weight * huber_weight(rev.target - induced, fe.config, fe.stride)
+            conf = rev.weight.mean(-1) > cfg.confident_weight
+            n_conf = int(conf.sum())
+            if n_conf == 0:
+                return T_WC, np.inf, 0, False
+            block = DenseSourceBlock(
+                DenseKeyframe(key_kf, kf.inv_depth, damping=np.full(g.shape, _HOLD_DEPTH)),
+                [DenseEdge(key_kf, key_f, rev.target, weight * information(fe.config, fe.stride))], fe.K_grid,
+                block_config(fe.config, fe._reproj))
+            values = gtsam.Values()
+            values.insert(key_kf, gtsam_sim3(T_WCk))
+            values.insert(key_f, gtsam_sim3(T_WC))
+            result = fe.backend.optimize_pose([block], values, key_f, cfg.iterations, hold=_HOLD_SCALE_ONLY)
+            T_WC = gtsam_matrix(result.values.atSimilarity3(key_f))
+        flow = float(np.linalg.norm(rev.target - g.grid, axis=-1)[conf].mean() * fe.stride)
+        return T_WC, flow, n_conf, bool(np.isfinite(T_WC).all())
+
+    def induced_to(self, kf: DenseKeyframeState, T_WCk: np.ndarray, T_WC: np.ndarray) -> np.ndarray:
+        """Field (h, w, 2) keyframe ``kf`` (at ``T_WCk``) induces in a camera at ``T_WC`` (NaN: invalid)."""
+        from ...factors.reprojection import reproject
+        from ...lie import sim3_matrix_components
+
+        Ra, ta, sa = sim3_matrix_components(T_WCk[None])
+        Rb, tb, sb = sim3_matrix_components(T_WC[None])
+        g = self.fe.graph
+        uv, ok = reproject(torch.as_tensor(g.grid.reshape(-1, 2)), torch.as_tensor(kf.inv_depth.reshape(-1)),
+                           (Ra[0], ta[0], sa[0]), (Rb[0], tb[0], sb[0]), g.K, config=self.fe._reproj)
+        out = uv.numpy().reshape(*g.shape, 2).copy()
+        out[~ok.numpy().reshape(g.shape)] = np.nan
+        return out
+
+    def retrack(self, frames: dict[int, tuple[int, np.ndarray]]) -> None:
+        """Motion-only poses of non-keyframes ``fid -> (keyframe, image)`` against their keyframe's
+        current map, from their current pose (their records become relative to that keyframe)."""
+        fe = self.fe
+        t0 = time.perf_counter()
+        flow0 = fe._times["flow"]
+        for fid, (kf_fid, image) in frames.items():
+            T_WC0 = fe._pose_of(fid)
+            if T_WC0 is None or kf_fid not in fe.graph.keyframes:
+                continue
+            fe.source.add_frame(fid, image)
+            try:
+                T_WC, _, n_conf, ok = self.track(kf_fid, fid, T_WC0)
+            finally:
+                fe.source.remove_frame(fid)
+            if ok and n_conf > 0:
+                fe._records[fid] = RelativePose(kf_fid, np.linalg.inv(fe._keyframe_T_WC(kf_fid)) @ T_WC)
+        fe._times["tracking"] += time.perf_counter() - t0 - (fe._times["flow"] - flow0)

@@ -1,0 +1,163 @@
+"""The pointmap frontend's tracking of a frame against a keyframe (steps 1-3 of :mod:`.frontend`): the
+pair of pointmaps from the source, projective matching, the relative pose ``T_CkCf`` by
+:func:`.tracking.track_pose`, and the PnP fallback of monocular frames without a two-view pointmap."""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from ...lie import Sim3
+from ..base import FrameStatus
+from ..records import RelativePose, rigid
+from .keyframes import PointmapKeyframe, even_subset, match_frame
+from .relocalization import relocalize
+from .tracking import track_pose
+
+if TYPE_CHECKING:
+    from .frontend import PointmapFrontend
+
+logger = logging.getLogger(__name__)
+
+
+def sim3_of(M: np.ndarray) -> Sim3:
+    """The :class:`~fgslam.lie.Sim3` of a 4x4 matrix."""
+    return Sim3.from_matrix(torch.as_tensor(np.asarray(M, np.float64)))
+
+
+def matrix_of(T: Sim3) -> np.ndarray:
+    """The 4x4 float64 matrix of a :class:`~fgslam.lie.Sim3`."""
+    return T.matrix().numpy().astype(np.float64)
+
+
+class PointmapTracker:
+    """Tracks frames against the keyframes of ``frontend`` (its source, source cache, working camera,
+    query grid, motion state and stage times)."""
+
+    def __init__(self, frontend: "PointmapFrontend"):
+        self.fe = frontend
+
+    def pair_in(self, kf: PointmapKeyframe, fid: int, T_CkCf_pred: np.ndarray, pair=None):
+        """``(X_f^f (HW, 3), X_f^k (HW, 3), C_f (HW,), D_f, T_CkCf0 (4x4))`` of frame ``fid`` against keyframe
+        ``kf`` (module docstring of :mod:`.frontend`, step 1); None when the two-view source found no pose."""
+        fe = self.fe
+        t0 = time.perf_counter()
+        fe.source_cache.ensure(kf)
+        if fe.kind in ("rgbd", "stereo"):
+            if pair is None:
+                T_CkCf_pred = self._measured_prediction(kf, fid, T_CkCf_pred)
+                pair = fe.source.predict(kf.fid, fid, rigid(T_CkCf_pred))
+            T_CkCf0 = pair.T_CiCj
+            a = 1.0
+        else:
+            pair = fe.source.predict(kf.fid, fid) if pair is None else pair
+            if pair.T_CiCj is None:
+                fe._times["source"] += time.perf_counter() - t0
+                return None
+            a = self._pair_scale(kf, pair)
+            if a is None:
+                fe._times["source"] += time.perf_counter() - t0
+                return None
+            T_CkCf0 = np.array(pair.T_CiCj, dtype=np.float64)
+            T_CkCf0[:3, :] *= a
+        fe._times["source"] += time.perf_counter() - t0
+        n = fe.cam.H * fe.cam.W
+        X_ff = torch.from_numpy(np.ascontiguousarray(pair.X_j_in_j, np.float32)).reshape(n, 3)
+        X_fk = torch.from_numpy(np.ascontiguousarray(pair.X_j_in_i, np.float32)).reshape(n, 3) * a
+        C_f = torch.from_numpy(np.ascontiguousarray(pair.C_j, np.float32)).reshape(n)
+        D_f = torch.from_numpy(np.ascontiguousarray(pair.D_j, np.float32)).reshape(n, -1)
+        return X_ff, X_fk, C_f, D_f, T_CkCf0
+
+    def _measured_prediction(self, kf: PointmapKeyframe, fid: int, T_CkCf_pred: np.ndarray) -> np.ndarray:
+        """Metric sources: ``T_CkCf`` with the last step measured by PnP on the dense flow from the previous
+        frame (``T_CkCp T_CpCf``; from the keyframe itself right after a keyframe change), which stays
+        reliable at video rate where the flow to an older keyframe fails; ``T_CkCf_pred`` when that fails."""
+        fe = self.fe
+        if not fe.config.tracking.measure_pose:
+            return T_CkCf_pred
+        prev = fe._prev_fid
+        if prev is None or prev not in fe.source_cache or prev == kf.fid or fe._prev_kf != kf.fid:
+            T_CkCf = fe.source.predict(kf.fid, fid, None).T_CiCj
+            return T_CkCf_pred if T_CkCf is None else np.asarray(T_CkCf, np.float64)
+        T_CpCf = fe.source.predict(prev, fid, None).T_CiCj
+        return T_CkCf_pred if T_CpCf is None else T_CkCf_pred @ np.asarray(T_CpCf, np.float64)
+
+    def _pair_scale(self, kf: PointmapKeyframe, pair) -> float | None:
+        """Scale taking the pair's pointmap of k to k's canonical one: median ratio of the norms over the
+        pixels confident in both."""
+        cfg = self.fe.config.tracking
+        X_pair = torch.from_numpy(np.ascontiguousarray(pair.X_i_in_i, np.float32)).reshape(-1, 3)
+        C_pair = torch.from_numpy(np.ascontiguousarray(pair.C_i, np.float32)).reshape(-1)
+        ok = (C_pair >= cfg.min_confidence) & (kf.C > 0)
+        if int(ok.sum()) < cfg.min_matches:
+            logger.info("pointmap: pair (%d, %d) shares %d confident pixels with the canonical pointmap; no scale",
+                        kf.fid, pair.j, int(ok.sum()))
+            return None
+        ratio = torch.linalg.vector_norm(kf.X[ok], dim=-1) / torch.linalg.vector_norm(X_pair[ok], dim=-1).clamp_min(1e-9)
+        return float(ratio.median())
+
+    def track_against(self, kf: PointmapKeyframe, fid: int, T_CkCf_pred: np.ndarray, warm: torch.Tensor | None,
+                      pair=None):
+        """Match and track frame ``fid`` against ``kf``; returns a dict with the result, or None (no pair)."""
+        fe = self.fe
+        cfg = fe.config
+        got = self.pair_in(kf, fid, T_CkCf_pred, pair)
+        if got is None:
+            return None
+        X_ff, X_fk, C_f, D_f, T_CkCf0 = got
+        q = fe.query
+        qvalid = (C_f[q] >= cfg.tracking.min_confidence) & torch.isfinite(X_fk[q]).all(-1)
+        t0 = time.perf_counter()
+        if cfg.tracking.warm_start == "projection":
+            warm = None  # match_frame starts from the projection of the query points
+        m = match_frame(kf, X_fk[q], qvalid, D_f[q], warm, fe.cam.K, cfg.matching, cfg.source.descriptor)
+        t1 = time.perf_counter()
+        fe._times["matching"] += t1 - t0
+        n_points = max(int(qvalid.sum()), 1)
+        n_valid = int(m.valid.sum())
+        out = {"matches": m, "n_valid": n_valid, "fraction": n_valid / n_points, "X_ff": X_ff, "C_f": C_f,
+               "D_f": D_f, "T": None, "inliers": 0}
+        if n_valid < cfg.tracking.min_matches:
+            return out
+        sel = even_subset(m.valid.nonzero().squeeze(1), cfg.tracking.max_query_points)
+        qi, p = q[sel], m.index[sel]
+        X_f = X_ff[qi].to(torch.float64)
+        X_k = kf.X[p].to(torch.float64)
+        w = torch.sqrt(C_f[qi].clamp(max=1.0) * kf.C[p].clamp(max=1.0)).to(torch.float64)
+        uv = m.uv[sel].to(torch.float64)
+        tr = track_pose(sim3_of(T_CkCf0), X_f, X_k, w, cfg.block, cfg.tracking, fe.fixed_scale, uv, fe.K_t)
+        fe._times["tracking"] += time.perf_counter() - t1
+        out.update(T=tr.T_CkCf, inliers=tr.num_inliers, sel=sel, qi=qi, p=p, X_f=X_f, X_k=X_k, w=w, uv=uv,
+                   inlier=tr.inlier)
+        return out
+
+    def ok(self, res, min_fraction: float) -> bool:
+        """Whether the tracking result ``res`` has a pose, enough inliers and ``min_fraction`` valid matches."""
+        return (res is not None and res["T"] is not None and res["inliers"] >= self.fe.config.tracking.min_matches
+                and res["fraction"] >= min_fraction)
+
+    def track_pnp(self, fid: int, frame) -> FrameStatus:
+        """Monocular frame without a two-view pointmap: PnP on the flow against the canonical pointmap."""
+        fe = self.fe
+        kf = fe._kf
+        t0 = time.perf_counter()
+        T_CkCf = fe.source.pnp_pose(kf.fid, fid, kf.X.view(kf.H, kf.W, 3).numpy(), kf.C.view(kf.H, kf.W).numpy())
+        fe._times["tracking"] += time.perf_counter() - t0
+        if T_CkCf is None:
+            found = relocalize(fe, fid, frame)
+            if found is None:
+                return fe._fail(fid, frame, "tracking lost: no two-view pointmap and no PnP pose")
+            kf, res = found
+            fe._kf, fe._uv_prev, fe._since_kf = kf, None, 0
+            fe._T_CkCf = matrix_of(res["T"])
+            fe._records[fid] = RelativePose(kf.fid, fe._T_CkCf.copy())
+            return fe._status(fid, frame, "relocalized", num_valid=res["inliers"])
+        fe._T_CkCf = np.asarray(T_CkCf, np.float64)
+        fe._uv_prev = None
+        fe._records[fid] = RelativePose(kf.fid, fe._T_CkCf.copy())
+        fe._counts["pnp_tracked"] += 1
+        return fe._status(fid, frame, "tracked", events=["pnp: little parallax"])
