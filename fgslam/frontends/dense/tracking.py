@@ -13,8 +13,7 @@ import torch
 from ...backend.keys import pose_key
 from ...factors.dense import DenseEdge, DenseKeyframe, DenseSourceBlock
 from ...factors.schur import POSE_DIM
-from ...lie import sim3_matrix_parts
-from ...lie import gtsam_matrix, gtsam_sim3
+from ...lie import gtsam_matrix, gtsam_sim3, sim3_matrix_parts
 from ..records import RelativePose
 from .graph import DenseKeyframeState
 from .weights import block_config, huber_weight, information
