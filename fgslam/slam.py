@@ -70,7 +70,7 @@ from typing import Any, Callable, Literal, Optional
 import numpy as np
 
 from .backend.config import BackendConfig
-from .services.imu import ImuServiceConfig
+from .services.imu_samples import ImuServiceConfig
 from .config import MAX_FRAMES, MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, check_ranges, ranged, to_dict, with_sections
 from .errors import ConfigError, DataError, EvaluationError, FGSlamError, Interrupted
 from .eval import EvalConfig, EvalResult, evaluate
@@ -80,7 +80,7 @@ from .frontends.base import FrameStatus, Frontend
 from .system import SlamSystem
 from .io.datasets import Dataset, DatasetConfig, open_dataset
 from .io.trajectory import Trajectory, write_trajectory
-from .loop.closure import LoopClosureConfig
+from .loop.records import LoopClosureConfig
 from .memory import check_run_memory
 
 logger = logging.getLogger(__name__)

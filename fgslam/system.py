@@ -35,7 +35,7 @@ from .frontends.base import FrameStatus, Frontend
 if TYPE_CHECKING:
     from .backend import Backend
     from .export.rerun import RerunView
-    from .loop.closure import LoopClosureConfig
+    from .loop.records import LoopClosureConfig
     from .services.imu import ImuService
     from .services.loops import LoopService
     from .services.plugins import FactorPlugins
