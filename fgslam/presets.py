@@ -28,7 +28,7 @@ PRESET_CLASSES: dict[str, str] = {
     "synth": "fgslam.io.synth.scenarios:SynthConfig",
     "map": "fgslam.backend.config:BackendConfig",
     "bow": "fgslam.loop.bow:BowConfig",
-    "loop": "fgslam.loop.closure:LoopClosureConfig",
+    "loop": "fgslam.loop.records:LoopClosureConfig",
     "demo": "fgslam.demo:DemoConfig",
 }
 

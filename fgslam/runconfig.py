@@ -14,8 +14,8 @@ from .eval import EvalConfig
 from .export.rerun import RerunConfig
 from .frontends import FRONTEND_NAMES, family_config_classes
 from .io.datasets import DatasetConfig
-from .loop.closure import LoopClosureConfig
-from .services.imu import ImuServiceConfig
+from .loop.records import LoopClosureConfig
+from .services.imu_samples import ImuServiceConfig
 
 
 SensorName = Literal["mono", "stereo", "rgbd"]

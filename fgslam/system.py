@@ -38,9 +38,9 @@ if TYPE_CHECKING:
     from .export.rerun import RerunConfig
     from .io.calibration import Calibration
     from .io.frame import Frame
-    from .services.imu import ImuServiceConfig
+    from .services.imu_samples import ImuServiceConfig
     from .export.rerun import RerunView
-    from .loop.closure import LoopClosureConfig
+    from .loop.records import LoopClosureConfig
     from .services.imu import ImuService
     from .services.loops import LoopService
     from .services.plugins import FactorPlugins

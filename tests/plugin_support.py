@@ -14,7 +14,7 @@ from fgslam.frontends.base import FrameStatus, Frontend
 from fgslam.backend.keys import pose_key
 from fgslam.io.synth.scenarios import build_trajectory, default_config
 from fgslam.io.synth.sequence import camera_mount
-from fgslam.loop.closure import LoopCorrection
+from fgslam.loop.records import LoopCorrection
 
 
 def drive(preset: str = "street-loop", seconds: float | None = None, keyframe_dt: float = 0.3,

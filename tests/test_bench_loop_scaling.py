@@ -37,7 +37,7 @@ def test_lap_trajectory_revisits_with_rigid_poses(bench):
 
 
 def test_lap_bows_keep_lap_zero_and_permute_later_laps(bench):
-    from fgslam.loop.bow import BowVector
+    from fgslam.loop.vocabulary import BowVector
 
     base = [BowVector(np.array([1, 5, 7], np.int32), np.array([0.2, 0.3, 0.5]), 3),
             BowVector(np.array([0, 5], np.int32), np.array([0.4, 0.6]), 2)]

@@ -10,10 +10,9 @@ import pytest
 
 from fgslam.config import load_config
 from fgslam.errors import ConfigError, DataError, FormatError
-from fgslam.loop.bow import (BowConfig, BowDatabase, BowVector, LoopDetectionConfig, LoopDetector,
-                             PlaceRecognizer, Vocabulary,
-                             VocabularyTrainingConfig, build_tree, hamming_matrix, kmajority,
-                             l1_score, load_default_vocabulary, same_place, train_vocabulary)
+from fgslam.loop.bow import BowConfig, BowDatabase, LoopDetectionConfig, LoopDetector, PlaceRecognizer, same_place
+from fgslam.loop.vocabulary import (BowVector, Vocabulary, VocabularyTrainingConfig, build_tree, hamming_matrix,
+                                    kmajority, l1_score, load_default_vocabulary, train_vocabulary)
 from fgslam.loop.features import OrbConfig, OrbExtractor, spread_keypoints
 
 

@@ -195,7 +195,7 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.factors.pointmap_block:PointmapBlockConfig",
     "fgslam.frontends.pointmap.source:PointmapSourceConfig",
     "fgslam.frontends.pointmap.matching:MatchingConfig",
-    "fgslam.loop.bow:VocabularyTrainingConfig",
+    "fgslam.loop.vocabulary:VocabularyTrainingConfig",
     "fgslam.services.plugins:PositionPriorOptions",
     "fgslam.services.plugins:PlanarMotionOptions",
     "fgslam.export.colmap:ColmapExportConfig",

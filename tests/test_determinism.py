@@ -12,8 +12,9 @@ import time
 
 import pytest
 
-from fgslam.services.loops import LoopService
-from fgslam.loop.closure import LoopClosureConfig, LoopCloser
+from fgslam.services.proximity import ProximityLoops
+from fgslam.loop.closure import LoopCloser
+from fgslam.loop.records import LoopClosureConfig
 from fgslam.slam import SUMMARY_FILE, SlamConfig, open_slam_dataset, run_slam
 from patch_support import light_patch_config
 
@@ -69,7 +70,7 @@ def _run(root, folder, threaded: bool):
 def runs(room, tmp_path_factory, request):
     out = {"threaded": _run(room, tmp_path_factory.mktemp("det_threaded"), True)}
     mp = pytest.MonkeyPatch()
-    run_job, solve = LoopCloser._run_job, LoopService._solve
+    run_job, solve = LoopCloser._run_job, ProximityLoops._solve
 
     def slow_job(self, job):
         time.sleep(CLOSER_DELAY_S)
@@ -80,7 +81,7 @@ def runs(room, tmp_path_factory, request):
         solve(self, run)
 
     mp.setattr(LoopCloser, "_run_job", slow_job)
-    mp.setattr(LoopService, "_solve", slow_solve)
+    mp.setattr(ProximityLoops, "_solve", slow_solve)
     try:
         out["slowed"] = _run(room, tmp_path_factory.mktemp("det_slowed"), True)
     finally:

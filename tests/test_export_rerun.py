@@ -47,7 +47,7 @@ def test_loop_edges_between_keyframe_centres(tmp_path):
     pytest.importorskip("rerun", reason="rerun is an optional extra (pip install 'fgslam[rerun]')")
     from fgslam.backend import Backend, BackendConfig
     from fgslam.export.rerun import RerunView, loop_segments
-    from fgslam.loop.closure import LoopRecord
+    from fgslam.loop.records import LoopRecord
     from fgslam.services.loops import LoopService
 
     backend = Backend(BackendConfig())

@@ -9,7 +9,8 @@ import pytest
 gtsam = pytest.importorskip("gtsam")
 
 from fgslam.backend import Backend, BackendConfig
-from fgslam.services.imu import ImuService, ImuServiceConfig, make_imu_service
+from fgslam.services.imu import ImuService, make_imu_service
+from fgslam.services.imu_samples import ImuServiceConfig
 from fgslam.backend.keys import bias_key, velocity_key
 from fgslam.errors import DataError
 from fgslam.io.frame import ImuSamples
@@ -51,8 +52,8 @@ def test_static_initialisation_on_euroc(shared_data):
     # while the raw rates (0.08 rad/s about z) would turn the body by several degrees
     t0, t1 = float(gt.timestamps[0]), float(gt.timestamps[-1])
     R_gt = (gt.T_WC[0][:3, :3] @ ds.calibration.T_BC[:3, :3].T).T @ (gt.T_WC[-1][:3, :3] @ ds.calibration.T_BC[:3, :3].T)
-    R_est = service._rotation_between(t0, t1, static.gyro_bias)
-    R_raw = service._rotation_between(t0, t1, np.zeros(3))
+    R_est = service.buffer.rotation_between(t0, t1, static.gyro_bias)
+    R_raw = service.buffer.rotation_between(t0, t1, np.zeros(3))
     assert _rotation_angle_deg(R_est.T @ R_gt) < 1.0  # measured 0.85 deg over 3.6 s: bias error about 0.004 rad/s
     assert _rotation_angle_deg(R_raw.T @ R_gt) > 5.0
     # the map frame's gravity: the first keyframe is the identity, so g_W = R_WB(kf0) g_B

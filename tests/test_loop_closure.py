@@ -22,8 +22,9 @@ from fgslam.config import load_config
 from fgslam.errors import ConfigError
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory
-from fgslam.loop.closure import (LoopCloser, LoopClosureConfig, LoopCorrection, epipolar_mask,
-                                 triangulate_pair)
+from fgslam.loop.closure import LoopCloser
+from fgslam.loop.records import LoopClosureConfig, LoopCorrection
+from fgslam.loop.verification import epipolar_mask, triangulate_pair
 
 LOOP_FRAMES = 1000            # street-loop frames per loop (100 s at 10 Hz)
 STRIDE = 4                    # frames between keyframes

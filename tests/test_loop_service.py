@@ -24,7 +24,7 @@ from fgslam.services.loops import LoopService
 from fgslam.errors import OptimizationError
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory
-from fgslam.loop.closure import LoopClosureConfig
+from fgslam.loop.records import LoopClosureConfig
 
 RATE_HZ = 4.0
 EXTRA_FRAMES = 19  # past the first return to the start
@@ -401,7 +401,7 @@ def test_cancel_ends_a_running_global_ba_in_its_worker_process_at_once(monkeypat
     service = _proximity_service(toy)
     service.search(9)
     assert service.busy
-    processes = list(service._pool._processes.values())
+    processes = list(service.proximity_closer._pool._processes.values())
     assert processes
     t0 = time.monotonic()
     service.cancel()

@@ -19,7 +19,7 @@ import pytest
 from fgslam.errors import ConfigError
 from fgslam.system import SlamSystem
 from fgslam.frontends.patch import PatchFrontend
-from fgslam.loop.closure import LoopClosureConfig
+from fgslam.loop.records import LoopClosureConfig
 from fgslam.presets import config_class_for, load_preset_file
 from fgslam.slam import SUMMARY_FILE, SlamConfig, load_slam_config, open_slam_dataset, run_slam
 from fgslam.backend import Backend, BackendConfig

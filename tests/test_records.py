@@ -11,7 +11,7 @@ import pytest
 from fgslam.frontends.records import sim3_interp as _interp
 from fgslam.frontends.records import (AbsolutePose, InterpolatedPose, KeyframePose, RelativePose,
                                             resolve_pose)
-from fgslam.loop.closure import PoseCorrection
+from fgslam.loop.records import PoseCorrection
 
 
 def _sim3(yaw: float, t, s: float = 1.0) -> np.ndarray:

@@ -80,7 +80,8 @@ def _motion(est) -> dict:
 
 def euroc_static(root: Path, work: Path, overrides: list[str]) -> dict:
     from fgslam.backend import Backend
-    from fgslam.services.imu import ImuService, ImuServiceConfig
+    from fgslam.services.imu import ImuService
+    from fgslam.services.imu_samples import ImuServiceConfig
     from fgslam.io.datasets import DatasetConfig, open_dataset
 
     ds = open_dataset(root, config=DatasetConfig(load_right=False, load_imu=True))
@@ -99,7 +100,7 @@ def euroc_static(root: Path, work: Path, overrides: list[str]) -> dict:
     g_est = service.static.gravity_B / np.linalg.norm(service.static.gravity_B)
     t0, t1 = float(gt.timestamps[0]), float(gt.timestamps[-1])
     R_gt = R_WB.T @ (gt.T_WC[-1][:3, :3] @ R_BC.T)
-    R_est = service._rotation_between(t0, t1, service.static.gyro_bias)
+    R_est = service.buffer.rotation_between(t0, t1, service.static.gyro_bias)
     import gtsam
 
     out = {"gravity_error_deg": float(np.degrees(np.arccos(np.clip(g_true @ g_est, -1, 1)))),

@@ -26,7 +26,8 @@ import numpy as np
 
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory
-from fgslam.loop.closure import LoopCloser, LoopClosureConfig
+from fgslam.loop.closure import LoopCloser
+from fgslam.loop.records import LoopClosureConfig
 
 
 def _rigid(T: np.ndarray) -> np.ndarray:

@@ -183,7 +183,8 @@ def bench_retrieval(n: int, vocabulary, base: list, rng: np.random.Generator) ->
 
 
 def run_retrieval(sizes: list[int], n_images: int, seed: int) -> dict:
-    from fgslam.loop.bow import PlaceRecognizer, load_default_vocabulary
+    from fgslam.loop.bow import PlaceRecognizer
+    from fgslam.loop.vocabulary import load_default_vocabulary
 
     vocabulary = load_default_vocabulary()
     base, describe_s = base_bows(PlaceRecognizer(vocabulary=vocabulary), n_images)

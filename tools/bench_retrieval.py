@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fgslam.loop.bow import (BowVector, LoopDetectionConfig, LoopDetector, Vocabulary,
-                             default_vocabulary_path, same_place)
+from fgslam.loop.bow import LoopDetectionConfig, LoopDetector, same_place
+from fgslam.loop.vocabulary import BowVector, Vocabulary, default_vocabulary_path
 from fgslam.loop.features import OrbExtractor
 
 KITTI_IMAGES = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti00_0-199" / "image_0"

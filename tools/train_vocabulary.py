@@ -1,4 +1,4 @@
-"""Train an ORB bag-of-words vocabulary (fgslam.loop.bow) and save it as a compact .npz.
+"""Train an ORB bag-of-words vocabulary (fgslam.loop.vocabulary) and save it as a compact .npz.
 
 Two image sources:
   * synthetic renders of fgslam's own generator (default; this is how the shipped vocabulary
@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 
-from fgslam.loop.bow import VocabularyTrainingConfig, train_vocabulary
+from fgslam.loop.vocabulary import VocabularyTrainingConfig, train_vocabulary
 from fgslam.loop.features import OrbConfig, OrbExtractor
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm")

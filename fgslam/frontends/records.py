@@ -26,7 +26,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..lie import gtsam_matrix, gtsam_sim3, sim3_matrix_parts
-from ..loop.closure import PoseCorrection
+from ..loop.records import PoseCorrection
 
 
 def rigid(M: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ from typing import Any, Callable, Optional, Protocol, runtime_checkable
 
 import numpy as np
 
-from ..loop.closure import PoseCorrection
+from ..loop.records import PoseCorrection
 
 __all__ = ["Contributor", "GlobalBAJob", "KeyframeImage", "PoseCorrection", "ProximityContributor"]
 

@@ -201,7 +201,7 @@ def can_fold(backend: Any) -> bool:
 
 
 def apply_correction(backend: Any, correction: Any) -> None:
-    """Move the map by a pose correction (``fgslam.loop.closure.PoseCorrection``: a Sim(3) update per
+    """Move the map by a pose correction (``fgslam.loop.records.PoseCorrection``: a Sim(3) update per
     keyframe): through ``backend.apply_correction`` when the backend has it (:class:`CorrectedBackend`:
     the contributors move their keyframes and fold the scale into their structure); otherwise each
     keyframe pose is set (build such corrections with ``fold_scale`` = :func:`can_fold`, False)."""
@@ -235,7 +235,7 @@ class FactorPlugins:
 def uniform_correction(backend: Any, U: np.ndarray) -> Any:
     """The correction moving every keyframe by the same Sim(3) ``U`` (4x4 ``[[s R, t], [0, 1]]``),
     the scale folded into the structure when contributors can (:func:`can_fold`)."""
-    from ..loop.closure import PoseCorrection
+    from ..loop.records import PoseCorrection
 
     s = float(np.cbrt(np.linalg.det(U[:3, :3])))
     ids = list(backend.keyframe_ids)
@@ -247,7 +247,7 @@ def uniform_correction(backend: Any, U: np.ndarray) -> Any:
 def pose_graph_correction(backend: Any, T_WC_new: Mapping[int, np.ndarray], solve_time_s: float = 0.0) -> Any:
     """The correction taking each keyframe of ``T_WC_new`` from its current pose there, the scale
     change folded into the structure when contributors can (:func:`can_fold`)."""
-    from ..loop.closure import PoseCorrection
+    from ..loop.records import PoseCorrection
 
     return PoseCorrection.between({k: backend.pose_matrix(k) for k in T_WC_new}, dict(T_WC_new), solve_time_s,
                                   fold_scale=can_fold(backend))
