@@ -89,8 +89,8 @@ class PatchFrontend(BackendFrontend):
         self.keyframes = Keyframes(state)
         self.window = LocalBA(state, self.measurer, self.keyframes, self.name)
         self.motion = MotionModel(state)
-        self.initialiser = Initialiser(state, self.measurer, self.window, self.keyframes, self.motion)
-        self.tracker = Tracker(state, self.measurer, self.window, self.keyframes, self.motion)
+        self.initialiser = Initialiser(state, self.window, self.motion)
+        self.tracker = Tracker(state, self.window, self.motion)
         self.contributor = PatchContributor(state, self.motion)
         self.calibration = None
         if calibration is not None:

@@ -20,8 +20,7 @@ import numpy as np
 from ..base import FrameStatus
 from ..records import InterpolatedPose, KeyframePose
 from ..records import sim3_interp as _interp
-from .keyframes import Keyframes
-from .measurement import PatchMeasurer
+from .measurement import FALLBACK_INV_DEPTH
 from .motion import MotionModel
 from .state import PatchState
 from .window import LocalBA
@@ -47,14 +46,13 @@ class _InitState:
 
 class Initialiser:
     """The initialisation state machine on the shared :class:`~.state.PatchState` (module docstring);
-    sets ``state.initialized`` and ``state.map_start_fid`` when a map starts."""
+    measures, optimises and keeps keyframes through the local BA ``window`` (its measurer and
+    keyframes); sets ``state.initialized`` and ``state.map_start_fid`` when a map starts."""
 
-    def __init__(self, state: PatchState, measurer: PatchMeasurer, window: LocalBA, keyframes: Keyframes,
-                 motion: MotionModel):
+    def __init__(self, state: PatchState, window: LocalBA, motion: MotionModel):
         self.state = state
-        self.measurer = measurer
         self.window = window
-        self.keyframes = keyframes
+        self.measurer, self.keyframes = window.measurer, window.keyframes  # the window's own
         self.motion = motion
         self.pending: _InitState | None = None  # monocular: the reference and the buffered frames
 
@@ -204,7 +202,7 @@ class Initialiser:
                 gf.uv = pending.ref_uv.copy()
                 d = np.full(len(gf.uv), np.nan)
                 d[np.nonzero(valid)[0]] = depths
-                med = float(np.nanmedian(d)) if np.isfinite(d).any() else 1.0
+                med = float(np.nanmedian(d)) if np.isfinite(d).any() else FALLBACK_INV_DEPTH
                 gf.inv_depth = np.where(np.isfinite(d), d, med)
             else:
                 ref_d = g.frames[0].inv_depth

@@ -16,6 +16,9 @@ from ...lie import sim3_matrix_components
 from .graph import GraphFrame
 from .state import BackendFrame, PatchState
 
+#: inverse depth of new patches when no patch or sensor reading gives one
+FALLBACK_INV_DEPTH = 1.0
+
 
 def select_patches(image: np.ndarray, count: int, border: int, grid: list[int], method: str,
                    rng: np.random.Generator, block: int = 8, score_width: int = 0) -> np.ndarray:
@@ -138,9 +141,9 @@ class PatchMeasurer:
             prev = st.graph.frames[-1].inv_depth
             if st.config.tracking.median_of_measured:
                 prev = self.measured_inv_depths(st.graph.frames[-1])
-            median = float(np.median(prev[prev > 0])) if (prev > 0).any() else 1.0
+            median = float(np.median(prev[prev > 0])) if (prev > 0).any() else FALLBACK_INV_DEPTH
         else:
-            median = float(np.nanmedian(sensor)) if np.isfinite(sensor).any() else 1.0
+            median = float(np.nanmedian(sensor)) if np.isfinite(sensor).any() else FALLBACK_INV_DEPTH
         inv_depth = np.where(np.isfinite(sensor), sensor, median)
         keep_depth = st.sensor_mode == "rgbd" and st.config.ba.depth_model == "observation"
         return BackendFrame(fid=fid, index=int(frame.index), timestamp=float(frame.timestamp), T_WC=np.array(T_WC, dtype=np.float64),

@@ -23,8 +23,6 @@ import numpy as np
 from ..base import FrameStatus
 from ..records import InterpolatedPose, KeyframePose, RelativePose
 from .graph import GraphFrame
-from .keyframes import Keyframes
-from .measurement import PatchMeasurer
 from .motion import MotionModel
 from .state import PatchState
 from .window import LocalBA
@@ -39,14 +37,14 @@ class TrackingFailure:
 
 
 class Tracker:
-    """Per-frame tracking on the shared :class:`~.state.PatchState` (module docstring)."""
+    """Per-frame tracking on the shared :class:`~.state.PatchState` (module docstring): measures,
+    optimises and keeps keyframes through the local BA ``window`` (its measurer and keyframes);
+    ``motion`` predicts."""
 
-    def __init__(self, state: PatchState, measurer: PatchMeasurer, window: LocalBA, keyframes: Keyframes,
-                 motion: MotionModel):
+    def __init__(self, state: PatchState, window: LocalBA, motion: MotionModel):
         self.state = state
-        self.measurer = measurer
         self.window = window
-        self.keyframes = keyframes
+        self.measurer, self.keyframes = window.measurer, window.keyframes  # the window's own
         self.motion = motion
         self.still: list[tuple[int, int, float]] = []  # stationary frames since the newest keyframe: (fid, keyframe fid, flow px)
 
