@@ -4,7 +4,7 @@ delegates to its collaborators.
 - :mod:`.state`: the shared state (:class:`~.state.PatchState`: patch graph, source, cameras, pose
   records, finalised keyframes) and :class:`~.state.BackendFrame`, a graph frame whose pose lives in
   the backend;
-- :mod:`.measurement`: patch selection, new graph frames, edge measurement;
+- :mod:`.patches`: patch selection, new graph frames, edge measurement;
 - :mod:`.window`: the local BA (measure / optimise rounds, one :class:`~.ba.PatchBlock` over the
   optimisation window through :meth:`fgslam.backend.Backend.optimize_window`);
 - :mod:`.keyframes`: backend membership, redundant-keyframe removal, retirement and finalisation;
@@ -42,7 +42,7 @@ from .contributor import PatchContributor
 from .initialisation import Initialiser
 from .keyframes import Keyframes
 from .map_export import export_map, keyframe_points
-from .measurement import PatchMeasurer
+from .patches import PatchMeasurer
 from .motion import MotionModel
 from .state import PatchState
 from .tracking import Tracker, TrackingFailure

@@ -20,7 +20,7 @@ import numpy as np
 from ..base import FrameStatus
 from ..records import InterpolatedPose, KeyframePose
 from ..records import sim3_interp as _interp
-from .measurement import FALLBACK_INV_DEPTH
+from .patches import FALLBACK_INV_DEPTH
 from .motion import MotionModel
 from .state import PatchState
 from .window import LocalBA

@@ -2,7 +2,7 @@
 measurement source, the calibrated cameras, the pose records, the finalised keyframes and the
 tracking counters; plus :class:`BackendFrame`, a graph frame whose pose lives in the backend.
 
-The collaborators (:mod:`.measurement`, :mod:`.window`, :mod:`.keyframes`, :mod:`.motion`,
+The collaborators (:mod:`.patches`, :mod:`.window`, :mod:`.keyframes`, :mod:`.motion`,
 :mod:`.initialisation`, :mod:`.tracking`, :mod:`.contributor`) each take this one object and the
 collaborators they call; none holds the frontend."""
 

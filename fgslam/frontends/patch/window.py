@@ -17,7 +17,7 @@ from ...lie import sim3_matrix_components
 from ..records import rigid as _rigid
 from .ba import PatchBlock
 from .keyframes import Keyframes
-from .measurement import PatchMeasurer
+from .patches import PatchMeasurer
 from .state import BackendFrame, PatchState
 
 #: the gtsam key cache is trimmed to the graph's frames when it outgrows this many times the graph

@@ -1,4 +1,4 @@
-"""Patch measurement of the patch frontend: patch selection (:func:`select_patches`), new graph frames
+"""Patches of the patch frontend: patch selection (:func:`select_patches`), new graph frames
 with their initial inverse depths, sensor depth look-ups, and edge measurement with the source
 started from the current reprojection (:class:`PatchMeasurer`)."""
 
