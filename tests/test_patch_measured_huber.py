@@ -10,7 +10,6 @@ import pytest
 from fgslam.frontends.patch import PatchConfig, PatchFrontend
 from fgslam.frontends.patch.graph import GraphFrame
 from fgslam.frontends.patch.source import Measurement, MeasurementSource
-from fgslam.frontends.patch.window import LocalBA
 from fgslam.io.calibration import Calibration
 from fgslam.backend import Backend, BackendConfig
 
@@ -65,6 +64,8 @@ def test_fresh_measurements_get_huber_weights_from_their_prediction_distance(hub
 def test_tracking_rounds_use_the_setting_and_initialisation_rounds_do_not(monkeypatch):
     """The first BA of a tracking round sees the Huber weights of the fresh measurements; the
     initialisation rounds (interpolated poses, median depths: every residual is large) keep 1."""
+    from fgslam.frontends.patch.window import LocalBA
+
     seen = []
 
     def fake_optimize(self, iterations, init):
