@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fgslam.frontends.patch.config import LKConfig
-from fgslam.frontends.patch.frontend import select_patches
+from fgslam.frontends.patch.patches import select_patches
 from fgslam.frontends.patch.lk import LKSource
 
 

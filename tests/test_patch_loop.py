@@ -259,7 +259,7 @@ def test_inconsistent_loop_edges_are_undone(prox_frontend):
     n = fe.config.graph.patches_per_frame
     fake = {"src": np.full(n, a.fid), "patch": np.arange(n), "tgt": np.full(n, b.fid), "right": np.zeros(n, bool),
             "uv_src": a.uv.astype(np.float32),
-            "uv": np.stack([rng.uniform(0, fe.width, n), rng.uniform(0, fe.height, n)], 1).astype(np.float32),
+            "uv": np.stack([rng.uniform(0, fe.state.width, n), rng.uniform(0, fe.state.height, n)], 1).astype(np.float32),
             "confidence": np.ones(n, np.float32), "inv_depth": a.inv_depth.astype(np.float32)}
     before = {f.fid: f.T_WC.copy() for f in fe.graph.frames}
     stored = fe.graph.inactive.count

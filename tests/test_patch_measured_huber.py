@@ -53,8 +53,8 @@ def test_fresh_measurements_get_huber_weights_from_their_prediction_distance(hub
     g = fe.graph
     idx = g.add_edges(np.zeros(K, np.int64), np.arange(K), np.ones(K, np.int64), np.zeros(K, bool))
     g.robust[idx] = 0.0  # stale weights from an earlier round must not survive a new measurement
-    fe._measure(idx, huber=huber)
-    _, pred, _ = fe._predict_edges(idx)
+    fe.measurer.measure(idx, huber=huber)
+    _, pred, _ = fe.measurer.predict_edges(idx)
     np.testing.assert_allclose(g.uv[idx] - pred, OFFSETS, atol=1e-9)
     delta = fe.config.ba.huber_delta  # pixel_sigma 1, confidence 1: whitened residual = pixels
     expected = np.minimum(1.0, delta / np.maximum(np.linalg.norm(OFFSETS, axis=1), 1e-12)) if huber else np.ones(K)
@@ -64,19 +64,21 @@ def test_fresh_measurements_get_huber_weights_from_their_prediction_distance(hub
 def test_tracking_rounds_use_the_setting_and_initialisation_rounds_do_not(monkeypatch):
     """The first BA of a tracking round sees the Huber weights of the fresh measurements; the
     initialisation rounds (interpolated poses, median depths: every residual is large) keep 1."""
+    from fgslam.frontends.patch.window import LocalBA
+
     seen = []
 
     def fake_optimize(self, iterations, init):
-        seen.append((init, self.graph.robust.copy()))
-        self._last_residual = np.zeros(self.graph.num_edges)
-        return {"edges": self.graph.num_edges}
+        seen.append((init, self.state.graph.robust.copy()))
+        self.last_residual = np.zeros(self.state.graph.num_edges)
+        return {"edges": self.state.graph.num_edges}
 
-    monkeypatch.setattr(PatchFrontend, "_optimize", fake_optimize)
+    monkeypatch.setattr(LocalBA, "optimize", fake_optimize)
     for init in (False, True):
         fe = _frontend(True)
         fe.config.tracking.min_valid_edges = 3
         idx = fe.graph.add_edges(np.zeros(K, np.int64), np.arange(K), np.ones(K, np.int64), np.zeros(K, bool))
-        fe._rounds(idx, 1, 1, init=init, new_fid=None if init else 1)
+        fe.window.rounds(idx, 1, 1, init=init, new_fid=None if init else 1)
     (init0, robust_track), (init1, robust_init) = seen
     assert not init0 and init1
     assert robust_track.min() < 0.2  # the 20 px track
@@ -118,5 +120,5 @@ def test_new_patch_depth_is_the_median_of_the_measured_patches(measured_only, n_
     g.robust[idx] = 1.0  # unmeasured edges: confidence 0 (a robust weight alone does not count)
     image = np.random.default_rng(0).integers(0, 255, (240, 320)).astype(np.uint8)
     frame = SimpleNamespace(image=image, rgb=None, depth=None, index=2, timestamp=0.2)
-    gf = fe._new_graph_frame(2, frame, np.eye(4), None, None)
+    gf = fe.measurer.new_graph_frame(2, frame, np.eye(4), None, None)
     np.testing.assert_allclose(gf.inv_depth, expected)

@@ -12,6 +12,7 @@ import pytest
 from fgslam.errors import OptimizationError
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchFrontend
+from fgslam.frontends.patch.window import LocalBA
 from fgslam.io.trajectory import Trajectory
 from fgslam.backend import Backend, BackendConfig
 from eval_support import assert_beats_doing_nothing
@@ -142,7 +143,7 @@ def test_failed_initial_optimisation_resets_cleanly(room, monkeypatch):
     initialisation succeeds (before the fix: "frame ids must increase" at a later frame)."""
     ds, frames = open_frames(room, "mono")
     fe = PatchFrontend(light_patch_config(keyframe_threshold=6.0), sensor_mode="mono", backend=Backend(BackendConfig()))
-    optimize = PatchFrontend._optimize
+    optimize = LocalBA.optimize
     calls = {"failed": 0}
 
     def failing_once(self, iterations, init):
@@ -151,7 +152,7 @@ def test_failed_initial_optimisation_resets_cleanly(room, monkeypatch):
             raise OptimizationError("injected failure")
         return optimize(self, iterations, init)
 
-    monkeypatch.setattr(PatchFrontend, "_optimize", failing_once)
+    monkeypatch.setattr(LocalBA, "optimize", failing_once)
     statuses = [fe.process(f) for f in frames]
     assert calls["failed"] == 1
     failed = [s for s in statuses if any("optimisation failed" in e for e in s.events)]
