@@ -126,13 +126,13 @@ class SlamSystem:
         if config.imu.enabled:
             from .services.imu import make_imu_service
 
-            imu = make_imu_service(config.imu, backend, calibration, has_imu, config.sensor, contributor=frontend,
-                                   dataset_noise=imu_noise, where=where)
+            imu = make_imu_service(config.imu, backend, calibration, has_imu, config.sensor,
+                                   contributor=_contributor(frontend), dataset_noise=imu_noise, where=where)
         plugins = None
         if config.factors:
             from .services.plugins import FactorPlugins
 
-            plugins = FactorPlugins(config.factors, backend, timestamps, contributor=frontend)
+            plugins = FactorPlugins(config.factors, backend, timestamps, contributor=_contributor(frontend))
         view = None
         if rerun:
             from .export.rerun import RerunView, check_rerun_target
@@ -154,7 +154,7 @@ class SlamSystem:
             return None
         from .services.loops import LoopService
 
-        return LoopService(frontend, loop_config, metric=bool(getattr(frontend, "metric_scale", False)),
+        return LoopService(_contributor(frontend), loop_config, metric=bool(getattr(frontend, "metric_scale", False)),
                            proximity=getattr(frontend, "proximity_gates", None))
 
     # ------------------------------------------------------------------ the run
@@ -235,6 +235,12 @@ class SlamSystem:
                 self.view.log_map(self.frontend.keyframe_points(), self._loop_segments())
         except Exception as exc:  # noqa: BLE001 - a viewer problem never stops the run
             logger.warning("rerun logging failed at frame %d: %s: %s", frame.index, type(exc).__name__, exc)
+
+
+def _contributor(frontend: Frontend) -> Any:
+    """What the services talk to: the frontend's ``contributor`` (a family's collaborator, or the
+    frontend itself), or a frontend without the protocol as it is."""
+    return getattr(frontend, "contributor", frontend)
 
 
 def run_frames(system: SlamSystem, frames: Iterable["Frame"]) -> list[FrameStatus]:

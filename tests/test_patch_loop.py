@@ -247,7 +247,7 @@ def test_wrong_proximity_candidate_is_rejected_by_verification(prox_frontend):
     axis = lambda i: T_gt[i][:3, 2]
     far = min(stored, key=lambda fid: float(axis(index[fid]) @ axis(q.index)))  # most opposite view
     assert float(axis(index[far]) @ axis(q.index)) < 0
-    assert fe.long_range_edges(q.fid, far) is None
+    assert fe.contributor.long_range_edges(q.fid, far) is None
 
 
 def test_inconsistent_loop_edges_are_undone(prox_frontend):
@@ -356,14 +356,14 @@ def test_textureless_proximity_candidate_is_rejected(prox_frontend):
 
     fe, _, system = prox_frontend
     q = next(f for f in reversed(fe.graph.frames) if f.features is not None and f.fid in fe._prox_store)
-    cand = fe.proximity_candidate(q.fid, system.loops.eligible_candidates(q.fid))
-    assert cand is not None and fe.long_range_edges(q.fid, cand.fid) is not None
+    cand = fe.contributor.proximity_candidate(q.fid, system.loops.eligible_candidates(q.fid))
+    assert cand is not None and fe.contributor.long_range_edges(q.fid, cand.fid) is not None
     old = [cand.fid] + fe._prox_store.neighbours(cand.fid, fe.config.proximity.old_neighbours)
     saved = {fid: fe._prox_store.get(fid) for fid in old}
     for fid, packed in saved.items():
         real = fe.source.unpack(packed)
         fe._prox_store._items[fid] = fe.source.pack(LKFeatures(np.full_like(real.image, 128), real.width, real.height))
     try:
-        assert fe.long_range_edges(q.fid, cand.fid) is None
+        assert fe.contributor.long_range_edges(q.fid, cand.fid) is None
     finally:
         fe._prox_store._items.update(saved)

@@ -170,7 +170,7 @@ def test_global_ba_depth_priors_follow_the_noise_model(room, noise, sigma, monke
         fe.process(frame)
         if i >= 12:
             break
-    job = fe.global_ba_job(None)  # what the loop service hands to the worker: global_bundle_adjustment(problem, ...)
+    job = fe.contributor.global_ba_job(None)  # what the loop service hands to the worker: global_bundle_adjustment(problem, ...)
     prob = job.solve.args[0]
     assert len(prob.prior_idx) >= 20
     sigma_d = sigma * prob.prior_value if noise == "relative" else np.full(len(prob.prior_value), sigma)

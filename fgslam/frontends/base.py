@@ -135,6 +135,13 @@ class Frontend(abc.ABC):
     #: the loop-closure port (:meth:`connect`)
     loops: LoopPort = NO_LOOPS
 
+    @property
+    def contributor(self):
+        """What the services talk to (:mod:`fgslam.services.contributor`: keyframe images and poses,
+        corrections, long-range edges): a family's collaborator set as ``_contributor``, else the
+        frontend itself."""
+        return self.__dict__.get("_contributor", self)
+
     def connect(self, loops: LoopPort | None = None, motion_prior: MotionPrior | None = None) -> None:
         """Take the run's loop-closure port and motion prior (the system calls it once, before the
         first frame). A family that predicts poses uses ``motion_prior`` when it has one."""

@@ -18,6 +18,10 @@ class DenseLoopContributor:
 
     def __init__(self, frontend: "DenseFrontend"):
         self.fe = frontend
+        self.name = frontend.name
+
+    def long_range_edges(self, query_kf_id: int, candidate_kf_id: int) -> Optional[dict]:
+        return None  # classical loops only (no proximity edges of this family yet)
 
     def feed(self, all_keyframes: bool = False) -> None:
         """Hand the keyframes that left the active graph (``all_keyframes``: every keyframe) to the

@@ -114,7 +114,7 @@ class DenseFrontend(BackendFrontend):
         self.keyframes = DenseKeyframes(self)
         self.ba = DenseBA(self)
         self.starts = DenseMapStarts(self)
-        self.loop_contributor = DenseLoopContributor(self)
+        self._contributor = DenseLoopContributor(self)
 
     # ------------------------------------------------------------------ calibration
     def _set_calibration(self, calibration) -> None:
@@ -175,7 +175,7 @@ class DenseFrontend(BackendFrontend):
     def finish(self) -> None:
         if self._initialized and self.config.global_ba.final and len(self.graph.keyframes) >= 3:
             self.ba.global_ba()
-        self.loop_contributor.feed(all_keyframes=True)
+        self.contributor.feed(all_keyframes=True)
 
     def finish_map(self) -> None:
         logger.info("dense frontend: %d frames, %d keyframes, %d tracking failures, counts %s",
@@ -194,19 +194,6 @@ class DenseFrontend(BackendFrontend):
         """Confidence-filtered grid points of every keyframe in the world frame, with their colours."""
         K_grid = self.K_grid if self.graph is not None else (1, 1, 0, 0)
         return keyframe_points(self._all_keyframes(), self._keyframe_T_WC, K_grid, self.config.point_confidence)
-
-    # ------------------------------------------------------------------ contributor contract (.contributor)
-    def keyframe_image(self, kf_id: int) -> Optional[KeyframeImage]:
-        return self.loop_contributor.keyframe_image(kf_id)
-
-    def keyframe_pose(self, kf_id: int) -> Optional[np.ndarray]:
-        return self.loop_contributor.keyframe_pose(kf_id)
-
-    def apply_correction(self, correction: PoseCorrection) -> None:
-        self.loop_contributor.apply_correction(correction)
-
-    def long_range_edges(self, query_kf_id: int, candidate_kf_id: int) -> Optional[dict]:
-        return None  # classical loops only (no proximity edges of this family yet)
 
     # ------------------------------------------------------------------ frames and poses
     def _check_frame(self, frame) -> None:

@@ -195,7 +195,7 @@ class DenseKeyframes:
         g = fe.graph
         while len(g.active) > fe.config.graph.active_keyframes:
             g.active.pop(0)
-        fe.loop_contributor.feed()
+        fe.contributor.feed()
         order = g.order()
         for fid in order[: max(0, len(order) - fe.config.global_ba.max_keyframes)]:
             kf = g.keyframes[fid]

@@ -48,7 +48,7 @@ class DenseMapStarts:
         the relocalised pose when the loop service finds one, else at the last prediction."""
         fe = self.fe
         fe._counts["map_restarts"] += 1
-        fe.loop_contributor.feed(all_keyframes=True)
+        fe.contributor.feed(all_keyframes=True)
         T_WC = fe._pose_of(fid)
         found = fe.loops.relocalize(frame.image, fe.K)
         if found is not None:

@@ -42,6 +42,8 @@ class PatchContributor:
         images: fid -> (image, timestamp, depth) while the frame may become a loop keyframe.
     """
 
+    name = "patch"
+
     def __init__(self, state: PatchState, motion: MotionModel):
         self.state = state
         self.motion = motion

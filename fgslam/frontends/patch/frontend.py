@@ -91,7 +91,7 @@ class PatchFrontend(BackendFrontend):
         self.motion = MotionModel(state)
         self.initialiser = Initialiser(state, self.window, self.motion)
         self.tracker = Tracker(state, self.window, self.motion)
-        self.contributor = PatchContributor(state, self.motion)
+        self._contributor = PatchContributor(state, self.motion)
         self.calibration = None
         if calibration is not None:
             self._set_calibration(calibration)
@@ -241,27 +241,7 @@ class PatchFrontend(BackendFrontend):
         """The bounded store of inactive edges (see :class:`~.graph.InactiveEdges`)."""
         return self.graph.inactive.arrays()
 
-    # ------------------------------------------------------------------ contributor contract (.contributor)
+    # ------------------------------------------------------------------ loop counts (the contract itself: self.contributor)
     def add_loop_counts(self, summary: dict) -> None:
         self.contributor.add_loop_counts(summary)
 
-    def keyframe_image(self, kf_id: int):
-        return self.contributor.keyframe_image(kf_id)
-
-    def keyframe_pose(self, kf_id: int) -> np.ndarray | None:
-        return self.contributor.keyframe_pose(kf_id)
-
-    def apply_correction(self, correction) -> None:
-        self.contributor.apply_correction(correction)
-
-    def proximity_candidate(self, query_kf_id: int, candidate_kf_ids: list[int]):
-        return self.contributor.proximity_candidate(query_kf_id, candidate_kf_ids)
-
-    def long_range_edges(self, query_kf_id: int, candidate_kf_id: int) -> dict | None:
-        return self.contributor.long_range_edges(query_kf_id, candidate_kf_id)
-
-    def global_ba_job(self, loop_edges: dict | None = None):
-        return self.contributor.global_ba_job(loop_edges)
-
-    def apply_global_ba(self, job, result, keep_loop: np.ndarray) -> None:
-        self.contributor.apply_global_ba(job, result, keep_loop)

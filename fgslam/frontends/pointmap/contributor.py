@@ -3,7 +3,7 @@ delegates to: keyframe images and poses for the loop service, and its correction
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
@@ -18,6 +18,10 @@ class PointmapLoopContributor:
 
     def __init__(self, frontend: "PointmapFrontend"):
         self.fe = frontend
+        self.name = frontend.name
+
+    def long_range_edges(self, query_kf_id: int, candidate_kf_id: int) -> Optional[dict]:
+        return None  # no proximity loops in this family (loop edges come from the classical service)
 
     def keyframe_image(self, kf_id: int) -> KeyframeImage | None:
         fe = self.fe

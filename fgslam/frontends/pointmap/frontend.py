@@ -131,7 +131,7 @@ class PointmapFrontend(BackendFrontend):
         self.tracker = PointmapTracker(self)
         self.keyframing = PointmapKeyframing(self)
         self.graph = PointmapGraph(self)
-        self.loop_contributor = PointmapLoopContributor(self)
+        self._contributor = PointmapLoopContributor(self)
         if calibration is not None:
             self._set_calibration(calibration)
 
@@ -203,19 +203,6 @@ class PointmapFrontend(BackendFrontend):
 
     def add_loop_counts(self, summary: dict) -> None:
         summary["pointmap_loop_edges"] = self._counts["loop_edges"]
-
-    # ------------------------------------------------------------------ contributor contract (.contributor)
-    def keyframe_image(self, kf_id: int) -> KeyframeImage | None:
-        return self.loop_contributor.keyframe_image(kf_id)
-
-    def keyframe_pose(self, kf_id: int) -> np.ndarray | None:
-        return self.loop_contributor.keyframe_pose(kf_id)
-
-    def apply_correction(self, correction: PoseCorrection) -> None:
-        self.loop_contributor.apply_correction(correction)
-
-    def long_range_edges(self, query_kf_id: int, candidate_kf_id: int) -> dict | None:
-        return None  # no proximity loops in this family (loop edges come from the classical service)
 
     @staticmethod
     def backend_key(fid: int) -> int:
