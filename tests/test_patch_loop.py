@@ -31,17 +31,8 @@ MIN_GAP_S = 10.0  # ... and at least this far apart in time (half the loop)
 
 
 @pytest.fixture(scope="module")
-def room(tmp_path_factory):
-    from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.presets import load_synth_config
-
-    cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={RATE_HZ}", "camera.width=320",
-                                                    "camera.height=240"])
-    cfg.frames = int(round(cfg.loop_duration_s() * RATE_HZ)) + 1 + EXTRA_FRAMES
-    seq = SynthSequence(cfg)
-    root = tmp_path_factory.mktemp("room_loop") / "seq"
-    write_sequence(seq, root)
-    return root, seq
+def room(room_loop_clip):
+    return room_loop_clip(RATE_HZ, EXTRA_FRAMES)  # (root, seq), rendered once per session (conftest.py)
 
 
 def slam_config(mode: str, sensor: str = "mono") -> SlamConfig:
@@ -54,14 +45,23 @@ def slam_config(mode: str, sensor: str = "mono") -> SlamConfig:
 
 @pytest.fixture(scope="module")
 def runs(room, tmp_path_factory):
-    """summary.json of the runner with loop closure classical, off and proximity."""
+    """summary.json of the runner with loop closure classical, off and proximity; under
+    ``proximity_frontend`` the PatchFrontend of the proximity run (the one the runner builds)."""
+    import fgslam.frontends
+
     root, _ = room
     out = {}
     for mode in ("classical", "off", "proximity"):
         cfg = slam_config(mode)
         folder = tmp_path_factory.mktemp(f"run_{mode}")
-        run_slam(open_slam_dataset(root, cfg), cfg, folder, progress=False)
+        built = []
+        with pytest.MonkeyPatch.context() as mp:
+            make = fgslam.frontends.make_frontend
+            mp.setattr(fgslam.frontends, "make_frontend", lambda *a, **k: built.append(make(*a, **k)) or built[-1])
+            run_slam(open_slam_dataset(root, cfg), cfg, folder, progress=False)
         out[mode] = json.loads((folder / SUMMARY_FILE).read_text())
+        if mode == "proximity":
+            (out["proximity_frontend"],) = built
     return out
 
 
@@ -149,17 +149,19 @@ def test_relocalisation_after_a_jump_back(room):
     from fgslam.io.calibration import Calibration
     from fgslam.io.frame import Frame
 
+    import cv2
+
     first_pass, jump_to, after = 26, 6, 6
-    _, seq = room
+    root, seq = room
     cal = Calibration(seq.cfg.camera.width, seq.cfg.camera.height, np.array(seq.K))
     order = list(range(first_pass)) + list(range(jump_to, jump_to + after))
-    T_gt = seq.camera_poses(np.array(order) / RATE_HZ)
+    images = sorted((root / "mav0" / "cam0" / "data").iterdir())  # the clip's frames, rendered once
     cfg = light_patch_config()
     cfg.tracking.max_motion_model_frames = 2
     fe = PatchFrontend(cfg, cal, "mono", loop_config=LoopClosureConfig(mode="classical", run_in_thread=False))
     statuses = []
-    for i in range(len(order)):
-        image = np.clip(seq.render_view(T_gt[i]).image, 0, 255).astype(np.uint8)
+    for i, k in enumerate(order):
+        image = cv2.imread(str(images[k]), cv2.IMREAD_UNCHANGED)
         statuses.append(fe.process(Frame(i, i, i / RATE_HZ, image, cal)))
     first_pass_T = {s.index: s.T_WC for s in statuses[:first_pass]}
     fe.finish()
@@ -199,20 +201,13 @@ def test_proximity_loop_closed_at_the_return_and_cuts_ate(room, runs):
 
 
 @pytest.fixture(scope="module")
-def prox_frontend(room):
-    """A PatchFrontend run frame by frame over the clip with proximity loop closure (for its state)."""
-    from fgslam.io.calibration import Calibration
-    from fgslam.io.frame import Frame
-
+def prox_frontend(room, runs):
+    """The PatchFrontend that ran over the clip with proximity loop closure (the runner's proximity
+    run, finished), for its state, and the true camera poses of the frames."""
     _, seq = room
-    cal = Calibration(seq.cfg.camera.width, seq.cfg.camera.height, np.array(seq.K))
-    fe = PatchFrontend(light_patch_config(), cal, "mono", loop_config=LoopClosureConfig(mode="proximity"))
-    T_gt = seq.camera_poses(np.arange(seq.cfg.frames) / RATE_HZ)
-    for i in range(seq.cfg.frames):
-        image = np.clip(seq.render_view(T_gt[i]).image, 0, 255).astype(np.uint8)
-        fe.process(Frame(i, i, i / RATE_HZ, image, cal))
-    fe.finish()
-    return fe, T_gt
+    fe = runs["proximity_frontend"]
+    assert isinstance(fe, PatchFrontend)
+    return fe, seq.camera_poses(np.arange(seq.cfg.frames) / RATE_HZ)
 
 
 def test_proximity_loop_edges_join_the_inactive_store(prox_frontend):
@@ -259,16 +254,14 @@ def test_inconsistent_loop_edges_are_undone(prox_frontend):
     assert fe.graph.inactive.count == stored
 
 
-def test_rgbd_loop_closure_both_keeps_metric_scale(room, tmp_path):
+def test_rgbd_loop_closure_both_keeps_metric_scale(room, room_loop_rgbd_both, tmp_path):
     """RGB-D (metric map): classical corrections are SE(3) (metric closer) and the global BA holds
-    every pose scale, so the SE(3)-aligned ATE improves on the run without loop closure."""
+    every pose scale, so the SE(3)-aligned ATE improves on the run without loop closure. The run with
+    loop closure (in its threads, which give the synchronous bytes) is also test_determinism's."""
     root, seq = room
-    out = {}
-    for mode in ("off", "both"):
-        cfg = slam_config(mode, sensor="rgbd")
-        run_slam(open_slam_dataset(root, cfg), cfg, tmp_path / mode, progress=False)
-        out[mode] = json.loads((tmp_path / mode / SUMMARY_FILE).read_text())
-    on, off = out["both"], out["off"]
+    cfg = slam_config("off", sensor="rgbd")
+    run_slam(open_slam_dataset(root, cfg), cfg, tmp_path / "off", progress=False)
+    on, off = room_loop_rgbd_both[1], json.loads((tmp_path / "off" / SUMMARY_FILE).read_text())
     assert on["evaluation"]["align"] == off["evaluation"]["align"] == "se3"
     loop = on["loop"]
     assert loop["corrections_applied"] > 0 and loop["proximity"]["accepted"] >= 1
