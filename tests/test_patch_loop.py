@@ -146,10 +146,10 @@ def test_relocalisation_after_a_jump_back(room):
     """Frames 0..FIRST_PASS-1, then the camera jumps back to frame JUMP_TO and goes on from there:
     tracking fails, and after ``max_motion_model_frames`` failures the lost frame is relocalised on
     the keyframes of the first pass, close to the pose estimated for the same view then."""
+    import cv2
+
     from fgslam.io.calibration import Calibration
     from fgslam.io.frame import Frame
-
-    import cv2
 
     first_pass, jump_to, after = 26, 6, 6
     root, seq = room
