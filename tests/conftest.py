@@ -19,3 +19,46 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO_ROOT
+
+
+@pytest.fixture(scope="session")
+def room_loop_clip(tmp_path_factory):
+    """``clip(rate_hz, extra_frames)``: the room-loop clip (320x240) rendered at ``rate_hz`` once round
+    the room and ``extra_frames`` on past its start, as (dataset root, SynthSequence). Rendered once per
+    session for the loop-closure tests that run on it (test_patch_loop, test_determinism,
+    test_dense_loop); read only."""
+    clips = {}
+
+    def clip(rate_hz: float, extra_frames: int):
+        if (rate_hz, extra_frames) not in clips:
+            from fgslam.io.synth import SynthSequence, write_sequence
+            from fgslam.io.synth.scenarios import load_synth_config
+
+            cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={rate_hz}", "camera.width=320",
+                                                            "camera.height=240"])
+            cfg.frames = int(round(cfg.loop_duration_s() * rate_hz)) + 1 + extra_frames
+            seq = SynthSequence(cfg)
+            root = tmp_path_factory.mktemp("room_loop") / "seq"
+            write_sequence(seq, root)
+            clips[rate_hz, extra_frames] = root, seq
+        return clips[rate_hz, extra_frames]
+
+    return clip
+
+
+@pytest.fixture(scope="session")
+def room_loop_rgbd_both(room_loop_clip, tmp_path_factory):
+    """The RGB-D run of the 4 Hz room loop (19 frames past the return) with loop closure ``both`` in
+    its worker threads and process (the default), as (output folder, summary.json). One run for two
+    claims: the reference of test_determinism's byte comparison, and test_patch_loop's RGB-D loop
+    closure against the run without."""
+    import json
+
+    from fgslam.slam import SUMMARY_FILE, open_slam_dataset, run_slam
+    from patch_support import room_loop_slam_config
+
+    root, _ = room_loop_clip(4.0, 19)
+    cfg = room_loop_slam_config("both", sensor="rgbd", threaded=True)
+    folder = tmp_path_factory.mktemp("room_loop_rgbd_both")
+    run_slam(open_slam_dataset(root, cfg), cfg, folder, progress=False)
+    return folder, json.loads((folder / SUMMARY_FILE).read_text())

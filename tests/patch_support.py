@@ -19,14 +19,34 @@ def light_patch_config(keyframe_threshold: float = 8.0) -> PatchConfig:
     return cfg
 
 
+_RENDERED: dict = {}  # (tmp_path_factory, overrides) -> root: each clip rendered once per session
+
+
 def render_room(tmp_path_factory, name: str, overrides: list[str]):
-    """Render a synthetic room-loop clip (``load_synth_config`` overrides) into a fresh temp folder."""
+    """Render a synthetic room-loop clip (``load_synth_config`` overrides) into a fresh temp folder, once
+    per session: the tests that ask for the same overrides share the folder (they only read it)."""
     from fgslam.io.synth import SynthSequence, write_sequence
     from fgslam.io.synth.scenarios import load_synth_config
 
-    root = tmp_path_factory.mktemp(name)
-    write_sequence(SynthSequence(load_synth_config("room-loop", overrides=overrides)), root)
-    return root
+    key = (id(tmp_path_factory), tuple(overrides))
+    if key not in _RENDERED:
+        root = tmp_path_factory.mktemp(name)
+        write_sequence(SynthSequence(load_synth_config("room-loop", overrides=overrides)), root)
+        _RENDERED[key] = root
+    return _RENDERED[key]
+
+
+def room_loop_slam_config(mode: str, sensor: str = "mono", threaded: bool = False):
+    """The run config of the loop-closure tests on the 4 Hz room loop: the light patch graph, loop
+    closure ``mode`` (``threaded``: in its worker threads and process, else synchronously), no plots."""
+    from fgslam.loop.closure import LoopClosureConfig
+    from fgslam.slam import SlamConfig
+
+    cfg = SlamConfig(sensor=sensor, patch=light_patch_config())
+    cfg.loop_closure = LoopClosureConfig(mode=mode, run_in_thread=threaded)
+    cfg.output.plot = False
+    cfg.validate()
+    return cfg
 
 
 def open_frames(root, mode: str):

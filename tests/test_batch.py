@@ -19,13 +19,9 @@ LIGHT = ["output.plot=false"]
 
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory) -> Path:
-    from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.scenarios import load_synth_config
+    from patch_support import render_room
 
-    root = tmp_path_factory.mktemp("clip")
-    write_sequence(SynthSequence(load_synth_config("room-loop", overrides=[
-        "frames=40", "camera.width=320", "camera.height=240"])), root)
-    return root
+    return render_room(tmp_path_factory, "clip", ["frames=40", "camera.width=320", "camera.height=240"])  # shared, read only
 
 
 def _matrix(tmp_path: Path, clip: Path, extra: str = "") -> Path:

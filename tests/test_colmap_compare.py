@@ -29,12 +29,9 @@ def test_cloud_distances_known_offsets():
 
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory):
-    from fgslam.io.synth import SynthSequence, write_sequence
+    from patch_support import render_room
 
-    root = tmp_path_factory.mktemp("clip")
-    write_sequence(SynthSequence(load_synth_config("room-loop", overrides=[
-        "frames=40", "camera.width=320", "camera.height=240"])), root)
-    return root
+    return render_room(tmp_path_factory, "clip", ["frames=40", "camera.width=320", "camera.height=240"])  # shared, read only
 
 
 def _surface_distances(X_W: np.ndarray, frames) -> np.ndarray:

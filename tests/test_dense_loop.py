@@ -21,17 +21,8 @@ RETURN_TOLERANCE = 1.05  # the loop run's error at the return may exceed the loo
 
 
 @pytest.fixture(scope="module")
-def room(tmp_path_factory):
-    from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.scenarios import load_synth_config
-
-    cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={RATE_HZ}", "camera.width=320",
-                                                    "camera.height=240"])
-    cfg.frames = int(round(cfg.loop_duration_s() * RATE_HZ)) + 1 + EXTRA_FRAMES
-    seq = SynthSequence(cfg)
-    root = tmp_path_factory.mktemp("dense_loop") / "seq"
-    write_sequence(seq, root)
-    return root, seq
+def room(room_loop_clip):
+    return room_loop_clip(RATE_HZ, EXTRA_FRAMES)  # (root, seq), rendered once per session (conftest.py)
 
 
 def _run(root, out, overrides):

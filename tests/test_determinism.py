@@ -1,7 +1,8 @@
 """Reproducible runs (issue 21): the same config on the same data gives the same bytes, however fast
-the background work is. Loop closure ``both`` on the 4 Hz room loop (classical corrections and a
-proximity global BA are both applied): a threaded run and a threaded run whose workers are slowed
-down on purpose write byte-identical trajectories and the same summary (times aside). (The
+the background work is. Loop closure ``both`` on the 4 Hz room loop, RGB-D (classical corrections and
+a proximity global BA are both applied): a threaded run and a threaded run whose workers are slowed
+down on purpose write byte-identical trajectories and the same summary (times aside). The threaded
+run is shared with tests/test_patch_loop.py (conftest.py: ``room_loop_rgbd_both``). (The
 synchronous mode, ``run_in_thread: false``, takes the results at the same frames and gives the same
 bytes too: tests/test_loop_closure.py compares the closer's two modes.)"""
 
@@ -12,11 +13,10 @@ import time
 
 import pytest
 
-from fgslam.services.proximity import ProximityLoops
 from fgslam.loop.closure import LoopCloser
-from fgslam.loop.records import LoopClosureConfig
-from fgslam.slam import SUMMARY_FILE, SlamConfig, open_slam_dataset, run_slam
-from patch_support import light_patch_config
+from fgslam.services.proximity import ProximityLoops
+from fgslam.slam import SUMMARY_FILE, open_slam_dataset, run_slam
+from patch_support import room_loop_slam_config
 
 RATE_HZ = 4.0
 EXTRA_FRAMES = 19  # frames past the first return to the start
@@ -26,24 +26,8 @@ TRAJECTORIES = ("trajectory_tum.txt", "trajectory_kitti.txt")
 
 
 @pytest.fixture(scope="module")
-def room(tmp_path_factory):
-    from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.scenarios import load_synth_config
-
-    cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={RATE_HZ}", "camera.width=320",
-                                                    "camera.height=240"])
-    cfg.frames = int(round(cfg.loop_duration_s() * RATE_HZ)) + 1 + EXTRA_FRAMES
-    root = tmp_path_factory.mktemp("room_loop_det") / "seq"
-    write_sequence(SynthSequence(cfg), root)
-    return root
-
-
-def _config(threaded: bool) -> SlamConfig:
-    cfg = SlamConfig(sensor="mono", patch=light_patch_config())
-    cfg.loop_closure = LoopClosureConfig(mode="both", run_in_thread=threaded)
-    cfg.output.plot = False
-    cfg.validate()
-    return cfg
+def room(room_loop_clip):
+    return room_loop_clip(RATE_HZ, EXTRA_FRAMES)[0]  # rendered once per session (conftest.py)
 
 
 # what a summary may differ in between two runs of the same input: times, machine state, the folder
@@ -59,16 +43,20 @@ def _timeless(value):
     return value
 
 
-def _run(root, folder, threaded: bool):
-    cfg = _config(threaded)
-    run_slam(open_slam_dataset(root, cfg), cfg, folder, progress=False)
+def _outputs(folder):
     summary = json.loads((folder / SUMMARY_FILE).read_text())
     return {name: (folder / name).read_bytes() for name in TRAJECTORIES}, summary
 
 
+def _run(root, folder, threaded: bool):
+    cfg = room_loop_slam_config("both", sensor="rgbd", threaded=threaded)  # the config of room_loop_rgbd_both
+    run_slam(open_slam_dataset(root, cfg), cfg, folder, progress=False)
+    return _outputs(folder)
+
+
 @pytest.fixture(scope="module")
-def runs(room, tmp_path_factory, request):
-    out = {"threaded": _run(room, tmp_path_factory.mktemp("det_threaded"), True)}
+def runs(room, room_loop_rgbd_both, tmp_path_factory, request):
+    out = {"threaded": _outputs(room_loop_rgbd_both[0])}
     mp = pytest.MonkeyPatch()
     run_job, solve = LoopCloser._run_job, ProximityLoops._solve
 

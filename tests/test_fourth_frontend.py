@@ -26,17 +26,9 @@ POSITION_SIGMA_M = 0.3  # coarse positions: their noise and the prior's sigma (m
 
 
 @pytest.fixture(scope="module")
-def room(tmp_path_factory):
-    """The synthetic room loop in RGB-D, past its return to the start."""
-    from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.scenarios import load_synth_config
-
-    cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={RATE_HZ}", "camera.width=320",
-                                                    "camera.height=240"])
-    cfg.frames = int(round(cfg.loop_duration_s() * RATE_HZ)) + 1 + EXTRA_FRAMES
-    root = tmp_path_factory.mktemp("toy_room") / "seq"
-    write_sequence(SynthSequence(cfg), root)
-    return root
+def room(room_loop_clip):
+    """The synthetic room loop, past its return to the start (rendered once per session, conftest.py)."""
+    return room_loop_clip(RATE_HZ, EXTRA_FRAMES)[0]
 
 
 def _run(root: Path, out: Path, loops: bool, positions: Path | None):

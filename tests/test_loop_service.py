@@ -70,17 +70,15 @@ class ToyKeyframes:
 
 
 @pytest.fixture(scope="module")
-def room():
-    from fgslam.io.synth import SynthSequence
-    from fgslam.io.synth.scenarios import load_synth_config
+def room(room_loop_clip):
+    import cv2
 
-    cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={RATE_HZ}", "camera.width=320",
-                                                    "camera.height=240"])
-    n = int(round(cfg.loop_duration_s() * RATE_HZ)) + 1 + EXTRA_FRAMES
-    seq = SynthSequence(cfg)
+    root, seq = room_loop_clip(RATE_HZ, EXTRA_FRAMES)  # rendered once per session (conftest.py)
+    n = seq.cfg.frames
     t = np.arange(n) / RATE_HZ
     T_gt = seq.camera_poses(t)
-    images = [np.clip(seq.render_view(T).image, 0, 255).astype(np.uint8) for T in T_gt]
+    images = [cv2.imread(str(path), cv2.IMREAD_UNCHANGED) for path in sorted((root / "mav0" / "cam0" / "data").iterdir())]
+    assert len(images) == n and images[0].shape == (240, 320) and images[0].dtype == np.uint8
     rate, yaw = SCALE_DRIFT_TOTAL / n, math.radians(HEADING_DRIFT_DEG) / n
     steps = []  # drifted odometry T_Ck-1Ck
     for k in range(1, n):

@@ -32,17 +32,8 @@ MIN_GAP_S = 10.0  # ... and at least this far apart in time (half the loop)
 
 
 @pytest.fixture(scope="module")
-def room(tmp_path_factory):
-    from fgslam.io.synth import SynthSequence, write_sequence
-    from fgslam.io.synth.scenarios import load_synth_config
-
-    cfg = load_synth_config("room-loop", overrides=[f"camera.rate_hz={RATE_HZ}", "camera.width=320",
-                                                    "camera.height=240"])
-    cfg.frames = int(round(cfg.loop_duration_s() * RATE_HZ)) + 1 + EXTRA_FRAMES
-    seq = SynthSequence(cfg)
-    root = tmp_path_factory.mktemp("room_loop") / "seq"
-    write_sequence(seq, root)
-    return root, seq
+def room(room_loop_clip):
+    return room_loop_clip(RATE_HZ, EXTRA_FRAMES)  # (root, seq), rendered once per session (conftest.py)
 
 
 def slam_config(mode: str, sensor: str = "mono") -> SlamConfig:
@@ -55,14 +46,20 @@ def slam_config(mode: str, sensor: str = "mono") -> SlamConfig:
 
 @pytest.fixture(scope="module")
 def runs(room, tmp_path_factory):
-    """summary.json of the runner with loop closure classical, off and proximity."""
+    """summary.json of the runner with loop closure classical, off and proximity; under
+    ``proximity_frontend`` the PatchFrontend of the proximity run (handed to the runner, which builds
+    the run's system around it)."""
     root, _ = room
     out = {}
     for mode in ("classical", "off", "proximity"):
         cfg = slam_config(mode)
         folder = tmp_path_factory.mktemp(f"run_{mode}")
-        run_slam(open_slam_dataset(root, cfg), cfg, folder, progress=False)
+        dataset = open_slam_dataset(root, cfg)
+        frontend = PatchFrontend(cfg.patch, dataset.calibration, cfg.sensor, backend=Backend(cfg.map))
+        run_slam(dataset, cfg, folder, progress=False, frontend=frontend)
         out[mode] = json.loads((folder / SUMMARY_FILE).read_text())
+        if mode == "proximity":
+            out["proximity_frontend"] = frontend
     return out
 
 
@@ -155,20 +152,22 @@ def test_relocalisation_after_a_jump_back(room):
     """Frames 0..FIRST_PASS-1, then the camera jumps back to frame JUMP_TO and goes on from there:
     tracking fails, and after ``max_motion_model_frames`` failures the lost frame is relocalised on
     the keyframes of the first pass, close to the pose estimated for the same view then."""
+    import cv2
+
     from fgslam.io.calibration import Calibration
     from fgslam.io.frame import Frame
 
     first_pass, jump_to, after = 26, 6, 6
-    _, seq = room
+    root, seq = room
     cal = Calibration(seq.cfg.camera.width, seq.cfg.camera.height, np.array(seq.K))
     order = list(range(first_pass)) + list(range(jump_to, jump_to + after))
-    T_gt = seq.camera_poses(np.array(order) / RATE_HZ)
+    images = sorted((root / "mav0" / "cam0" / "data").iterdir())  # the clip's frames, rendered once
     cfg = light_patch_config()
     cfg.tracking.max_motion_model_frames = 2
     system = _system(cfg, cal, LoopClosureConfig(mode="classical", run_in_thread=False))
     statuses = []
-    for i in range(len(order)):
-        image = np.clip(seq.render_view(T_gt[i]).image, 0, 255).astype(np.uint8)
+    for i, k in enumerate(order):
+        image = cv2.imread(str(images[k]), cv2.IMREAD_UNCHANGED)
         statuses.append(system.step(Frame(i, i, i / RATE_HZ, image, cal)))
     first_pass_T = {s.index: s.T_WC for s in statuses[:first_pass]}
     system.finish()
@@ -208,37 +207,31 @@ def test_proximity_loop_closed_at_the_return_and_cuts_ate(room, runs):
 
 
 @pytest.fixture(scope="module")
-def prox_frontend(room):
-    """A PatchFrontend run frame by frame over the clip with proximity loop closure (for its state), and its system."""
-    from fgslam.io.calibration import Calibration
-    from fgslam.io.frame import Frame
-
+def prox_frontend(room, runs):
+    """The PatchFrontend that ran over the clip with proximity loop closure (the runner's proximity
+    run, finished), for its state, the true camera poses of the frames, and its loop service (the
+    port the run's system connected)."""
     _, seq = room
-    cal = Calibration(seq.cfg.camera.width, seq.cfg.camera.height, np.array(seq.K))
-    system = _system(light_patch_config(), cal, LoopClosureConfig(mode="proximity"))
-    T_gt = seq.camera_poses(np.arange(seq.cfg.frames) / RATE_HZ)
-    for i in range(seq.cfg.frames):
-        image = np.clip(seq.render_view(T_gt[i]).image, 0, 255).astype(np.uint8)
-        system.step(Frame(i, i, i / RATE_HZ, image, cal))
-    system.finish()
-    return system.frontend, T_gt, system
+    fe = runs["proximity_frontend"]
+    assert isinstance(fe, PatchFrontend)
+    return fe, seq.camera_poses(np.arange(seq.cfg.frames) / RATE_HZ), fe.loops
 
 
 def test_proximity_loop_edges_join_the_inactive_store(prox_frontend):
-    fe, _, system = prox_frontend
+    fe, _, service = prox_frontend
     store = fe.inactive_edges()
-    first = min(system.loops.proximity_loops, key=lambda rec: rec[0])
+    first = min(service.proximity_loops, key=lambda rec: rec[0])
     q_fid, c_fid, status = first
     assert status == "accepted"
     loop = (store["src"] == c_fid) | (store["tgt"] == c_fid)
     loop &= np.abs(store["src"] - store["tgt"]) > fe.config.proximity.min_gap
     assert loop.sum() >= fe.config.proximity.min_loop_edges
-    assert system.loops.closer is None and system.loop_summary()["mode"] == "proximity"
+    assert service.closer is None and service.summary()["mode"] == "proximity"
 
 
 def test_wrong_proximity_candidate_is_rejected_by_verification(prox_frontend):
     """A candidate on the far side of the room (no shared view) gets no verified loop edges."""
-    fe, T_gt, system = prox_frontend
+    fe, T_gt, service = prox_frontend
     q = fe.graph.frames[len(fe.graph) // 2]
     if q.features is None:  # the newest graph frames keep their source features
         q = next(f for f in reversed(fe.graph.frames) if f.features is not None)
@@ -253,7 +246,7 @@ def test_wrong_proximity_candidate_is_rejected_by_verification(prox_frontend):
 def test_inconsistent_loop_edges_are_undone(prox_frontend):
     """Loop edges whose observations are random pixels: the global BA keeps too few of them, so its
     result is discarded and the map is unchanged."""
-    fe, _, system = prox_frontend
+    fe, _, service = prox_frontend
     rng = np.random.default_rng(0)
     a, b = fe.graph.frames[0], fe.graph.frames[-1]
     n = fe.config.graph.patches_per_frame
@@ -263,21 +256,19 @@ def test_inconsistent_loop_edges_are_undone(prox_frontend):
             "confidence": np.ones(n, np.float32), "inv_depth": a.inv_depth.astype(np.float32)}
     before = {f.fid: f.T_WC.copy() for f in fe.graph.frames}
     stored = fe.graph.inactive.count
-    assert system.loops.run_global_ba(fake) is False
+    assert service.run_global_ba(fake) is False
     assert all(np.array_equal(f.T_WC, before[f.fid]) for f in fe.graph.frames)
     assert fe.graph.inactive.count == stored
 
 
-def test_rgbd_loop_closure_both_keeps_metric_scale(room, tmp_path):
+def test_rgbd_loop_closure_both_keeps_metric_scale(room, room_loop_rgbd_both, tmp_path):
     """RGB-D (metric map): classical corrections are SE(3) (metric closer) and the global BA holds
-    every pose scale, so the SE(3)-aligned ATE improves on the run without loop closure."""
+    every pose scale, so the SE(3)-aligned ATE improves on the run without loop closure. The run with
+    loop closure (in its threads, which give the synchronous bytes) is also test_determinism's."""
     root, seq = room
-    out = {}
-    for mode in ("off", "both"):
-        cfg = slam_config(mode, sensor="rgbd")
-        run_slam(open_slam_dataset(root, cfg), cfg, tmp_path / mode, progress=False)
-        out[mode] = json.loads((tmp_path / mode / SUMMARY_FILE).read_text())
-    on, off = out["both"], out["off"]
+    cfg = slam_config("off", sensor="rgbd")
+    run_slam(open_slam_dataset(root, cfg), cfg, tmp_path / "off", progress=False)
+    on, off = room_loop_rgbd_both[1], json.loads((tmp_path / "off" / SUMMARY_FILE).read_text())
     assert on["evaluation"]["align"] == off["evaluation"]["align"] == "se3"
     loop = on["loop"]
     assert loop["corrections_applied"] > 0 and loop["proximity"]["accepted"] >= 1
@@ -354,9 +345,9 @@ def test_textureless_proximity_candidate_is_rejected(prox_frontend):
     (and its neighbours') stored images blank (no texture) no loop edge survives."""
     from fgslam.frontends.patch.lk import LKFeatures
 
-    fe, _, system = prox_frontend
+    fe, _, service = prox_frontend
     q = next(f for f in reversed(fe.graph.frames) if f.features is not None and f.fid in fe._prox_store)
-    cand = fe.contributor.proximity_candidate(q.fid, system.loops.eligible_candidates(q.fid))
+    cand = fe.contributor.proximity_candidate(q.fid, service.eligible_candidates(q.fid))
     assert cand is not None and fe.contributor.long_range_edges(q.fid, cand.fid) is not None
     old = [cand.fid] + fe._prox_store.neighbours(cand.fid, fe.config.proximity.old_neighbours)
     saved = {fid: fe._prox_store.get(fid) for fid in old}
