@@ -509,7 +509,7 @@ def _plot(
     est = traj if result is None else result.aligned_est
     plane = config.output.plot_plane
     if plane == "auto":
-        plane = _auto_plane(gt if gt is not None else est)
+        plane = auto_plane(gt if gt is not None else est)
     if result is not None:
         title = (f"{config.frontend} {config.sensor}: ATE {result.ate.rmse:.3f} m "
                  f"({result.align}, {result.n_matched} poses)")
@@ -519,7 +519,7 @@ def _plot(
     return plot_trajectories(path, gt, est, title=title, plane=plane, errors=errors)
 
 
-def _auto_plane(traj: Trajectory) -> str:
+def auto_plane(traj: Trajectory) -> str:
     """The plane of the two axes along which ``traj`` extends most (a top view for ground vehicles
     and hand-held sequences alike, whatever the world frame's up axis)."""
     extent = np.ptp(traj.t_WC, axis=0) if len(traj) else np.zeros(3)

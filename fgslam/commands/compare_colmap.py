@@ -214,7 +214,7 @@ def compare_colmap(dataset, slam_config, out: Path, config: CompareConfig | None
 
 def _plot(path: Path, gt, results: dict, fg_traj, cm_traj, report: dict) -> None:
     from ..io.plot import plot_trajectories, pose_errors
-    from ..slam import _auto_plane
+    from ..outputs import auto_plane
 
     trajs = {}
     for key, label, traj in (("fgslam", "fgslam", fg_traj), ("colmap", "COLMAP", cm_traj)):
@@ -228,7 +228,7 @@ def _plot(path: Path, gt, results: dict, fg_traj, cm_traj, report: dict) -> None
     fmt = lambda v: "-" if v is None else f"{v:.3f} m"  # noqa: E731
     title = (f"fgslam {fmt(fg.get('ate_m'))} in {fg['wall_s']:.0f} s; COLMAP {fmt(cm.get('ate_m'))} in "
              f"{cm['wall_s']:.0f} s ({cm['registered_frames']} frames)")
-    plane = _auto_plane(gt if gt is not None else first[1])
+    plane = auto_plane(gt if gt is not None else first[1])
     plot_trajectories(path, gt, first[1], title=title, plane=plane, others=dict(rest), errors=errors or None,
                       label=first[0])
 
