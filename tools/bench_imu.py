@@ -24,13 +24,14 @@ import os
 import shutil
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 
 def _run(root: Path, preset: str, out: Path, overrides: list[str]):
     import fgslam.services.imu as imu_mod
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+    from fgslam.slam import SUMMARY_FILE, NoPoseError, load_slam_config, open_slam_dataset, run_slam
 
     captured = {}
     original = imu_mod.make_imu_service
@@ -43,7 +44,10 @@ def _run(root: Path, preset: str, out: Path, overrides: list[str]):
     try:
         cfg = load_slam_config(preset, overrides)
         ds = open_slam_dataset(root, cfg)
-        summary = run_slam(ds, cfg, out, progress=False, overwrite=True)  # the benchmark's own folder
+        try:
+            summary = run_slam(ds, cfg, out, progress=False, overwrite=True)  # the benchmark's own folder
+        except NoPoseError:  # no pose at all (monocular on the static clip waits for parallax): its summary
+            summary = SimpleNamespace(**json.loads((out / SUMMARY_FILE).read_text()))
     finally:
         imu_mod.make_imu_service = original
     path = out / "trajectory_tum.txt"
