@@ -143,11 +143,10 @@ class Frontend(abc.ABC):
         return self.__dict__.get("_contributor", self)
 
     def connect(self, loops: LoopPort | None = None, motion_prior: MotionPrior | None = None) -> None:
-        """Take the run's loop-closure port and motion prior (the system calls it once, before the
-        first frame). A family that predicts poses uses ``motion_prior`` when it has one."""
+        """Take the run's loop-closure port (the system calls it once, before the first frame). A
+        family that predicts poses overrides it to take ``motion_prior`` too (the patch family's
+        motion model); the others have no use for it."""
         self.loops = loops if loops is not None else NO_LOOPS
-        if motion_prior is not None:
-            self.motion_prior = motion_prior
 
     @property
     def map_started(self) -> bool:
