@@ -31,6 +31,21 @@ class LinearPiece:
         return iter((self.keys, self.H, self.g, self.c))
 
 
+def weighted_piece(keys: tuple[int, ...], J, e, row_weight, cost: float) -> LinearPiece:
+    """The :class:`LinearPiece` of robustly weighted rows over ``keys``: ``H = J^T W J``,
+    ``g = J^T W e``, ``c = 2 cost`` (IRLS weights ``W``; GTSAM's ``0.5 (dx^T H dx + 2 g^T dx + c)``
+    then is the kernel's Gauss-Newton model of ``cost``). ``J``: ``(N, m, D)`` whitened Jacobian over
+    the keys' tangents in order; ``e``, ``row_weight``: ``(N, m)`` whitened residuals and their
+    weights (numpy arrays or CPU torch tensors, computed in their own library); ``cost``: the kernel
+    cost at ``e``."""
+    D = J.shape[-1]
+    Jr = J.reshape(-1, D)
+    wr = row_weight.reshape(-1)
+    H = Jr.T @ (wr[:, None] * Jr)
+    g = Jr.T @ (wr * e.reshape(-1))
+    return LinearPiece(tuple(keys), np.asarray(H), np.asarray(g), 2.0 * float(cost))
+
+
 @runtime_checkable
 class Block(Protocol):
     """A contributor's measurement block (module docstring)."""

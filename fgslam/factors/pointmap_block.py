@@ -34,13 +34,13 @@ from typing import Literal
 import numpy as np
 import torch
 
-from .blocks import LinearPiece
+from .blocks import LinearPiece, weighted_piece
 from ..config import MAX_THREADS, ranged
 from ..errors import DataError
 from ..lie import Sim3
 from .pointmap import PointmapResidualConfig, calibrated_residuals, ray_dist_residuals, relative_to_global
 from .robust import RobustConfig, kernel_cost, kernel_weight
-from .schur import POSE_DIM, torch_threads
+from .schur import torch_threads
 
 logger = logging.getLogger(__name__)
 
@@ -186,9 +186,5 @@ class PointmapBlock:
                 e, cost, w, J = self._edge_terms(edge, poses, True)
                 row_w = torch.cat([w[:, n:n + 1].expand(-1, b - a)
                                    for n, (a, b) in enumerate(_GROUPS[self.config.mode])], -1)
-                Jr = J.reshape(-1, 2 * POSE_DIM)
-                wr = row_w.reshape(-1)
-                H = Jr.T @ (wr[:, None] * Jr)
-                g = Jr.T @ (wr * e.reshape(-1))
-                pieces.append(LinearPiece((edge.key_i, edge.key_j), H.numpy(), g.numpy(), 2.0 * float(cost.sum())))
+                pieces.append(weighted_piece((edge.key_i, edge.key_j), J, e, row_w, float(cost.sum())))
         return pieces

@@ -16,6 +16,7 @@ from ...backend.config import GlobalBAConfig
 from ...errors import ConfigError
 from ...factors.depth import DepthPriorConfig
 from ...nets.config import DpvoNetConfig
+from ..depth_tracking import DepthTrackingConfig
 
 
 @dataclass
@@ -175,11 +176,13 @@ class PatchConfig:
     ba: BAConfig = field(default_factory=BAConfig)
     tracking: PatchTrackingConfig = field(default_factory=PatchTrackingConfig)
     proximity: ProximityConfig = field(default_factory=ProximityConfig)
+    depth_align: DepthTrackingConfig = field(default_factory=DepthTrackingConfig)  # RGB-D: point-to-plane depth alignment in tracking and the window
 
     def validate(self) -> None:
         """Raise ConfigError naming the first field out of its range or inconsistent with another."""
         check_ranges(self, "patch.")
         self.graph.validate()
+        self.depth_align.validate()
         if self.source not in ("lk", "dpvo", "learned"):
             raise ConfigError(f"patch.source must be 'lk' or 'dpvo', got {self.source!r}")
         if self.ba.depth_model not in ("prior", "observation") or self.ba.depth_noise not in ("relative", "inverse"):

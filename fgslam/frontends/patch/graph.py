@@ -39,6 +39,8 @@ class GraphFrame:
         colour: (K, 3) uint8 colour of the patch centres (for point export).
         features, features_right: the measurement source's per-frame cache (None once released).
         depth: (H, W) sensor depth map in metres (RGB-D observation model only; None once released).
+        surface: the depth's :class:`~fgslam.factors.depth_align.DepthSurface` (RGB-D depth alignment
+            only; None once the frame leaves the graph).
     """
 
     fid: int
@@ -52,6 +54,7 @@ class GraphFrame:
     features: Any = None
     features_right: Any = None
     depth: Any = None
+    surface: Any = None
 
 
 @dataclass

@@ -47,6 +47,7 @@ class Keyframes:
         f.features = None
         f.features_right = None
         f.depth = None
+        f.surface = None
         st.final[f.fid] = f
         st.records[f.fid] = KeyframePose()
         st.finalised += 1

@@ -126,9 +126,10 @@ class PatchMeasurer:
         out[good] = 1.0 / med[good]
         return out
 
-    def new_graph_frame(self, fid: int, frame, T_WC: np.ndarray, features, features_right) -> GraphFrame:
+    def new_graph_frame(self, fid: int, frame, T_WC: np.ndarray, features, features_right, surface=None) -> GraphFrame:
         """A graph frame of ``frame`` at pose ``T_WC`` with new patches: inverse depth from the sensor
-        where it reads one, else the median of the newest graph frame's (measured) patches."""
+        where it reads one, else the median of the newest graph frame's (measured) patches. ``surface``:
+        the frame's depth surface when the caller made it already (RGB-D depth alignment)."""
         st = self.state
         uv = self.select(frame.image)
         ui, vi = uv[:, 0].astype(int), uv[:, 1].astype(int)
@@ -148,7 +149,8 @@ class PatchMeasurer:
         keep_depth = st.sensor_mode == "rgbd" and st.config.ba.depth_model == "observation"
         return BackendFrame(fid=fid, index=int(frame.index), timestamp=float(frame.timestamp), T_WC=np.array(T_WC, dtype=np.float64),
                             uv=uv, inv_depth=inv_depth, sensor_inv_depth=sensor, colour=colour,
-                            features=features, features_right=features_right, depth=frame.depth if keep_depth else None)
+                            features=features, features_right=features_right, depth=frame.depth if keep_depth else None,
+                            surface=surface if surface is not None else st.depth.surface(frame.depth))
 
     def measured_inv_depths(self, f: GraphFrame) -> np.ndarray:
         """Inverse depths of graph frame ``f``'s patches that have a BA-inlier measurement (source ``f``);

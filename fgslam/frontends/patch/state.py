@@ -16,6 +16,7 @@ from ...errors import ConfigError
 from ...factors.reprojection import ReprojectionConfig, reproject
 from ...lie import sim3_matrix_components
 from ..base import FrameStatus
+from ..depth_tracking import DepthTracking
 from ..records import resolve_pose
 from ..records import rigid as _rigid
 from .config import PatchConfig
@@ -97,6 +98,9 @@ class PatchState:
         self.map_start_fid: int | None = None  # first keyframe of the current map (since the last initialisation)
         self.lost = 0  # consecutive frames without visual tracking
         self.failures = 0  # frames whose pose came from the motion model
+        self.depth = DepthTracking(config.depth_align, backend, active=sensor_mode == "rgbd")
+        if self.depth.enabled:
+            self.times["depth"] = 0.0  # surfaces and depth-only alignment of new frames
         self.K: torch.Tensor | None = None
         self.K_right: torch.Tensor | None = None
         self.T_CRCL: np.ndarray | None = None
@@ -106,6 +110,7 @@ class PatchState:
     def set_calibration(self, calibration) -> None:
         """The left camera (and for stereo the right one and ``T_CRCL``) from ``calibration``."""
         self.K = torch.as_tensor(np.asarray(calibration.K, dtype=np.float64))
+        self.depth.set_intrinsics(calibration.K)
         self.width, self.height = int(calibration.width), int(calibration.height)
         self.K_right = None
         self.T_CRCL = None

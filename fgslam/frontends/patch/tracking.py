@@ -19,9 +19,15 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import torch
+
+from ...factors.depth_align import RIGID_DIM
+from ...factors.reprojection import reproject_inv_depth
+from ...lie import sim3_matrix_components
 
 from ..base import FrameStatus
 from ..records import InterpolatedPose, KeyframePose, RelativePose
+from ..records import rigid as _rigid
 from .graph import GraphFrame
 from .motion import MotionModel
 from .state import PatchState
@@ -34,6 +40,62 @@ class TrackingFailure:
 
     reason: str
     T_WC_pred: np.ndarray
+
+
+def image_information(state: PatchState, fid: int, T_WC: np.ndarray) -> np.ndarray:
+    """6x6 information (rotation, translation) of graph frame ``fid``'s pose at ``T_WC`` from its measured
+    left-image edges (other frames' patches observed in it, at their current depths and poses), each
+    weighted by its confidence over ``ba.pixel_sigma`` squared; zeros without any."""
+    g = state.graph
+    e = np.nonzero((g.tgt == fid) & ~g.right & (g.confidence > 0))[0]
+    if e.size == 0:
+        return np.zeros((RIGID_DIM, RIGID_DIM))
+    pos = g.positions(g.src[e])
+    uv = torch.as_tensor(np.stack([g.frames[p].uv[k] for p, k in zip(pos, g.patch[e])]))
+    d = torch.as_tensor(np.array([g.frames[p].inv_depth[k] for p, k in zip(pos, g.patch[e])]))
+    Ri, ti, si = sim3_matrix_components(g.poses(g.src[e]))
+    Rj, tj, sj = sim3_matrix_components(T_WC[None])
+    res = reproject_inv_depth(uv, d, (Ri, ti, si), (Rj[0], tj[0], sj[0]), state.K, uv, config=state.reproj)
+    J = res.J_Tj[..., :RIGID_DIM] * torch.as_tensor(np.sqrt(g.confidence[e]))[:, None, None] / state.config.ba.pixel_sigma
+    J = J.reshape(-1, RIGID_DIM)
+    return (J.T @ J).numpy()
+
+
+class _DepthCheck:
+    """Depth alignment of a new frame ``fid`` (surface ``surface``, key ``key_f``) to the newest graph
+    frame ``last`` (key ``key_k``): the prediction aligned by depth (``depth_align.prealign``), and,
+    asked only when the frame's image measurements fall short, whether the depth with those few
+    measurements constrains all of the frame's rigid motion. When first asked, the frame (already in
+    the graph) is aligned by depth from its current pose, coarse to fine, so that the window's solve
+    starts from the depth's answer; the answer is kept."""
+
+    def __init__(self, state: PatchState, key_k: int, key_f: int, fid: int, last: GraphFrame, surface):
+        self.state = state
+        self.fid = fid
+        self.last = last
+        self.block = state.depth.block(key_k, key_f, last.surface, surface)
+        self.T_WC = None
+        self.ok: bool | None = None
+
+    def prealign(self, T_WC_pred: np.ndarray) -> np.ndarray:
+        """The predicted pose, aligned by depth when ``depth_align.prealign`` is on."""
+        depth = self.state.depth
+        if depth.config.prealign:
+            T_WC_pred, _ = depth.align(self.block, self.last.T_WC, T_WC_pred)
+        self.T_WC = T_WC_pred
+        return T_WC_pred
+
+    def __call__(self) -> bool:
+        if self.ok is None:
+            t0 = time.perf_counter()
+            st = self.state
+            frame = st.graph.frame(self.fid)
+            T_WC, _ = st.depth.align(self.block, self.last.T_WC, frame.T_WC)
+            frame.T_WC = _rigid(T_WC)
+            H_image = image_information(st, self.fid, frame.T_WC)
+            self.ok = st.depth.check(self.block, self.last.T_WC, frame.T_WC, H_image).ok
+            st.times["depth"] += time.perf_counter() - t0
+        return self.ok
 
 
 class Tracker:
@@ -56,12 +118,20 @@ class Tracker:
         T_WC_pred = motion.predict(frame.timestamp)
         feats, _ = self.measurer.prepare(frame, right=False)
         last = st.graph.frames[-1]
+        surface, depth_holds = None, None
+        if st.depth.enabled:  # RGB-D: the frame's surface; with prealign its prediction aligned by depth first
+            t0 = time.perf_counter()
+            surface = st.depth.surface(frame.depth)
+            if surface is not None and last.surface is not None:
+                depth_holds = _DepthCheck(st, self.window.key(last.fid), self.window.key(fid), fid, last, surface)
+                T_WC_pred = depth_holds.prealign(T_WC_pred)
+            st.times["depth"] += time.perf_counter() - t0
         flow, kf_uv, kf_conf, kf_uv_pred = self._keyframe_flow(last, feats, T_WC_pred)
         if flow < cfg.tracking.motion_filter_flow:
             return self._stationary(fid, frame, last.fid, flow, int((kf_conf > 0).sum()))
         _, feats_right = self.measurer.prepare(frame, left=False)  # stereo: the right image only for a moving frame
         t0 = time.perf_counter()
-        gf = self.measurer.new_graph_frame(fid, frame, T_WC_pred, feats, feats_right)
+        gf = self.measurer.new_graph_frame(fid, frame, T_WC_pred, feats, feats_right, surface)
         self.keyframes.enter(gf)
         st.records[fid] = KeyframePose()
         g = st.graph
@@ -77,9 +147,11 @@ class Tracker:
         T_WC_ref = motion.predict(frame.timestamp, motion.reference, damping=1.0)
         T_CkCref = np.linalg.inv(last.T_WC) @ T_WC_ref
         st.times["bookkeeping"] += time.perf_counter() - t0
-        valid = self.window.rounds(idx, cfg.ba.rounds, cfg.ba.iterations, init=False, new_fid=fid, premeasured=done)
+        valid = self.window.rounds(idx, cfg.ba.rounds, cfg.ba.iterations, init=False, new_fid=fid, premeasured=done,
+                                   held_by_depth=depth_holds)
+        by_depth = valid < cfg.tracking.min_valid_edges and depth_holds is not None and depth_holds()  # the image lost it, the depth holds it
         implausible = None if valid < cfg.tracking.min_valid_edges else self._implausible(fid, last, T_CkCref)
-        if valid < cfg.tracking.min_valid_edges or implausible is not None:
+        if (valid < cfg.tracking.min_valid_edges and not by_depth) or implausible is not None:
             self._drop_new_frame(fid, saved)
             if implausible is not None and motion.reference is None:
                 motion.reference = motion.velocity.copy()
@@ -88,7 +160,7 @@ class Tracker:
         st.lost = 0
         motion.reference = None
         t0 = time.perf_counter()
-        events = []
+        events = [f"tracked by depth alone ({valid} valid image measurements)"] if by_depth else []
         self._place_still(fid, flow)
         removed = self.keyframes.remove_redundant()
         if removed is not None:

@@ -43,6 +43,8 @@ class LocalBA:
         self.block_name = block_name
         self.last_residual = np.zeros(0)
         self.keys: dict[int, int] = {}  # fid -> gtsam key cache (bounded to about the graph size)
+        self.depth_block_name = f"{block_name}.depth"  # the contributor name of the depth-alignment blocks
+        self._final_residuals = None
 
     def key(self, fid: int) -> int:
         """gtsam key of graph frame ``fid`` (``fgslam.backend.keys.pose_key``), cached."""
@@ -55,9 +57,11 @@ class LocalBA:
         return key
 
     def rounds(self, new_edges: np.ndarray, rounds: int, iterations: int, init: bool, new_fid: int | None,
-               premeasured: np.ndarray | None = None) -> int:
+               premeasured: np.ndarray | None = None, held_by_depth=None) -> int:
         """Measure / optimise rounds; returns the number of valid new measurements of ``new_fid``.
-        ``premeasured``: new edges already measured (skipped in the first round)."""
+        ``premeasured``: new edges already measured (skipped in the first round). ``held_by_depth``: None,
+        or a callable saying whether the depth constrains the new frame (then it is optimised even with
+        too few image measurements)."""
         st = self.state
         g = st.graph
         to_measure = new_edges if premeasured is None else np.setdiff1d(new_edges, premeasured)
@@ -66,7 +70,7 @@ class LocalBA:
             self.measurer.measure(to_measure, huber=not init and st.config.ba.measured_huber)
             if new_fid is not None:
                 valid_new = self.valid_into(new_fid)
-                if valid_new < st.config.tracking.min_valid_edges:
+                if valid_new < st.config.tracking.min_valid_edges and not (held_by_depth is not None and held_by_depth()):
                     return valid_new
             self.optimize(iterations, init)
             if r + 1 < rounds:
@@ -109,9 +113,15 @@ class LocalBA:
         use = measured & np.isin(pkey, np.unique(pkey[touch]))
         e = np.nonzero(use)[0]
         self.last_residual = np.full(g.num_edges, np.inf)
-        if e.size == 0:
+        depth_blocks = self.depth_blocks(var) if st.depth.enabled else []
+        if e.size == 0 and not depth_blocks:
             st.times["ba"] += time.perf_counter() - t0
             return {"edges": 0}
+        if e.size == 0:  # RGB-D frames without image measurements: the depth alone holds them
+            report = self._solve(list(var), None, depth_blocks, None, None, iterations)
+            st.times["ba"] += time.perf_counter() - t0
+            return {"edges": 0, "initial_cost": report.initial_cost, "final_cost": report.final_cost,
+                    "iterations": report.iterations}
         used_frames = np.union1d(np.union1d(g.src[e], g.tgt[e]), var)
         fixed = np.setdiff1d(used_frames, var)
         order = list(var) + list(fixed)
@@ -150,19 +160,44 @@ class LocalBA:
             config=BlockConfig(threads=cfg.ba.threads), reprojection=st.reproj, **prior,
         )
         mono_init = init and st.sensor_mode == "mono"
-        backend = st.backend
-        for f in var_order:
-            self.keyframes.ensure(g.frame(int(f)))
         # gauge: the oldest window frame anchored when nothing outside the window holds the poses;
         # at monocular initialisation the range between the first and last frame is the world scale
         anchor = int(var_order[0]) if mono_init or len(fixed) == 0 else None
         pair = (int(var_order[0]), int(var_order[1])) if mono_init and len(var_order) >= 2 else None
+        report = self._solve(var_order, block, depth_blocks, anchor, pair, iterations)
+        self._write_depths(pos_src, ukeys, block.structure.numpy())
+        r, valid = self._final_residuals
+        r, valid = r[: e.size], valid[: e.size]  # the edges' own rows come first in the block
+        rn = torch.linalg.vector_norm(r, dim=1).numpy()
+        robust = np.where(valid.numpy() & (rn <= cfg.ba.outlier_threshold), self.measurer.huber_weights(g.confidence[e], rn), 0.0)
+        g.robust[e] = robust
+        self.last_residual[e] = np.where(valid.numpy(), rn, np.inf)
+        st.times["ba"] += time.perf_counter() - t0
+        return {"edges": int(e.size), "initial_cost": report.initial_cost, "final_cost": report.final_cost,
+                "iterations": report.iterations}
+
+    def _solve(self, var_order: list, block, depth_blocks: list, anchor: int | None, pair, iterations: int | None = None):
+        """The window solve through the backend: ``block`` (the visual block, None without image
+        measurements) and the depth-alignment blocks over the free frames ``var_order``; poses written
+        back (RGB-D rigid). With ``block`` its final residuals are kept in ``_final_residuals``."""
+        st = self.state
+        g = st.graph
+        backend = st.backend
+        for f in var_order:
+            self.keyframes.ensure(g.frame(int(f)))
+        if depth_blocks and any(k not in {self.key(int(f)) for f in var_order} for b in depth_blocks for k in b.keys):
+            anchor = None  # a frame outside the window holds the poses through the depth
+        elif anchor is None and block is None:
+            anchor = int(var_order[0])
         backend.set_gauge(anchor=anchor, scale_pair=pair)
-        backend.set_blocks(self.block_name, [block])
+        backend.set_blocks(self.block_name, [block] if block is not None else [])
+        if st.depth.enabled:
+            backend.set_blocks(self.depth_block_name, depth_blocks)
         report = backend.optimize_window([int(f) for f in var_order], iterations)
-        # robust weights from the final residuals at the optimised poses, before the RGB-D rigid
-        # write-back below (the block answers from its memo of the last accepted step)
-        r, valid = block.residuals(backend.values_of(block.keys))
+        if block is not None:
+            # robust weights from the final residuals at the optimised poses, before the RGB-D rigid
+            # write-back below (the block answers from its memo of the last accepted step)
+            self._final_residuals = block.residuals(backend.values_of(block.keys))
         # RGB-D poses are written back rigid (scale exactly 1): its depth priors act on inverse depths
         # in the source camera and observe no Sim(3) scale, and the scale prior only holds each BA
         # near its starting scale, so kept scales drifted from BA to BA (7-Scenes: s fell to 0.87
@@ -175,15 +210,26 @@ class LocalBA:
                 frame.T_WC = _rigid(frame.T_WC)
             elif not isinstance(frame, BackendFrame):  # a frame built outside the frontend (tests)
                 frame.T_WC = backend.pose_matrix(int(f))
-        self._write_depths(pos_src, ukeys, block.structure.numpy())
-        r, valid = r[: e.size], valid[: e.size]  # the edges' own rows come first in the block
-        rn = torch.linalg.vector_norm(r, dim=1).numpy()
-        robust = np.where(valid.numpy() & (rn <= cfg.ba.outlier_threshold), self.measurer.huber_weights(g.confidence[e], rn), 0.0)
-        g.robust[e] = robust
-        self.last_residual[e] = np.where(valid.numpy(), rn, np.inf)
-        st.times["ba"] += time.perf_counter() - t0
-        return {"edges": int(e.size), "initial_cost": report.initial_cost, "final_cost": report.final_cost,
-                "iterations": report.iterations}
+        return report
+
+    def depth_blocks(self, var) -> list:
+        """Depth-alignment blocks between consecutive graph frames with surfaces, at least one of
+        them free (in ``var``) and both backend keyframes (or about to be: free); the newest
+        ``depth_align.window_pairs`` of them."""
+        st = self.state
+        g = st.graph
+        free = {int(f) for f in var}
+        blocks = []
+        frames = g.frames
+        for a, b in zip(reversed(frames[:-1]), reversed(frames[1:])):
+            if len(blocks) == st.depth.config.window_pairs:
+                break
+            pair = (int(a.fid), int(b.fid))
+            if a.surface is None or b.surface is None or not (pair[0] in free or pair[1] in free):
+                continue
+            if all(x in free or st.backend.has_keyframe(x) for x in pair):
+                blocks.append(st.depth.block(self.key(pair[0]), self.key(pair[1]), a.surface, b.surface))
+        return blocks[::-1]
 
     def _write_depths(self, pos_src: np.ndarray, ukeys: np.ndarray, depth: np.ndarray) -> None:
         """Solved inverse depths ``depth`` of the patches ``ukeys`` (``src fid * K + patch``, source

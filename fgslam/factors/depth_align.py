@@ -1,0 +1,321 @@
+"""Depth alignment: a pose-only block of point-to-plane residuals between two depth images.
+
+KinectFusion (Newcombe et al., ISMAR 2011, section 3.5) and ElasticFusion track RGB-D frames by the
+geometry of their depth alone. Here the same term is a measurement block
+(:class:`fgslam.factors.blocks.Block`, no structure) on two Sim(3) pose keys that the backend optimises
+beside the visual blocks, in motion-only tracking and in the window:
+
+- each image's depth is turned into a :class:`DepthSurface`: per pyramid level (every ``stride``-th
+  pixel, coarse to fine), its camera-frame vertices and unit normals (central differences of the
+  vertices, pointing to the camera; invalid at depth discontinuities and missing depth);
+- the frame f's vertices ``X_f`` are moved into the reference k by ``T_CkCf = T_WCk^-1 T_WCf`` and
+  projected into k's level (projective data association, nearest pixel); a pair counts when k has a
+  vertex ``X_k`` there, ``|T_CkCf X_f - X_k| <= max_distance`` (wider on coarser levels) and the normals agree within
+  ``max_normal_angle_deg``;
+- residual ``r = n_k . (T_CkCf X_f - X_k)`` (:func:`point_to_plane`, with its analytic Jacobians
+  w.r.t. both poses), whitened by the depth noise ``sigma_z = sigma * z_f^2`` (structured-light and
+  stereo depth: the error grows with the square of the depth) and robustified by ``robust``;
+- the cost is consistent across re-associations: a frame vertex that lands on a reference vertex
+  but fails the gates costs what a residual at the gate costs, so moving a point out of the gate
+  never lowers the cost; a vertex that lands outside k's view or on a pixel without depth costs
+  nothing (charging it would pull the pose towards more overlap).
+
+Re-association at every linearisation and cost evaluation makes one Levenberg-Marquardt iteration one
+ICP iteration. :meth:`DepthAlignBlock.at_level` gives the block of a coarser level (coarse-to-fine).
+The block is evaluated in numpy on a few thousand points per level: at that size the fixed cost per
+array operation dominates, and numpy's is several times lower than torch's.
+
+Tangent conventions as in :mod:`fgslam.factors.reprojection`: right perturbation ``T <- T Exp(xi)``,
+gtsam ``Similarity3`` order ``xi = [w, u, lambda]``.
+
+Degeneracy: :func:`depth_constraint` counts the rigid-motion directions that the pairs constrain:
+the eigenvectors of the frame pose's 6x6 information, with rotations expressed as displacements at the
+median depth (so that rotations and translations compare in metres), whose standard deviation is below
+``max_direction_sigma``. Three non-parallel planes (two walls and a floor) constrain all six; a single
+plane constrains three (two tilts and the distance). Other measurements of the frame (a few image
+tracks) can add their information to the count.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_SCALAR, ranged
+
+MAX_LEVELS = 8  # pyramid levels of a depth surface (the coarsest steps 2^7 times the finest)
+from ..errors import ConfigError, DataError
+from ..lie import gtsam_matrix
+from .blocks import LinearPiece, weighted_piece
+from .robust import RobustConfig, kernel_cost, kernel_weight
+from .schur import POSE_DIM
+
+__all__ = ["DepthAlignBlock", "DepthAlignConfig", "DepthConstraint", "DepthSurface", "depth_constraint",
+           "point_to_plane", "relative_transform"]
+
+RIGID_DIM = 6  # rotation and translation of a Sim(3) tangent [w, u, lambda]
+
+
+@dataclass
+class DepthAlignConfig:
+    """Depth alignment (module docstring): the pyramid, the association gates, the noise model."""
+
+    grid_width: int = ranged(80, ge=4, le=MAX_IMAGE_SIDE)  # points across the finest level (its pixel step: image width // this)
+    levels: int = ranged(3, ge=1, le=MAX_LEVELS)  # pyramid levels, each coarser one at twice the step
+    min_depth: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # m; sensor depths below this are invalid
+    max_depth: float = ranged(8.0, gt=0, le=MAX_SCALAR)  # m; sensor depths above this are invalid
+    max_discontinuity: float = ranged(0.01, gt=0, le=MAX_SCALAR)  # relative depth jump per image pixel between grid neighbours that marks an edge (no normal)
+    max_distance: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # m; association gate on |T X_f - X_k| on the finest level (a level of stride s: s / finest stride times this)
+    max_normal_angle_deg: float = ranged(30.0, gt=0, le=180.0)  # association gate on the angle between the normals
+    sigma: float = ranged(0.01, gt=0, le=MAX_SCALAR)  # m; std of the point-to-plane distance at 1 m depth (grows with z^2)
+    robust: RobustConfig = field(default_factory=RobustConfig)  # kernel on the whitened distance
+    min_pairs: int = ranged(100, ge=1, le=MAX_COUNT)  # fewer associated pairs: the depth does not constrain the pose
+    max_direction_sigma: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # m; a rigid direction counts as constrained when its standard deviation is below this (rotations as displacements at the median depth)
+
+    def validate(self) -> None:
+        if self.max_depth <= self.min_depth:
+            raise ConfigError(f"depth_align.max_depth ({self.max_depth}) must exceed min_depth ({self.min_depth})")
+
+    def strides(self, width: int) -> tuple[int, ...]:
+        """Pixel step of each level (coarse to fine) for images ``width`` pixels wide."""
+        finest = max(1, int(width) // self.grid_width)
+        return tuple(finest << (self.levels - 1 - i) for i in range(self.levels))
+
+
+@dataclass(frozen=True)
+class SurfaceLevel:
+    """One pyramid level: ``(h, w)`` grid, vertices and unit normals ``(h * w, 3)`` in the camera frame
+    (zero where invalid), ``valid`` ``(h * w,)``, intrinsics ``K = [fx, fy, cx, cy]`` of the grid
+    (numpy float64 / bool)."""
+
+    shape: tuple[int, int]
+    vertices: np.ndarray
+    normals: np.ndarray
+    valid: np.ndarray
+    K: tuple[float, float, float, float]
+
+    @property
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """The valid vertices and their normals, ``(M, 3)`` each."""
+        return self.vertices[self.valid], self.normals[self.valid]
+
+
+@dataclass(frozen=True)
+class DepthSurface:
+    """The depth image of one camera as surface levels (coarse to fine, ``config.strides``), and the
+    pixel step of each."""
+
+    levels: tuple[SurfaceLevel, ...]
+    strides: tuple[int, ...]
+
+    @staticmethod
+    def from_depth(depth: np.ndarray, K, config: DepthAlignConfig) -> DepthSurface:
+        """Surface of a metric depth image ``depth`` ``(H, W)`` (0, NaN or out of range: no depth)
+        seen with intrinsics ``K = [fx, fy, cx, cy]`` (pixel centres at integer coordinates)."""
+        depth = np.asarray(depth)
+        if depth.ndim != 2:
+            raise DataError(f"depth alignment: a depth image must be 2-D, got shape {depth.shape}")
+        fx, fy, cx, cy = (float(k) for k in K)
+        levels = []
+        strides = config.strides(depth.shape[1])
+        for stride in strides:
+            off = stride // 2
+            z = depth[off::stride, off::stride].astype(np.float64)
+            h, w = z.shape
+            ok = np.isfinite(z) & (z >= config.min_depth) & (z <= config.max_depth)
+            z = np.where(ok, z, 0.0)
+            # grid pixel (a, b) is image pixel (off + stride b, off + stride a)
+            Kl = (fx / stride, fy / stride, (cx - off) / stride, (cy - off) / stride)
+            u = (np.arange(w) - Kl[2]) / Kl[0]
+            v = (np.arange(h) - Kl[3]) / Kl[1]
+            V = np.stack(np.broadcast_arrays(u[None, :] * z, v[:, None] * z, z), axis=-1)
+            N, n_ok = _normals(V, z, ok, config.max_discontinuity * stride)
+            levels.append(SurfaceLevel((h, w), np.ascontiguousarray(V.reshape(-1, 3)),
+                                       np.ascontiguousarray(N.reshape(-1, 3)), n_ok.reshape(-1), Kl))
+        return DepthSurface(tuple(levels), strides)
+
+
+def _normals(V: np.ndarray, z: np.ndarray, ok: np.ndarray, max_discontinuity: float) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals of the vertex grid ``V`` ``(h, w, 3)`` by central differences (pointing to the
+    camera) and where they exist: the pixel and its four neighbours have depth, and no neighbour's
+    depth differs by more than ``max_discontinuity`` of the pixel's."""
+    N = np.zeros_like(V)
+    good = np.zeros_like(ok)
+    if V.shape[0] < 3 or V.shape[1] < 3:
+        return N, good
+    c = z[1:-1, 1:-1]
+    nb = (z[1:-1, 2:], z[1:-1, :-2], z[2:, 1:-1], z[:-2, 1:-1])
+    g = ok[1:-1, 1:-1] & ok[1:-1, 2:] & ok[1:-1, :-2] & ok[2:, 1:-1] & ok[:-2, 1:-1]
+    for zn in nb:
+        g &= np.abs(zn - c) <= max_discontinuity * c
+    du = V[1:-1, 2:] - V[1:-1, :-2]
+    dv = V[2:, 1:-1] - V[:-2, 1:-1]
+    n = np.cross(du, dv)
+    norm = np.linalg.norm(n, axis=-1)
+    g &= norm > 0
+    n = n / np.where(norm > 0, norm, 1.0)[..., None]
+    flip = (n * V[1:-1, 1:-1]).sum(-1) > 0  # towards the camera: n . X < 0
+    n = np.where(flip[..., None], -n, n)
+    N[1:-1, 1:-1] = np.where(g[..., None], n, 0.0)
+    good[1:-1, 1:-1] = g
+    return N, good
+
+
+@dataclass(frozen=True)
+class DepthConstraint:
+    """What the depth pairs constrain: ``pairs`` associated, ``directions`` of the six rigid ones
+    constrained, the scaled information's eigenvalues (ascending), and whether that is all six with
+    enough pairs (``ok``)."""
+
+    pairs: int
+    directions: int
+    eigenvalues: np.ndarray
+    ok: bool
+
+
+def depth_constraint(H_rigid: np.ndarray, pairs: int, median_depth: float, config: DepthAlignConfig) -> DepthConstraint:
+    """Constrained rigid directions of a 6x6 pose information ``H_rigid`` (tangent ``[w, u]``) from
+    ``pairs`` pairs at ``median_depth`` (module docstring)."""
+    D = np.diag([max(median_depth, config.min_depth)] * 3 + [1.0] * 3)
+    Hs = np.linalg.inv(D) @ H_rigid @ np.linalg.inv(D)
+    eig = np.linalg.eigvalsh(0.5 * (Hs + Hs.T))
+    directions = int((eig * config.max_direction_sigma ** 2 > 1.0).sum())
+    return DepthConstraint(int(pairs), directions, eig, directions == RIGID_DIM and pairs >= config.min_pairs)
+
+
+def relative_transform(T_WCk: np.ndarray, T_WCf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(A, b)`` of ``T_CkCf = T_WCk^-1 T_WCf`` acting as ``Y = A X + b`` (``A`` = scaled rotation),
+    from two 4x4 Sim(3) matrices ``[[s R, t], [0, 1]]``."""
+    sR_k, t_k = T_WCk[:3, :3], T_WCk[:3, 3]
+    s_k2 = float(np.cbrt(np.linalg.det(sR_k))) ** 2
+    return sR_k.T @ T_WCf[:3, :3] / s_k2, sR_k.T @ (T_WCf[:3, 3] - t_k) / s_k2
+
+
+def point_to_plane(A: np.ndarray, X_f: np.ndarray, Y: np.ndarray, X_k: np.ndarray, n_k: np.ndarray,
+                   jacobians: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Point-to-plane residuals ``r = n_k . (Y - X_k)`` ``(N,)`` of frame points ``X_f`` ``(N, 3)`` at
+    ``Y = T_CkCf X_f`` (``A``: the scaled rotation of ``T_CkCf``, :func:`relative_transform`) against
+    reference points ``X_k`` with unit normals ``n_k``, and (with ``jacobians``) ``J_k``, ``J_f``
+    ``(N, 7)``: the Jacobians w.r.t. right perturbations of ``T_WCk`` and ``T_WCf``::
+
+        dY/dxi_f = A [-[X_f]x, I, X_f]   ->  J_f = [X_f x a, a, a . X_f]  with  a = A^T n_k
+        dY/dxi_k = [[Y]x, -I, -Y]         ->  J_k = [n_k x Y, -n_k, -n_k . Y]
+    """
+    r = np.einsum("ij,ij->i", n_k, Y - X_k)
+    if not jacobians:
+        return r, None, None
+    a = n_k @ A
+    J_f = np.concatenate((np.cross(X_f, a), a, np.einsum("ij,ij->i", a, X_f)[:, None]), axis=1)
+    J_k = np.concatenate((np.cross(n_k, Y), -n_k, -np.einsum("ij,ij->i", n_k, Y)[:, None]), axis=1)
+    return r, J_k, J_f
+
+
+class DepthAlignBlock:
+    """Point-to-plane depth alignment of frame ``key_f`` against reference ``key_k`` (module docstring):
+    the backend's block contract with ``has_structure = False``, one linear piece over ``(key_k, key_f)``.
+    ``level``: the pyramid level used (default the finest)."""
+
+    has_structure = False
+
+    def __init__(self, key_k: int, key_f: int, reference: DepthSurface, frame: DepthSurface,
+                 config: DepthAlignConfig | None = None, level: int = -1):
+        self.config = config or DepthAlignConfig()
+        if int(key_k) == int(key_f):
+            raise DataError(f"depth alignment: a block joins key {int(key_k)} to itself")
+        if reference.strides != frame.strides:
+            raise DataError("depth alignment: the two surfaces have different pyramids")
+        self.key_k, self.key_f = int(key_k), int(key_f)
+        self.keys = (self.key_k, self.key_f)
+        self.reference, self.frame = reference, frame
+        self.level = level % len(reference.levels)
+        self._ref = reference.levels[self.level]
+        self._X_f, self._n_f = frame.levels[self.level].points
+        z = self._X_f[:, 2]
+        self._sqrt_w = 1.0 / np.maximum(z, self.config.min_depth) ** 2  # sigma_z = sigma z^2
+        self._cos = float(np.cos(np.radians(self.config.max_normal_angle_deg)))
+        strides = reference.strides
+        self.max_distance = self.config.max_distance * strides[self.level] / strides[-1]
+        rb = self.config.robust
+        gate = torch.from_numpy(self._sqrt_w * (self.max_distance / self.config.sigma))
+        self._gate = gate.numpy()
+        self._gate_cost = kernel_cost(gate, rb.kind, rb.delta).numpy()  # the cost of a vertex that fails the gates
+        self._memo: tuple | None = None  # (A, b, jacobians, terms) of the last evaluation
+
+    def at_level(self, level: int) -> DepthAlignBlock:
+        """The same block on pyramid ``level`` (0: coarsest)."""
+        return DepthAlignBlock(self.key_k, self.key_f, self.reference, self.frame, self.config, level)
+
+    @property
+    def num_points(self) -> int:
+        """Frame vertices with a normal on this level."""
+        return int(self._X_f.shape[0])
+
+    def _transform(self, values) -> tuple[np.ndarray, np.ndarray]:
+        return relative_transform(gtsam_matrix(values.atSimilarity3(self.key_k)), gtsam_matrix(values.atSimilarity3(self.key_f)))
+
+    def _associate(self, A: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per frame vertex (at ``Y`` in k) the reference grid index it lands on, whether that holds a
+        reference vertex (``seen``), and whether the two pair (``seen`` and within the gates)."""
+        ref = self._ref
+        fx, fy, cx, cy = ref.K
+        h, w = ref.shape
+        z = Y[:, 2]
+        front = z > self.config.min_depth
+        zs = np.where(front, z, 1.0)
+        u = np.rint(fx * Y[:, 0] / zs + cx)
+        v = np.rint(fy * Y[:, 1] / zs + cy)
+        inside = front & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+        idx = np.where(inside, v * w + u, 0).astype(np.int64)
+        seen = inside & ref.valid[idx]
+        d = np.linalg.norm(Y - ref.vertices[idx], axis=1)
+        agree = np.einsum("ij,ij->i", self._n_f @ A.T, ref.normals[idx]) >= self._cos * np.cbrt(np.linalg.det(A))
+        return idx, seen, seen & (d <= self.max_distance) & agree
+
+    def _terms(self, values, jacobians: bool):
+        """Whitened residuals, kernel costs (gate cost for seen unpaired vertices), IRLS weights (0
+        unpaired) and the whitened Jacobian ``(M, 14)`` (or None) of the paired vertices, the pair mask."""
+        cfg = self.config
+        rb = cfg.robust
+        A, b = self._transform(values)
+        memo = self._memo
+        if memo is not None and (memo[2] or not jacobians) and np.array_equal(memo[0], A) and np.array_equal(memo[1], b):
+            return memo[3]  # the same poses as the last evaluation (a cost, then a linearisation there)
+        Y = self._X_f @ A.T + b
+        idx, seen, paired = self._associate(A, Y)
+        sel = idx[paired]
+        r, J_k, J_f = point_to_plane(A, self._X_f[paired], Y[paired], self._ref.vertices[sel], self._ref.normals[sel],
+                                     jacobians)
+        scale = self._sqrt_w[paired] / cfg.sigma
+        e = r * scale
+        norms = torch.from_numpy(np.minimum(np.abs(e), self._gate[paired]))
+        cost = float(kernel_cost(norms, rb.kind, rb.delta).sum()) + float(self._gate_cost[seen & ~paired].sum())
+        weight = kernel_weight(norms, rb.kind, rb.delta).numpy()
+        J = None
+        if jacobians:
+            J = np.concatenate((J_k, J_f), axis=1) * scale[:, None]
+        self._memo = (A, b, jacobians, (e, cost, weight, J, paired))
+        return e, cost, weight, J, paired
+
+    def cost(self, values, structure=None) -> float:
+        """GTSAM-convention cost ``sum rho(e)`` at ``values`` (re-associated; no structure)."""
+        return self._terms(values, False)[1]
+
+    def linearize(self, values) -> list[LinearPiece]:
+        """One :class:`LinearPiece` over ``(key_k, key_f)`` at ``values`` (re-associated)."""
+        e, cost, weight, J, _ = self._terms(values, True)
+        return [weighted_piece(self.keys, J[:, None, :], e[:, None], weight[:, None], cost)]
+
+    def constraint(self, values, H_other: np.ndarray | None = None) -> DepthConstraint:
+        """What the pairs at ``values`` constrain of the frame's rigid motion (:func:`depth_constraint`),
+        together with ``H_other``, the 6x6 information of other measurements on the frame's pose
+        (rotation, translation; e.g. the few image measurements of a texture-poor frame)."""
+        e, _, weight, J, paired = self._terms(values, True)
+        piece = weighted_piece(self.keys, J[:, None, :], e[:, None], weight[:, None], 0.0)
+        H_f = piece.H[POSE_DIM:POSE_DIM + RIGID_DIM, POSE_DIM:POSE_DIM + RIGID_DIM]
+        if H_other is not None:
+            H_f = H_f + H_other
+        z = self._X_f[paired, 2]
+        median = float(np.median(z)) if z.size else self.config.min_depth
+        return depth_constraint(H_f, int(paired.sum()), median, self.config)

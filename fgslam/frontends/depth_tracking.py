@@ -1,0 +1,110 @@
+"""Depth alignment for every family's RGB-D tracking (:mod:`fgslam.factors.depth_align`).
+
+Where a sensor depth is valid, RGB-D tracking must not depend on image texture alone. A frontend holds
+one :class:`DepthTracking`: it turns a frame's depth into a surface once (kept with the frame), builds
+the point-to-plane blocks between two frames' pose keys, aligns a new frame's predicted pose to its
+reference by depth alone (coarse to fine, through the backend's motion-only solve, rigid), and says
+whether the depth constrains all six degrees of freedom of a frame (so that a frame without usable image
+measurements but with three non-parallel planes in view is still tracked, and a single wall is not).
+The blocks go to the backend beside the family's visual blocks (``backend.set_blocks``), in the window
+as in tracking; the frontend never solves anything itself.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import MAX_ITERATIONS, MAX_WINDOW, ranged
+from ..factors.depth_align import DepthAlignBlock, DepthAlignConfig, DepthConstraint, DepthSurface
+from ..lie import gtsam_matrix, gtsam_sim3
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["DepthTracking", "DepthTrackingConfig"]
+
+#: Hold of a rigid (metric RGB-D) pose in the motion-only solve: rotation and translation free, scale fixed.
+RIGID_HOLD = np.array([0.0] * 6 + [np.inf])
+
+
+@dataclass
+class DepthTrackingConfig:
+    """Depth alignment in RGB-D tracking (module docstring); off by default."""
+
+    enabled: bool = False  # RGB-D: point-to-plane depth blocks in tracking and in the window
+    prealign: bool = False  # align a new frame's predicted pose to its reference by depth before measuring the image
+    prealign_iterations: int = ranged(6, ge=1, le=MAX_ITERATIONS)  # LM iterations per pyramid level of that alignment
+    window_pairs: int = ranged(1, ge=1, le=MAX_WINDOW)  # depth blocks in the window: between the newest this many pairs of consecutive frames
+    align: DepthAlignConfig = field(default_factory=DepthAlignConfig)  # the residual, pyramid and gates
+
+    def validate(self) -> None:
+        self.align.validate()
+
+
+class DepthTracking:
+    """Surfaces, blocks and checks of depth alignment for one frontend (module docstring).
+
+    Args:
+        config: the frontend's depth-tracking section.
+        backend: the run's backend (motion-only alignment of a new frame).
+        active: the sensor has depth (RGB-D); otherwise the alignment stays off whatever the config says.
+    """
+
+    def __init__(self, config: DepthTrackingConfig, backend, active: bool = True):
+        config.validate()
+        self.config = config
+        self.backend = backend
+        self.active = bool(active)
+        self.K: tuple[float, float, float, float] | None = None
+
+    @property
+    def enabled(self) -> bool:
+        """Depth alignment is on (configured, and the sensor has depth)."""
+        return self.config.enabled and self.active
+
+    def set_intrinsics(self, K) -> None:
+        """``K = [fx, fy, cx, cy]`` of the depth images (registered to the tracked image)."""
+        self.K = tuple(float(k) for k in np.asarray(K, dtype=np.float64).reshape(-1)[:4])
+
+    def surface(self, depth: np.ndarray | None) -> DepthSurface | None:
+        """The surface of a depth image (None without depth or when disabled)."""
+        if not self.enabled or depth is None or self.K is None:
+            return None
+        return DepthSurface.from_depth(depth, self.K, self.config.align)
+
+    def block(self, key_k: int, key_f: int, surface_k: DepthSurface, surface_f: DepthSurface) -> DepthAlignBlock:
+        """Point-to-plane block aligning ``key_f``'s surface to ``key_k``'s (finest level)."""
+        return DepthAlignBlock(key_k, key_f, surface_k, surface_f, self.config.align)
+
+    @staticmethod
+    def _values(block: DepthAlignBlock, T_WCk: np.ndarray, T_WCf: np.ndarray):
+        import gtsam
+
+        values = gtsam.Values()
+        values.insert(block.key_k, gtsam_sim3(T_WCk))
+        values.insert(block.key_f, gtsam_sim3(T_WCf))
+        return values
+
+    def check(self, block: DepthAlignBlock, T_WCk: np.ndarray, T_WCf: np.ndarray,
+              H_image: np.ndarray | None = None) -> DepthConstraint:
+        """What the block's pairs constrain with the two frames at ``T_WCk`` and ``T_WCf``, together with
+        ``H_image`` (6x6 information of the frame's image measurements on its rotation and translation)."""
+        return block.constraint(self._values(block, T_WCk, T_WCf), H_image)
+
+    def align(self, block: DepthAlignBlock, T_WCk: np.ndarray, T_WCf: np.ndarray) -> tuple[np.ndarray, DepthConstraint]:
+        """The frame's pose ``T_WCf`` (4x4, the block's ``key_f``) aligned by depth alone to the reference
+        at ``T_WCk`` (held), coarse to fine and rigid (the backend's motion-only solve), and what the depth
+        constrains there. A pose that does not come out finite is returned unchanged."""
+        values = self._values(block, T_WCk, T_WCf)
+        for level in range(len(block.reference.levels)):
+            result = self.backend.optimize_pose([block.at_level(level)], values, block.key_f,
+                                                iterations=self.config.prealign_iterations, hold=RIGID_HOLD)
+            values = result.values
+        T = gtsam_matrix(values.atSimilarity3(block.key_f))
+        if not np.isfinite(T).all():
+            logger.warning("depth alignment gave a non-finite pose; the prediction is kept")
+            return T_WCf, block.constraint(values)
+        return T, block.constraint(values)
+
