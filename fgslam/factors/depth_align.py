@@ -72,6 +72,7 @@ class DepthAlignConfig:
     sigma: float = ranged(0.01, gt=0, le=MAX_SCALAR)  # m; std of the point-to-plane distance at 1 m depth (grows with z^2)
     robust: RobustConfig = field(default_factory=RobustConfig)  # kernel on the whitened distance
     min_pairs: int = ranged(100, ge=1, le=MAX_COUNT)  # fewer associated pairs: the depth does not constrain the pose
+    min_pair_fraction: float = ranged(0.5, ge=0, le=1)  # fewer of the frame's vertices paired: the alignment is not trusted (little overlap, or a wrong minimum)
     max_direction_sigma: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # m; a rigid direction counts as constrained when its standard deviation is below this (rotations as displacements at the median depth)
 
     def validate(self) -> None:
@@ -165,24 +166,28 @@ def _normals(V: np.ndarray, z: np.ndarray, ok: np.ndarray, max_discontinuity: fl
 
 @dataclass(frozen=True)
 class DepthConstraint:
-    """What the depth pairs constrain: ``pairs`` associated, ``directions`` of the six rigid ones
-    constrained, the scaled information's eigenvalues (ascending), and whether that is all six with
-    enough pairs (``ok``)."""
+    """What the depth pairs constrain: ``pairs`` associated (``fraction`` of the frame's vertices),
+    ``directions`` of the six rigid ones constrained, the scaled information's eigenvalues (ascending),
+    and whether that is all six with enough pairs (``ok``)."""
 
     pairs: int
+    fraction: float
     directions: int
     eigenvalues: np.ndarray
     ok: bool
 
 
-def depth_constraint(H_rigid: np.ndarray, pairs: int, median_depth: float, config: DepthAlignConfig) -> DepthConstraint:
+def depth_constraint(H_rigid: np.ndarray, pairs: int, points: int, median_depth: float,
+                     config: DepthAlignConfig) -> DepthConstraint:
     """Constrained rigid directions of a 6x6 pose information ``H_rigid`` (tangent ``[w, u]``) from
-    ``pairs`` pairs at ``median_depth`` (module docstring)."""
+    ``pairs`` pairs of ``points`` frame vertices at ``median_depth`` (module docstring)."""
     D = np.diag([max(median_depth, config.min_depth)] * 3 + [1.0] * 3)
     Hs = np.linalg.inv(D) @ H_rigid @ np.linalg.inv(D)
     eig = np.linalg.eigvalsh(0.5 * (Hs + Hs.T))
     directions = int((eig * config.max_direction_sigma ** 2 > 1.0).sum())
-    return DepthConstraint(int(pairs), directions, eig, directions == RIGID_DIM and pairs >= config.min_pairs)
+    fraction = pairs / points if points else 0.0
+    ok = directions == RIGID_DIM and pairs >= config.min_pairs and fraction >= config.min_pair_fraction
+    return DepthConstraint(int(pairs), fraction, directions, eig, ok)
 
 
 def relative_transform(T_WCk: np.ndarray, T_WCf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -318,4 +323,4 @@ class DepthAlignBlock:
             H_f = H_f + H_other
         z = self._X_f[paired, 2]
         median = float(np.median(z)) if z.size else self.config.min_depth
-        return depth_constraint(H_f, int(paired.sum()), median, self.config)
+        return depth_constraint(H_f, int(paired.sum()), self.num_points, median, self.config)

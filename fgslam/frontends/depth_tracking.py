@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import MAX_ITERATIONS, MAX_WINDOW, ranged
-from ..factors.depth_align import DepthAlignBlock, DepthAlignConfig, DepthConstraint, DepthSurface
+from ..factors.depth_align import MAX_LEVELS, DepthAlignBlock, DepthAlignConfig, DepthConstraint, DepthSurface
 from ..lie import gtsam_matrix, gtsam_sim3
 
 logger = logging.getLogger(__name__)
@@ -36,7 +36,8 @@ class DepthTrackingConfig:
     enabled: bool = False  # RGB-D: point-to-plane depth blocks in tracking and in the window
     prealign: bool = False  # align a new frame's predicted pose to its reference by depth before measuring the image
     prealign_iterations: int = ranged(6, ge=1, le=MAX_ITERATIONS)  # LM iterations per pyramid level of that alignment
-    window_pairs: int = ranged(1, ge=1, le=MAX_WINDOW)  # depth blocks in the window: between the newest this many pairs of consecutive frames
+    window_pairs: int = ranged(0, ge=0, le=MAX_WINDOW)  # depth blocks in the window: between the newest this many pairs of consecutive frames (0: every pair that touches a free frame)
+    window_level: int = ranged(1, ge=0, le=MAX_LEVELS - 1)  # pyramid level of the window's depth blocks (0: coarsest; past the finest: the finest)
     align: DepthAlignConfig = field(default_factory=DepthAlignConfig)  # the residual, pyramid and gates
 
     def validate(self) -> None:
@@ -74,9 +75,12 @@ class DepthTracking:
             return None
         return DepthSurface.from_depth(depth, self.K, self.config.align)
 
-    def block(self, key_k: int, key_f: int, surface_k: DepthSurface, surface_f: DepthSurface) -> DepthAlignBlock:
-        """Point-to-plane block aligning ``key_f``'s surface to ``key_k``'s (finest level)."""
-        return DepthAlignBlock(key_k, key_f, surface_k, surface_f, self.config.align)
+    def block(self, key_k: int, key_f: int, surface_k: DepthSurface, surface_f: DepthSurface,
+              window: bool = False) -> DepthAlignBlock:
+        """Point-to-plane block aligning ``key_f``'s surface to ``key_k``'s: on the finest level, or
+        with ``window`` on the window's level (``window_level``)."""
+        level = min(self.config.window_level, len(surface_k.levels) - 1) if window else -1
+        return DepthAlignBlock(key_k, key_f, surface_k, surface_f, self.config.align, level)
 
     @staticmethod
     def _values(block: DepthAlignBlock, T_WCk: np.ndarray, T_WCf: np.ndarray):

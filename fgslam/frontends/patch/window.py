@@ -215,21 +215,21 @@ class LocalBA:
     def depth_blocks(self, var) -> list:
         """Depth-alignment blocks between consecutive graph frames with surfaces, at least one of
         them free (in ``var``) and both backend keyframes (or about to be: free); the newest
-        ``depth_align.window_pairs`` of them."""
+        ``depth_align.window_pairs`` of them (0: all)."""
         st = self.state
         g = st.graph
         free = {int(f) for f in var}
         blocks = []
         frames = g.frames
         for a, b in zip(reversed(frames[:-1]), reversed(frames[1:])):
-            if len(blocks) == st.depth.config.window_pairs:
+            if len(blocks) == st.depth.config.window_pairs:  # 0: no limit
                 break
             pair = (int(a.fid), int(b.fid))
             if a.surface is None or b.surface is None or not (pair[0] in free or pair[1] in free):
                 continue
             if all(x in free or st.backend.has_keyframe(x) for x in pair):
-                blocks.append(st.depth.block(self.key(pair[0]), self.key(pair[1]), a.surface, b.surface))
-        return blocks[::-1]
+                blocks.append(st.depth.block(self.key(pair[0]), self.key(pair[1]), a.surface, b.surface, window=True))
+        return blocks[::-1]  # oldest first
 
     def _write_depths(self, pos_src: np.ndarray, ukeys: np.ndarray, depth: np.ndarray) -> None:
         """Solved inverse depths ``depth`` of the patches ``ukeys`` (``src fid * K + patch``, source
