@@ -2,7 +2,8 @@
 
 A preset is named by its file stem; the part before the first ``_`` says which dataclass it
 configures (``pgo.yaml`` -> ``PGOConfig``, ``patch_kitti_mono.yaml`` -> ``SlamConfig``: every
-frontend family's name selects the run config). Commands accept either a path to a YAML file or a
+frontend family's name and every sensor class of the recommended presets, ``handheld_rgbd.yaml``,
+``driving_mono.yaml``, ..., select the run config). Commands accept either a path to a YAML file or a
 bare preset name resolved here. The presets are package data, found through
 :mod:`importlib.resources`, so an installed (non-editable) fgslam finds them as well as a checkout.
 """
@@ -19,8 +20,8 @@ from .errors import ConfigError
 PRESETS_PACKAGE = "fgslam"
 PRESETS_FOLDER = "configs"
 
-#: Preset stem prefix -> "module:Class" of the dataclass it configures (besides the frontend
-#: families' names, which all select :data:`RUN_CONFIG_CLASS`).
+#: Preset stem prefix -> "module:Class" of the dataclass it configures (besides the run presets'
+#: prefixes, :func:`run_preset_prefixes`, which all select :data:`RUN_CONFIG_CLASS`).
 PRESET_CLASSES: dict[str, str] = {
     "pgo": "fgslam.pgo:PGOConfig",
     "eval": "fgslam.eval:EvalConfig",
@@ -32,8 +33,22 @@ PRESET_CLASSES: dict[str, str] = {
     "demo": "fgslam.demo:DemoConfig",
 }
 
-#: The run config every frontend family's presets (``<family>_*.yaml``) fill.
+#: The run config every frontend family's presets (``<family>_*.yaml``) and the recommended
+#: presets (``<sensor class>_*.yaml``) fill.
 RUN_CONFIG_CLASS = "fgslam.runconfig:SlamConfig"
+
+#: Sensor classes of the recommended presets, one preset per class and sensor (``handheld_rgbd``,
+#: ``handheld_mono``, ``handheld_stereo``, ``driving_mono``, ``driving_stereo``): the family and
+#: settings measured best on that class, so a user need not know which family works where.
+SENSOR_CLASSES: tuple[str, ...] = ("handheld", "driving")
+
+
+def run_preset_prefixes() -> tuple[str, ...]:
+    """The one table of stem prefixes that select :data:`RUN_CONFIG_CLASS` (the presets of ``fgslam
+    run``): the sensor classes of the recommended presets, then every frontend family's name."""
+    from .frontends import FRONTEND_NAMES  # function-local: fgslam.frontends is a layer above
+
+    return (*SENSOR_CLASSES, *FRONTEND_NAMES)
 
 
 def configs_dir() -> Path:
@@ -67,12 +82,13 @@ def preset_description(path: Path) -> str:
 
 
 def run_presets() -> dict[str, str]:
-    """The presets of ``fgslam run`` (every frontend family's ``<family>_*.yaml``), name -> description."""
-    from .frontends import FRONTEND_NAMES
-
+    """The presets of ``fgslam run`` (a prefix of :func:`run_preset_prefixes`), name -> description:
+    the recommended per-sensor-class presets first, then the families' presets, each group sorted."""
+    prefixes = run_preset_prefixes()
     folder = configs_dir()
-    return {name: preset_description(folder / f"{name}.yaml") for name in available_presets()
-            if name.split("_", 1)[0] in FRONTEND_NAMES}
+    names = [name for name in available_presets() if name.split("_", 1)[0] in prefixes]
+    names.sort(key=lambda name: (name.split("_", 1)[0] not in SENSOR_CLASSES, name))
+    return {name: preset_description(folder / f"{name}.yaml") for name in names}
 
 
 def resolve_preset(name_or_path: str | Path) -> Path:
@@ -94,12 +110,11 @@ def resolve_preset(name_or_path: str | Path) -> Path:
 
 def config_class_for(path: Path) -> type:
     """The dataclass a preset file configures, from its stem prefix."""
-    from .frontends import FRONTEND_NAMES
-
     prefix = path.stem.split("_", 1)[0]
-    target = PRESET_CLASSES.get(prefix) or (RUN_CONFIG_CLASS if prefix in FRONTEND_NAMES else None)
+    run_prefixes = run_preset_prefixes()
+    target = PRESET_CLASSES.get(prefix) or (RUN_CONFIG_CLASS if prefix in run_prefixes else None)
     if target is None:
-        known = sorted(set(PRESET_CLASSES) | set(FRONTEND_NAMES))
+        known = sorted(set(PRESET_CLASSES) | set(run_prefixes))
         raise ConfigError(f"{path}: no config class known for preset prefix '{prefix}' ({', '.join(known)})")
     return import_object(target, f"preset prefix '{prefix}'")
 

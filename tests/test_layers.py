@@ -33,7 +33,7 @@ def test_layer_contracts_hold():
 
 
 def test_checker_fails_on_an_upward_function_local_import(tmp_path):
-    # fgslam.presets imports fgslam.frontends inside run_presets() only: with the two layers swapped
+    # fgslam.presets imports fgslam.frontends inside run_preset_prefixes() only: with the two layers swapped
     # that one function-local import breaks the contract
     config = tmp_path / "swapped.toml"
     config.write_text(

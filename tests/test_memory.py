@@ -10,18 +10,18 @@ from fgslam.errors import ConfigError
 from fgslam.memory import GIB, check_run_memory, estimate_run_memory
 from fgslam.slam import load_slam_config
 
-#: (output width, height, frames) of each preset's intended data: KITTI 00 (4541 frames), 7-Scenes
-#: (1000 frames a sequence), EuRoC (MH_01: 3682 frames), the synthetic and generic presets (640x480)
+#: (output width, height, frames) of each preset's intended data: KITTI 00 (4541 frames; also the
+#: driving_* presets), 7-Scenes (1000 frames a sequence), EuRoC (MH_01: 3682 frames), the synthetic
+#: and generic presets (640x480; also the handheld_* presets, 3000 frames)
 INTENDED_DATA = {"kitti": (1241, 376, 4541), "highway": (1241, 376, 4541), "street": (1241, 376, 4541),
-                 "7scenes": (640, 480, 1000), "euroc": (752, 480, 3682)}
+                 "driving": (1241, 376, 4541), "7scenes": (640, 480, 1000), "euroc": (752, 480, 3682)}
 GENERIC_DATA = (640, 480, 3000)
 
 
 def _run_presets() -> list[str]:
-    from fgslam.frontends import FRONTEND_NAMES
-    from fgslam.presets import available_presets
+    from fgslam.presets import run_presets
 
-    return [n for n in available_presets() if n.split("_")[0] in FRONTEND_NAMES]
+    return list(run_presets())  # the families' presets and the recommended per-sensor-class ones
 
 
 def _estimate(preset: str, raw: tuple[int, int, int], **sections):

@@ -98,6 +98,7 @@ class BAConfig:
     depth_window: int = ranged(2, ge=0, le=MAX_IMAGE_SIDE)  # RGB-D: half-size (px) of the window whose median is the patch's sensor depth
     depth_max_spread: float = ranged(0.1, ge=0, le=MAX_SCALAR)  # RGB-D: (max - min) / median depth in that window above which it is a discontinuity (no prior)
     stereo_init_steps: int = ranged(5, ge=0, le=MAX_ITERATIONS)  # stereo: per-patch depth Gauss-Newton steps on the first frame's right-image edges
+    stereo_init_inv_depth: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # stereo: inverse depth (1/m) the first frame's patches start from, so Lucas-Kanade searches the right image from disparity f * baseline * this (1 m suits an 11 cm baseline; driving's 0.54 m baseline needs the far field, 0.05: from 1 m the search starts 200+ px off and no patch is measured)
     stereo_cross_edges: bool = False  # stereo: also edges into the right images of other frames (else own right image only)
     threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads during BA (small dense work: 1 is fastest)
     depth_model: Literal["prior", "observation"] = "prior"  # RGB-D: prior on each patch's inverse depth in its source frame (DROID-SLAM), or sensor depth as a measurement of every observation, source and targets (ORB-SLAM3 RGB-D: virtual right-camera pixel u - f b / z)

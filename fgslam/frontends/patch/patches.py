@@ -143,8 +143,9 @@ class PatchMeasurer:
             if st.config.tracking.median_of_measured:
                 prev = self.measured_inv_depths(st.graph.frames[-1])
             median = float(np.median(prev[prev > 0])) if (prev > 0).any() else FALLBACK_INV_DEPTH
-        else:
-            median = float(np.nanmedian(sensor)) if np.isfinite(sensor).any() else FALLBACK_INV_DEPTH
+        else:  # the first graph frame: stereo starts its right-image search from a configured depth
+            start = st.config.ba.stereo_init_inv_depth if st.sensor_mode == "stereo" else FALLBACK_INV_DEPTH
+            median = float(np.nanmedian(sensor)) if np.isfinite(sensor).any() else start
         inv_depth = np.where(np.isfinite(sensor), sensor, median)
         keep_depth = st.sensor_mode == "rgbd" and st.config.ba.depth_model == "observation"
         return BackendFrame(fid=fid, index=int(frame.index), timestamp=float(frame.timestamp), T_WC=np.array(T_WC, dtype=np.float64),
