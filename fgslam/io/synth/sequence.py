@@ -17,6 +17,7 @@ from functools import cached_property
 
 import numpy as np
 
+from .distortion import DistortedCamera
 from .imu import ImuData, simulate_imu
 from .scenarios import CameraConfig, SynthConfig, build_scene, build_trajectory
 from .render import Renderer, RenderOutput
@@ -68,7 +69,13 @@ class SynthSequence:
         cam = cfg.camera
         f = 0.5 * cam.width / np.tan(0.5 * np.deg2rad(cam.hfov_deg))
         self.K = (float(f), float(f), 0.5 * cam.width, 0.5 * cam.height)
-        self.renderer = Renderer(self.scene, self.atlas, self.K, cam.width, cam.height, cfg.render)
+        # raw images with lens distortion (camera.distortion not all zero): a pinhole canvas resampled
+        self.distorted = DistortedCamera(self.K, cam.width, cam.height, cam.distortion) if any(cam.distortion) else None
+        if self.distorted is None:
+            self.renderer = Renderer(self.scene, self.atlas, self.K, cam.width, cam.height, cfg.render)
+        else:
+            self.renderer = Renderer(self.scene, self.atlas, self.distorted.canvas_K, *self.distorted.canvas_size,
+                                     cfg.render)
         logger.info("synthetic %s: %d quads, %.1f M texels", cfg.preset, len(self.scene),
                     self.atlas.texels.size / 1e6)
 
@@ -119,7 +126,9 @@ class SynthSequence:
 
     # ------------------------------------------------------------------ rendering
     def render_view(self, T_WC: np.ndarray) -> RenderOutput:
-        return self.renderer.render(T_WC, colour=self.cfg.camera.colour)
+        """Raw view of camera pose ``T_WC``: intrinsics ``K``, distorted by ``camera.distortion``."""
+        out = self.renderer.render(T_WC, colour=self.cfg.camera.colour)
+        return out if self.distorted is None else self.distorted.resample(out)
 
     def frame(self, index: int) -> StereoFrame:
         t = float(index) / self.cfg.camera.rate_hz
