@@ -136,5 +136,15 @@ class SynthSequence:
         T_WC0 = T_WB @ self.T_BS0
         left = self.render_view(T_WC0)
         right = self.render_view(T_WC0 @ self.T_S0S1)
-        return StereoFrame(index=index, t=t, T_WB=T_WB, T_WC0=T_WC0, image0=left.image,
-                           image1=right.image, depth0=left.depth)
+        image0, image1 = left.image, right.image
+        cam = self.cfg.camera
+        if cam.exposure_s > 0:  # motion blur: mean over the exposure (depth stays the frame time's)
+            dt = cam.exposure_s * (np.arange(cam.blur_samples) / (cam.blur_samples - 1) - 0.5)
+            image0, image1 = np.zeros_like(image0), np.zeros_like(image1)
+            for T in self.camera_poses(t + dt):
+                image0 += self.render_view(T).image
+                image1 += self.render_view(T @ self.T_S0S1).image
+            image0 /= cam.blur_samples
+            image1 /= cam.blur_samples
+        return StereoFrame(index=index, t=t, T_WB=T_WB, T_WC0=T_WC0, image0=image0,
+                           image1=image1, depth0=left.depth)

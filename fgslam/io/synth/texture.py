@@ -59,6 +59,7 @@ class PlainTextureConfig:
     panel_size_m: list[float] = ranged(default_factory=lambda: [0.6, 1.2], gt=0, le=MAX_SCALAR)  # panel (width along u, height along v)
     panel_line_width_m: float = ranged(0.005, gt=0, le=MAX_SCALAR)  # joint between panels (a few px at 1 m in VGA)
     panel_line_depth: float = ranged(0.35, ge=0, le=1)  # joint darkening (fraction of the albedo)
+    panel_albedo_jitter: float = ranged(0.0, ge=0, le=1)  # std of each panel's own albedo factor (0: identical panels)
 
 
 @dataclass
@@ -205,6 +206,10 @@ def make_plain_texture(size_m: tuple[float, float], density: float, style: int, 
     elif style == STYLE_PANELS:
         pw, ph = cfg.panel_size_m
         line = np.maximum(grout(t, ph, cfg.panel_line_width_m)[:, None], grout(s, pw, cfg.panel_line_width_m)[None, :])
+        if cfg.panel_albedo_jitter > 0:  # panels never match exactly: one albedo factor per panel
+            col, row = np.floor(s / pw).astype(np.int64), np.floor(t / ph).astype(np.int64)
+            factor = 1.0 + cfg.panel_albedo_jitter * rng.standard_normal((row[-1] + 1, col[-1] + 1))
+            img *= factor[row[:, None], col[None, :]].astype(np.float32)
         img *= (1.0 - cfg.panel_line_depth * line).astype(np.float32)
     elif style == STYLE_DOOR:
         edge = np.minimum(np.minimum(s, su - s)[None, :], np.minimum(t, sv - t)[:, None])
