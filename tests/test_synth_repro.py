@@ -19,6 +19,8 @@ from fgslam.io.synth.texture import (STYLE_DOOR, STYLE_PANELS, STYLE_TILES, Plai
                                      make_plain_texture)
 
 TINY = ["camera.width=64", "camera.height=48", "frames=3"]
+CHEAP = {"panel-room": ["panel_room.wall_density=100", "panel_room.floor_density=50"],  # smaller texture atlases
+         "rotation-sweep": ["rotation_sweep.wall_density=40", "rotation_sweep.box_density=60"]}
 
 
 def _seq(preset: str, *overrides: str) -> SynthSequence:
@@ -42,7 +44,7 @@ def _rotation_angles_deg(T: np.ndarray) -> np.ndarray:
 def test_new_presets_render_deterministically(tmp_path, preset):
     roots = [tmp_path / "a", tmp_path / "b"]
     for root in roots:
-        write_sequence(_seq(preset, *TINY), root)
+        write_sequence(_seq(preset, *TINY, *CHEAP[preset]), root)
     files = _files(roots[0])
     assert files == _files(roots[1]) and len(files) >= 3 * 3 + 6
     for rel in files:
@@ -145,7 +147,7 @@ def test_vignetting_and_point_light_are_multiplicative_shading(panel):
 def test_rotation_sweep_summed_rotation_rate_is_the_configured_one():
     for speed in (69.0, 40.0):
         seq = _seq("rotation-sweep", "camera.width=64", "camera.height=48",
-                   f"rotation_sweep.rotation_speed_deg_s={speed}")
+                   f"rotation_sweep.rotation_speed_deg_s={speed}", *CHEAP["rotation-sweep"])
         t = seq.frame_times()
         T = seq.camera_poses(t)
         rate = _rotation_angles_deg(T).sum() / (t[-1] - t[0])
@@ -162,7 +164,8 @@ def test_rotation_sweep_summed_rotation_rate_is_the_configured_one():
 @pytest.fixture(scope="module")
 def sweep_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("sweep")
-    seq = _seq("rotation-sweep", "camera.width=160", "camera.height=120", "frames=3", "camera.exposure_s=0")
+    seq = _seq("rotation-sweep", "camera.width=160", "camera.height=120", "frames=3", "camera.exposure_s=0",
+               *CHEAP["rotation-sweep"])
     write_sequence(seq, root)
     return root, seq
 
@@ -226,8 +229,9 @@ def test_loader_undistorts_to_the_pinhole_view(sweep_dir):
 
 
 def test_motion_blur_averages_the_exposure():
-    sharp = _seq("rotation-sweep", "camera.width=64", "camera.height=48", "frames=2", "camera.exposure_s=0")
-    blurred = _seq("rotation-sweep", "camera.width=64", "camera.height=48", "frames=2")
+    sharp = _seq("rotation-sweep", "camera.width=64", "camera.height=48", "frames=2", "camera.exposure_s=0",
+                 *CHEAP["rotation-sweep"])
+    blurred = _seq("rotation-sweep", "camera.width=64", "camera.height=48", "frames=2", *CHEAP["rotation-sweep"])
     f_s, f_b = sharp.frame(1), blurred.frame(1)
     np.testing.assert_array_equal(f_s.depth0, f_b.depth0)  # depth of the frame time
     assert not np.array_equal(f_s.image0, f_b.image0)

@@ -76,8 +76,9 @@ _SWEEP_EXPOSURE_S = 0.012       # motion blur of a hand-held Kinect indoors (2-3
 _SWEEP_BLUR_SAMPLES = 12
 _SWEEP_DISTORTION = (-0.30, 0.09, 0.0, 0.0)  # k1, k2, p1, p2: strong barrel, invertible over the VGA image
 _SWEEP_SPEED_SAMPLES = 4096     # samples of one period for scaling the sweep to its mean angular speed
-_SWEEP_SPEED_ITERATIONS = 60    # bisection steps of that scale
-_SWEEP_MAX_SCALE = 10.0         # upper bracket of the scale (the base amplitudes give ~40 deg/s)
+_SWEEP_SPEED_ITERATIONS = 50    # fixed-point steps of that scale at most
+_SWEEP_SPEED_TOLERANCE = 1e-13  # relative error of the mean angular speed accepted
+_SWEEP_MAX_SCALE = 10.0         # largest scale of the base amplitudes (angles beyond it wrap the attitude)
 _MIN_TURN_DEG = 1e-3            # panel-room: a smaller turn_deg is treated as this (the ellipse period stays finite)
 
 # texture styles: index into TextureConfig.style_mark_scale
@@ -295,6 +296,9 @@ class SynthConfig:
         if len(self.texture.plain.albedo) != 3:
             raise ConfigError("texture.plain.albedo: expected 3 albedos (plain, tiles, door), "
                               f"got {len(self.texture.plain.albedo)}")
+        if len(self.camera.distortion) != 4:
+            raise ConfigError("camera.distortion: expected 4 radial-tangential coefficients (k1, k2, p1, p2), "
+                              f"got {len(self.camera.distortion)}")
         if 1e9 / self.camera.rate_hz != round(1e9 / self.camera.rate_hz) or \
                 1e9 / self.imu.rate_hz != round(1e9 / self.imu.rate_hz):
             raise ConfigError("camera.rate_hz / imu.rate_hz: periods must be whole nanoseconds")
@@ -813,19 +817,22 @@ def sweep_mean_angular_speed(rs: RotationSweepConfig, scale: float) -> float:
 
 
 def sweep_rotation_scale(rs: RotationSweepConfig) -> float:
-    """Amplitude scale of :data:`_SWEEP_ROTATION` whose mean angular speed is ``rotation_speed_deg_s``
-    (bisection; the mean speed grows monotonically with the scale)."""
-    lo, hi = 0.0, _SWEEP_MAX_SCALE
-    if sweep_mean_angular_speed(rs, hi) < rs.rotation_speed_deg_s:
-        raise ConfigError(f"rotation_sweep.rotation_speed_deg_s: {rs.rotation_speed_deg_s} deg/s is beyond the "
-                          f"sweep's reach ({sweep_mean_angular_speed(rs, hi):.0f} deg/s at most)")
+    """Amplitude scale of :data:`_SWEEP_ROTATION` whose mean angular speed is ``rotation_speed_deg_s``:
+    the mean speed is nearly proportional to the scale, so ``scale *= target / speed(scale)`` converges
+    in a few steps (to a relative ``_SWEEP_SPEED_TOLERANCE``)."""
+    target = rs.rotation_speed_deg_s
+    if target == 0:
+        return 0.0
+    scale = 1.0
     for _ in range(_SWEEP_SPEED_ITERATIONS):
-        mid = 0.5 * (lo + hi)
-        if sweep_mean_angular_speed(rs, mid) < rs.rotation_speed_deg_s:
-            lo = mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi)
+        speed = sweep_mean_angular_speed(rs, scale)
+        if abs(speed - target) <= _SWEEP_SPEED_TOLERANCE * target:
+            return scale
+        scale *= target / speed
+        if scale > _SWEEP_MAX_SCALE:
+            raise ConfigError(f"rotation_sweep.rotation_speed_deg_s: {target} deg/s needs the sweep's angles scaled "
+                              f"by more than {_SWEEP_MAX_SCALE:g}")
+    raise ConfigError(f"rotation_sweep.rotation_speed_deg_s: no sweep of {target} deg/s mean angular speed found")
 
 
 def load_synth_config(preset: str | None = None, path=None, overrides=()) -> SynthConfig:
