@@ -7,6 +7,15 @@ ray parameter z is the point ``z * d_C`` whose z-depth is z. Poses are ``T_WC`` 
 screen bounding box of the quad (clipped against the near plane), which is separable in u and v:
 ``n_C . d_C = n_x x_u + n_y y_v + n_z``. The nearest hit within the rectangle wins (z-buffer).
 Texture is then sampled bilinearly from the mip level that matches the texel footprint.
+
+Optional shading (``RenderConfig.point_light``, off by default; the ``panel-room`` preset turns it
+on together with ``texture.ambient = 1`` so that the texture holds the albedo only): the texel value is
+multiplied by ``ambient + diffuse * max(0, n . l) * r0^2 / (r0^2 + d^2)`` of a point light at
+``light_position`` (world, m; ``l`` the unit direction and ``d`` the distance from the surface point
+to the light, ``n`` the normal facing the camera, ``r0 = light_range``). It depends on the surface
+point only (Lambertian), so it is the same from every view. ``vignetting`` multiplies the image by
+``1 - vignetting * (r / r_corner)^2`` (``r`` the distance of a pixel from the principal point,
+``r_corner`` that of the farthest image corner): a view-dependent darkening of the border.
 """
 
 from __future__ import annotations
@@ -21,6 +30,7 @@ from .scene import SceneArrays
 from .texture import TextureAtlas
 
 _EDGE_MARGIN = 1.001  # texel coordinates are clamped to [0, size - margin] so x0 + 1 stays inside
+_MIN_LIGHT_DIST2 = 1e-12  # m^2; floor of the squared light distance (a surface point at the light)
 
 
 @dataclass
@@ -32,6 +42,12 @@ class RenderConfig:
     mip_bias: float = ranged(0.0, ge=-MAX_SCALAR, le=MAX_SCALAR)  # added to log2(texel footprint) before choosing the mip level
     edge_tolerance: float = ranged(1e-4, ge=0, le=MAX_SCALAR)  # m; quads are grown by this much so float32 rounding leaves no
     # cracks between adjacent quads (ground tiles, box faces)
+    point_light: bool = False  # per-pixel Lambertian shading by a point light (module docstring); off: texels as baked
+    light_position: list[float] = ranged(default_factory=lambda: [0.0, 0.0, 2.6], ge=-MAX_SCALAR, le=MAX_SCALAR)  # world (m)
+    light_ambient: float = ranged(0.55, ge=0, le=MAX_SCALAR)  # shading where the light does not reach
+    light_diffuse: float = ranged(1.3, ge=0, le=MAX_SCALAR)  # gain of the Lambertian term at distance 0
+    light_range: float = ranged(4.0, gt=0, le=MAX_SCALAR)  # m; the diffuse term halves at this distance from the light
+    vignetting: float = ranged(0.0, ge=0, le=1)  # darkening of the farthest image corner (fraction; 0: off)
 
 
 @dataclass(frozen=True)
@@ -72,6 +88,13 @@ class Renderer:
         tpm0 = np.sqrt(atlas.texels_per_m_u[:, 0].astype(np.float64) * atlas.texels_per_m_v[:, 0])
         self._level_offset = (np.log2(tpm0) - 0.5 * np.log2(fx * fy) + self.cfg.mip_bias).astype(np.float32)
         self._norm_d = np.sqrt(self._xs[None, :] ** 2 + self._ys[:, None] ** 2 + 1).astype(np.float32)
+        self._vignette = None
+        if self.cfg.vignetting > 0:
+            du = np.arange(self.width) - cx
+            dv = np.arange(self.height) - cy
+            r2 = du[None, :] ** 2 + dv[:, None] ** 2
+            r2_corner = max(cx ** 2, (self.width - 1 - cx) ** 2) + max(cy ** 2, (self.height - 1 - cy) ** 2)
+            self._vignette = (1.0 - self.cfg.vignetting * r2 / r2_corner).astype(np.float32)
 
     def _visible_quads(self, R_WC: np.ndarray, t_WC: np.ndarray):
         """Indices and pixel bounding boxes (u0, u1, v0, v1; exclusive ends) of the quads that may be
@@ -152,6 +175,8 @@ class Renderer:
             sky = qbuf < 0
             depth = np.where(sky, np.float32(0.0), zbuf)
             grey = self._shade(qbuf, sbuf, tbuf, depth, dbuf)
+            if self.cfg.point_light:
+                grey *= self._lighting(qbuf, depth, R_WC, t_WC)
         sky_value = np.float32(self.cfg.sky_grey)
         if colour:
             img = grey[..., None] * self.atlas.tint[np.maximum(qbuf, 0)]
@@ -159,7 +184,26 @@ class Renderer:
             img = np.clip(img, 0, 255)
         else:
             img = np.where(sky, sky_value, grey)
+        if self._vignette is not None:
+            img = img * (self._vignette[..., None] if img.ndim == 3 else self._vignette)
         return RenderOutput(image=img, depth=depth, quad_id=qbuf)
+
+    def _lighting(self, qbuf: np.ndarray, z: np.ndarray, R_WC: np.ndarray, t_WC: np.ndarray) -> np.ndarray:
+        """(H, W) float32 point-light shading factor (module docstring) of the hit surface points."""
+        cfg = self.cfg
+        q = np.maximum(qbuf, 0)
+        X_C = np.stack([self._xs[None, :] * z, self._ys[:, None] * z, z], axis=-1)
+        X_W = X_C @ R_WC.T.astype(np.float32) + t_WC.astype(np.float32)
+        to_light = np.asarray(cfg.light_position, np.float32) - X_W
+        d2 = np.einsum("hwi,hwi->hw", to_light, to_light)
+        n = self.scene.normals.astype(np.float32)[q]
+        # two-sided quads: the side that faces the camera
+        facing = np.einsum("hwi,hwi->hw", n, t_WC.astype(np.float32) - X_W)
+        n *= np.where(facing < 0, np.float32(-1.0), np.float32(1.0))[..., None]
+        cos = np.einsum("hwi,hwi->hw", n, to_light) / np.sqrt(np.maximum(d2, np.float32(_MIN_LIGHT_DIST2)))
+        r0 = np.float32(cfg.light_range ** 2)
+        return (np.float32(cfg.light_ambient)
+                + np.float32(cfg.light_diffuse) * np.maximum(cos, np.float32(0.0)) * r0 / (r0 + d2)).astype(np.float32)
 
     def _shade(self, qbuf: np.ndarray, s: np.ndarray, t: np.ndarray, z: np.ndarray,
                den: np.ndarray) -> np.ndarray:

@@ -13,6 +13,16 @@ Presets:
   ceiling, a floor of tiles with faint grout lines, doors with a darker frame and a handle, a few
   plain cabinets): white walls and corridors with few corners, where sparse patches starve and
   dense methods are meant to keep tracking.
+- ``panel-room``: texture-poor indoor RGB-D (issue 23, held-out row 1): walls of near-white panels
+  with thin grout lines, a tiled floor, plain ceiling, door frames; lit by a point light at the
+  ceiling with Lambertian shading and mild vignetting (``render.point_light``, ``render.vignetting``);
+  the camera walks along an elliptic arc close to the walls (0.5-2 m), looking outwards at them, and
+  turns ``turn_deg`` of yaw over the default frames (10 Hz), with hand-held wobble.
+- ``rotation-sweep``: rotation-dominant hand-held camera (held-out rows 2-3, the distorted global-shutter
+  row): the textured room of ``room-loop`` (smaller), a roll / pitch / yaw sweep whose mean angular
+  speed is ``rotation_speed_deg_s`` over a small translation, 30 Hz, and raw images with strong radial
+  distortion (``camera.distortion``, written to sensor.yaml so that the loaders undistort; depth0 is
+  distorted the same way).
 - ``orbit``: camera circling a cluster of boxes in a hall, always looking at the cluster centre.
 - ``highway``: fast forward drive (``speed`` m/s, 10 Hz: 2-3 m between frames) along a gently
   curved road (one lateral S-bend over ``duration_s``), sparse roadside structure (guard rails,
@@ -34,10 +44,10 @@ from ...errors import ConfigError
 from .imu import ImuConfig
 from .render import RenderConfig
 from .scene import Scene
-from .texture import STYLE_DOOR, STYLE_PLAIN, STYLE_TILES, TextureConfig
+from .texture import STYLE_DOOR, STYLE_PANELS, STYLE_PLAIN, STYLE_TILES, PlainTextureConfig, TextureConfig
 from .trajectory import AnalyticTrajectory, Fourier1D, TimeWarp, closed_curve_fourier, rounded_rectangle
 
-PRESET_NAMES = ("room-loop", "street-loop", "orbit", "highway", "low-texture")
+PRESET_NAMES = ("room-loop", "street-loop", "orbit", "highway", "low-texture", "panel-room", "rotation-sweep")
 
 _ROAD_SAMPLES = 8192  # arc-length samples of the rounded rectangle fitted by the Fourier road
 _GROUND_LINE_SAMPLES = 2048  # samples of the road centre line for choosing ground tiles
@@ -52,6 +62,24 @@ _POLE_SIZE = (0.25, 0.25, 5.0)
 _POLE_SETBACK = 1.5            # poles stand this much closer to the road than the facades
 _ORBIT_FLOOR_MARGIN = 2.5      # the dense floor decal extends this far beyond the orbit radius
 _DECAL_OFFSET = 0.002          # height of the dense floor decal above the coarse floor
+
+# panel-room and rotation-sweep camera / lighting defaults
+_PANEL_HFOV_DEG = 67.0          # ICL-NUIM-like VGA render (fx ~ 480)
+_PANEL_TILE_LINE_DEPTH = 0.3    # floor grout darker than the low-texture preset's faint 0.1
+_PANEL_VIGNETTING = 0.1         # corner darkening (0.25 made dense_rgbd drift 10.8 % of the path, 0: 0.12 %)
+_PANEL_COLOUR_SATURATION = 0.08  # faint per-surface tints: near-white walls
+_PANEL_ALBEDO_JITTER = 0.02     # panels differ by ~2 % in brightness
+_LIGHT_BELOW_CEILING = 0.1      # m: the point light hangs this far below the ceiling, at the room centre
+_SWEEP_HFOV_DEG = 62.7          # Kinect v1: fx = 525 at 640 px
+_SWEEP_RATE_HZ = 1e9 / 33_333_333  # 30 Hz to a whole-nanosecond frame period (SynthConfig.validate)
+_SWEEP_EXPOSURE_S = 0.012       # motion blur of a hand-held Kinect indoors (2-3 deg at the fastest rotations)
+_SWEEP_BLUR_SAMPLES = 12
+_SWEEP_DISTORTION = (-0.30, 0.09, 0.0, 0.0)  # k1, k2, p1, p2: strong barrel, invertible over the VGA image
+_SWEEP_SPEED_SAMPLES = 4096     # samples of one period for scaling the sweep to its mean angular speed
+_SWEEP_SPEED_ITERATIONS = 50    # fixed-point steps of that scale at most
+_SWEEP_SPEED_TOLERANCE = 1e-13  # relative error of the mean angular speed accepted
+_SWEEP_MAX_SCALE = 10.0         # largest scale of the base amplitudes (angles beyond it wrap the attitude)
+_MIN_TURN_DEG = 1e-3            # panel-room: a smaller turn_deg is treated as this (the ellipse period stays finite)
 
 # texture styles: index into TextureConfig.style_mark_scale
 STYLE_WALL, STYLE_GROUND, STYLE_OBJECT = 0, 1, 2
@@ -71,6 +99,12 @@ class CameraConfig:
     t_BS: list[float] = ranged(default_factory=lambda: [0.06, -0.02, 0.03], ge=-MAX_SCALAR, le=MAX_SCALAR)  # cam0 origin in body (m)
     colour: bool = False                # write RGB PNGs (per-surface tints) instead of grey
     depth_scale: float = ranged(1000.0, gt=0, le=MAX_SCALAR)  # depth PNG units per metre (0 = invalid, > 65535 -> 0)
+    distortion: list[float] = ranged(default_factory=lambda: [0.0, 0.0, 0.0, 0.0], ge=-1, le=1)  # radial-tangential
+    # (k1, k2, p1, p2) of the raw images (OpenCV model, as EuRoC's sensor.yaml): all zero = pinhole images; otherwise
+    # every image (and depth0) is rendered through it and sensor.yaml carries it, so that the loaders undistort
+    exposure_s: float = ranged(0.0, ge=0, le=MAX_SCALAR)  # motion blur: images are the mean of blur_samples renders over
+    # this exposure centred on the frame time (0: instantaneous); depth0 is the frame time's
+    blur_samples: int = ranged(8, ge=2, le=MAX_COUNT)
 
 
 @dataclass
@@ -103,6 +137,47 @@ class LowTextureConfig(RoomConfig):
     door_size: list[float] = ranged(default_factory=lambda: [0.9, 2.05], gt=0, le=MAX_SCALAR)  # width, height (m)
     door_margin: float = ranged(0.4, ge=0, le=MAX_SCALAR)  # minimum distance of a door from a wall corner and from another door (m)
     door_offset: float = ranged(0.003, gt=0, le=MAX_SCALAR)  # the door leaf stands this far in front of its wall (m)
+
+
+@dataclass
+class PanelRoomConfig:
+    """panel-room scene and motion: an elliptic arc of the body, looking out at the walls."""
+
+    size: list[float] = ranged(default_factory=lambda: [11.5, 6.5, 2.7], gt=0, le=MAX_SCALAR)  # room x, y, z extents (m)
+    path_radii: list[float] = ranged(default_factory=lambda: [4.5, 2.0], gt=0, le=MAX_SCALAR)  # ellipse of the body path (m):
+    # 1.25 m from the walls (11 x 6 m: patch lost 73 frames, dense 7.3 % of path; 12 x 7: 2 failures, dense 2.3 %)
+    start_angle_deg: float = ranged(-100.0, ge=-360, le=360)  # position on the ellipse at t = 0 (0: on +x)
+    turn_deg: float = ranged(184.0, ge=0, le=3600)  # angle along the ellipse (= mean yaw turned) over duration_s
+    duration_s: float = ranged(18.8, gt=0, le=MAX_SCALAR)  # seconds of the walk (default frames: duration * rate + 1)
+    view_offset_deg: float = ranged(25.0, ge=-180, le=180)  # view direction relative to the outward normal
+    # of the ellipse (positive: ahead along the walk)
+    height: float = ranged(1.3, gt=0, le=MAX_SCALAR)  # mean body height (m)
+    mean_pitch_deg: float = ranged(14.0, ge=-90, le=90)  # nose down: the floor enters the bottom of the view near corners
+    jitter: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # scale of the hand-held wobble (_PANEL_WOBBLE)
+    wall_density: float = ranged(200.0, gt=0, le=MAX_SCALAR)  # texels per metre (joints of 5 mm need ~1 texel)
+    floor_density: float = ranged(100.0, gt=0, le=MAX_SCALAR)
+    door_at: list[float] = ranged(default_factory=lambda: [0.6], ge=0, le=1)  # one door (with a darker frame band)
+    # on the wall that the mean view direction meets at each of these fractions of the walk (centred there)
+    door_size: list[float] = ranged(default_factory=lambda: [0.9, 2.05], gt=0, le=MAX_SCALAR)  # width, height (m)
+    door_margin: float = ranged(0.4, ge=0, le=MAX_SCALAR)  # minimum distance from a wall corner (m)
+    door_offset: float = ranged(0.003, gt=0, le=MAX_SCALAR)  # the door leaf stands this far in front of its wall (m)
+
+
+@dataclass
+class RotationSweepConfig(RoomConfig):
+    """rotation-sweep scene (the room-loop room fields, a smaller room) and its roll / pitch / yaw sweep."""
+
+    size: list[float] = ranged(default_factory=lambda: [5.0, 4.0, 2.7], gt=0, le=MAX_SCALAR)
+    n_boxes: int = ranged(8, ge=0, le=MAX_COUNT)
+    path_radii: list[float] = ranged(default_factory=lambda: [0.15, 0.15], gt=0, le=MAX_SCALAR)  # boxes keep clear of it
+    path_clearance: float = ranged(0.6, ge=0, le=MAX_SCALAR)
+    loop_duration_s: float = ranged(10.0, gt=0, le=MAX_SCALAR)  # period of the sweep (default frames: one period + 1)
+    rotation_speed_deg_s: float = ranged(69.0, ge=0, le=MAX_SCALAR)  # mean angular speed over one period: the
+    # amplitudes of _SWEEP_ROTATION are scaled to it (held-out: ~1,600 deg over 723 frames at 30 Hz)
+    translation_radius: float = ranged(0.15, ge=0, le=MAX_SCALAR)  # radius of the slow horizontal circle of the body (m)
+    yaw_deg: float = ranged(0.0, ge=-360, le=360)  # mean heading (0: towards +x)
+    phase: float = ranged(0.68, ge=0, le=1)  # the sweep starts this fraction into its period (default: its fastest
+    # phase, ~3 s at 90-120 deg/s, falls in the first fifth of the default frames, as in the held-out run)
 
 
 @dataclass
@@ -208,6 +283,8 @@ class SynthConfig:
     street: StreetConfig = field(default_factory=StreetConfig)
     orbit: OrbitConfig = field(default_factory=OrbitConfig)
     highway: HighwayConfig = field(default_factory=HighwayConfig)
+    panel_room: PanelRoomConfig = field(default_factory=PanelRoomConfig)
+    rotation_sweep: RotationSweepConfig = field(default_factory=RotationSweepConfig)
     stop_frame: int = ranged(0, ge=0, le=MAX_FRAMES)  # stop-and-go: camera frame at which the body comes to rest (any preset)
     stop_frames: int = ranged(0, ge=0, le=MAX_FRAMES)  # stop-and-go: frames the body stays at rest (0: no stop); the motion after it is delayed
     stop_ramp_s: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # stop-and-go: seconds of smooth deceleration before and acceleration after the stop
@@ -219,6 +296,9 @@ class SynthConfig:
         if len(self.texture.plain.albedo) != 3:
             raise ConfigError("texture.plain.albedo: expected 3 albedos (plain, tiles, door), "
                               f"got {len(self.texture.plain.albedo)}")
+        if len(self.camera.distortion) != 4:
+            raise ConfigError("camera.distortion: expected 4 radial-tangential coefficients (k1, k2, p1, p2), "
+                              f"got {len(self.camera.distortion)}")
         if 1e9 / self.camera.rate_hz != round(1e9 / self.camera.rate_hz) or \
                 1e9 / self.imu.rate_hz != round(1e9 / self.imu.rate_hz):
             raise ConfigError("camera.rate_hz / imu.rate_hz: periods must be whole nanoseconds")
@@ -226,7 +306,9 @@ class SynthConfig:
     def loop_duration_s(self) -> float:
         return {"room-loop": self.room.loop_duration_s, "low-texture": self.low_texture.loop_duration_s,
                 "street-loop": self.street.loop_duration_s,
-                "orbit": self.orbit.loop_duration_s, "highway": self.highway.duration_s}[self.preset]
+                "orbit": self.orbit.loop_duration_s, "highway": self.highway.duration_s,
+                "panel-room": self.panel_room.duration_s,
+                "rotation-sweep": self.rotation_sweep.loop_duration_s}[self.preset]
 
 
 def default_config(preset: str) -> SynthConfig:
@@ -238,6 +320,17 @@ def default_config(preset: str) -> SynthConfig:
         cfg.camera = CameraConfig(width=640, height=200, hfov_deg=82.0, rate_hz=10.0, baseline=0.54)
     elif preset == "orbit":
         cfg.camera = CameraConfig(hfov_deg=70.0)
+    elif preset == "panel-room":  # VGA RGB-D at 10 Hz, albedo-only textures lit per pixel by the point light
+        cfg.camera = CameraConfig(hfov_deg=_PANEL_HFOV_DEG, rate_hz=10.0, colour=True)
+        cfg.texture = TextureConfig(ambient=1.0, colour_saturation=_PANEL_COLOUR_SATURATION,
+                                    plain=PlainTextureConfig(tile_line_depth=_PANEL_TILE_LINE_DEPTH,
+                                                             panel_albedo_jitter=_PANEL_ALBEDO_JITTER))
+        cfg.render = RenderConfig(point_light=True, light_position=[0.0, 0.0, cfg.panel_room.size[2] - _LIGHT_BELOW_CEILING],
+                                  vignetting=_PANEL_VIGNETTING)
+    elif preset == "rotation-sweep":  # Kinect-like VGA at 30 Hz with a strong barrel distortion
+        cfg.camera = CameraConfig(hfov_deg=_SWEEP_HFOV_DEG, rate_hz=_SWEEP_RATE_HZ, colour=True,
+                                  distortion=list(_SWEEP_DISTORTION), exposure_s=_SWEEP_EXPOSURE_S,
+                                  blur_samples=_SWEEP_BLUR_SAMPLES)
     cfg.frames = int(round(cfg.loop_duration_s() * cfg.camera.rate_hz)) + 1
     return cfg
 
@@ -284,9 +377,15 @@ def _build_room(cfg: RoomConfig, rng: np.random.Generator, wall_style: int = STY
 
 
 def _build_low_texture(cfg: LowTextureConfig, rng: np.random.Generator) -> Scene:
-    """The room of :func:`_build_room` in plain styles, plus ``n_doors`` doors: quads just in front
-    of the walls (the walls are those of :func:`_room_box`: origin corner, u along the wall)."""
+    """The room of :func:`_build_room` in plain styles, plus ``n_doors`` doors (:func:`_add_doors`)."""
     scene = _build_room(cfg, rng, wall_style=STYLE_PLAIN, floor_style=STYLE_TILES, box_style=STYLE_PLAIN)
+    _add_doors(scene, cfg, cfg.wall_density, rng)
+    return scene
+
+
+def _add_doors(scene: Scene, cfg, density: float, rng: np.random.Generator) -> None:
+    """``cfg.n_doors`` doors (``door_size``, ``door_margin``, ``door_offset`` of ``cfg``): quads just in
+    front of the walls (the first four quads of :func:`_room_box`: origin corner, u along the wall)."""
     walls = scene.arrays()
     door_w, door_h = cfg.door_size
     taken: list[list[tuple[float, float]]] = [[] for _ in range(4)]  # door intervals along each wall
@@ -304,8 +403,45 @@ def _build_low_texture(cfg: LowTextureConfig, rng: np.random.Generator) -> Scene
         taken[wall].append((s0, s0 + door_w))
         origin = walls.origins[wall] + s0 * walls.axes_u[wall] + cfg.door_offset * walls.normals[wall]
         scene.add_quad(origin, walls.axes_u[wall], walls.axes_v[wall], door_w, door_h,
-                       density=cfg.wall_density, style=STYLE_DOOR)
+                       density=density, style=STYLE_DOOR)
         placed += 1
+
+
+def _build_panel_room(cfg: PanelRoomConfig) -> Scene:
+    """Walls of near-white panels (joints every ``texture.plain.panel_size_m``), a tiled floor, a plain
+    ceiling and a door at each ``door_at`` fraction of the walk, where the mean view direction (the
+    ellipse angle plus ``view_offset_deg``, without wobble) meets a wall; no furniture, no randomness."""
+    scene = Scene()
+    _room_box(scene, cfg.size, cfg.wall_density, STYLE_PANELS, floor_style=STYLE_TILES)
+    # floor and ceiling (quads 4 and 5 of _room_box) at their own density; a plain ceiling
+    scene.densities[4] = cfg.floor_density
+    scene.densities[5] = cfg.floor_density
+    scene.styles[5] = STYLE_PLAIN
+    walls = scene.arrays()
+    rx, ry = cfg.path_radii
+    door_w, door_h = cfg.door_size
+    for frac in cfg.door_at:
+        phi = np.deg2rad(cfg.start_angle_deg + frac * cfg.turn_deg)
+        p = np.array([rx * np.cos(phi), ry * np.sin(phi), 0.0])
+        view = phi + np.deg2rad(cfg.view_offset_deg)
+        d = np.array([np.cos(view), np.sin(view), 0.0])
+        best = None  # (ray parameter, wall) of the nearest wall the view ray meets from inside
+        for wall in range(4):
+            den = float(walls.normals[wall] @ d)
+            if den >= 0:  # inward-facing walls: the ray must run against the normal
+                continue
+            lam = float(walls.normals[wall] @ (walls.origins[wall] - p)) / den
+            if best is None or lam < best[0]:
+                best = (lam, wall)
+        if best is None:
+            continue
+        wall = best[1]
+        length = walls.sizes[wall, 0]
+        s_hit = float((p + best[0] * d - walls.origins[wall]) @ walls.axes_u[wall])
+        s0 = float(np.clip(s_hit - door_w / 2, cfg.door_margin, max(cfg.door_margin, length - cfg.door_margin - door_w)))
+        origin = walls.origins[wall] + s0 * walls.axes_u[wall] + cfg.door_offset * walls.normals[wall]
+        scene.add_quad(origin, walls.axes_u[wall], walls.axes_v[wall], door_w, door_h,
+                       density=cfg.wall_density, style=STYLE_DOOR)
     return scene
 
 
@@ -498,7 +634,9 @@ def build_scene(cfg: SynthConfig, rng: np.random.Generator) -> Scene:
                 "low-texture": lambda: _build_low_texture(cfg.low_texture, rng),
                 "street-loop": lambda: _build_street(cfg.street, rng),
                 "orbit": lambda: _build_orbit(cfg.orbit, rng),
-                "highway": lambda: _build_highway(cfg, rng)}
+                "highway": lambda: _build_highway(cfg, rng),
+                "panel-room": lambda: _build_panel_room(cfg.panel_room),
+                "rotation-sweep": lambda: _build_room(cfg.rotation_sweep, rng)}
     return builders[cfg.preset]()
 
 
@@ -521,6 +659,16 @@ _STREET_WOBBLE = {"z_sin": {37: 0.01, 54: 0.006}, "pitch_sin": {18: 0.006, 44: 0
                   "roll_cos": {7: 0.004, 33: 0.006}}
 _HIGHWAY_WOBBLE = {"z_sin": {23: 0.01, 31: 0.005}, "pitch_sin": {9: 0.004, 27: 0.003},
                    "roll_cos": {5: 0.003, 17: 0.004}}
+# panel-room: hand-held wobble at 0.3-1.5 Hz ({harmonic of the walk's full-ellipse period: amplitude})
+_PANEL_WOBBLE = {"radial": {14: 0.04, 33: 0.015}, "tangential": {19: 0.05, 41: 0.01}, "z_sin": {11: 0.04, 29: 0.015},
+                 "yaw_sin": {12: 0.05, 27: 0.02}, "pitch_sin": {16: 0.04, 37: 0.015}, "roll_sin": {13: 0.03, 31: 0.01}}
+# rotation-sweep: roll / pitch / yaw as {harmonic of the period: amplitude (rad)} before scaling to
+# rotation_speed_deg_s; incommensurate harmonics give slow and fast phases (the fastest in the first fifth)
+_SWEEP_ROTATION = {"yaw_sin": {2: 0.35, 5: 0.12, 9: 0.04}, "yaw_cos": {3: 0.1},
+                   "pitch_sin": {3: 0.2, 7: 0.05}, "pitch_cos": {4: 0.08},
+                   "roll_sin": {4: 0.15, 11: 0.03}, "roll_cos": {2: 0.1}}
+_SWEEP_HEIGHT_WOBBLE = {3: 0.04, 7: 0.01}  # z (m)
+_SWEEP_MEAN_PITCH = 0.15  # rad, nose down
 _ORBIT_WOBBLE = {"xy_radial": {3: 0.1}, "z_sin": {2: 0.3}, "yaw_sin": {3: 0.05}, "pitch_sin": {2: 0.06}}
 
 
@@ -563,6 +711,12 @@ def _preset_trajectory(cfg: SynthConfig) -> AnalyticTrajectory:
             pitch=Fourier1D(T, c0=_ROOM_MEAN_PITCH, sin_coeffs=_coeffs(w["pitch_sin"], j)),
             roll=Fourier1D(T, cos_coeffs=_coeffs(w["roll_cos"], j), sin_coeffs=_coeffs(w["roll_sin"], j)),
         )
+    if cfg.preset == "panel-room":
+        return _panel_room_trajectory(cfg.panel_room)
+    if cfg.preset == "rotation-sweep":
+        rs = cfg.rotation_sweep
+        scale = sweep_rotation_scale(rs)
+        return _sweep_trajectory(rs, scale)
     if cfg.preset == "street-loop":
         sc, w = cfg.street, _STREET_WOBBLE
         j = sc.jitter
@@ -596,6 +750,89 @@ def _preset_trajectory(cfg: SynthConfig) -> AnalyticTrajectory:
         pitch=Fourier1D(T, c0=pitch, sin_coeffs=_coeffs(w["pitch_sin"], j)),
         roll=Fourier1D(T),
     )
+
+
+def _panel_room_trajectory(pc: PanelRoomConfig) -> AnalyticTrajectory:
+    """Body on the ellipse ``(rx cos phi, ry sin phi)`` with ``phi = phi0 + turn * t / duration`` (one
+    full-ellipse period ``T = duration * 360 / turn``), radial / tangential / height / attitude wobble,
+    yaw = the outward normal of the ellipse plus ``view_offset_deg``. The outward normal direction of
+    ``(rx cos, ry sin)`` is not a Fourier series in phi, so the yaw follows the angle phi itself
+    (exact for a circle; within a few degrees of the normal for the default ellipse)."""
+    w = _PANEL_WOBBLE
+    j = pc.jitter
+    turn = np.deg2rad(max(pc.turn_deg, _MIN_TURN_DEG))
+    T = pc.duration_s * 2.0 * np.pi / turn
+    phi0 = np.deg2rad(pc.start_angle_deg)
+    rx, ry = pc.path_radii
+    c, s = np.cos(phi0), np.sin(phi0)
+    # r(phi) (cos phi, sin phi)-like wobble: radial terms along (cos phi, sin phi) are approximated by x / y terms
+    # of the same harmonics (the wobble is small; its shape is what matters)
+    return AnalyticTrajectory(
+        x=Fourier1D(T, cos_coeffs=_coeffs(w["radial"], j, {1: rx * c}), sin_coeffs=_coeffs(w["tangential"], j, {1: -rx * s})),
+        y=Fourier1D(T, cos_coeffs=_coeffs(w["tangential"], j, {1: ry * s}), sin_coeffs=_coeffs(w["radial"], j, {1: ry * c})),
+        z=Fourier1D(T, c0=pc.height, sin_coeffs=_coeffs(w["z_sin"], j)),
+        yaw=Fourier1D(T, c0=phi0 + np.deg2rad(pc.view_offset_deg), rate=2.0 * np.pi / T,
+                      sin_coeffs=_coeffs(w["yaw_sin"], j)),
+        pitch=Fourier1D(T, c0=np.deg2rad(pc.mean_pitch_deg), sin_coeffs=_coeffs(w["pitch_sin"], j)),
+        roll=Fourier1D(T, sin_coeffs=_coeffs(w["roll_sin"], j)),
+    )
+
+
+def _shifted(terms: dict[int, float], other: dict[int, float], shift: float, cos_part: bool) -> dict[int, float]:
+    """Coefficients of ``sum_k a_k cos(k w (t + s)) + b_k sin(k w (t + s))`` in cos (``cos_part``) or sin
+    terms of ``k w t``, with ``s = shift * period`` (``terms``: the a_k when cos_part else the b_k)."""
+    a_terms, b_terms = (terms, other) if cos_part else (other, terms)
+    out = {}
+    for k in set(a_terms) | set(b_terms):
+        a, b, phi = a_terms.get(k, 0.0), b_terms.get(k, 0.0), 2.0 * np.pi * k * shift
+        out[k] = a * np.cos(phi) + b * np.sin(phi) if cos_part else b * np.cos(phi) - a * np.sin(phi)
+    return out
+
+
+def _sweep_trajectory(rs: RotationSweepConfig, scale: float) -> AnalyticTrajectory:
+    """Roll / pitch / yaw sweep of :data:`_SWEEP_ROTATION` times ``scale`` about a fixed heading, started
+    ``phase`` into its period, body on a horizontal circle of ``translation_radius`` (once per period)
+    with a height wobble."""
+    T = rs.loop_duration_s
+    w = _SWEEP_ROTATION
+    r = rs.translation_radius
+
+    def series(name: str, c0: float = 0.0) -> Fourier1D:
+        cos_t, sin_t = w.get(f"{name}_cos", {}), w.get(f"{name}_sin", {})
+        return Fourier1D(T, c0=c0, cos_coeffs=_coeffs(_shifted(cos_t, sin_t, rs.phase, True), scale),
+                         sin_coeffs=_coeffs(_shifted(sin_t, cos_t, rs.phase, False), scale))
+
+    return AnalyticTrajectory(
+        x=Fourier1D(T, cos_coeffs=(r,)), y=Fourier1D(T, sin_coeffs=(r,)),
+        z=Fourier1D(T, c0=rs.height, sin_coeffs=_coeffs(_SWEEP_HEIGHT_WOBBLE, rs.jitter)),
+        yaw=series("yaw", np.deg2rad(rs.yaw_deg)), pitch=series("pitch", _SWEEP_MEAN_PITCH), roll=series("roll"),
+    )
+
+
+def sweep_mean_angular_speed(rs: RotationSweepConfig, scale: float) -> float:
+    """Mean of |w_B| (deg/s) over one period of the sweep with amplitudes times ``scale``."""
+    t = np.arange(_SWEEP_SPEED_SAMPLES) * (rs.loop_duration_s / _SWEEP_SPEED_SAMPLES)
+    w_B = _sweep_trajectory(rs, scale).sample(t).w_B
+    return float(np.rad2deg(np.linalg.norm(w_B, axis=1).mean()))
+
+
+def sweep_rotation_scale(rs: RotationSweepConfig) -> float:
+    """Amplitude scale of :data:`_SWEEP_ROTATION` whose mean angular speed is ``rotation_speed_deg_s``:
+    the mean speed is nearly proportional to the scale, so ``scale *= target / speed(scale)`` converges
+    in a few steps (to a relative ``_SWEEP_SPEED_TOLERANCE``)."""
+    target = rs.rotation_speed_deg_s
+    if target == 0:
+        return 0.0
+    scale = 1.0
+    for _ in range(_SWEEP_SPEED_ITERATIONS):
+        speed = sweep_mean_angular_speed(rs, scale)
+        if abs(speed - target) <= _SWEEP_SPEED_TOLERANCE * target:
+            return scale
+        scale *= target / speed
+        if scale > _SWEEP_MAX_SCALE:
+            raise ConfigError(f"rotation_sweep.rotation_speed_deg_s: {target} deg/s needs the sweep's angles scaled "
+                              f"by more than {_SWEEP_MAX_SCALE:g}")
+    raise ConfigError(f"rotation_sweep.rotation_speed_deg_s: no sweep of {target} deg/s mean angular speed found")
 
 
 def load_synth_config(preset: str | None = None, path=None, overrides=()) -> SynthConfig:

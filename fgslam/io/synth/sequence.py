@@ -17,6 +17,7 @@ from functools import cached_property
 
 import numpy as np
 
+from .distortion import DistortedCamera
 from .imu import ImuData, simulate_imu
 from .scenarios import CameraConfig, SynthConfig, build_scene, build_trajectory
 from .render import Renderer, RenderOutput
@@ -68,7 +69,13 @@ class SynthSequence:
         cam = cfg.camera
         f = 0.5 * cam.width / np.tan(0.5 * np.deg2rad(cam.hfov_deg))
         self.K = (float(f), float(f), 0.5 * cam.width, 0.5 * cam.height)
-        self.renderer = Renderer(self.scene, self.atlas, self.K, cam.width, cam.height, cfg.render)
+        # raw images with lens distortion (camera.distortion not all zero): a pinhole canvas resampled
+        self.distorted = DistortedCamera(self.K, cam.width, cam.height, cam.distortion) if any(cam.distortion) else None
+        if self.distorted is None:
+            self.renderer = Renderer(self.scene, self.atlas, self.K, cam.width, cam.height, cfg.render)
+        else:
+            self.renderer = Renderer(self.scene, self.atlas, self.distorted.canvas_K, *self.distorted.canvas_size,
+                                     cfg.render)
         logger.info("synthetic %s: %d quads, %.1f M texels", cfg.preset, len(self.scene),
                     self.atlas.texels.size / 1e6)
 
@@ -119,7 +126,9 @@ class SynthSequence:
 
     # ------------------------------------------------------------------ rendering
     def render_view(self, T_WC: np.ndarray) -> RenderOutput:
-        return self.renderer.render(T_WC, colour=self.cfg.camera.colour)
+        """Raw view of camera pose ``T_WC``: intrinsics ``K``, distorted by ``camera.distortion``."""
+        out = self.renderer.render(T_WC, colour=self.cfg.camera.colour)
+        return out if self.distorted is None else self.distorted.resample(out)
 
     def frame(self, index: int) -> StereoFrame:
         t = float(index) / self.cfg.camera.rate_hz
@@ -127,5 +136,15 @@ class SynthSequence:
         T_WC0 = T_WB @ self.T_BS0
         left = self.render_view(T_WC0)
         right = self.render_view(T_WC0 @ self.T_S0S1)
-        return StereoFrame(index=index, t=t, T_WB=T_WB, T_WC0=T_WC0, image0=left.image,
-                           image1=right.image, depth0=left.depth)
+        image0, image1 = left.image, right.image
+        cam = self.cfg.camera
+        if cam.exposure_s > 0:  # motion blur: mean over the exposure (depth stays the frame time's)
+            dt = cam.exposure_s * (np.arange(cam.blur_samples) / (cam.blur_samples - 1) - 0.5)
+            image0, image1 = np.zeros_like(image0), np.zeros_like(image1)
+            for T in self.camera_poses(t + dt):
+                image0 += self.render_view(T).image
+                image1 += self.render_view(T @ self.T_S0S1).image
+            image0 /= cam.blur_samples
+            image1 /= cam.blur_samples
+        return StereoFrame(index=index, t=t, T_WB=T_WB, T_WC0=T_WC0, image0=image0,
+                           image1=image1, depth0=left.depth)

@@ -8,9 +8,11 @@ view-independent and brightness constancy holds exactly). Every quad gets its ow
 places can be recognised. Textures are stored as uint8 mip pyramids (``cv2.pyrDown``) in one flat
 atlas; :class:`TextureAtlas` holds per (quad, level) offsets, shapes and texels per metre.
 
-Low-texture styles (:data:`PLAIN_STYLES`: plain paint, floor tiles, doors) are the opposite: a
-uniform albedo with faint smooth noise, plus faint grout lines on a regular grid (tiles) or a door
-leaf with a darker frame band and a handle (doors). They are not normalised to a fixed contrast.
+Low-texture styles (:data:`PLAIN_STYLES`: plain paint, floor tiles, doors, wall panels) are the
+opposite: a uniform albedo with faint smooth noise, plus faint grout lines on a regular grid (tiles),
+a door leaf with a darker frame band and a handle (doors), or thin grout lines between near-white
+rectangular panels (panels: ``panel_size_m`` wide and high, ``panel_line_width_m`` joints). They are
+not normalised to a fixed contrast.
 """
 
 from __future__ import annotations
@@ -33,8 +35,8 @@ _LINE_WIDTH_M = (0.005, 0.03)  # range of line widths
 _NORMALISED_STD = 0.25  # standard deviation of a texture after normalisation (values in [0, 1])
 
 # texture styles beyond the textured ones of TextureConfig.style_mark_scale (0 wall, 1 ground, 2 object)
-STYLE_PLAIN, STYLE_TILES, STYLE_DOOR = 3, 4, 5
-PLAIN_STYLES = (STYLE_PLAIN, STYLE_TILES, STYLE_DOOR)
+STYLE_PLAIN, STYLE_TILES, STYLE_DOOR, STYLE_PANELS = 3, 4, 5, 6
+PLAIN_STYLES = (STYLE_PLAIN, STYLE_TILES, STYLE_DOOR, STYLE_PANELS)
 
 
 @dataclass
@@ -53,6 +55,11 @@ class PlainTextureConfig:
     handle_position_m: list[float] = ranged(default_factory=lambda: [0.12, 1.0], ge=0, le=MAX_SCALAR)  # handle centre from the
     # door's far edge (along u) and from its bottom (along v)
     handle_albedo: float = ranged(0.1, ge=0, le=1)
+    panel_albedo: float = ranged(0.94, ge=0, le=1)  # wall panels (STYLE_PANELS): near-white
+    panel_size_m: list[float] = ranged(default_factory=lambda: [0.6, 1.2], gt=0, le=MAX_SCALAR)  # panel (width along u, height along v)
+    panel_line_width_m: float = ranged(0.005, gt=0, le=MAX_SCALAR)  # joint between panels (a few px at 1 m in VGA)
+    panel_line_depth: float = ranged(0.35, ge=0, le=1)  # joint darkening (fraction of the albedo)
+    panel_albedo_jitter: float = ranged(0.0, ge=0, le=1)  # std of each panel's own albedo factor (0: identical panels)
 
 
 @dataclass
@@ -181,20 +188,29 @@ def make_plain_texture(size_m: tuple[float, float], density: float, style: int, 
     su, sv = size_m
     w = max(4, int(np.ceil(su * density)))
     h = max(4, int(np.ceil(sv * density)))
-    albedo = cfg.albedo[PLAIN_STYLES.index(style)]
+    albedo = cfg.panel_albedo if style == STYLE_PANELS else cfg.albedo[PLAIN_STYLES.index(style)]
     noise_cfg = TextureConfig(noise_cells_m=[cfg.noise_cell_m])
     noise = _value_noise((h, w), 1.0 / density, noise_cfg, rng)
     noise = (noise - noise.mean()) / max(float(noise.std()), 1e-6)
     img = np.full((h, w), albedo, np.float32) * (1.0 + cfg.noise * noise)
     s = (np.arange(w) + 0.5) / density  # texel centres in metres
     t = (np.arange(h) + 0.5) / density
-    if style == STYLE_TILES:
-        def grout(x: np.ndarray) -> np.ndarray:  # coverage of a grout line at the tile borders
-            d = np.abs(x - cfg.tile_size_m * np.round(x / cfg.tile_size_m))
-            return np.clip(0.5 + (0.5 * cfg.tile_line_width_m - d) * density, 0.0, 1.0)
+    def grout(x: np.ndarray, period: float, width: float) -> np.ndarray:  # coverage of a line at the borders
+        d = np.abs(x - period * np.round(x / period))
+        return np.clip(0.5 + (0.5 * width - d) * density, 0.0, 1.0)
 
-        line = np.maximum(grout(t)[:, None], grout(s)[None, :])
+    if style == STYLE_TILES:
+        line = np.maximum(grout(t, cfg.tile_size_m, cfg.tile_line_width_m)[:, None],
+                          grout(s, cfg.tile_size_m, cfg.tile_line_width_m)[None, :])
         img *= (1.0 - cfg.tile_line_depth * line).astype(np.float32)
+    elif style == STYLE_PANELS:
+        pw, ph = cfg.panel_size_m
+        line = np.maximum(grout(t, ph, cfg.panel_line_width_m)[:, None], grout(s, pw, cfg.panel_line_width_m)[None, :])
+        if cfg.panel_albedo_jitter > 0:  # panels never match exactly: one albedo factor per panel
+            col, row = np.floor(s / pw).astype(np.int64), np.floor(t / ph).astype(np.int64)
+            factor = 1.0 + cfg.panel_albedo_jitter * rng.standard_normal((row[-1] + 1, col[-1] + 1))
+            img *= factor[row[:, None], col[None, :]].astype(np.float32)
+        img *= (1.0 - cfg.panel_line_depth * line).astype(np.float32)
     elif style == STYLE_DOOR:
         edge = np.minimum(np.minimum(s, su - s)[None, :], np.minimum(t, sv - t)[:, None])
         img *= np.where(edge < cfg.door_frame_m, np.float32(1.0 - cfg.door_frame_depth), np.float32(1.0))

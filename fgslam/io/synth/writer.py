@@ -4,8 +4,9 @@
 
 - ``cam0``, ``cam1``: ``data/<ts_ns>.png`` (8-bit grey, or 8-bit BGR when ``camera.colour``),
   ``data.csv`` (``#timestamp [ns],filename``), ``sensor.yaml`` (EuRoC keys; ``T_BS`` = camera-to-body,
-  ``intrinsics: [fu, fv, cu, cv]``, ``distortion_model: radial-tangential`` with zero coefficients;
-  the pair is rectified, cam1 = cam0 shifted by ``baseline`` along cam0's x axis).
+  ``intrinsics: [fu, fv, cu, cv]``, ``distortion_model: radial-tangential`` with the coefficients
+  ``camera.distortion`` (zero unless the preset renders distorted raw images); the pair is rectified
+  before distortion, cam1 = cam0 shifted by ``baseline`` along cam0's x axis).
 - ``depth0``: ``data/<ts_ns>.png`` 16-bit z-depth of cam0 in units of ``1/depth_scale`` m
   (0 = no surface or beyond 65535 units), ``data.csv``, ``sensor.yaml`` (cam0's keys + ``depth_scale``).
 - ``imu0``: ``data.csv`` (EuRoC columns, rad/s and m/s^2 in the body frame), ``sensor.yaml``
@@ -97,7 +98,7 @@ def _camera_yaml(seq: SynthSequence, T_BS: np.ndarray, comment: str, extra: str 
             "camera_model: pinhole\n"
             f"intrinsics: [{fx:.12g}, {fy:.12g}, {cx:.12g}, {cy:.12g}] #fu, fv, cu, cv\n"
             "distortion_model: radial-tangential\n"
-            "distortion_coefficients: [0.0, 0.0, 0.0, 0.0]\n" + extra)
+            f"distortion_coefficients: [{', '.join(repr(float(c)) for c in cam.distortion)}]\n" + extra)
 
 
 def _imu_yaml(seq: SynthSequence) -> str:
