@@ -1,8 +1,8 @@
 """Depth alignment in the patch family's RGB-D tracking (``patch.depth_align``): a synthetic room whose
 images carry no texture at all (every pixel the same grey) but whose depth is valid is tracked by the
-depth alone, where the image-only frontend loses every frame; and on the textured clip the depth blocks
-do not make the image-tracked run worse. Doing nothing (a camera that stays where it started) is the bar
-each run must clear by far."""
+depth alone, where the image-only frontend loses every frame. Doing nothing (a camera that stays where it
+started) is the bar the run must clear by far. (That the depth blocks keep a textured run accurate is
+checked on 7-Scenes by tests/test_sensor_presets.py: ``handheld_rgbd`` turns them on.)"""
 
 from __future__ import annotations
 
@@ -68,13 +68,3 @@ def test_texture_free_room_is_tracked_by_depth_alone(room):
     ate, ate_still, path = _ate(ds, fe)
     assert ate <= 0.02 * path, f"ATE {ate:.4f} m on a {path:.2f} m path"
     assert ate <= 0.1 * ate_still, f"ATE {ate:.4f} m against {ate_still:.4f} m for a camera that never moves"
-
-
-def test_depth_blocks_keep_the_textured_run_accurate(room):
-    ds, frames = _frames(room, blank=False)
-    fe = _run(frames, depth_align=True)
-    ate, ate_still, path = _ate(ds, fe)
-    assert fe.num_failures == 0
-    # the bound of the image-tracked RGB-D runs in tests/test_patch_rgbd.py
-    assert ate <= 0.005 * path + 0.001, f"ATE {ate:.4f} m on a {path:.2f} m path"
-    assert ate <= 0.05 * ate_still
