@@ -59,6 +59,8 @@ class DepthTracking:
         self.backend = backend
         self.active = bool(active)
         self.K: tuple[float, float, float, float] | None = None
+        if config.enabled and not self.active:
+            logger.warning("depth_align.enabled has no effect without depth images (sensor mode is not rgbd)")
 
     @property
     def enabled(self) -> bool:
