@@ -140,17 +140,19 @@ class DepthTracking:
         return T, constraint
 
     def chain(self, frames: Sequence[tuple[int, DepthSurface | None]], free: set[int] | None = None,
-              limit: int | None = None) -> list[DepthAlignBlock]:
+              limit: int | None = None, usable: Callable[[int, int], bool] | None = None) -> list[DepthAlignBlock]:
         """The window's depth blocks along ``frames`` (``(key, surface)`` in time order): one between each
         two consecutive frames that both have a surface and at least one of whose keys is in ``free``
-        (None: every pair), the newest ``limit`` of them (None: ``window_pairs``; 0: all), oldest first."""
+        (None: every pair), the newest ``limit`` of them (None: ``window_pairs``; 0: all), oldest first.
+        ``usable(key_a, key_b)``: a further condition on a pair (a pair that fails it counts as none)."""
         limit = self.config.window_pairs if limit is None else limit
+        frames = list(frames)
         blocks = []
         for (key_a, surf_a), (key_b, surf_b) in zip(reversed(frames[:-1]), reversed(frames[1:])):
             if limit and len(blocks) == limit:
                 break
             if surf_a is None or surf_b is None or (free is not None and key_a not in free and key_b not in free):
                 continue
-            blocks.append(self.block(key_a, key_b, surf_a, surf_b))
+            if usable is None or usable(key_a, key_b):
+                blocks.append(self.block(key_a, key_b, surf_a, surf_b))
         return blocks[::-1]
-
