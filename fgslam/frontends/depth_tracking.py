@@ -14,19 +14,36 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Callable, Sequence
 
 import numpy as np
 
 from ..config import MAX_ITERATIONS, MAX_WINDOW, ranged
-from ..factors.depth_align import MAX_LEVELS, DepthAlignBlock, DepthAlignConfig, DepthConstraint, DepthSurface
+from ..factors.depth_align import MAX_LEVELS, RIGID_DIM, DepthAlignBlock, DepthAlignConfig, DepthConstraint, DepthSurface
 from ..lie import gtsam_matrix, gtsam_sim3
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DepthTracking", "DepthTrackingConfig"]
+__all__ = ["DepthTracking", "DepthTrackingConfig", "pose_information"]
 
 #: Hold of a rigid (metric RGB-D) pose in the motion-only solve: rotation and translation free, scale fixed.
 RIGID_HOLD = np.array([0.0] * 6 + [np.inf])
+
+
+def pose_information(blocks, values, key: int) -> np.ndarray:
+    """6x6 information (rotation, translation) on pose ``key`` of the measurement ``blocks`` at ``values``
+    (their linear pieces' diagonal blocks of that key, summed): what a frame's image measurements add to
+    its depth's count of constrained directions (:meth:`DepthTracking.hold`)."""
+    from ..factors.schur import POSE_DIM
+
+    H = np.zeros((RIGID_DIM, RIGID_DIM))
+    for block in blocks:
+        for piece in block.linearize(values):
+            keys = [int(k) for k in piece.keys]
+            if int(key) in keys:
+                at = keys.index(int(key)) * POSE_DIM
+                H += np.asarray(piece.H)[at:at + RIGID_DIM, at:at + RIGID_DIM]
+    return H
 
 
 @dataclass
@@ -114,3 +131,34 @@ class DepthTracking:
             return T_WCf, block.constraint(values)
         return T, block.constraint(values)
 
+    def hold(self, block: DepthAlignBlock, T_WCk: np.ndarray, T_WCf: np.ndarray,
+             H_image: np.ndarray | Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, DepthConstraint]:
+        """A frame whose image measurements fell short: its pose ``T_WCf`` (the prediction) aligned by
+        depth to the reference at ``T_WCk`` (:meth:`align`), and what the depth constrains there with the
+        frame's image information ``H_image`` at the aligned pose (a 6x6 matrix, a callable of the aligned
+        4x4 pose, or None: depth alone; :meth:`check`). When that is all six rigid directions
+        (``constraint.ok``) the frame is tracked by depth; otherwise it fails as without depth."""
+        T, constraint = self.align(block, T_WCk, T_WCf)
+        if callable(H_image):
+            H_image = H_image(T)
+        if H_image is not None:
+            constraint = self.check(block, T_WCk, T, H_image)
+        return T, constraint
+
+    def chain(self, frames: Sequence[tuple[int, DepthSurface | None]], free: set[int] | None = None,
+              limit: int | None = None, usable: Callable[[int, int], bool] | None = None) -> list[DepthAlignBlock]:
+        """The window's depth blocks along ``frames`` (``(key, surface)`` in time order): one between each
+        two consecutive frames that both have a surface and at least one of whose keys is in ``free``
+        (None: every pair), the newest ``limit`` of them (None: ``window_pairs``; 0: all), oldest first.
+        ``usable(key_a, key_b)``: a further condition on a pair (a pair that fails it counts as none)."""
+        limit = self.config.window_pairs if limit is None else limit
+        frames = list(frames)
+        blocks = []
+        for (key_a, surf_a), (key_b, surf_b) in zip(reversed(frames[:-1]), reversed(frames[1:])):
+            if limit and len(blocks) == limit:
+                break
+            if surf_a is None or surf_b is None or (free is not None and key_a not in free and key_b not in free):
+                continue
+            if usable is None or usable(key_a, key_b):
+                blocks.append(self.block(key_a, key_b, surf_a, surf_b, window=True))
+        return blocks[::-1]

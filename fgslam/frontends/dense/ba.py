@@ -28,6 +28,7 @@ class DenseBA:
 
     def __init__(self, frontend: "DenseFrontend"):
         self.fe = frontend
+        self.depth_name = f"{frontend.name}.depth"  # the owner of the depth-alignment blocks (RGB-D)
 
     def measure(self, edges: list[tuple[int, int]]) -> None:
         """Measure ``edges`` from the fields the current estimate induces; stores their revisions
@@ -65,13 +66,18 @@ class DenseBA:
         fe = self.fe
         g = fe.graph
         block = self.block(edges)
-        fixed = [k for k in block.keys if k not in {pose_key(f) for f in free}]
+        free_keys = {pose_key(f) for f in free}
+        depth_blocks = self.depth_blocks(free_keys, global_)
+        keys = set(block.keys).union(*(b.keys for b in depth_blocks))
+        fixed = [k for k in keys if k not in free_keys]
         anchor = free[0] if (init or global_ or not fixed) else None
         pair = (free[0], free[-1]) if init and fe.sensor_mode == "mono" and len(free) >= 2 else None
         if global_ and fe.sensor_mode == "mono" and len(free) >= 2:
             pair = (free[0], free[1])
         fe.backend.set_gauge(anchor=anchor, scale_pair=pair)
         fe.backend.set_blocks(fe.name, [block])
+        if fe.depth.enabled:
+            fe.backend.set_blocks(self.depth_name, depth_blocks)
         fe.backend.optimize_window(free, iterations)
         fid_of = {pose_key(f): f for f in g.keyframes}
         for src in block.sources:
@@ -79,6 +85,17 @@ class DenseBA:
         if fe.sensor_mode == "rgbd":  # sensor depths observe no Sim(3) scale: written back rigid (as patch)
             for f in free:
                 fe.backend.set_pose(f, rigid(fe.backend.pose_matrix(f)))
+
+    def depth_blocks(self, free_keys: set[int], global_: bool) -> list:
+        """RGB-D depth alignment: the depth blocks between consecutive keyframes of the map (with their
+        surfaces) at least one of which is free; the newest ``depth_align.window_pairs`` of them, every one
+        in the global optimisation. Empty when depth alignment is off."""
+        fe = self.fe
+        if not fe.depth.enabled:
+            return []
+        g = fe.graph
+        frames = [(pose_key(f), g.keyframes[f].surface) for f in g.order()]
+        return fe.depth.chain(frames, free_keys, 0 if global_ else None)
 
     def local(self, new_fid: int) -> None:
         """Local BA after keyframe ``new_fid``: ``ba.rounds`` of re-measuring the newest keyframes' edges

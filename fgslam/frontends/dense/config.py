@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, ranged
 from ...errors import ConfigError
 from ...factors.depth import DepthPriorConfig
+from ..depth_tracking import DepthTrackingConfig
 from ..flow import DenseFlowConfig
 from .source import DenseSourceConfig
 
@@ -16,6 +17,13 @@ def _default_source() -> DenseSourceConfig:
     source's own default, 3.0, starves faint tile lines: synthetic low-texture mono ATE 1.22 % -> 0.73 %
     of path, room-loop mono 0.18 % -> 0.17 %)."""
     return DenseSourceConfig(flow=DenseFlowConfig(aperture_gradient=1.5))
+
+
+def _default_depth_align() -> DepthTrackingConfig:
+    """Depth alignment off; when on, depth blocks between the consecutive keyframes of the whole local
+    window (``ba.window`` free keyframes and the one before them: 4 pairs), so that a keyframe of a
+    texture-free stretch is never free without a block that holds it."""
+    return DepthTrackingConfig(window_pairs=4)
 
 
 @dataclass
@@ -91,10 +99,12 @@ class DenseConfig:
     ba: DenseBAConfig = field(default_factory=DenseBAConfig)
     tracking: DenseTrackingConfig = field(default_factory=DenseTrackingConfig)
     global_ba: DenseGlobalConfig = field(default_factory=DenseGlobalConfig)
+    depth_align: DepthTrackingConfig = field(default_factory=_default_depth_align)  # RGB-D: point-to-plane depth alignment in tracking and the window
     point_confidence: float = ranged(0.5, ge=0, le=1)  # keyframe_points / depth PNG: grid pixels with confidence below this are left out
     threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads of the frontend (0: torch's default)
 
     def validate(self) -> None:
+        self.depth_align.validate()
         if self.ba.window >= self.graph.active_keyframes:
             raise ConfigError(f"dense.ba.window ({self.ba.window}) must be smaller than dense.graph.active_keyframes "
                               f"({self.graph.active_keyframes}): some active keyframes hold the window's gauge")

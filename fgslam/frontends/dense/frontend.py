@@ -53,6 +53,7 @@ from ...errors import ConfigError, OptimizationError
 from ...factors.reprojection import ReprojectionConfig
 from ...factors.schur import torch_threads
 from ..base import BackendFrontend, FrameStatus, SensorMode
+from ..depth_tracking import DepthTracking
 from ..records import per_frame_motion
 from ..records import RelativePose, resolve_pose, rigid, sim3_power
 from .config import DenseConfig
@@ -94,6 +95,7 @@ class DenseFrontend(BackendFrontend):
         self.source = make_dense_source(self.config.source)
         self.stride = int(self.config.source.stride)
         self._reproj = ReprojectionConfig(min_depth=self.config.ba.min_depth)
+        self.depth = DepthTracking(self.config.depth_align, self.backend, active=sensor_mode == "rgbd")
         self.calibration = None
         self.graph: FrameGraph | None = None
         if calibration is not None:
@@ -108,6 +110,9 @@ class DenseFrontend(BackendFrontend):
                         "global_runs": 0, "low_confidence_frames": 0, "low_texture_frames": 0}
         self._new_since_global = 0
         self._times = {"flow": 0.0, "tracking": 0.0, "ba": 0.0, "global": 0.0, "bookkeeping": 0.0}
+        if self.depth.enabled:
+            self._times["depth"] = 0.0  # surfaces and depth-only tracking of frames
+            self._counts["depth_tracked"] = 0
         self._pending_origin: np.ndarray | None = None  # pose of the next map's first keyframe after a restart
         self._init_frames: dict[int, tuple[int, np.ndarray]] = {}  # monocular, before initialisation: fid -> (keyframe, image)
         self.tracker = DenseTracker(self)
@@ -120,6 +125,7 @@ class DenseFrontend(BackendFrontend):
     def _set_calibration(self, calibration) -> None:
         self.calibration = calibration
         self.K = np.asarray(calibration.K, dtype=np.float64)
+        self.depth.set_intrinsics(self.K)
         self.width, self.height = int(calibration.width), int(calibration.height)
         s = self.stride
         if self.width < s or self.height < s:
@@ -234,12 +240,22 @@ class DenseFrontend(BackendFrontend):
         self._last_fid = fid
 
     # ------------------------------------------------------------------ per frame
+    def _surface(self, frame):
+        """The frame's depth surface (RGB-D depth alignment; None when off), made once per frame."""
+        if not self.depth.enabled:
+            return None
+        t0 = time.perf_counter()
+        surface = self.depth.surface(self._cropped(frame.depth))
+        self._times["depth"] += time.perf_counter() - t0
+        return surface
+
     def _measure_frame(self, fid: int, frame) -> FrameStatus:
         g = self.graph
+        surface = self._surface(frame)
         if not g.keyframes:  # the first keyframe of a map
             T_WC0 = self._pending_origin if self._pending_origin is not None else np.eye(4)
             self._pending_origin = None
-            self.keyframes.add(fid, frame, T_WC0)
+            self.keyframes.add(fid, frame, T_WC0, surface=surface)
             self._velocity = np.eye(4)
             self._last_fid = fid
             if self.sensor_mode != "mono":
@@ -249,30 +265,44 @@ class DenseFrontend(BackendFrontend):
         t0 = time.perf_counter()
         kf_fid = g.active[-1]
         T_WC_pred = self._predict()
+        events = []
+        added = False
         textured = textured_share(self._cropped(frame.image), self.stride, self.config.tracking.texture_gradient)
         if textured < self.config.tracking.min_textured:
-            self._counts["low_texture_frames"] += 1
-            return self._fail(fid, frame, f"tracking lost: no texture ({100 * textured:.1f} % of the grid textured)", T_WC_pred)
-        flow0 = self._times["flow"]
-        self.source.add_frame(fid, self._cropped(frame.image))
-        T_WC, flow, n_conf, ok = self.tracker.track(kf_fid, fid, T_WC_pred)
-        self._times["tracking"] += time.perf_counter() - t0 - (self._times["flow"] - flow0)
-        n_pix = g.shape[0] * g.shape[1]
-        if not ok or n_conf < self.config.tracking.min_confident * n_pix:
-            self.source.remove_frame(fid)
-            self._counts["low_confidence_frames"] += 1
-            return self._fail(fid, frame, f"tracking lost: {n_conf} of {n_pix} grid pixels confident", T_WC_pred)
+            held = self.tracker.by_depth(kf_fid, fid, T_WC_pred, surface, with_image=False)
+            if held is None:
+                self._counts["low_texture_frames"] += 1
+                return self._fail(fid, frame, f"tracking lost: no texture ({100 * textured:.1f} % of the grid textured)", T_WC_pred)
+            (T_WC, flow), n_conf = held, 0
+            events.append(f"tracked by depth alone (no texture: {100 * textured:.1f} % of the grid textured)")
+        else:
+            flow0 = self._times["flow"]
+            self.source.add_frame(fid, self._cropped(frame.image))
+            added = True
+            T_WC, flow, n_conf, ok = self.tracker.track(kf_fid, fid, T_WC_pred, surface)
+            self._times["tracking"] += time.perf_counter() - t0 - (self._times["flow"] - flow0)
+            n_pix = g.shape[0] * g.shape[1]
+            if not ok or n_conf < self.config.tracking.min_confident * n_pix:
+                held = self.tracker.by_depth(kf_fid, fid, T_WC_pred, surface, with_image=True)
+                if held is None:
+                    self.source.remove_frame(fid)
+                    self._counts["low_confidence_frames"] += 1
+                    return self._fail(fid, frame, f"tracking lost: {n_conf} of {n_pix} grid pixels confident", T_WC_pred)
+                T_WC, flow = held
+                events.append(f"tracked by depth ({n_conf} of {n_pix} grid pixels confident)")
+        if events:
+            self._counts["depth_tracked"] += 1
         self._lost = 0
         if flow <= self.config.graph.motion_filter_flow:
-            self.source.remove_frame(fid)
+            if added:
+                self.source.remove_frame(fid)
             self._records[fid] = RelativePose(kf_fid, np.linalg.inv(self._keyframe_T_WC(kf_fid)) @ T_WC)
             if not self._initialized:  # tracked against a provisional depth map: re-tracked after the initialisation
                 self._init_frames[fid] = (kf_fid, self._cropped(frame.image))
             self._update_velocity(fid)
             source = "tracked" if self._initialized else "initializing"
-            return self._status(fid, frame, source, num_valid=n_conf)
-        events = []
-        self.keyframes.add(fid, frame, T_WC, source_added=True)
+            return self._status(fid, frame, source, num_valid=n_conf, events=events)
+        self.keyframes.add(fid, frame, T_WC, source_added=added, surface=surface)
         if not self._initialized:
             if len(g.keyframes) >= self.config.graph.init_keyframes:
                 self.starts.initialize()

@@ -34,6 +34,7 @@ class DenseKeyframeState:
     depth_image: Optional[np.ndarray] = None  # (H, W) sensor depth for loop verification (RGB-D)
     stereo: Optional[DenseStereo] = None  # left-right rows (stereo)
     confidence: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (h, w) best outgoing edge confidence
+    surface: Optional[object] = None  # the depth's DepthSurface (RGB-D depth alignment; None once the image is dropped)
 
 
 @dataclass

@@ -29,8 +29,9 @@ class DenseKeyframes:
     def __init__(self, frontend: "DenseFrontend"):
         self.fe = frontend
 
-    def add(self, fid: int, frame, T_WC: np.ndarray, source_added: bool = False) -> None:
-        """Frame ``fid`` becomes a keyframe at ``T_WC`` (``source_added``: the source has its image)."""
+    def add(self, fid: int, frame, T_WC: np.ndarray, source_added: bool = False, surface=None) -> None:
+        """Frame ``fid`` becomes a keyframe at ``T_WC`` (``source_added``: the source has its image;
+        ``surface``: its depth surface, RGB-D depth alignment)."""
         fe = self.fe
         g = fe.graph
         s = fe.stride
@@ -53,7 +54,7 @@ class DenseKeyframes:
         kf = DenseKeyframeState(fid=fid, index=int(frame.index), timestamp=float(frame.timestamp), image=frame.image,
                                 inv_depth=inv.astype(np.float64), colour=colour, sensor_depth=sensor,
                                 depth_image=frame.depth if fe.sensor_mode == "rgbd" else None,
-                                confidence=np.zeros(g.shape))
+                                confidence=np.zeros(g.shape), surface=surface)
         fe.backend.add_keyframe(fid, T_WC, float(frame.timestamp))
         fe._records[fid] = KeyframePose()
         g.add(kf)
@@ -201,4 +202,5 @@ class DenseKeyframes:
             kf = g.keyframes[fid]
             if kf.image is not None and fid not in g.active:
                 kf.image = None
+                kf.surface = None
                 fe.source.remove_frame(fid)

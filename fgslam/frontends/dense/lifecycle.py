@@ -57,9 +57,12 @@ class DenseMapStarts:
         g = fe.graph
         for kf in g.keyframes.values():
             kf.image = None
+            kf.surface = None
             fe._final[kf.fid] = kf
             fe.source.remove_frame(kf.fid)
         fe.backend.set_blocks(fe.name, [])
+        if fe.depth.enabled:
+            fe.backend.set_blocks(fe.ba.depth_name, [])
         fe._set_calibration(fe.calibration)  # an empty graph
         fe.loops.map_reset()
         fe._initialized = False

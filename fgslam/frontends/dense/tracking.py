@@ -14,6 +14,7 @@ from ...backend.keys import pose_key
 from ...factors.dense import DenseEdge, DenseKeyframe, DenseSourceBlock
 from ...factors.schur import POSE_DIM
 from ...lie import gtsam_matrix, gtsam_sim3, sim3_matrix_parts
+from ..depth_tracking import pose_information
 from ..records import RelativePose
 from .graph import DenseKeyframeState
 from .weights import block_config, huber_weight, information
@@ -34,10 +35,14 @@ class DenseTracker:
 
     def __init__(self, frontend: "DenseFrontend"):
         self.fe = frontend
+        self.last_solve = None  # (image block, keyframe key, frame key, T_WCk) of the last motion-only solve
 
-    def track(self, kf_fid: int, fid: int, T_WC_pred: np.ndarray) -> tuple[np.ndarray, float, int, bool]:
+    def track(self, kf_fid: int, fid: int, T_WC_pred: np.ndarray, surface=None) -> tuple[np.ndarray, float, int, bool]:
         """Motion-only pose of frame ``fid`` against keyframe ``kf_fid``: (T_WC, mean measured flow in
-        image px over confident pixels, confident grid pixels, success)."""
+        image px over confident pixels, confident grid pixels, success). ``surface``: the frame's depth
+        surface (RGB-D depth alignment): a depth block against the keyframe's joins the solve. The
+        last solve's image block and values stay in ``last_solve`` (the image information of a frame
+        whose confident pixels fall short, :meth:`image_information`)."""
         import gtsam
 
         fe = self.fe
@@ -52,6 +57,10 @@ class DenseTracker:
         T_WC[:3, :3] = s_kf * R
         T_WC[:3, 3] = t
         key_kf, key_f = pose_key(kf_fid), pose_key(fid)
+        depth_block = None
+        if surface is not None and kf.surface is not None:
+            depth_block = fe.depth.block(key_kf, key_f, kf.surface, surface)
+        self.last_solve = None
         flow, n_conf, rev = np.inf, 0, None
         for _ in range(cfg.rounds):
             t0 = time.perf_counter()
@@ -70,10 +79,51 @@ class DenseTracker:
             values = gtsam.Values()
             values.insert(key_kf, gtsam_sim3(T_WCk))
             values.insert(key_f, gtsam_sim3(T_WC))
-            result = fe.backend.optimize_pose([block], values, key_f, cfg.iterations, hold=_HOLD_SCALE_ONLY)
+            blocks = [block] if depth_block is None else [block, depth_block]
+            result = fe.backend.optimize_pose(blocks, values, key_f, cfg.iterations, hold=_HOLD_SCALE_ONLY)
             T_WC = gtsam_matrix(result.values.atSimilarity3(key_f))
+            self.last_solve = (block, key_kf, key_f, T_WCk)
         flow = float(np.linalg.norm(rev.target - g.grid, axis=-1)[conf].mean() * fe.stride)
         return T_WC, flow, n_conf, bool(np.isfinite(T_WC).all())
+
+    def image_information(self, T_WC: np.ndarray) -> np.ndarray | None:
+        """6x6 information (rotation, translation) of the last solve's image block on the frame at
+        ``T_WC`` (None when the last tracking built no block: no confident pixel)."""
+        import gtsam
+
+        if self.last_solve is None:
+            return None
+        block, key_kf, key_f, T_WCk = self.last_solve
+        values = gtsam.Values()
+        values.insert(key_kf, gtsam_sim3(T_WCk))
+        values.insert(key_f, gtsam_sim3(T_WC))
+        return pose_information([block], values, key_f)
+
+    def by_depth(self, kf_fid: int, fid: int, T_WC_pred: np.ndarray, surface, with_image: bool) -> tuple[np.ndarray, float] | None:
+        """A frame whose image measurements fall short, tracked by depth (RGB-D depth alignment): its
+        prediction aligned to keyframe ``kf_fid`` by depth (with the last solve's image information when
+        ``with_image``); ``(T_WC, mean flow in image px the keyframe's map induces)`` when that constrains
+        all six rigid directions, else None."""
+        fe = self.fe
+        kf = fe.graph.keyframes[kf_fid]
+        if not fe.depth.enabled or surface is None or kf.surface is None:
+            return None
+        t0 = time.perf_counter()
+        T_WCk = fe._keyframe_T_WC(kf_fid)
+        R, t, _ = sim3_matrix_parts(T_WC_pred, project=True)
+        T_WC = np.eye(4)
+        T_WC[:3, :3] = float(sim3_matrix_parts(T_WCk)[2]) * R  # at the keyframe's scale, as in track()
+        T_WC[:3, 3] = t
+        block = fe.depth.block(pose_key(kf_fid), pose_key(fid), kf.surface, surface)
+        T_WC, constraint = fe.depth.hold(block, T_WCk, T_WC, self.image_information if with_image else None)
+        ok = constraint.ok
+        flow = np.inf
+        if ok:
+            induced = self.induced_to(kf, T_WCk, T_WC)
+            d = np.linalg.norm(induced - fe.graph.grid, axis=-1)
+            flow = float(np.nanmean(d) * fe.stride) if np.isfinite(d).any() else np.inf
+        fe._times["depth"] += time.perf_counter() - t0
+        return (T_WC, flow) if ok and np.isfinite(flow) else None
 
     def induced_to(self, kf: DenseKeyframeState, T_WCk: np.ndarray, T_WC: np.ndarray) -> np.ndarray:
         """Field (h, w, 2) keyframe ``kf`` (at ``T_WCk``) induces in a camera at ``T_WC`` (NaN: invalid)."""

@@ -215,21 +215,16 @@ class LocalBA:
     def depth_blocks(self, var) -> list:
         """Depth-alignment blocks between consecutive graph frames with surfaces, at least one of
         them free (in ``var``) and both backend keyframes (or about to be: free); the newest
-        ``depth_align.window_pairs`` of them (0: all)."""
+        ``depth_align.window_pairs`` of them (:meth:`~fgslam.frontends.depth_tracking.DepthTracking.chain`)."""
         st = self.state
-        g = st.graph
         free = {int(f) for f in var}
-        blocks = []
-        frames = g.frames
-        for a, b in zip(reversed(frames[:-1]), reversed(frames[1:])):
-            if len(blocks) == st.depth.config.window_pairs:  # 0: no limit
-                break
-            pair = (int(a.fid), int(b.fid))
-            if a.surface is None or b.surface is None or not (pair[0] in free or pair[1] in free):
-                continue
-            if all(x in free or st.backend.has_keyframe(x) for x in pair):
-                blocks.append(st.depth.block(self.key(pair[0]), self.key(pair[1]), a.surface, b.surface, window=True))
-        return blocks[::-1]  # oldest first
+        fid_of = {self.key(int(f.fid)): int(f.fid) for f in st.graph.frames}
+
+        def usable(key_a: int, key_b: int) -> bool:
+            return all(fid_of[k] in free or st.backend.has_keyframe(fid_of[k]) for k in (key_a, key_b))
+
+        return st.depth.chain([(self.key(int(f.fid)), f.surface) for f in st.graph.frames],
+                              {self.key(f) for f in free}, usable=usable)
 
     def _write_depths(self, pos_src: np.ndarray, ukeys: np.ndarray, depth: np.ndarray) -> None:
         """Solved inverse depths ``depth`` of the patches ``ukeys`` (``src fid * K + patch``, source

@@ -11,6 +11,7 @@ from typing import Literal
 from ...config import MAX_COUNT, MAX_FRAMES, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, check_ranges, ranged
 from ...errors import ConfigError
 from ...factors.pointmap_block import PointmapBlockConfig
+from ..depth_tracking import DepthTrackingConfig
 from .matching import MatchingConfig
 from .source import PointmapSourceConfig
 
@@ -88,12 +89,16 @@ class PointmapConfig:
     keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
     graph: PointmapGraphConfig = field(default_factory=PointmapGraphConfig)
     relocalization: PointmapRelocalizationConfig = field(default_factory=PointmapRelocalizationConfig)
+    # RGB-D: point-to-plane depth alignment in tracking and the keyframe graph (between the newest
+    # window_pairs pairs of consecutive keyframes, and always between keyframes joined by depth alone)
+    depth_align: DepthTrackingConfig = field(default_factory=lambda: DepthTrackingConfig(window_pairs=1))
     ply_stride: int = ranged(4, ge=1, le=MAX_IMAGE_SIDE)  # keyframe_points(): every this many pixels of each canonical pointmap
     ply_min_confidence: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # ... whose fused confidence reaches this
     threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads of the frontend (0: torch's setting)
 
     def validate(self) -> None:
         check_ranges(self, "pointmap")
+        self.depth_align.validate()
         if self.keyframe.new_fraction < self.tracking.min_valid_fraction:
             raise ConfigError(f"pointmap.keyframe.new_fraction ({self.keyframe.new_fraction}) must be at least "
                               f"pointmap.tracking.min_valid_fraction ({self.tracking.min_valid_fraction})")

@@ -36,15 +36,21 @@ class PointmapGraph:
         self.fe = frontend
         self.edges: list[PointmapEdge] = []
         self.pairs: set[tuple[int, int]] = set()
+        self.depth_pairs: list[tuple[int, int]] = []  # keyframe pairs joined by depth alone (RGB-D depth alignment)
+        self.depth_name = f"{frontend.name}.depth"  # the owner of the depth-alignment blocks
         self._loops_seen = 0  # verified loops of the loop service already looked at
 
     def after_keyframe(self, kf: PointmapKeyframe, edge) -> None:
-        """A new keyframe ``kf``: its edge ``(previous keyframe, PointmapEdge)`` (None: the first) added and
-        the window optimised; the keyframe handed to the loop port (with every pose when loops run)."""
+        """A new keyframe ``kf``: its edge ``(previous keyframe, PointmapEdge)`` (None: the first; a None
+        PointmapEdge: joined by depth alone) added and the window optimised; the keyframe handed to the
+        loop port (with every pose when loops run)."""
         fe = self.fe
         if edge is not None:
             prev, e = edge
-            self.edges.append(e)
+            if e is None:
+                self.depth_pairs.append((prev, kf.fid))
+            else:
+                self.edges.append(e)
             self.pairs.add((prev, kf.fid))
             self.optimize()
         t0 = time.perf_counter()
@@ -59,6 +65,23 @@ class PointmapGraph:
         fe = self.fe
         edges = [e for e in self.edges if fe.backend.has_key(e.key_i) and fe.backend.has_key(e.key_j)]
         fe.backend.set_blocks(fe.name, [PointmapBlock(edges, fe.config.block, fe.cam.K)] if edges else [])
+        if fe.depth.enabled:
+            fe.backend.set_blocks(self.depth_name, self.depth_blocks())
+
+    def depth_blocks(self) -> list:
+        """RGB-D depth alignment: depth blocks between the newest ``depth_align.window_pairs`` pairs of
+        consecutive keyframes, and between every pair of keyframes joined by depth alone (their only link)."""
+        fe = self.fe
+        key = fe.backend_key
+        ids = list(fe._kfs)
+        blocks = fe.depth.chain([(key(f), fe._kfs[f].surface) for f in ids])
+        have = {b.keys for b in blocks}
+        for a, b in self.depth_pairs:
+            ka, kb = fe._kfs.get(a), fe._kfs.get(b)
+            if ka is not None and kb is not None and ka.surface is not None and kb.surface is not None \
+                    and (key(a), key(b)) not in have:
+                blocks.append(fe.depth.block(key(a), key(b), ka.surface, kb.surface))
+        return blocks
 
     def optimize(self) -> None:
         """At most ``graph.iterations`` LM iterations over the newest ``graph.window`` keyframes (0: all)."""

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import time
 
 import numpy as np
 import torch
@@ -60,6 +61,7 @@ from ...backend.graph import Backend
 from ...errors import ConfigError, DataError, OptimizationError
 from ...factors.schur import torch_threads
 from ..base import BackendFrontend, FrameStatus, SensorMode
+from ..depth_tracking import DepthTracking
 from ..records import RelativePose, resolve_pose, rigid
 from .config import PointmapConfig
 from .keyframes import PointmapKeyframe, query_grid
@@ -127,6 +129,11 @@ class PointmapFrontend(BackendFrontend):
         self._failures = 0
         self._times = {"source": 0.0, "matching": 0.0, "tracking": 0.0, "optimization": 0.0, "bookkeeping": 0.0}
         self._counts = {"keyframes": 0, "loop_edges": 0, "relocalized": 0, "pnp_tracked": 0, "failed": 0}
+        self.depth = DepthTracking(self.config.depth_align, self.backend, active=self.kind == "rgbd")
+        self._frame_surface = None  # the current frame's depth surface (RGB-D depth alignment)
+        if self.depth.enabled:
+            self._times["depth"] = 0.0  # surfaces and depth-only tracking of frames
+            self._counts["depth_tracked"] = 0  # frames tracked by depth alone
         self.source_cache = SourceCache(self)
         self.tracker = PointmapTracker(self)
         self.keyframing = PointmapKeyframing(self)
@@ -147,6 +154,7 @@ class PointmapFrontend(BackendFrontend):
         self.source = make_pointmap_source(src_cfg, self.cam.K, baseline=self.cam.baseline)
         self.query = query_grid(self.cam.H, self.cam.W, self.config.query_stride)
         self.K_t = torch.as_tensor(self.cam.K)
+        self.depth.set_intrinsics(self.cam.K)
 
     # ------------------------------------------------------------------ Frontend API
     def num_keyframes(self) -> int:
@@ -237,6 +245,11 @@ class PointmapFrontend(BackendFrontend):
         right = self.cam.image(frame.image_right) if self.kind == "stereo" else None
         colour = self.cam.image(frame.rgb) if frame.rgb is not None else None
         self.source_cache.add(fid, grey, depth, right)
+        self._frame_surface = None
+        if self.depth.enabled:  # made once per frame; a keyframe keeps it
+            t0 = time.perf_counter()
+            self._frame_surface = self.depth.surface(depth)
+            self._times["depth"] += time.perf_counter() - t0
         inputs = (grey, colour, depth, right)
         if self._kf is None:
             return self.keyframing.initialize(fid, frame, inputs)
@@ -245,17 +258,24 @@ class PointmapFrontend(BackendFrontend):
     # ------------------------------------------------------------------ tracking
     def _track_frame(self, fid: int, frame, inputs, pair=None) -> FrameStatus:
         kf = self._kf
-        res = self.tracker.track_against(kf, fid, self._T_CkCf, self._uv_prev, pair)
+        surface = self._frame_surface
+        res = self.tracker.track_against(kf, fid, self._T_CkCf, self._uv_prev, pair, surface)
         events = []
+        if res is not None and res.get("held") is not None:  # no confident flow, the depth holds it
+            return self._track_by_depth(kf, fid, frame, inputs, res, res["held"], events, "no confident flow")
         min_fraction = self.config.tracking.min_valid_fraction
         if not self.tracker.ok(res, min_fraction) and self.keyframing.promote_last():
             events.append(f"keyframe {self._kf.fid} (look-back)")  # the last good frame became the keyframe
             kf = self._kf
-            res = self.tracker.track_against(kf, fid, self._T_CkCf, None)
+            res = self.tracker.track_against(kf, fid, self._T_CkCf, None, surface=surface)
         if not self.tracker.ok(res, min_fraction) and self.kind == "mono":
             status = self.tracker.track_pnp(fid, frame)  # no (usable) two-view pointmap: pose by PnP
             status.events[:0] = events
             return status
+        if not self.tracker.ok(res, min_fraction) and self.depth.enabled:
+            held = self.tracker.by_depth(kf, res, surface)
+            if held is not None:  # the matches lost it, the depth holds it
+                return self._track_by_depth(kf, fid, frame, inputs, res, held, events, f"{res['n_valid']} valid matches")
         if not self.tracker.ok(res, min_fraction):
             found = relocalize(self, fid, frame)
             if found is None:
@@ -283,6 +303,27 @@ class PointmapFrontend(BackendFrontend):
             if source == "tracked":  # a keyframe candidate when the next frame no longer tracks against kf
                 self._last_good = (fid, frame, inputs, res, self._T_CkCf.copy())
         return self._status(fid, frame, source, new_kf, res["inliers"], events)
+
+    def _track_by_depth(self, kf, fid: int, frame, inputs, res, held, events, why: str) -> FrameStatus:
+        """Frame ``fid`` tracked against ``kf`` by depth alone (``held``: its ``T_CkCf`` and the share of its
+        depth points paired): nothing fused; a new keyframe (joined to ``kf`` by its depth block) when that
+        share falls below ``keyframe.new_fraction`` (or after ``keyframe.max_gap`` frames)."""
+        T_CkCf, share = held
+        self._T_CkCf = T_CkCf
+        self._uv_prev = None
+        self._last_good = None
+        self._since_kf += 1
+        self._counts["depth_tracked"] += 1
+        events.append(f"tracked by depth ({why}, {100 * share:.0f} % of the depth paired)")
+        new_kf = share < self.config.keyframe.new_fraction or (
+            self.config.keyframe.max_gap > 0 and self._since_kf >= self.config.keyframe.max_gap)
+        if new_kf:
+            res = {**res, "inlier": None}
+            self.keyframing.make_keyframe(kf, fid, frame, inputs, res)
+            events.append(f"keyframe {fid}")
+        else:
+            self._records[fid] = RelativePose(kf.fid, self._T_CkCf.copy())
+        return self._status(fid, frame, "tracked", new_kf, 0, events)
 
     def _fail(self, fid: int, frame, reason: str) -> FrameStatus:
         self._failures += 1

@@ -52,6 +52,7 @@ class PointmapKeyframe:
     depth: np.ndarray | None = None
     right: np.ndarray | None = None
     D: torch.Tensor | None = None
+    surface: object | None = None  # the depth's DepthSurface (RGB-D depth alignment)
     _rays: RayImage | None = field(default=None, repr=False)
 
     def ray_image(self) -> RayImage:

@@ -36,9 +36,10 @@ class PointmapKeyframing:
         self.fe = frontend
 
     def new_keyframe(self, fid: int, frame, inputs, X: np.ndarray | torch.Tensor, C, T_WC: np.ndarray,
-                     D: np.ndarray | None = None) -> PointmapKeyframe:
+                     D: np.ndarray | None = None, surface=None) -> PointmapKeyframe:
         """Frame ``fid`` becomes a keyframe at ``T_WC`` with the canonical pointmap ``X`` / confidences ``C``
-        (non-finite or unconfident points zeroed) and descriptors ``D``; the first one anchors the gauge."""
+        (non-finite or unconfident points zeroed), descriptors ``D`` and depth surface ``surface`` (RGB-D
+        depth alignment); the first one anchors the gauge."""
         fe = self.fe
         grey, colour, depth, right = inputs
         H, W = fe.cam.H, fe.cam.W
@@ -50,6 +51,7 @@ class PointmapKeyframing:
         kf = PointmapKeyframe(fid, float(frame.timestamp), int(frame.index), H, W, X, C, grey, colour, depth, right)
         if D is not None:
             kf.D = _tensor(D).reshape(H * W, -1)
+        kf.surface = surface
         fe._kfs[fid] = kf
         fe.backend.add_keyframe(fid, T_WC, float(frame.timestamp))
         if len(fe._kfs) == 1:
@@ -71,7 +73,8 @@ class PointmapKeyframing:
                 logger.warning("pointmap frame %d: %.0f %% of the pixels have a point (< %.0f %%); not initialised",
                                frame.index, 100 * frac, 100 * cfg.init_min_confident)
                 return fe._status(fid, frame, "initializing", events=["init: too few points"])
-            fe._kf = self.new_keyframe(fid, frame, inputs, pair.X_i_in_i, pair.C_i, np.eye(4), pair.D_i)
+            fe._kf = self.new_keyframe(fid, frame, inputs, pair.X_i_in_i, pair.C_i, np.eye(4), pair.D_i,
+                                       fe._frame_surface)
             fe._T_CkCf, fe._uv_prev, fe._since_kf = np.eye(4), None, 0
             fe.graph.after_keyframe(fe._kf, None)
             return fe._status(fid, frame, "tracked", True, int((pair.C_i > 0).sum()), ["initialised"])
@@ -107,10 +110,13 @@ class PointmapKeyframing:
         current keyframe, with an edge from ``kf`` made of the tracking's inlier matches."""
         fe = self.fe
         T_WC = fe._keyframe_T_WC(kf.fid) @ fe._T_CkCf
-        new = self.new_keyframe(fid, frame, inputs, res["X_ff"], res["C_f"], T_WC, res["D_f"])
-        keep = even_subset(res["inlier"].nonzero().squeeze(1), fe.config.graph.max_edge_matches)
-        edge = PointmapEdge(fe.backend_key(kf.fid), fe.backend_key(fid), res["X_k"][keep], res["X_f"][keep],
-                            res["w"][keep], res["uv"][keep])
+        new = self.new_keyframe(fid, frame, inputs, res["X_ff"], res["C_f"], T_WC, res["D_f"], res.get("surface"))
+        if res.get("inlier") is None:  # tracked by depth alone: the depth block is the edge (RGB-D)
+            edge = None
+        else:
+            keep = even_subset(res["inlier"].nonzero().squeeze(1), fe.config.graph.max_edge_matches)
+            edge = PointmapEdge(fe.backend_key(kf.fid), fe.backend_key(fid), res["X_k"][keep], res["X_f"][keep],
+                                res["w"][keep], res["uv"][keep])
         fe._kf, fe._T_CkCf, fe._uv_prev, fe._since_kf = new, np.eye(4), None, 0
         fe.graph.after_keyframe(new, (kf.fid, edge))
 

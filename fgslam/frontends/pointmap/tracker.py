@@ -16,7 +16,8 @@ from ..base import FrameStatus
 from ..records import RelativePose, rigid
 from .keyframes import PointmapKeyframe, even_subset, match_frame
 from .relocalization import relocalize
-from .tracking import track_pose
+from ..depth_tracking import pose_information
+from .tracking import TRACK_KEYS, track_pose
 
 if TYPE_CHECKING:
     from .frontend import PointmapFrontend
@@ -40,16 +41,22 @@ class PointmapTracker:
 
     def __init__(self, frontend: "PointmapFrontend"):
         self.fe = frontend
+        self.held = None  # the current frame tracked by depth alone: (T_CkCf, share of its depth paired); RGB-D
 
-    def pair_in(self, kf: PointmapKeyframe, fid: int, T_CkCf_pred: np.ndarray, pair=None):
+    def pair_in(self, kf: PointmapKeyframe, fid: int, T_CkCf_pred: np.ndarray, pair=None, surface=None):
         """``(X_f^f (HW, 3), X_f^k (HW, 3), C_f (HW,), D_f, T_CkCf0 (4x4))`` of frame ``fid`` against keyframe
-        ``kf`` (module docstring of :mod:`.frontend`, step 1); None when the two-view source found no pose."""
+        ``kf`` (module docstring of :mod:`.frontend`, step 1); None when the two-view source found no pose.
+        ``surface``: the frame's depth surface (RGB-D depth alignment): a prediction the image could not
+        measure (no PnP pose on the flow; always with ``depth_align.prealign``) is aligned by depth first."""
         fe = self.fe
         t0 = time.perf_counter()
         fe.source_cache.ensure(kf)
         if fe.kind in ("rgbd", "stereo"):
             if pair is None:
-                T_CkCf_pred = self._measured_prediction(kf, fid, T_CkCf_pred)
+                T_CkCf_pred, measured = self._measured_prediction(kf, fid, T_CkCf_pred)
+                if not measured or fe.depth.config.prealign:
+                    T_CkCf_pred, held = self._depth_prediction(kf, T_CkCf_pred, surface)
+                    self.held = held if not measured else None
                 pair = fe.source.predict(kf.fid, fid, rigid(T_CkCf_pred))
             T_CkCf0 = pair.T_CiCj
             a = 1.0
@@ -72,19 +79,35 @@ class PointmapTracker:
         D_f = torch.from_numpy(np.ascontiguousarray(pair.D_j, np.float32)).reshape(n, -1)
         return X_ff, X_fk, C_f, D_f, T_CkCf0
 
-    def _measured_prediction(self, kf: PointmapKeyframe, fid: int, T_CkCf_pred: np.ndarray) -> np.ndarray:
+    def _measured_prediction(self, kf: PointmapKeyframe, fid: int, T_CkCf_pred: np.ndarray) -> tuple[np.ndarray, bool]:
         """Metric sources: ``T_CkCf`` with the last step measured by PnP on the dense flow from the previous
         frame (``T_CkCp T_CpCf``; from the keyframe itself right after a keyframe change), which stays
-        reliable at video rate where the flow to an older keyframe fails; ``T_CkCf_pred`` when that fails."""
+        reliable at video rate where the flow to an older keyframe fails; ``T_CkCf_pred`` when that fails.
+        Second: whether the image measured it (``tracking.measure_pose`` off: counted as measured)."""
         fe = self.fe
         if not fe.config.tracking.measure_pose:
-            return T_CkCf_pred
+            return T_CkCf_pred, True
         prev = fe._prev_fid
         if prev is None or prev not in fe.source_cache or prev == kf.fid or fe._prev_kf != kf.fid:
             T_CkCf = fe.source.predict(kf.fid, fid, None).T_CiCj
-            return T_CkCf_pred if T_CkCf is None else np.asarray(T_CkCf, np.float64)
+            return (T_CkCf_pred, False) if T_CkCf is None else (np.asarray(T_CkCf, np.float64), True)
         T_CpCf = fe.source.predict(prev, fid, None).T_CiCj
-        return T_CkCf_pred if T_CpCf is None else T_CkCf_pred @ np.asarray(T_CpCf, np.float64)
+        return (T_CkCf_pred, False) if T_CpCf is None else (T_CkCf_pred @ np.asarray(T_CpCf, np.float64), True)
+
+    def _depth_prediction(self, kf: PointmapKeyframe, T_CkCf_pred: np.ndarray, surface):
+        """RGB-D depth alignment: the prediction ``T_CkCf_pred`` aligned to ``kf`` by depth when the depth
+        constrains all six rigid directions there, else unchanged; second ``(T_CkCf, share of the frame's
+        depth points paired)`` when it does, else None."""
+        fe = self.fe
+        block = self.depth_block(kf, surface)
+        if block is None:
+            return T_CkCf_pred, None
+        t0 = time.perf_counter()
+        T, constraint = fe.depth.hold(block, np.eye(4), rigid(T_CkCf_pred))
+        fe._times["depth"] += time.perf_counter() - t0
+        if not constraint.ok:
+            return T_CkCf_pred, None
+        return rigid(T), (rigid(T), constraint.pairs / max(block.num_points, 1))
 
     def _pair_scale(self, kf: PointmapKeyframe, pair) -> float | None:
         """Scale taking the pair's pointmap of k to k's canonical one: median ratio of the norms over the
@@ -100,15 +123,28 @@ class PointmapTracker:
         ratio = torch.linalg.vector_norm(kf.X[ok], dim=-1) / torch.linalg.vector_norm(X_pair[ok], dim=-1).clamp_min(1e-9)
         return float(ratio.median())
 
+    def depth_block(self, kf: PointmapKeyframe, surface):
+        """The depth block of a frame with depth ``surface`` against ``kf`` over the tracking problem's keys
+        (RGB-D depth alignment; None without it or without both surfaces)."""
+        if not self.fe.depth.enabled or surface is None or kf.surface is None:
+            return None
+        return self.fe.depth.block(*TRACK_KEYS, kf.surface, surface)
+
     def track_against(self, kf: PointmapKeyframe, fid: int, T_CkCf_pred: np.ndarray, warm: torch.Tensor | None,
-                      pair=None):
-        """Match and track frame ``fid`` against ``kf``; returns a dict with the result, or None (no pair)."""
+                      pair=None, surface=None):
+        """Match and track frame ``fid`` against ``kf``; returns a dict with the result, or None (no pair).
+        ``surface``: the frame's depth surface (RGB-D depth alignment): a depth block against the
+        keyframe's joins the pose solve; kept in the result (``surface``)."""
         fe = self.fe
         cfg = fe.config
-        got = self.pair_in(kf, fid, T_CkCf_pred, pair)
+        self.held = None
+        got = self.pair_in(kf, fid, T_CkCf_pred, pair, surface)
         if got is None:
             return None
         X_ff, X_fk, C_f, D_f, T_CkCf0 = got
+        if self.held is not None:  # no confident flow (the image measured nothing) but the depth holds the frame
+            return {"n_valid": 0, "fraction": 0.0, "X_ff": X_ff, "C_f": C_f, "D_f": D_f, "T": None, "inliers": 0,
+                    "surface": surface, "held": self.held}
         q = fe.query
         qvalid = (C_f[q] >= cfg.tracking.min_confidence) & torch.isfinite(X_fk[q]).all(-1)
         t0 = time.perf_counter()
@@ -120,7 +156,7 @@ class PointmapTracker:
         n_points = max(int(qvalid.sum()), 1)
         n_valid = int(m.valid.sum())
         out = {"matches": m, "n_valid": n_valid, "fraction": n_valid / n_points, "X_ff": X_ff, "C_f": C_f,
-               "D_f": D_f, "T": None, "inliers": 0}
+               "D_f": D_f, "T": None, "inliers": 0, "surface": surface}
         if n_valid < cfg.tracking.min_matches:
             return out
         sel = even_subset(m.valid.nonzero().squeeze(1), cfg.tracking.max_query_points)
@@ -129,11 +165,44 @@ class PointmapTracker:
         X_k = kf.X[p].to(torch.float64)
         w = torch.sqrt(C_f[qi].clamp(max=1.0) * kf.C[p].clamp(max=1.0)).to(torch.float64)
         uv = m.uv[sel].to(torch.float64)
-        tr = track_pose(sim3_of(T_CkCf0), X_f, X_k, w, cfg.block, cfg.tracking, fe.fixed_scale, uv, fe.K_t)
+        depth = self.depth_block(kf, surface)
+        tr = track_pose(sim3_of(T_CkCf0), X_f, X_k, w, cfg.block, cfg.tracking, fe.fixed_scale, uv, fe.K_t,
+                        () if depth is None else (depth,))
         fe._times["tracking"] += time.perf_counter() - t1
         out.update(T=tr.T_CkCf, inliers=tr.num_inliers, sel=sel, qi=qi, p=p, X_f=X_f, X_k=X_k, w=w, uv=uv,
                    inlier=tr.inlier)
         return out
+
+    def by_depth(self, kf: PointmapKeyframe, res, surface):
+        """A frame whose matches fall short, tracked by depth (RGB-D depth alignment): the predicted
+        ``T_CkCf`` aligned to ``kf`` by depth, with the information of the frame's matches when the
+        tracking got as far as a pose; ``(T_CkCf 4x4, share of the frame's depth points paired)`` when
+        that constrains all six rigid directions, else None."""
+        fe = self.fe
+        block = self.depth_block(kf, surface)
+        if block is None or res is None:
+            return None
+        t0 = time.perf_counter()
+        H_image = None
+        if res.get("sel") is not None:
+            from ...factors.pointmap_block import PointmapBlock, PointmapEdge
+
+            edge = PointmapEdge(*TRACK_KEYS, res["X_k"], res["X_f"], res["w"],
+                                res["uv"] if fe.config.block.mode == "calibrated" else None)
+            image = PointmapBlock([edge], fe.config.block, fe.cam.K)
+
+            def H_image(T):
+                import gtsam
+
+                values = gtsam.Values()
+                values.insert(TRACK_KEYS[0], gtsam.Similarity3())
+                values.insert(TRACK_KEYS[1], sim3_of(T).to_gtsam())
+                return pose_information([image], values, TRACK_KEYS[1])
+        T, constraint = fe.depth.hold(block, np.eye(4), rigid(fe._T_CkCf), H_image)
+        fe._times["depth"] += time.perf_counter() - t0
+        if not constraint.ok:
+            return None
+        return rigid(T), constraint.pairs / max(block.num_points, 1)
 
     def ok(self, res, min_fraction: float) -> bool:
         """Whether the tracking result ``res`` has a pose, enough inliers and ``min_fraction`` valid matches."""

@@ -38,10 +38,12 @@ from .config import PointmapTrackingConfig
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["TrackResult", "fuse_pointmap", "track_pose"]
+__all__ = ["TRACK_KEYS", "TrackResult", "fuse_pointmap", "track_pose"]
 
 #: the keyframe's and the frame's keys in the two-key tracking problem
 _KEY_K, _KEY_F = pose_key(0), pose_key(1)
+#: ... public: other blocks of the tracking problem (RGB-D depth alignment) join these two keys
+TRACK_KEYS = (_KEY_K, _KEY_F)
 #: SE(3) tracking: the log-scale component of the frame's tangent held exactly
 _FIXED_SCALE = np.array([0.0] * (POSE_DIM - 1) + [np.inf])
 
@@ -72,10 +74,11 @@ def _settings(config: PointmapTrackingConfig) -> LMSettings:
 
 def track_pose(T_init: Sim3, X_f_in_f: torch.Tensor, X_k_in_k: torch.Tensor, weight: torch.Tensor,
                block: PointmapBlockConfig, config: PointmapTrackingConfig, fixed_scale: bool,
-               uv_k: torch.Tensor | None = None, K: torch.Tensor | None = None) -> TrackResult:
+               uv_k: torch.Tensor | None = None, K: torch.Tensor | None = None, extra_blocks=()) -> TrackResult:
     """``T_CkCf`` from N matches (module docstring). ``X_f_in_f`` / ``X_k_in_k`` ``(N, 3)``, ``weight``
     ``(N,)`` match confidences q, ``uv_k`` ``(N, 2)`` matched keyframe pixels and ``K`` ``(4,)`` for the
-    calibrated mode; all float64. ``fixed_scale``: SE(3) (the scale of ``T_init`` is kept)."""
+    calibrated mode; all float64. ``fixed_scale``: SE(3) (the scale of ``T_init`` is kept).
+    ``extra_blocks``: other blocks over :data:`TRACK_KEYS` solved with the matches (RGB-D depth alignment)."""
     import gtsam
 
     edge = PointmapEdge(_KEY_K, _KEY_F, X_k_in_k, X_f_in_f, weight, uv_k if block.mode == "calibrated" else None)
@@ -83,7 +86,7 @@ def track_pose(T_init: Sim3, X_f_in_f: torch.Tensor, X_k_in_k: torch.Tensor, wei
     values = gtsam.Values()
     values.insert(_KEY_K, gtsam.Similarity3())
     values.insert(_KEY_F, T_init.to_gtsam())
-    result = optimize_pose([pm], values, _KEY_F, _settings(config), _FIXED_SCALE if fixed_scale else None)
+    result = optimize_pose([pm, *extra_blocks], values, _KEY_F, _settings(config), _FIXED_SCALE if fixed_scale else None)
     report = result.report
     T = Sim3.from_gtsam(result.values.atSimilarity3(_KEY_F))
     (inlier,) = pm.inliers(result.values, config.inlier_threshold)
