@@ -68,12 +68,9 @@ def _by_depth(statuses) -> int:
 def test_texture_free_room_is_tracked_by_depth_alone(room):
     ds, frames = _frames(room, blank=True)
     frames = frames[:BLANK]
-    image_only, _ = _run(frames, depth_align=False)
     # the failure this fixes: without texture the projective matching still pairs every point at the
     # predicted pose and claims the frame, so nothing fails but the camera barely moves (measured: ATE
-    # 0.40 m on the 0.44 m of 32 frames, 0.59 m on the 0.70 m of all 48)
-    ate_image, ate_image_still, path_image = _ate(ds, image_only)
-    assert ate_image >= 0.2 * path_image, f"image only: ATE {ate_image:.4f} m on a {path_image:.2f} m path"
+    # 0.40 m on the 0.44 m of 32 frames, about what a camera that never moves scores; that bar is below)
     fe, statuses = _run(frames, depth_align=True)
     stamps, _, _ = fe.trajectory()
     assert len(stamps) == BLANK and fe.num_failures == 0
@@ -83,7 +80,6 @@ def test_texture_free_room_is_tracked_by_depth_alone(room):
     ate, ate_still, path = _ate(ds, fe)
     assert ate <= 0.02 * path, f"ATE {ate:.4f} m on a {path:.2f} m path"
     assert ate <= 0.1 * ate_still, f"ATE {ate:.4f} m against {ate_still:.4f} m for a camera that never moves"
-    assert ate <= 0.1 * ate_image, f"ATE {ate:.4f} m against {ate_image:.4f} m without depth alignment"
 
 
 def test_depth_blocks_keep_the_textured_run_accurate(room):
