@@ -237,3 +237,18 @@ def test_motion_blur_averages_the_exposure():
     assert not np.array_equal(f_s.image0, f_b.image0)
     grad = lambda im: np.abs(np.diff(im.mean(axis=-1), axis=1)).mean()  # noqa: E731
     assert grad(f_b.image0) < grad(f_s.image0)
+
+
+def test_synth_help_names_every_preset():
+    """``fgslam synth --help`` lists the presets by hand (its parser must not import the scenarios, which
+    pull in OpenCV): it must name every one of them."""
+    import argparse
+
+    from fgslam.commands import synth as synth_command
+    from fgslam.io.synth.scenarios import PRESET_NAMES
+
+    parser = argparse.ArgumentParser()
+    synth_command.add_arguments(parser)
+    text = " ".join(parser.format_help().split())
+    for name in PRESET_NAMES:
+        assert name in text, name

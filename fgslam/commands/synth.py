@@ -11,10 +11,12 @@ HELP = "generate a synthetic EuRoC-layout sequence (stereo, depth, IMU, exact gr
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..io.synth.scenarios import PRESET_NAMES
-
-    parser.add_argument("--preset", default=None, choices=PRESET_NAMES,
-                        help="scene and motion preset (default: the config's, room-loop); panel-room: "
+    # no choices= here: the preset names live with the scenarios, whose import pulls in OpenCV, and
+    # building the CLI's parser must stay light (tests/test_cli.py); an unknown name is a ConfigError
+    # that lists the valid ones when the config loads
+    parser.add_argument("--preset", default=None, metavar="NAME",
+                        help="scene and motion preset: room-loop (the config's default), street-loop, orbit, "
+                             "highway, low-texture, panel-room, rotation-sweep; panel-room: "
                              "texture-poor RGB-D room (near-white wall panels with thin joints, tiled floor, doors; "
                              "point-light shading and vignetting; camera 0.5-2 m from the walls, 184 deg of yaw "
                              "over 189 frames at 10 Hz); rotation-sweep: hand-held roll/pitch/yaw sweep "

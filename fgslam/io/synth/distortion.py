@@ -17,7 +17,6 @@ images with the same coefficients (:class:`fgslam.io.calibration.Undistorter`).
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from ...errors import ConfigError
@@ -81,6 +80,8 @@ class DistortedCamera:
 
     def resample(self, out: RenderOutput) -> RenderOutput:
         """The raw (distorted) view of a canvas render."""
+        import cv2  # not at import time: the CLI's parser must not import OpenCV (tests/test_cli.py)
+
         image = cv2.remap(out.image, self.map_x, self.map_y, cv2.INTER_LINEAR)
         depth = cv2.remap(out.depth, self.map_x, self.map_y, cv2.INTER_NEAREST)
         quad = cv2.remap(out.quad_id.astype(np.float32), self.map_x, self.map_y, cv2.INTER_NEAREST)
