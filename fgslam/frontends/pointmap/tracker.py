@@ -191,13 +191,15 @@ class PointmapTracker:
                                 res["uv"] if fe.config.block.mode == "calibrated" else None)
             image = PointmapBlock([edge], fe.config.block, fe.cam.K)
 
-            def H_image(T):
+            def image_information(T):
                 import gtsam
 
                 values = gtsam.Values()
                 values.insert(TRACK_KEYS[0], gtsam.Similarity3())
                 values.insert(TRACK_KEYS[1], sim3_of(T).to_gtsam())
                 return pose_information([image], values, TRACK_KEYS[1])
+
+            H_image = image_information
         T, constraint = fe.depth.hold(block, np.eye(4), rigid(fe._T_CkCf), H_image)
         fe._times["depth"] += time.perf_counter() - t0
         if not constraint.ok:
