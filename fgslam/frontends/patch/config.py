@@ -125,6 +125,7 @@ class PatchTrackingConfig:
     motion_damping: float = ranged(0.5, ge=0, le=1)  # damped constant velocity: predicted step = damping * last step (DPVO 0.5)
     keyframe_index: int = ranged(3, ge=1, le=MAX_WINDOW)  # frame this many graph frames before the newest is tested for removal
     keyframe_threshold: float = ranged(20.0, ge=0, le=MAX_SCALAR)  # mean flow (px) between its neighbours below which it is removed
+    keyframe_flow: str = "raw"  # raw: the keyframe test's mean flow is the full reprojection flow (DPVO); translation: the rotation-compensated flow (each patch reprojected at its depth minus at infinity), so that pure rotation does not keep every frame as a keyframe (rotation-dominant hand-held motion)
     min_valid_edges: int = ranged(24, ge=3, le=MAX_COUNT)  # fewer valid measurements into a new frame is a tracking failure
     max_motion_model_frames: int = ranged(30, ge=1, le=MAX_KEYFRAMES)  # consecutive failures after which the map re-initialises
     motion_filter_flow: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # median flow (px) of the newest keyframe's patches into a new frame below which the frame is stationary: not added to the graph, posed from that keyframe (0: off)
@@ -193,5 +194,7 @@ class PatchConfig:
             raise ConfigError(f"patch.ba.depth_max ({self.ba.depth_max}) must exceed depth_min ({self.ba.depth_min})")
         if not self.tracking.init_min_frames <= self.tracking.init_max_frames:
             raise ConfigError("patch.tracking needs init_min_frames <= init_max_frames")
+        if self.tracking.keyframe_flow not in ("raw", "translation"):
+            raise ConfigError("patch.tracking.keyframe_flow must be raw or translation")
         if not self.tracking.keyframe_index < self.graph.optimization_window:
             raise ConfigError("patch.tracking.keyframe_index must be in [1, optimization_window)")

@@ -54,7 +54,8 @@ class Keyframes:
 
     def remove_redundant(self) -> int | None:
         """DPVO keyframe removal: drop the frame ``keyframe_index`` positions before the newest when
-        the mean flow between its two neighbours is below ``keyframe_threshold``. Returns the
+        the mean flow between its two neighbours (``keyframe_flow``: raw, or rotation-compensated:
+        :meth:`translation_flow`) is below ``keyframe_threshold``. Returns the
         removed frame's index, or None."""
         st = self.state
         g = st.graph
@@ -63,7 +64,10 @@ class Keyframes:
         if k < 1 or st.sensor_mode == "mono" and len(g) <= 3:
             return None
         a, b = g.frames[k - 1], g.frames[k + 1]
-        flow = 0.5 * (self.mean_flow(a, b) + self.mean_flow(b, a))
+        if st.config.tracking.keyframe_flow == "translation":
+            flow = 0.5 * (self.translation_flow(a, b) + self.translation_flow(b, a))
+        else:
+            flow = 0.5 * (self.mean_flow(a, b) + self.mean_flow(b, a))
         if flow >= st.config.tracking.keyframe_threshold:
             return None
         victim = g.frames[k]
@@ -77,6 +81,17 @@ class Keyframes:
         if not ok.any():
             return float("inf")
         return float(np.linalg.norm(uv[ok] - a.uv[ok], axis=1).mean())
+
+    def translation_flow(self, a: GraphFrame, b: GraphFrame) -> float:
+        """Mean rotation-compensated pixel flow of frame a's patches in frame b: each patch reprojected
+        at its depth minus reprojected at infinite depth (the flow of the rotation alone), so the
+        part of the flow that translation induces (inf when none reprojects)."""
+        uv, ok = self.state.reproject_to(a, b.T_WC)
+        uv_rot, ok_rot = self.state.reproject_rotation(a, b.T_WC)
+        ok = ok & ok_rot
+        if not ok.any():
+            return float("inf")
+        return float(np.linalg.norm(uv[ok] - uv_rot[ok], axis=1).mean())
 
     def retire(self) -> None:
         """Deactivate old edges, finalise frames no active edge reaches, release old caches."""

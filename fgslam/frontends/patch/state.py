@@ -137,6 +137,15 @@ class PatchState:
                            (Rb[0], tb[0], sb[0]), self.K, config=self.reproj)
         return uv.numpy(), ok.numpy()
 
+    def reproject_rotation(self, a: GraphFrame, T_WCb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Frame a's patch centres reprojected into a left image at pose ``T_WCb`` at infinite depth
+        (the rotation alone): (K, 2) pixels and validity."""
+        Ra, ta, sa = sim3_matrix_components(a.T_WC[None])
+        Rb, tb, sb = sim3_matrix_components(T_WCb[None])
+        uv, ok = reproject(torch.as_tensor(a.uv), torch.zeros(len(a.uv), dtype=torch.as_tensor(a.inv_depth).dtype),
+                           (Ra[0], ta[0], sa[0]), (Rb[0], tb[0], sb[0]), self.K, config=self.reproj)
+        return uv.numpy(), ok.numpy()
+
     def reproject_patches(self, a: GraphFrame, b: GraphFrame) -> tuple[np.ndarray, np.ndarray]:
         """Frame a's patch centres reprojected into frame b's left image at the current poses and
         depths: (K, 2) pixels and validity (in front, inside the image with the patch margin)."""
