@@ -62,3 +62,11 @@ def room_loop_rgbd_both(room_loop_clip, tmp_path_factory):
     folder = tmp_path_factory.mktemp("room_loop_rgbd_both")
     run_slam(open_slam_dataset(root, cfg), cfg, folder, progress=False)
     return folder, json.loads((folder / SUMMARY_FILE).read_text())
+
+
+@pytest.fixture(scope="session")
+def depth_room(tmp_path_factory):
+    """The RGB-D room clip of the depth-alignment tests of the three families (tests/depth_support.py)."""
+    from depth_support import render_depth_room
+
+    return render_depth_room(tmp_path_factory)
