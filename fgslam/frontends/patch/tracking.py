@@ -74,7 +74,6 @@ class _DepthCheck:
         self.fid = fid
         self.last = last
         self.block = state.depth.block(key_k, key_f, last.surface, surface)
-        self.T_WC = None
         self.ok: bool | None = None
 
     def prealign(self, T_WC_pred: np.ndarray) -> np.ndarray:
@@ -82,7 +81,6 @@ class _DepthCheck:
         depth = self.state.depth
         if depth.config.prealign:
             T_WC_pred, _ = depth.align(self.block, self.last.T_WC, T_WC_pred)
-        self.T_WC = T_WC_pred
         return T_WC_pred
 
     def __call__(self) -> bool:
@@ -90,10 +88,10 @@ class _DepthCheck:
             t0 = time.perf_counter()
             st = self.state
             frame = st.graph.frame(self.fid)
-            T_WC, _ = st.depth.align(self.block, self.last.T_WC, frame.T_WC)
+            T_WC, constraint = st.depth.hold(self.block, self.last.T_WC, frame.T_WC,
+                                             lambda T: image_information(st, self.fid, T))
             frame.T_WC = _rigid(T_WC)
-            H_image = image_information(st, self.fid, frame.T_WC)
-            self.ok = st.depth.check(self.block, self.last.T_WC, frame.T_WC, H_image).ok
+            self.ok = constraint.ok
             st.times["depth"] += time.perf_counter() - t0
         return self.ok
 
