@@ -52,7 +52,7 @@ class DepthTrackingConfig:
 
     enabled: bool = False  # RGB-D: point-to-plane depth blocks in tracking and in the window
     prealign: bool = False  # align a new frame's predicted pose to its reference by depth before measuring the image
-    prealign_iterations: int = ranged(6, ge=1, le=MAX_ITERATIONS)  # LM iterations per pyramid level of that alignment
+    prealign_iterations: int = ranged(6, ge=1, le=MAX_ITERATIONS)  # LM iterations per pyramid level of every depth alignment (prealign, and a frame the image lost)
     window_pairs: int = ranged(0, ge=0, le=MAX_WINDOW)  # depth blocks in the window: between the newest this many pairs of consecutive frames (0: every pair that touches a free frame)
     window_level: int = ranged(1, ge=0, le=MAX_LEVELS - 1)  # pyramid level of the window's depth blocks (0: coarsest; past the finest: the finest)
     align: DepthAlignConfig = field(default_factory=DepthAlignConfig)  # the residual, pyramid and gates
