@@ -44,7 +44,6 @@ class LocalBA:
         self.last_residual = np.zeros(0)
         self.keys: dict[int, int] = {}  # fid -> gtsam key cache (bounded to about the graph size)
         self.depth_block_name = f"{block_name}.depth"  # the contributor name of the depth-alignment blocks
-        self._final_residuals = None
 
     def key(self, fid: int) -> int:
         """gtsam key of graph frame ``fid`` (``fgslam.backend.keys.pose_key``), cached."""
@@ -118,7 +117,7 @@ class LocalBA:
             st.times["ba"] += time.perf_counter() - t0
             return {"edges": 0}
         if e.size == 0:  # RGB-D frames without image measurements: the depth alone holds them
-            report = self._solve(list(var), None, depth_blocks, None, None, iterations)
+            report, _ = self._solve(list(var), None, depth_blocks, None, None, iterations)
             st.times["ba"] += time.perf_counter() - t0
             return {"edges": 0, "initial_cost": report.initial_cost, "final_cost": report.final_cost,
                     "iterations": report.iterations}
@@ -164,9 +163,9 @@ class LocalBA:
         # at monocular initialisation the range between the first and last frame is the world scale
         anchor = int(var_order[0]) if mono_init or len(fixed) == 0 else None
         pair = (int(var_order[0]), int(var_order[1])) if mono_init and len(var_order) >= 2 else None
-        report = self._solve(var_order, block, depth_blocks, anchor, pair, iterations)
+        report, final = self._solve(var_order, block, depth_blocks, anchor, pair, iterations)
         self._write_depths(pos_src, ukeys, block.structure.numpy())
-        r, valid = self._final_residuals
+        r, valid = final
         r, valid = r[: e.size], valid[: e.size]  # the edges' own rows come first in the block
         rn = torch.linalg.vector_norm(r, dim=1).numpy()
         robust = np.where(valid.numpy() & (rn <= cfg.ba.outlier_threshold), self.measurer.huber_weights(g.confidence[e], rn), 0.0)
@@ -179,7 +178,7 @@ class LocalBA:
     def _solve(self, var_order: list, block, depth_blocks: list, anchor: int | None, pair, iterations: int | None = None):
         """The window solve through the backend: ``block`` (the visual block, None without image
         measurements) and the depth-alignment blocks over the free frames ``var_order``; poses written
-        back (RGB-D rigid). With ``block`` its final residuals are kept in ``_final_residuals``."""
+        back (RGB-D rigid). Returns the backend's report and ``block``'s final residuals (None without it)."""
         st = self.state
         g = st.graph
         backend = st.backend
@@ -194,10 +193,11 @@ class LocalBA:
         if st.depth.enabled:
             backend.set_blocks(self.depth_block_name, depth_blocks)
         report = backend.optimize_window([int(f) for f in var_order], iterations)
+        final = None
         if block is not None:
             # robust weights from the final residuals at the optimised poses, before the RGB-D rigid
             # write-back below (the block answers from its memo of the last accepted step)
-            self._final_residuals = block.residuals(backend.values_of(block.keys))
+            final = block.residuals(backend.values_of(block.keys))
         # RGB-D poses are written back rigid (scale exactly 1): its depth priors act on inverse depths
         # in the source camera and observe no Sim(3) scale, and the scale prior only holds each BA
         # near its starting scale, so kept scales drifted from BA to BA (7-Scenes: s fell to 0.87
@@ -210,7 +210,7 @@ class LocalBA:
                 frame.T_WC = _rigid(frame.T_WC)
             elif not isinstance(frame, BackendFrame):  # a frame built outside the frontend (tests)
                 frame.T_WC = backend.pose_matrix(int(f))
-        return report
+        return report, final
 
     def depth_blocks(self, var) -> list:
         """Depth-alignment blocks between consecutive graph frames with surfaces, at least one of
