@@ -56,3 +56,37 @@ def test_a_step_trains_every_part_and_writes_a_loadable_checkpoint(tiny, tmp_pat
     source = make_dense_source(DenseSourceConfig(kind="droid", checkpoint=str(out)))
     assert isinstance(source, LearnedDroidSource)
     assert before.keys() == source._runner.net.state_dict().keys()
+
+
+def test_a_batch_of_clips_is_the_mean_of_its_clips_and_float32_follows_float64(tiny):
+    cfg, pool = tiny
+    rng = np.random.default_rng(2)
+    clips = [pool.sample(rng) for _ in range(3)]
+    torch.manual_seed(0)
+    net = train.DroidNet()
+    cpu = torch.device("cpu")
+    with torch.no_grad():
+        alone = np.mean([[(float(p), float(f)) for p, f in train.unroll(net, pool, c, cfg, cpu)] for c in clips], axis=0)
+        batch = np.array([(float(p), float(f)) for p, f in train.unroll(net, pool, clips, cfg, cpu)])
+        single = np.array([(float(p), float(f)) for p, f in train.unroll(net, pool, clips, cfg, cpu, torch.float32)])
+    assert train.ba_dtype(cfg, cpu) == torch.float64 and train.ba_dtype(cfg, torch.device("cuda")) == torch.float32
+    np.testing.assert_allclose(batch, alone, rtol=1e-9)
+    np.testing.assert_allclose(single, batch, rtol=1e-4)
+    assert train.initial_losses(pool, clips, cfg) == pytest.approx(np.mean([train.initial_losses(pool, c, cfg)
+                                                                            for c in clips], axis=0), rel=1e-12)
+
+
+def test_a_pool_of_several_scenes_keeps_clips_inside_one_scene():
+    cfg = train.TrainConfig(width=64, height=64, pool_frames=10, pool_seeds=2, clip_frames=3, max_gap=6, flow_min=4.0)
+    pool = train.ClipPool(cfg)
+    assert len(pool.frames) == 20 and list(pool.scene) == [0] * 10 + [1] * 10
+    assert np.isfinite(pool.flow[3, 3:7]).all() and np.isfinite(pool.flow[13, 3:7]).all()  # inside a scene
+    assert not np.isfinite(pool.flow[7, 3:7]).any()  # 7 -> 10..13 would cross into the second scene
+    assert not np.array_equal(pool.frames[0].image, pool.frames[10].image)  # another scene, the same first pose
+    np.testing.assert_array_equal(pool.frames[0].T_WC, pool.frames[10].T_WC)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        clip = pool.sample(rng)
+        assert len(set(pool.scene[clip])) == 1
+    with pytest.raises(train.FGSlamError, match="ba-dtype"):
+        train.ba_dtype(train.TrainConfig(ba_dtype="float16"), torch.device("cpu"))

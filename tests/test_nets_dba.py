@@ -100,3 +100,34 @@ def test_gradients_through_the_step_match_finite_differences():
             minus[arg].reshape(-1)[idx] -= eps
             fd = (loss(*plus) - loss(*minus)) / (2 * eps)
             assert float(grad.reshape(-1)[idx]) == pytest.approx(float(fd), rel=1e-4, abs=1e-8), (arg, idx)
+
+
+def test_a_batch_of_clips_is_each_clip_solved_alone_and_float32_follows_float64():
+    clips = []
+    for seed in (3, 4):
+        poses, depth, ii, jj, g = scene(seed)
+        target, _ = induced_coords(poses, depth, K, ii, jj)
+        target = target + 0.2 * torch.randn(target.shape, generator=g, dtype=torch.float64)
+        weight = 0.2 + 0.8 * torch.rand(target.shape, generator=g, dtype=torch.float64)
+        eta = torch.full((N, h, w), 1e-2, dtype=torch.float64)
+        clips.append((*perturb(poses, depth, g), target, weight, eta))
+    alone = [dense_ba_step(p, d, K, ii, jj, t, wt, e, fixed=(0, 1)) for p, d, t, wt, e in clips]
+    stack = [torch.stack(x) for x in zip(*[(p.R, p.t, p.s, d, t, wt, e) for p, d, t, wt, e in clips])]
+    batch = Sim3(*stack[:3])
+    p_b, d_b = dense_ba_step(batch, stack[3], K, ii, jj, *stack[4:], fixed=(0, 1))
+    assert p_b.shape == (2, N) and d_b.shape == (2, N, h, w)
+    for b, (p, d) in enumerate(alone):
+        torch.testing.assert_close(p_b.t[b], p.t, rtol=0, atol=1e-12)
+        torch.testing.assert_close(p_b.R[b], p.R, rtol=0, atol=1e-12)
+        torch.testing.assert_close(d_b[b], d, rtol=1e-12, atol=0)
+    assert (dense_cost(batch, stack[3], K, ii, jj, stack[4], stack[5]).tolist()
+            == pytest.approx([float(dense_cost(p, d, K, ii, jj, t, wt)) for p, d, t, wt, _ in clips], rel=1e-12))
+    # the same step in float32 (training on a GPU): the step itself agrees to float32 precision
+    p32, d32 = dense_ba_step(batch.to(torch.float32), stack[3].float(), K.float(), ii, jj,
+                             *[x.float() for x in stack[4:]], fixed=(0, 1))
+    assert p32.dtype == torch.float32 and d32.dtype == torch.float32
+    step64 = (p_b.t - batch.t).abs().max()
+    assert step64 > 1e-3  # the step moves the poses: the comparison below is not of two no-ops
+    torch.testing.assert_close(p32.t.double(), p_b.t, rtol=0, atol=1e-4 * float(step64))
+    torch.testing.assert_close((d32.double() - stack[3]), (d_b - stack[3]), rtol=0,
+                               atol=1e-4 * float((d_b - stack[3]).abs().max()))

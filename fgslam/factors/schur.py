@@ -119,8 +119,9 @@ class SchurSystem:
     inv_C: torch.Tensor
 
     def back_substitute(self, dx: torch.Tensor) -> torch.Tensor:
-        """Structure update (P,) minimising the joint quadratic for the pose update ``dx`` (7k,)."""
-        return -self.inv_C * (self.b + self.F @ dx.to(self.F.dtype))
+        """Structure update (P,) minimising the joint quadratic for the pose update ``dx`` (7k,) (batched:
+        ``(B, P)`` for ``(B, 7k)``, as :func:`eliminate_structure` returns)."""
+        return -self.inv_C * (self.b + (self.F @ dx.to(self.F.dtype)[..., None])[..., 0])
 
     def model(self, dx: torch.Tensor) -> float:
         """Reduced quadratic ``dx^T H dx + 2 g^T dx + c`` at ``dx`` (7k,)."""
@@ -237,8 +238,9 @@ def eliminate_structure(
     c = c - (inv_C * b * b).sum(-1)
     if H.dim() == 2:
         c = float(c)
-    finite = bool(torch.isfinite(H).all()) and bool(torch.isfinite(g).all())
-    if not (finite and bool(np.isfinite(np.asarray(c, dtype=np.float64)).all())):
+    finite = bool(torch.isfinite(H).all() & torch.isfinite(g).all())  # one device sync
+    c_finite = bool(torch.isfinite(c).all()) if isinstance(c, torch.Tensor) else bool(np.isfinite(c))
+    if not (finite and c_finite):
         raise OptimizationError("Schur elimination produced non-finite values (NaN/inf in residuals or Jacobians)")
     return SchurSystem(H=H, g=g, c=c, F=F, b=b, inv_C=inv_C)
 

@@ -13,11 +13,16 @@ into preallocated buffers with ``out=``, which autograd cannot follow; here one-
 and ``einsum``) and the solver (a damped Gauss-Newton step, DROID's ``H + (ep + lm diag H)``, instead
 of the backend's GTSAM LM loop). Poses ``fixed`` (the first two in training: the gauge, including the
 monocular scale) do not move; every pose's scale is held (6 free dof), as the monocular frontends do.
+
+Batched over clips: with a leading batch dimension (``poses (B, N)``, ``inv_depth (B, N, h, w)``,
+``target``/``weight (B, E, h, w, 2)``, ``eta (B, N, h, w)``) every clip is one system of the same frame
+graph ``(ii, jj)``, solved at once (one batched Schur elimination and solve, no loop over clips). The
+step runs in the dtype and on the device of ``inv_depth`` (float32 on a GPU in training; the tests
+check it against float64).
 """
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -54,35 +59,50 @@ def _grid(h: int, w: int, like: torch.Tensor) -> torch.Tensor:
     return torch.stack((x, y), -1)
 
 
+def _batched(poses: Sim3, inv_depth: torch.Tensor) -> tuple[Sim3, torch.Tensor, bool]:
+    """``(B, N)`` poses and ``(B, N, h, w)`` depths (a single clip gets ``B = 1``) and whether it had none."""
+    if inv_depth.dim() == 3:
+        return Sim3(poses.R[None], poses.t[None], poses.s[None]), inv_depth[None], True
+    return poses, inv_depth, False
+
+
+def _edge_poses(poses: Sim3, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Poses ``(B, N)`` of the edges' frames ``idx`` ``(E,)``, broadcast over ``(B, E, h, w)`` pixels."""
+    idx = idx.to(poses.R.device)
+    return (poses.R[:, idx, None, None], poses.t[:, idx, None, None],
+            poses.s.expand(poses.R.shape[:-2])[:, idx, None, None])
+
+
 def induced_coords(poses: Sim3, inv_depth: torch.Tensor, K: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor,
                    config: DenseBAStepConfig | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each grid pixel of ``i`` reprojected into ``j`` for edges ``(ii, jj)``: ``(E, h, w, 2)`` and validity."""
+    """Each grid pixel of ``i`` reprojected into ``j`` for edges ``(ii, jj)``: ``(E, h, w, 2)`` and validity
+    (``(B, E, h, w, 2)`` for a batch of clips)."""
     config = config or DenseBAStepConfig()
-    N, h, w = inv_depth.shape
-    uv = _grid(h, w, inv_depth)[None].expand(len(ii), h, w, 2)
-    Ti, Tj = poses[ii], poses[jj]
-    return reproject(uv, inv_depth[ii], _expand(Ti), _expand(Tj), K, config=config.reprojection)
-
-
-def _expand(T: Sim3) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Pose batch ``(E,)`` broadcast over an ``(E, h, w)`` pixel batch."""
-    return T.R[:, None, None], T.t[:, None, None], T.s[:, None, None]
+    poses, inv_depth, single = _batched(poses, inv_depth)
+    B, N, h, w = inv_depth.shape
+    ii_d = ii.to(inv_depth.device)
+    uv = _grid(h, w, inv_depth).expand(B, len(ii), h, w, 2)
+    uv, valid = reproject(uv, inv_depth[:, ii_d], _edge_poses(poses, ii), _edge_poses(poses, jj), K.to(inv_depth),
+                          config=config.reprojection)
+    return (uv[0], valid[0]) if single else (uv, valid)
 
 
 def _linearize(poses, inv_depth, K, ii, jj, target, config):
-    N, h, w = inv_depth.shape
-    uv = _grid(h, w, inv_depth)[None].expand(len(ii), h, w, 2)
-    return reproject_inv_depth(uv, inv_depth[ii], _expand(poses[ii]), _expand(poses[jj]), K, target,
-                               config=config.reprojection)
+    B, N, h, w = inv_depth.shape
+    uv = _grid(h, w, inv_depth).expand(B, len(ii), h, w, 2)
+    return reproject_inv_depth(uv, inv_depth[:, ii.to(inv_depth.device)], _edge_poses(poses, ii),
+                               _edge_poses(poses, jj), K.to(inv_depth), target, config=config.reprojection)
 
 
 def dense_cost(poses: Sim3, inv_depth: torch.Tensor, K: torch.Tensor, ii, jj, target, weight,
                config: DenseBAStepConfig | None = None) -> torch.Tensor:
-    """``0.5 sum w r^2`` (the dense block's cost, GTSAM convention)."""
+    """``0.5 sum w r^2`` (the dense block's cost, GTSAM convention; per clip ``(B,)`` for a batch)."""
     config = config or DenseBAStepConfig()
-    res = _linearize(poses, inv_depth, K, ii, jj, target, config)
-    w = torch.where(res.valid[..., None], weight, torch.zeros_like(weight))
-    return 0.5 * (w * res.residual ** 2).sum()
+    poses, inv_depth, single = _batched(poses, inv_depth)
+    res = _linearize(poses, inv_depth, K, ii, jj, target.reshape(-1, *target.shape[-4:]), config)
+    w = torch.where(res.valid[..., None], weight.reshape(res.residual.shape), torch.zeros_like(res.residual))
+    cost = 0.5 * (w * res.residual ** 2).sum((1, 2, 3, 4))
+    return cost[0] if single else cost
 
 
 def dense_ba_step(poses: Sim3, inv_depth: torch.Tensor, K: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor,
@@ -92,42 +112,54 @@ def dense_ba_step(poses: Sim3, inv_depth: torch.Tensor, K: torch.Tensor, ii: tor
 
     ``poses`` ``(N,)`` Sim(3) ``T_WC``; ``inv_depth`` ``(N, h, w)``; ``K`` ``(4,)`` grid intrinsics;
     ``target``, ``weight`` ``(E, h, w, 2)`` (``p*_ij`` and ``w_ij``); ``eta`` ``(N, h, w)`` depth damping;
-    ``fixed`` pose indices held. Returns the new poses and inverse depths (differentiable in every input).
+    ``fixed`` pose indices held (in every clip). With a leading batch dimension ``B`` on ``poses``,
+    ``inv_depth``, ``target``, ``weight`` and ``eta``, ``B`` clips of the same graph are solved at once.
+    The step runs in ``inv_depth``'s dtype and device. Returns the new poses and inverse depths
+    (differentiable in every input).
     """
     config = config or DenseBAStepConfig()
-    N, h, w = inv_depth.shape
-    dt = inv_depth.dtype
-    free = [n for n in range(N) if n not in set(int(f) for f in fixed)]
-    slot = torch.full((N,), -1, dtype=torch.long)
-    slot[free] = torch.arange(len(free))
+    poses, inv_depth, single = _batched(poses, inv_depth)
+    B, N, h, w = inv_depth.shape
+    E = len(ii)
+    dt, dev = inv_depth.dtype, inv_depth.device
+    target, weight = target.reshape(B, E, h, w, 2), weight.reshape(B, E, h, w, 2)
+    eta = eta.reshape(B, N, h, w)
+    fixed_set = set(int(f) for f in fixed)
+    free = [n for n in range(N) if n not in fixed_set]
     k = len(free)
+    slot = torch.full((N,), -1, dtype=torch.long)
+    slot[free] = torch.arange(k)
+    slot_i, slot_j = slot[ii.cpu()].to(dev), slot[jj.cpu()].to(dev)
     res = _linearize(poses, inv_depth, K, ii, jj, target, config)
-    W = torch.where(res.valid[..., None], weight.to(dt), torch.zeros((), dtype=dt))  # (E, h, w, 2)
+    W = torch.where(res.valid[..., None], weight.to(dt), torch.zeros((), dtype=dt, device=dev))  # (B, E, h, w, 2)
     r = res.residual
-    # pose Jacobians scattered into the free slots: (E, h, w, 2, k, 6)
-    onehot_i = torch.nn.functional.one_hot(slot[ii].clamp(min=0), k).to(dt) * (slot[ii] >= 0).to(dt)[:, None]
-    onehot_j = torch.nn.functional.one_hot(slot[jj].clamp(min=0), k).to(dt) * (slot[jj] >= 0).to(dt)[:, None]
-    J = (torch.einsum("ehwrd,ek->ehwrkd", res.J_Ti[..., :POSE_DOF], onehot_i)
-         + torch.einsum("ehwrd,ek->ehwrkd", res.J_Tj[..., :POSE_DOF], onehot_j)).reshape(len(ii), h, w, 2, k * POSE_DOF)
-    H = torch.einsum("ehwr,ehwra,ehwrb->ab", W, J, J)
-    g = torch.einsum("ehwr,ehwra,ehwr->a", W, J, r)
-    c = (W * r * r).sum()
-    # per-pixel structure of the source frames: (N, h, w) summed over each frame's edges
-    src = torch.nn.functional.one_hot(ii, N).to(dt)  # (E, N)
+    # pose Jacobians scattered into the free slots: (B, E, h, w, 2, k * 6)
+    onehot_i = torch.nn.functional.one_hot(slot_i.clamp(min=0), k).to(dt) * (slot_i >= 0).to(dt)[:, None]
+    onehot_j = torch.nn.functional.one_hot(slot_j.clamp(min=0), k).to(dt) * (slot_j >= 0).to(dt)[:, None]
+    J = (torch.einsum("behwrd,ek->behwrkd", res.J_Ti[..., :POSE_DOF], onehot_i)
+         + torch.einsum("behwrd,ek->behwrkd", res.J_Tj[..., :POSE_DOF], onehot_j)).reshape(B, E, h, w, 2, k * POSE_DOF)
+    WJ = (W[..., None] * J).reshape(B, -1, k * POSE_DOF)
+    H = WJ.transpose(1, 2) @ J.reshape(B, -1, k * POSE_DOF)
+    g = (WJ.transpose(1, 2) @ r.reshape(B, -1, 1))[..., 0]
+    c = (W * r * r).sum((1, 2, 3, 4))
+    # per-pixel structure of the source frames: (B, N, h, w) summed over each frame's edges
+    src = torch.nn.functional.one_hot(ii.to(dev), N).to(dt)  # (E, N)
     wE = W * res.J_d
-    C = torch.einsum("en,ehw->nhw", src, (wE * res.J_d).sum(-1)) + eta.to(dt)
-    b = torch.einsum("en,ehw->nhw", src, (wE * r).sum(-1))
-    F = torch.einsum("en,ehwa->nhwa", src, torch.einsum("ehwr,ehwra->ehwa", wE, J))
-    with warnings.catch_warnings():  # the reduced constant c (a float there) is not needed here
-        warnings.filterwarnings("ignore", message="Converting a tensor with requires_grad", category=UserWarning)
-        system = eliminate_structure(H, g, c.detach(), F.reshape(N * h * w, -1), b.reshape(-1), C.reshape(-1),
-                                     config.min_information)
-    Hs = system.H + torch.diag(config.ep + config.lm * torch.diagonal(system.H))
-    dx = -torch.linalg.solve(Hs, system.g)
-    dd = system.back_substitute(dx).reshape(N, h, w)
-    xi = torch.zeros(N, 7, dtype=dt)
-    xi = xi.index_put((torch.tensor(free, dtype=torch.long),), torch.cat(
-        [dx.reshape(k, POSE_DOF), torch.zeros(k, 1, dtype=dt)], -1)) if k else xi
+    C = torch.einsum("en,behw->bnhw", src, (wE * res.J_d).sum(-1)) + eta.to(dt)
+    b = torch.einsum("en,behw->bnhw", src, (wE * r).sum(-1))
+    F = torch.einsum("en,behwa->bnhwa", src, torch.einsum("behwr,behwra->behwa", wE, J))
+    system = eliminate_structure(H, g, c.detach(), F.reshape(B, N * h * w, -1), b.reshape(B, -1), C.reshape(B, -1),
+                                 config.min_information)
+    diag = torch.diagonal(system.H, dim1=-2, dim2=-1)
+    Hs = system.H + torch.diag_embed(config.ep + config.lm * diag)
+    dx = -torch.linalg.solve(Hs, system.g[..., None])[..., 0]  # (B, 6 k)
+    dd = system.back_substitute(dx).reshape(B, N, h, w)
+    # pose tangents [w, u, lambda] of every frame: the free slots' steps, zero on the fixed poses and the scale
+    place = torch.nn.functional.one_hot(slot.clamp(min=0), max(k, 1)).to(dt).to(dev) * (slot >= 0).to(dt).to(dev)[:, None]
+    xi = torch.cat([torch.einsum("nk,bkd->bnd", place[:, :k], dx.reshape(B, k, POSE_DOF)),
+                    torch.zeros(B, N, 1, dtype=dt, device=dev)], -1)
     new_poses = poses.retract(xi)
     new_depth = (inv_depth + dd).clamp(min=config.min_inv_depth)
+    if single:
+        return new_poses[0], new_depth[0]
     return new_poses, new_depth
