@@ -124,18 +124,21 @@ def dense_ba_step(poses: Sim3, inv_depth: torch.Tensor, K: torch.Tensor, ii: tor
     dt, dev = inv_depth.dtype, inv_depth.device
     target, weight = target.reshape(B, E, h, w, 2), weight.reshape(B, E, h, w, 2)
     eta = eta.reshape(B, N, h, w)
-    fixed_set = set(int(f) for f in fixed)
-    free = [n for n in range(N) if n not in fixed_set]
-    k = len(free)
-    slot = torch.full((N,), -1, dtype=torch.long)
-    slot[free] = torch.arange(k)
-    slot_i, slot_j = slot[ii.cpu()].to(dev), slot[jj.cpu()].to(dev)
+    ii, jj = ii.to(dev), jj.to(dev)
+    # the free poses' slots 0..k-1 (-1: fixed), built on the device: no host round trip inside the step
+    fixed_set = set(int(f) for f in fixed if 0 <= int(f) < N)
+    k = N - len(fixed_set)
+    free = torch.ones(N, dtype=torch.bool, device=dev)
+    for f in fixed_set:
+        free[f] = False
+    slot = torch.where(free, torch.cumsum(free.long(), 0) - 1, -1)
+    slots = torch.arange(k, device=dev)
     res = _linearize(poses, inv_depth, K, ii, jj, target, config)
     W = torch.where(res.valid[..., None], weight.to(dt), torch.zeros((), dtype=dt, device=dev))  # (B, E, h, w, 2)
     r = res.residual
-    # pose Jacobians scattered into the free slots: (B, E, h, w, 2, k * 6)
-    onehot_i = torch.nn.functional.one_hot(slot_i.clamp(min=0), k).to(dt) * (slot_i >= 0).to(dt)[:, None]
-    onehot_j = torch.nn.functional.one_hot(slot_j.clamp(min=0), k).to(dt) * (slot_j >= 0).to(dt)[:, None]
+    # pose Jacobians scattered into the free slots: (B, E, h, w, 2, k * 6); a fixed pose's row is zero
+    onehot_i = (slot[ii, None] == slots).to(dt)
+    onehot_j = (slot[jj, None] == slots).to(dt)
     J = (torch.einsum("behwrd,ek->behwrkd", res.J_Ti[..., :POSE_DOF], onehot_i)
          + torch.einsum("behwrd,ek->behwrkd", res.J_Tj[..., :POSE_DOF], onehot_j)).reshape(B, E, h, w, 2, k * POSE_DOF)
     WJ = (W[..., None] * J).reshape(B, -1, k * POSE_DOF)
@@ -143,7 +146,7 @@ def dense_ba_step(poses: Sim3, inv_depth: torch.Tensor, K: torch.Tensor, ii: tor
     g = (WJ.transpose(1, 2) @ r.reshape(B, -1, 1))[..., 0]
     c = (W * r * r).sum((1, 2, 3, 4))
     # per-pixel structure of the source frames: (B, N, h, w) summed over each frame's edges
-    src = torch.nn.functional.one_hot(ii.to(dev), N).to(dt)  # (E, N)
+    src = (ii[:, None] == torch.arange(N, device=dev)).to(dt)  # (E, N)
     wE = W * res.J_d
     C = torch.einsum("en,behw->bnhw", src, (wE * res.J_d).sum(-1)) + eta.to(dt)
     b = torch.einsum("en,behw->bnhw", src, (wE * r).sum(-1))
@@ -152,11 +155,13 @@ def dense_ba_step(poses: Sim3, inv_depth: torch.Tensor, K: torch.Tensor, ii: tor
                                  config.min_information)
     diag = torch.diagonal(system.H, dim1=-2, dim2=-1)
     Hs = system.H + torch.diag_embed(config.ep + config.lm * diag)
-    dx = -torch.linalg.solve(Hs, system.g[..., None])[..., 0]  # (B, 6 k)
+    # Hs is positive definite for ep > 0 (a Schur complement plus ep I); solve_ex skips linalg.solve's
+    # singularity check, a device sync per step (eliminate_structure's finiteness check stays)
+    dx = -torch.linalg.solve_ex(Hs, system.g[..., None])[0][..., 0]  # (B, 6 k)
     dd = system.back_substitute(dx).reshape(B, N, h, w)
     # pose tangents [w, u, lambda] of every frame: the free slots' steps, zero on the fixed poses and the scale
-    place = torch.nn.functional.one_hot(slot.clamp(min=0), max(k, 1)).to(dt).to(dev) * (slot >= 0).to(dt).to(dev)[:, None]
-    xi = torch.cat([torch.einsum("nk,bkd->bnd", place[:, :k], dx.reshape(B, k, POSE_DOF)),
+    place = (slot[:, None] == slots).to(dt)  # (N, k)
+    xi = torch.cat([torch.einsum("nk,bkd->bnd", place, dx.reshape(B, k, POSE_DOF)),
                     torch.zeros(B, N, 1, dtype=dt, device=dev)], -1)
     new_poses = poses.retract(xi)
     new_depth = (inv_depth + dd).clamp(min=config.min_inv_depth)
