@@ -114,9 +114,8 @@ def _moments(lam: torch.Tensor, kmax: int) -> list[torch.Tensor]:
     """``m_k(lam) = int_0^1 tau^k exp(lam tau) dtau`` for k = 0..kmax (power series or recurrence)."""
     series = lam.abs() < _SERIES_LAMBDA
     ls = torch.where(series, lam, torch.zeros_like(lam))
-    terms = [torch.ones_like(lam)]
-    for n in range(1, _SERIES_TERMS):
-        terms.append(terms[-1] * ls / n)
+    n = torch.arange(_SERIES_TERMS, dtype=lam.dtype, device=lam.device)
+    terms = torch.cat([torch.ones_like(lam)[..., None], torch.cumprod(ls[..., None] / n[1:], -1)], -1)  # lam^n / n!
     lr = torch.where(series, torch.ones_like(lam), lam)
     e = torch.exp(lr)
     m_rec = torch.expm1(lr) / lr
@@ -124,7 +123,7 @@ def _moments(lam: torch.Tensor, kmax: int) -> list[torch.Tensor]:
     for k in range(kmax + 1):
         if k > 0:
             m_rec = (e - k * m_rec) / lr
-        m_ser = sum(c / (n + k + 1) for n, c in enumerate(terms))
+        m_ser = (terms / (n + (k + 1))).sum(-1)  # sum_n lam^n / (n! (n + k + 1)), one reduction (few kernels)
         out.append(torch.where(series, m_ser, m_rec))
     return out
 
