@@ -173,6 +173,7 @@ def new_stage(cfg: dict, out: Path, work: Path, batch: int, seconds: float, pool
         result["pool"] = pool
     if summary:
         result.update({"steps": summary["throughput"]["steps"], "clips": summary["throughput"]["clips"],
+                       "skipped_steps": summary["throughput"].get("skipped_steps"),
                        "train_s": summary["throughput"]["train_s"], "eval": summary["eval"],
                        "initial_state": summary["initial_state"]})
     return result
