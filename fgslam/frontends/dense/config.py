@@ -103,6 +103,10 @@ class DenseConfig:
     point_confidence: float = ranged(0.5, ge=0, le=1)  # keyframe_points / depth PNG: grid pixels with confidence below this are left out
     threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads of the frontend (0: torch's default)
 
+    def wants_colour(self) -> bool:
+        """The DROID source takes the colour image (the official network's input); the flow source grey."""
+        return self.source.kind in ("droid", "learned")
+
     def validate(self) -> None:
         self.depth_align.validate()
         if self.ba.window >= self.graph.active_keyframes:

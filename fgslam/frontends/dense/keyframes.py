@@ -37,7 +37,7 @@ class DenseKeyframes:
         s = fe.stride
         image = fe._cropped(frame.image)
         if not source_added:
-            fe.source.add_frame(fid, image)
+            fe.source.add_frame(fid, fe._source_image(frame))
         rgb = fe._cropped(frame.rgb) if frame.rgb is not None else np.repeat(image[..., None], 3, axis=-1)
         colour = np.clip(pool(rgb.astype(np.float32), s), 0, 255).astype(np.uint8)
         sensor = None
@@ -60,7 +60,7 @@ class DenseKeyframes:
         g.add(kf)
         fe._counts["keyframes_added"] += 1
         if fe.sensor_mode == "stereo":
-            self._measure_stereo(kf, fe._cropped(frame.image_right), init_depth=True)
+            self._measure_stereo(kf, fe._source_image(frame, right=True), init_depth=True)
         self._connect(fid)
 
     def _grid_depth(self, depth: np.ndarray) -> np.ndarray:

@@ -180,6 +180,10 @@ class PatchConfig:
     proximity: ProximityConfig = field(default_factory=ProximityConfig)
     depth_align: DepthTrackingConfig = field(default_factory=DepthTrackingConfig)  # RGB-D: point-to-plane depth alignment in tracking and the window
 
+    def wants_colour(self) -> bool:
+        """The DPVO source takes the colour image (the official network's input); Lucas-Kanade grey."""
+        return self.source in ("dpvo", "learned")
+
     def validate(self) -> None:
         """Raise ConfigError naming the first field out of its range or inconsistent with another."""
         check_ranges(self, "patch.")
