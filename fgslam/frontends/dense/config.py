@@ -48,6 +48,7 @@ class DenseBAConfig:
     rounds: int = ranged(1, ge=1, le=MAX_ITERATIONS)  # measure/optimise rounds per new keyframe
     iterations: int = ranged(2, ge=1, le=MAX_ITERATIONS)  # LM iterations per round
     remeasure: int = ranged(2, ge=1, le=MAX_ITERATIONS)  # edges touching the newest this many keyframes are re-measured each round (the others keep their last measurement)
+    kept_rounds: int = ranged(0, ge=0, le=MAX_ITERATIONS)  # more rounds after the keyframe-removal decision when the second newest keyframe is kept (DROID-SLAM: 2, its iters2; 0: none)
     per_edge_min_rows: int = ranged(256, ge=1, le=MAX_COUNT)  # block evaluation edge by edge (pose pair broadcast) above this many rows per edge
     init_rounds: int = ranged(5, ge=1, le=MAX_ITERATIONS)  # rounds of the initialisation
     init_iterations: int = ranged(4, ge=1, le=MAX_ITERATIONS)  # LM iterations per initialisation round

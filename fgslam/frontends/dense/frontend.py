@@ -319,6 +319,8 @@ class DenseFrontend(BackendFrontend):
         removed = self.keyframes.remove_redundant()
         if removed is not None:
             events.append(f"keyframe removed: {removed}")
+        elif self.config.ba.kept_rounds:  # DROID-SLAM: more update iterations when the keyframe stays
+            self.ba.local(fid, self.config.ba.kept_rounds)
         self.keyframes.retire()
         self._update_velocity(fid)
         self._new_since_global += 1
