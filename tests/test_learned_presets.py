@@ -20,7 +20,8 @@ from fgslam.runconfig import load_slam_config
 
 DROID_GRID = 8  # DROID's distances are 1/8-resolution pixels; fgslam's image pixels
 DROID_DEMO = {"filter_thresh": 2.4, "warmup": 8, "keyframe_thresh": 4.0, "frontend_thresh": 16.0,
-              "frontend_window": 25, "frontend_radius": 2, "iters1": 4, "iters2": 2, "init_updates": 8 + 8,
+              "frontend_window": 25, "frontend_radius": 2, "iters1": 4, "iters2": 2, "init_updates": (8, 8),
+              "init_radius": 3,
               "ba_itrs": 2, "backend_steps": 7 + 12, "backend_radius": 2, "backend_nms": 3, "backend_thresh": 22.0}
 DPVO_RES = 4  # DPVO's flows are 1/4-resolution pixels
 DPVO_DEFAULT = {"PATCHES_PER_FRAME": 96, "REMOVAL_WINDOW": 22, "OPTIMIZATION_WINDOW": 10, "PATCH_LIFETIME": 13,
@@ -35,7 +36,8 @@ def test_dense_learned_preset_follows_the_droid_slam_demo_schedule():
     assert d.source.droid.iterations == 1  # one operator iteration per update
     assert d.graph.motion_filter_flow == pytest.approx(o["filter_thresh"] * DROID_GRID)
     assert d.graph.init_keyframes == o["warmup"]
-    assert d.ba.init_rounds == o["init_updates"] and d.ba.init_iterations == o["ba_itrs"]
+    assert (d.ba.init_neighbour_rounds, d.ba.init_rounds) == o["init_updates"]
+    assert d.graph.init_radius == o["init_radius"] and d.ba.init_iterations == o["ba_itrs"]
     assert d.ba.rounds == o["iters1"] and d.ba.kept_rounds == o["iters2"] and d.ba.iterations == o["ba_itrs"]
     assert d.graph.remove_threshold == pytest.approx(o["keyframe_thresh"] * DROID_GRID)
     assert d.graph.max_edge_distance == pytest.approx(o["frontend_thresh"] * DROID_GRID)
@@ -73,6 +75,7 @@ def test_patch_learned_preset_follows_the_dpvo_defaults():
 def test_built_in_presets_keep_their_measured_schedules():
     dense, patch = load_slam_config("dense_mono").dense, load_slam_config("patch_mono").patch
     assert dense.source.kind == "flow" and dense.ba.kept_rounds == 0 and dense.ba.rounds == 1
+    assert dense.ba.init_neighbour_rounds == 0 and dense.ba.init_rounds == 5
     assert dense.graph.motion_filter_flow == 12.0 and dense.graph.active_keyframes == 12
     assert patch.source == "lk" and patch.ba.remeasure == "new" and patch.ba.rounds == 2
     assert patch.graph.patch_lifetime == 5 and patch.tracking.keyframe_threshold == 20.0
@@ -154,3 +157,34 @@ def test_dense_kept_rounds_run_only_when_the_keyframe_stays(room_rgbd):
     assert sorted(again) == sorted(f for f in first if f not in removed)
     calls, _ = run(0)
     assert calls and all(rounds is None for _, rounds in calls)
+
+
+def test_dense_initialisation_starts_on_the_neighbourhood_edges(room_rgbd):
+    """With ``init_neighbour_rounds`` the monocular initialisation first measures only the edges between
+    keyframes at most ``init_radius`` apart (both ways, each pair once), then every pair within reach."""
+    from fgslam.backend import Backend, BackendConfig
+    from fgslam.frontends.dense.config import DenseConfig
+    from fgslam.frontends.dense.frontend import DenseFrontend
+
+    cfg = DenseConfig()
+    cfg.graph.init_keyframes, cfg.graph.init_radius, cfg.graph.motion_filter_flow = 6, 1, 2.0
+    cfg.ba.init_neighbour_rounds, cfg.ba.init_rounds = 2, 1
+    fe = DenseFrontend(cfg, sensor_mode="mono", backend=Backend(BackendConfig()))
+    calls, measure = [], fe.ba.measure
+
+    def recording(edges):
+        calls.append((fe._initialized, list(edges)))
+        return measure(edges)
+    fe.ba.measure = recording
+    for frame in room_rgbd:
+        fe.process(frame)
+        if fe._initialized:
+            break
+    assert fe._initialized
+    init = [edges for done, edges in calls if not done]
+    assert len(init) == 3
+    pos = {f: k for k, f in enumerate(fe.graph.order())}
+    n = cfg.graph.init_keyframes
+    neighbourhood = sorted((f, g) for f in pos for g in pos if 0 < abs(pos[f] - pos[g]) <= 1 and pos[f] < n and pos[g] < n)
+    assert sorted(init[0]) == sorted(init[1]) == neighbourhood
+    assert set(init[2]) > set(neighbourhood)  # then the wider edge set (temporal radius 2, nearest keyframes)

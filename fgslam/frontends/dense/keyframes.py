@@ -156,6 +156,19 @@ class DenseKeyframes:
             for e in ((fid, f), (f, fid)):
                 g.ensure_edge(e)
 
+    def connect_neighbourhood(self, radius: int) -> list[tuple[int, int]]:
+        """Monocular initialisation, first phase: the edges (both ways) between active keyframes at most
+        ``radius`` apart in order (DROID-SLAM's ``add_neighborhood_factors``), added where missing."""
+        g = self.fe.graph
+        free = list(g.active)
+        edges = []
+        for a, fa in enumerate(free):
+            for fb in free[a + 1:a + 1 + radius]:
+                edges += [(fa, fb), (fb, fa)]
+        for e in edges:
+            g.ensure_edge(e)
+        return edges
+
     def connect_all(self) -> None:
         """Monocular initialisation: each active keyframe connected to every other within reach (few keyframes)."""
         g = self.fe.graph
