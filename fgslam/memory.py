@@ -141,7 +141,7 @@ def estimate_run_memory(config, width: int, height: int, frames: int,
     size_keys = ds.resize_keys()
     stereo, rgbd = config.sensor == "stereo", config.sensor == "rgbd"
     cams = 2 if stereo else 1
-    frame_px_bytes = (GREY_BYTES + RGB_BYTES * (ds.load_rgb and config.output.write_ply)
+    frame_px_bytes = (GREY_BYTES + RGB_BYTES * (ds.load_rgb and config.needs_colour()) * cams
                       + DEPTH_BYTES * rgbd + RIGHT_BYTES * stereo)
     parts = [
         MemoryPart("runtime", RUNTIME_BYTES),

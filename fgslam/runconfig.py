@@ -72,6 +72,13 @@ class SlamConfig:
         without one (planned families)."""
         return getattr(self, name or self.frontend, None)
 
+    def needs_colour(self) -> bool:
+        """Whether the run reads the colour images: PLY colours, or a frontend whose learned source takes
+        colour (the official networks' input; the built-in sources use the grey image only)."""
+        family = self.family_section()
+        wants = getattr(family, "wants_colour", None)
+        return bool(self.output.write_ply or (wants is not None and wants()))
+
     def alignment(self) -> str:
         """Alignment used for the ATE: the sensor's (auto) or ``eval.align``."""
         if not self.auto_align:
@@ -81,13 +88,14 @@ class SlamConfig:
 
 def dataset_config_for(config: SlamConfig) -> DatasetConfig:
     """``config.dataset`` with only the streams the run needs switched on (right images for stereo,
-    depth for RGB-D, colour only for PLY colours); a stream the config switched off stays off."""
+    depth for RGB-D, colour only for PLY colours or a learned source: :meth:`SlamConfig.needs_colour`); a
+    stream the config switched off stays off."""
     ds = config.dataset
     return replace(
         ds,
         load_right=ds.load_right and config.sensor == "stereo",
         load_depth=ds.load_depth and config.sensor == "rgbd",
-        load_rgb=ds.load_rgb and config.output.write_ply,
+        load_rgb=ds.load_rgb and config.needs_colour(),
     )
 
 

@@ -6,6 +6,7 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
+SHARED_REFERENCE = REPO_ROOT.parent / "shared" / "reference"
 
 
 @pytest.fixture(scope="session")
@@ -14,6 +15,16 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real test data not found at {SHARED_DATA} (CI provides it; a fresh clone does not)")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def shared_reference() -> Path:
+    """The read-only official network outputs ``../shared/reference`` (README there); skips the test
+    when absent."""
+    if not (SHARED_REFERENCE / "droid_official.npz").is_file():
+        pytest.skip(f"official network reference outputs not found at {SHARED_REFERENCE} (CI provides them; "
+                    "a fresh clone does not)")
+    return SHARED_REFERENCE
 
 
 @pytest.fixture(scope="session")

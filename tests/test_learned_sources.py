@@ -232,7 +232,7 @@ def _dpvo_room_run(ckpts, frames, revise):
     cfg.graph.patches_per_frame = 32
     fe = PatchFrontend(cfg, sensor_mode="rgbd", backend=Backend(BackendConfig()))
     assert isinstance(fe.source, LearnedDPVOSource)
-    frame_of_image = {id(f.image): n for n, f in enumerate(frames)}
+    frame_of_image = {id(f.colour_or_grey()): n for n, f in enumerate(frames)}  # what the source is fed
     frame_of_features, confidences = {}, []
     prepare, measure_batch = fe.source.prepare, fe.source.measure_batch
 

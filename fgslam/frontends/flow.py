@@ -80,10 +80,12 @@ class DenseSource(abc.ABC):
 
     name: str = ""
     stride: int = 8
+    colour: bool = False  # True: add_frame gets the colour image (RGB, Frame.colour_or_grey) instead of the grey one
 
     @abc.abstractmethod
     def add_frame(self, frame_id: int, image: np.ndarray) -> None:
-        """Cache per-frame work for a grey uint8 image ``(H, W)`` (``H``, ``W`` multiples of the stride)."""
+        """Cache per-frame work for a uint8 image ``(H, W)`` (``H``, ``W`` multiples of the stride): grey,
+        or for a source with ``colour`` the RGB image ``(H, W, 3)`` when the frame has one."""
 
     @abc.abstractmethod
     def remove_frame(self, frame_id: int) -> None:

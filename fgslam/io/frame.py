@@ -5,8 +5,10 @@ Conventions
 - ``timestamp``: float64 seconds (EuRoC nanoseconds / 1e9; KITTI ``times.txt``; 7-Scenes and
   TartanAir, which store no times, ``index / nominal rate``).
 - ``image``: grey ``uint8`` ``(H, W)``: what SLAM frontends consume. ``rgb``: the colour image
-  ``(H, W, 3)`` ``uint8`` in **RGB** order (not OpenCV's BGR) for colour sources, else None.
-- ``image_right``: grey ``uint8`` ``(H, W)`` of the (rectified) right camera, or None.
+  ``(H, W, 3)`` ``uint8`` in **RGB** order (not OpenCV's BGR) for colour sources, else None. Loaded
+  only when the run needs colour (PLY colours, a learned measurement source: ``dataset_config_for``).
+- ``image_right``: grey ``uint8`` ``(H, W)`` of the (rectified) right camera, or None; ``rgb_right``:
+  its colour image (RGB) when ``rgb`` is loaded, else None.
 - ``depth``: float32 ``(H, W)`` z-depth in **metres** in the output left camera frame;
   **0.0 marks an invalid pixel** (no NaN, no inf, no negative value ever leaves a loader).
 - ``imu``: the IMU samples with ``t_prev < t <= timestamp`` where ``t_prev`` is the timestamp of
@@ -60,6 +62,7 @@ class Frame:
         calibration: calibration of ``image`` (and ``image_right``).
         rgb: RGB uint8 ``(H, W, 3)`` or None.
         image_right: grey uint8 ``(H, W)`` or None.
+        rgb_right: RGB uint8 ``(H, W, 3)`` of the right camera or None.
         depth: float32 metres ``(H, W)``, 0 = invalid, or None.
         imu: IMU samples since the previous frame, or None.
         T_WC_gt: ground-truth camera-to-world ``(4, 4)`` or None.
@@ -77,6 +80,16 @@ class Frame:
     imu: Optional[ImuSamples] = None
     T_WC_gt: Optional[np.ndarray] = None
     path: Optional[Path] = None
+    rgb_right: Optional[np.ndarray] = None
+
+    def colour_or_grey(self, right: bool = False) -> Optional[np.ndarray]:
+        """The colour image (RGB) of the left (or right) camera when the frame carries one, else its grey
+        image: what a learned measurement source is fed (a grey dataset's image stands for all three
+        channels, as ``cv2.imread`` repeats a grey file's channel)."""
+        colour = self.rgb_right if right else self.rgb
+        if colour is not None:
+            return colour
+        return self.image_right if right else self.image
 
     @property
     def height(self) -> int:

@@ -16,7 +16,9 @@ loads strictly (:mod:`fgslam.nets.checkpoint`):
   units (``gru``); heads ``d`` (Delta, 2) and ``w`` (weight, sigmoid, 2).
 
 Coordinates are 1/4-resolution pixels (full-resolution pixel = 4 x this, the intrinsics / 4 convention
-of the official code). Images ``(N, 3, H, W)`` RGB in [0, 255] are mapped to ``2 x / 255 - 0.5``.
+of the official code). Images ``(N, 3, H, W)`` in [0, 255] are mapped to ``2 x / 255 - 0.5``; the
+official pipeline feeds them in OpenCV's **BGR** order, without a flip (the network was trained on BGR:
+:func:`fgslam.nets.sources.network_image`).
 """
 
 from __future__ import annotations
@@ -191,7 +193,7 @@ class VONet(nn.Module):
 
     @staticmethod
     def normalize(images: torch.Tensor) -> torch.Tensor:
-        """RGB ``(N, 3, H, W)`` in [0, 255] -> ``2 x / 255 - 0.5`` (the official input mapping)."""
+        """BGR ``(N, 3, H, W)`` in [0, 255] -> ``2 x / 255 - 0.5`` (the official input mapping)."""
         return 2.0 * (images.float() / 255.0) - 0.5
 
     def extract(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

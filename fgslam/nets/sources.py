@@ -41,19 +41,32 @@ from .dpvo import PATCH, patch_correlation, pyramid
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DpvoFeatures", "DpvoRunner", "DroidRunner"]
+__all__ = ["DPVO_CHANNELS", "DROID_CHANNELS", "DpvoFeatures", "DpvoRunner", "DroidRunner", "network_image"]
 
 _DROID_STRIDE = 8
 _DPVO_RES = 4
+DROID_CHANNELS = "rgb"  # droid_slam extract_features: images[:, :, [2, 1, 0]] of cv2's BGR
+DPVO_CHANNELS = "bgr"  # dpvo: cv2's BGR as read (its TartanAir training reader too)
 
 
-def _rgb(image: np.ndarray, who: str, frame) -> torch.Tensor:
+def network_image(image: np.ndarray, order: str, who: str = "learned source", frame="") -> torch.Tensor:
+    """The ``(3, H, W)`` float tensor in [0, 255] that the official pipeline hands its network, in channel
+    ``order`` (``rgb``: DROID-SLAM, whose ``extract_features`` flips OpenCV's BGR to RGB; ``bgr``: DPVO,
+    which feeds ``cv2.imread``'s BGR as it is and was trained on it), from a frame's image: colour
+    ``(H, W, 3)`` in **RGB** order (:attr:`fgslam.io.frame.Frame.rgb`) or grey ``(H, W)``, repeated in
+    the three channels as ``cv2.imread`` reads a grey file. The networks' ``normalize`` then applies the
+    official normalisation (DROID: / 255, ImageNet mean and std; DPVO: ``2 x / 255 - 0.5``)."""
     image = np.asarray(image)
     if image.dtype != np.uint8 or image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3):
         raise DataError(f"{who}: frame {frame} must be a grey (H, W) or RGB (H, W, 3) uint8 image, got "
                         f"{image.dtype} {image.shape}")
+    if order not in ("rgb", "bgr"):
+        raise ValueError(f"channel order must be rgb or bgr, got {order!r}")
     t = torch.from_numpy(np.ascontiguousarray(image)).float()
-    return t[None].expand(3, -1, -1) if t.ndim == 2 else t.permute(2, 0, 1)
+    if t.ndim == 2:
+        return t[None].expand(3, -1, -1)
+    t = t.permute(2, 0, 1)
+    return t.flip(0) if order == "bgr" else t
 
 
 class DroidRunner:
@@ -70,7 +83,7 @@ class DroidRunner:
         self._shape: tuple[int, int] | None = None
 
     def add_frame(self, frame_id: int, image: np.ndarray) -> None:
-        x = _rgb(image, "DROID source", frame_id)
+        x = network_image(image, DROID_CHANNELS, "DROID source", frame_id)
         H, W = x.shape[1:]
         minimum = _DROID_STRIDE * 2 ** (CORR_LEVELS - 1)
         if H % _DROID_STRIDE or W % _DROID_STRIDE or H < minimum or W < minimum:
@@ -179,7 +192,7 @@ class DpvoRunner:
                                                    indexing="ij")[::-1], -1).to(self.device)  # (p, p, (dx, dy))
 
     def prepare(self, image: np.ndarray) -> DpvoFeatures:
-        x = _rgb(image, "DPVO source", "")
+        x = network_image(image, DPVO_CHANNELS, "DPVO source")
         with network_runtime(self.config):
             fmap, imap = self.net.extract(x[None].to(self.device))
         feats = DpvoFeatures(next(self._ids), np.asarray(image), [lv[0] for lv in pyramid(fmap)], imap[0])

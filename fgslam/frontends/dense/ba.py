@@ -97,9 +97,9 @@ class DenseBA:
         frames = [(pose_key(f), g.keyframes[f].surface) for f in g.order()]
         return fe.depth.chain(frames, free_keys, 0 if global_ else None)
 
-    def local(self, new_fid: int) -> None:
-        """Local BA after keyframe ``new_fid``: ``ba.rounds`` of re-measuring the newest keyframes' edges
-        and optimising the newest ``ba.window`` keyframes."""
+    def local(self, new_fid: int, rounds: int | None = None) -> None:
+        """Local BA after keyframe ``new_fid``: ``rounds`` (default ``ba.rounds``) of re-measuring the
+        newest keyframes' edges and optimising the newest ``ba.window`` keyframes."""
         fe = self.fe
         t0 = time.perf_counter()
         g = fe.graph
@@ -110,7 +110,7 @@ class DenseBA:
         newest = set(g.active[-cfg.remeasure:]) | {new_fid}
         fresh = [e for e in edges if e[0] in newest or e[1] in newest]
         flow0 = fe._times["flow"]
-        for _ in range(cfg.rounds):
+        for _ in range(cfg.rounds if rounds is None else rounds):
             self.measure(fresh)
             self.optimize(free, edges, cfg.iterations, init=False)
         fe._times["ba"] += time.perf_counter() - t0 - (fe._times["flow"] - flow0)

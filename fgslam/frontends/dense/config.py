@@ -37,6 +37,7 @@ class DenseGraphConfig:
     active_keyframes: int = ranged(12, ge=3, le=MAX_WINDOW)  # keyframes in the active graph (older ones leave it, kept for the global optimisation)
     remove_threshold: float = ranged(6.0, ge=0, le=MAX_SCALAR)  # image px: the second newest keyframe is removed when its flow distance to the one before is below this (0: never)
     init_keyframes: int = ranged(6, ge=2, le=MAX_WINDOW)  # monocular: keyframes collected before the initialisation (stereo / RGB-D: 2)
+    init_radius: int = ranged(3, ge=1, le=MAX_WINDOW)  # monocular initialisation with ba.init_neighbour_rounds: its first rounds use the edges between keyframes at most this many apart in order (DROID-SLAM: 3)
     distance_stride: int = ranged(2, ge=1, le=MAX_IMAGE_SIDE)  # grid pixels subsampled by this when computing flow distances
 
 
@@ -48,9 +49,11 @@ class DenseBAConfig:
     rounds: int = ranged(1, ge=1, le=MAX_ITERATIONS)  # measure/optimise rounds per new keyframe
     iterations: int = ranged(2, ge=1, le=MAX_ITERATIONS)  # LM iterations per round
     remeasure: int = ranged(2, ge=1, le=MAX_ITERATIONS)  # edges touching the newest this many keyframes are re-measured each round (the others keep their last measurement)
+    kept_rounds: int = ranged(0, ge=0, le=MAX_ITERATIONS)  # more rounds after the keyframe-removal decision when the second newest keyframe is kept (DROID-SLAM: 2, its iters2; 0: none)
     per_edge_min_rows: int = ranged(256, ge=1, le=MAX_COUNT)  # block evaluation edge by edge (pose pair broadcast) above this many rows per edge
     init_rounds: int = ranged(5, ge=1, le=MAX_ITERATIONS)  # rounds of the initialisation
     init_iterations: int = ranged(4, ge=1, le=MAX_ITERATIONS)  # LM iterations per initialisation round
+    init_neighbour_rounds: int = ranged(0, ge=0, le=MAX_ITERATIONS)  # monocular initialisation: rounds on the neighbourhood edges (graph.init_radius) before every pair within reach is connected for the init_rounds (DROID-SLAM: 8, then 8; 0: all pairs from the start)
     pixel_sigma: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # image px: standard deviation of a fully confident flow measurement
     damping: float = ranged(1e-4, ge=0, le=MAX_LAMBDA)  # DROID's per-pixel damping eta added to each inverse depth's information (built-in source)
     min_depth: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # smallest valid depth in a target camera (map units)
@@ -102,6 +105,10 @@ class DenseConfig:
     depth_align: DepthTrackingConfig = field(default_factory=_default_depth_align)  # RGB-D: point-to-plane depth alignment in tracking and the window
     point_confidence: float = ranged(0.5, ge=0, le=1)  # keyframe_points / depth PNG: grid pixels with confidence below this are left out
     threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads of the frontend (0: torch's default)
+
+    def wants_colour(self) -> bool:
+        """The DROID source takes the colour image (the official network's input); the flow source grey."""
+        return self.source.kind in ("droid", "learned")
 
     def validate(self) -> None:
         self.depth_align.validate()

@@ -153,6 +153,12 @@ class DenseFrontend(BackendFrontend):
         H, W = self.crop
         return image if image.shape[:2] == (H, W) else np.ascontiguousarray(image[:H, :W])
 
+    def _source_image(self, frame, right: bool = False) -> np.ndarray:
+        """The cropped image the source is fed: colour (RGB) for a source that takes it, else grey."""
+        if self.source.colour:
+            return self._cropped(frame.colour_or_grey(right))
+        return self._cropped(frame.image_right if right else frame.image)
+
     # ------------------------------------------------------------------ Frontend API
     def num_keyframes(self) -> int:
         return (0 if self.graph is None else len(self.graph.keyframes)) + len(self._final)
@@ -277,7 +283,7 @@ class DenseFrontend(BackendFrontend):
             events.append(f"tracked by depth alone (no texture: {100 * textured:.1f} % of the grid textured)")
         else:
             flow0 = self._times["flow"]
-            self.source.add_frame(fid, self._cropped(frame.image))
+            self.source.add_frame(fid, self._source_image(frame))
             added = True
             T_WC, flow, n_conf, ok = self.tracker.track(kf_fid, fid, T_WC_pred, surface)
             self._times["tracking"] += time.perf_counter() - t0 - (self._times["flow"] - flow0)
@@ -298,7 +304,7 @@ class DenseFrontend(BackendFrontend):
                 self.source.remove_frame(fid)
             self._records[fid] = RelativePose(kf_fid, np.linalg.inv(self._keyframe_T_WC(kf_fid)) @ T_WC)
             if not self._initialized:  # tracked against a provisional depth map: re-tracked after the initialisation
-                self._init_frames[fid] = (kf_fid, self._cropped(frame.image))
+                self._init_frames[fid] = (kf_fid, self._source_image(frame))
             self._update_velocity(fid)
             source = "tracked" if self._initialized else "initializing"
             return self._status(fid, frame, source, num_valid=n_conf, events=events)
@@ -313,6 +319,8 @@ class DenseFrontend(BackendFrontend):
         removed = self.keyframes.remove_redundant()
         if removed is not None:
             events.append(f"keyframe removed: {removed}")
+        elif self.config.ba.kept_rounds:  # DROID-SLAM: more update iterations when the keyframe stays
+            self.ba.local(fid, self.config.ba.kept_rounds)
         self.keyframes.retire()
         self._update_velocity(fid)
         self._new_since_global += 1

@@ -37,7 +37,7 @@ class DenseKeyframes:
         s = fe.stride
         image = fe._cropped(frame.image)
         if not source_added:
-            fe.source.add_frame(fid, image)
+            fe.source.add_frame(fid, fe._source_image(frame))
         rgb = fe._cropped(frame.rgb) if frame.rgb is not None else np.repeat(image[..., None], 3, axis=-1)
         colour = np.clip(pool(rgb.astype(np.float32), s), 0, 255).astype(np.uint8)
         sensor = None
@@ -60,7 +60,7 @@ class DenseKeyframes:
         g.add(kf)
         fe._counts["keyframes_added"] += 1
         if fe.sensor_mode == "stereo":
-            self._measure_stereo(kf, fe._cropped(frame.image_right), init_depth=True)
+            self._measure_stereo(kf, fe._source_image(frame, right=True), init_depth=True)
         self._connect(fid)
 
     def _grid_depth(self, depth: np.ndarray) -> np.ndarray:
@@ -155,6 +155,19 @@ class DenseKeyframes:
         for f in temporal + near:
             for e in ((fid, f), (f, fid)):
                 g.ensure_edge(e)
+
+    def connect_neighbourhood(self, radius: int) -> list[tuple[int, int]]:
+        """Monocular initialisation, first phase: the edges (both ways) between active keyframes at most
+        ``radius`` apart in order (DROID-SLAM's ``add_neighborhood_factors``), added where missing."""
+        g = self.fe.graph
+        free = list(g.active)
+        edges = []
+        for a, fa in enumerate(free):
+            for fb in free[a + 1:a + 1 + radius]:
+                edges += [(fa, fb), (fb, fa)]
+        for e in edges:
+            g.ensure_edge(e)
+        return edges
 
     def connect_all(self) -> None:
         """Monocular initialisation: each active keyframe connected to every other within reach (few keyframes)."""

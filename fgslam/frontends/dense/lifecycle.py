@@ -24,16 +24,23 @@ class DenseMapStarts:
         self.fe = frontend
 
     def initialize(self) -> None:
-        """Monocular initialisation: every collected keyframe connected to its neighbours and optimised,
-        then the frames tracked meanwhile re-tracked against the optimised maps."""
+        """Monocular initialisation: with ``ba.init_neighbour_rounds``, rounds on the edges between
+        keyframes at most ``graph.init_radius`` apart first; then every collected keyframe connected to
+        those within reach and optimised (``ba.init_rounds``); then the frames tracked meanwhile
+        re-tracked against the optimised maps."""
         fe = self.fe
         t0 = time.perf_counter()
         g = fe.graph
         cfg = fe.config.ba
         free = list(g.active)
+        flow0 = fe._times["flow"]
+        if cfg.init_neighbour_rounds:  # DROID-SLAM: updates on the neighbourhood edges first
+            edges = fe.keyframes.connect_neighbourhood(fe.config.graph.init_radius)
+            for _ in range(cfg.init_neighbour_rounds):
+                fe.ba.measure(edges)
+                fe.ba.optimize(free, edges, cfg.init_iterations, init=True)
         fe.keyframes.connect_all()
         edges = g.active_edges()
-        flow0 = fe._times["flow"]
         for _ in range(cfg.init_rounds):
             fe.ba.measure(edges)
             fe.ba.optimize(free, edges, cfg.init_iterations, init=True)

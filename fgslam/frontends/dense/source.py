@@ -66,6 +66,7 @@ class LearnedDroidSource(DenseSource):
     has no forward-backward check)."""
 
     name = "droid"
+    colour = True  # the official network's input: colour (RGB, fgslam.nets.sources.network_image)
 
     def __init__(self, checkpoint: str | None, stride: int = 8, config=None):
         from ...nets.sources import DroidRunner

@@ -104,6 +104,7 @@ class BAConfig:
     depth_model: Literal["prior", "observation"] = "prior"  # RGB-D: prior on each patch's inverse depth in its source frame (DROID-SLAM), or sensor depth as a measurement of every observation, source and targets (ORB-SLAM3 RGB-D: virtual right-camera pixel u - f b / z)
     depth_noise: Literal["relative", "inverse"] = "relative"  # RGB-D (local and global BA): relative: sigma_d = depth_prior_sigma * d (sigma_z grows with z); inverse: sigma_d = depth_prior_sigma in 1/m (sigma_z grows with z^2, Kinect)
     depth_virtual_baseline: float = ranged(0.08, gt=0, le=MAX_SCALAR)  # RGB-D observation model: baseline (m) of the virtual right camera (sets the pixel scale of the depth rows)
+    remeasure: Literal["new", "window"] = "new"  # new: a frame's rounds measure its new edges (later rounds re-track the bad ones); window: every round re-measures every active edge of the patch graph (DPVO: each update runs the operator on all edges, carrying each edge's recurrent state)
     measured_huber: bool = False  # a fresh measurement enters the next BA Huber-weighted by its distance from the reprojection it was measured from (else at full weight until that BA's residuals weigh it)
 
     def depth_noise_model(self) -> DepthPriorConfig:
@@ -180,6 +181,10 @@ class PatchConfig:
     proximity: ProximityConfig = field(default_factory=ProximityConfig)
     depth_align: DepthTrackingConfig = field(default_factory=DepthTrackingConfig)  # RGB-D: point-to-plane depth alignment in tracking and the window
 
+    def wants_colour(self) -> bool:
+        """The DPVO source takes the colour image (the official network's input); Lucas-Kanade grey."""
+        return self.source in ("dpvo", "learned")
+
     def validate(self) -> None:
         """Raise ConfigError naming the first field out of its range or inconsistent with another."""
         check_ranges(self, "patch.")
@@ -190,6 +195,8 @@ class PatchConfig:
         if self.ba.depth_model not in ("prior", "observation") or self.ba.depth_noise not in ("relative", "inverse"):
             raise ConfigError(f"patch.ba.depth_model must be prior|observation and depth_noise relative|inverse, "
                               f"got {self.ba.depth_model!r}, {self.ba.depth_noise!r}")
+        if self.ba.remeasure not in ("new", "window"):
+            raise ConfigError(f"patch.ba.remeasure must be new or window, got {self.ba.remeasure!r}")
         if not self.ba.depth_max > self.ba.depth_min:
             raise ConfigError(f"patch.ba.depth_max ({self.ba.depth_max}) must exceed depth_min ({self.ba.depth_min})")
         if not self.tracking.init_min_frames <= self.tracking.init_max_frames:

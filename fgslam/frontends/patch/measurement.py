@@ -26,10 +26,12 @@ class MeasurementSource(abc.ABC):
     """Where edge measurements come from (built-in Lucas-Kanade or a learned update operator)."""
 
     name: str = ""
+    colour: bool = False  # True: prepare gets the colour image (RGB, Frame.colour_or_grey) instead of the grey one
 
     @abc.abstractmethod
     def prepare(self, image: np.ndarray):
-        """Per-frame features of a grey uint8 image (H, W) (pyramids, feature maps...)."""
+        """Per-frame features of a grey uint8 image (H, W) (pyramids, feature maps...); a source with
+        ``colour`` gets the RGB image (H, W, 3) when the frame has one."""
 
     @abc.abstractmethod
     def measure(self, src, tgt, uv_src: np.ndarray, uv_pred: np.ndarray) -> Measurement:

@@ -88,8 +88,11 @@ class PatchMeasurer:
         """The source's features of the frame's left image (``left``) and, for stereo, right image (``right``)."""
         st = self.state
         t0 = time.perf_counter()
-        feats = st.source.prepare(frame.image) if left else None
-        feats_right = st.source.prepare(frame.image_right) if right and st.sensor_mode == "stereo" else None
+        colour = st.source.colour
+        feats = st.source.prepare(frame.colour_or_grey() if colour else frame.image) if left else None
+        feats_right = None
+        if right and st.sensor_mode == "stereo":
+            feats_right = st.source.prepare(frame.colour_or_grey(right=True) if colour else frame.image_right)
         st.times["flow"] += time.perf_counter() - t0
         return feats, feats_right
 

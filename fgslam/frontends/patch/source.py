@@ -31,6 +31,7 @@ class LearnedDPVOSource(MeasurementSource):
     (:meth:`pack`) and recompute the maps."""
 
     name = "dpvo"
+    colour = True  # the official network's input: colour (BGR, fgslam.nets.sources.network_image)
 
     def __init__(self, checkpoint: str | None, config=None):
         from ...nets.sources import DpvoRunner

@@ -63,7 +63,9 @@ class LocalBA:
         too few image measurements)."""
         st = self.state
         g = st.graph
-        to_measure = new_edges if premeasured is None else np.setdiff1d(new_edges, premeasured)
+        every_edge = st.config.ba.remeasure == "window"  # DPVO: each update measures all active edges
+        first = np.arange(g.num_edges) if every_edge else new_edges
+        to_measure = first if premeasured is None else np.setdiff1d(first, premeasured)
         valid_new = 0
         for r in range(rounds):
             self.measurer.measure(to_measure, huber=not init and st.config.ba.measured_huber)
@@ -72,7 +74,9 @@ class LocalBA:
                 if valid_new < st.config.tracking.min_valid_edges and not (held_by_depth is not None and held_by_depth()):
                     return valid_new
             self.optimize(iterations, init)
-            if r + 1 < rounds:
+            if r + 1 < rounds and every_edge:
+                to_measure = np.arange(g.num_edges)
+            elif r + 1 < rounds:
                 created = np.arange(g.num_edges) if init else np.nonzero(g.created == new_fid)[0]
                 res = self.last_residual[created]
                 redo = (g.confidence[created] <= 0) | (res > st.config.ba.retrack_threshold)

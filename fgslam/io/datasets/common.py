@@ -516,7 +516,9 @@ class Dataset:
             if (rw, rh) != (calib.right.width, calib.right.height):
                 raise FrameSizeError(f"{where}: the right image of frame {index} is {rw}x{rh}, expected "
                                      f"{calib.right.width}x{calib.right.height} (the calibration's size)")
-            frame.image_right = und.right(to_grey_and_rgb(raw.right, False, raw.path)[0])
+            grey_right, rgb_right = to_grey_and_rgb(raw.right, cfg.load_rgb, raw.path)
+            frame.image_right = und.right(grey_right)
+            frame.rgb_right = None if rgb_right is None else und.right(rgb_right)
         if raw.depth is not None and self.has_depth:
             dh, dw = raw.depth.shape[:2]
             if (dw, dh) != (calib.width, calib.height) or raw.depth.ndim != 2:

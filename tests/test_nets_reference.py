@@ -1,0 +1,202 @@
+"""fgslam's DROID-SLAM and DPVO networks against the official modules' outputs (``../shared/reference``,
+its README): seeded weights built by the README's recipe and loaded through fgslam's strict loader,
+the encoders and update operators compared to float32 precision; and the correlation lookups against
+a brute-force lookup written here from the official CUDA kernels' semantics:
+
+- DROID (``droid_slam/modules/corr.py`` + ``corr_index_forward_kernel``): volume ``<f_i/4, f_j/4>``,
+  level ``l`` = ``2^l x 2^l`` average pooling of the target dimensions (floor of odd sizes), the
+  point ``coords / 2^l``; output ``[dx][dy]`` (x offset major) is the bilinear value at
+  ``(x - r + dx, y - r + dy)`` from the four integer neighbours, zero outside the map; channel
+  ``level * 49 + dx * 7 + dy``.
+- DPVO (``dpvo/altcorr/correlation_kernel.cu``): for patch pixel ``(row, col)`` of an edge, the
+  gmap feature at that pixel dotted with the target map at the integer samples around the pixel's
+  own coordinate, bilinear as above; levels: the map and its ``4 x 4`` average pooling with
+  coordinates / 4; output ``[dx][dy][row][col][level]``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+
+import numpy as np
+import pytest
+import torch
+
+from fgslam.nets.checkpoint import load_dpvo, load_droid
+from fgslam.nets.droid import AltCorr, CorrVolume
+from fgslam.nets.dpvo import patch_correlation, pyramid
+from nets_support import dpvo_table, droid_table
+from nets_support import one_thread  # noqa: F401 (autouse fixture)
+
+# float32 precision: the same operations in another order (matmul blocking) differ by a few ulps
+RTOL, ATOL = 1e-5, 1e-6
+
+
+def seeded_state(keys, table, seed: int) -> "OrderedDict[str, torch.Tensor]":
+    """The reference README's recipe: keys in the file's order, one generator, one ``randn`` per
+    floating-point tensor; a normalisation layer's 1-D weight ``1 + 0.05 r``, the rest ``0.05 r``.
+    Shapes come from the official parameter table (tests/nets_support.py), not from fgslam."""
+    shapes = dict(table)
+    assert sorted(shapes) == sorted(str(k) for k in keys), "the reference keys are the official parameter names"
+    g = torch.Generator().manual_seed(int(seed))
+    out = OrderedDict()
+    for key in (str(k) for k in keys):
+        r = torch.randn(shapes[key], generator=g, dtype=torch.float32)
+        norm_weight = "norm" in key and key.endswith("weight") and r.dim() == 1
+        out[key] = 1.0 + 0.05 * r if norm_weight else 0.05 * r
+    return out
+
+
+@pytest.fixture(scope="module")
+def droid_ref(shared_reference, tmp_path_factory):
+    ref = dict(np.load(shared_reference / "droid_official.npz"))
+    path = tmp_path_factory.mktemp("ref") / "droid.pth"
+    torch.save(seeded_state(ref["keys"], droid_table(), ref["seed"]), path)
+    return ref, load_droid(path)
+
+
+@pytest.fixture(scope="module")
+def dpvo_ref(shared_reference, tmp_path_factory):
+    ref = dict(np.load(shared_reference / "dpvo_official.npz"))
+    path = tmp_path_factory.mktemp("ref") / "dpvo.pth"
+    torch.save(seeded_state(ref["keys"], dpvo_table(), ref["seed"]), path)
+    return ref, load_dpvo(path)
+
+
+def close(actual: torch.Tensor, expected: np.ndarray, name: str) -> None:
+    exp = torch.from_numpy(np.asarray(expected))
+    assert tuple(actual.shape) == tuple(exp.shape), f"{name}: shape {tuple(actual.shape)} vs {tuple(exp.shape)}"
+    torch.testing.assert_close(actual.float(), exp.float(), rtol=RTOL, atol=ATOL * float(exp.abs().max()),
+                               msg=lambda m: f"{name}: {m}")
+
+
+def test_droid_encoders_match_the_official_extract_features(droid_ref):
+    ref, net = droid_ref
+    rgb = torch.from_numpy(ref["images_bgr"][:, ::-1].copy())  # extract_features flips BGR -> RGB
+    with torch.inference_mode():
+        fmap, hidden, inp = net.extract(rgb)
+    close(fmap, ref["fmap"], "fmap")
+    close(hidden, ref["net"], "net")
+    close(inp, ref["inp"], "inp")
+    with torch.inference_mode():  # the channel order matters: BGR fed as if RGB is another input
+        fmap_bgr = net.extract(torch.from_numpy(ref["images_bgr"]))[0]
+    assert (fmap_bgr - torch.from_numpy(ref["fmap"])).abs().max() > 100 * ATOL * float(np.abs(ref["fmap"]).max())
+
+
+def test_droid_update_operator_matches_the_official_outputs(droid_ref):
+    ref, net = droid_ref
+    t = {k: torch.from_numpy(ref[k]) for k in ("upd_net", "upd_inp", "upd_corr", "upd_flow", "ii")}
+    with torch.inference_mode():
+        out_net, delta, weight, (eta, upmask, frames) = net.update(t["upd_net"], t["upd_inp"], t["upd_corr"],
+                                                                   t["upd_flow"], t["ii"])
+    assert frames.tolist() == sorted(set(ref["ii"].tolist()))
+    close(out_net, ref["out_net"], "out_net")
+    close(delta, ref["out_delta"], "out_delta")
+    close(weight, ref["out_weight"], "out_weight")
+    close(eta, ref["out_eta"], "out_eta")
+    close(upmask, ref["out_upmask"], "out_upmask")
+
+
+def test_dpvo_encoders_match_the_official_patchify_maps(dpvo_ref):
+    ref, net = dpvo_ref
+    with torch.inference_mode():  # DPVO feeds BGR as cv2 reads it, no flip
+        fmap, imap = net.extract(torch.from_numpy(ref["images_bgr"]))
+    close(fmap, ref["fmap"], "fmap")
+    close(imap, ref["imap"], "imap")
+
+
+def test_dpvo_update_operator_matches_the_official_outputs(dpvo_ref):
+    ref, net = dpvo_ref
+    t = {k: torch.from_numpy(ref[k]) for k in ("upd_net", "upd_inp", "upd_corr", "ii", "jj", "kk")}
+    with torch.inference_mode():
+        out_net, delta, weight = net.update(t["upd_net"], t["upd_inp"], t["upd_corr"], t["ii"], t["jj"], t["kk"])
+    close(out_net, ref["out_net"], "out_net")
+    close(delta, ref["out_delta"], "out_delta")
+    close(weight, ref["out_weight"], "out_weight")
+
+
+# ---------------------------------------------------------------- brute-force correlation lookups
+def _bilinear_at(score, x: float, y: float) -> float:
+    """``score(yi, xi)`` (zero outside) bilinear at ``(x, y)`` from its four integer neighbours."""
+    x0, y0 = math.floor(x), math.floor(y)
+    ax, ay = x - x0, y - y0
+    return ((1 - ax) * (1 - ay) * score(y0, x0) + ax * (1 - ay) * score(y0, x0 + 1)
+            + (1 - ax) * ay * score(y0 + 1, x0) + ax * ay * score(y0 + 1, x0 + 1))
+
+
+def _dot_score(f_src: np.ndarray, target: np.ndarray):
+    """Scalar map ``<f_src, target[:, yi, xi]>``, zero outside ``target``."""
+    _, H, W = target.shape
+
+    def score(yi: int, xi: int) -> float:
+        return float(f_src @ target[:, yi, xi]) if 0 <= yi < H and 0 <= xi < W else 0.0
+    return score
+
+
+def _avg_pool(maps: np.ndarray, k: int) -> np.ndarray:
+    C, H, W = maps.shape
+    h, w = H // k, W // k
+    return maps[:, :h * k, :w * k].reshape(C, h, k, w, k).mean(axis=(2, 4))
+
+
+def brute_droid_corr(fmaps, ii, jj, coords, levels=4, radius=3) -> np.ndarray:
+    fmaps = np.asarray(fmaps, np.float64) / 4.0
+    E, h, w, _ = coords.shape
+    D = 2 * radius + 1
+    out = np.zeros((E, levels * D * D, h, w))
+    for e in range(E):
+        for lvl in range(levels):
+            target = _avg_pool(fmaps[jj[e]], 2 ** lvl)
+            for y in range(h):
+                for x in range(w):
+                    score = _dot_score(fmaps[ii[e]][:, y, x], target)
+                    cx, cy = coords[e, y, x] / 2 ** lvl
+                    for dx in range(D):
+                        for dy in range(D):
+                            out[e, lvl * D * D + dx * D + dy, y, x] = _bilinear_at(score, cx - radius + dx,
+                                                                                   cy - radius + dy)
+    return out
+
+
+def brute_dpvo_corr(gmap, fmaps, kk, jj, coords, radius=3, pools=(1, 4)) -> np.ndarray:
+    gmap, fmaps = np.asarray(gmap, np.float64), np.asarray(fmaps, np.float64)
+    E, p = coords.shape[:2]
+    D = 2 * radius + 1
+    out = np.zeros((E, D, D, p, p, len(pools)))
+    for e in range(E):
+        for lvl, k in enumerate(pools):
+            target = _avg_pool(fmaps[jj[e]], k)
+            for row in range(p):
+                for col in range(p):
+                    score = _dot_score(gmap[kk[e], :, row, col], target)
+                    cx, cy = coords[e, row, col] / k
+                    for dx in range(D):
+                        for dy in range(D):
+                            out[e, dx, dy, row, col, lvl] = _bilinear_at(score, cx - radius + dx, cy - radius + dy)
+    return out.reshape(E, -1)
+
+
+def test_droid_correlation_lookups_match_a_brute_force_lookup():
+    g = torch.Generator().manual_seed(7)
+    fmaps = torch.randn(3, 16, 9, 11, generator=g)  # odd sizes: the pooled levels floor them
+    ii, jj = torch.tensor([0, 1, 2, 0]), torch.tensor([1, 2, 0, 2])
+    # points inside, near and beyond the border (zeros outside) and at exact integers
+    coords = torch.rand(4, 9, 11, 2, generator=g) * torch.tensor([15.0, 13.0]) - 2.0
+    coords[0, 0, 0] = torch.tensor([3.0, 4.0])
+    expect = brute_droid_corr(fmaps.numpy(), ii.tolist(), jj.tolist(), coords.double().numpy())
+    volume = CorrVolume(fmaps[ii], fmaps[jj])(coords)
+    close(volume, expect.astype(np.float32), "CorrVolume")
+    for mode in ("volume", "features"):
+        close(AltCorr(fmaps, chunk=3, mode=mode)(coords, ii, jj), expect.astype(np.float32), f"AltCorr {mode}")
+
+
+def test_dpvo_patch_correlation_matches_a_brute_force_lookup():
+    g = torch.Generator().manual_seed(8)
+    fmaps = torch.randn(3, 16, 18, 22, generator=g)
+    gmap = torch.randn(4, 16, 3, 3, generator=g)
+    kk, jj = torch.tensor([0, 1, 2, 3, 1]), torch.tensor([1, 2, 0, 1, 0])
+    coords = torch.rand(5, 3, 3, 2, generator=g) * torch.tensor([26.0, 22.0]) - 2.0
+    coords[0, 1, 1] = torch.tensor([5.0, 6.0])
+    expect = brute_dpvo_corr(gmap.numpy(), fmaps.numpy(), kk.tolist(), jj.tolist(), coords.double().numpy())
+    close(patch_correlation(gmap, pyramid(fmaps), coords, kk, jj), expect.astype(np.float32), "patch_correlation")
