@@ -15,9 +15,9 @@ b. **new**: the current ``tools/train.py`` at batch 1 for ``B1_S`` seconds (the 
    checkpoint in ``$OUT/droid.pth``; steps/s, clips/s and GPU use from its log lines.
 c. **dense**: the default room-loop render (seed 0: a scene not in the pool), ``EVAL_FRAMES`` frames
    at 10 Hz and 128x96 (the training size), run with ``dense_mono`` on the built-in DIS source and on
-   the trained checkpoint (``dense.source.kind=droid``, on the GPU), with the preset's update
-   iterations and with ``ITERS`` (8); ATE in % of the path (Sim(3) alignment) per run, through
-   ``tools/bench_dense_run.py``'s runner.
+   the trained checkpoint (``dense.source.kind=droid``, on the GPU; the setting of the issue's table),
+   then the checkpoint on ``dense_learned_mono`` (DROID-SLAM's demo schedule); ATE in % of the path
+   (Sim(3) alignment) per run, through ``tools/bench_dense_run.py``'s runner.
 
 Usage, on the GPU machine from the repository root (gtsam installed; nothing is downloaded)::
 
@@ -25,7 +25,7 @@ Usage, on the GPU machine from the repository root (gtsam installed; nothing is 
 
 Environment: ``OUT`` (required), ``SMOKE=1`` (every stage shrunk to seconds, on the CPU: the check of
 this script itself), ``DEVICE`` (cuda; smoke: cpu), ``BATCH`` (16), ``TRAIN_S`` (225), ``OLD_S`` (30),
-``B1_S`` (10), ``POOL_SEEDS`` (8), ``WORKERS`` (CPU count), ``EVAL_FRAMES`` (201), ``ITERS`` (8),
+``B1_S`` (10), ``POOL_SEEDS`` (8), ``WORKERS`` (CPU count), ``EVAL_FRAMES`` (201),
 ``EVAL_EVERY`` (200: each evaluation writes the checkpoint), ``SKIP`` (comma list of the stages a, b1,
 b, c to leave out).
 """
@@ -190,14 +190,18 @@ def dense_stage(cfg: dict, work: Path, checkpoint: Path, save) -> dict:
     root = bench.synth_root("room-loop", args)
     result = {"sequence": {"preset": "room-loop", "seed": 0, "size": cfg["eval_size"], "frames": cfg["eval_frames"],
                            "rate_hz": 10.0, "render_s": time.perf_counter() - t0}}
-    learned = ["dense.source.kind=droid", f"dense.source.checkpoint={checkpoint}", f"dense.source.droid.device={cfg['device']}"]
-    runs = {"droid": learned, "dis": [], f"droid_{cfg['iters']}_iterations": learned + [f"dense.source.droid.iterations={cfg['iters']}"]}
-    for name, overrides in runs.items():
+    weights = [f"dense.source.checkpoint={checkpoint}", f"dense.source.droid.device={cfg['device']}"]
+    runs = {  # name: (preset, overrides)
+        "droid": ("dense_mono", ["dense.source.kind=droid", *weights]),  # the issue's table: dense_mono's schedule
+        "dis": ("dense_mono", []),
+        "droid_official_schedule": ("dense_learned_mono", weights),  # DROID-SLAM's demo schedule (issue 29 item 3)
+    }
+    for name, (preset, overrides) in runs.items():
         if name != "dis" and not checkpoint.is_file():
             result[name] = {"error": f"no checkpoint {checkpoint}"}
             continue
         t0 = time.perf_counter()
-        r = bench.run_one("dense_mono", root, work / f"run_{name}", overrides)
+        r = bench.run_one(preset, root, work / f"run_{name}", overrides)
         r["wall_s"] = time.perf_counter() - t0
         result[name] = r
         save(result)
@@ -223,7 +227,6 @@ def main() -> int:
         "pool_seeds": env("POOL_SEEDS", 8, 2),
         "workers": env("WORKERS", os.cpu_count() or 1, 2),
         "eval_frames": env("EVAL_FRAMES", 201, 21),
-        "iters": env("ITERS", 8, 2),
         "eval_clips": env("EVAL_CLIPS", 16, 2),
         "log_every": env("LOG_EVERY", 10, 1),
         "eval_every": env("EVAL_EVERY", 200, 3),  # steps between evaluations (each writes the checkpoint)
