@@ -2,7 +2,7 @@
 and the trained network as the dense source beside the built-in DIS source. JSON to stdout (every
 child's lines echoed as they come, the result last); files under ``$OUT``.
 
-Stages (each bounded in time; about 7 minutes in all with the defaults):
+Stages (each bounded in time; about 8 minutes in all with the defaults, estimated: not yet run on a GPU):
 
 a. **old**: ``tools/train.py`` as of commit 8f6499f (batch 1, the BA in float64 on the CPU, the clip
    tensors built on the CPU each step), at 128x96 with its defaults, for ``OLD_S`` seconds; its
