@@ -486,3 +486,23 @@ def test_stop_and_go_noise_free_imu_integrates_through_the_stop():
     assert np.linalg.norm(p - st.p_WB[-1]) < 5e-3
     assert np.linalg.norm(v - st.v_WB[-1]) < 2e-3
     assert np.linalg.norm(_so3_log(R.T @ st.R_WB[-1])) < 1e-4
+
+
+def test_text_marks_identical_where_opencv_draws_text_on_8bit_images_only(monkeypatch):
+    """OpenCV 5 refuses text on float images: the 8-bit-mask path draws the very same pixels."""
+    from fgslam.io.synth import texture
+
+    direct = np.full((64, 128), 0.5)
+    texture._put_text(direct, "AB12xy", (5, 40), 1.3, 1.0, 2)
+    real = cv2.putText
+
+    def eight_bit_only(img, *args):
+        if img.dtype != np.uint8:
+            raise cv2.error("text on 8-bit images only")
+        return real(img, *args)
+
+    monkeypatch.setattr(cv2, "putText", eight_bit_only)
+    masked = np.full((64, 128), 0.5)
+    texture._put_text(masked, "AB12xy", (5, 40), 1.3, 1.0, 2)
+    assert (direct != 0.5).sum() > 100
+    np.testing.assert_array_equal(masked, direct)

@@ -173,12 +173,26 @@ def make_texture(size_m: tuple[float, float], density: float, cfg: TextureConfig
                 continue
             text = "".join(_GLYPHS[g] for g in glyphs[i, :lens[i]])
             scale = heights[i] / _HERSHEY_HEIGHT_PX
-            cv2.putText(marks, text, (int(ox[i]), int(oy[i])), cv2.FONT_HERSHEY_SIMPLEX, scale,
-                        float(vals[i]), max(1, int(scale * 2)), cv2.LINE_AA)
+            _put_text(marks, text, (int(ox[i]), int(oy[i])), scale, float(vals[i]), max(1, int(scale * 2)))
     img = 0.55 * marks + 0.45 * img
     mean, std = float(img.mean()), float(img.std())
     img = (img - mean) * (_NORMALISED_STD / max(std, 1e-6)) + 0.5
     return np.clip(img, 0.0, 1.0)
+
+
+def _put_text(marks: np.ndarray, text: str, origin: tuple[int, int], scale: float, value: float,
+              thickness: int) -> None:
+    """Hershey text of grey ``value`` on the float image ``marks`` (in place).
+
+    OpenCV 4 (the pinned version) draws on float images directly (``LINE_AA`` is anti-aliased on 8-bit
+    images only, so on a float image it draws 8-connected strokes). OpenCV 5 draws text on 8-bit images
+    only: there the same strokes are drawn as an 8-bit mask and set to ``value``, the same pixels."""
+    try:
+        cv2.putText(marks, text, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, value, thickness, cv2.LINE_AA)
+    except cv2.error:
+        strokes = np.zeros(marks.shape, np.uint8)
+        cv2.putText(strokes, text, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, 255, thickness, cv2.LINE_8)
+        marks[strokes > 0] = value
 
 
 def make_plain_texture(size_m: tuple[float, float], density: float, style: int, cfg: PlainTextureConfig,
