@@ -138,7 +138,7 @@ def top_functions(stats: pstats.Stats, n: int) -> list[dict]:
 
 
 def profile_run(config_name: str, data: str, overrides: list[str], end: int | None = None, timer: str = "cpu",
-                out_dir: str | None = None, top: int = 15) -> dict:
+                out_dir: str | None = None, top: int = 15, pstats_path: str | None = None) -> dict:
     """Profile one run (module docstring); the JSON-ready result."""
     from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
 
@@ -161,6 +161,8 @@ def profile_run(config_name: str, data: str, overrides: list[str], end: int | No
             profiler.disable()
         cpu1 = resource.getrusage(resource.RUSAGE_SELF)
     stats = pstats.Stats(profiler)
+    if pstats_path:
+        stats.dump_stats(pstats_path)
     stages = attribute(stats)
     s = summary.to_dict()
     n = max(int(s["frames_processed"]), 1)
@@ -195,12 +197,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--timer", choices=("cpu", "wall"), default="cpu", help="profiler clock (default: process CPU)")
     p.add_argument("--out", default=None, help="keep the run's outputs here (default: a temporary folder)")
     p.add_argument("--top", type=int, default=15, help="functions of largest own time listed")
+    p.add_argument("--pstats", default=None, metavar="FILE", help="also write the raw profile (pstats format) here")
     return p.parse_args(argv)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    result = profile_run(args.config, args.data, args.overrides, args.end, args.timer, args.out, args.top)
+    result = profile_run(args.config, args.data, args.overrides, args.end, args.timer, args.out, args.top, args.pstats)
     json.dump(result, sys.stdout, indent=1)
     sys.stdout.write("\n")
     return 0
