@@ -49,7 +49,8 @@ class DenseBA:
         revs = fe.source.revise(edges, induced) if edges else []
         for (i, j), rev, ind in zip(edges, revs, induced):
             w = rev.weight * huber_weight(rev.target - ind, fe.config, fe.stride)
-            g.edges[(i, j)] = EdgeMeasurement(rev.target, w, ind.astype(np.float32))
+            # the induced field is kept only for the local BA's comparison (cleared when the edge leaves the active graph)
+            g.edges[(i, j)] = EdgeMeasurement(rev.target, w, ind.astype(np.float32) if min_change > 0 else None)
         for i in {e[0] for e in edges}:
             kf = g.keyframes[i]
             kf.confidence = np.max([g.edges[e].weight.mean(-1) for e in g.edges if e[0] == i], axis=0)
