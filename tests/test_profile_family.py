@@ -55,3 +55,5 @@ def test_stage_rules_name_each_family(tool):
     assert tool.stage_of("/x/fgslam/backend/solver.py", "levenberg_marquardt") == "solve"
     assert tool.stage_of("/x/fgslam/factors/dense.py", "evaluate") is None  # inherits: linearize or a trial's cost
     assert tool.stage_of("~", "<built-in method torch.stack>") is None
+    assert tool.stage_of("/x/fgslam/frontends/patch/patches.py", "select_patches") == "flow_or_matching"
+    assert tool.stage_of("/x/fgslam/frontends/patch/window.py", "optimize") == "solve"

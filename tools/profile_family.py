@@ -4,13 +4,13 @@ Runs what ``fgslam run CONFIG --data PATH`` runs, in this process, under :mod:`c
 timer (``time.process_time``: user + system CPU of the process; ``--timer wall`` for wall time), and
 attributes every function's own time to one stage:
 
-- ``flow_or_matching``: the measurement sources (dense flow, the patch family's Lucas-Kanade
-  tracking, the pointmap family's matching, the learned networks);
+- ``flow_or_matching``: the measurement sources (dense flow, the patch family's patch selection
+  and Lucas-Kanade tracking, the pointmap family's matching, the learned networks);
 - ``linearisation``: the blocks' and problems' ``linearize`` (residuals and Jacobians);
 - ``elimination``: the Schur complements (``fgslam.factors.schur``) and GTSAM's elimination of the
   reduced systems (``GaussianFactorGraph.optimize`` / ``eliminate*``);
 - ``solve``: the rest of the Levenberg-Marquardt loops (trial steps and their costs, back-substitution,
-  damping, the backend's window bookkeeping);
+  damping, the backend's and the patch window's set-up of a solve);
 - ``bookkeeping``: everything else of the frontends, services and system per frame;
 - ``io``: reading the dataset; ``outputs``: evaluation and writing the outputs after the loop;
 - ``other``: what no stage function called (the tool itself, imports).
@@ -56,6 +56,7 @@ _RULES: tuple[tuple[str, str, frozenset | None], ...] = (
     ("flow_or_matching", "fgslam/frontends/pointmap/matching.py", None),
     ("flow_or_matching", "fgslam/frontends/pointmap/source.py", None),
     ("flow_or_matching", "fgslam/frontends/pointmap/descriptors.py", None),
+    ("flow_or_matching", "fgslam/frontends/patch/patches.py", frozenset({"select_patches"})),
     ("flow_or_matching", "fgslam/nets/", None),
     ("elimination", "fgslam/factors/schur.py", None),
     ("linearisation", "fgslam/", frozenset({"linearize", "linearized"})),
@@ -63,6 +64,7 @@ _RULES: tuple[tuple[str, str, frozenset | None], ...] = (
     ("solve", "fgslam/backend/", frozenset({"optimize_window", "optimize_pose", "optimize_global", "trial",
                                               "accept", "cost"})),
     ("solve", "fgslam/factors/", frozenset({"back_substitute", "refine_structure"})),
+    ("solve", "fgslam/frontends/patch/window.py", frozenset({"optimize"})),
     ("io", "fgslam/io/", None),
     ("outputs", "fgslam/outputs.py", frozenset({"finalize_run", "outputs_text"})),
     ("outputs", "fgslam/eval.py", None),
