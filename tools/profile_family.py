@@ -58,7 +58,7 @@ _RULES: tuple[tuple[str, str, frozenset | None], ...] = (
     ("flow_or_matching", "fgslam/frontends/pointmap/descriptors.py", None),
     ("flow_or_matching", "fgslam/frontends/patch/patches.py", frozenset({"select_patches"})),
     ("flow_or_matching", "fgslam/nets/", None),
-    ("elimination", "fgslam/factors/schur.py", None),
+    ("elimination", "fgslam/factors/schur.py", frozenset({"schur_reduce", "eliminate_structure"})),
     ("linearisation", "fgslam/", frozenset({"linearize", "linearized"})),
     ("solve", "fgslam/backend/solver.py", None),
     ("solve", "fgslam/backend/", frozenset({"optimize_window", "optimize_pose", "optimize_global", "trial",
