@@ -60,8 +60,9 @@ PNG_BYTES_PER_PIXEL = 0.5
 #: (float32, ~ 8 channels)
 DENSE_KEYFRAME_BYTES_PER_CELL = 32
 #: B per grid pixel of a dense edge: flow target, weights, residuals and the float32 Jacobian rows of
-#: the dense bundle adjustment (2 rows x (6 + 6 + 1) entries + 4 targets/weights, float64)
-DENSE_EDGE_BYTES_PER_CELL = 240
+#: the dense bundle adjustment (2 rows x (6 + 6 + 1) entries + 4 targets/weights, float64), and the
+#: induced field an active edge keeps for the local BA's re-measurement test (2 x float32)
+DENSE_EDGE_BYTES_PER_CELL = 248
 #: B per grid pixel of a learned (DROID) keyframe: feature and context maps (128 + 256 float32 channels)
 DROID_KEYFRAME_BYTES_PER_CELL = 384 * 4
 #: B per (grid pixel)^2 of one edge's all-pairs correlation volume (float32, all pyramid levels)

@@ -332,3 +332,35 @@ def test_stereo_rows_depend_on_depth_only_and_match_finite_differences():
     values = values_of(poses[:1], keys[:1])
     only.refine_structure(values, steps=8)
     np.testing.assert_allclose(only.inverse_depth.numpy(), depths[0].numpy(), rtol=1e-6)
+
+
+def test_zero_weight_rows_are_left_out_with_the_same_linear_system():
+    """Pixels of zero weight on both axes are not rows of the block (they add nothing): the reduced
+    system, the cost and the structure step equal those of the block that keeps them with a weight
+    too small to count."""
+    poses, depths = scene()
+    keys = [pose_key(k) for k in range(3)]
+    edges = exact_edges(poses, depths, [(0, 1), (0, 2)], keys, weight_seed=3)
+    rng = np.random.default_rng(4)
+    noisy = [DenseEdge(e.source, e.target, np.asarray(e.uv_target) + rng.normal(0, 0.3, (H_MAP, W_MAP, 2)), e.weight)
+             for e in edges]
+    zero = rng.uniform(size=(2, H_MAP, W_MAP)) < 0.4
+    dropped = [DenseEdge(e.source, e.target, e.uv_target, np.where(z[..., None], 0.0, e.weight))
+               for e, z in zip(noisy, zero)]
+    tiny = [DenseEdge(e.source, e.target, e.uv_target, np.where(z[..., None], 1e-300, e.weight))
+            for e, z in zip(noisy, zero)]
+    init = depths[0] * 1.1
+    a = DenseSourceBlock(DenseKeyframe(keys[0], init), dropped, K8)
+    b = DenseSourceBlock(DenseKeyframe(keys[0], init), tiny, K8)
+    assert a._flow.uv_source.shape[0] == int((~zero).sum()) < b._flow.uv_source.shape[0] == 2 * H_MAP * W_MAP
+    values = values_of(poses, keys)
+    (pa,), (pb,) = a.linearize(values), b.linearize(values)
+    np.testing.assert_allclose(pa.H, pb.H, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(pa.g, pb.g, rtol=1e-10, atol=1e-12)
+    assert pa.c == pytest.approx(pb.c, rel=1e-12)
+    assert a.cost(values) == pytest.approx(b.cost(values), rel=1e-12)
+    delta = np.random.default_rng(5).normal(0, 1e-3, 7 * len(a.keys))
+    np.testing.assert_allclose(a.back_substitute(delta).numpy(), b.back_substitute(delta).numpy(), rtol=1e-9, atol=1e-12)
+    # new measurements of the same edges (set_edges) choose their own rows
+    a.set_edges(noisy)
+    assert a._flow.uv_source.shape[0] == 2 * H_MAP * W_MAP

@@ -141,15 +141,8 @@ class DenseSourceBlock(VisualBlock):
         self.keys = (int(keyframe.key), *targets)
         self.edge_targets = tuple(int(e.target) for e in edges)
         grid = pixel_grid(h, w)
-        uv_target, weights = self._edge_rows(edges)
-        target_slot = torch.cat([torch.full((n_pix,), 1 + targets.index(int(e.target))) for e in edges]) \
-            if edges else torch.zeros(0, dtype=torch.long)
-        n_flow = n_pix * len(edges)
-        self._flow = InverseDepthBlock(
-            self.keys, torch.zeros(n_flow, dtype=torch.long), target_slot, grid.repeat(len(edges), 1), uv_target,
-            torch.arange(n_pix).repeat(len(edges)), weights, torch.as_tensor(K, dtype=torch.float64), d0.reshape(-1),
-            config=self.config, reprojection=self.dense_config.reprojection,
-        )
+        self._K = torch.as_tensor(K, dtype=torch.float64)
+        self._flow = self._flow_rows(edges, d0.reshape(-1))
         # RGB-D prior rows: the pixels whose sensor depth is valid (fixed for the keyframe)
         self._prior_idx = torch.zeros(0, dtype=torch.long)
         self._prior_value = torch.zeros(0, dtype=torch.float64)
@@ -165,21 +158,13 @@ class DenseSourceBlock(VisualBlock):
             self._prior_idx = torch.as_tensor(priors.idx, dtype=torch.long)
             self._prior_value = torch.as_tensor(priors.value, dtype=torch.float64)
             self._prior_weight = torch.as_tensor(priors.weight, dtype=torch.float64)
-        n_prior = int(self._prior_idx.numel())
         # stereo rows: every grid pixel of the left map seen in the keyframe's own right image
         self._stereo = None
-        n_stereo = 0
         if keyframe.stereo is not None:
             st = keyframe.stereo
             uv_r, w_r = self._edge_rows([DenseEdge(keyframe.key, -1, st.uv_target, st.weight)])
             self._stereo = (grid, uv_r, w_r, _tensor(st.K_right), _tensor(st.T_CRCL))
-            n_stereo = n_pix
-        self.slots = torch.cat([self._flow.slots, torch.zeros(n_prior + n_stereo, 2, dtype=torch.long)])
-        self.struct_idx = torch.cat([self._flow.struct_idx, self._prior_idx, torch.arange(n_stereo)])
-        groups = self._flow.groups if n_flow else SlotGroups((0,), ())
-        if n_prior + n_stereo:
-            groups = SlotGroups(groups.bounds + (n_flow + n_prior + n_stereo,), groups.slots + ((0, 0),))
-        self.groups = groups
+        self._stack_rows()
         if keyframe.damping is not None:
             eta = _tensor(keyframe.damping)
             if tuple(eta.shape) != self.shape or bool((eta < 0).any()) or not bool(torch.isfinite(eta).all()):
@@ -190,6 +175,38 @@ class DenseSourceBlock(VisualBlock):
         self._structure = torch.zeros(0, dtype=torch.float64)
         self.set_structure(d0.reshape(-1))
         self.num_invalid = 0
+
+    def _flow_rows(self, edges: Sequence[DenseEdge], structure: torch.Tensor) -> InverseDepthBlock:
+        """The flow rows of ``edges``: one per pixel and edge whose weight is not zero on both axes (a
+        row of zero weight adds nothing to the cost, the gradient or the information: left out, so
+        that the linearisation costs what the measured pixels cost)."""
+        h, w = self.shape
+        n_pix = h * w
+        uv_target, weights = self._edge_rows(edges)
+        targets = list(self.keys[1:])
+        target_slot = torch.cat([torch.full((n_pix,), 1 + targets.index(int(e.target))) for e in edges]) \
+            if edges else torch.zeros(0, dtype=torch.long)
+        pixel = torch.arange(n_pix).repeat(len(edges))
+        keep = (weights > 0).any(-1)
+        if not bool(keep.all()):
+            uv_target, weights, target_slot, pixel = uv_target[keep], weights[keep], target_slot[keep], pixel[keep]
+        grid = pixel_grid(h, w)
+        return InverseDepthBlock(
+            self.keys, torch.zeros(int(pixel.numel()), dtype=torch.long), target_slot, grid[pixel], uv_target,
+            pixel, weights, self._K, structure, config=self.config, reprojection=self.dense_config.reprojection,
+        )
+
+    def _stack_rows(self) -> None:
+        """Slots, structure indices and slot groups of the flow, prior and stereo rows (in that order)."""
+        n_flow = int(self._flow.slots.shape[0])
+        n_prior = int(self._prior_idx.numel())
+        n_stereo = 0 if self._stereo is None else self.shape[0] * self.shape[1]
+        self.slots = torch.cat([self._flow.slots, torch.zeros(n_prior + n_stereo, 2, dtype=torch.long)])
+        self.struct_idx = torch.cat([self._flow.struct_idx, self._prior_idx, torch.arange(n_stereo)])
+        groups = self._flow.groups if n_flow else SlotGroups((0,), ())
+        if n_prior + n_stereo:
+            groups = SlotGroups(groups.bounds + (n_flow + n_prior + n_stereo,), groups.slots + ((0, 0),))
+        self.groups = groups
 
     def _edge_rows(self, edges: Sequence[DenseEdge]) -> tuple[torch.Tensor, torch.Tensor]:
         """Flattened ``(E h w, 2)`` targets and weights; non-finite targets get zero weight."""
@@ -216,8 +233,9 @@ class DenseSourceBlock(VisualBlock):
         if tuple(int(e.target) for e in edges) != self.edge_targets:
             raise ValueError(f"set_edges: targets {[int(e.target) for e in edges]} differ from the block's "
                              f"{list(self.edge_targets)} (build a new block for a new frame graph)")
-        uv, wt = self._edge_rows(edges)
-        self._flow.set_observations(uv, wt)
+        self._flow = self._flow_rows(edges, self._structure)
+        self._stack_rows()
+        self._system = None
 
     def set_damping(self, damping: torch.Tensor | np.ndarray) -> None:
         """DROID's per-pixel damping ``eta`` ``(h, w)`` (e.g. the update operator's latest prediction)."""

@@ -30,19 +30,27 @@ class DenseBA:
         self.fe = frontend
         self.depth_name = f"{frontend.name}.depth"  # the owner of the depth-alignment blocks (RGB-D)
 
-    def measure(self, edges: list[tuple[int, int]]) -> None:
+    def measure(self, edges: list[tuple[int, int]], min_change: float = 0.0) -> None:
         """Measure ``edges`` from the fields the current estimate induces; stores their revisions
-        (confidence times the Huber weight of the revision) and the sources' confidence maps."""
+        (confidence times the Huber weight of the revision) and the sources' confidence maps.
+        ``min_change`` (image px, > 0): an edge whose induced field moved less than this on average
+        since its last measurement keeps that measurement (the flow would start where it started)."""
         if not edges:
             return
         fe = self.fe
         t0 = time.perf_counter()
         g = fe.graph
         induced, _ = g.induced(edges)
-        revs = fe.source.revise(edges, induced)
+        if min_change > 0:
+            moved = g.induced_change(edges, induced) * fe.stride >= min_change
+            fe._counts["edges_kept"] += int((~moved).sum())
+            edges = [e for e, m in zip(edges, moved) if m]
+            induced = induced[moved]
+        revs = fe.source.revise(edges, induced) if edges else []
         for (i, j), rev, ind in zip(edges, revs, induced):
             w = rev.weight * huber_weight(rev.target - ind, fe.config, fe.stride)
-            g.edges[(i, j)] = EdgeMeasurement(rev.target, w)
+            # the induced field is kept only for the local BA's comparison (cleared when the edge leaves the active graph)
+            g.edges[(i, j)] = EdgeMeasurement(rev.target, w, ind.astype(np.float32) if min_change > 0 else None)
         for i in {e[0] for e in edges}:
             kf = g.keyframes[i]
             kf.confidence = np.max([g.edges[e].weight.mean(-1) for e in g.edges if e[0] == i], axis=0)
@@ -111,7 +119,7 @@ class DenseBA:
         fresh = [e for e in edges if e[0] in newest or e[1] in newest]
         flow0 = fe._times["flow"]
         for _ in range(cfg.rounds if rounds is None else rounds):
-            self.measure(fresh)
+            self.measure(fresh, cfg.remeasure_min_change)
             self.optimize(free, edges, cfg.iterations, init=False)
         fe._times["ba"] += time.perf_counter() - t0 - (fe._times["flow"] - flow0)
 

@@ -107,7 +107,8 @@ class DenseFrontend(BackendFrontend):
         self._lost = 0
         self._failures = 0
         self._counts = {"keyframes_added": 0, "keyframes_removed": 0, "tracking_failures": 0, "map_restarts": 0,
-                        "global_runs": 0, "low_confidence_frames": 0, "low_texture_frames": 0}
+                        "global_runs": 0, "low_confidence_frames": 0, "low_texture_frames": 0,
+                        "edges_kept": 0}
         self._new_since_global = 0
         self._times = {"flow": 0.0, "tracking": 0.0, "ba": 0.0, "global": 0.0, "bookkeeping": 0.0}
         if self.depth.enabled:

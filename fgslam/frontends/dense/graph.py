@@ -40,10 +40,13 @@ class DenseKeyframeState:
 @dataclass
 class EdgeMeasurement:
     """Last measured correspondence field of edge (i, j): ``target`` (h, w, 2) grid px of j, ``weight``
-    (h, w, 2) in [0, 1] (confidence times robust weight)."""
+    (h, w, 2) in [0, 1] (confidence times robust weight); ``induced`` (h, w, 2) float32 the field the
+    estimate induced when it was measured (NaN: invalid; None: unmeasured, or the edge left the
+    active graph), from which the local BA tells whether a re-measurement can change anything."""
 
     target: np.ndarray
     weight: np.ndarray
+    induced: Optional[np.ndarray] = None
 
 
 class FrameGraph:
@@ -123,6 +126,21 @@ class FrameGraph:
             n_in = inside.reshape(len(part), -1).sum(1)
             mean = flow.reshape(len(part), -1).sum(1) / np.maximum(n_in, 1) * self.stride
             out[a:a + len(part)] = np.where(n_in >= 0.5 * inside[0].size, mean, np.inf)
+        return out
+
+    def induced_change(self, edges: list[tuple[int, int]], induced: np.ndarray) -> np.ndarray:
+        """Mean change (grid px) of each edge's induced field ``induced`` (E, h, w, 2) since its last
+        measurement, over the pixels valid in both; ``inf`` for an edge without a stored field or
+        without a pixel valid in both."""
+        out = np.full(len(edges), np.inf)
+        for n, e in enumerate(edges):
+            m = self.edges.get(e)
+            if m is None or m.induced is None:
+                continue
+            d = np.linalg.norm(induced[n] - m.induced, axis=-1)
+            ok = np.isfinite(d)
+            if ok.any():
+                out[n] = float(d[ok].mean())
         return out
 
     def distance(self, i: int, j: int, stride: int) -> float:

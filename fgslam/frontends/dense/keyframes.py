@@ -208,7 +208,10 @@ class DenseKeyframes:
         fe = self.fe
         g = fe.graph
         while len(g.active) > fe.config.graph.active_keyframes:
-            g.active.pop(0)
+            gone = g.active.pop(0)
+            for e, m in g.edges.items():  # the local BA never re-measures it again: its induced field goes (memory)
+                if gone in e:
+                    m.induced = None
         fe.contributor.feed()
         order = g.order()
         for fid in order[: max(0, len(order) - fe.config.global_ba.max_keyframes)]:
