@@ -109,6 +109,9 @@ class DenseFrontend(BackendFrontend):
         self._counts = {"keyframes_added": 0, "keyframes_removed": 0, "tracking_failures": 0, "map_restarts": 0,
                         "global_runs": 0, "low_confidence_frames": 0, "low_texture_frames": 0}
         self._new_since_global = 0
+        self._loop_edges: set[tuple[int, int]] = set()  # proximity loop edges kept by a global optimisation (re-measured in every later one)
+        self.proximity_gates = self.config.proximity
+        self.background_global_ba = self.config.global_ba.background and self.config.global_ba.every > 0
         self._times = {"flow": 0.0, "tracking": 0.0, "ba": 0.0, "global": 0.0, "bookkeeping": 0.0}
         if self.depth.enabled:
             self._times["depth"] = 0.0  # surfaces and depth-only tracking of frames
@@ -318,7 +321,7 @@ class DenseFrontend(BackendFrontend):
         self._new_since_global += 1
         every = self.config.global_ba.every
         if every and self._new_since_global >= every:
-            self.ba.global_ba()
+            self.ba.global_ba(background=True)
         return self._status(fid, frame, "tracked", fid in g.keyframes, n_conf, events)
 
     def _fail(self, fid: int, frame, reason: str, T_WC_pred: np.ndarray | None = None) -> FrameStatus:
