@@ -23,10 +23,12 @@ Per frame (DROID-SLAM section 3.4, with the built-in DIS flow source of :mod:`.s
    rows through the fixed calibrated ``T_CRCL``); the rest of the active graph is held fixed;
 4. **redundant keyframes**: the second newest keyframe is removed when its flow distance to the one
    before is below ``graph.remove_threshold`` (pose kept relative to it);
-5. keyframes beyond ``graph.active_keyframes`` leave the active graph (to the loop closer); every
-   ``global_ba.every`` keyframes and at the end a **global optimisation** rebuilds the edges from the
-   N x N flow-distance matrix (:func:`.graph.select_global_edges`) and optimises every keyframe of
-   the map through the backend (``optimize_window`` over them: older maps stay as they are).
+5. keyframes beyond ``graph.active_keyframes`` leave the active graph (to the loop closer); settled
+   keyframes are proximity-loop queries (``dense.proximity``, with ``loop_closure.mode`` proximity or
+   both); every ``global_ba.every`` keyframes (in the loop service's worker, applied at its safe point)
+   and at the end (at once) a **global optimisation** rebuilds the edges from the N x N flow-distance
+   matrix (:func:`.graph.select_global_edges`), measures them and optimises every keyframe of the map
+   on a snapshot through the backend (:func:`.ba.solve_dense_global`; older maps stay as they are).
 
 Initialisation: monocular collects ``graph.init_keyframes`` keyframes (tracked against a constant
 depth map), connects them and optimises them all (first keyframe anchored, the distance between
