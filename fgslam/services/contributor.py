@@ -83,7 +83,7 @@ class Contributor(Protocol):
 
 @runtime_checkable
 class ProximityContributor(Contributor, Protocol):
-    """A contributor with proximity loops and a global bundle adjustment (patch family today)."""
+    """A contributor with proximity loops and a global bundle adjustment (patch and dense families)."""
 
     def proximity_candidate(self, query_kf_id: int, candidate_kf_ids: list[int]) -> Any:
         """The best candidate among older keyframes (an object with ``fid`` and ``flow``) or None."""

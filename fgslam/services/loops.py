@@ -16,6 +16,8 @@ calls the rest at fixed points of its frame loop:
   :meth:`LoopService.update_poses` with its latest keyframe poses;
 - :meth:`LoopService.keyframe_settled` for each keyframe that can no longer be removed and
   :meth:`LoopService.search` with the newest of them (proximity loops);
+- :meth:`LoopService.start_global_ba` for a periodic global BA of the contributor's map in the
+  background (the dense family's; the system connects a service with loop closure off for it);
 - :meth:`LoopService.relocalize` when the track is lost, :meth:`LoopService.map_reset` when the
   frontend starts a new map, :meth:`LoopService.finish` at the end.
 

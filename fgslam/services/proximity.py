@@ -12,9 +12,11 @@ edges of every waiting loop (``global_ba_job``). The global BA runs in the backg
 patch family's) in a worker process of its own (spawned once per service: in a thread of the tracking
 process, the two would take turns on the interpreter lock and both slow down, the global BA about
 10x on the street drive), others in a thread. Its result is applied at the safe point
-``global_ba_delay_frames`` polls (or the job's own ``delay_frames``, when more) after the one before its start (waiting for it there when it is not
-ready, so that a run gives the same bytes however fast the worker is; the classical closer's
-corrections likewise arrive ``correction_delay_frames`` polls after their keyframe):
+``global_ba_delay_frames`` polls (or the job's own ``delay_frames``, when more) after the one before
+its start (waiting for it there when it is not ready, so that a run gives the same bytes however fast
+the worker is; the classical closer's corrections likewise arrive ``correction_delay_frames`` polls
+after their keyframe). A contributor's periodic global BA without loops (:meth:`ProximityLoops.start_global_ba`,
+the dense family's) is run and applied the same way:
 
 1. when the frontend started a new map since the snapshot, it is dropped (a correction applied
    since the snapshot, e.g. the classical closer's, is kept: the result is applied on top of it, as
