@@ -81,7 +81,7 @@ class DenseGlobalConfig:
 
     every: int = ranged(0, ge=0, le=MAX_KEYFRAMES)  # run after every this many new keyframes (0: only at the end)
     background: bool = True  # the periodic ones in the loop service's worker, applied at its safe point (false: synchronously, stalling tracking)
-    delay_frames_per_keyframe: float = ranged(4.0, ge=0, le=MAX_SCALAR)  # a background one is applied this many frames per keyframe of its snapshot after its start (at least loop_closure.global_ba_delay_frames), so that tracking need not wait for it
+    delay_frames_per_keyframe: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # a background one is applied this many frames per keyframe of its snapshot after its start (at least loop_closure.global_ba_delay_frames), so that tracking need not wait for it
     final: bool = True  # run once at the end of the sequence (synchronously)
     iterations: int = ranged(4, ge=1, le=MAX_ITERATIONS)  # LM iterations per measure/optimise round
     rounds: int = ranged(1, ge=1, le=MAX_ITERATIONS)  # measure/optimise rounds
