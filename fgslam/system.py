@@ -149,9 +149,15 @@ class SlamSystem:
 
     @staticmethod
     def _loop_service(frontend: Frontend, loop_config: Optional["LoopClosureConfig"]) -> Optional["LoopService"]:
-        """The loop-closure service with ``frontend`` as its contributor (None: ``loop_config`` None or off)."""
+        """The loop-closure service with ``frontend`` as its contributor (None: ``loop_config`` None or off,
+        unless the frontend hands global optimisations to the service's worker: then a service with
+        loop closure off, inert but for them)."""
         if loop_config is None or loop_config.mode == "off":
-            return None
+            if not getattr(frontend, "background_global_ba", False):
+                return None
+            from .loop.records import LoopClosureConfig
+
+            loop_config = loop_config if loop_config is not None else LoopClosureConfig(mode="off")
         from .services.loops import LoopService
 
         return LoopService(_contributor(frontend), loop_config, metric=bool(getattr(frontend, "metric_scale", False)),

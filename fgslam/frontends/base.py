@@ -78,6 +78,16 @@ class LoopPort(Protocol):
 
     def search(self, query: int) -> None: ...
 
+    @property
+    def runs_global_ba(self) -> bool: ...  # start_global_ba can run a global BA in the background
+
+    @property
+    def busy(self) -> bool: ...  # a global BA runs (or waits to be applied)
+
+    def prepare_global_ba(self) -> None: ...  # start the background worker ahead of the first global BA
+
+    def start_global_ba(self) -> bool: ...  # a global BA without loop edges in the background (False: busy)
+
     def verified_loops(self) -> list: ...  # the classical closer's verified loops so far
 
 
@@ -87,6 +97,8 @@ class NoLoops:
     enabled = False
     classical = False
     proximity = None
+    runs_global_ba = False
+    busy = False
 
     def add_keyframe(self, kf_id: int, neighbours: Any = ()) -> bool:
         return False
@@ -105,6 +117,12 @@ class NoLoops:
 
     def search(self, query: int) -> None:
         return None
+
+    def prepare_global_ba(self) -> None:
+        return None
+
+    def start_global_ba(self) -> bool:
+        return False
 
     def verified_loops(self) -> list:
         return []
@@ -132,6 +150,9 @@ class Frontend(abc.ABC):
     metric_scale: bool = False
     #: the proximity-loop gates of the family (None: the family closes no proximity loops)
     proximity_gates: Any = None
+    #: the family hands global optimisations to the loop service's background worker, so the system
+    #: connects a loop service (inert but for them) even with loop closure off
+    background_global_ba: bool = False
     #: the loop-closure port (:meth:`connect`)
     loops: LoopPort = NO_LOOPS
 

@@ -51,7 +51,10 @@ class GlobalBAJob:
     ``is_loop`` marks the problem's loop edges (the gate ``min_ba_inlier_ratio`` acts on them);
     ``context`` is the contributor's own data for :meth:`ProximityContributor.apply_global_ba`.
     ``in_process``: ``solve`` is picklable and needs nothing of the contributor's process (a module-level
-    function bound to its data), so the service may run it in a worker process."""
+    function bound to its data), so the service may run it in a worker process. ``delay_frames``: the
+    safe points after its start at which its result is applied, when more than the service's
+    ``global_ba_delay_frames`` (a contributor whose global BAs grow with its map asks for more, from
+    the snapshot's size, so that tracking does not wait for it there)."""
 
     solve: Callable[[], Any]
     kf_ids: np.ndarray
@@ -60,6 +63,7 @@ class GlobalBAJob:
     loop_edges: Optional[dict] = None
     context: Any = None
     in_process: bool = False
+    delay_frames: int = 0
 
 
 @runtime_checkable
@@ -79,7 +83,7 @@ class Contributor(Protocol):
 
 @runtime_checkable
 class ProximityContributor(Contributor, Protocol):
-    """A contributor with proximity loops and a global bundle adjustment (patch family today)."""
+    """A contributor with proximity loops and a global bundle adjustment (patch and dense families)."""
 
     def proximity_candidate(self, query_kf_id: int, candidate_kf_ids: list[int]) -> Any:
         """The best candidate among older keyframes (an object with ``fid`` and ``flow``) or None."""

@@ -16,6 +16,8 @@ calls the rest at fixed points of its frame loop:
   :meth:`LoopService.update_poses` with its latest keyframe poses;
 - :meth:`LoopService.keyframe_settled` for each keyframe that can no longer be removed and
   :meth:`LoopService.search` with the newest of them (proximity loops);
+- :meth:`LoopService.start_global_ba` for a periodic global BA of the contributor's map in the
+  background (the dense family's; the system connects a service with loop closure off for it);
 - :meth:`LoopService.relocalize` when the track is lost, :meth:`LoopService.map_reset` when the
   frontend starts a new map, :meth:`LoopService.finish` at the end.
 
@@ -186,6 +188,18 @@ class LoopService:
     def search(self, query: int) -> None:
         """Search a proximity loop for settled keyframe ``query`` and start its global BA."""
         self.proximity_closer.search(query)
+
+    #: a contributor may hand its periodic global BAs to :meth:`start_global_ba` (the no-op loop port cannot)
+    runs_global_ba = True
+
+    def prepare_global_ba(self) -> None:
+        """The contributor will hand global BAs: the worker process starts now (once), ahead of the first."""
+        self.proximity_closer.prepare()
+
+    def start_global_ba(self) -> bool:
+        """A global BA of the contributor's map without loop edges in the background, applied at the
+        safe point ``global_ba_delay_frames`` polls from now; False when one runs already (or no map)."""
+        return self.proximity_closer.start_global_ba()
 
     def run_global_ba(self, loop_edges: dict | None = None) -> bool:
         """A global BA with ``loop_edges`` now, in the caller's thread (tests, maintenance): applied

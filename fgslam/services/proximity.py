@@ -12,9 +12,11 @@ edges of every waiting loop (``global_ba_job``). The global BA runs in the backg
 patch family's) in a worker process of its own (spawned once per service: in a thread of the tracking
 process, the two would take turns on the interpreter lock and both slow down, the global BA about
 10x on the street drive), others in a thread. Its result is applied at the safe point
-``global_ba_delay_frames`` polls after the one before its start (waiting for it there when it is not
-ready, so that a run gives the same bytes however fast the worker is; the classical closer's
-corrections likewise arrive ``correction_delay_frames`` polls after their keyframe):
+``global_ba_delay_frames`` polls (or the job's own ``delay_frames``, when more) after the one before
+its start (waiting for it there when it is not ready, so that a run gives the same bytes however fast
+the worker is; the classical closer's corrections likewise arrive ``correction_delay_frames`` polls
+after their keyframe). A contributor's periodic global BA without loops (:meth:`ProximityLoops.start_global_ba`,
+the dense family's) is run and applied the same way:
 
 1. when the frontend started a new map since the snapshot, it is dropped (a correction applied
    since the snapshot, e.g. the classical closer's, is kept: the result is applied on top of it, as
@@ -49,6 +51,17 @@ logger = logging.getLogger(__name__)
 
 # numerical trouble in a global BA (gtsam/torch/numpy): the loop is undone, the run goes on
 _SOLVER_ERRORS = (OptimizationError, RuntimeError, np.linalg.LinAlgError)
+
+
+def apply_global_ba_result(contributor: ProximityContributor, job: GlobalBAJob, result: Any, keep: np.ndarray,
+                           seconds: float = 0.0) -> None:
+    """Apply an accepted global BA (module docstring, step 3): ``contributor.apply_global_ba``, then
+    the correction ``U_k = T_new_k T_snapshot_k^-1`` of every snapshot keyframe on its current pose
+    (also the synchronous path of a contributor that runs a job at once, e.g. the dense family's final one)."""
+    ids = [int(k) for k in job.kf_ids]
+    corr = PoseCorrection.between(dict(zip(ids, job.T_WC)), dict(zip(ids, result.T_WC)), seconds, hold_older=True)
+    contributor.apply_global_ba(job, result, keep)
+    contributor.apply_correction(corr)
 
 
 def _warm_up() -> None:
@@ -159,9 +172,7 @@ class ProximityLoops:
         eligible = self.eligible_candidates(query)
         if not eligible:
             return
-        if self.config.run_in_thread and self._pool is None:  # loops are possible from now on
-            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
-            self._pool.submit(_warm_up)
+        self.prepare()  # loops are possible from now on
         cand = self.contributor.proximity_candidate(query, eligible)
         if cand is None:
             return
@@ -185,8 +196,11 @@ class ProximityLoops:
         if job is None:
             self._undo([(q, c) for q, c, _ in loops], "undone: no map for the global BA")
             return
-        self._start(_Running(job, [(q, c) for q, c, _ in loops], self._map_epoch,
-                             self._tick + self.config.global_ba_delay_frames))
+        self._start(_Running(job, [(q, c) for q, c, _ in loops], self._map_epoch, self._due(job)))
+
+    def _due(self, job: GlobalBAJob) -> int:
+        """The safe point at which a job started now is applied (``global_ba_delay_frames`` or the job's own delay)."""
+        return self._tick + max(self.config.global_ba_delay_frames, int(job.delay_frames))
 
     def _undo(self, loops: list, status: str) -> None:
         if not loops:
@@ -196,6 +210,25 @@ class ProximityLoops:
             self.counts["undone"] += 1
         # the provisional cooldown of undone loops is lifted (loops still pending keep theirs)
         self._cooldown_until = max([self._settled[q] + self.gates.cooldown for q, _, _ in self._pending], default=-1)
+
+    def prepare(self) -> None:
+        """Start the worker process (``run_in_thread``), once, ahead of the first global BA that needs it
+        (its start, imports included, takes seconds)."""
+        if self.config.run_in_thread and self._pool is None:
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+            self._pool.submit(_warm_up)
+
+    def start_global_ba(self) -> bool:
+        """A global BA without loop edges (a contributor's periodic one) in the background, applied at
+        the safe point ``global_ba_delay_frames`` polls from now (as a loop's); False when one runs
+        already or the contributor has no map."""
+        if self.busy:
+            return False
+        job = self.contributor.global_ba_job(None)
+        if job is None:
+            return False
+        self._start(_Running(job, [], self._map_epoch, self._due(job)))
+        return True
 
     def run_global_ba(self, loop_edges: dict | None = None) -> bool:
         """A global BA with ``loop_edges`` now, in the caller's thread (tests, maintenance): applied
@@ -276,10 +309,7 @@ class ProximityLoops:
             self._next()
             return False
         ids = [int(k) for k in job.kf_ids]
-        corr = PoseCorrection.between(dict(zip(ids, job.T_WC)), dict(zip(ids, res.T_WC)), run.seconds,
-                                      hold_older=True)
-        self.contributor.apply_global_ba(job, res, keep)
-        self.contributor.apply_correction(corr)
+        apply_global_ba_result(self.contributor, job, res, keep, run.seconds)
         if self.closer is not None:
             poses = {k: self.contributor.keyframe_pose(k) for k in ids}
             self.closer.update_poses({k: T for k, T in poses.items() if T is not None})

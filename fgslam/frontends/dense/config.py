@@ -84,7 +84,9 @@ class DenseGlobalConfig:
     keyframes' flow-distance matrix (temporal first, then by distance, Chebyshev NMS)."""
 
     every: int = ranged(0, ge=0, le=MAX_KEYFRAMES)  # run after every this many new keyframes (0: only at the end)
-    final: bool = True  # run once at the end of the sequence
+    background: bool = True  # the periodic ones in the loop service's worker, applied at its safe point (false: synchronously, stalling tracking)
+    delay_frames_per_keyframe: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # a background one is applied this many frames per keyframe of its snapshot after its start (at least loop_closure.global_ba_delay_frames), so that tracking need not wait for it
+    final: bool = True  # run once at the end of the sequence (synchronously)
     iterations: int = ranged(4, ge=1, le=MAX_ITERATIONS)  # LM iterations per measure/optimise round
     rounds: int = ranged(1, ge=1, le=MAX_ITERATIONS)  # measure/optimise rounds
     temporal_radius: int = ranged(2, ge=1, le=MAX_KEYFRAMES)  # edges between keyframes this close in order always
@@ -92,6 +94,36 @@ class DenseGlobalConfig:
     max_distance: float = ranged(60.0, gt=0, le=MAX_SCALAR)  # image px: proximity edges only below this flow distance
     max_edges: int = ranged(2000, ge=1, le=MAX_COUNT)  # memory bound: edges of one global optimisation
     max_keyframes: int = ranged(400, ge=2, le=MAX_KEYFRAMES)  # memory bound: keyframes whose images are kept for re-measurement (older ones keep their last edges)
+
+
+@dataclass
+class DenseProximityConfig:
+    """Proximity loops of the dense family (on with ``loop_closure.mode`` proximity or both).
+
+    Each keyframe that settles (all but the newest two: only the second newest can still be removed)
+    is a query: older keyframes of the map with images, at least ``min_gap`` keyframes back, whose
+    current camera centre is within ``radius`` median query depths and whose optical axis within
+    ``max_angle_deg``, and whose flow distance to the query (both ways) is below ``max_flow_px``, are
+    candidates; the nearest by flow gets long-range edges (its and its ``old_neighbours``' maps into
+    the query's and its ``new_neighbours``' and back) measured by the dense source from the field the
+    estimate induces, verified by their confident share; a global optimisation then runs with them in
+    the loop service's worker (``global_ba`` settings), undone unless ``min_ba_inlier_ratio`` of them
+    keep a weight (an edge keeps it when ``min_edge_inliers`` of its pixels end within ``outlier_px``).
+    """
+
+    min_gap: int = ranged(20, ge=1, le=MAX_KEYFRAMES)  # keyframes between a query and a candidate at least
+    radius: float = ranged(0.5, gt=0, le=MAX_SCALAR)  # candidate camera centres at most this many median query depths away
+    max_angle_deg: float = ranged(30.0, gt=0, le=180)  # angle between the optical axes at most
+    max_flow_px: float = ranged(80.0, gt=0, le=MAX_SCALAR)  # image px: flow distance between candidate and query at most
+    old_neighbours: int = ranged(1, ge=0, le=MAX_KEYFRAMES)  # keyframes on each side of the candidate that also get loop edges
+    new_neighbours: int = ranged(1, ge=0, le=MAX_KEYFRAMES)  # keyframes on each side of the query that also get loop edges
+    min_confident: float = ranged(0.3, ge=0, le=1)  # share of a loop edge's grid pixels that must be confident (flow weight above confident_weight)
+    confident_weight: float = ranged(0.2, ge=0, le=1)  # a loop edge's pixel is confident when its mean weight exceeds this
+    min_loop_edges: int = ranged(2, ge=1, le=MAX_COUNT)  # verified loop edges needed
+    outlier_px: float = ranged(4.0, gt=0, le=MAX_SCALAR)  # image px: a loop edge's pixel is an inlier after the global optimisation when its residual is below this
+    min_edge_inliers: float = ranged(0.5, ge=0, le=1)  # a loop edge keeps its weight when this share of its pixels are inliers
+    min_ba_inlier_ratio: float = ranged(0.6, ge=0, le=1)  # share of the loop edges that must keep a weight after the global optimisation (else undone)
+    cooldown: int = ranged(10, ge=0, le=MAX_KEYFRAMES)  # keyframes after an accepted proximity loop during which no other is searched
 
 
 @dataclass
@@ -103,6 +135,7 @@ class DenseConfig:
     ba: DenseBAConfig = field(default_factory=DenseBAConfig)
     tracking: DenseTrackingConfig = field(default_factory=DenseTrackingConfig)
     global_ba: DenseGlobalConfig = field(default_factory=DenseGlobalConfig)
+    proximity: DenseProximityConfig = field(default_factory=DenseProximityConfig)  # proximity loops (loop_closure.mode proximity or both)
     depth_align: DepthTrackingConfig = field(default_factory=_default_depth_align)  # RGB-D: point-to-plane depth alignment in tracking and the window
     point_confidence: float = ranged(0.5, ge=0, le=1)  # keyframe_points / depth PNG: grid pixels with confidence below this are left out
     threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads of the frontend (0: torch's default)

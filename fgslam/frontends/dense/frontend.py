@@ -23,10 +23,12 @@ Per frame (DROID-SLAM section 3.4, with the built-in DIS flow source of :mod:`.s
    rows through the fixed calibrated ``T_CRCL``); the rest of the active graph is held fixed;
 4. **redundant keyframes**: the second newest keyframe is removed when its flow distance to the one
    before is below ``graph.remove_threshold`` (pose kept relative to it);
-5. keyframes beyond ``graph.active_keyframes`` leave the active graph (to the loop closer); every
-   ``global_ba.every`` keyframes and at the end a **global optimisation** rebuilds the edges from the
-   N x N flow-distance matrix (:func:`.graph.select_global_edges`) and optimises every keyframe of
-   the map through the backend (``optimize_window`` over them: older maps stay as they are).
+5. keyframes beyond ``graph.active_keyframes`` leave the active graph (to the loop closer); settled
+   keyframes are proximity-loop queries (``dense.proximity``, with ``loop_closure.mode`` proximity or
+   both); every ``global_ba.every`` keyframes (in the loop service's worker, applied at its safe point)
+   and at the end (at once) a **global optimisation** rebuilds the edges from the N x N flow-distance
+   matrix (:func:`.graph.select_global_edges`), measures them and optimises every keyframe of the map
+   on a snapshot through the backend (:func:`.ba.solve_dense_global`; older maps stay as they are).
 
 Initialisation: monocular collects ``graph.init_keyframes`` keyframes (tracked against a constant
 depth map), connects them and optimises them all (first keyframe anchored, the distance between
@@ -110,6 +112,9 @@ class DenseFrontend(BackendFrontend):
                         "global_runs": 0, "low_confidence_frames": 0, "low_texture_frames": 0,
                         "edges_kept": 0}
         self._new_since_global = 0
+        self._loop_edges: set[tuple[int, int]] = set()  # proximity loop edges kept by a global optimisation (re-measured in every later one)
+        self.proximity_gates = self.config.proximity
+        self.background_global_ba = self.config.global_ba.background and self.config.global_ba.every > 0
         self._times = {"flow": 0.0, "tracking": 0.0, "ba": 0.0, "global": 0.0, "bookkeeping": 0.0}
         if self.depth.enabled:
             self._times["depth"] = 0.0  # surfaces and depth-only tracking of frames
@@ -327,7 +332,7 @@ class DenseFrontend(BackendFrontend):
         self._new_since_global += 1
         every = self.config.global_ba.every
         if every and self._new_since_global >= every:
-            self.ba.global_ba()
+            self.ba.global_ba(background=True)
         return self._status(fid, frame, "tracked", fid in g.keyframes, n_conf, events)
 
     def _fail(self, fid: int, frame, reason: str, T_WC_pred: np.ndarray | None = None) -> FrameStatus:
