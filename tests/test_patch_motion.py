@@ -4,7 +4,6 @@ initialisation (the next initialisation starts clean)."""
 
 from __future__ import annotations
 
-import dataclasses
 
 import numpy as np
 import pytest

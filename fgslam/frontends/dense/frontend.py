@@ -44,12 +44,10 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Optional
 
 import cv2
 import numpy as np
 
-from ...services.contributor import KeyframeImage, PoseCorrection
 from ...backend.graph import Backend
 from ...errors import ConfigError, OptimizationError
 from ...factors.reprojection import ReprojectionConfig

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
-from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_PATCHES_PER_FRAME, MAX_SCALAR, MAX_SEED, MAX_THREADS, MAX_WINDOW, check_ranges, ranged
+from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_PATCHES_PER_FRAME, MAX_SCALAR, MAX_SEED, MAX_THREADS, MAX_WINDOW, check_ranges, ranged
 from ...backend.config import GlobalBAConfig
 from ...errors import ConfigError
 from ...factors.depth import DepthPriorConfig

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ...errors import ConfigError, DataError
+from ...errors import ConfigError
 from ..checkpoints import LearnedSlot, load_learned
 from .measurement import Measurement, MeasurementSource
 
