@@ -73,7 +73,7 @@ class PointmapMatches:
     uv_lm: ``(N, 2)`` the continuous LM solution before refinement (the warm start of the next call);
     index: ``(N,)`` int64 flat index ``v * W + u`` of ``uv`` in the reference;
     valid: ``(N,)`` bool; ray_error: ``(N,)`` final ray error of the LM solution (inf for the queries
-    never matched: non-finite or zero points, ``query_valid`` False; their ``uv_lm`` is their start);
+    without a ray: non-finite or zero points; their ``uv_lm`` is their start);
     score: ``(N,)`` descriptor dot product at ``uv`` (NaN without descriptors).
     """
 
@@ -294,6 +294,7 @@ def match_pointmaps(
         N = X.shape[0]
         H, W = reference.H, reference.W
         target, ok = _rays(X)
+        has_ray = ok.clone()  # the LM runs on these (a query_valid False one may still serve as a warm start)
         if query_valid is not None:
             ok &= torch.as_tensor(np.asarray(query_valid) if not isinstance(query_valid, Tensor) else query_valid,
                                   dtype=torch.bool).reshape(-1)
@@ -313,9 +314,9 @@ def match_pointmaps(
                     uv[bad] = identity[bad]
         uv[:, 0].clamp_(0, W - 1)
         uv[:, 1].clamp_(0, H - 1)
-        # LM only on the usable queries (the others are never matched; they keep their start and an
-        # infinite ray error)
-        act = ok.nonzero().squeeze(1)
+        # LM only on the queries with a ray (non-finite or zero points keep their start and an infinite
+        # ray error: nothing to match)
+        act = has_ray.nonzero().squeeze(1)
         if act.numel() == N:
             uv_lm, cost = _lm(reference, target, uv, cfg)
         else:
