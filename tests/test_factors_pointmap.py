@@ -17,6 +17,7 @@ from fgslam.factors.pointmap import (
     point_residuals,
     ray_dist_residuals,
     relative_to_global,
+    relative_to_global_normal,
 )
 from fgslam.lie import Sim3
 
@@ -378,3 +379,24 @@ def test_residuals_without_jacobians_are_the_same_residuals():
         assert J_full is not None and J_cheap is None
         assert torch.equal(e_full, e_cheap) and torch.equal(full.valid, cheap.valid)
         assert not bool(cheap.valid[3])
+
+
+def test_normal_equations_chain_rule_equals_the_stacked_jacobians():
+    """relative_to_global_normal (one 7-column reduction, then the adjoint) gives the H and g that
+    summing [J_WCk, J_WCf]^T W [J_WCk, J_WCf] over the matches gives."""
+    rng = np.random.default_rng(11)
+    R, t, s = random_rotation(rng), rng.normal(size=3), 1.7
+    T = Sim3(torch.tensor(R), torch.tensor(t), torch.tensor(s))
+    X_f = torch.tensor(rng.normal(size=(50, 3)) + [0, 0, 3])
+    X_k = torch.tensor(rng.normal(size=(50, 3)) + [0, 0, 3])
+    res = ray_dist_residuals(T, X_f, X_k, weight=torch.tensor(rng.uniform(0.1, 1, 50)))
+    e, J = res.whitened()
+    w = torch.tensor(rng.uniform(0.2, 1.0, (50, 4)))  # arbitrary row weights (IRLS)
+    J_k, J_f = relative_to_global(J, T)
+    J14 = torch.cat((J_k, J_f), -1).reshape(-1, 14)
+    H_ref = J14.T @ (w.reshape(-1, 1) * J14)
+    g_ref = J14.T @ (w.reshape(-1) * e.reshape(-1))
+    J7 = J.reshape(-1, 7)
+    H, g = relative_to_global_normal(J7.T @ (w.reshape(-1, 1) * J7), J7.T @ (w.reshape(-1) * e.reshape(-1)), T)
+    np.testing.assert_allclose(H.numpy(), H_ref.numpy(), rtol=1e-10, atol=1e-8 * float(H_ref.abs().max()))
+    np.testing.assert_allclose(g.numpy(), g_ref.numpy(), rtol=1e-10, atol=1e-8 * float(g_ref.abs().max()))

@@ -136,3 +136,24 @@ def test_compile_failure_falls_back_to_eager_matching(scene, monkeypatch, caplog
         compiled = _match(pair, config=MatchingConfig(compile=True))
     assert caplog.text.count("torch.compile failed") == 1
     assert torch.equal(compiled.index, eager.index) and torch.equal(compiled.valid, eager.valid)
+
+
+def test_queries_without_a_ray_are_skipped_and_do_not_change_the_others(scene):
+    """Non-finite / zero query points get no LM (their start kept, infinite ray error, invalid); the other
+    queries' matches are those of a run without them."""
+    *_, pair, _, _, _, _ = scene
+    ref = RayImage(pair.X_i_in_i, pair.C_i)
+    X = torch.as_tensor(pair.X_j_in_i, dtype=torch.float32).reshape(-1, 3)[::7].clone()
+    D = torch.as_tensor(pair.D_j).reshape(-1, pair.D_j.shape[-1])[::7]
+    init = (pixel_grid_uv(240, 320)[::7] + 0.3).clamp(max=torch.tensor([319.0, 239.0]))  # inside: kept as given
+    holes = torch.zeros(X.shape[0], dtype=torch.bool)
+    holes[::5] = True
+    X_holes = X.clone()
+    X_holes[holes] = torch.where(torch.arange(int(holes.sum()))[:, None] % 2 == 0, float("nan"), 0.0)
+    m = match_pointmaps(ref, X_holes, init_uv=init, D_i=pair.D_i, D_j=D)
+    alone = match_pointmaps(ref, X[~holes], init_uv=init[~holes], D_i=pair.D_i, D_j=D[~holes])
+    assert not m.valid[holes].any() and torch.isinf(m.ray_error[holes]).all()
+    torch.testing.assert_close(m.uv_lm[holes], init[holes], rtol=0, atol=0)
+    assert int(alone.valid.sum()) > 0.5 * int((~holes).sum())
+    for name in ("uv", "uv_lm", "index", "valid", "ray_error"):
+        torch.testing.assert_close(getattr(m, name)[~holes], getattr(alone, name), rtol=0, atol=0)

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..camera import normalize_rays, project
+from ..camera import project
 from ..config import MAX_SCALAR, ranged
 from ..errors import DataError
 from ..lie import Sim3
@@ -134,59 +134,84 @@ def _sanitise(X: Tensor, ok: Tensor) -> Tensor:
     return torch.where(ok[..., None], X, safe)
 
 
-def _prepare(T_CkCf, X_f_in_f: Tensor, X_k_in_k: Tensor, weight: Tensor | None, min_norm: float):
-    """Shared front part: checked pose, sanitised points, ``Y = T X_f``, weights and mask.
+@dataclass(frozen=True)
+class PreparedMatches:
+    """What N matches' residuals need that does not depend on the pose (made once per edge by
+    :func:`prepare_matches`, reused at every linearisation and cost evaluation).
 
-    The mask here covers non-finite inputs and zero-norm canonical points (``||X_f||`` or
-    ``||X_k||`` <= ``min_norm``: MASt3R's invalid predictions).
+    X_f / X_k: ``(..., N, 3)`` the canonical points, masked rows replaced by the optical axis;
+    weight: ``(..., N)`` checked weights; valid: ``(..., N)`` finite inputs with ``||X_f||`` and
+    ``||X_k||`` above ``min_norm``; sqrt_w: ``sqrt(weight)``, zero where not valid; psi_k / norm_k:
+    ``psi(X_k)`` and ``||X_k||`` (rays of the sanitised points); min_norm: the threshold used.
     """
-    T = as_sim3(T_CkCf)
+
+    X_f: Tensor
+    X_k: Tensor
+    weight: Tensor
+    valid: Tensor
+    sqrt_w: Tensor
+    psi_k: Tensor
+    norm_k: Tensor
+    min_norm: float
+
+
+def prepare_matches(X_f_in_f: Tensor, X_k_in_k: Tensor, weight: Tensor | None = None,
+                    min_norm: float = 0.0) -> PreparedMatches:
+    """The pose-free part of every residual here (:class:`PreparedMatches`). The mask covers
+    non-finite inputs and zero-norm canonical points (``||X_f||`` or ``||X_k||`` <= ``min_norm``:
+    MASt3R's invalid predictions); negative weights raise ``DataError``."""
     weight = _check_weight(weight, X_f_in_f)
     valid = (
         torch.isfinite(X_f_in_f).all(-1) & torch.isfinite(X_k_in_k).all(-1) & torch.isfinite(weight)
     )
     X_f = _sanitise(X_f_in_f, valid)
     X_k = _sanitise(X_k_in_k, valid)
-    valid = (
-        valid
-        & (torch.linalg.vector_norm(X_f, dim=-1) > min_norm)
-        & (torch.linalg.vector_norm(X_k, dim=-1) > min_norm)
-    )
-    Y = _per_match(T).act(X_f)
-    return T, X_f, Y, X_k, weight, valid
+    norm_k = torch.linalg.vector_norm(X_k, dim=-1)
+    valid = valid & (torch.linalg.vector_norm(X_f, dim=-1) > min_norm) & (norm_k > min_norm)
+    norm_k = torch.where(valid, norm_k, torch.ones((), dtype=norm_k.dtype, device=norm_k.device))
+    psi_k = X_k / norm_k[..., None]
+    sqrt_w = torch.sqrt(torch.where(valid, weight, torch.zeros((), dtype=weight.dtype, device=weight.device)))
+    return PreparedMatches(X_f, X_k, weight, valid, sqrt_w, psi_k, norm_k, float(min_norm))
+
+
+def _posed(T_CkCf, prep: PreparedMatches):
+    """The checked pose and the predicted points ``Y = T X_f`` of prepared matches."""
+    T = as_sim3(T_CkCf)
+    return T, _per_match(T).act(prep.X_f)
+
+
+def _chain(dr_dY: Tensor, T: Sim3) -> Tensor:
+    """``A = dr/dY s R`` (``(..., N, m, 3)``, one batched matmul per pose)."""
+    sR = T.s[..., None, None] * T.R
+    return (dr_dY.flatten(-3, -2) @ sR).unflatten(-2, dr_dY.shape[-3:-1])
 
 
 def _finish(
     r: Tensor,
-    dr_dY: Tensor,
-    T: Sim3,
+    A: Tensor | None,
     X_f: Tensor,
     sigmas: Tensor,
-    weight: Tensor,
+    sqrt_w: Tensor,
     valid: Tensor,
-    jacobians: bool = True,
 ) -> MatchResiduals:
-    """Chain rule, whitening, and zeroing of the masked matches (NaN there is dropped); without
-    ``jacobians`` the chain rule is skipped (``J`` is None: a cost evaluation).
+    """Chain rule, whitening, and zeroing of the masked matches (NaN there is dropped); ``A`` is
+    ``dr/dY s R`` (:func:`_chain`), None for a cost evaluation (``J`` is None then).
 
-    ``J = dr/dY s R [-[X_f]x, I, X_f]`` in fused form: with the rows ``a^T`` of
-    ``A = dr/dY s R`` (one batched matmul per pose), ``J`` rows are
-    ``[X_f x a, a, a . X_f]`` (since ``a^T (-[X]x) = (X x a)^T``).
+    ``J = dr/dY s R [-[X_f]x, I, X_f]`` in fused form: with the rows ``a^T`` of ``A``,
+    ``J`` rows are ``[X_f x a, a, a . X_f]`` (since ``a^T (-[X]x) = (X x a)^T``).
     """
     zero = torch.zeros((), dtype=r.dtype, device=r.device)
     J = None
-    if jacobians:
-        sR = T.s[..., None, None] * T.R
-        A = (dr_dY.flatten(-3, -2) @ sR).unflatten(-2, dr_dY.shape[-3:-1])
+    if A is not None:
         X = X_f[..., None, :].expand_as(A)
         J = torch.cat((torch.linalg.cross(X, A, dim=-1), A, (A * X).sum(-1, keepdim=True)), dim=-1)
         J = torch.where(valid[..., None, None], J, zero)
     r = torch.where(valid[..., None], r, zero)
-    sqrt_w = torch.sqrt(torch.where(valid, weight, zero))
-    sqrt_info = sqrt_w[..., None] / sigmas
-    num_masked = int((~valid).sum())
-    if num_masked:
-        logger.debug("pointmap residual: masked %d of %d matches", num_masked, valid.numel())
+    sqrt_info = torch.where(valid, sqrt_w, zero)[..., None] / sigmas
+    if logger.isEnabledFor(logging.DEBUG):
+        num_masked = int((~valid).sum())
+        if num_masked:
+            logger.debug("pointmap residual: masked %d of %d matches", num_masked, valid.numel())
     return MatchResiduals(r=r, J=J, sqrt_info=sqrt_info, valid=valid)
 
 
@@ -205,10 +230,13 @@ def point_residuals(
     ``sqrt(weight) / sigma_point``.
     """
     cfg = config or PointmapResidualConfig()
-    T, X_f, Y, X_k, weight, valid = _prepare(T_CkCf, X_f_in_f, X_k_in_k, weight, cfg.min_norm)
-    eye = torch.eye(3, dtype=Y.dtype, device=Y.device).expand(*Y.shape[:-1], 3, 3)
+    prep = prepare_matches(X_f_in_f, X_k_in_k, weight, cfg.min_norm)
+    T, Y = _posed(T_CkCf, prep)
+    A = None
+    if jacobians:
+        A = (T.s[..., None, None] * T.R)[..., None, :, :].expand(*Y.shape[:-1], 3, 3)
     sigmas = Y.new_tensor([cfg.sigma_point] * 3)
-    return _finish(Y - X_k, eye, T, X_f, sigmas, weight, valid, jacobians)
+    return _finish(Y - prep.X_k, A, prep.X_f, sigmas, prep.sqrt_w, prep.valid)
 
 
 def ray_dist_residuals(
@@ -235,16 +263,30 @@ def ray_dist_residuals(
     Whitening: ``sqrt(weight) / sigma_ray`` (rows 0-2), ``sqrt(weight) / sigma_dist`` (row 3).
     """
     cfg = config or PointmapResidualConfig()
-    T, X_f, Y, X_k, weight, valid = _prepare(T_CkCf, X_f_in_f, X_k_in_k, weight, cfg.min_norm)
-    psi_Y, dpsi_dY, valid_Y = normalize_rays(Y, cfg.min_norm)
-    psi_k, _, _ = normalize_rays(X_k, cfg.min_norm)
-    valid = valid & valid_Y
+    return ray_dist_prepared(T_CkCf, prepare_matches(X_f_in_f, X_k_in_k, weight, cfg.min_norm), cfg, jacobians)
+
+
+def ray_dist_prepared(T_CkCf, prep: PreparedMatches, config: PointmapResidualConfig | None = None,
+                      jacobians: bool = True) -> MatchResiduals:
+    """:func:`ray_dist_residuals` of :func:`prepare_matches`' output (the one implementation; blocks
+    prepare each edge once). ``A = dr/dY s R`` in closed form: ray rows ``(sR - psi (psi^T sR)) / ||Y||``,
+    distance row ``psi^T sR``."""
+    cfg = config or PointmapResidualConfig()
+    T, Y = _posed(T_CkCf, prep)
     norm_Y = torch.linalg.vector_norm(Y, dim=-1)
-    norm_k = torch.linalg.vector_norm(X_k, dim=-1)
-    r = torch.cat((psi_Y - psi_k, (norm_Y - norm_k)[..., None]), dim=-1)
-    dr_dY = torch.cat((dpsi_dY, psi_Y[..., None, :]), dim=-2)
+    valid_Y = norm_Y > prep.min_norm
+    valid = prep.valid & valid_Y
+    inv_n = 1.0 / torch.where(valid_Y, norm_Y, torch.ones((), dtype=Y.dtype, device=Y.device))
+    psi_Y = Y * inv_n[..., None]
+    r = torch.cat((psi_Y - prep.psi_k, (norm_Y - prep.norm_k)[..., None]), dim=-1)
+    A = None
+    if jacobians:
+        sR = T.s[..., None, None] * T.R
+        pB = psi_Y @ sR  # rows psi^T s R
+        A_ray = (sR[..., None, :, :] - psi_Y[..., :, None] * pB[..., None, :]) * inv_n[..., None, None]
+        A = torch.cat((A_ray, pB[..., None, :]), dim=-2)
     sigmas = Y.new_tensor([cfg.sigma_ray] * 3 + [cfg.sigma_dist])
-    return _finish(r, dr_dY, T, X_f, sigmas, weight, valid, jacobians)
+    return _finish(r, A, prep.X_f, sigmas, prep.sqrt_w, valid)
 
 
 def calibrated_residuals(
@@ -270,23 +312,34 @@ def calibrated_residuals(
     ``sqrt(weight) / sigma_pixel`` (rows 0-1), ``sqrt(weight) / sigma_log_depth`` (row 2).
     """
     cfg = config or PointmapResidualConfig()
-    K = torch.as_tensor(K, dtype=X_f_in_f.dtype, device=X_f_in_f.device)
+    return calibrated_prepared(T_CkCf, prepare_matches(X_f_in_f, X_k_in_k, weight, cfg.min_norm), uv_k, K, cfg,
+                               jacobians)
+
+
+def calibrated_prepared(T_CkCf, prep: PreparedMatches, uv_k: Tensor, K: Tensor,
+                        config: PointmapResidualConfig | None = None, jacobians: bool = True) -> MatchResiduals:
+    """:func:`calibrated_residuals` of :func:`prepare_matches`' output (the one implementation)."""
+    cfg = config or PointmapResidualConfig()
+    K = torch.as_tensor(K, dtype=prep.X_f.dtype, device=prep.X_f.device)
     if K.shape[-1] != 4:
         raise DataError(f"calibrated residual: K must be [fx, fy, cx, cy], got shape {tuple(K.shape)}")
     uv_ok = torch.isfinite(uv_k).all(-1)
-    T, X_f, Y, X_k, weight, valid = _prepare(T_CkCf, X_f_in_f, X_k_in_k, weight, cfg.min_norm)
+    T, Y = _posed(T_CkCf, prep)
+    X_k = prep.X_k
     uv_Y, duv_dY, valid_Y = project(Y, K[..., None, :], cfg.min_depth)
     z_Y = torch.where(valid_Y, Y[..., 2], torch.ones_like(Y[..., 2]))
     z_k = X_k[..., 2]
-    valid = valid & uv_ok & valid_Y & (z_k > cfg.min_depth)
+    valid = prep.valid & uv_ok & valid_Y & (z_k > cfg.min_depth)
     z_k = torch.where(valid, z_k, torch.ones_like(z_k))
     uv_k = torch.where(uv_ok[..., None], uv_k, torch.zeros_like(uv_k))
     r = torch.cat((uv_Y - uv_k, torch.log(z_Y / z_k)[..., None]), dim=-1)
-    dlogz_dY = torch.zeros_like(Y)
-    dlogz_dY[..., 2] = 1.0 / z_Y
-    dr_dY = torch.cat((duv_dY, dlogz_dY[..., None, :]), dim=-2)
+    A = None
+    if jacobians:
+        dlogz_dY = torch.zeros_like(Y)
+        dlogz_dY[..., 2] = 1.0 / z_Y
+        A = _chain(torch.cat((duv_dY, dlogz_dY[..., None, :]), dim=-2), T)
     sigmas = Y.new_tensor([cfg.sigma_pixel] * 2 + [cfg.sigma_log_depth])
-    return _finish(r, dr_dY, T, X_f, sigmas, weight, valid, jacobians)
+    return _finish(r, A, prep.X_f, sigmas, prep.sqrt_w, valid)
 
 
 def relative_to_global(J_CkCf: Tensor, T_CkCf) -> tuple[Tensor, Tensor]:
@@ -305,3 +358,19 @@ def relative_to_global(J_CkCf: Tensor, T_CkCf) -> tuple[Tensor, Tensor]:
     Ad_inv = as_sim3(T_CkCf).inverse().adjoint()
     J_WCk = -(J_CkCf.flatten(-3, -2) @ Ad_inv).unflatten(-2, J_CkCf.shape[-3:-1])
     return J_WCk, J_CkCf
+
+
+def relative_to_global_normal(H_CkCf: Tensor, g_CkCf: Tensor, T_CkCf) -> tuple[Tensor, Tensor]:
+    """:func:`relative_to_global` applied to the normal equations of one edge: from ``H = J^T W J``
+    ``(7, 7)`` and ``g = J^T W e`` ``(7,)`` over the relative pose to ``(14, 14)`` / ``(14,)`` over
+    ``(T_WCk, T_WCf)``. With ``B = Ad(T_CkCf^-1)``, ``J_WCk = -J B`` and ``J_WCf = J``::
+
+        H = [[B^T H B, -B^T H], [-H B, H]],   g = [-B^T g, g]
+
+    exactly what summing ``[J_WCk, J_WCf]^T W [J_WCk, J_WCf]`` over the matches gives, at the cost of
+    one 7-column reduction (the batched linearisation of the pointmap blocks)."""
+    B = as_sim3(T_CkCf).inverse().adjoint()
+    HB = H_CkCf @ B
+    top = torch.cat((B.T @ HB, -(B.T @ H_CkCf)), -1)
+    bottom = torch.cat((-HB, H_CkCf), -1)
+    return torch.cat((top, bottom), -2), torch.cat((-(B.T @ g_CkCf), g_CkCf))

@@ -34,11 +34,12 @@ from typing import Literal
 import numpy as np
 import torch
 
-from .blocks import LinearPiece, weighted_piece
+from .blocks import LinearPiece
 from ..config import MAX_THREADS, ranged
 from ..errors import DataError
 from ..lie import Sim3
-from .pointmap import PointmapResidualConfig, calibrated_residuals, ray_dist_residuals, relative_to_global
+from .pointmap import (PointmapResidualConfig, calibrated_prepared, prepare_matches, ray_dist_prepared,
+                       relative_to_global_normal)
 from .robust import RobustConfig, kernel_cost, kernel_weight
 from .schur import torch_threads
 
@@ -101,6 +102,8 @@ class _Edge:
             if edge.uv_i is None:
                 raise DataError("pointmap block: calibrated mode needs the matched pixels uv_i of every edge")
             self.uv_i = _tensor(edge.uv_i, (2,), n, "uv_i")
+        # what does not change with the poses, made once (the block is linearised and evaluated many times)
+        self.prepared = prepare_matches(self.X_j, self.X_i, self.weight, config.residual.min_norm)
 
 
 class PointmapBlock:
@@ -130,31 +133,26 @@ class PointmapBlock:
     def _residuals(self, edge: _Edge, T_CiCj: Sim3, jacobians: bool = True):
         cfg = self.config
         if cfg.mode == "ray":
-            return ray_dist_residuals(T_CiCj, edge.X_j, edge.X_i, edge.weight, cfg.residual, jacobians=jacobians)
-        return calibrated_residuals(T_CiCj, edge.X_j, edge.X_i, edge.uv_i, self.K, edge.weight, cfg.residual,
-                                    jacobians=jacobians)
+            return ray_dist_prepared(T_CiCj, edge.prepared, cfg.residual, jacobians=jacobians)
+        return calibrated_prepared(T_CiCj, edge.prepared, edge.uv_i, self.K, cfg.residual, jacobians=jacobians)
 
     def _edge_terms(self, edge: _Edge, poses: dict[int, Sim3], jacobians: bool):
-        """Whitened residuals ``(N, m)``, per-group whitened norms, kernel costs and weights, and (with
-        ``jacobians``) the whitened Jacobian ``(N, m, 14)`` over ``(key_i, key_j)``."""
+        """``T_CiCj``, whitened residuals ``(N, m)``, per-group kernel costs and weights ``(N, groups)``,
+        and (with ``jacobians``) the whitened Jacobian ``(N, m, 7)`` w.r.t. the relative pose."""
         T_CiCj = poses[edge.key_i].inverse() @ poses[edge.key_j]
         res = self._residuals(edge, T_CiCj, jacobians)
         e, Jw = res.whitened()
         rb = self.config.robust
         norms = torch.stack([torch.linalg.vector_norm(e[:, a:b], dim=-1) for a, b in _GROUPS[self.config.mode]], -1)
         cost = kernel_cost(norms, rb.kind, rb.delta)
-        w = kernel_weight(norms, rb.kind, rb.delta)
-        J = None
-        if jacobians:
-            J_i, J_j = relative_to_global(Jw, T_CiCj)
-            J = torch.cat((J_i, J_j), -1)
-        return e, cost, w, J
+        w = kernel_weight(norms, rb.kind, rb.delta) if jacobians else None
+        return T_CiCj, e, cost, w, Jw
 
     def whitened_residuals(self, values) -> list[torch.Tensor]:
         """Per edge the whitened residuals ``(N, m)`` at ``values`` (before the robust kernel)."""
         with torch_threads(self.config.threads):
             poses = self._poses(values)
-            return [self._edge_terms(edge, poses, False)[0] for edge in self.edges]
+            return [self._edge_terms(edge, poses, False)[1] for edge in self.edges]
 
     def inliers(self, values, threshold: float) -> list[torch.Tensor]:
         """Per edge, the matches that count as inliers at ``values``: valid residuals, weight > 0 and the
@@ -174,17 +172,22 @@ class PointmapBlock:
         """GTSAM-convention cost ``sum rho(e)`` over every edge's row groups at ``values`` (no structure)."""
         with torch_threads(self.config.threads):
             poses = self._poses(values)
-            return float(sum(float(self._edge_terms(edge, poses, False)[1].sum()) for edge in self.edges))
+            return float(sum(float(self._edge_terms(edge, poses, False)[2].sum()) for edge in self.edges))
 
     def linearize(self, values) -> list[LinearPiece]:
         """One :class:`LinearPiece` per edge over ``(key_i, key_j)``: ``H = J^T W J``, ``g = J^T W e`` (IRLS
-        weights ``W`` of the kernel per row group), ``c = 2 cost``."""
+        weights ``W`` of the kernel per row group), ``c = 2 cost``. Batched: each edge's matches are
+        reduced once over the 7 columns of its relative pose, then chained to the two keys
+        (:func:`~fgslam.factors.pointmap.relative_to_global_normal`)."""
         pieces = []
+        groups = _GROUPS[self.config.mode]
         with torch_threads(self.config.threads):
             poses = self._poses(values)
             for edge in self.edges:
-                e, cost, w, J = self._edge_terms(edge, poses, True)
-                row_w = torch.cat([w[:, n:n + 1].expand(-1, b - a)
-                                   for n, (a, b) in enumerate(_GROUPS[self.config.mode])], -1)
-                pieces.append(weighted_piece((edge.key_i, edge.key_j), J, e, row_w, float(cost.sum())))
+                T_CiCj, e, cost, w, J = self._edge_terms(edge, poses, True)
+                row_w = torch.cat([w[:, n:n + 1].expand(-1, b - a) for n, (a, b) in enumerate(groups)], -1)
+                Jr = J.reshape(-1, 7)
+                WJ = row_w.reshape(-1, 1) * Jr
+                H, g = relative_to_global_normal(WJ.T @ Jr, WJ.T @ e.reshape(-1), T_CiCj)
+                pieces.append(LinearPiece((edge.key_i, edge.key_j), H.numpy(), g.numpy(), 2.0 * float(cost.sum())))
         return pieces

@@ -47,12 +47,20 @@ class DescriptorConfig:
     texture: float = ranged(4.0, gt=0, le=MAX_SCALAR)  # grey levels: contrast at which the confidence Q is 1/2
 
 
-def _shifted(img: np.ndarray, dx: int, dy: int) -> np.ndarray:
-    """``out[v, u] = img[v + dy, u + dx]`` with replicated borders."""
-    H, W = img.shape[:2]
-    p = max(abs(dx), abs(dy))
-    padded = cv2.copyMakeBorder(img, p, p, p, p, cv2.BORDER_REPLICATE)
-    return padded[p + dy:p + dy + H, p + dx:p + dx + W]
+def _stack_shifted(channels: list[np.ndarray], offsets: list[tuple[int, int]]) -> np.ndarray:
+    """``(len(offsets) * len(channels), H, W)`` float32: for each offset ``(dx, dy)`` (outer) and channel
+    (inner) the channel shifted, ``out[n, v, u] = c[v + dy, u + dx]`` with replicated borders (one
+    padding per channel)."""
+    H, W = channels[0].shape[:2]
+    p = max(max(abs(dx), abs(dy)) for dx, dy in offsets)
+    padded = [cv2.copyMakeBorder(c, p, p, p, p, cv2.BORDER_REPLICATE) for c in channels]
+    out = np.empty((len(offsets) * len(channels), H, W), np.float32)
+    n = 0
+    for dx, dy in offsets:
+        for c in padded:
+            out[n] = c[p + dy:p + dy + H, p + dx:p + dx + W]
+            n += 1
+    return out
 
 
 def dense_descriptors(image: np.ndarray, config: DescriptorConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -63,22 +71,24 @@ def dense_descriptors(image: np.ndarray, config: DescriptorConfig | None = None)
         raise DataError(f"dense descriptors need a grey image (H, W), got shape {image.shape}")
     grey = image.astype(np.float32)
     s = cfg.step
+    # channel-first (C, H, W): the per-pixel reductions below are then sums of whole images
     if cfg.kind == "patch":
         smooth = cv2.GaussianBlur(grey, (0, 0), cfg.sigma)
         offsets = [(-3 * s + 2 * s * a) // 2 for a in range(4)]  # 4 samples spacing s, centred
-        D = np.stack([_shifted(smooth, dx, dy) for dy in offsets for dx in offsets], -1)
-        D -= D.mean(-1, keepdims=True)
-        G = (D * D).mean(-1)
+        D = _stack_shifted([smooth], [(dx, dy) for dy in offsets for dx in offsets])
+        D -= D.mean(0)
+        G = (D * D).mean(0)
     elif cfg.kind == "gradient":
         gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
         gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
         channels = [cv2.GaussianBlur(np.maximum(c, 0), (0, 0), cfg.sigma) for c in (gx, gy, -gx, -gy)]
         half = max(s // 2, 1)
-        D = np.stack([_shifted(c, dx, dy) for dy in (-half, half) for dx in (-half, half) for c in channels], -1)
+        D = _stack_shifted(channels, [(dx, dy) for dy in (-half, half) for dx in (-half, half)])
         G = cv2.GaussianBlur(gx * gx + gy * gy, (0, 0), cfg.sigma)
     else:
         raise DataError(f"unknown descriptor kind {cfg.kind!r} (expected patch or gradient)")
-    norm = np.linalg.norm(D, axis=-1, keepdims=True)
-    D = np.where(norm > 1e-6, D / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
+    norm = np.sqrt((D * D).sum(0))
+    D *= np.where(norm > 1e-6, 1.0 / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
     Q = (G / (G + cfg.texture ** 2)).astype(np.float32)
+    D = D.transpose(1, 2, 0)
     return np.ascontiguousarray(D), Q

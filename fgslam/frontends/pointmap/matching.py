@@ -68,10 +68,12 @@ class MatchingConfig:
 class PointmapMatches:
     """Matches of N query pixels into the reference image.
 
-    uv: ``(N, 2)`` float32 matched pixel ``(u, v)`` of the reference (after refinement: integers);
+    uv: ``(N, 2)`` float32 matched pixel ``(u, v)`` of the reference (integers; refined where valid:
+    the descriptor refinement runs only on the queries that passed the LM's checks);
     uv_lm: ``(N, 2)`` the continuous LM solution before refinement (the warm start of the next call);
     index: ``(N,)`` int64 flat index ``v * W + u`` of ``uv`` in the reference;
-    valid: ``(N,)`` bool; ray_error: ``(N,)`` final ray error of the LM solution;
+    valid: ``(N,)`` bool; ray_error: ``(N,)`` final ray error of the LM solution (inf for the queries
+    without a ray: non-finite or zero points; their ``uv_lm`` is their start);
     score: ``(N,)`` descriptor dot product at ``uv`` (NaN without descriptors).
     """
 
@@ -292,6 +294,7 @@ def match_pointmaps(
         N = X.shape[0]
         H, W = reference.H, reference.W
         target, ok = _rays(X)
+        has_ray = ok.clone()  # the LM runs on these (a query_valid False one may still serve as a warm start)
         if query_valid is not None:
             ok &= torch.as_tensor(np.asarray(query_valid) if not isinstance(query_valid, Tensor) else query_valid,
                                   dtype=torch.bool).reshape(-1)
@@ -311,7 +314,15 @@ def match_pointmaps(
                     uv[bad] = identity[bad]
         uv[:, 0].clamp_(0, W - 1)
         uv[:, 1].clamp_(0, H - 1)
-        uv_lm, cost = _lm(reference, target, uv, cfg)
+        # LM only on the queries with a ray (non-finite or zero points keep their start and an infinite
+        # ray error: nothing to match)
+        act = has_ray.nonzero().squeeze(1)
+        if act.numel() == N:
+            uv_lm, cost = _lm(reference, target, uv, cfg)
+        else:
+            uv_act, cost_act = _lm(reference, target[:, act], uv[act], cfg)
+            uv_lm = uv.index_put((act,), uv_act)
+            cost = torch.full((N,), torch.inf).index_put((act,), cost_act)
         ray_error = cost.sqrt()
         index = uv_lm.round().to(torch.int64)
         index = index[:, 1] * W + index[:, 0]
@@ -328,8 +339,12 @@ def match_pointmaps(
             Dj = Dj.reshape(N, -1)
             if Di.shape[1] != Dj.shape[1]:
                 raise DataError(f"pointmap matching: descriptor sizes differ ({Di.shape[1]} vs {Dj.shape[1]})")
-            index, score = _call("refine_all", cfg.compile, index, Di, Dj, H, W, cfg.refine_radius,
-                                 tuple(cfg.refine_dilations))
+            # only the matches still valid are refined (the others stay invalid whatever their window holds)
+            sel = valid.nonzero().squeeze(1)
+            index_sel, score_sel = _call("refine_all", cfg.compile, index[sel], Di, Dj[sel], H, W, cfg.refine_radius,
+                                         tuple(cfg.refine_dilations))
+            index = index.index_put((sel,), index_sel)
+            score = score.index_put((sel,), score_sel)
             valid &= reference.valid[index]
         uv_int = torch.stack(((index % W).to(torch.float32), (index // W).to(torch.float32)), -1)
     n_valid = int(valid.sum())
