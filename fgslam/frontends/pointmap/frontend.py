@@ -56,7 +56,6 @@ import time
 import numpy as np
 import torch
 
-from ...services.contributor import KeyframeImage, PoseCorrection
 from ...backend.graph import Backend
 from ...errors import ConfigError, DataError, OptimizationError
 from ...factors.schur import torch_threads

@@ -30,7 +30,7 @@ j, flattened row-major). Float32 throughout (pixel precision needs no more).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
