@@ -50,6 +50,7 @@ MIB = 1024 ** 2
 TARGET_RSS_RATIO = 1.5   # peak RSS at the end / at frame `window` (issue 24)
 TARGET_FPS_RATIO = 0.8   # last-window frames per CPU s / first-window (within 20 %)
 PLOT_SMOOTH = 51         # frames of the sliding median of the plotted time per frame
+PROGRESS_EVERY = 100     # frames between the child's progress-file updates
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -69,6 +70,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--plot", type=Path, default=None, help="PNG of RSS and time per frame against frame index")
     p.add_argument("--runs-dir", type=Path, default=None, help="keep each run's outputs and per-frame record here")
     p.add_argument("--tracemalloc", action="store_true", help="list the Python allocations that grew (slow)")
+    p.add_argument("--from-runs", type=Path, nargs="+", default=None, metavar="DIR",
+                   help="no runs: report (JSON, --plot) the per-run records already in these --runs-dir folders")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)  # internal: family,mode,loops,out_json
     p.add_argument("--root", type=Path, default=None, help=argparse.SUPPRESS)
     return p.parse_args(argv)
@@ -157,9 +160,13 @@ def run_child(args: argparse.Namespace) -> None:
 
         tracemalloc.start(4)
 
+    progress = Path(out_json).with_suffix(".progress")
+
     def on_frame(n: int) -> None:
         if args.tracemalloc and n == args.window:
             snapshots["window"] = tracemalloc.take_snapshot()
+        if n % PROGRESS_EVERY == 0:  # a long run can be followed: frames done and RSS
+            progress.write_text(f"{n} frames, RSS {_rss_bytes() / MIB:.1f} MiB, CPU {time.process_time():.1f} s\n")
 
     dataset = TimedDataset(open_slam_dataset(args.root, config), on_frame)
     out = Path(out_json).with_suffix("")
@@ -188,6 +195,14 @@ def run_child(args: argparse.Namespace) -> None:
     Path(out_json).write_text(json.dumps(record))
 
 
+def _proximity_count(loop: dict | None):
+    """Accepted proximity edges of a run's loop summary (None when there were none to count)."""
+    prox = (loop or {}).get("proximity")
+    if not isinstance(prox, dict):
+        return None
+    return {k: v for k, v in prox.items() if isinstance(v, (int, float))}
+
+
 def window_stats(rec: dict, window: int) -> dict:
     """The report entry of one run's record."""
     import numpy as np
@@ -201,7 +216,8 @@ def window_stats(rec: dict, window: int) -> dict:
            "frames_with_pose": s.get("frames_with_pose"), "keyframes": s.get("keyframes"),
            "failures": s.get("failures"), "ate_rmse_m": ev.get("ate_rmse_m"),
            "ate_percent_of_path": ev.get("ate_percent_of_path"), "align": ev.get("align"),
-           "loop_closures": (s.get("loop_closure") or {}).get("accepted") if isinstance(s.get("loop_closure"), dict) else None,
+           "accepted_loops": (s.get("loop") or {}).get("accepted_loops"),
+           "proximity_loops": _proximity_count(s.get("loop")),
            "fps_run": s.get("fps"), "cpu_s_run": s.get("cpu_s"), "max_frame_s": s.get("max_frame_s"),
            "ru_maxrss_mib": round(rec["ru_maxrss_mib"], 1),
            "loadavg_before": rec["loadavg_before"], "loadavg_after": rec["loadavg_after"]}
@@ -217,8 +233,8 @@ def window_stats(rec: dict, window: int) -> dict:
         rss_at_window_mib=round(rss[w - 1] / MIB, 1), rss_end_mib=round(rss[-1] / MIB, 1))
     out["rss_ratio"] = round(out["peak_rss_end_mib"] / out["peak_rss_at_window_mib"], 3)
     out["fps_cpu_ratio"] = round(out["fps_cpu_last"] / out["fps_cpu_first"], 3)
-    out["rss_target_met"] = out["rss_ratio"] <= TARGET_RSS_RATIO
-    out["fps_target_met"] = out["fps_cpu_ratio"] >= TARGET_FPS_RATIO
+    out["rss_target_met"] = bool(out["rss_ratio"] <= TARGET_RSS_RATIO)
+    out["fps_target_met"] = bool(out["fps_cpu_ratio"] >= TARGET_FPS_RATIO)
     if n >= 2 * window:  # RSS growth per 1,000 frames after the first window (least squares)
         idx = np.arange(window, n)
         out["rss_slope_mib_per_1000_frames"] = round(float(np.polyfit(idx, rss[window:] / MIB, 1)[0]) * 1000, 2)
@@ -263,10 +279,14 @@ def main(argv=None) -> None:
     if args.child:
         run_child(args)
         return
+    if args.from_runs:
+        records = [json.loads(p.read_text()) for d in args.from_runs for p in sorted(d.glob("*.json"))]
+        report(args, None, records, [window_stats(rec, args.window) for rec in records], args.from_runs)
+        return
     root = drive_root(args)
     runs_dir = args.runs_dir or Path(tempfile.mkdtemp(prefix="bench_long_drive_"))
     runs_dir.mkdir(parents=True, exist_ok=True)
-    records, report = [], []
+    records, entries = [], []
     for family in args.families:
         for mode in args.modes:
             for loops in args.loops:
@@ -283,18 +303,23 @@ def main(argv=None) -> None:
                 print(f"running {name} ...", file=sys.stderr, flush=True)
                 res = subprocess.run(cmd, capture_output=True, text=True, check=False)
                 if res.returncode != 0 or not rec_path.is_file():
-                    report.append({"family": family, "mode": mode, "loops": loops,
+                    entries.append({"family": family, "mode": mode, "loops": loops,
                                    "error": f"child failed ({res.returncode}): {res.stderr[-2000:]}"})
                     continue
                 rec = json.loads(rec_path.read_text())
                 records.append(rec)
-                report.append(window_stats(rec, args.window))
-                print(json.dumps({k: report[-1].get(k) for k in ("family", "mode", "loops", "frames", "ate_rmse_m",
+                entries.append(window_stats(rec, args.window))
+                print(json.dumps({k: entries[-1].get(k) for k in ("family", "mode", "loops", "frames", "ate_rmse_m",
                                                                  "fps_cpu_first", "fps_cpu_last", "rss_ratio", "error")}),
                       file=sys.stderr, flush=True)
-    done = root / "synth_done.json"
-    result = {"preset": PRESET, "data": str(root), "render": json.loads(done.read_text()) if done.is_file() else None,
-              "frames_asked": args.frames, "window": args.window, "runs": report, "runs_dir": str(runs_dir),
+    report(args, root, records, entries, [runs_dir])
+
+
+def report(args: argparse.Namespace, root: Path | None, records: list[dict], entries: list[dict], runs_dirs) -> None:
+    """Print (and write) the JSON report and the plot."""
+    done = root / "synth_done.json" if root is not None else None
+    result = {"preset": PRESET, "data": str(root), "render": json.loads(done.read_text()) if done and done.is_file() else None,
+              "frames_asked": args.frames, "window": args.window, "runs": entries, "runs_dirs": [str(d) for d in runs_dirs],
               "cpu_count": os.cpu_count(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
               "targets": {"rss_ratio_max": TARGET_RSS_RATIO, "fps_cpu_ratio_min": TARGET_FPS_RATIO}}
     if args.plot and records:
