@@ -66,7 +66,7 @@ def dangling_references(files: list[Path], root: Path = REPO) -> list[str]:
             if not target.is_file():
                 problems.append(f"{where}: cites docs/{file}, which does not exist")
                 continue
-            missing = sorted(set(sections) - numbered_sections(target.read_text()))
+            missing = sorted(set(sections) - numbered_sections(target.read_text())) if sections else []  # (a figure has none)
             if missing:
                 problems.append(f"{where}: cites docs/{file} section(s) {missing}, which it does not have")
         if path.suffix == ".md":

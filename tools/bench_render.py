@@ -6,7 +6,7 @@ both single process and wall-clock, plus ``*_fps_cpu`` from the process CPU time
 would give), the scene build time and ``os.getloadavg()`` before and after (the machine is shared,
 so wall-clock numbers must be read together with the load).
 
-Usage: OMP_NUM_THREADS=1 .venv/bin/python tools/bench_render.py [--frames 20] [--presets ...]
+Usage: OMP_NUM_THREADS=1 .venv/bin/python tools/bench_render.py [--frames 20] [--presets ...] [--sizes 320x96 ...]
 """
 
 from __future__ import annotations
@@ -51,9 +51,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=20, help="frames timed per preset and size")
     parser.add_argument("--presets", nargs="+", default=list(PRESET_NAMES), choices=PRESET_NAMES)
+    parser.add_argument("--sizes", nargs="+", default=[f"{w}x{h}" for w, h in SIZES], metavar="WxH",
+                        help="resolutions (default: 320x240 640x480; kitti00-drive renders 320x96)")
     args = parser.parse_args()
+    sizes = [tuple(int(v) for v in size.lower().split("x")) for size in args.sizes]
     load_before = os.getloadavg()
-    results = [bench(p, w, h, args.frames) for p in args.presets for (w, h) in SIZES]
+    results = [bench(p, w, h, args.frames) for p in args.presets for (w, h) in sizes]
     print(json.dumps({"results": results, "cpu_count": os.cpu_count(),
                       "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
                       "loadavg_before": [round(x, 2) for x in load_before],

@@ -16,13 +16,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     # that lists the valid ones when the config loads
     parser.add_argument("--preset", default=None, metavar="NAME",
                         help="scene and motion preset: room-loop (the config's default), street-loop, orbit, "
-                             "highway, low-texture, panel-room, rotation-sweep; panel-room: "
+                             "highway, low-texture, panel-room, rotation-sweep, kitti00-drive; panel-room: "
                              "texture-poor RGB-D room (near-white wall panels with thin joints, tiled floor, doors; "
                              "point-light shading and vignetting; camera 0.5-2 m from the walls, 184 deg of yaw "
                              "over 189 frames at 10 Hz); rotation-sweep: hand-held roll/pitch/yaw sweep "
                              "(69 deg/s mean, fastest first, 30 Hz, 12 ms motion blur) over a small translation "
                              "in a textured room, raw images and depth with radial distortion k1=-0.30, k2=0.09 "
-                             "(written to sensor.yaml; the loaders undistort); see docs/design.md section 17")
+                             "(written to sensor.yaml; the loaders undistort); kitti00-drive: KITTI 00's 4,541 camera "
+                             "poses (kitti_drive.poses, default ../shared/data/kitti_gt/00.txt) at 10 Hz, 320x96, "
+                             "through a street built along the path; see docs/design.md section 17")
     parser.add_argument("--out", required=True, metavar="DIR", help="output sequence root (DIR/mav0/...)")
     parser.add_argument("--frames", type=int, default=None, help="number of frames (default: one loop + 1)")
     parser.add_argument("--seed", type=int, default=None, help="random seed of layout, textures and noise")

@@ -48,6 +48,8 @@ class RenderConfig:
     light_diffuse: float = ranged(1.3, ge=0, le=MAX_SCALAR)  # gain of the Lambertian term at distance 0
     light_range: float = ranged(4.0, gt=0, le=MAX_SCALAR)  # m; the diffuse term halves at this distance from the light
     vignetting: float = ranged(0.0, ge=0, le=1)  # darkening of the farthest image corner (fraction; 0: off)
+    max_distance: float = ranged(0.0, ge=0, le=MAX_SCALAR)  # m; quads whose nearest point is farther from the
+    # camera are not drawn (0: no limit); large scenes (kitti00-drive) bound the per-view cost with it
 
 
 @dataclass(frozen=True)
@@ -116,6 +118,12 @@ class Renderer:
         u = np.where(valid, fx * P[..., 0] / pz + cx, np.nan)
         v = np.where(valid, fy * P[..., 1] / pz + cy, np.nan)
         any_valid = valid.any(axis=1) & facing
+        if self.cfg.max_distance > 0:  # distance from the camera to the nearest point of each rectangle
+            rel = t_WC - sc.origins
+            s_near = np.clip(np.einsum("qi,qi->q", rel, sc.axes_u), 0.0, sc.sizes[:, 0])
+            t_near = np.clip(np.einsum("qi,qi->q", rel, sc.axes_v), 0.0, sc.sizes[:, 1])
+            nearest = sc.origins + s_near[:, None] * sc.axes_u + t_near[:, None] * sc.axes_v
+            any_valid &= np.linalg.norm(t_WC - nearest, axis=1) <= self.cfg.max_distance
         with np.errstate(invalid="ignore"):
             u_min = np.nanmin(np.where(any_valid[:, None], u, 0.0), axis=1)
             u_max = np.nanmax(np.where(any_valid[:, None], u, 0.0), axis=1)

@@ -29,6 +29,14 @@ Presets:
   lamp poles, sign boards) and distant buildings and hills, so that the optical flow is large near
   the image border and small at the centre. The road does not close: the scene is built to cover
   the configured number of frames plus ``lookahead`` metres.
+- ``kitti00-drive``: a KITTI-length drive (issue 24): the camera follows the poses of a KITTI ground-truth
+  file (``kitti_drive.poses``, default ``<repo>/../shared/data/kitti_gt/00.txt``: 4,541 frames, 3.7 km
+  with the loops of KITTI 00), frame i at row i, played at 10 Hz (KITTI's own stamps, ~9.65 Hz, are not
+  used); a street scene is built along that path: ground tiles following the road height, buildings
+  with textured facades on both sides wherever they leave every part of the road clear, lamp poles,
+  a coarse ground below. The file is read when the scene is built (never at import); a missing file
+  is a :class:`~fgslam.errors.DataError`. The scene covers the configured frames plus ``lookahead``
+  metres of the path, so a prefix builds (and renders) quickly.
 
 Changing ``frames`` truncates or extends (periodically) the motion, it does not change its speed.
 """
@@ -36,18 +44,22 @@ Changing ``frames`` truncates or extends (periodically) the motion, it does not 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ...config import MAX_COUNT, MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, MAX_SEED, MAX_TIME_NS, check_ranges, ranged
-from ...errors import ConfigError
+from ...errors import ConfigError, DataError
 from .imu import ImuConfig
 from .render import RenderConfig
 from .scene import Scene
 from .texture import STYLE_DOOR, STYLE_PANELS, STYLE_PLAIN, STYLE_TILES, PlainTextureConfig, TextureConfig
-from .trajectory import AnalyticTrajectory, Fourier1D, TimeWarp, closed_curve_fourier, rounded_rectangle
+from .trajectory import (AnalyticTrajectory, Fourier1D, PoseTrackTrajectory, TimeWarp, closed_curve_fourier,
+                         euler_zyx_to_R, rounded_rectangle)
 
-PRESET_NAMES = ("room-loop", "street-loop", "orbit", "highway", "low-texture", "panel-room", "rotation-sweep")
+PRESET_NAMES = ("room-loop", "street-loop", "orbit", "highway", "low-texture", "panel-room", "rotation-sweep",
+                "kitti00-drive")
 
 _ROAD_SAMPLES = 8192  # arc-length samples of the rounded rectangle fitted by the Fourier road
 _GROUND_LINE_SAMPLES = 2048  # samples of the road centre line for choosing ground tiles
@@ -80,6 +92,18 @@ _SWEEP_SPEED_ITERATIONS = 50    # fixed-point steps of that scale at most
 _SWEEP_SPEED_TOLERANCE = 1e-13  # relative error of the mean angular speed accepted
 _SWEEP_MAX_SCALE = 10.0         # largest scale of the base amplitudes (angles beyond it wrap the attitude)
 _MIN_TURN_DEG = 1e-3            # panel-room: a smaller turn_deg is treated as this (the ellipse period stays finite)
+
+# kitti00-drive
+_KITTI_FRAMES = 4541            # rows of KITTI 00's ground truth: the preset's default frame count
+_KITTI_RATE_HZ = 10.0
+_KITTI_SIZE = (320, 96)         # KITTI's 1241 x 376 aspect at a size that renders and runs fast on 2 cores
+_KITTI_HFOV_DEG = 81.6          # KITTI 00: fx = 718.9 at 1241 px
+_KITTI_BASELINE = 0.54          # m, KITTI's stereo baseline
+_KITTI_MAX_DISTANCE = 120.0     # m, render.max_distance of the preset (beyond: sky or the coarse ground)
+_KITTI_RIDGE = 5.0              # m; regulariser of a ground tile's slopes (a straight road leaves the lateral one free)
+# world frame of the drive from KITTI's: KITTI's world is its first camera frame (x right, y down, z forward);
+# ours has z up: x = KITTI z (forward at the start), y = -KITTI x, z = -KITTI y (the nominal camera mount)
+R_W_KITTI = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 # texture styles: index into TextureConfig.style_mark_scale
 STYLE_WALL, STYLE_GROUND, STYLE_OBJECT = 0, 1, 2
@@ -267,6 +291,40 @@ class HighwayConfig:
 
 
 @dataclass
+class KittiDriveConfig:
+    """kitti00-drive scene and motion: the camera path of a KITTI pose file with a street built along it."""
+
+    poses: str = ""  # KITTI pose file (one 3x4 T_K0Ci per line); "": <repository>/../shared/data/kitti_gt/00.txt
+    camera_height: float = ranged(1.65, gt=0, le=MAX_SCALAR)  # camera above the road (m; KITTI's mount)
+    lookahead: float = ranged(150.0, ge=0, le=MAX_SCALAR)  # the scene covers the path this far beyond the last frame (m)
+    grid_cell: float = ranged(0.5, gt=0, le=MAX_SCALAR)  # m; raster of the layout (distance to the road, occupied ground)
+    road_band: float = ranged(11.0, gt=0, le=MAX_SCALAR)  # half-width of the textured ground along the road (m)
+    ground_tile: float = ranged(8.0, gt=0, le=MAX_SCALAR)  # side of a ground tile (m); each tile is a plane fitted to
+    ground_fit_radius: float = ranged(15.0, gt=0, le=MAX_SCALAR)  # the road heights within this distance (m)
+    ground_fit_height: float = ranged(1.5, gt=0, le=MAX_SCALAR)  # ... and within this height of the nearest one (m)
+    max_ground_slope: float = ranged(0.12, ge=0, le=MAX_SCALAR)  # tile slopes are clipped to this (KITTI 00: <= 0.07)
+    ground_overlap: float = ranged(0.05, ge=0, le=MAX_SCALAR)  # tiles are grown by this much (m): no cracks where slopes differ
+    ground_density: float = ranged(12.0, gt=0, le=MAX_SCALAR)  # texels per metre
+    far_ground_density: float = ranged(1.0, gt=0, le=MAX_SCALAR)
+    far_ground_drop: float = ranged(0.5, ge=0, le=MAX_SCALAR)  # the coarse ground lies this far below the lowest road (m)
+    far_ground_margin: float = ranged(60.0, ge=0, le=MAX_SCALAR)  # ... and extends this far beyond the scene's path (m)
+    setback: float = ranged(9.0, gt=0, le=MAX_SCALAR)  # facade distance from the road centre line (m)
+    setback_jitter: float = ranged(2.0, ge=0, le=MAX_SCALAR)  # random extra setback of each building (m)
+    clearance: float = ranged(7.5, ge=0, le=MAX_SCALAR)  # no building comes closer than this to any road of the path (m)
+    building_width_range: list[float] = ranged(default_factory=lambda: [8.0, 22.0], gt=0, le=MAX_SCALAR)
+    building_depth_range: list[float] = ranged(default_factory=lambda: [8.0, 14.0], gt=0, le=MAX_SCALAR)
+    building_height_range: list[float] = ranged(default_factory=lambda: [6.0, 20.0], gt=0, le=MAX_SCALAR)
+    building_gap_range: list[float] = ranged(default_factory=lambda: [0.0, 4.0], ge=0, le=MAX_SCALAR)
+    building_sink: float = ranged(3.0, ge=0, le=MAX_SCALAR)  # buildings reach this far below the road (m): no gaps on slopes
+    facade_density: float = ranged(16.0, gt=0, le=MAX_SCALAR)  # ~1 texel per pixel at 9 m for 320 px at 82 deg
+    side_density: float = ranged(8.0, gt=0, le=MAX_SCALAR)  # building faces perpendicular to the road
+    back_density: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # faces that never face the road
+    pole_spacing: float = ranged(25.0, gt=0, le=MAX_SCALAR)  # mean distance between lamp poles on each side (m)
+    pole_setback: float = ranged(1.5, ge=0, le=MAX_SCALAR)  # poles stand this much closer to the road than the facades (m)
+    object_density: float = ranged(32.0, gt=0, le=MAX_SCALAR)  # texels per metre of the poles
+
+
+@dataclass
 class SynthConfig:
     """Everything the generator needs; ``default_config(preset)`` gives the preset's defaults."""
 
@@ -285,6 +343,7 @@ class SynthConfig:
     highway: HighwayConfig = field(default_factory=HighwayConfig)
     panel_room: PanelRoomConfig = field(default_factory=PanelRoomConfig)
     rotation_sweep: RotationSweepConfig = field(default_factory=RotationSweepConfig)
+    kitti_drive: KittiDriveConfig = field(default_factory=KittiDriveConfig)
     stop_frame: int = ranged(0, ge=0, le=MAX_FRAMES)  # stop-and-go: camera frame at which the body comes to rest (any preset)
     stop_frames: int = ranged(0, ge=0, le=MAX_FRAMES)  # stop-and-go: frames the body stays at rest (0: no stop); the motion after it is delayed
     stop_ramp_s: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # stop-and-go: seconds of smooth deceleration before and acceleration after the stop
@@ -308,7 +367,8 @@ class SynthConfig:
                 "street-loop": self.street.loop_duration_s,
                 "orbit": self.orbit.loop_duration_s, "highway": self.highway.duration_s,
                 "panel-room": self.panel_room.duration_s,
-                "rotation-sweep": self.rotation_sweep.loop_duration_s}[self.preset]
+                "rotation-sweep": self.rotation_sweep.loop_duration_s,
+                "kitti00-drive": (_KITTI_FRAMES - 1) / _KITTI_RATE_HZ}[self.preset]
 
 
 def default_config(preset: str) -> SynthConfig:
@@ -331,8 +391,64 @@ def default_config(preset: str) -> SynthConfig:
         cfg.camera = CameraConfig(hfov_deg=_SWEEP_HFOV_DEG, rate_hz=_SWEEP_RATE_HZ, colour=True,
                                   distortion=list(_SWEEP_DISTORTION), exposure_s=_SWEEP_EXPOSURE_S,
                                   blur_samples=_SWEEP_BLUR_SAMPLES)
+    elif preset == "kitti00-drive":  # KITTI's aspect and field of view, small; the pose file sets the mount
+        cfg.camera = CameraConfig(width=_KITTI_SIZE[0], height=_KITTI_SIZE[1], hfov_deg=_KITTI_HFOV_DEG,
+                                  rate_hz=_KITTI_RATE_HZ, baseline=_KITTI_BASELINE)
+        cfg.render = RenderConfig(max_distance=_KITTI_MAX_DISTANCE)
     cfg.frames = int(round(cfg.loop_duration_s() * cfg.camera.rate_hz)) + 1
     return cfg
+
+
+# nominal forward-looking mount: camera z = body x (forward), camera x = -body y, camera y = -body z
+R_B_CAM_NOMINAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def camera_mount(cam: CameraConfig) -> np.ndarray:
+    """(4, 4) ``T_BS`` of cam0: the nominal forward-looking mount times the small rotation
+    ``Rz(yaw) Ry(pitch) Rx(roll)`` of ``cam.mount_rpy_deg`` (camera axes), origin at ``cam.t_BS``."""
+    roll, pitch, yaw = np.deg2rad(cam.mount_rpy_deg)
+    R_pert = euler_zyx_to_R(np.array(yaw), np.array(pitch), np.array(roll))
+    T = np.eye(4)
+    T[:3, :3] = R_B_CAM_NOMINAL @ R_pert
+    T[:3, 3] = cam.t_BS
+    return T
+
+
+def kitti_poses_path(kc: KittiDriveConfig) -> Path:
+    """The pose file of ``kc.poses`` ("": the repository's ``../shared/data/kitti_gt/00.txt``)."""
+    if kc.poses:
+        return Path(kc.poses).expanduser()
+    return Path(__file__).resolve().parents[4] / "shared" / "data" / "kitti_gt" / "00.txt"
+
+
+def load_kitti_poses(path: Path) -> np.ndarray:
+    """(N, 4, 4) ``T_K0Ci`` of a KITTI pose file (12 numbers per line: the 3x4 camera-to-world matrix)."""
+    if not path.is_file():
+        raise DataError(f"kitti_drive.poses: KITTI pose file {path} not found (the kitti00-drive preset follows "
+                        "a KITTI ground-truth path: set kitti_drive.poses=FILE, e.g. kitti_gt/00.txt of the shared data)")
+    try:
+        rows = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as exc:
+        raise DataError(f"{path}: not a KITTI pose file: {exc}") from exc
+    if rows.shape[1] != 12 or len(rows) < 2 or not np.isfinite(rows).all():
+        raise DataError(f"{path}: expected at least 2 lines of 12 finite numbers (3x4 poses), got shape {rows.shape}")
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    T[:, :3, :] = rows.reshape(-1, 3, 4)
+    return T
+
+
+def kitti_camera_poses(cfg: SynthConfig) -> np.ndarray:
+    """(N, 4, 4) ``T_WC`` of every row of the preset's pose file in the generator's world (z up, the
+    road under the first camera at z = 0): ``T_WC = T_WK T_K0Ci`` with ``T_WK = [R_W_KITTI | (0, 0,
+    camera_height)]``; a ConfigError when ``frames`` exceeds the rows."""
+    kc = cfg.kitti_drive
+    T_KC = load_kitti_poses(kitti_poses_path(kc))
+    if cfg.frames > len(T_KC):
+        raise ConfigError(f"frames: {cfg.frames} frames asked but {kitti_poses_path(kc)} has {len(T_KC)} poses")
+    T_WK = np.eye(4)
+    T_WK[:3, :3] = R_W_KITTI
+    T_WK[2, 3] = kc.camera_height
+    return T_WK @ T_KC
 
 
 # ----------------------------------------------------------------------------------- scenes
@@ -628,6 +744,152 @@ def _build_highway(cfg: SynthConfig, rng: np.random.Generator) -> Scene:
     return scene
 
 
+def _kitti_scene_path(cfg: SynthConfig, T_WC: np.ndarray) -> np.ndarray:
+    """(M, 3) road centre points (camera positions lowered by ``camera_height``) of the configured frames
+    and of the rows up to ``lookahead`` metres of path beyond the last one."""
+    kc = cfg.kitti_drive
+    p = T_WC[:, :3, 3] - np.array([0.0, 0.0, kc.camera_height])
+    seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    last = cfg.frames - 1
+    end = int(np.searchsorted(s, s[last] + kc.lookahead, side="right"))
+    return p[:max(end, last + 1)]
+
+
+def _ground_plane(road: np.ndarray, centre: np.ndarray, kc: KittiDriveConfig) -> tuple[float, float, float]:
+    """Height and slopes ``(z, dz/dx, dz/dy)`` at ``centre`` of the plane fitted (least squares, slopes
+    regularised by :data:`_KITTI_RIDGE`, then clipped to ``max_ground_slope``) to the road points within
+    ``ground_fit_radius`` whose height is within ``ground_fit_height`` of the nearest road point's (a
+    nearby road at another level does not tilt the tile); that nearest height and no slope when no
+    other point is that close."""
+    d = np.linalg.norm(road[:, :2] - centre, axis=1)
+    z_nearest = road[np.argmin(d), 2]
+    near = (d < kc.ground_fit_radius) & (np.abs(road[:, 2] - z_nearest) < kc.ground_fit_height)
+    if near.sum() < 2:
+        return float(z_nearest), 0.0, 0.0
+    dx = road[near, :2] - centre
+    ridge = _KITTI_RIDGE * np.sqrt(len(dx))  # a slope of 1 costs as much as every point _KITTI_RIDGE m off
+    A = np.concatenate([np.column_stack([np.ones(len(dx)), dx]), np.diag([0.0, ridge, ridge])[1:]])
+    b = np.concatenate([road[near, 2], [0.0, 0.0]])
+    g = np.clip(np.linalg.lstsq(A, b, rcond=None)[0][1:], -kc.max_ground_slope, kc.max_ground_slope)
+    z = float(np.mean(road[near, 2] - dx @ g))  # the plane through the points' mean with the slopes kept
+    return z, float(g[0]), float(g[1])
+
+
+def _build_kitti_drive(cfg: SynthConfig, rng: np.random.Generator) -> Scene:
+    """Street along the KITTI path (module docstring): a raster of the distance to the road centre line
+    (every row's path, so that no building stands on a road driven later) and of the ground already
+    built on decides where buildings and poles go."""
+    kc = cfg.kitti_drive
+    T_WC = kitti_camera_poses(cfg)
+    road_all = T_WC[:, :3, 3] - np.array([0.0, 0.0, kc.camera_height])
+    road = _kitti_scene_path(cfg, T_WC)
+    scene = Scene()
+    reach = kc.setback + kc.setback_jitter + max(kc.building_depth_range) + kc.far_ground_margin
+    lo = road[:, :2].min(axis=0) - reach
+    hi = road[:, :2].max(axis=0) + reach
+    cell = kc.grid_cell
+    shape = tuple(int(np.ceil(v)) + 1 for v in (hi - lo)[::-1] / cell)  # rows (y), columns (x)
+
+    def to_px(xy: np.ndarray) -> np.ndarray:
+        return np.round((np.asarray(xy) - lo) / cell).astype(np.int64)
+
+    canvas = np.full(shape, 255, np.uint8)
+    inside = np.all((road_all[:, :2] >= lo) & (road_all[:, :2] <= hi), axis=1)
+    for run in np.split(np.arange(len(road_all)), np.flatnonzero(np.diff(inside.astype(np.int8)) != 0) + 1):
+        if inside[run[0]] and len(run) > 1:
+            cv2.polylines(canvas, [to_px(road_all[run, :2]).astype(np.int32)], False, 0, 1)
+        elif inside[run[0]]:
+            canvas[tuple(to_px(road_all[run[0], :2])[::-1])] = 0
+    dist_road = cv2.distanceTransform(canvas, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * cell  # metres
+    taken = np.zeros(shape, bool)
+
+    def lookup(raster: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        px = to_px(xy)
+        px[:, 0] = px[:, 0].clip(0, shape[1] - 1)
+        px[:, 1] = px[:, 1].clip(0, shape[0] - 1)
+        return raster[px[:, 1], px[:, 0]]
+
+    # coarse ground below everything, then tiles along the road following its height
+    z_floor = float(road[:, 2].min()) - kc.far_ground_drop
+    scene.add_quad((lo[0], lo[1], z_floor), (1, 0, 0), (0, 1, 0), hi[0] - lo[0], hi[1] - lo[1],
+                   density=kc.far_ground_density, style=STYLE_GROUND)
+    tile = kc.ground_tile
+    road_scene = np.zeros(shape, np.uint8) + 255
+    cv2.polylines(road_scene, [to_px(road[:, :2]).astype(np.int32)], False, 0, 1)
+    dist_scene = cv2.distanceTransform(road_scene, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * cell
+    x0s = np.arange(np.floor(lo[0] / tile) * tile, hi[0], tile)
+    y0s = np.arange(np.floor(lo[1] / tile) * tile, hi[1], tile)
+    grown = tile + 2 * kc.ground_overlap
+    for y0 in y0s:
+        for x0 in x0s:
+            c = np.array([x0 + tile / 2, y0 + tile / 2])
+            if lookup(dist_scene, c[None])[0] > kc.road_band + tile * np.sqrt(0.5):
+                continue
+            z, gx, gy = _ground_plane(road, c, kc)
+            o = np.array([x0 - kc.ground_overlap, y0 - kc.ground_overlap])
+            z0 = z + gx * (o[0] - c[0]) + gy * (o[1] - c[1])
+            scene.add_quad((o[0], o[1], z0), (1.0, 0.0, gx), (0.0, 1.0, gy), grown * np.hypot(1.0, gx),
+                           grown * np.hypot(1.0, gy), density=kc.ground_density, style=STYLE_GROUND)
+
+    # buildings and poles along both sides, kept clear of every road and of each other
+    seg = np.linalg.norm(np.diff(road[:, :2], axis=0), axis=1)
+    s_road = np.concatenate([[0.0], np.cumsum(seg)])
+
+    def at(s: float) -> tuple[np.ndarray, float, float]:
+        """Road point (x, y), height and heading at arc length s."""
+        i = int(np.clip(np.searchsorted(s_road, s) - 1, 0, len(road) - 2))
+        f = (s - s_road[i]) / max(seg[i], 1e-9)
+        p = (1 - f) * road[i] + f * road[i + 1]
+        d = road[i + 1, :2] - road[i, :2]
+        return p[:2], float(p[2]), float(np.arctan2(d[1], d[0]))
+
+    def footprint(centre: np.ndarray, yaw: float, w: float, d: float) -> np.ndarray:
+        """(K, 2) raster sample points of a w x d rectangle."""
+        u = np.arange(-w / 2, w / 2 + cell, cell).clip(-w / 2, w / 2)
+        v = np.arange(-d / 2, d / 2 + cell, cell).clip(-d / 2, d / 2)
+        uu, vv = np.meshgrid(u, v)
+        c, s_ = np.cos(yaw), np.sin(yaw)
+        return centre + np.stack([c * uu - s_ * vv, s_ * uu + c * vv], -1).reshape(-1, 2)
+
+    def claim(pts: np.ndarray, min_road: float) -> bool:
+        if (lookup(dist_road, pts) < min_road).any() or lookup(taken, pts).any():
+            return False
+        px = to_px(pts)
+        ok = (px[:, 0] >= 0) & (px[:, 0] < shape[1]) & (px[:, 1] >= 0) & (px[:, 1] < shape[0])
+        taken[px[ok, 1], px[ok, 0]] = True
+        return True
+
+    length = float(s_road[-1])
+    for side, front in ((1.0, "-y"), (-1.0, "+y")):  # left of the direction of travel, then right
+        back = "+y" if front == "-y" else "-y"
+        s = rng.uniform(*kc.building_gap_range)
+        while s < length:
+            w = rng.uniform(*kc.building_width_range)
+            d = rng.uniform(*kc.building_depth_range)
+            h = rng.uniform(*kc.building_height_range)
+            off = kc.setback + rng.uniform(0.0, kc.setback_jitter) + d / 2
+            xy, z, yaw = at(s + w / 2)
+            centre = xy + side * off * np.array([-np.sin(yaw), np.cos(yaw)])
+            if claim(footprint(centre, yaw, w, d), kc.clearance):
+                base = z - kc.building_sink
+                scene.add_box((centre[0], centre[1], base + (h + kc.building_sink) / 2), (w, d, h + kc.building_sink),
+                              yaw, density=kc.facade_density, style=STYLE_WALL, faces=("+x", "-x", "+y", "-y"),
+                              face_density={back: kc.back_density, "+x": kc.side_density, "-x": kc.side_density})
+            s += w + rng.uniform(*kc.building_gap_range)
+        s = rng.uniform(0.0, kc.pole_spacing)
+        while s < length:
+            xy, z, yaw = at(s)
+            off = kc.setback - kc.pole_setback
+            centre = xy + side * off * np.array([-np.sin(yaw), np.cos(yaw)])
+            if claim(footprint(centre, yaw, _POLE_SIZE[0], _POLE_SIZE[1]), off - kc.pole_setback):
+                scene.add_box((centre[0], centre[1], z - kc.building_sink + (_POLE_SIZE[2] + kc.building_sink) / 2),
+                              (_POLE_SIZE[0], _POLE_SIZE[1], _POLE_SIZE[2] + kc.building_sink), yaw,
+                              density=kc.object_density, style=STYLE_OBJECT, faces=("+x", "-x", "+y", "-y"))
+            s += rng.uniform(0.5, 1.5) * kc.pole_spacing
+    return scene
+
+
 def build_scene(cfg: SynthConfig, rng: np.random.Generator) -> Scene:
     """Scene of the preset ``cfg.preset`` (random layout drawn from ``rng``)."""
     builders = {"room-loop": lambda: _build_room(cfg.room, rng),
@@ -636,7 +898,8 @@ def build_scene(cfg: SynthConfig, rng: np.random.Generator) -> Scene:
                 "orbit": lambda: _build_orbit(cfg.orbit, rng),
                 "highway": lambda: _build_highway(cfg, rng),
                 "panel-room": lambda: _build_panel_room(cfg.panel_room),
-                "rotation-sweep": lambda: _build_room(cfg.rotation_sweep, rng)}
+                "rotation-sweep": lambda: _build_room(cfg.rotation_sweep, rng),
+                "kitti00-drive": lambda: _build_kitti_drive(cfg, rng)}
     return builders[cfg.preset]()
 
 
@@ -695,7 +958,10 @@ def build_trajectory(cfg: SynthConfig) -> AnalyticTrajectory:
                                              ramp=cfg.stop_ramp_s))
 
 
-def _preset_trajectory(cfg: SynthConfig) -> AnalyticTrajectory:
+def _preset_trajectory(cfg: SynthConfig) -> AnalyticTrajectory | PoseTrackTrajectory:
+    if cfg.preset == "kitti00-drive":  # the body carries cam0 at camera_mount: T_WB = T_WC T_BS0^-1
+        T_WB = kitti_camera_poses(cfg) @ np.linalg.inv(camera_mount(cfg.camera))
+        return PoseTrackTrajectory(T_WB_knots=T_WB, dt=1.0 / cfg.camera.rate_hz)
     T = cfg.loop_duration_s()
     turn = 2 * np.pi / T  # one full turn of yaw per loop
     if cfg.preset in ("room-loop", "low-texture"):

@@ -19,27 +19,14 @@ import numpy as np
 
 from .distortion import DistortedCamera
 from .imu import ImuData, simulate_imu
-from .scenarios import CameraConfig, SynthConfig, build_scene, build_trajectory
+from .scenarios import R_B_CAM_NOMINAL, SynthConfig, build_scene, build_trajectory, camera_mount
 from .render import Renderer, RenderOutput
 from .texture import build_atlas
-from .trajectory import BodyState, euler_zyx_to_R
+from .trajectory import BodyState
 
 logger = logging.getLogger(__name__)
 
-# nominal forward-looking mount: camera z = body x (forward), camera x = -body y, camera y = -body z
-R_B_CAM_NOMINAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
-
-def camera_mount(cam: CameraConfig) -> np.ndarray:
-    """(4, 4) ``T_BS`` of cam0: the nominal forward-looking mount times the small rotation
-    ``Rz(yaw) Ry(pitch) Rx(roll)`` of ``cam.mount_rpy_deg`` (camera axes), origin at ``cam.t_BS``."""
-    roll, pitch, yaw = np.deg2rad(cam.mount_rpy_deg)
-    R_pert = euler_zyx_to_R(np.array(yaw), np.array(pitch), np.array(roll))
-    T = np.eye(4)
-    T[:3, :3] = R_B_CAM_NOMINAL @ R_pert
-    T[:3, 3] = cam.t_BS
-    return T
-
+__all__ = ["R_B_CAM_NOMINAL", "StereoFrame", "SynthSequence", "camera_mount"]
 
 @dataclass(frozen=True)
 class StereoFrame:

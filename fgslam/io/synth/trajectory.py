@@ -220,3 +220,78 @@ def rounded_rectangle(half_x: float, half_y: float, radius: float, n_points: int
             else:
                 pts[m] = np.stack([np.full_like(di, -half_x), half_y - radius - di], -1)
     return pts
+
+
+def _so3_exp(phi: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotations ``exp([phi]x)`` of rotation vectors (N, 3) (Rodrigues)."""
+    theta = np.linalg.norm(phi, axis=-1)
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta ** 2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta ** 2 / 24.0, (1.0 - np.cos(safe)) / safe ** 2)
+    K = np.zeros(phi.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -phi[..., 2], phi[..., 1], -phi[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = phi[..., 2], -phi[..., 1], phi[..., 0]
+    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+def _so3_log(R: np.ndarray) -> np.ndarray:
+    """(N, 3) rotation vectors of rotations (N, 3, 3) with angles below pi (consecutive poses of a track)."""
+    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos)
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    small = theta < 1e-8
+    scale = np.where(small, 0.5 + theta ** 2 / 12.0, theta / (2.0 * np.sin(np.where(small, 1.0, theta))))
+    return scale[..., None] * v
+
+
+_KNOT_SNAP = 1e-9  # knot intervals: a time this close to a knot is that knot (i * (1 / rate) / dt is not exactly i)
+
+
+@dataclass(frozen=True, eq=False)
+class PoseTrackTrajectory:
+    """Body trajectory through given poses ``T_WB`` (N, 4, 4) at times ``i * dt`` (a recorded path such
+    as a KITTI ground truth): position by a cubic Hermite spline with Catmull-Rom tangents
+    (``(p[i+1] - p[i-1]) / 2 dt``, one-sided at the ends; continuous velocity, piecewise-linear
+    acceleration), attitude by geodesic interpolation ``R_i exp(u log(R_i^T R_i+1))`` (constant body
+    rate ``log(R_i^T R_i+1) / dt`` within a segment). The poses are met exactly at the knots; times
+    outside ``[0, (N-1) dt]`` are clamped to the ends (at rest). Same interface as :class:`AnalyticTrajectory`."""
+
+    T_WB_knots: np.ndarray
+    dt: float
+    warp: TimeWarp | None = None
+
+    def sample(self, t: np.ndarray) -> BodyState:
+        t = np.asarray(t, np.float64)
+        if self.warp is None:
+            tau, dtau, ddtau = t, np.ones_like(t), np.zeros_like(t)
+        else:
+            tau, dtau, ddtau = self.warp.evaluate(t)
+        P = self.T_WB_knots[:, :3, 3]
+        R = self.T_WB_knots[:, :3, :3]
+        n, dt = len(P), self.dt
+        tangents = np.empty_like(P)
+        if n > 1:
+            tangents[1:-1] = (P[2:] - P[:-2]) / (2.0 * dt)
+            tangents[0], tangents[-1] = (P[1] - P[0]) / dt, (P[-1] - P[-2]) / dt
+        else:
+            tangents[:] = 0.0
+        x = np.clip(tau / dt, 0.0, n - 1)
+        snapped = np.round(x)
+        x = np.where(np.abs(x - snapped) < _KNOT_SNAP, snapped, x)  # frame times meet their knots exactly
+        inside = (tau >= 0.0) & (tau <= (n - 1) * dt)
+        i = np.floor(x).astype(np.int64)
+        j = np.minimum(i + 1, n - 1)
+        u = (x - i)[..., None]
+        p0, p1, m0, m1 = P[i], P[j], tangents[i] * dt, tangents[j] * dt
+        h00, h10, h01, h11 = 2 * u ** 3 - 3 * u ** 2 + 1, u ** 3 - 2 * u ** 2 + u, -2 * u ** 3 + 3 * u ** 2, u ** 3 - u ** 2
+        p = h00 * p0 + h10 * m0 + h01 * p1 + h11 * m1
+        dp = ((6 * u ** 2 - 6 * u) * (p0 - p1) + (3 * u ** 2 - 4 * u + 1) * m0 + (3 * u ** 2 - 2 * u) * m1) / dt
+        ddp = ((12 * u - 6) * (p0 - p1) + (6 * u - 4) * m0 + (6 * u - 2) * m1) / dt ** 2
+        phi = _so3_log(np.einsum("nji,njk->nik", R[i], R[j]))
+        R_WB = R[i] @ _so3_exp(u * phi)
+        rate = inside.astype(np.float64)[..., None]  # at rest outside the track
+        v = dp * dtau[..., None] * rate
+        a = (ddp * dtau[..., None] ** 2 + dp * ddtau[..., None]) * rate
+        w_B = phi / dt * dtau[..., None] * rate
+        return BodyState(t=t, p_WB=p, v_WB=v, a_WB=a, R_WB=R_WB, w_B=w_B)
