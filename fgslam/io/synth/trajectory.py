@@ -125,6 +125,13 @@ def euler_zyx_to_R(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.n
     return R
 
 
+def warped_time(warp: TimeWarp | None, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``tau(t)`` and its first two derivatives under ``warp`` (None: the identity)."""
+    if warp is None:
+        return t, np.ones_like(t), np.zeros_like(t)
+    return warp.evaluate(t)
+
+
 @dataclass(frozen=True)
 class AnalyticTrajectory:
     """Body trajectory from Fourier series; ``yaw=None`` means yaw follows the direction of travel."""
@@ -139,10 +146,7 @@ class AnalyticTrajectory:
 
     def sample(self, t: np.ndarray) -> BodyState:
         t = np.asarray(t, np.float64)
-        if self.warp is None:
-            tau, dtau, ddtau = t, np.ones_like(t), np.zeros_like(t)
-        else:
-            tau, dtau, ddtau = self.warp.evaluate(t)
+        tau, dtau, ddtau = warped_time(self.warp, t)
         # derivatives with respect to tau, then the chain rule to t
         px, vx, ax = self.x.evaluate(tau)
         py, vy, ay = self.y.evaluate(tau)
@@ -263,10 +267,7 @@ class PoseTrackTrajectory:
 
     def sample(self, t: np.ndarray) -> BodyState:
         t = np.asarray(t, np.float64)
-        if self.warp is None:
-            tau, dtau, ddtau = t, np.ones_like(t), np.zeros_like(t)
-        else:
-            tau, dtau, ddtau = self.warp.evaluate(t)
+        tau, dtau, ddtau = warped_time(self.warp, t)
         P = self.T_WB_knots[:, :3, 3]
         R = self.T_WB_knots[:, :3, :3]
         n, dt = len(P), self.dt
