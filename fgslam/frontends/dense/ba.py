@@ -178,6 +178,12 @@ class DenseBA:
         logger.info("dense global optimisation: %d keyframes, %d edges, %.2f s", len(job.kf_ids), result.num_edges,
                     time.perf_counter() - t0)
 
+    @property
+    def jobs_in_process(self) -> bool:
+        """Whether global jobs run in the loop service's worker process: the built-in flow source without
+        RGB-D depth alignment (a learned source, or depth blocks the caller builds, keep them in a thread)."""
+        return self.fe.config.source.kind == "flow" and not self.fe.depth.enabled
+
     def global_job(self, loop_edges: dict | None = None) -> GlobalBAJob | None:
         """Snapshot of the current map for a global optimisation (None: fewer than three keyframes with
         images): every keyframe's pose and inverse depths, the images of those that keep theirs (the
@@ -199,12 +205,17 @@ class DenseBA:
         extra = sorted(e for e in fe._loop_edges if e[0] in imaged_set and e[1] in imaged_set)
         measured = None
         images = {f: fe._cropped(g.keyframes[f].image) for f in imaged}
-        in_process = fe.config.source.kind == "flow" and not fe.depth.enabled
+        in_process = self.jobs_in_process
         if fe.config.source.kind != "flow":  # the learned source stays in this process: measured here
             edges = global_edges(g, imaged, fe.config)
-            edges += [e for e in extra if e not in set(edges)]
+            chosen = set(edges)
+            edges += [e for e in extra if e not in chosen]
+            held = set(g.edges)
             self.measure(edges)
             measured = {e: g.edges[e] for e in edges}
+            for e in edges:  # the graph keeps only the edges it had (the hand-over adds those it lacks)
+                if e not in held:
+                    del g.edges[e]
             images = {}
         T_WC = np.stack([fe.backend.pose_matrix(f) for f in kf_ids])
         inv_depth = [g.keyframes[f].inv_depth for f in kf_ids]
@@ -362,7 +373,8 @@ def solve_dense_global(snapshot: DenseGlobalSnapshot) -> DenseGlobalResult:
         loop_pairs = [] if loop is None else [(int(a), int(b)) for a, b in zip(loop["src"], loop["tgt"])]
         extra = [] if loop is None else [(e, EdgeMeasurement(loop["target"][n], loop["weight"][n]))
                                          for n, e in enumerate(loop_pairs)]
-        blocks_on = [e for e in edges] + [e for e in snapshot.stored if e not in set(edges)]
+        measured_set = set(edges)
+        blocks_on = list(edges) + [e for e in snapshot.stored if e not in measured_set]
         for _ in range(cfg.global_ba.rounds):
             if source is not None:
                 measure_edges(g, source, cfg, st.stride, edges)

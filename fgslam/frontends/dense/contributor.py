@@ -55,8 +55,8 @@ class DenseLoopContributor:
         """Hand the newly settled keyframes (all but the newest two, ids increasing) to the loop port and
         search a proximity loop for the newest of them."""
         fe = self.fe
-        if fe.background_global_ba or fe.loops.proximity is not None:
-            fe.loops.prepare_global_ba()
+        if (fe.background_global_ba or fe.loops.proximity is not None) and fe.ba.jobs_in_process:
+            fe.loops.prepare_global_ba()  # the worker process (jobs that run in a thread need none)
         if fe.loops.proximity is None or fe.graph is None:
             return
         query = None
