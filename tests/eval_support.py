@@ -42,3 +42,16 @@ def assert_beats_doing_nothing(ate: float, groundtruth: Trajectory, stamps, alig
     still = do_nothing_ate(groundtruth, stamps, align, **eval_options)
     assert ate < BEAT_FACTOR * still, f"ATE {ate:.4f} m does not beat doing nothing ({still:.4f} m) by 1/{BEAT_FACTOR:g}"
     return still
+
+
+# what a summary may differ in between two runs of the same input: times, machine state, the folder
+RUN_ONLY = {"fps", "fps_frontend", "stage_ms_per_frame", "peak_rss_mb", "load_average", "out_dir", "outputs"}
+
+
+def timeless(value):
+    """A run's summary without what measures the run rather than the estimate (times, load, memory)."""
+    if isinstance(value, dict):
+        return {k: timeless(v) for k, v in value.items() if not (k.endswith("_s") or k in RUN_ONLY)}
+    if isinstance(value, list):
+        return [timeless(v) for v in value]
+    return value

@@ -27,7 +27,7 @@ from fgslam.loop.records import LoopClosureConfig
 from fgslam.services.proximity import ProximityLoops
 from fgslam.slam import SUMMARY_FILE, load_slam_config, open_slam_dataset, run_slam
 from fgslam.system import SlamSystem
-from eval_support import assert_beats_doing_nothing
+from eval_support import assert_beats_doing_nothing, timeless
 from patch_support import open_frames, render_room
 
 FRAMES = 26
@@ -35,20 +35,11 @@ GLOBAL_EVERY = 2  # keyframes between periodic global optimisations
 DELAY_FRAMES = 3  # loop_closure.global_ba_delay_frames
 SLOW_S = 1.5  # injected: each background solve starts this late (several frames' time)
 TRAJECTORIES = ("trajectory_tum.txt", "trajectory_kitti.txt")
-_RUN_ONLY = {"fps", "fps_frontend", "stage_ms_per_frame", "peak_rss_mb", "load_average", "out_dir", "outputs"}
 
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
     return render_room(tmp_path_factory, "dense_room", [f"frames={FRAMES}", "camera.width=320", "camera.height=240"])
-
-
-def _timeless(value):
-    if isinstance(value, dict):
-        return {k: _timeless(v) for k, v in value.items() if not (k.endswith("_s") or k in _RUN_ONLY)}
-    if isinstance(value, list):
-        return [_timeless(v) for v in value]
-    return value
 
 
 def _run(root, folder, applied: list):
@@ -103,7 +94,7 @@ def test_a_slowed_background_solve_gives_the_same_bytes(runs):
     fast, slow = runs["fast"], runs["slow"]
     for name in TRAJECTORIES:
         assert fast[0][name] == slow[0][name], name
-    assert _timeless(fast[1]) == _timeless(slow[1])
+    assert timeless(fast[1]) == timeless(slow[1])
     assert fast[1]["evaluation"]["ate"]["rmse"] <= 0.006 * fast[1]["evaluation"]["gt_path_length_m"] + 0.001
 
 

@@ -16,6 +16,7 @@ import pytest
 from fgslam.loop.closure import LoopCloser
 from fgslam.services.proximity import ProximityLoops
 from fgslam.slam import SUMMARY_FILE, open_slam_dataset, run_slam
+from eval_support import timeless
 from patch_support import room_loop_slam_config
 
 RATE_HZ = 4.0
@@ -28,19 +29,6 @@ TRAJECTORIES = ("trajectory_tum.txt", "trajectory_kitti.txt")
 @pytest.fixture(scope="module")
 def room(room_loop_clip):
     return room_loop_clip(RATE_HZ, EXTRA_FRAMES)[0]  # rendered once per session (conftest.py)
-
-
-# what a summary may differ in between two runs of the same input: times, machine state, the folder
-_RUN_ONLY = {"fps", "fps_frontend", "stage_ms_per_frame", "peak_rss_mb", "load_average", "out_dir", "outputs"}
-
-
-def _timeless(value):
-    """The summary without what measures the run rather than the estimate (times, load, memory)."""
-    if isinstance(value, dict):
-        return {k: _timeless(v) for k, v in value.items() if not (k.endswith("_s") or k in _RUN_ONLY)}
-    if isinstance(value, list):
-        return [_timeless(v) for v in value]
-    return value
 
 
 def _outputs(folder):
@@ -89,4 +77,4 @@ def test_a_slowed_worker_gives_the_same_bytes(runs):
     fast, slow = runs["threaded"], runs["slowed"]
     for name in TRAJECTORIES:
         assert fast[0][name] == slow[0][name], name
-    assert _timeless(fast[1]) == _timeless(slow[1])
+    assert timeless(fast[1]) == timeless(slow[1])

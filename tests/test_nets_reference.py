@@ -48,20 +48,23 @@ def seeded_state(keys, table, seed: int) -> "OrderedDict[str, torch.Tensor]":
     return out
 
 
+def _reference(folder, tmp_path_factory, name: str, table, load):
+    """The official outputs ``<name>_official.npz`` and the network with their seeded weights, loaded
+    through fgslam's strict loader from a checkpoint file."""
+    ref = dict(np.load(folder / f"{name}_official.npz"))
+    path = tmp_path_factory.mktemp("ref") / f"{name}.pth"
+    torch.save(seeded_state(ref["keys"], table, ref["seed"]), path)
+    return ref, load(path)
+
+
 @pytest.fixture(scope="module")
 def droid_ref(shared_reference, tmp_path_factory):
-    ref = dict(np.load(shared_reference / "droid_official.npz"))
-    path = tmp_path_factory.mktemp("ref") / "droid.pth"
-    torch.save(seeded_state(ref["keys"], droid_table(), ref["seed"]), path)
-    return ref, load_droid(path)
+    return _reference(shared_reference, tmp_path_factory, "droid", droid_table(), load_droid)
 
 
 @pytest.fixture(scope="module")
 def dpvo_ref(shared_reference, tmp_path_factory):
-    ref = dict(np.load(shared_reference / "dpvo_official.npz"))
-    path = tmp_path_factory.mktemp("ref") / "dpvo.pth"
-    torch.save(seeded_state(ref["keys"], dpvo_table(), ref["seed"]), path)
-    return ref, load_dpvo(path)
+    return _reference(shared_reference, tmp_path_factory, "dpvo", dpvo_table(), load_dpvo)
 
 
 def close(actual: torch.Tensor, expected: np.ndarray, name: str) -> None:
