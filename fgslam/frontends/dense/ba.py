@@ -96,20 +96,18 @@ class DenseBA:
         fe = self.fe
         return dense_block(fe.graph, edges, fe.K_grid, fe.config, fe.stride, fe._reproj)
 
-    def optimize(self, free: list[int], edges: list[tuple[int, int]], iterations: int, init: bool,
-                 global_: bool = False) -> None:
-        """One optimisation of the free keyframes with the dense block of ``edges`` through the backend."""
+    def optimize(self, free: list[int], edges: list[tuple[int, int]], iterations: int, init: bool) -> None:
+        """One optimisation of the free keyframes with the dense block of ``edges`` through the backend
+        (the local BA and the initialisation; the global optimisation is :func:`solve_dense_global`)."""
         fe = self.fe
         g = fe.graph
         block = self.block(edges)
         free_keys = {pose_key(f) for f in free}
-        depth_blocks = self.depth_blocks(free_keys, global_)
+        depth_blocks = self.depth_blocks(free_keys, False)
         keys = set(block.keys).union(*(b.keys for b in depth_blocks))
         fixed = [k for k in keys if k not in free_keys]
-        anchor = free[0] if (init or global_ or not fixed) else None
+        anchor = free[0] if (init or not fixed) else None
         pair = (free[0], free[-1]) if init and fe.sensor_mode == "mono" and len(free) >= 2 else None
-        if global_ and fe.sensor_mode == "mono" and len(free) >= 2:
-            pair = (free[0], free[1])
         fe.backend.set_gauge(anchor=anchor, scale_pair=pair)
         fe.backend.set_blocks(fe.name, [block])
         if fe.depth.enabled:
