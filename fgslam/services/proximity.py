@@ -340,8 +340,11 @@ class ProximityLoops:
             self._undo(self._running.loops, "undone: the run stopped")
             self._running = None
         if self._pool is not None:
-            for process in list(getattr(self._pool, "_processes", {}).values()):  # a running solve is not waited for
-                process.terminate()
+            # a running solve is not waited for: SIGKILL, which a worker cannot ignore or block (a worker
+            # once outlived SIGTERM for 30 s in the suite under load, cause not found); its result is
+            # dropped anyway, and a solve writes nothing
+            for process in list(getattr(self._pool, "_processes", {}).values()):
+                process.kill()
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
 
