@@ -96,7 +96,7 @@ def test_drive_pose_file_is_read_when_built_not_when_configured(tmp_path):
         SynthSequence(load_synth_config("kitti00-drive", None, [f"kitti_drive.poses={short}", "frames=10"]))
     bad = tmp_path / "bad.txt"
     bad.write_text("1 2 3\n4 5 6\n")
-    with pytest.raises(DataError, match="3x4"):
+    with pytest.raises(DataError, match="12 numbers for the kitti format"):
         SynthSequence(load_synth_config("kitti00-drive", None, [f"kitti_drive.poses={bad}", "frames=2"]))
 
 

@@ -51,6 +51,7 @@ import numpy as np
 
 from ...config import MAX_COUNT, MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, MAX_SEED, MAX_TIME_NS, check_ranges, ranged
 from ...errors import ConfigError, DataError
+from ..trajectory import read_trajectory
 from .imu import ImuConfig
 from .render import RenderConfig
 from .scene import Scene
@@ -422,18 +423,14 @@ def kitti_poses_path(kc: KittiDriveConfig) -> Path:
 
 
 def load_kitti_poses(path: Path) -> np.ndarray:
-    """(N, 4, 4) ``T_K0Ci`` of a KITTI pose file (12 numbers per line: the 3x4 camera-to-world matrix)."""
+    """(N, 4, 4) ``T_K0Ci`` of a KITTI pose file (12 numbers per line: the 3x4 camera-to-world matrix),
+    read by :func:`fgslam.io.trajectory.read_trajectory` (its format errors name the file and line)."""
     if not path.is_file():
         raise DataError(f"kitti_drive.poses: KITTI pose file {path} not found (the kitti00-drive preset follows "
                         "a KITTI ground-truth path: set kitti_drive.poses=FILE, e.g. kitti_gt/00.txt of the shared data)")
-    try:
-        rows = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    except ValueError as exc:
-        raise DataError(f"{path}: not a KITTI pose file: {exc}") from exc
-    if rows.shape[1] != 12 or len(rows) < 2 or not np.isfinite(rows).all():
-        raise DataError(f"{path}: expected at least 2 lines of 12 finite numbers (3x4 poses), got shape {rows.shape}")
-    T = np.tile(np.eye(4), (len(rows), 1, 1))
-    T[:, :3, :] = rows.reshape(-1, 3, 4)
+    T = read_trajectory(path, "kitti").T_WC
+    if len(T) < 2:
+        raise DataError(f"{path}: expected at least 2 KITTI poses, got {len(T)}")
     return T
 
 
