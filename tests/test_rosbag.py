@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("rosbags", reason="rosbags is an optional extra (pip install 'fgslam[bag]')")
 
-from bag_support import write_7scenes_bag, write_euroc_bag, write_small_bag  # noqa: E402
+from tool_support import load_tool  # noqa: E402
 
 from fgslam.cli import main  # noqa: E402
 from fgslam.errors import DataError  # noqa: E402
@@ -20,6 +20,8 @@ from fgslam.io.datasets import DatasetConfig, detect_format, open_dataset  # noq
 from fgslam.io.datasets.common import BagTopicsConfig  # noqa: E402
 from fgslam.io.datasets.rosbag import calibration_from_camera_info  # noqa: E402
 
+_clips = load_tool("bench_rosbag")  # the clip-to-bag writers shared with the benchmark
+write_7scenes_bag, write_euroc_bag, write_small_bag = _clips.write_7scenes_bag, _clips.write_euroc_bag, _clips.write_small_bag
 TRAJECTORY_FILES = ("trajectory_tum.txt", "trajectory_kitti.txt", "trajectory_kitti_times.txt")
 EUROC_END = 40  # frames of the EuRoC clip run (of 95): keeps the three runs fast
 SEVEN_SCENES_END = 40
@@ -181,6 +183,25 @@ def test_image_size_disagreeing_with_camera_info(tmp_path):
     with pytest.raises(DataError, match="images of topic /cam/image are 64x48 but the calibration .*camera_info.* is "
                                         "for 80x48"):
         open_dataset(bag)
+
+
+def test_a_frame_of_another_size_is_skipped_naming_the_topic(tmp_path, caplog):
+    from fgslam.export.bag import BagWriter
+    from fgslam.io.calibration import Calibration
+
+    bag = tmp_path / "resized.bag"
+    cal = Calibration(64, 48, [50.0, 50.0, 31.5, 23.5])
+    with BagWriter(bag) as w:
+        for i in range(12):
+            ts = 10**9 + i * 10**8
+            img = np.full((40, 64) if i == 7 else (48, 64), 100 + i, np.uint8)
+            w.write("/cam/image", "sensor_msgs/msg/Image", ts, _clips.image_msg(w, ts, "cam", img, "mono8"))
+            w.write("/cam/camera_info", "sensor_msgs/msg/CameraInfo", ts, _clips.camera_info(w, ts, "cam", cal))
+    ds = open_dataset(bag, config=DatasetConfig(crop_multiple=1))
+    with caplog.at_level(logging.WARNING):
+        assert len(list(ds)) == 11
+    assert ds.skipped_frames == [(7, "/cam/image: message 7 is 64x40, expected 64x48 (the calibration's size, "
+                                     f"{bag} topic /cam/camera_info)")]
 
 
 def test_unknown_encoding(tmp_path):

@@ -43,8 +43,8 @@ import numpy as np
 
 from ...errors import ConfigError, DataError
 from ..calibration import Calibration
-from ..frame import FrameReadError, ImuSamples
-from .common import BagTopicsConfig, Dataset, DatasetConfig, RawFrame, ns_to_seconds, truncation_reason
+from ..frame import FrameReadError, FrameSizeError, ImuSamples
+from .common import Dataset, DatasetConfig, RawFrame, ns_to_seconds, truncation_reason
 
 logger = logging.getLogger(__name__)
 
@@ -546,19 +546,28 @@ class RosbagDataset(Dataset):
             raise FrameReadError(f"{index.topic}: message {ordinal} has stamp {stamp}, indexed {index.stamps_ns[ordinal]}")
         return img
 
+    def _read_sized(self, role: str, raw_index: int) -> np.ndarray:
+        """The role's image of a raw frame; FrameSizeError naming the topic when its size is not the calibration's."""
+        ordinal = int(self._frame_ordinals[role][raw_index])
+        img = self._read_role(role, ordinal)
+        cam = self.raw_calibration.right if role == "right" and self.raw_calibration.right is not None else self.raw_calibration
+        h, w = img.shape[:2]
+        if (w, h) != (cam.width, cam.height):
+            raise FrameSizeError(f"{self.roles[role]}: message {ordinal} is {w}x{h}, expected {cam.width}x{cam.height} "
+                                 f"(the calibration's size, {self.calibration_source})")
+        return img
+
     def _read_raw(self, raw_index: int) -> RawFrame:
-        image = self._read_role("left", int(self._frame_ordinals["left"][raw_index]))
-        if image.ndim == 2 and image.dtype == np.float32:
-            raise FrameReadError(f"{self.roles['left']}: depth encoding on the left image topic")
+        image = self._read_sized("left", raw_index)
         right = depth = None
         if "right" in self.roles and self.config.load_right:
-            right = self._read_role("right", int(self._frame_ordinals["right"][raw_index]))
+            right = self._read_sized("right", raw_index)
             if right.ndim == 3:
                 import cv2
 
                 right = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
         if "depth" in self.roles and self.config.load_depth:
-            depth = self._read_role("depth", int(self._frame_ordinals["depth"][raw_index]))
+            depth = self._read_sized("depth", raw_index)
         return RawFrame(image, None, right, depth)
 
     # ------------------------------------------------------------ info

@@ -1,12 +1,31 @@
-"""Write dataset clips into ROS 1 / ROS 2 bags for the bag tests and the bag benchmark.
+"""Reading a ROS bag vs the dataset folder: the same ``fgslam run`` from a folder and from ROS 1 / ROS 2
+bags of it, one after the other; prints one JSON object.
 
-The images go in as they are (EuRoC PNG pixels as mono8 ``Image``, 7-Scenes JPEG bytes as
-``CompressedImage``, 7-Scenes depth as ``16UC1``), with a ``CameraInfo`` per image from the
-folder loader's calibration (a stereo pair's ``R`` / ``P`` from its rectification).
+The clips are written into bags here (also used by tests/test_rosbag.py through tests/tool_support.py):
+the images go in as they are (EuRoC PNG pixels as mono8 ``Image``, 7-Scenes JPEG bytes as
+``CompressedImage``, 7-Scenes depth as ``16UC1``), with a ``CameraInfo`` per image from the folder
+loader's calibration (a stereo pair's ``R`` / ``P`` from its rectification).
+
+Per case and source (folder, ROS 1 ``.bag``, ROS 2 sqlite3, ROS 2 mcap), ``--repeats`` runs in
+turn (folder, bags, folder, bags, ...): wall seconds and CPU seconds (the child process's user +
+system), medians, and the overhead of each bag source over the folder (``bag / folder - 1``); also
+the dataset alone (open and read every frame, in this process: CPU seconds) and the load average
+(``uptime``) before and after. The trajectories of folder and bag runs are compared byte for byte.
+
+Usage:
+  OMP_NUM_THREADS=1 .venv/bin/python tools/bench_rosbag.py [--cases euroc_stereo,7scenes_rgbd] [--repeats 2]
 """
 
 from __future__ import annotations
 
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
 from pathlib import Path
 from typing import Optional
 
@@ -17,6 +36,8 @@ from fgslam.io.calibration import Undistorter
 from fgslam.io.datasets import DatasetConfig, EurocDataset, SevenScenesDataset
 
 NS = 1_000_000_000
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data"
 
 
 def camera_info(bag: BagWriter, stamp_ns: int, frame_id: str, calib, R=None, P=None, model="plumb_bob"):
@@ -161,3 +182,109 @@ def write_small_bag(out: Path, images: dict, infos: dict | None = None, imu: Opt
             for k, ts in enumerate(t_imu):
                 bag.write(imu, "sensor_msgs/msg/Imu", ts, imu_msg(bag, ts, [0.01 * k, 0.2, 0.3], [0.0, 9.81, 0.1]))
     return base
+
+
+# ------------------------------------------------------------------------------- benchmark
+CASES = {  # name: (clip folder, writer, preset, overrides)
+    "euroc_stereo": ("euroc_v101_micro", "euroc", "patch_euroc_stereo", ()),
+    "7scenes_rgbd": ("7scenes_redkitchen_0-599", "7scenes", "patch_7scenes_rgbd", ("dataset.end=300",)),
+}
+SOURCES = ("folder", "ros1", "ros2_sqlite3", "ros2_mcap")
+TRAJECTORY = "trajectory_kitti.txt"  # poses only: 7-Scenes folder times are i / 30 s, a bag's integer ns
+
+
+def _loadavg() -> list[float]:
+    return [round(v, 2) for v in os.getloadavg()]
+
+
+def _child_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _run(data: Path, out: Path, preset: str, overrides) -> dict:
+    cmd = [str(Path(sys.executable).parent / "fgslam"), "-q", "run", preset, "--data", str(data), "--out", str(out),
+           "--no-progress"]
+    for o in overrides:
+        cmd += ["-o", o]
+    cpu0, t0 = _child_cpu(), time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    wall, cpu = time.perf_counter() - t0, _child_cpu() - cpu0
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    return {"wall_s": round(wall, 3), "cpu_s": round(cpu, 3), "trajectory": (out / TRAJECTORY).read_bytes()}
+
+
+def _read_cpu(data: Path, overrides) -> dict:
+    """CPU seconds to open the dataset and read every frame (in this process)."""
+    from fgslam.config import load_config
+    from fgslam.io.datasets import DatasetConfig, open_dataset
+
+    config = load_config(DatasetConfig, None, [o.removeprefix("dataset.") for o in overrides if o.startswith("dataset.")])
+    t0 = time.process_time()
+    ds = open_dataset(data, config=config)
+    t_open = time.process_time() - t0
+    n = sum(1 for _ in ds)
+    return {"open_cpu_s": round(t_open, 3), "read_cpu_s": round(time.process_time() - t0, 3), "frames": n}
+
+
+def bench_case(name: str, repeats: int, work: Path) -> dict:
+    clip, writer, preset, overrides = CASES[name]
+    root = SHARED / clip
+    sources = {"folder": root}
+    end = next((int(o.split("=")[1]) for o in overrides if o.startswith("dataset.end=")), None)
+    extra = list(overrides)
+    for source in SOURCES[1:]:
+        out = work / (f"{name}.bag" if source == "ros1" else f"{name}_{source}")
+        storage = source.split("_")[-1]
+        if writer == "euroc":
+            T_BC = write_euroc_bag(root, out, storage, end=end, imu_margin_s=None)["T_BC"]  # all 145 s of IMU, as the folder
+            extra_T = "dataset.T_BC=" + json.dumps(T_BC.reshape(-1).tolist())
+        else:
+            write_7scenes_bag(root, out, storage, end=end)
+            extra_T = None
+        sources[source] = out
+    if writer == "euroc":
+        extra.append(extra_T)
+    runs: dict[str, list] = {s: [] for s in sources}
+    for k in range(repeats):
+        for source, data in sources.items():
+            runs[source].append(_run(data, work / f"out_{name}_{source}_{k}", preset, extra))
+    reads = {s: _read_cpu(d, extra) for s, d in sources.items()}
+    folder_traj = runs["folder"][0]["trajectory"]
+    out = {"preset": preset, "overrides": [o for o in extra if not o.startswith("dataset.T_BC")], "sources": {}}
+    med = {}
+    for source, rs in runs.items():
+        wall = sorted(r["wall_s"] for r in rs)[len(rs) // 2]
+        cpu = sorted(r["cpu_s"] for r in rs)[len(rs) // 2]
+        med[source] = (wall, cpu)
+        out["sources"][source] = {
+            "wall_s": [r["wall_s"] for r in rs], "cpu_s": [r["cpu_s"] for r in rs], "median_wall_s": wall,
+            "median_cpu_s": cpu, "same_trajectory_as_folder": all(r["trajectory"] == folder_traj for r in rs),
+            **reads[source]}
+    for source in SOURCES[1:]:
+        out["sources"][source]["wall_overhead"] = round(med[source][0] / med["folder"][0] - 1, 4)
+        out["sources"][source]["cpu_overhead"] = round(med[source][1] / med["folder"][1] - 1, 4)
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
+    parser.add_argument("--repeats", type=int, default=2)
+    args = parser.parse_args(argv)
+    if not SHARED.is_dir():
+        raise SystemExit(f"shared data not found at {SHARED}")
+    report = {"uptime_before": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip(),
+              "load_before": _loadavg(), "cpus": os.cpu_count(), "cases": {}}
+    with tempfile.TemporaryDirectory(prefix="bench_rosbag_") as tmp:
+        for name in args.cases.split(","):
+            report["cases"][name] = bench_case(name, args.repeats, Path(tmp))
+    report["uptime_after"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    report["load_after"] = _loadavg()
+    print(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
