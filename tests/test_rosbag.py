@@ -84,7 +84,7 @@ def test_info_on_a_bag_lists_topics_with_counts_and_rates(shared_data, tmp_path,
         "role": "left", "messages": 10, "rate_hz": 30.0}
     assert rows["/camera/depth/image_raw"]["kind"] == "depth" and rows["/camera/depth/image_raw"]["role"] == "depth"
     assert rows["/camera/color/camera_info"]["kind"] == "camera_info"
-    assert rows["/camera/color/camera_info"]["messages"] == 10
+    assert rows["/camera/color/camera_info"]["messages"] == 10 and rows["/camera/color/camera_info"]["rate_hz"] == 30.0
     assert main(["info", str(bag)]) == 0
     assert "topic:        /camera/depth/image_raw  depth, 10 messages, 30.000 Hz  (used as depth)" in capsys.readouterr().out
 
@@ -123,6 +123,40 @@ def test_frames_are_read_lazily_in_any_order(tmp_path):
     for i in (4, 1, 2, 5, 0, 0, 3):  # backward jumps restart the cursor, forward ones skip
         assert np.array_equal(ds[i].image, seq[i])
     assert ds.timestamps[1] - ds.timestamps[0] == pytest.approx(0.1)
+
+
+def test_stereo_pair_from_two_camera_infos(tmp_path):
+    """Rectified camera_infos (ROS convention P_right[0, 3] = -fx * baseline) give the pair; the
+    automatic roles put the ``right`` topic on the right; camera_infos without a baseline are an error."""
+    from fgslam.export.bag import BagWriter
+    from fgslam.io.calibration import Calibration
+
+    cal = Calibration(64, 48, [50.0, 50.0, 31.5, 23.5])
+    baseline = 0.12
+    P_left = np.hstack([cal.K_matrix(), np.zeros((3, 1))])
+    P_right = P_left.copy()
+    P_right[0, 3] = -50.0 * baseline
+    bag = tmp_path / "stereo.bag"
+    rng = np.random.default_rng(1)
+    with BagWriter(bag) as w:
+        for i in range(5):
+            ts = 10**9 + i * 10**8
+            for side, P in (("left", P_left), ("right", P_right)):
+                img = rng.integers(0, 255, (48, 64), dtype=np.uint8)
+                w.write(f"/{side}/image_raw", "sensor_msgs/msg/Image", ts, _clips.image_msg(w, ts, side, img, "mono8"))
+                w.write(f"/{side}/camera_info", "sensor_msgs/msg/CameraInfo", ts,
+                        _clips.camera_info(w, ts, side, cal, np.eye(3), P))
+    ds = open_dataset(bag, config=DatasetConfig(crop_multiple=1))
+    assert ds.roles == {"left": "/left/image_raw", "right": "/right/image_raw"} and ds.has_stereo
+    assert ds.calibration.baseline == pytest.approx(baseline, abs=1e-12)
+    np.testing.assert_allclose(ds.raw_calibration.T_CLCR[:3, 3], [baseline, 0, 0], atol=1e-12)
+    assert ds[2].image_right is not None and ds[2].image_right.shape == (48, 64)
+    flat = tmp_path / "flat.bag"
+    write_small_bag(flat, {"/left/image_raw": "mono8", "/right/image_raw": "mono8"},
+                    {"/left/camera_info": (64, 48), "/right/camera_info": (64, 48)})
+    with pytest.raises(DataError, match="/right/camera_info: CameraInfo P has no baseline"):
+        open_dataset(flat)
+    assert not open_dataset(flat, config=DatasetConfig(load_right=False, crop_multiple=1)).has_stereo
 
 
 def test_camera_info_distortion_models():

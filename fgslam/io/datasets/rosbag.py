@@ -572,7 +572,8 @@ class RosbagDataset(Dataset):
 
     # ------------------------------------------------------------ info
     def topic_table(self) -> list[dict]:
-        """Image, depth, IMU and CameraInfo topics with message counts and rates (Hz)."""
+        """Image, depth, IMU and CameraInfo topics with message counts and rates (Hz): from the header
+        stamps of the topics in use, from the log times of the others (read once for this)."""
         used = {topic: role for role, topic in self.roles.items()}
         out = []
         for topic, msgtype in sorted(self.topic_types.items()):
@@ -587,10 +588,19 @@ class RosbagDataset(Dataset):
             elif used.get(topic) == "imu" and self.imu is not None and len(self.imu) > 1:
                 rate = (len(self.imu) - 1) / float(self.imu.timestamps[-1] - self.imu.timestamps[0])
             else:
-                rate = count / self.duration_s if self.duration_s > 0 else 0.0
+                rate = self._log_rate(topic)
             out.append({"topic": topic, "type": msgtype, "kind": kind, "role": used.get(topic),
                         "messages": count, "rate_hz": round(float(rate), 3)})
         return out
+
+    def _log_rate(self, topic: str) -> float:
+        """Messages per second of a topic not indexed at open, from its log times (reads the topic once)."""
+        with self._lock, self._guard("cannot read the messages", topic):
+            reader = self._open_reader()
+            conns = [c for c in reader.connections if c.topic == topic]
+            times = [log_ns for _, log_ns, _ in reader.messages(connections=conns)]
+        span = (max(times) - min(times)) / 1e9 if len(times) > 1 else 0.0
+        return (len(times) - 1) / span if span > 0 else 0.0
 
     def summary(self) -> dict:
         out = super().summary()
