@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import pickle
 import sys
 
 import numpy as np
@@ -123,6 +124,8 @@ def test_frames_are_read_lazily_in_any_order(tmp_path):
     for i in (4, 1, 2, 5, 0, 0, 3):  # backward jumps restart the cursor, forward ones skip
         assert np.array_equal(ds[i].image, seq[i])
     assert ds.timestamps[1] - ds.timestamps[0] == pytest.approx(0.1)
+    copy = pickle.loads(pickle.dumps(ds))  # the reader is opened again
+    assert np.array_equal(copy[3].image, seq[3]) and np.array_equal(ds[3].image, seq[3])
 
 
 def test_stereo_pair_from_two_camera_infos(tmp_path):

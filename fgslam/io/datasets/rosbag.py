@@ -260,9 +260,8 @@ class RosbagDataset(Dataset):
         super().__init__(root, config)
         config = self.config
         self.name = self.root.stem if self.root.is_file() else self.root.name
-        AnyReader, Stores, get_typestore = import_rosbags()
         self._ros2 = not self.root.is_file()
-        self._typestore = get_typestore(Stores.ROS2_HUMBLE if self._ros2 else Stores.ROS1_NOETIC)
+        self._typestore = self._make_typestore()
         self._lock = threading.Lock()
         self._reader: Any = None
         self._cursors: dict[str, _Cursor] = {}
@@ -312,14 +311,26 @@ class RosbagDataset(Dataset):
 
         return Guard()
 
+    def _make_typestore(self) -> Any:
+        """Message types for bags without embedded definitions (ROS 2 Humble / ROS 1 Noetic)."""
+        _, Stores, get_typestore = import_rosbags()
+        return get_typestore(Stores.ROS2_HUMBLE if self._ros2 else Stores.ROS1_NOETIC)
+
     def __getstate__(self) -> dict:
+        """Picklable: the open reader, cursors, lock and typestore are made again after unpickling."""
         state = dict(self.__dict__)
-        state["_reader"], state["_cursors"], state["_lock"] = None, {}, None
+        state["_reader"], state["_cursors"], state["_lock"], state["_typestore"] = None, {}, None, None
+        state["_indices_by_role"] = {role: TopicIndex(ix.topic, ix.msgtype, None, ix.stamps_ns, ix.log_ns)
+                                     for role, ix in self._indices_by_role.items()}
         return state
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         self._lock = threading.Lock()
+        self._typestore = self._make_typestore()
+        reader = self._open_reader()
+        for index in self._indices_by_role.values():
+            index.connection = next(c for c in reader.connections if c.topic == index.topic)
 
     def _deserialize(self, raw: bytes, msgtype: str) -> Any:
         if self._ros2:
