@@ -1,12 +1,13 @@
-"""``fgslam export RUN_DIR --colmap DIR | --ply FILE``: the map of a finished run as a COLMAP model
-(``DIR/sparse/0`` + ``DIR/images``) or a PLY point cloud (see :mod:`fgslam.export.run_export`)."""
+"""``fgslam export RUN_DIR --colmap DIR | --ply FILE | --bag OUT``: the map of a finished run as a COLMAP
+model (``DIR/sparse/0`` + ``DIR/images``) or a PLY point cloud (see :mod:`fgslam.export.run_export`), or
+its trajectory as a ROS bag (:mod:`fgslam.export.bag`)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 
-HELP = "export a run's map as a COLMAP model (binary or text, with images) or a PLY point cloud"
+HELP = "export a run's map as a COLMAP model (binary or text, with images) or a PLY point cloud, or its trajectory as a ROS bag"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -14,6 +15,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     target = parser.add_mutually_exclusive_group(required=True)
     target.add_argument("--colmap", metavar="DIR", help="write a COLMAP model into DIR (sparse/0 and images/)")
     target.add_argument("--ply", metavar="FILE", help="write the map's points as a PLY file")
+    target.add_argument("--bag", metavar="OUT", help="write the trajectory as a ROS bag: nav_msgs/Path, PoseStamped, "
+                        "tf (ROS 1 when OUT ends in .bag, else a ROS 2 bag folder; needs fgslam[bag])")
+    parser.add_argument("--bag-storage", choices=("sqlite3", "mcap"), default="sqlite3", help="ROS 2 bag storage")
     parser.add_argument("--all-frames", action="store_true", help="COLMAP: every posed frame as an image, not only keyframes")
     parser.add_argument("--colmap-format", choices=("bin", "txt"), default="bin", help="COLMAP: binary (default) or text files")
     parser.add_argument("--no-images", action="store_true", help="COLMAP: the model only (do not read the dataset again)")
@@ -22,6 +26,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.bag:
+        from ..export.bag import BagExportConfig, export_bag
+
+        result = export_bag(args.run_dir, args.bag, overwrite=args.overwrite,
+                            config=BagExportConfig(storage=args.bag_storage))
+        print(json.dumps(result) if args.json else
+              f"wrote {result['poses']} poses to {result['bag']} (ROS {result['ros_version']}: {', '.join(result['topics'])})")
+        return 0
     from ..export.run_export import export_colmap, export_ply, open_run_folder
 
     run_folder = open_run_folder(args.run_dir)

@@ -7,13 +7,13 @@ import json
 
 from . import add_config_arguments
 
-HELP = "describe a dataset folder or video: format, frames, resolution, rate, stereo/depth/IMU/ground truth"
+HELP = "describe a dataset folder, video or ROS bag: format, frames, resolution, rate, stereo/depth/IMU/ground truth"
 
-FORMAT_CHOICES = ("auto", "tum", "euroc", "kitti", "tartanair", "7scenes", "folder", "video")
+FORMAT_CHOICES = ("auto", "tum", "euroc", "kitti", "tartanair", "7scenes", "folder", "video", "rosbag")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("path", help="dataset folder (or video file)")
+    parser.add_argument("path", help="dataset folder (or video file, ROS 1 .bag, ROS 2 bag folder)")
     parser.add_argument("--format", default="auto", choices=FORMAT_CHOICES, help="loader (default: detect from the layout)")
     add_config_arguments(parser, "DatasetConfig", "fgslam/configs/dataset.yaml")
 
@@ -45,5 +45,8 @@ def run(args: argparse.Namespace) -> int:
         f"ground truth: {yes_no[info['groundtruth']]}" + (f" ({info['groundtruth_poses']} frames)" if info["groundtruth"] else ""),
         "intrinsics:   fx={:.3f} fy={:.3f} cx={:.3f} cy={:.3f}".format(*info["intrinsics"]),
     ]
+    for row in info.get("topics", []):  # ROS bags
+        lines.append(f"topic:        {row['topic']}  {row['kind']}, {row['messages']} messages, {row['rate_hz']:.3f} Hz"
+                     + (f"  (used as {row['role']})" if row["role"] else ""))
     print("\n".join(lines))
     return 0

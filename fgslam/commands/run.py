@@ -13,7 +13,7 @@ import json
 
 HELP = "run SLAM on a dataset (trajectory in TUM/KITTI formats, summary.json, trajectory.png)"
 
-FORMAT_CHOICES = ("auto", "tum", "euroc", "kitti", "tartanair", "7scenes", "folder", "video")
+FORMAT_CHOICES = ("auto", "tum", "euroc", "kitti", "tartanair", "7scenes", "folder", "video", "rosbag")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -8,8 +8,13 @@ and it logs the camera (pinhole + pose) on the ``frame`` timeline (and the frame
 ``time``), the frame's image every ``image_every`` frames (JPEG); every ``map_every`` frames (and at
 the end) the system hands it the map: the frontend's keyframe points and the accepted loop edges
 (classical and proximity loops) as segments between keyframe centres, which the view logs with the
-trajectory so far. Entities: ``world/camera`` (+ ``/image``), ``world/trajectory``,
-``world/points``, ``world/loops``.
+trajectory so far and the keyframe centres (each keyframe's pose when it was made a keyframe).
+With each logged image go the map points (as last logged) projected into it from the frame's pose
+(``world/camera/image/map_points``: the map as the current camera sees it), and every frame's
+number of valid measurements goes on ``stats/num_valid``. Entities: ``world/camera`` (+ ``/image``,
+``/image/map_points``), ``world/trajectory``, ``world/keyframes``, ``world/points``,
+``world/loops``, ``stats/num_valid``. A default blueprint (:func:`default_blueprint`: 3-D world |
+current image over the measurement count) is sent with the recording.
 """
 
 from __future__ import annotations
@@ -37,6 +42,9 @@ class RerunConfig:
     map_every: int = ranged(50, ge=1, le=MAX_FRAMES)  # log the trajectory, keyframe points and loops every n frames
     jpeg_quality: int = ranged(80, ge=1, le=100)  # images are logged JPEG-encoded at this quality
     point_radius: float = ranged(0.01, gt=0, le=MAX_SCALAR)  # keyframe points' radius (map units)
+    keyframe_radius: float = ranged(0.03, gt=0, le=MAX_SCALAR)  # keyframe centres' radius (map units)
+    image_point_radius: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # projected map points' radius (pixels)
+    min_depth: float = ranged(0.01, gt=0, le=MAX_SCALAR)  # map points nearer than this (map units) are not projected
 
 
 def rerun_available() -> bool:
@@ -60,6 +68,18 @@ def check_rerun_target(target: str) -> None:
         raise DataError(f"--rerun {target}: folder {path.parent} does not exist")
 
 
+def default_blueprint() -> Any:
+    """The layout sent with a recording: the 3-D world (cameras, trajectory, keyframes, points, loops)
+    beside the current image with its projected map points over the measurement count."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(rrb.Horizontal(
+        rrb.Spatial3DView(origin="world", name="map"),
+        rrb.Vertical(rrb.Spatial2DView(origin="world/camera/image", name="current image"),
+                     rrb.TimeSeriesView(origin="stats", name="measurements")),
+        column_shares=[2, 1]))
+
+
 class RerunView:
     """A run's rerun log (see the module docstring); ``target`` is a ``.rrd`` file or ``live``."""
 
@@ -78,7 +98,10 @@ class RerunView:
         self._K = K
         self._size = (int(calibration.width), int(calibration.height))
         self._positions: list[np.ndarray] = []
+        self._keyframes: dict[int, np.ndarray] = {}  # frame index -> centre when made a keyframe
+        self._map_points: np.ndarray | None = None  # (N, 3) X_W as last logged
         self._frames = 0
+        self.rec.send_blueprint(default_blueprint())
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)  # camera convention: x right, y down, z forward
         self.rec.log("world/camera/image", rr.Pinhole(focal_length=[K[0], K[1]], principal_point=[K[2], K[3]],
                                                       resolution=list(self._size)), static=True)
@@ -104,11 +127,18 @@ class RerunView:
         rec.set_time("frame", sequence=int(frame.index))
         rec.set_time("time", duration=float(frame.timestamp))
         self._frames += 1
+        rec.log("stats/num_valid", rr.Scalars(float(status.num_valid)))
+        T = None
         if status.T_WC is not None:
             T = np.asarray(status.T_WC, dtype=np.float64)
             rec.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
             self._positions.append(T[:3, 3].copy())
+            if status.is_keyframe:
+                self._keyframes[int(frame.index)] = T[:3, 3].copy()
         if self._frames % cfg.image_every == 1 or cfg.image_every == 1:
+            if T is not None and self._map_points is not None:
+                rec.log("world/camera/image/map_points", rr.Points2D(self.project(T, self._map_points),
+                                                                      radii=cfg.image_point_radius))
             import cv2
 
             image = frame.image if getattr(frame, "rgb", None) is None else cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR)
@@ -121,11 +151,28 @@ class RerunView:
         rr, rec, cfg = self._rr, self.rec, self.config
         if len(self._positions) >= 2:
             rec.log("world/trajectory", rr.LineStrips3D([np.stack(self._positions)]))
+        if self._keyframes:
+            rec.log("world/keyframes", rr.Points3D(np.stack(list(self._keyframes.values())),
+                                                   radii=cfg.keyframe_radius, colors=[64, 160, 255]))
         if points is not None and len(points[0]):
+            self._map_points = np.asarray(points[0], dtype=np.float64)
             rec.log("world/points", rr.Points3D(np.asarray(points[0], dtype=np.float32),
                                                 colors=np.asarray(points[1], dtype=np.uint8), radii=cfg.point_radius))
         if segments:
             rec.log("world/loops", rr.LineStrips3D(segments, colors=[255, 64, 64]))
+
+
+    def project(self, T_WC: np.ndarray, X_W: np.ndarray) -> np.ndarray:
+        """Pixels ``(M, 2)`` of the points ``X_W`` in front of the camera ``T_WC`` that fall in the image."""
+        R, t = T_WC[:3, :3], T_WC[:3, 3]
+        X_C = (X_W - t) @ R  # R^T (X_W - t), row-wise
+        z = X_C[:, 2]
+        front = z > self.config.min_depth
+        fx, fy, cx, cy = self._K
+        uv = np.stack([fx * X_C[front, 0] / z[front] + cx, fy * X_C[front, 1] / z[front] + cy], axis=1)
+        w, h = self._size
+        inside = (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < h - 0.5)
+        return uv[inside]
 
 
 def loop_segments(pairs: list[tuple[int, int]], backend: Any) -> list[np.ndarray]:

@@ -264,6 +264,8 @@ class Undistorter:
         crop_multiple: centre-crop the (resized) image so that width and height are multiples of
             this (values <= 1 disable cropping).
         source: what the calibration came from (a file), named in errors.
+        rectification: ``(R1, R2, P1, P2)`` of a stereo pair as recorded (ROS camera_info ``R`` and
+            ``P``), used instead of ``cv2.stereoRectify`` when rectifying (``alpha`` then has no effect).
 
     Raises:
         DataError: the calibration cannot be undistorted sanely: OpenCV finds no finite output
@@ -286,10 +288,12 @@ class Undistorter:
         out_size: Optional[tuple[int, int]] = None,
         crop_multiple: int = 1,
         source: str = "calibration",
+        rectification: Optional[tuple] = None,
     ) -> None:
         import cv2
 
         self.raw = calib
+        self.rectification: Optional[tuple] = None  # (R1, R2, P1, P2) of a rectified stereo pair
         size = (calib.width, calib.height)
         K1, D1 = calib.K_matrix(), self._coeffs(calib)
         R1 = np.eye(3)
@@ -301,7 +305,9 @@ class Undistorter:
                 raise DataError(f"{source}: stereo rectification needs left and right images of the same size")
             T_CRCL = np.linalg.inv(calib.T_CLCR)
             R, t = np.ascontiguousarray(T_CRCL[:3, :3]), np.ascontiguousarray(T_CRCL[:3, 3].reshape(3, 1))
-            if calib.distortion_model == "equidistant" and calib.right.distortion_model == "equidistant":
+            if rectification is not None:
+                R1, R2, P1, P2 = (np.asarray(m, dtype=np.float64) for m in rectification)
+            elif calib.distortion_model == "equidistant" and calib.right.distortion_model == "equidistant":
                 R1, R2, P1, P2, _ = cv2.fisheye.stereoRectify(
                     K1, D1, K2, D2, size, R, t, flags=cv2.CALIB_ZERO_DISPARITY, newImageSize=size, balance=alpha
                 )
@@ -311,6 +317,7 @@ class Undistorter:
                 R1, R2, P1, P2, *_ = cv2.stereoRectify(
                     K1, D1, K2, D2, size, R, t, flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha
                 )
+            self.rectification = (R1, R2, P1, P2)
             fx, fy, cx, cy = P1[0, 0], P1[1, 1], P1[0, 2], P1[1, 2]
             baseline = -P2[0, 3] / P2[0, 0]
             T_CLCR_out = np.eye(4)

@@ -1,7 +1,8 @@
 """Dataset loaders: one lazy ``Dataset`` interface over TUM RGB-D, EuRoC, KITTI, TartanAir,
-7-Scenes, image folders and videos.  ``open_dataset`` picks the loader from the folder layout.
+7-Scenes, image folders, videos and ROS 1 / ROS 2 bags.  ``open_dataset`` picks the loader from the folder layout.
 
-Detection order (``fmt="auto"``): a file with a video extension -> ``video``; ``mav0/cam0`` or
+Detection order (``fmt="auto"``): a ``.bag`` file or a folder with ``metadata.yaml`` -> ``rosbag``
+(ROS 1 / ROS 2); a file with a video extension -> ``video``; ``mav0/cam0`` or
 ``cam0/data.csv`` -> ``euroc``; ``image_0/`` + ``calib.txt`` -> ``kitti``; ``image_left/`` ->
 ``tartanair``; ``rgb.txt`` -> ``tum``; ``seq-NN/frame-*.color.*`` (or such frames directly) ->
 ``7scenes``; a folder with images -> ``folder``.
@@ -16,6 +17,7 @@ from .common import Dataset, DatasetConfig
 from .euroc import EurocDataset, mav0_dir
 from .folder import VIDEO_EXTENSIONS, FolderDataset, VideoDataset
 from .kitti import KittiDataset, list_images
+from .rosbag import RosbagDataset, is_bag
 from .sevenscenes import SevenScenesDataset, is_sequence_dir
 from .tartanair import TartanAirDataset
 from .tum import TumDataset
@@ -28,6 +30,7 @@ LOADERS: dict[str, type[Dataset]] = {
     "7scenes": SevenScenesDataset,
     "folder": FolderDataset,
     "video": VideoDataset,
+    "rosbag": RosbagDataset,
 }
 FORMATS = tuple(LOADERS)
 
@@ -37,10 +40,13 @@ def detect_format(path: str | Path) -> str:
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such file or folder")
+    if is_bag(path):
+        return "rosbag"
     if path.is_file():
         if path.suffix.lower() in VIDEO_EXTENSIONS:
             return "video"
-        raise DataError(f"{path}: a file that is not a video ({', '.join(VIDEO_EXTENSIONS)}); give a dataset folder")
+        raise DataError(f"{path}: a file that is neither a video ({', '.join(VIDEO_EXTENSIONS)}) nor a ROS 1 .bag; "
+                        "give a dataset folder")
     if mav0_dir(path) is not None:
         return "euroc"
     if (path / "image_0").is_dir() and (path / "calib.txt").is_file():

@@ -25,7 +25,7 @@ slerp rotation) between samples at most ``gt_max_gap`` apart and never extrapola
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, NamedTuple, Optional
 
@@ -40,6 +40,18 @@ from ..trajectory import Trajectory, read_times_file
 logger = logging.getLogger(__name__)
 
 NS_PER_S = 1_000_000_000  # nanoseconds per second (EuRoC timestamps are integer nanoseconds)
+
+
+@dataclass
+class BagTopicsConfig:
+    """Which bag topic serves which role (None: automatic when there is exactly one candidate)."""
+
+    left: Optional[str] = None  # left / mono colour or grey images
+    right: Optional[str] = None  # right images of a stereo pair
+    depth: Optional[str] = None  # depth images registered to the left camera
+    imu: Optional[str] = None  # sensor_msgs/Imu
+    left_info: Optional[str] = None  # CameraInfo of the left camera (None: <namespace of left>/camera_info)
+    right_info: Optional[str] = None  # CameraInfo of the right camera
 
 
 @dataclass
@@ -70,11 +82,15 @@ class DatasetConfig:
     gt_snap_dt: float = ranged(0.001, gt=0, le=MAX_SCALAR)  # s, a frame this close outside the ground-truth time range snaps to its end
     max_skipped_fraction: float = ranged(0.1, ge=0, lt=1)  # iteration fails when more corrupt frames than this fraction
     default_rate_hz: float = ranged(30.0, gt=0, le=MAX_SCALAR)  # frame rate of image folders without timestamps.txt or rate_hz
+    topics: BagTopicsConfig = field(default_factory=BagTopicsConfig)  # ROS bags: topic per role
+    T_BC: Optional[list[float]] = ranged(None, ge=-MAX_SCALAR, le=MAX_SCALAR)  # ROS bags: camera-to-IMU transform, 16 numbers row-major (else the calibration YAML's)
 
     def validate(self) -> None:
         check_ranges(self)
         if self.end is not None and self.end <= self.start:
             raise ConfigError(f"end ({self.end}) must be > start ({self.start})")
+        if self.T_BC is not None and len(self.T_BC) != 16:
+            raise ConfigError(f"T_BC must have 16 numbers (4x4 row-major camera-to-IMU transform), got {len(self.T_BC)}")
         if self.tum_camera is not None and self.tum_camera not in ("fr1", "fr2", "fr3"):
             raise ConfigError(f"tum_camera must be fr1, fr2 or fr3, got {self.tum_camera!r}")
 
@@ -326,6 +342,7 @@ class Dataset:
         self.imu_noise: Optional[dict[str, float]] = None  # noise densities of the IMU (EuRoC sensor.yaml keys) when given
         self._has_stereo = False
         self._has_depth = False
+        self.stereo_rectification: Optional[tuple] = None  # (R1, R2, P1, P2) as recorded (ROS camera_info)
         self._gt_cache: Optional[np.ndarray] = None
 
     # ------------------------------------------------------------ subclass interface
@@ -359,6 +376,7 @@ class Dataset:
             out_size=cfg.output_size(calib.width, calib.height),
             crop_multiple=cfg.crop_multiple,
             source=self.calibration_source,
+            rectification=self.stereo_rectification,
         )
         self.calibration = self._undistorter.calibration
         try:

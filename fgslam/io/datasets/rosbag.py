@@ -1,0 +1,629 @@
+"""ROS 1 ``.bag`` files and ROS 2 bag folders (sqlite3 or mcap storage) as datasets.
+
+Read with the pure-Python ``rosbags`` package (optional extra ``fgslam[bag]``; no ROS install).
+
+Topics and roles: ``sensor_msgs/Image`` and ``sensor_msgs/CompressedImage`` topics are image
+candidates; an Image topic whose first message has a depth encoding (``16UC1`` millimetres, ``32FC1``
+metres) or a CompressedImage topic with ``depth`` in its name is a depth candidate, any other
+image topic a colour one; a colour topic whose name contains ``right`` or ``cam1`` is a right
+candidate, the others left candidates. ``sensor_msgs/Imu`` topics are IMU candidates.
+``DatasetConfig.topics.{left,right,depth,imu}`` choose; a role left unset is filled automatically
+when it has exactly one candidate (two left candidates without a choice: DataError naming them).
+
+Time: the header stamp (integer nanoseconds) of each message. Frames are the left topic's
+messages; right and depth messages are matched to them by stamp within ``stereo_max_dt`` (a left
+frame without a partner is dropped with a warning naming the topic). Header stamps of each used
+topic must be strictly increasing (DataError naming the topic and the message otherwise).
+
+Calibration: ``DatasetConfig.calibration_file`` (calibration YAML) when given, else the first
+``sensor_msgs/CameraInfo`` message in the image topic's namespace (``/cam0/image_raw`` ->
+``/cam0/camera_info``, ``/cam/image_raw/compressed`` -> ``/cam/camera_info``; ``topics.left_info`` / ``topics.right_info`` choose), with
+``plumb_bob`` / ``rational_polynomial`` (``radtan``; all-zero coefficients: ``none``) or
+``equidistant`` distortion. A stereo pair's two camera_infos give its rectification as recorded
+(``R`` and ``P`` of both, ROS convention: ``P_right[0, 3] = -fx * baseline``), used as is instead of
+``cv2.stereoRectify``. Camera-to-IMU extrinsics: ``DatasetConfig.T_BC`` (or the calibration YAML's).
+
+Lazy reading: opening reads every used topic's messages once to index them (header stamp parsed
+from the raw bytes, nothing kept but ``(stamp, connection, log time, ordinal)``); a frame is read
+by a per-topic cursor over the bag (sequential reads never seek back; a backward jump restarts
+the cursor at that message's log time). IMU messages are read in full at open (small).
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import struct
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+from typing import Any, Iterator, Optional
+
+import numpy as np
+
+from ...errors import ConfigError, DataError
+from ..calibration import Calibration
+from ..frame import FrameReadError, FrameSizeError, ImuSamples
+from .common import Dataset, DatasetConfig, RawFrame, ns_to_seconds, truncation_reason
+
+logger = logging.getLogger(__name__)
+
+BAG_EXTRA = "bag"  # the pyproject optional extra that installs rosbags
+ROS1_SUFFIX = ".bag"
+ROS2_METADATA = "metadata.yaml"
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+IMU = "sensor_msgs/msg/Imu"
+COLOUR_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8", "rgba8", "bgra8", "8UC1", "8UC3")
+DEPTH_ENCODINGS = ("16UC1", "32FC1")
+DEPTH_MM_PER_M = 1000.0  # 16UC1 depth is in millimetres (REP 118)
+DEPTH_U16_INVALID = 65535  # besides 0 (saturated / no return), as the 7-Scenes folder loader
+COMPRESSED_SUFFIX = "/compressed"  # image_transport: <image topic>/compressed
+RIGHT_NAME_HINTS = ("right", "cam1")
+DEPTH_NAME_HINT = "depth"
+DISTORTION_MODELS = {"plumb_bob": "radtan", "rational_polynomial": "radtan", "equidistant": "equidistant",
+                     "fisheye": "equidistant"}
+RADTAN_BASE = 5  # k1 k2 p1 p2 k3; rational_polynomial adds k4 k5 k6 (OpenCV's rational model)
+ROLES = ("left", "right", "depth", "imu")
+
+
+def import_rosbags():
+    """The ``rosbags`` modules used here; DataError naming the extra when it is not installed."""
+    try:
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError as exc:
+        raise DataError(f"reading ROS bags needs the rosbags package: pip install 'fgslam[{BAG_EXTRA}]' "
+                        f"({exc})") from exc
+    return AnyReader, Stores, get_typestore
+
+
+def is_bag(path: Path) -> bool:
+    """A ROS 1 ``.bag`` file or a ROS 2 bag folder (holds ``metadata.yaml``)."""
+    return (path.is_file() and path.suffix == ROS1_SUFFIX) or (path.is_dir() and (path / ROS2_METADATA).is_file())
+
+
+def _reader_errors() -> tuple[type[BaseException], ...]:
+    import sqlite3
+
+    out: list[type[BaseException]] = [sqlite3.Error, struct.error, KeyError, ValueError, EOFError, OSError,
+                                      IndexError, AssertionError]
+    try:
+        from rosbags.highlevel import AnyReaderError
+        from rosbags.rosbag1 import ReaderError as Reader1Error
+        from rosbags.rosbag2 import ReaderError as Reader2Error
+        out += [AnyReaderError, Reader1Error, Reader2Error]
+    except ImportError:  # pragma: no cover - import_rosbags reports it first
+        pass
+    return tuple(out)
+
+
+def header_stamp_ns(raw: bytes | memoryview, ros2: bool) -> int:
+    """Header stamp (ns) of a serialized message that starts with ``std_msgs/Header``.
+
+    ROS 1: ``uint32 seq, uint32 sec, uint32 nsec``; ROS 2 (CDR): 4-byte encapsulation header (byte 1:
+    1 little-endian, 0 big-endian), then ``int32 sec, uint32 nanosec``.
+    """
+    if ros2:
+        endian = "<" if raw[1] == 1 else ">"
+        sec, nsec = struct.unpack_from(endian + "iI", raw, 4)
+    else:
+        sec, nsec = struct.unpack_from("<II", raw, 4)
+    return int(sec) * 1_000_000_000 + int(nsec)
+
+
+IMU_DOUBLES = 4 + 9 + 3 + 9 + 3  # orientation, its covariance, angular velocity, its covariance, linear acceleration
+GYRO_AT, ACCEL_AT = 13, 25  # index of angular_velocity.x / linear_acceleration.x among those doubles
+
+
+def imu_from_raw(raw: bytes | memoryview, ros2: bool) -> tuple[int, tuple[float, ...]]:
+    """``(stamp ns, (wx, wy, wz, ax, ay, az))`` of a serialized ``sensor_msgs/Imu`` without deserializing.
+
+    ROS 1: header (``seq, sec, nsec``, frame_id as uint32 length + bytes), then packed float64s. ROS 2
+    (CDR): after the 4-byte encapsulation header, ``sec, nanosec``, frame_id (uint32 length with
+    the NUL + bytes), then float64s aligned to 8 bytes (relative to the end of the encapsulation header).
+    """
+    endian = ("<" if raw[1] == 1 else ">") if ros2 else "<"
+    sec, nsec, n = struct.unpack_from(endian + "iII" if ros2 else "<III", raw, 4)  # ROS 1: after the uint32 seq
+    off = 16 + n
+    if ros2:
+        off += (-(off - 4)) % 8
+    values = struct.unpack_from(f"{endian}{IMU_DOUBLES}d", raw, off)
+    return int(sec) * 1_000_000_000 + int(nsec), values[GYRO_AT:GYRO_AT + 3] + values[ACCEL_AT:ACCEL_AT + 3]
+
+
+@dataclass
+class TopicIndex:
+    """The messages of one used topic: header stamps, log times and per-connection ordinals."""
+
+    topic: str
+    msgtype: str
+    connection: Any
+    stamps_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    log_ns: list[int] = field(default_factory=list)  # log time of each message, in reader order
+
+
+class _Cursor:
+    """Sequential reader of one connection's messages (restarted on a backward jump)."""
+
+    def __init__(self, reader: Any, index: TopicIndex) -> None:
+        self.reader, self.index = reader, index
+        self.gen: Optional[Iterator] = None
+        self.next_ordinal = 0
+
+    def read(self, ordinal: int) -> bytes:
+        if self.gen is None or ordinal < self.next_ordinal:
+            start = self.index.log_ns[ordinal]
+            self.gen = self.reader.messages(connections=[self.index.connection], start=start)
+            self.next_ordinal = bisect.bisect_left(self.index.log_ns, start)
+        for _, _, raw in self.gen:
+            current = self.next_ordinal
+            self.next_ordinal += 1
+            if current == ordinal:
+                return raw
+        self.gen = None
+        raise FrameReadError(f"{self.index.topic}: message {ordinal} missing from the bag (truncated?)")
+
+
+def image_from_message(msg: Any, msgtype: str, topic: str, depth: bool) -> np.ndarray:
+    """OpenCV image (uint8/uint16 grey or BGR) or float32 depth (metres) of an Image / CompressedImage."""
+    import cv2
+
+    if msgtype == COMPRESSED:
+        fmt = str(msg.format)
+        data = bytes(np.asarray(msg.data, dtype=np.uint8))
+        if "compressedDepth" in fmt:
+            raise FrameReadError(f"{topic}: unsupported CompressedImage format {fmt!r} (compressedDepth)")
+        reason = truncation_reason(data)
+        if reason is not None:
+            raise FrameReadError(f"{topic}: {reason}")
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+        if img is None or img.size == 0:
+            raise FrameReadError(f"{topic}: CompressedImage ({fmt!r}) not decodable")
+        if depth:
+            if img.dtype != np.uint16 or img.ndim != 2:
+                raise FrameReadError(f"{topic}: compressed depth must decode to 16-bit single-channel, got {img.dtype} {img.shape}")
+            return _depth_u16(img)
+        return img
+    enc, h, w, step = str(msg.encoding), int(msg.height), int(msg.width), int(msg.step)
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if enc not in COLOUR_ENCODINGS + DEPTH_ENCODINGS:
+        raise FrameReadError(f"{topic}: unknown image encoding {enc!r} (supported: "
+                             f"{', '.join(COLOUR_ENCODINGS + DEPTH_ENCODINGS)})")
+    if depth != (enc in DEPTH_ENCODINGS):
+        raise FrameReadError(f"{topic}: encoding {enc!r} is not a {'depth' if depth else 'colour or grey'} encoding")
+    channels = {"rgb8": 3, "bgr8": 3, "8UC3": 3, "rgba8": 4, "bgra8": 4}.get(enc, 1)
+    itemsize = 2 if enc in ("mono16", "16UC1") else 4 if enc == "32FC1" else 1
+    if h <= 0 or w <= 0 or step < w * channels * itemsize or data.size < step * h:
+        raise FrameReadError(f"{topic}: Image of {w}x{h} ({enc}) with step {step} holds {data.size} bytes "
+                             f"(needs {step * h})")
+    rows = data[: step * h].reshape(h, step)[:, : w * channels * itemsize]
+    if itemsize > 1:
+        dtype = np.dtype({2: np.uint16, 4: np.float32}[itemsize]).newbyteorder(">" if msg.is_bigendian else "<")
+        rows = np.ascontiguousarray(rows).view(dtype).astype(dtype.newbyteorder("="))
+    img = rows.reshape(h, w, channels) if channels > 1 else rows.reshape(h, w)
+    if enc == "rgb8":
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    elif enc == "rgba8":
+        img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGR)
+    elif enc == "bgra8":
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    if enc == "16UC1":
+        return _depth_u16(img)
+    if enc == "32FC1":
+        return img.astype(np.float32)
+    return np.ascontiguousarray(img)
+
+
+def _depth_u16(img: np.ndarray) -> np.ndarray:
+    depth = img.astype(np.float32) / np.float32(DEPTH_MM_PER_M)
+    depth[img == DEPTH_U16_INVALID] = 0.0
+    return depth
+
+
+def calibration_from_camera_info(msg: Any, topic: str) -> Calibration:
+    """Raw calibration (no extrinsics) of one CameraInfo message."""
+    model = DISTORTION_MODELS.get(str(msg.distortion_model))
+    D = np.asarray(msg.D if hasattr(msg, "D") else msg.d, dtype=np.float64).reshape(-1)
+    K = np.asarray(msg.K if hasattr(msg, "K") else msg.k, dtype=np.float64).reshape(-1)
+    if model is None and not (D.size == 0 or not np.any(D)):
+        raise DataError(f"{topic}: CameraInfo distortion_model {msg.distortion_model!r} not supported "
+                        f"(plumb_bob, rational_polynomial, equidistant); give dataset.calibration_file")
+    if K.size != 9 or K[0] <= 0 or K[4] <= 0:
+        raise DataError(f"{topic}: CameraInfo K is not a calibrated camera matrix ({K.tolist()}); "
+                        "give dataset.calibration_file")
+    if not np.any(D):
+        model, D = "none", np.zeros(0)
+    elif model == "radtan":
+        if D.size > RADTAN_BASE and np.any(D[RADTAN_BASE:]):
+            raise DataError(f"{topic}: rational_polynomial with non-zero k4..k6 ({D.tolist()}) is not supported; "
+                            "give dataset.calibration_file")
+        D = D[:RADTAN_BASE]
+        if D.size == RADTAN_BASE and D[4] == 0:  # plumb_bob with k3 = 0 is the 4-coefficient model
+            D = D[:4]
+    return Calibration(int(msg.width), int(msg.height), [K[0], K[4], K[2], K[5]], model, D)
+
+
+def _rect(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    R = np.asarray(msg.R if hasattr(msg, "R") else msg.r, dtype=np.float64).reshape(3, 3)
+    P = np.asarray(msg.P if hasattr(msg, "P") else msg.p, dtype=np.float64).reshape(3, 4)
+    return R, P
+
+
+class RosbagDataset(Dataset):
+    """A ROS 1 or ROS 2 bag (see the module docstring)."""
+
+    format = "rosbag"
+
+    def __init__(self, root: Path, config: Optional[DatasetConfig] = None) -> None:
+        super().__init__(root, config)
+        config = self.config
+        self.name = self.root.stem if self.root.is_file() else self.root.name
+        self._ros2 = not self.root.is_file()
+        self._typestore = self._make_typestore()
+        self._lock = threading.Lock()
+        self._reader: Any = None
+        self._cursors: dict[str, _Cursor] = {}
+        with self._guard("cannot open the bag"):
+            reader = self._open_reader()
+            self.topic_counts = {c.topic: 0 for c in reader.connections}
+            for c in reader.connections:
+                self.topic_counts[c.topic] += c.msgcount
+            self.topic_types = {c.topic: c.msgtype for c in reader.connections}
+            self.duration_s = reader.duration / 1e9 if reader.message_count else 0.0
+            self.roles = self._choose_topics(reader)
+            self._indices_by_role = {role: self._index_topic(reader, topic) for role, topic in self.roles.items()
+                                     if role != "imu"}
+            if "imu" in self.roles and config.load_imu:
+                self.imu = self._read_imu(reader, self.roles["imu"])
+        self._frame_ordinals = self._match_frames()
+        self.raw_timestamps = ns_to_seconds(self._frame_stamps)
+        self._has_stereo = "right" in self.roles
+        self._has_depth = "depth" in self.roles
+        self.raw_calibration = self._calibration()
+        self._check_first_images()
+        self._setup()
+
+    # ------------------------------------------------------------ reader plumbing
+    def _open_reader(self) -> Any:
+        if self._reader is None:
+            AnyReader, _, _ = import_rosbags()
+            reader = AnyReader([self.root], default_typestore=self._typestore)
+            reader.open()
+            self._reader = reader
+        return self._reader
+
+    def _guard(self, what: str, topic: Optional[str] = None, error: type = DataError):
+        dataset = self
+
+        class Guard:
+            def __enter__(self):
+                return self
+
+            def __exit__(self, exc_type, exc, tb):
+                if exc is None or isinstance(exc, (DataError, ConfigError)):
+                    return False
+                if isinstance(exc, _reader_errors()):
+                    where = f"{dataset.root}" + (f" topic {topic}" if topic else "")
+                    raise error(f"{where}: {what}: {type(exc).__name__}: {exc} (truncated or corrupt bag?)") from exc
+                return False
+
+        return Guard()
+
+    def _make_typestore(self) -> Any:
+        """Message types for bags without embedded definitions (ROS 2 Humble / ROS 1 Noetic)."""
+        _, Stores, get_typestore = import_rosbags()
+        return get_typestore(Stores.ROS2_HUMBLE if self._ros2 else Stores.ROS1_NOETIC)
+
+    def __getstate__(self) -> dict:
+        """Picklable: the open reader, cursors, lock and typestore are made again after unpickling."""
+        state = dict(self.__dict__)
+        state["_reader"], state["_cursors"], state["_lock"], state["_typestore"] = None, {}, None, None
+        state["_indices_by_role"] = {role: TopicIndex(ix.topic, ix.msgtype, None, ix.stamps_ns, ix.log_ns)
+                                     for role, ix in self._indices_by_role.items()}
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+        self._typestore = self._make_typestore()
+        reader = self._open_reader()
+        for index in self._indices_by_role.values():
+            index.connection = next(c for c in reader.connections if c.topic == index.topic)
+
+    def _deserialize(self, raw: bytes, msgtype: str) -> Any:
+        if self._ros2:
+            return self._typestore.deserialize_cdr(raw, msgtype)
+        return self._typestore.deserialize_ros1(raw, msgtype)
+
+    def _first_message(self, reader: Any, topic: str) -> Any:
+        conns = [c for c in reader.connections if c.topic == topic]
+        for conn, _, raw in reader.messages(connections=conns):
+            return self._deserialize(raw, conn.msgtype)
+        raise DataError(f"{self.root}: topic {topic} has no messages")
+
+    # ------------------------------------------------------------ topics
+    def _choose_topics(self, reader: Any) -> dict[str, str]:
+        cfg = self.config.topics
+        types = self.topic_types
+        images = sorted(t for t, ty in types.items() if ty in (IMAGE, COMPRESSED) and self.topic_counts[t])
+        listing = ", ".join(f"{t} ({ty})" for t, ty in sorted(types.items())) or "none"
+        for role in ROLES + ("left_info", "right_info"):
+            chosen = getattr(cfg, role)
+            if chosen is None:
+                continue
+            if chosen not in types:
+                raise DataError(f"{self.root}: dataset.topics.{role}={chosen} is not a topic of the bag (topics: {listing})")
+            want = (IMU,) if role == "imu" else (CAMERA_INFO,) if role.endswith("_info") else (IMAGE, COMPRESSED)
+            if types[chosen] not in want:
+                raise DataError(f"{self.root}: dataset.topics.{role}={chosen} is a {types[chosen]}, not a {' or '.join(want)}")
+        if not images:
+            raise DataError(f"{self.root}: no image topics (sensor_msgs/Image or CompressedImage) in the bag; "
+                            f"topics: {listing}")
+        depth_cands, right_cands, left_cands = [], [], []
+        self.depth_topics: set[str] = set()
+        for topic in images:
+            if self._is_depth_topic(reader, topic):
+                depth_cands.append(topic)
+                self.depth_topics.add(topic)
+            elif any(h in topic.lower() for h in RIGHT_NAME_HINTS):
+                right_cands.append(topic)
+            else:
+                left_cands.append(topic)
+        imu_cands = sorted(t for t, ty in types.items() if ty == IMU and self.topic_counts[t])
+        roles: dict[str, str] = {}
+        for role, cands in (("left", left_cands), ("right", right_cands), ("depth", depth_cands), ("imu", imu_cands)):
+            chosen = getattr(cfg, role)
+            if chosen is not None:
+                roles[role] = chosen
+            elif len(cands) == 1:
+                roles[role] = cands[0]
+            elif len(cands) > 1 and role == "left":
+                raise DataError(f"{self.root}: {len(cands)} candidate topics for the left images ({', '.join(cands)}); "
+                                f"choose one with dataset.topics.left")
+            elif len(cands) > 1:
+                logger.warning("%s: %d candidate topics for the %s role (%s) and no dataset.topics.%s: %s not used",
+                               self.root, len(cands), role, ", ".join(cands), role, role)
+        if "left" not in roles:
+            raise DataError(f"{self.root}: no colour or grey image topic for the left images (image topics: "
+                            f"{', '.join(images)}); choose one with dataset.topics.left")
+        if roles.get("right") == roles["left"] or roles.get("depth") == roles["left"]:
+            raise DataError(f"{self.root}: topic {roles['left']} chosen for two roles")
+        if not self.config.load_right:
+            roles.pop("right", None)
+        if not self.config.load_depth:
+            roles.pop("depth", None)
+        return roles
+
+    def _is_depth_topic(self, reader: Any, topic: str) -> bool:
+        if self.config.topics.depth == topic:
+            return True
+        if topic in (self.config.topics.left, self.config.topics.right):
+            return False
+        if self.topic_types[topic] == COMPRESSED:
+            return DEPTH_NAME_HINT in topic.lower()
+        return str(self._first_message(reader, topic).encoding) in DEPTH_ENCODINGS
+
+    def _index_topic(self, reader: Any, topic: str) -> TopicIndex:
+        conns = [c for c in reader.connections if c.topic == topic]
+        if len(conns) != 1:
+            raise DataError(f"{self.root}: topic {topic} has {len(conns)} connections (one expected)")
+        index = TopicIndex(topic, conns[0].msgtype, conns[0])
+        stamps = []
+        with self._guard("cannot index the messages", topic):
+            for _, log_ns, raw in reader.messages(connections=conns):
+                stamps.append(header_stamp_ns(raw, self._ros2))
+                index.log_ns.append(int(log_ns))
+        index.stamps_ns = np.asarray(stamps, dtype=np.int64)
+        if index.stamps_ns.size == 0:
+            raise DataError(f"{self.root}: topic {topic} has no messages")
+        _check_increasing(self.root, topic, index.stamps_ns)
+        return index
+
+    def _read_imu(self, reader: Any, topic: str) -> ImuSamples:
+        conns = [c for c in reader.connections if c.topic == topic]
+        stamps, values = [], []
+        with self._guard("cannot read the IMU messages", topic):
+            for conn, _, raw in reader.messages(connections=conns):
+                if not stamps:  # the raw layout agrees with the deserializer (else: the message type differs)
+                    m = self._deserialize(raw, conn.msgtype)
+                    w, a = m.angular_velocity, m.linear_acceleration
+                    expected = (m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec,
+                                (w.x, w.y, w.z, a.x, a.y, a.z))
+                    if imu_from_raw(raw, self._ros2) != expected:
+                        raise DataError(f"{self.root}: topic {topic}: IMU message layout not understood")
+                stamp, vals = imu_from_raw(raw, self._ros2)
+                stamps.append(stamp)
+                values.append(vals)
+        ts = np.asarray(stamps, dtype=np.int64)
+        _check_increasing(self.root, topic, ts)
+        vals = np.asarray(values, dtype=np.float64).reshape(-1, 6)
+        if not np.all(np.isfinite(vals)):
+            bad = int(np.flatnonzero(~np.isfinite(vals).all(1))[0])
+            raise DataError(f"{self.root}: topic {topic}: non-finite IMU value in message {bad}")
+        return ImuSamples(ns_to_seconds(ts), vals[:, :3].copy(), vals[:, 3:].copy())
+
+    def _match_frames(self) -> dict[str, np.ndarray]:
+        """Ordinal per used frame of each image role; drops left frames without partner (warning)."""
+        left = self._indices_by_role["left"]
+        keep = np.ones(left.stamps_ns.size, dtype=bool)
+        partners = {}
+        max_dt_ns = int(round(self.config.stereo_max_dt * 1e9))
+        for role in ("right", "depth"):
+            if role not in self._indices_by_role:
+                continue
+            other = self._indices_by_role[role].stamps_ns
+            j = np.clip(np.searchsorted(other, left.stamps_ns), 0, other.size - 1)
+            lo = np.clip(j - 1, 0, other.size - 1)
+            best = np.where(np.abs(other[lo] - left.stamps_ns) < np.abs(other[j] - left.stamps_ns), lo, j)
+            ok = np.abs(other[best] - left.stamps_ns) <= max_dt_ns
+            if not np.all(ok):
+                logger.warning("%s: %d of %d frames of %s have no %s message on %s within %g s: dropped",
+                               self.root, int((~ok).sum()), ok.size, left.topic, role,
+                               self._indices_by_role[role].topic, self.config.stereo_max_dt)
+            keep &= ok
+            partners[role] = best
+        if not np.any(keep):
+            raise DataError(f"{self.root}: no frame of {left.topic} has all its partner messages "
+                            f"({', '.join(self._indices_by_role[r].topic for r in partners)})")
+        self._frame_stamps = left.stamps_ns[keep]
+        out = {"left": np.flatnonzero(keep)}
+        out.update({role: best[keep] for role, best in partners.items()})
+        return out
+
+    # ------------------------------------------------------------ calibration
+    def _info_topic(self, role: str) -> Optional[str]:
+        chosen = getattr(self.config.topics, f"{role}_info")
+        if chosen is not None:
+            return chosen
+        topic = self.roles[role]
+        base = topic[: -len(COMPRESSED_SUFFIX)] if topic.endswith(COMPRESSED_SUFFIX) else topic
+        namespace = PurePosixPath(base).parent
+        cands = [t for t, ty in self.topic_types.items()
+                 if ty == CAMERA_INFO and PurePosixPath(t).parent == namespace and self.topic_counts[t]]
+        if len(cands) > 1:
+            raise DataError(f"{self.root}: {len(cands)} CameraInfo topics for {self.roles[role]} ({', '.join(cands)}); "
+                            f"choose one with dataset.topics.{role}_info")
+        return cands[0] if cands else None
+
+    def _calibration(self) -> Calibration:
+        cfg = self.config
+        if cfg.calibration_file:
+            calib = Calibration.from_yaml(cfg.calibration_file)
+            self.calibration_source = cfg.calibration_file
+        else:
+            info_topic = self._info_topic("left")
+            if info_topic is None:
+                raise DataError(f"{self.root}: no CameraInfo topic for {self.roles['left']} (looked in its namespace "
+                                f"{PurePosixPath(self.roles['left']).parent}); set dataset.topics.left_info or give "
+                                "a calibration YAML with dataset.calibration_file")
+            with self._guard("cannot read the CameraInfo", info_topic):
+                left_msg = self._first_message(self._open_reader(), info_topic)
+            calib = calibration_from_camera_info(left_msg, info_topic)
+            self.calibration_source = f"{self.root} topic {info_topic}"
+            if "right" in self.roles:
+                right_topic = self._info_topic("right")
+                if right_topic is None:
+                    raise DataError(f"{self.root}: no CameraInfo topic for the right images {self.roles['right']}; set "
+                                    "dataset.topics.right_info or give dataset.calibration_file")
+                with self._guard("cannot read the CameraInfo", right_topic):
+                    right_msg = self._first_message(self._open_reader(), right_topic)
+                calib.right = calibration_from_camera_info(right_msg, right_topic)
+                (R1, P1), (R2, P2) = _rect(left_msg), _rect(right_msg)
+                if P2[0, 0] <= 0 or P2[0, 3] == 0:
+                    raise DataError(f"{right_topic}: CameraInfo P has no baseline (P[0,3] = {P2[0, 3]}); a stereo pair "
+                                    "needs rectified camera_infos or dataset.calibration_file")
+                baseline = -P2[0, 3] / P2[0, 0]
+                T_CLCR = np.eye(4)  # X_CL = R1^T (R2 X_CR + [b, 0, 0])
+                T_CLCR[:3, :3] = R1.T @ R2
+                T_CLCR[:3, 3] = R1.T @ np.array([baseline, 0.0, 0.0])
+                calib.T_CLCR = T_CLCR
+                self.stereo_rectification = (R1, R2, P1[:, :3].copy(), P2)
+                self.calibration_source += f" + {right_topic}"
+        if cfg.T_BC is not None:
+            calib.T_BC = np.asarray(cfg.T_BC, dtype=np.float64).reshape(4, 4)
+        return calib.validate(self.calibration_source)
+
+    def _check_first_images(self) -> None:
+        """DataError naming the topic when the first image's size or encoding does not fit."""
+        calib = self.raw_calibration
+        for role in ("left", "right", "depth"):
+            if role not in self.roles:
+                continue
+            cam = calib.right if role == "right" and calib.right is not None else calib
+            try:
+                img = self._read_role(role, int(self._frame_ordinals[role][0]))
+            except FrameReadError as exc:
+                raise DataError(f"{self.root}: {exc}") from exc
+            h, w = img.shape[:2]
+            if (w, h) != (cam.width, cam.height):
+                raise DataError(f"{self.root}: images of topic {self.roles[role]} are {w}x{h} but the calibration "
+                                f"({self.calibration_source}) is for {cam.width}x{cam.height}")
+
+    # ------------------------------------------------------------ frames
+    def _read_role(self, role: str, ordinal: int) -> np.ndarray:
+        index = self._indices_by_role[role]
+        with self._lock:
+            with self._guard("cannot read a message", index.topic, FrameReadError):
+                cursor = self._cursors.get(role)
+                if cursor is None or cursor.reader is not self._open_reader():
+                    cursor = self._cursors[role] = _Cursor(self._open_reader(), index)
+                raw = cursor.read(ordinal)
+                msg = self._deserialize(raw, index.msgtype)
+        img = image_from_message(msg, index.msgtype, index.topic, depth=role == "depth")
+        stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+        if stamp != int(index.stamps_ns[ordinal]):
+            raise FrameReadError(f"{index.topic}: message {ordinal} has stamp {stamp}, indexed {index.stamps_ns[ordinal]}")
+        return img
+
+    def _read_sized(self, role: str, raw_index: int) -> np.ndarray:
+        """The role's image of a raw frame; FrameSizeError naming the topic when its size is not the calibration's."""
+        ordinal = int(self._frame_ordinals[role][raw_index])
+        img = self._read_role(role, ordinal)
+        cam = self.raw_calibration.right if role == "right" and self.raw_calibration.right is not None else self.raw_calibration
+        h, w = img.shape[:2]
+        if (w, h) != (cam.width, cam.height):
+            raise FrameSizeError(f"{self.roles[role]}: message {ordinal} is {w}x{h}, expected {cam.width}x{cam.height} "
+                                 f"(the calibration's size, {self.calibration_source})")
+        return img
+
+    def _read_raw(self, raw_index: int) -> RawFrame:
+        image = self._read_sized("left", raw_index)
+        right = depth = None
+        if "right" in self.roles and self.config.load_right:
+            right = self._read_sized("right", raw_index)
+            if right.ndim == 3:
+                import cv2
+
+                right = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
+        if "depth" in self.roles and self.config.load_depth:
+            depth = self._read_sized("depth", raw_index)
+        return RawFrame(image, None, right, depth)
+
+    # ------------------------------------------------------------ info
+    def topic_table(self) -> list[dict]:
+        """Image, depth, IMU and CameraInfo topics with message counts and rates (Hz): from the header
+        stamps of the topics in use, from the log times of the others (read once for this)."""
+        used = {topic: role for role, topic in self.roles.items()}
+        out = []
+        for topic, msgtype in sorted(self.topic_types.items()):
+            if msgtype not in (IMAGE, COMPRESSED, IMU, CAMERA_INFO):
+                continue
+            kind = ("imu" if msgtype == IMU else "camera_info" if msgtype == CAMERA_INFO
+                    else "depth" if topic in self.depth_topics else "image")
+            count = self.topic_counts[topic]
+            index = self._indices_by_role.get(used.get(topic, ""))
+            if index is not None and index.stamps_ns.size > 1:
+                rate = (index.stamps_ns.size - 1) / ((index.stamps_ns[-1] - index.stamps_ns[0]) / 1e9)
+            elif used.get(topic) == "imu" and self.imu is not None and len(self.imu) > 1:
+                rate = (len(self.imu) - 1) / float(self.imu.timestamps[-1] - self.imu.timestamps[0])
+            else:
+                rate = self._log_rate(topic)
+            out.append({"topic": topic, "type": msgtype, "kind": kind, "role": used.get(topic),
+                        "messages": count, "rate_hz": round(float(rate), 3)})
+        return out
+
+    def _log_rate(self, topic: str) -> float:
+        """Messages per second of a topic not indexed at open, from its log times (reads the topic once)."""
+        with self._lock, self._guard("cannot read the messages", topic):
+            reader = self._open_reader()
+            conns = [c for c in reader.connections if c.topic == topic]
+            times = [log_ns for _, log_ns, _ in reader.messages(connections=conns)]
+        span = (max(times) - min(times)) / 1e9 if len(times) > 1 else 0.0
+        return (len(times) - 1) / span if span > 0 else 0.0
+
+    def summary(self) -> dict:
+        out = super().summary()
+        out["topics"] = self.topic_table()
+        out["ros_version"] = 2 if self._ros2 else 1
+        return out
+
+
+def _check_increasing(root: Path, topic: str, stamps_ns: np.ndarray) -> None:
+    if stamps_ns.size > 1:
+        bad = np.flatnonzero(np.diff(stamps_ns) <= 0)
+        if bad.size:
+            i = int(bad[0]) + 1
+            raise DataError(f"{root}: topic {topic}: header stamp of message {i} ({stamps_ns[i]} ns) is not after the "
+                            f"previous one ({stamps_ns[i - 1]} ns); stamps must be strictly increasing")
