@@ -350,6 +350,9 @@ def finalize_run(
     _write_keyframe_depths(frontend, config, out, outputs, output_errors, notes)
     if config.output.write_map and traj is not None:  # no pose, no map (and no note that would blame the frontend)
         _write_map(out / MAP_FILE, dataset, frontend, config, state, outputs, output_errors, notes)
+    if config.output.save_map and traj is not None:
+        _save_stored_map(Path(config.output.save_map), dataset, frontend, config, state, result, outputs,
+                         output_errors, notes)
     if config.output.plot and traj is not None:
         _write_output("plot", [out / PLOT_FILE], lambda: _plot(out / PLOT_FILE, gt, traj, result, config),
                       outputs, output_errors)
@@ -457,6 +460,33 @@ def _write_map(path: Path, dataset: Dataset, frontend: Frontend, config: SlamCon
                      dataset.timestamps[indices] if indices.size else np.zeros(0), indices,
                      [state.frame_paths[int(i)] for i in indices], config.sensor)
     _write_output("map", [path], lambda: save_run_map(path, run_map), outputs, output_errors)
+
+
+def _save_stored_map(path: Path, dataset: Dataset, frontend: Frontend, config: SlamConfig, state: RunState,
+                     result: Optional[EvalResult], outputs: dict[str, str], output_errors: dict[str, str],
+                     notes: list[str]) -> None:
+    """``--save-map``: the stored map of :mod:`fgslam.export.mapfile` (keyframes, structure, features,
+    retrieval database, calibration, config and the run's alignment to its ground truth)."""
+    from .export.mapfile import build_stored_map, save_stored_map
+
+    try:
+        exported = frontend.map_export()
+    except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+        output_errors["stored_map"] = f"{path}: map_export() failed: {type(exc).__name__}: {exc}"
+        return
+    if exported is None or exported.num_keyframes == 0:
+        notes.append(f"frontend '{frontend.name}' exports no keyframes: no stored map written to {path}")
+        return
+    alignment = None if result is None else {"align": result.align, "matrix": result.alignment.matrix().tolist()}
+
+    def write() -> Path:
+        stored = build_stored_map(
+            exported, dataset, sensor=config.sensor, family=frontend.name, config=to_dict(config),
+            features=config.output.map_features, verification=config.loop_closure.verification,
+            groundtruth_alignment=alignment, frame_indices=np.array(sorted(state.frame_paths), dtype=np.int64))
+        return save_stored_map(path, stored)
+
+    _write_output("stored_map", [path], write, outputs, output_errors)
 
 
 def _write_output(kind: str, paths: list[Path], write: Callable[[], Any], outputs: dict[str, str],

@@ -37,12 +37,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="log frames, poses, keyframe points and loop edges to a rerun file (or 'live': a running "
                              "viewer); needs the optional extra fgslam[rerun]")
     parser.add_argument("--json", action="store_true", help="print the run summary as one JSON object")
+    parser.add_argument("--save-map", metavar="MAP", default=None,
+                        help="also save the map (keyframes, structure, features, retrieval database, calibration, "
+                             "config) to this file, for `fgslam localize` (fgslam/export/mapfile.py)")
 
 
 def run(args: argparse.Namespace) -> int:
     from ..slam import clear_previous_outputs, load_slam_config, open_slam_dataset, prepare_output_dir, run_slam
 
-    config = load_slam_config(args.config, args.overrides)
+    overrides = list(args.overrides)
+    if args.save_map:
+        from pathlib import Path
+
+        from ..errors import ConfigError
+
+        if not Path(args.save_map).resolve().parent.is_dir():
+            raise ConfigError(f"--save-map {args.save_map}: its folder does not exist")
+        overrides.append(f"output.save_map={args.save_map}")
+    config = load_slam_config(args.config, overrides)
     if args.rerun:
         from ..export.rerun import check_rerun_target
 
