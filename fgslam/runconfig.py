@@ -33,6 +33,7 @@ class OutputConfig:
     write_depth: bool = False  # write depth/<kf:06d>.png per keyframe (16-bit, millimetres; frontends with keyframe_depths(): dense)
     write_map: bool = True  # write map.npz (keyframes, points, tracks, calibration, frames) for `fgslam export`
     save_map: Optional[str] = None  # also write a stored map here (`fgslam run --save-map MAP`; fgslam/export/mapfile.py)
+    extend_map: Optional[str] = None  # the stored map this recording continues (`fgslam run --map MAP`; merged when localised in it)
     map_features: MapFeaturesConfig = field(default_factory=MapFeaturesConfig)  # keyframe features of a stored map
     rerun: RerunConfig = field(default_factory=RerunConfig)  # what `fgslam run --rerun out.rrd` logs (fgslam/export/rerun.py)
 

@@ -235,3 +235,49 @@ def test_localize_7scenes_kitchen(shared_data, tmp_path, capsys):
     ev = s["evaluation"]
     assert s["frames"] == 46 and s["localised"] == 46
     assert ev["ate_rmse_m"] < 0.05 and ev["ate_rmse_m"] < 0.3 * ev["stationary_ate_rmse_m"]
+
+
+# ----------------------------------------------------------------------------------- extend
+
+def _ate_with(A: np.ndarray, traj_file: Path, gt_root: Path) -> float:
+    """RMSE of a trajectory's positions moved by the 4x4 ``A`` against the ground truth of ``gt_root``."""
+    from fgslam.io.datasets import open_dataset
+    from fgslam.io.trajectory import read_trajectory
+
+    gt = open_dataset(gt_root).groundtruth
+    est = read_trajectory(traj_file, "tum")
+    by_time = {round(float(t), 6): T for t, T in zip(gt.timestamps, gt.T_WC)}
+    G = np.stack([by_time[round(float(t), 6)][:3, 3] for t in est.timestamps])
+    P = est.T_WC[:, :3, 3] @ A[:3, :3].T + A[:3, 3]
+    return float(np.sqrt(np.mean(np.sum((P - G) ** 2, axis=1))))
+
+
+def test_run_with_map_merges_the_recording(room_map, tmp_path):
+    """``fgslam run --map``: the second path's recording is merged into the stored room; its frames in
+    the map's frame, with the map run's alignment unchanged, lie on the ground truth (unmerged, in the
+    recording's own frame, they do not), and the merged map saves and reloads identically."""
+    stored_path, roots, _ = room_map
+    out, merged_path = tmp_path / "ext", tmp_path / "merged.fgmap"
+    assert main(["run", "patch_rgbd", "--data", str(roots["other_path"]), "--out", str(out), "--no-progress",
+                 "--map", str(stored_path), "--save-map", str(merged_path)]) == 0
+    merge = json.loads((out / "merge.json").read_text())
+    assert merge["merged"] and merge["consistent_keyframes"] >= 3
+    stored, merged = load_stored_map(stored_path), load_stored_map(merged_path)
+    recording_kf = json.loads((out / "summary.json").read_text())["keyframes"]
+    assert merged.num_keyframes == stored.num_keyframes + recording_kf and merged.meta["recordings"] == 2
+    np.testing.assert_array_equal(merged.T_WC[:stored.num_keyframes], stored.T_WC)  # the stored map is kept
+    A = np.asarray(stored.meta["groundtruth_alignment"]["matrix"])
+    in_map = _ate_with(A, out / "merged_trajectory_tum.txt", roots["other_path"])
+    unmerged = _ate_with(A, out / "trajectory_tum.txt", roots["other_path"])
+    assert in_map < 0.05 and in_map < 0.2 * unmerged
+    save_stored_map(tmp_path / "again.fgmap", merged)
+    assert (tmp_path / "again.fgmap").read_bytes() == merged_path.read_bytes()
+
+
+def test_a_recording_that_does_not_localise_is_not_merged(room_map):
+    from fgslam.localize import merge_recording
+
+    stored = load_stored_map(room_map[0])
+    recording = toy_map(6, n_feat=300, seed=4)  # random descriptors: nothing of it is in the room
+    recording.meta["features"] = stored.meta["features"]
+    assert merge_recording(stored, recording) is None
