@@ -193,6 +193,10 @@ def test_localize_the_same_room_on_another_path(room_map, tmp_path, capsys):
     rows = list(csv.DictReader(open(out / "localization.csv")))
     assert len(rows) == 32 and sum(r["status"] != "not_localised" for r in rows) == s["localised"]
     assert len(np.loadtxt(out / "trajectory_tum.txt", ndmin=2)) == s["localised"]
+    again = tmp_path / "again"  # reproducible: the same map and sequence give the same bytes
+    assert main(["localize", str(stored), "--data", str(roots["other_path"]), "--out", str(again)]) == 0
+    for name in ("trajectory_tum.txt", "localization.csv"):
+        assert (again / name).read_bytes() == (out / name).read_bytes()
 
 
 def test_a_room_never_seen_localises_no_frame(room_map, tmp_path, capsys):

@@ -125,8 +125,7 @@ class StoredMap:
 
     def __post_init__(self) -> None:
         for name, (dtype, tail) in ARRAYS.items():
-            arr = np.ascontiguousarray(getattr(self, name), dtype=dtype)
-            setattr(self, name, arr.reshape((-1, *tail)) if arr.size or tail else arr.reshape((0, *tail)))
+            setattr(self, name, np.ascontiguousarray(getattr(self, name), dtype=dtype).reshape((-1, *tail)))
 
     @property
     def num_keyframes(self) -> int:
@@ -341,7 +340,7 @@ def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, 
         np.full(len(kf_ids), -1, np.int64)
     feats: list[KeyframeFeatures] = []
     X_list: list[np.ndarray] = []
-    for k, fi in enumerate(kf_frame):
+    for fi in kf_frame:
         frame = dataset[int(fi)]
         f = recognizer.describe(feature_image(frame.image, w_feat, h_feat))
         feats.append(f)
@@ -362,7 +361,10 @@ def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, 
                 X_list[k] = X_tri
     counts = np.array([len(f.uv) for f in feats], np.int64)
     bow_counts = np.array([len(f.bow.words) for f in feats], np.int64)
-    cat = (lambda arrays, shape, dtype: np.concatenate(arrays).astype(dtype) if arrays else np.zeros(shape, dtype))
+
+    def cat(arrays: list[np.ndarray], empty_shape: tuple[int, ...], dtype) -> np.ndarray:
+        return np.concatenate(arrays).astype(dtype) if arrays else np.zeros(empty_shape, dtype)
+
     orb = features.bow.orb
     meta = {
         "family": family,
