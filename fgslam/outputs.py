@@ -497,8 +497,13 @@ def _save_stored_map(out: Path, traj: Trajectory, dataset: Dataset, frontend: Fr
         from .io.trajectory import Trajectory
         from .localize import combine_maps, merge_recording, rigid_in_map
 
-        stored = load_stored_map(config.output.extend_map)
-        merge = merge_recording(stored, recording, metric=config.sensor != "mono")
+        try:
+            stored = load_stored_map(config.output.extend_map)
+            merge = merge_recording(stored, recording, metric=config.sensor != "mono")
+        except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+            output_errors["merge"] = f"--map {config.output.extend_map}: {type(exc).__name__}: {exc}"
+            logger.error("could not merge the recording into %s: %s", config.output.extend_map, exc)
+            return
         info = {"map": config.output.extend_map, "merged": merge is not None,
                 **({} if merge is None else merge.to_dict())}
         if merge is None:
@@ -515,8 +520,13 @@ def _save_stored_map(out: Path, traj: Trajectory, dataset: Dataset, frontend: Fr
         _write_output("merge", [merge_path],
                       lambda: merge_path.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8"),
                       outputs, output_errors)
-    if save_path is not None:
-        _write_output("stored_map", [save_path], lambda: save_stored_map(save_path, to_save), outputs, output_errors)
+    if save_path is not None:  # written atomically: a failure leaves an earlier file at that path as it was
+        try:
+            save_stored_map(save_path, to_save)
+            outputs["stored_map"] = str(save_path)
+        except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+            output_errors["stored_map"] = f"{save_path}: {type(exc).__name__}: {exc}"
+            logger.error("could not write the stored map %s: %s", save_path, exc)
 
 
 def _write_output(kind: str, paths: list[Path], write: Callable[[], Any], outputs: dict[str, str],
