@@ -17,7 +17,7 @@ from . import __version__
 from .errors import FGSlamError
 
 #: Subcommands in the order ``fgslam --help`` lists them.
-COMMANDS: tuple[str, ...] = ("run", "demo", "synth", "info", "eval", "pgo", "export", "compare-colmap", "batch")
+COMMANDS: tuple[str, ...] = ("run", "localize", "demo", "synth", "info", "eval", "pgo", "export", "compare-colmap", "batch")
 
 _LOG_FORMAT = "%(asctime)s %(levelname).1s %(name)s: %(message)s"
 

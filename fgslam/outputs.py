@@ -50,6 +50,8 @@ PLY_FILE = "points.ply"
 
 
 MAP_FILE = "map.npz"  # fgslam.export.map.MAP_FILE
+MERGED_TUM_FILE = "merged_trajectory_tum.txt"  # fgslam run --map: frames from the merge on, in the stored map's frame
+MERGE_FILE = "merge.json"  # fgslam run --map: the merge (transform, keyframes) or why none
 
 
 DEPTH_DIR = "depth"  # depth/<kf:06d>.png per keyframe (output.write_depth)
@@ -57,7 +59,7 @@ DEPTH_DIR = "depth"  # depth/<kf:06d>.png per keyframe (output.write_depth)
 
 #: What a run writes into its output folder (a previous run's outputs: refused, or removed with overwrite).
 RUN_OUTPUT_FILES = (TUM_FILE, KITTI_FILE, KITTI_TIMES_FILE, SUMMARY_FILE, SUMMARY_FILE + ".tmp", PLOT_FILE, PLY_FILE,
-                    MAP_FILE)
+                    MAP_FILE, MERGED_TUM_FILE, MERGE_FILE)
 
 
 #: Images with a side above this many pixels are named as the likely reason when no frame got a
@@ -350,6 +352,8 @@ def finalize_run(
     _write_keyframe_depths(frontend, config, out, outputs, output_errors, notes)
     if config.output.write_map and traj is not None:  # no pose, no map (and no note that would blame the frontend)
         _write_map(out / MAP_FILE, dataset, frontend, config, state, outputs, output_errors, notes)
+    if (config.output.save_map or config.output.extend_map) and traj is not None:
+        _save_stored_map(out, traj, dataset, frontend, config, state, result, outputs, output_errors, notes)
     if config.output.plot and traj is not None:
         _write_output("plot", [out / PLOT_FILE], lambda: _plot(out / PLOT_FILE, gt, traj, result, config),
                       outputs, output_errors)
@@ -457,6 +461,72 @@ def _write_map(path: Path, dataset: Dataset, frontend: Frontend, config: SlamCon
                      dataset.timestamps[indices] if indices.size else np.zeros(0), indices,
                      [state.frame_paths[int(i)] for i in indices], config.sensor)
     _write_output("map", [path], lambda: save_run_map(path, run_map), outputs, output_errors)
+
+
+def _save_stored_map(out: Path, traj: Trajectory, dataset: Dataset, frontend: Frontend, config: SlamConfig,
+                     state: RunState, result: Optional[EvalResult], outputs: dict[str, str],
+                     output_errors: dict[str, str], notes: list[str]) -> None:
+    """``--save-map``: the stored map of :mod:`fgslam.export.mapfile` (keyframes, structure, features,
+    retrieval database, calibration, config and the run's alignment to its ground truth). ``--map``:
+    the recording is merged into that stored map when its keyframes localise in it
+    (:func:`fgslam.localize.merge_recording`): ``merge.json`` and ``merged_trajectory_tum.txt`` (the
+    frames from the merge on, in the map's frame), and ``--save-map`` saves the merged map."""
+    from .export.mapfile import build_stored_map, load_stored_map, save_stored_map
+
+    save_path = Path(config.output.save_map) if config.output.save_map else None
+    try:
+        exported = frontend.map_export()
+    except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+        output_errors["stored_map"] = f"map_export() failed: {type(exc).__name__}: {exc}"
+        return
+    if exported is None or exported.num_keyframes == 0:
+        notes.append(f"frontend '{frontend.name}' exports no keyframes: no stored map written or extended")
+        return
+    alignment = None if result is None else {"align": result.align, "matrix": result.alignment.matrix().tolist()}
+    try:
+        recording = build_stored_map(
+            exported, dataset, sensor=config.sensor, family=frontend.name, config=to_dict(config),
+            features=config.output.map_features, verification=config.loop_closure.verification,
+            groundtruth_alignment=alignment, frame_indices=np.array(sorted(state.frame_paths), dtype=np.int64))
+    except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+        output_errors["stored_map"] = f"building the stored map failed: {type(exc).__name__}: {exc}"
+        logger.error("could not build the stored map: %s: %s", type(exc).__name__, exc)
+        return
+    to_save = recording
+    if config.output.extend_map:
+        from .io.trajectory import Trajectory
+        from .localize import combine_maps, merge_recording, rigid_in_map
+
+        try:
+            stored = load_stored_map(config.output.extend_map)
+            merge = merge_recording(stored, recording, metric=config.sensor != "mono")
+        except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+            output_errors["merge"] = f"--map {config.output.extend_map}: {type(exc).__name__}: {exc}"
+            logger.error("could not merge the recording into %s: %s", config.output.extend_map, exc)
+            return
+        info = {"map": config.output.extend_map, "merged": merge is not None,
+                **({} if merge is None else merge.to_dict())}
+        if merge is None:
+            notes.append(f"--map {config.output.extend_map}: no keyframe of the recording localised in it "
+                         "consistently: not merged (the recording stays its own map)")
+        else:
+            keep = traj.timestamps >= merge.merge_time
+            merged = Trajectory(traj.timestamps[keep], rigid_in_map(merge.S_MR, traj.T_WC[keep]))
+            path = out / MERGED_TUM_FILE
+            _write_output("merged_trajectory", [path], lambda: write_trajectory(path, merged, "tum"), outputs,
+                          output_errors)
+            to_save = combine_maps(stored, recording, merge.S_MR)
+        merge_path = out / MERGE_FILE
+        _write_output("merge", [merge_path],
+                      lambda: merge_path.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8"),
+                      outputs, output_errors)
+    if save_path is not None:  # written atomically: a failure leaves an earlier file at that path as it was
+        try:
+            save_stored_map(save_path, to_save)
+            outputs["stored_map"] = str(save_path)
+        except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+            output_errors["stored_map"] = f"{save_path}: {type(exc).__name__}: {exc}"
+            logger.error("could not write the stored map %s: %s", save_path, exc)
 
 
 def _write_output(kind: str, paths: list[Path], write: Callable[[], Any], outputs: dict[str, str],

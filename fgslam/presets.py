@@ -31,6 +31,7 @@ PRESET_CLASSES: dict[str, str] = {
     "bow": "fgslam.loop.bow:BowConfig",
     "loop": "fgslam.loop.records:LoopClosureConfig",
     "demo": "fgslam.demo:DemoConfig",
+    "localize": "fgslam.localize:LocalizeConfig",
 }
 
 #: The run config every frontend family's presets (``<family>_*.yaml``) and the recommended

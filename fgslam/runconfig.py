@@ -6,11 +6,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Optional
 
 from .backend.config import BackendConfig
 from .config import MAX_FRAMES, MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, ranged, with_sections
 from .eval import EvalConfig
+from .export.mapfile import MapFeaturesConfig
 from .export.rerun import RerunConfig
 from .frontends import FRONTEND_NAMES, family_config_classes
 from .io.datasets import DatasetConfig
@@ -31,6 +32,9 @@ class OutputConfig:
     write_ply: bool = False  # write points.ply from the frontend's keyframe points (when it provides them)
     write_depth: bool = False  # write depth/<kf:06d>.png per keyframe (16-bit, millimetres; frontends with keyframe_depths(): dense)
     write_map: bool = True  # write map.npz (keyframes, points, tracks, calibration, frames) for `fgslam export`
+    save_map: Optional[str] = None  # also write a stored map here (`fgslam run --save-map MAP`; fgslam/export/mapfile.py)
+    extend_map: Optional[str] = None  # the stored map this recording continues (`fgslam run --map MAP`; merged when localised in it)
+    map_features: MapFeaturesConfig = field(default_factory=MapFeaturesConfig)  # keyframe features of a stored map
     rerun: RerunConfig = field(default_factory=RerunConfig)  # what `fgslam run --rerun out.rrd` logs (fgslam/export/rerun.py)
 
 

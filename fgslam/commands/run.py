@@ -37,12 +37,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="log frames, poses, keyframe points and loop edges to a rerun file (or 'live': a running "
                              "viewer); needs the optional extra fgslam[rerun]")
     parser.add_argument("--json", action="store_true", help="print the run summary as one JSON object")
+    parser.add_argument("--map", metavar="MAP", default=None,
+                        help="continue this stored map: the recording is merged into it once its keyframes localise "
+                             "in it (merge.json, merged_trajectory_tum.txt; --save-map saves the merged map)")
+    parser.add_argument("--save-map", metavar="MAP", default=None,
+                        help="also save the map (keyframes, structure, features, retrieval database, calibration, "
+                             "config) to this file, for `fgslam localize` (fgslam/export/mapfile.py)")
 
 
 def run(args: argparse.Namespace) -> int:
     from ..slam import clear_previous_outputs, load_slam_config, open_slam_dataset, prepare_output_dir, run_slam
 
-    config = load_slam_config(args.config, args.overrides)
+    overrides = list(args.overrides)
+    if args.save_map:
+        from pathlib import Path
+
+        from ..errors import ConfigError
+
+        if not Path(args.save_map).resolve().parent.is_dir():
+            raise ConfigError(f"--save-map {args.save_map}: its folder does not exist")
+        overrides.append(f"output.save_map={args.save_map}")
+    if args.map:
+        overrides.append(f"output.extend_map={args.map}")
+    config = load_slam_config(args.config, overrides)
     if args.rerun:
         from ..export.rerun import check_rerun_target
 
@@ -50,6 +67,11 @@ def run(args: argparse.Namespace) -> int:
     prepare_output_dir(args.out, args.data)  # before any work: writable, not the dataset folder nor inside it
     clear_previous_outputs(args.out, args.overwrite, remove=False)  # no previous run's outputs unless --overwrite
     dataset = open_slam_dataset(args.data, config, args.format)
+    if args.map:  # before any work: a map that cannot be continued is refused now
+        from ..export.mapfile import check_map_camera, load_stored_map
+
+        c = dataset.calibration
+        check_map_camera(load_stored_map(args.map), c.K, c.width, c.height, args.map, args.data)
 
     def report(summary) -> None:  # also when the run then fails or is interrupted (the error line follows)
         print(json.dumps(summary.to_dict(), default=str) if args.json else format_report(summary.to_dict()), flush=True)

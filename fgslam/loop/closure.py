@@ -70,7 +70,7 @@ from ..lie import Sim3
 from .bow import PlaceRecognizer
 from .pose_graph import optimize_sim3_pose_graph
 from .records import LoopClosureConfig, LoopRecord, PoseCorrection, Verification
-from .verification import LoopKeyframe, Verifier, match_descriptors
+from .verification import LoopKeyframe, Verifier, match_descriptors, solve_pnp
 from .worker import ClosureJob, JobWorker
 
 logger = logging.getLogger(__name__)
@@ -233,8 +233,6 @@ class LoopCloser:
         the worker's speed)."""
         if not self._enabled:
             return None
-        import cv2
-
         self.wait_idle()
         rc = self.cfg.relocalization
         K_arr = np.asarray(K, dtype=np.float64).reshape(-1)
@@ -247,7 +245,6 @@ class LoopCloser:
             return None
         results = self._recognizer.detector.database.query(feats.bow, rc.max_candidates, min_score=rc.min_score)
         vc = self.cfg.verification
-        Kmat = np.array([[K_arr[0], 0, K_arr[2]], [0, K_arr[1], K_arr[3]], [0, 0, 1]])
         poses, order = dict(self._poses), list(self._order)
         for res in results:
             kf = self._keyframes.get(res.kf_id)
@@ -261,19 +258,13 @@ class LoopCloser:
             sel = ok_k[ib]
             if sel.sum() < rc.min_inliers:
                 continue
-            obj = X_k[ib[sel]]
-            found, rvec, tvec, inl = cv2.solvePnPRansac(
-                obj.astype(np.float64), feats.uv[ia[sel]].astype(np.float64), Kmat, None,
-                iterationsCount=rc.pnp_iterations, reprojectionError=rc.pnp_reprojection_px,
-                confidence=rc.pnp_confidence, flags=cv2.SOLVEPNP_EPNP)
-            n_inl = 0 if inl is None else len(inl)
-            if not found or n_inl < rc.min_inliers:
-                logger.info("relocalisation: keyframe %d: PnP %d inliers (< %d)", res.kf_id, n_inl, rc.min_inliers)
+            pnp = solve_pnp(X_k[ib[sel]], feats.uv[ia[sel]], K_arr, rc.pnp_reprojection_px, rc.pnp_iterations,
+                            rc.pnp_confidence, rc.min_inliers, refine=False)
+            if pnp is None:
+                logger.info("relocalisation: keyframe %d: PnP below %d inliers", res.kf_id, rc.min_inliers)
                 continue
-            R_qk = cv2.Rodrigues(rvec)[0]                          # X_q = R X_k + t (keyframe units)
-            T_CkCq = np.eye(4)
-            T_CkCq[:3, :3] = R_qk.T
-            T_CkCq[:3, 3] = -R_qk.T @ tvec.reshape(3)
+            T_CkCq, inl = pnp                                        # keyframe units
+            n_inl = len(inl)
             T_WC = poses[kf.kf_id] @ T_CkCq
             logger.info("relocalised on keyframe %d (score %.3f, %d PnP inliers)", res.kf_id, res.score, n_inl)
             return kf.kf_id, T_WC

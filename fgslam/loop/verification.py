@@ -94,6 +94,33 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, max_hamming: int, 
     return ia, idx[ia, 0]
 
 
+def solve_pnp(X: np.ndarray, uv: np.ndarray, K: np.ndarray, reprojection_px: float, iterations: int,
+              confidence: float, min_inliers: int, refine: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
+    """Pose of a camera that sees the points ``X`` (N, 3, in a frame A) at pixels ``uv`` (N, 2):
+    ``(T_AC 4x4 rigid camera-to-A, inlier indices)`` by EPnP RANSAC (``refine``: then refined on the
+    inliers by Levenberg-Marquardt), or None with fewer than ``min_inliers`` inliers. ``K`` = (fx, fy, cx, cy)."""
+    import cv2
+
+    if len(X) < max(min_inliers, 4):
+        return None
+    Kmat = np.array([[K[0], 0.0, K[2]], [0.0, K[1], K[3]], [0.0, 0.0, 1.0]])
+    obj = np.ascontiguousarray(X, dtype=np.float64)
+    img = np.ascontiguousarray(uv, dtype=np.float64)
+    found, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, Kmat, None, iterationsCount=iterations,
+                                                reprojectionError=reprojection_px, confidence=confidence,
+                                                flags=cv2.SOLVEPNP_EPNP)
+    if not found or inl is None or len(inl) < min_inliers:
+        return None
+    inl = inl.reshape(-1)
+    if refine:
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], Kmat, None, rvec, tvec)
+    R_CA = cv2.Rodrigues(rvec)[0]                                  # X_C = R X_A + t
+    T_AC = np.eye(4)
+    T_AC[:3, :3] = R_CA.T
+    T_AC[:3, 3] = -R_CA.T @ tvec.reshape(3)
+    return T_AC, inl
+
+
 def triangulate_pair(uv_a: np.ndarray, uv_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
                      T_CaCb: np.ndarray, min_parallax_deg: float, max_reprojection_px: float
                      ) -> tuple[np.ndarray, np.ndarray]:

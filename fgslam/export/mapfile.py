@@ -1,0 +1,392 @@
+"""Maps that persist: the stored map of ``fgslam run ... --save-map MAP`` and its loader (read by
+``fgslam localize``, :mod:`fgslam.localize`).
+
+Format (``MAP_FORMAT``, version :data:`MAP_FORMAT_VERSION`): a zip archive of ``.npy`` arrays that
+``numpy.load(path, allow_pickle=False)`` reads (no pickled object anywhere), written with fixed
+entry dates, no compression and in a fixed order, so the same map always gives the same bytes
+(save -> load -> save is byte-identical), to a temporary file renamed into place (atomic).
+
+``meta`` (uint8 array of UTF-8 JSON, sorted keys): ``format``, ``version``, ``family``, ``sensor``
+(``mono`` maps have the map's own scale), ``metric``, ``camera`` (``K`` = fx, fy, cx, cy, ``width``,
+``height``: the run's output images, which a sequence localised in the map must match),
+``features`` (the settings the keyframe features were made with: ``image_scale``, the ORB settings,
+the vocabulary, and ``K``/``width``/``height`` of the scaled feature image), ``config`` (the run's
+resolved configuration), ``dataset`` (name, format, selection) and ``groundtruth_alignment`` (the
+map run's own alignment to its ground truth, 4x4 ``[[s R, t], [0, 1]]`` with its method, or null).
+
+Per keyframe ``k`` (K keyframes, in id order): ``kf_ids`` (K,) int64, ``kf_timestamps`` (K,)
+float64 s, ``kf_frame_index`` (K,) int64 dataset index of the keyframe's image, ``T_WC`` (K, 4, 4)
+float64 Sim(3) camera-to-world poses in the map's world frame (``X_W = s R X_C + t``; the families'
+exports are rigid, ``s = 1``, the world frame carries the scale). Keyframe features, concatenated
+over keyframes with offsets ``feat_ptr`` (K+1,) int64: ``feat_uv`` (N, 2) float32 pixels of the
+feature image, ``feat_desc`` (N, 32) uint8 ORB descriptors, ``feat_X_C`` (N, 3) float32 the feature's
+3-D point in its keyframe's camera frame (map units; NaN: none; RGB-D: from the sensor depth,
+monocular and stereo: triangulated with neighbouring keyframes by the loop verifier's
+triangulation). Retrieval database, with offsets ``bow_ptr`` (K+1,) int64: ``bow_words`` int32 and
+``bow_weights`` float64 of each keyframe's bag-of-words vector. The family's structure
+(:class:`fgslam.mapdata.MapExport`): ``points_X_W`` (M, 3) float64, ``points_colour`` (M, 3) uint8,
+``track_point`` / ``track_kf`` (T,) int64 and ``track_uv`` (T, 2) float64 (keyframe pixel of each
+observation).
+
+Errors: a missing, truncated or foreign file, another format version, or inconsistent arrays raise
+:class:`MapFileError` naming the file and what is wrong; :func:`check_map_camera` names what differs
+between the map's camera and a sequence's.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import MAX_SCALAR, check_ranges, ranged
+from ..errors import DataError
+from ..loop.bow import BowConfig
+from ..loop.features import OrbConfig
+from ..mapdata import MapExport
+
+logger = logging.getLogger(__name__)
+
+MAP_FORMAT = "fgslam-map"
+MAP_FORMAT_VERSION = 1
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)        # fixed entry date: identical maps give identical bytes
+_ZIP_MAGIC = b"PK\x03\x04"
+_CAMERA_RTOL = 1e-6                      # intrinsics equal up to float round-off
+DESCRIPTOR_BYTES = 32
+
+#: array name -> (dtype, trailing shape); the archive holds them in this order after ``meta``
+ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
+    "kf_ids": ("int64", ()),
+    "kf_timestamps": ("float64", ()),
+    "kf_frame_index": ("int64", ()),
+    "T_WC": ("float64", (4, 4)),
+    "feat_ptr": ("int64", ()),
+    "feat_uv": ("float32", (2,)),
+    "feat_desc": ("uint8", (DESCRIPTOR_BYTES,)),
+    "feat_X_C": ("float32", (3,)),
+    "bow_ptr": ("int64", ()),
+    "bow_words": ("int32", ()),
+    "bow_weights": ("float64", ()),
+    "points_X_W": ("float64", (3,)),
+    "points_colour": ("uint8", (3,)),
+    "track_point": ("int64", ()),
+    "track_kf": ("int64", ()),
+    "track_uv": ("float64", (2,)),
+}
+
+
+class MapFileError(DataError):
+    """A stored map that cannot be used: missing, truncated, foreign, another version, another camera."""
+
+
+@dataclass
+class MapFeaturesConfig:
+    """Keyframe features of a stored map (and of the frames localised in it: the map's settings)."""
+
+    image_scale: float = ranged(0.5, gt=0, le=1)  # features on the run's images scaled by this (VGA -> 320x240)
+    bow: BowConfig = field(default_factory=lambda: BowConfig(orb=OrbConfig(n_features=800)))  # ORB + vocabulary
+    min_depth: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # RGB-D: sensor depths (m) below this are no depth
+    max_depth: float = ranged(8.0, gt=0, le=MAX_SCALAR)  # RGB-D: ... and above this
+    max_depth_step: float = ranged(0.03, gt=0, le=1)  # RGB-D: no depth where the 3x3 depths differ by more than this share (edges)
+
+    def validate(self) -> None:
+        check_ranges(self)
+        self.bow.orb.validate()
+
+
+@dataclass
+class StoredMap:
+    """A stored map in memory (the module docstring describes every array)."""
+
+    meta: dict[str, Any]
+    kf_ids: np.ndarray
+    kf_timestamps: np.ndarray
+    kf_frame_index: np.ndarray
+    T_WC: np.ndarray
+    feat_ptr: np.ndarray
+    feat_uv: np.ndarray
+    feat_desc: np.ndarray
+    feat_X_C: np.ndarray
+    bow_ptr: np.ndarray
+    bow_words: np.ndarray
+    bow_weights: np.ndarray
+    points_X_W: np.ndarray
+    points_colour: np.ndarray
+    track_point: np.ndarray
+    track_kf: np.ndarray
+    track_uv: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name, (dtype, tail) in ARRAYS.items():
+            setattr(self, name, np.ascontiguousarray(getattr(self, name), dtype=dtype).reshape((-1, *tail)))
+
+    @property
+    def num_keyframes(self) -> int:
+        return int(self.kf_ids.shape[0])
+
+    @property
+    def metric(self) -> bool:
+        return bool(self.meta.get("metric", False))
+
+    def features(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(uv, descriptors, X_C)`` of the keyframe at position ``k``."""
+        a, b = int(self.feat_ptr[k]), int(self.feat_ptr[k + 1])
+        return self.feat_uv[a:b], self.feat_desc[a:b], self.feat_X_C[a:b]
+
+    def bow(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(words, weights)`` of the keyframe at position ``k``."""
+        a, b = int(self.bow_ptr[k]), int(self.bow_ptr[k + 1])
+        return self.bow_words[a:b], self.bow_weights[a:b]
+
+    def check(self, source: str) -> None:
+        """Consistent shapes and offsets; :class:`MapFileError` naming ``source`` and what is wrong."""
+        k = self.num_keyframes
+
+        def bad(what: str) -> MapFileError:
+            return MapFileError(f"{source}: inconsistent map: {what}")
+
+        for name in ("kf_timestamps", "kf_frame_index", "T_WC"):
+            if getattr(self, name).shape[0] != k:
+                raise bad(f"{k} keyframe ids but {getattr(self, name).shape[0]} entries in {name}")
+        for ptr, arrays in (("feat_ptr", ("feat_uv", "feat_desc", "feat_X_C")), ("bow_ptr", ("bow_words", "bow_weights"))):
+            p = getattr(self, ptr)
+            n = getattr(self, arrays[0]).shape[0]
+            if p.shape[0] != k + 1 or p[0] != 0 or p[-1] != n or np.any(np.diff(p) < 0):
+                raise bad(f"{ptr} does not index the {n} rows of {arrays[0]}")
+            for other in arrays[1:]:
+                if getattr(self, other).shape[0] != n:
+                    raise bad(f"{other} has {getattr(self, other).shape[0]} rows, {arrays[0]} {n}")
+        m, t = self.points_X_W.shape[0], self.track_point.shape[0]
+        if self.points_colour.shape[0] != m or self.track_kf.shape[0] != t or self.track_uv.shape[0] != t:
+            raise bad("points or tracks of unequal length")
+        if t and (self.track_point.min() < 0 or self.track_point.max() >= m):
+            raise bad("a track names a point that does not exist")
+        if not np.isfinite(self.T_WC).all():
+            raise bad("a keyframe pose is not finite")
+        camera = self.meta.get("camera") or {}
+        if len(camera.get("K", ())) != 4 or "width" not in camera or "height" not in camera:
+            raise bad("meta has no camera (K, width, height)")
+
+
+# ----------------------------------------------------------------------------------- save / load
+
+def _meta_bytes(meta: dict) -> np.ndarray:
+    text = json.dumps(meta, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
+
+
+def save_stored_map(path: str | Path, stored: StoredMap) -> Path:
+    """Write ``stored`` to ``path`` (module docstring: deterministic bytes, atomic replace)."""
+    path = Path(path)
+    stored.check(str(path))
+    meta = dict(stored.meta, format=MAP_FORMAT, version=MAP_FORMAT_VERSION)
+    items = [("meta", _meta_bytes(meta))] + [(name, getattr(stored, name)) for name in ARRAYS]
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+            for name, arr in items:
+                info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_DATE)
+                info.compress_type = zipfile.ZIP_STORED
+                info.external_attr = 0o644 << 16
+                buf = io.BytesIO()
+                np.lib.format.write_array(buf, np.ascontiguousarray(arr), allow_pickle=False)
+                zf.writestr(info, buf.getvalue())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def load_stored_map(path: str | Path) -> StoredMap:
+    """Read a map written by :func:`save_stored_map` (:class:`MapFileError` on bad input)."""
+    path = Path(path)
+    if not path.is_file():
+        raise MapFileError(f"{path}: no such map file")
+    with open(path, "rb") as f:
+        magic = f.read(len(_ZIP_MAGIC))
+    if magic != _ZIP_MAGIC:
+        raise MapFileError(f"{path}: not a fgslam map (not an npz archive)")
+    if not zipfile.is_zipfile(path):
+        raise MapFileError(f"{path}: truncated or damaged map file (no zip directory at its end)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "meta" not in z.files:
+                raise MapFileError(f"{path}: not a fgslam map (an npz archive without 'meta')")
+            meta = json.loads(z["meta"].tobytes().decode("utf-8"))
+            if not isinstance(meta, dict) or meta.get("format") != MAP_FORMAT:
+                raise MapFileError(f"{path}: not a fgslam map (meta format {meta.get('format')!r}, "
+                                   f"expected {MAP_FORMAT!r})" if isinstance(meta, dict) else
+                                   f"{path}: not a fgslam map (meta is not a JSON object)")
+            if meta.get("version") != MAP_FORMAT_VERSION:
+                raise MapFileError(f"{path}: map format version {meta.get('version')}, this fgslam reads version "
+                                   f"{MAP_FORMAT_VERSION} (save the map again with this fgslam)")
+            missing = [name for name in ARRAYS if name not in z.files]
+            if missing:
+                raise MapFileError(f"{path}: not a complete fgslam map (missing {', '.join(missing)})")
+            arrays = {}
+            for name, (dtype, _) in ARRAYS.items():
+                arr = z[name]
+                if arr.dtype != np.dtype(dtype):
+                    raise MapFileError(f"{path}: array {name} is {arr.dtype}, expected {dtype}")
+                arrays[name] = arr
+    except MapFileError:
+        raise
+    except (OSError, ValueError, EOFError, KeyError, UnicodeDecodeError, zipfile.BadZipFile) as exc:
+        raise MapFileError(f"{path}: truncated or damaged map file ({type(exc).__name__}: {exc})") from exc
+    try:
+        stored = StoredMap(meta, **arrays)
+    except ValueError as exc:
+        raise MapFileError(f"{path}: inconsistent map arrays ({exc})") from exc
+    stored.check(str(path))
+    return stored
+
+
+def check_map_camera(stored: StoredMap, K: np.ndarray, width: int, height: int, map_path: str | Path,
+                     data: str | Path) -> None:
+    """:class:`MapFileError` when the sequence ``data`` (images ``width x height``, intrinsics ``K``)
+    has another camera than the map's, naming both files and what differs."""
+    cam = stored.meta["camera"]
+    K_map = np.asarray(cam["K"], np.float64)
+    K_seq = np.asarray(K, np.float64).reshape(-1)
+    diffs = []
+    if (int(cam["width"]), int(cam["height"])) != (int(width), int(height)):
+        diffs.append(f"image size {cam['width']}x{cam['height']} vs {width}x{height}")
+    if K_seq.shape != (4,) or not np.allclose(K_map, K_seq, rtol=_CAMERA_RTOL, atol=0.0):
+        diffs.append("intrinsics fx, fy, cx, cy " + ", ".join(f"{v:g}" for v in K_map) + " vs "
+                     + ", ".join(f"{v:g}" for v in K_seq))
+    if diffs:
+        raise MapFileError(f"{map_path}: the map's camera differs from the sequence's ({data}): {'; '.join(diffs)}")
+
+
+# ----------------------------------------------------------------------------------- building
+
+def feature_camera(K: np.ndarray, width: int, height: int, scale: float) -> tuple[np.ndarray, int, int]:
+    """Intrinsics and size of the feature image: the run's image resized by ``scale`` (pixel centres
+    at integer coordinates: ``c' = (c + 0.5) s - 0.5``)."""
+    w, h = max(1, round(width * scale)), max(1, round(height * scale))
+    sx, sy = w / width, h / height
+    K = np.asarray(K, np.float64).reshape(-1)
+    return np.array([K[0] * sx, K[1] * sy, (K[2] + 0.5) * sx - 0.5, (K[3] + 0.5) * sy - 0.5]), w, h
+
+
+def feature_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """The grey image resized to the feature image size (area interpolation)."""
+    import cv2
+
+    from ..loop.features import to_grey_uint8
+
+    grey = to_grey_uint8(image)
+    if grey.shape[1] == width and grey.shape[0] == height:
+        return grey
+    return cv2.resize(grey, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def depth_points(uv: np.ndarray, depth: np.ndarray, K_feat: np.ndarray, scale: float,
+                 cfg: MapFeaturesConfig) -> np.ndarray:
+    """(N, 3) camera points of feature pixels ``uv`` (feature image) from a sensor ``depth`` at the
+    run's resolution (metres, 0 = none); NaN where the depth is missing, out of range or at an edge."""
+    X = np.full((len(uv), 3), np.nan, np.float32)
+    if len(uv) == 0:
+        return X
+    h, w = depth.shape
+    col = np.clip(np.rint((uv[:, 0] + 0.5) / scale - 0.5).astype(np.int64), 1, w - 2)
+    row = np.clip(np.rint((uv[:, 1] + 0.5) / scale - 0.5).astype(np.int64), 1, h - 2)
+    offsets = np.array([-1, 0, 1])
+    patch = depth[row[:, None, None] + offsets[None, :, None], col[:, None, None] + offsets[None, None, :]]
+    patch = patch.reshape(len(uv), -1)
+    z = depth[row, col]
+    ok = (patch.min(axis=1) >= cfg.min_depth) & (patch.max(axis=1) <= cfg.max_depth)
+    ok &= (patch.max(axis=1) - patch.min(axis=1)) <= cfg.max_depth_step * np.maximum(z, cfg.min_depth)
+    X[ok, 0] = (uv[ok, 0] - K_feat[2]) / K_feat[0] * z[ok]
+    X[ok, 1] = (uv[ok, 1] - K_feat[3]) / K_feat[1] * z[ok]
+    X[ok, 2] = z[ok]
+    return X
+
+
+def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, config: dict,
+                     features: MapFeaturesConfig, verification=None, groundtruth_alignment: dict | None = None,
+                     frame_indices: np.ndarray | None = None) -> StoredMap:
+    """The stored map of a run: the frontend's keyframes and structure (``exported``), the keyframe
+    images re-read from ``dataset`` (the frame nearest to each keyframe's time among
+    ``frame_indices``, default all) for their features, 3-D points from the sensor depth (``rgbd``)
+    or triangulated between neighbouring keyframes (``verification``:
+    :class:`fgslam.loop.records.VerificationConfig`), and their BoW vectors."""
+    import threading
+
+    from ..loop.bow import KeyframeFeatures, PlaceRecognizer
+    from ..loop.records import VerificationConfig
+    from ..loop.verification import LoopKeyframe, Verifier
+
+    features.validate()
+    calib = dataset.calibration
+    K_feat, w_feat, h_feat = feature_camera(calib.K, calib.width, calib.height, features.image_scale)
+    recognizer = PlaceRecognizer(features.bow)
+    t = np.asarray(dataset.timestamps, np.float64)
+    indices = np.arange(len(t)) if frame_indices is None else np.asarray(frame_indices, np.int64)
+    order = np.argsort(exported.kf_ids, kind="stable")
+    kf_ids = exported.kf_ids[order]
+    stamps = exported.kf_timestamps[order]
+    T_WC = exported.T_WC[order]
+    t_sel = t[indices]
+    kf_frame = indices[np.argmin(np.abs(t_sel[None, :] - stamps[:, None]), axis=1)] if len(indices) else \
+        np.full(len(kf_ids), -1, np.int64)
+    feats: list[KeyframeFeatures] = []
+    X_list: list[np.ndarray] = []
+    for fi in kf_frame:
+        frame = dataset[int(fi)]
+        f = recognizer.describe(feature_image(frame.image, w_feat, h_feat))
+        feats.append(f)
+        if sensor == "rgbd" and frame.depth is not None:
+            X_list.append(depth_points(f.uv, frame.depth, K_feat, w_feat / calib.width, features))
+        else:
+            X_list.append(None)
+    if any(X is None for X in X_list):  # no sensor depth: triangulate with neighbouring keyframes
+        table = {int(i): LoopKeyframe(int(i), float(s), None, K_feat, (), f) for i, s, f in zip(kf_ids, stamps, feats)}
+        verifier = Verifier(verification or VerificationConfig(), table, threading.RLock(), metric=sensor != "mono")
+        poses = {int(i): T for i, T in zip(kf_ids, T_WC)}
+        id_order = [int(i) for i in kf_ids]
+        for k, X in enumerate(X_list):
+            if X is None:
+                X_tri, ok = verifier.triangulate(table[int(kf_ids[k])], id_order, poses)
+                X_tri = X_tri.astype(np.float32)
+                X_tri[~ok] = np.nan
+                X_list[k] = X_tri
+    counts = np.array([len(f.uv) for f in feats], np.int64)
+    bow_counts = np.array([len(f.bow.words) for f in feats], np.int64)
+
+    def cat(arrays: list[np.ndarray], empty_shape: tuple[int, ...], dtype) -> np.ndarray:
+        return np.concatenate(arrays).astype(dtype) if arrays else np.zeros(empty_shape, dtype)
+
+    orb = features.bow.orb
+    meta = {
+        "family": family,
+        "sensor": sensor,
+        "metric": sensor != "mono",
+        "camera": {"K": [float(v) for v in calib.K], "width": int(calib.width), "height": int(calib.height)},
+        "features": {"image_scale": features.image_scale, "K": [float(v) for v in K_feat], "width": w_feat,
+                     "height": h_feat, "vocabulary": features.bow.vocabulary,
+                     "orb": {k: getattr(orb, k) for k in orb.__dataclass_fields__}},
+        "config": config,
+        "dataset": {"name": str(getattr(dataset, "name", "")), "format": str(getattr(dataset, "format", "")),
+                    "frames": int(len(indices))},
+        "groundtruth_alignment": groundtruth_alignment,
+    }
+    stored = StoredMap(
+        meta, kf_ids, stamps, kf_frame, T_WC,
+        np.concatenate([[0], np.cumsum(counts)]), cat([f.uv for f in feats], (0, 2), np.float32),
+        cat([f.descriptors for f in feats], (0, DESCRIPTOR_BYTES), np.uint8), cat(X_list, (0, 3), np.float32),
+        np.concatenate([[0], np.cumsum(bow_counts)]), cat([f.bow.words for f in feats], (0,), np.int32),
+        cat([f.bow.weights for f in feats], (0,), np.float64),
+        exported.X_W, exported.colour, exported.track_point, exported.track_kf, exported.track_uv)
+    n_3d = int(np.isfinite(stored.feat_X_C[:, 0]).sum())
+    logger.info("stored map: %d keyframes, %d features (%d with a 3-D point), %d points", stored.num_keyframes,
+                len(stored.feat_uv), n_3d, len(stored.points_X_W))
+    return stored
