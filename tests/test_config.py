@@ -196,6 +196,7 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.frontends.pointmap.source:PointmapSourceConfig",
     "fgslam.frontends.pointmap.matching:MatchingConfig",
     "fgslam.loop.vocabulary:VocabularyTrainingConfig",
+    "fgslam.loop.vlad:CentreTrainingConfig",
     "fgslam.services.plugins:PositionPriorOptions",
     "fgslam.services.plugins:PlanarMotionOptions",
     "fgslam.export.colmap:ColmapExportConfig",

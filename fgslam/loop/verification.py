@@ -22,9 +22,11 @@ undistorted pinhole image.
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import torch
@@ -121,6 +123,35 @@ def solve_pnp(X: np.ndarray, uv: np.ndarray, K: np.ndarray, reprojection_px: flo
     return T_AC, inl
 
 
+def match_cosine(desc_a: np.ndarray, desc_b: np.ndarray, min_cossim: float,
+                 allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Float-descriptor matches ``(ia, ib)`` (XFeat's rule): mutual nearest neighbours by cosine
+    similarity (dot product of unit descriptors) among ``allowed`` (Na, Nb) pairs, similarity >
+    ``min_cossim``."""
+    empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if len(desc_a) == 0 or len(desc_b) == 0:
+        return empty
+    sim = np.asarray(desc_a, np.float32) @ np.asarray(desc_b, np.float32).T
+    if allowed is not None:
+        sim = np.where(allowed, sim, -np.inf)
+    ab = np.argmax(sim, axis=1)
+    ba = np.argmax(sim, axis=0)
+    rows = np.arange(len(desc_a))
+    ok = (ba[ab] == rows) & (sim[rows, ab] > min_cossim)
+    ia = np.flatnonzero(ok)
+    return ia, ab[ia]
+
+
+def descriptor_matcher(cfg) -> Callable[..., tuple[np.ndarray, np.ndarray]]:
+    """``match(desc_a, desc_b, allowed=None) -> (ia, ib)`` for the closer's features
+    (``cfg``: :class:`~fgslam.loop.records.LoopClosureConfig`): ORB by Hamming distance with the
+    ratio test (``verification``), XFeat by mutual cosine nearest neighbours (``features.xfeat``)."""
+    if cfg.features.kind == "xfeat":
+        return functools.partial(match_cosine, min_cossim=cfg.features.xfeat.min_cossim)
+    return functools.partial(match_descriptors, max_hamming=cfg.verification.max_hamming,
+                             ratio=cfg.verification.ratio)
+
+
 def triangulate_pair(uv_a: np.ndarray, uv_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
                      T_CaCb: np.ndarray, min_parallax_deg: float, max_reprojection_px: float
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -180,8 +211,10 @@ class Verifier:
     caller's thread); ``metric``: rigid fits (``s = 1``) instead of Sim(3) ones."""
 
     def __init__(self, cfg: VerificationConfig, keyframes: dict[int, LoopKeyframe], lock: threading.RLock,
-                 metric: bool):
+                 metric: bool, match: Callable[..., tuple[np.ndarray, np.ndarray]] | None = None):
         self.cfg = cfg
+        # descriptor matching (descriptor_matcher); default: ORB with this config's Hamming and ratio
+        self.match = match or functools.partial(match_descriptors, max_hamming=cfg.max_hamming, ratio=cfg.ratio)
         self.metric = metric
         self._keyframes = keyframes
         self._lock = lock
@@ -225,8 +258,7 @@ class Verifier:
             tried += 1
             T_CaCb = np.linalg.inv(poses[kf.kf_id]) @ poses[n_id]
             allowed = epipolar_mask(feats.uv[todo], nb.features.uv, kf.K, nb.K, T_CaCb, vc.max_epipolar_px)
-            ia, ib = match_descriptors(feats.descriptors[todo], nb.features.descriptors, vc.max_hamming,
-                                       vc.ratio, allowed=allowed)
+            ia, ib = self.match(feats.descriptors[todo], nb.features.descriptors, allowed=allowed)
             if len(ia) == 0:
                 continue
             Xa, good = triangulate_pair(feats.uv[todo[ia]], nb.features.uv[ib], kf.K, nb.K, T_CaCb,
@@ -245,9 +277,9 @@ class Verifier:
 
         if qf is None or cf is None or len(qf.uv) == 0 or len(cf.uv) == 0:
             return reject("no features")
-        ia, ib = match_descriptors(qf.descriptors, cf.descriptors, vc.max_hamming, vc.ratio)
+        ia, ib = self.match(qf.descriptors, cf.descriptors)
         if len(ia) < vc.min_matches:
-            return reject(f"{len(ia)} ORB matches < {vc.min_matches}", n_matches=len(ia))
+            return reject(f"{len(ia)} descriptor matches < {vc.min_matches}", n_matches=len(ia))
         X_q, ok_q = self.triangulate(q, order, poses, ia)
         X_c, ok_c = self.triangulate(c, order, poses, ib)
         if ok_q.sum() < vc.min_triangulated or ok_c.sum() < vc.min_triangulated:
