@@ -116,3 +116,25 @@ def test_carried_pointmap_is_the_keyframe_seen_from_the_frame():
     assert np.allclose(X_f[hit][:, 2], 1.0, atol=1e-5)  # depth 2 in k, scale 2: depth 1 in f
     back = X_f[hit].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
     assert np.allclose(back[:, 2], 2.0, atol=1e-5)
+
+
+def test_7scenes_mono_slice_is_measured_every_frame(shared_data):
+    """7-Scenes kitchen frames 0-149 (5 s, 0.9 m of hand-held motion), monocular at 320x240 (the preset's
+    width): every frame after the two-view start posed by the corners, none by the motion model, and the
+    Sim(3) ATE clearly below standing still and the motion model alone. Measured: 0.04 m against 0.14 m
+    standing still (the two-view source of issue 13: 0.049 m over frames 0-199, 0.276 m over 0-599)."""
+    from fgslam.io.datasets import DatasetConfig, open_dataset
+
+    frames = list(open_dataset(shared_data / "7scenes_redkitchen_0-599",
+                               config=DatasetConfig(load_imu=False, load_depth=False, crop_multiple=1, end=150)))
+    fe, statuses = _run(frames)
+    sources = [s.pose_source for s in statuses]
+    started = sources.index("tracked")
+    assert sources[started:] == ["tracked"] * (len(frames) - started)
+    t, T, _ = fe.trajectory()
+    assert len(t) == len(frames)
+    gt = frames_groundtruth(frames)
+    ate = float(evaluate(gt, Trajectory(t, T), EvalConfig(align="sim3")).ate.rmse)
+    assert ate < 0.06
+    assert_beats_doing_nothing(ate, gt, t, "sim3")
+    assert ate < 0.5 * motion_model_ate(frames, t)
