@@ -29,8 +29,13 @@ Per frame (frames resized to ``image_width``; ``K`` scaled alike):
    candidate becomes the current keyframe (``relocalized``); otherwise the frame keeps the pose predicted
    from the last tracked one (``motion_model``, counted, logged, never raised).
 
-Monocular frames without enough parallax for a two-view pointmap (the source logs it) are tracked by PnP
-on the source's dense flow against k's canonical pointmap (pose only, no fusion, never a keyframe). The
+Monocular frames (``features.mode: features``, the default; issue 28) are posed by :mod:`.features`:
+the keyframe's corners tracked by KLT and PnP against k's canonical pointmap, their triangulations fused
+into it; only a new keyframe runs steps 1-5 (its pair triangulated with the measured pose); a frame the
+corners cannot pose is tried with the two-view pair, then relocalised, else reported lost. With
+``features.mode: two_view``, monocular frames without enough parallax for a two-view pointmap (the source
+logs it) are tracked by PnP on the source's dense flow against k's canonical pointmap (pose only, no
+fusion, never a keyframe). The
 monocular map starts when a pair (first frame, later frame) has ``tracking.init_min_confident`` of its
 pixels confident; frames before it get no pose.
 

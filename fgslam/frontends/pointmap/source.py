@@ -16,7 +16,9 @@ Built-in sources (no learned weights):
 - :class:`TwoViewPointmapSource` (``mono``): dense flow both ways, the essential matrix (RANSAC), the
   relative pose, and every pixel triangulated (midpoint of the two rays) with confidence
   ``flow confidence x (1 - exp(-(angle / angle_sigma)^2))`` from the triangulation angle; the pair's
-  scale is arbitrary (the median depth of ``X_i^i`` is set to ``median_depth``), as with MASt3R.
+  scale is arbitrary (the median depth of ``X_i^i`` is set to ``median_depth``), as with MASt3R. Given
+  ``T_CiCj`` (the pose the monocular features measured, :mod:`.features`) it triangulates with that pose
+  instead, in the caller's scale.
 
 For the metric sources ``X_j^i = T_CiCj X_j^j`` with ``T_CiCj`` given by the caller (e.g. the tracker's
 prediction) or estimated by PnP (RANSAC) on the dense flow's confident correspondences with i's
