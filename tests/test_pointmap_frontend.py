@@ -83,7 +83,9 @@ def test_stereo_room(room):
 def test_mono_room_two_view(room):
     """Monocular: the map starts from a two-view pair; frames without parallax are tracked by PnP."""
     frames = open_clip(room, "mono")
-    fe, statuses = _run(frames, "mono", _keyframe_config())
+    cfg = _keyframe_config()
+    cfg.features.mode = "two_view"  # the issue-13 source (the per-frame features: tests/test_pointmap_mono_features.py)
+    fe, statuses = _run(frames, "mono", cfg)
     sources = [s.pose_source for s in statuses]
     assert "motion_model" not in sources and sources.count("tracked") >= FRAMES - 8
     ate, pct = ate_percent(fe, frames, "sim3")

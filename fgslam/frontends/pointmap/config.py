@@ -12,6 +12,7 @@ from ...config import MAX_COUNT, MAX_FRAMES, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX
 from ...errors import ConfigError
 from ...factors.pointmap_block import PointmapBlockConfig
 from ..depth_tracking import DepthTrackingConfig
+from .features import FeaturePoseConfig
 from .matching import MatchingConfig
 from .source import PointmapSourceConfig
 
@@ -89,6 +90,8 @@ class PointmapConfig:
     keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
     graph: PointmapGraphConfig = field(default_factory=PointmapGraphConfig)
     relocalization: PointmapRelocalizationConfig = field(default_factory=PointmapRelocalizationConfig)
+    # monocular source: the pose of every frame by corners, KLT and PnP against the keyframe's pointmap (issue 28)
+    features: FeaturePoseConfig = field(default_factory=FeaturePoseConfig)
     # RGB-D: point-to-plane depth alignment in tracking and the keyframe graph (between the newest
     # window_pairs pairs of consecutive keyframes, and always between keyframes joined by depth alone)
     depth_align: DepthTrackingConfig = field(default_factory=lambda: DepthTrackingConfig(window_pairs=1))

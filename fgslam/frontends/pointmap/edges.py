@@ -110,6 +110,30 @@ class PointmapGraph:
                 logger.warning("pointmap final optimisation failed (%s); poses kept", exc)
             fe._times["optimization"] += time.perf_counter() - t0
 
+    def window_edges(self, kf: PointmapKeyframe, others: list[int]) -> int:
+        """Edges from the keyframes ``others`` to the new keyframe ``kf`` measured from their canonical pointmaps
+        (:func:`.keyframes.measure_edge`, started from the current poses), then the window optimised when any
+        was added; returns how many (the monocular features' source: the scale tied over several keyframes)."""
+        fe = self.fe
+        cfg = fe.config
+        t0 = time.perf_counter()
+        added = 0
+        for a in others:
+            if a not in fe._kfs or (a, kf.fid) in self.pairs:
+                continue
+            T_CaCb = np.linalg.inv(fe._keyframe_T_WC(a)) @ fe._keyframe_T_WC(kf.fid)
+            meas = measure_edge(fe._kfs[a], kf, T_CaCb, fe.cam.K, cfg.block, cfg.tracking, cfg.graph, cfg.matching,
+                                cfg.source.descriptor, fe.fixed_scale, cfg.query_stride)
+            if meas is None:
+                continue
+            self.edges.append(meas.edge)
+            self.pairs.add((a, kf.fid))
+            added += 1
+        fe._times["matching"] += time.perf_counter() - t0
+        if added:
+            self.optimize()
+        return added
+
     def loop_edges(self) -> None:
         """A pointmap edge for each loop the loop service accepted since the last call."""
         fe = self.fe

@@ -29,8 +29,13 @@ Per frame (frames resized to ``image_width``; ``K`` scaled alike):
    candidate becomes the current keyframe (``relocalized``); otherwise the frame keeps the pose predicted
    from the last tracked one (``motion_model``, counted, logged, never raised).
 
-Monocular frames without enough parallax for a two-view pointmap (the source logs it) are tracked by PnP
-on the source's dense flow against k's canonical pointmap (pose only, no fusion, never a keyframe). The
+Monocular frames (``features.mode: features``, the default; issue 28) are posed by :mod:`.features`:
+the keyframe's corners tracked by KLT and PnP against k's canonical pointmap, their triangulations fused
+into it; only a new keyframe runs steps 1-5 (its pair triangulated with the measured pose); a frame the
+corners cannot pose is tried with the two-view pair, then relocalised, else reported lost. With
+``features.mode: two_view``, monocular frames without enough parallax for a two-view pointmap (the source
+logs it) are tracked by PnP on the source's dense flow against k's canonical pointmap (pose only, no
+fusion, never a keyframe). The
 monocular map starts when a pair (first frame, later frame) has ``tracking.init_min_confident`` of its
 pixels confident; frames before it get no pose.
 
@@ -70,6 +75,7 @@ from .camera import WorkingCamera
 from .contributor import PointmapLoopContributor
 from .edges import PointmapGraph
 from .export import keyframe_depths, keyframe_points
+from .features import FeatureTracks
 from .mapping import PointmapKeyframing
 from .relocalization import relocalize
 from .tracker import PointmapTracker, matrix_of
@@ -115,6 +121,7 @@ class PointmapFrontend(BackendFrontend):
             logger.info("pointmap frontend: Sim(3) keyframes, map.gauge.hold_scale switched off")
             self.backend.config.gauge.hold_scale = False
         self.source = None
+        self.features: FeatureTracks | None = None  # monocular: the per-frame pose by corners (issue 28)
         self.cam: WorkingCamera | None = None
         self._kfs: dict[int, PointmapKeyframe] = {}  # every keyframe, insertion order
         self._kf: PointmapKeyframe | None = None  # the current keyframe
@@ -128,6 +135,8 @@ class PointmapFrontend(BackendFrontend):
         self._failures = 0
         self._times = {"source": 0.0, "matching": 0.0, "tracking": 0.0, "optimization": 0.0, "bookkeeping": 0.0}
         self._counts = {"keyframes": 0, "loop_edges": 0, "relocalized": 0, "pnp_tracked": 0, "failed": 0}
+        if self.kind == "mono" and self.config.features.mode == "features":
+            self._counts["feature_tracked"] = 0  # frames posed by the corners alone (not keyframes)
         self.depth = DepthTracking(self.config.depth_align, self.backend, active=self.kind == "rgbd")
         self._frame_surface = None  # the current frame's depth surface (RGB-D depth alignment)
         if self.depth.enabled:
@@ -154,6 +163,8 @@ class PointmapFrontend(BackendFrontend):
         self.query = query_grid(self.cam.H, self.cam.W, self.config.query_stride)
         self.K_t = torch.as_tensor(self.cam.K)
         self.depth.set_intrinsics(self.cam.K)
+        if self.kind == "mono" and self.config.features.mode == "features":
+            self.features = FeatureTracks(self.config.features, self.cam.K)
 
     # ------------------------------------------------------------------ Frontend API
     def num_keyframes(self) -> int:
@@ -243,7 +254,8 @@ class PointmapFrontend(BackendFrontend):
         depth = self.cam.depth(frame.depth) if self.kind == "rgbd" else None
         right = self.cam.image(frame.image_right) if self.kind == "stereo" else None
         colour = self.cam.image(frame.rgb) if frame.rgb is not None else None
-        self.source_cache.add(fid, grey, depth, right)
+        if self.features is None or self._kf is None:  # the features' frames join the source when needed
+            self.source_cache.add(fid, grey, depth, right)
         self._frame_surface = None
         if self.depth.enabled:  # made once per frame; a keyframe keeps it
             t0 = time.perf_counter()
@@ -256,6 +268,8 @@ class PointmapFrontend(BackendFrontend):
 
     # ------------------------------------------------------------------ tracking
     def _track_frame(self, fid: int, frame, inputs, pair=None) -> FrameStatus:
+        if self.features is not None and pair is None:  # monocular: the pose of every frame by the corners
+            return self.tracker.track_features(fid, frame, inputs)
         kf = self._kf
         surface = self._frame_surface
         res = self.tracker.track_against(kf, fid, self._T_CkCf, self._uv_prev, pair, surface)

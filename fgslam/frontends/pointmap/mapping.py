@@ -102,6 +102,8 @@ class PointmapKeyframing:
                 fe._sources[other] = "tracked"
         fe._T_CkCf, fe._uv_prev, fe._since_kf = pair.T_CiCj, None, 0
         status = fe._track_frame(fid, frame, inputs, pair=pair)
+        if fe.features is not None:  # the corners of the map's keyframe, tracked from here on
+            fe.tracker.start_features(fid, inputs[0])
         status.events.append("initialised")
         return status
 

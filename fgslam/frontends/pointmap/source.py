@@ -16,7 +16,9 @@ Built-in sources (no learned weights):
 - :class:`TwoViewPointmapSource` (``mono``): dense flow both ways, the essential matrix (RANSAC), the
   relative pose, and every pixel triangulated (midpoint of the two rays) with confidence
   ``flow confidence x (1 - exp(-(angle / angle_sigma)^2))`` from the triangulation angle; the pair's
-  scale is arbitrary (the median depth of ``X_i^i`` is set to ``median_depth``), as with MASt3R.
+  scale is arbitrary (the median depth of ``X_i^i`` is set to ``median_depth``), as with MASt3R. Given
+  ``T_CiCj`` (the pose the monocular features measured, :mod:`.features`) it triangulates with that pose
+  instead, in the caller's scale.
 
 For the metric sources ``X_j^i = T_CiCj X_j^j`` with ``T_CiCj`` given by the caller (e.g. the tracker's
 prediction) or estimated by PnP (RANSAC) on the dense flow's confident correspondences with i's
@@ -380,6 +382,17 @@ class TwoViewPointmapSource(_GeometricSource):
     def add_frame(self, frame_id, image, depth=None, right=None) -> None:
         self._add(frame_id, image)
 
+    def triangulate(self, uv_i: np.ndarray, uv_j: np.ndarray, T_CiCj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels ``uv_i`` of i and ``uv_j`` of j (``(N, 2)``) with the pose ``T_CiCj`` (4x4 Sim(3)): the points
+        in i's frame (units of ``T_CiCj``'s translation; zero where invalid) and their confidence
+        ``1 - exp(-(angle / angle_sigma)^2)`` (0 where invalid): the same triangulation as :meth:`predict`."""
+        T = np.asarray(T_CiCj, np.float64)
+        s = float(np.cbrt(np.linalg.det(T[:3, :3])))
+        X, angle, ok = self._triangulate(np.asarray(uv_i, np.float64), np.asarray(uv_j, np.float64), T[:3, :3] / s,
+                                         T[:3, 3])
+        sig = np.deg2rad(self.config.triangulation.angle_sigma_deg)
+        return X, np.where(ok, 1 - np.exp(-(angle / sig) ** 2), 0.0)
+
     def _triangulate(self, uv_a: np.ndarray, uv_b: np.ndarray, R_CiCj: np.ndarray, c_j: np.ndarray):
         """Midpoint triangulation of pixels ``uv_a`` of i and ``uv_b`` of j (both ``(..., 2)``); returns the
         point in frame i, the triangulation angle (rad) and validity (in front of both cameras)."""
@@ -399,6 +412,9 @@ class TwoViewPointmapSource(_GeometricSource):
         return np.where(ok[..., None], X, 0.0), np.where(ok, angle, 0.0), ok
 
     def predict(self, i: int, j: int, T_CiCj: np.ndarray | None = None) -> PointmapPair:
+        """The two-view pair (module docstring); with ``T_CiCj`` (4x4 Sim(3) in the caller's map scale: the
+        pose measured by :mod:`.features`) the essential matrix is skipped, every pixel is triangulated
+        with that pose and the pair is in the caller's scale (no median-depth normalisation)."""
         cfg, tc = self.config.pose, self.config.triangulation
         fi, fj = self._frame(i), self._frame(j)
         H, W = self._shape
@@ -407,7 +423,15 @@ class TwoViewPointmapSource(_GeometricSource):
         zero = np.zeros((H, W), np.float32)
         rows, cols = self._samples(c_ij)
         pose = None
-        if not self._overlap(i, j, c_ij, c_ji):
+        known = T_CiCj is not None
+        if known:
+            T_CiCj = np.asarray(T_CiCj, np.float64)
+            if T_CiCj.shape != (4, 4) or not np.isfinite(T_CiCj).all():
+                raise DataError(f"pointmap source: T_CiCj must be a finite 4x4 matrix, got shape {T_CiCj.shape}")
+            s = float(np.cbrt(np.linalg.det(T_CiCj[:3, :3])))
+            R_CiCj = T_CiCj[:3, :3] / s
+            pose = (R_CiCj.T, -R_CiCj.T @ T_CiCj[:3, 3])  # (R_CjCi, t_CjCi): c_j below is T_CiCj's translation
+        elif not self._overlap(i, j, c_ij, c_ji):
             pass
         elif rows.size >= cfg.min_inliers:
             pts_i = np.stack((cols, rows), -1).astype(np.float64)
@@ -440,12 +464,13 @@ class TwoViewPointmapSource(_GeometricSource):
         if good.sum() < cfg.min_inliers:
             logger.warning("pointmap source mono: pair (%d, %d): too little parallax (%d confident points); "
                            "zero confidence", i, j, int(good.sum()))
-            return PointmapPair(i, j, empty, empty, empty.copy(), zero, zero.copy(), fi.D, fj.D, fi.Q, fj.Q, None)
-        scale = tc.median_depth / float(np.median(X_i[good][:, 2]))
+            return PointmapPair(i, j, empty, empty, empty.copy(), zero, zero.copy(), fi.D, fj.D, fi.Q, fj.Q,
+                                T_CiCj if known else None)
+        scale = 1.0 if known else tc.median_depth / float(np.median(X_i[good][:, 2]))
         X_i *= scale
         X_j *= scale
         c_j = c_j * scale
-        limit = tc.max_depth_ratio * tc.median_depth
+        limit = tc.max_depth_ratio * (float(np.median(X_i[good][:, 2])) if known else tc.median_depth)
         C_i = np.where(X_i[..., 2] <= limit, C_i, 0.0)
         C_j = np.where(X_j[..., 2] <= limit, C_j, 0.0)
         X_i = np.where((C_i > 0)[..., None], X_i, 0.0)
@@ -453,6 +478,8 @@ class TwoViewPointmapSource(_GeometricSource):
         T = np.eye(4)
         T[:3, :3] = R_CiCj
         T[:3, 3] = c_j
+        if known:
+            T = T_CiCj  # X_j^j in j's own units (its Sim(3) scale)
         X_j_in_j = _transform(np.linalg.inv(T), X_j.astype(np.float32)) * (C_j > 0)[..., None]
         return PointmapPair(i, j, X_i.astype(np.float32), X_j.astype(np.float32), X_j_in_j.astype(np.float32),
                             C_i.astype(np.float32), C_j.astype(np.float32), fi.D, fj.D, fi.Q, fj.Q, T)

@@ -6,18 +6,21 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from ...errors import DataError
 from ...lie import Sim3
 from ..base import FrameStatus
 from ..records import RelativePose, rigid
+from .features import carry_pointmap
 from .keyframes import PointmapKeyframe, even_subset, match_frame
 from .relocalization import relocalize
 from ..depth_tracking import pose_information
-from .tracking import TRACK_KEYS, track_pose
+from .tracking import TRACK_KEYS, fuse_pointmap, track_pose
 
 if TYPE_CHECKING:
     from .frontend import PointmapFrontend
@@ -131,10 +134,11 @@ class PointmapTracker:
         return self.fe.depth.block(*TRACK_KEYS, kf.surface, surface)
 
     def track_against(self, kf: PointmapKeyframe, fid: int, T_CkCf_pred: np.ndarray, warm: torch.Tensor | None,
-                      pair=None, surface=None):
+                      pair=None, surface=None, fixed_scale: bool | None = None):
         """Match and track frame ``fid`` against ``kf``; returns a dict with the result, or None (no pair).
         ``surface``: the frame's depth surface (RGB-D depth alignment): a depth block against the
-        keyframe's joins the pose solve; kept in the result (``surface``)."""
+        keyframe's joins the pose solve; kept in the result (``surface``). ``fixed_scale``: SE(3) tracking
+        (None: the frontend's)."""
         fe = self.fe
         cfg = fe.config
         self.held = None
@@ -166,7 +170,8 @@ class PointmapTracker:
         w = torch.sqrt(C_f[qi].clamp(max=1.0) * kf.C[p].clamp(max=1.0)).to(torch.float64)
         uv = m.uv[sel].to(torch.float64)
         depth = self.depth_block(kf, surface)
-        tr = track_pose(sim3_of(T_CkCf0), X_f, X_k, w, cfg.block, cfg.tracking, fe.fixed_scale, uv, fe.K_t,
+        fixed = fe.fixed_scale if fixed_scale is None else fixed_scale
+        tr = track_pose(sim3_of(T_CkCf0), X_f, X_k, w, cfg.block, cfg.tracking, fixed, uv, fe.K_t,
                         () if depth is None else (depth,))
         fe._times["tracking"] += time.perf_counter() - t1
         out.update(T=tr.T_CkCf, inliers=tr.num_inliers, sel=sel, qi=qi, p=p, X_f=X_f, X_k=X_k, w=w, uv=uv,
@@ -232,3 +237,152 @@ class PointmapTracker:
         fe._records[fid] = RelativePose(kf.fid, fe._T_CkCf.copy())
         fe._counts["pnp_tracked"] += 1
         return fe._status(fid, frame, "tracked", events=["pnp: little parallax"])
+
+    # ------------------------------------------------------------------ monocular: the features' pose (issue 28)
+    @staticmethod
+    def _maps(kf: PointmapKeyframe) -> tuple[np.ndarray, np.ndarray]:
+        """Keyframe ``kf``'s canonical pointmap ``(H, W, 3)`` and confidence ``(H, W)`` (numpy views)."""
+        return kf.X.view(kf.H, kf.W, 3).numpy(), kf.C.view(kf.H, kf.W).numpy()
+
+    def start_features(self, fid: int, grey: np.ndarray) -> None:
+        """After the map's start (or any keyframe change outside :meth:`track_features`): corners of the
+        current keyframe, and frame ``fid`` (posed at ``_T_CkCf``) joined to their tracks when it is not
+        the keyframe."""
+        fe = self.fe
+        kf = fe._kf
+        fe.features.reset(kf.fid, kf.grey, *self._maps(kf))
+        if kf.fid != fid:
+            meas, uv, keep = fe.features.track(grey, fe.features.project(fe._T_CkCf))
+            if meas.T_CkCf is not None:
+                fe.features.commit(grey, uv, keep)
+
+    def track_features(self, fid: int, frame, inputs) -> FrameStatus:
+        """Monocular frame posed by the features (:mod:`.features`): ``T_CkCf`` by KLT and PnP against the
+        keyframe's canonical pointmap; a new keyframe (:meth:`_feature_keyframe`) when the inliers fall
+        below ``features.new_keyframe_fraction`` of the keyframe's corners; when unmeasured: the two-view
+        pair against the keyframe, relocalisation, else a reported failure (never the prediction)."""
+        fe = self.fe
+        kf = fe._kf
+        grey = inputs[0]
+        ft = fe.features
+        if ft.kf_fid != kf.fid:
+            self.start_features(kf.fid, grey)
+        t0 = time.perf_counter()
+        meas, uv, keep = ft.track(grey)
+        fe._times["tracking"] += time.perf_counter() - t0
+        if meas.T_CkCf is None:
+            return self._features_lost(fid, frame, inputs, meas.why)
+        ft.commit(grey, uv, keep)
+        fe._T_CkCf = np.asarray(meas.T_CkCf, np.float64)
+        fe._since_kf += 1
+        if fe.config.features.fuse_corners:
+            self._fuse_corners(kf, fe._T_CkCf)
+        kc = fe.config.keyframe
+        fc = fe.config.features
+        new_kf = (meas.fraction < fc.new_keyframe_fraction or meas.inliers < fc.new_keyframe_inliers
+                  or (kc.max_gap > 0 and fe._since_kf >= kc.max_gap))
+        if not new_kf:
+            fe._records[fid] = RelativePose(kf.fid, fe._T_CkCf.copy())
+            fe._counts["feature_tracked"] += 1
+            return fe._status(fid, frame, "tracked", num_valid=meas.inliers)
+        events = self._feature_keyframe(kf, fid, frame, inputs, fe._T_CkCf)
+        return fe._status(fid, frame, "tracked", True, meas.inliers, events)
+
+    def _fuse_corners(self, kf: PointmapKeyframe, T_CkCf: np.ndarray) -> None:
+        """Eq. 9 on the corners: each tracked corner triangulated from its keyframe pixel and its pixel in the
+        frame at ``T_CkCf`` (confidence from the triangulation angle), fused into ``kf``'s canonical
+        pointmap; the corners' points follow (``bookkeeping`` time)."""
+        fe = self.fe
+        ft = fe.features
+        t0 = time.perf_counter()
+        X, conf = fe.source.triangulate(ft.uv_k, ft.uv, T_CkCf)
+        index = torch.from_numpy(ft.pixels(kf.W))
+        fuse_pointmap(kf.X, kf.C, index, torch.from_numpy(X.astype(np.float32)), torch.from_numpy(conf.astype(np.float32)),
+                      fe.config.keyframe.max_confidence)
+        kf.changed()
+        ft.X_k = kf.X[index].numpy().astype(np.float64)
+        fe._times["bookkeeping"] += time.perf_counter() - t0
+
+    def _feature_keyframe(self, kf: PointmapKeyframe, fid: int, frame, inputs, T_CkCf: np.ndarray) -> list[str]:
+        """Frame ``fid``, measured at ``T_CkCf``, becomes a keyframe: its pointmap triangulated from the dense
+        flow with that pose (where confident; elsewhere ``kf``'s canonical points seen from it, confidence
+        times ``features.carried_confidence``); projective matching and the tracking solve refine the pose
+        and give the edge to ``kf``; when they fall short, the edge is made of the corners' PnP inliers."""
+        fe = self.fe
+        fc = fe.config.features
+        grey = inputs[0]
+        t0 = time.perf_counter()
+        fe.source_cache.ensure(kf)
+        fe.source_cache.add(fid, grey, None, None)
+        pair = fe.source.predict(kf.fid, fid, T_CkCf)
+        X_k, C_k = self._maps(kf)
+        X_c, C_c = carry_pointmap(X_k, C_k, T_CkCf, fe.cam.K)
+        C_c = np.minimum(C_c, 1.0) * fc.carried_confidence
+        fill = C_c > pair.C_j
+        X_ff = np.where(fill[..., None], X_c, pair.X_j_in_j).astype(np.float32)
+        C_f = np.where(fill, C_c, pair.C_j).astype(np.float32)
+        X_fk = (X_ff.reshape(-1, 3) @ T_CkCf[:3, :3].T.astype(np.float32) + T_CkCf[:3, 3].astype(np.float32))
+        X_fk = X_fk.reshape(X_ff.shape) * (C_f > 0)[..., None]
+        # the pair's pointmap of k is k's canonical one: the pose is in the map's scale (no pair scale)
+        pair = replace(pair, X_i_in_i=X_k, C_i=np.minimum(C_k, 1.0), X_j_in_j=X_ff, X_j_in_i=X_fk, C_j=C_f,
+                       T_CiCj=T_CkCf)
+        fe._times["source"] += time.perf_counter() - t0
+        refine = fc.keyframe_refine
+        res = None if refine == "off" else self.track_against(kf, fid, T_CkCf, None, pair=pair,
+                                                              fixed_scale=refine == "se3")
+        events = [f"keyframe {fid}"]
+        if self.ok(res, fe.config.tracking.min_valid_fraction):
+            fe._T_CkCf = matrix_of(res["T"])
+            fe.keyframing.fuse(kf, res["T"], res)
+        else:
+            res = self._feature_edge(pair, T_CkCf)
+            events.append("edge from the corners")
+        fe._last_good = None
+        fe.keyframing.make_keyframe(kf, fid, frame, inputs, res)
+        fe.features.reset(fid, grey, *self._maps(fe._kf))
+        added = fe.graph.window_edges(fe._kf, list(fe._kfs)[-2 - fc.extra_edges:-2])
+        if added:
+            events.append(f"{added} window edges")
+        return events
+
+    def _feature_edge(self, pair, T_CkCf: np.ndarray) -> dict:
+        """The tracking result of a new keyframe whose matches fell short: its pointmap from ``pair`` and the
+        edge of the corners' PnP inliers (their canonical points and the same points in the frame)."""
+        fe = self.fe
+        ft = fe.features
+        n = fe.cam.H * fe.cam.W
+        X_k = torch.from_numpy(ft.X_k)
+        T_CfCk = np.linalg.inv(T_CkCf)
+        X_f = torch.from_numpy(ft.X_k @ T_CfCk[:3, :3].T + T_CfCk[:3, 3])
+        return {"X_ff": torch.from_numpy(np.ascontiguousarray(pair.X_j_in_j, np.float32)).reshape(n, 3),
+                "C_f": torch.from_numpy(np.ascontiguousarray(pair.C_j, np.float32)).reshape(n),
+                "D_f": torch.from_numpy(np.ascontiguousarray(pair.D_j, np.float32)).reshape(n, -1),
+                "X_k": X_k, "X_f": X_f, "w": torch.ones(len(X_k), dtype=torch.float64),
+                "uv": torch.from_numpy(ft.uv_k), "inlier": torch.ones(len(X_k), dtype=torch.bool),
+                "surface": None}
+
+    def _features_lost(self, fid: int, frame, inputs, why: str) -> FrameStatus:
+        """The features measured no pose: the two-view pair against the current keyframe (the essential
+        matrix on the dense flow, independent of the prediction), then relocalisation; otherwise a
+        reported failure (``motion_model``)."""
+        fe = self.fe
+        fe.source_cache.add(fid, inputs[0], None, None)
+        kf = fe._kf
+        res = None
+        try:
+            res = self.track_against(kf, fid, fe._T_CkCf, None)
+        except DataError as exc:  # pragma: no cover - the frames are loaded above
+            logger.info("pointmap frame %d: two-view pair failed: %s", frame.index, exc)
+        if self.ok(res, fe.config.relocalization.min_valid_fraction):
+            source, event = "tracked", f"features lost ({why}); two-view pair"
+        else:
+            found = relocalize(fe, fid, frame)
+            if found is None:
+                return fe._fail(fid, frame, f"tracking lost: {why}; no two-view pose, not relocalised")
+            (kf, res), source, event = found, "relocalized", f"features lost ({why}); relocalised"
+            fe._kf, fe._since_kf = kf, 0
+        fe._uv_prev = None
+        fe._T_CkCf = matrix_of(res["T"])
+        fe._records[fid] = RelativePose(kf.fid, fe._T_CkCf.copy())
+        fe.features.rebase(kf.fid, kf.grey, *self._maps(kf), inputs[0], fe._T_CkCf)
+        return fe._status(fid, frame, source, num_valid=res["inliers"], events=[event])
