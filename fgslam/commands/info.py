@@ -9,7 +9,7 @@ from . import add_config_arguments
 
 HELP = "describe a dataset folder or video: format, frames, resolution, rate, stereo/depth/IMU/ground truth"
 
-FORMAT_CHOICES = ("auto", "tum", "euroc", "kitti", "tartanair", "7scenes", "folder", "video")
+FORMAT_CHOICES = ("auto", "tum", "euroc", "tumvi", "kitti", "tartanair", "7scenes", "folder", "video")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

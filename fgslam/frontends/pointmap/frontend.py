@@ -119,6 +119,8 @@ class PointmapFrontend(BackendFrontend):
         self._kfs: dict[int, PointmapKeyframe] = {}  # every keyframe, insertion order
         self._kf: PointmapKeyframe | None = None  # the current keyframe
         self._T_CkCf = np.eye(4)  # last tracked frame relative to the current keyframe
+        self._motion_prior = None  # the IMU service's prediction (connect)
+        self._T_CkCf_imu: np.ndarray | None = None  # the current frame's pose from the motion prior, relative to the keyframe
         self._uv_prev: torch.Tensor | None = None  # previous frame's matches into the current keyframe
         self._since_kf = 0
         self._init_fid: int | None = None
@@ -254,9 +256,26 @@ class PointmapFrontend(BackendFrontend):
             return self.keyframing.initialize(fid, frame, inputs)
         return self._track_frame(fid, frame, inputs)
 
+    def connect(self, loops=None, motion_prior=None) -> None:
+        """Take the loop port and the motion prior (the IMU service's ``predict``): the prediction of a
+        metric frame the image cannot measure, and the pose of a frame tracking loses (``imu``)."""
+        super().connect(loops)
+        self._motion_prior = motion_prior
+
+    def _prior_T_CkCf(self, timestamp: float) -> np.ndarray | None:
+        """The motion prior's pose of the frame at ``timestamp`` relative to the current keyframe, or None."""
+        if self._motion_prior is None or self._kf is None:
+            return None
+        T_WC = self._motion_prior(float(timestamp))
+        if T_WC is None:
+            return None
+        T_CkCf = np.linalg.inv(self._keyframe_T_WC(self._kf.fid)) @ T_WC
+        return rigid(T_CkCf) if self.metric_scale else T_CkCf
+
     # ------------------------------------------------------------------ tracking
     def _track_frame(self, fid: int, frame, inputs, pair=None) -> FrameStatus:
         kf = self._kf
+        self._T_CkCf_imu = self._prior_T_CkCf(frame.timestamp)
         surface = self._frame_surface
         res = self.tracker.track_against(kf, fid, self._T_CkCf, self._uv_prev, pair, surface)
         events = []
@@ -266,6 +285,7 @@ class PointmapFrontend(BackendFrontend):
         if not self.tracker.ok(res, min_fraction) and self.keyframing.promote_last():
             events.append(f"keyframe {self._kf.fid} (look-back)")  # the last good frame became the keyframe
             kf = self._kf
+            self._T_CkCf_imu = self._prior_T_CkCf(frame.timestamp)  # relative to the new keyframe
             res = self.tracker.track_against(kf, fid, self._T_CkCf, None, surface=surface)
         if not self.tracker.ok(res, min_fraction) and self.kind == "mono":
             status = self.tracker.track_pnp(fid, frame)  # no (usable) two-view pointmap: pose by PnP
@@ -325,6 +345,15 @@ class PointmapFrontend(BackendFrontend):
         return self._status(fid, frame, "tracked", new_kf, 0, events)
 
     def _fail(self, fid: int, frame, reason: str) -> FrameStatus:
+        """Tracking lost: the motion prior's pose when it gives one (bridged by the IMU: ``imu``, not a
+        failure), else the last tracked relative pose (``motion_model``, counted)."""
+        T_CkCf_imu = self._prior_T_CkCf(frame.timestamp) if self._kf is not None else None
+        if T_CkCf_imu is not None:
+            self._T_CkCf = T_CkCf_imu
+            self._records[fid] = RelativePose(self._kf.fid, T_CkCf_imu.copy())
+            self._uv_prev = None
+            logger.info("pointmap frame %d: %s; pose from the IMU", frame.index, reason)
+            return self._status(fid, frame, "imu", events=[reason, "imu bridge"])
         self._failures += 1
         self._counts["failed"] += 1
         logger.info("pointmap frame %d: %s", frame.index, reason)

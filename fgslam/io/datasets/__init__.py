@@ -1,7 +1,8 @@
 """Dataset loaders: one lazy ``Dataset`` interface over TUM RGB-D, EuRoC, KITTI, TartanAir,
 7-Scenes, image folders and videos.  ``open_dataset`` picks the loader from the folder layout.
 
-Detection order (``fmt="auto"``): a file with a video extension -> ``video``; ``mav0/cam0`` or
+Detection order (``fmt="auto"``): a file with a video extension -> ``video``; ``dso/camchain.yaml`` with
+``mav0/cam0`` -> ``tumvi``; ``mav0/cam0`` or
 ``cam0/data.csv`` -> ``euroc``; ``image_0/`` + ``calib.txt`` -> ``kitti``; ``image_left/`` ->
 ``tartanair``; ``rgb.txt`` -> ``tum``; ``seq-NN/frame-*.color.*`` (or such frames directly) ->
 ``7scenes``; a folder with images -> ``folder``.
@@ -19,10 +20,12 @@ from .kitti import KittiDataset, list_images
 from .sevenscenes import SevenScenesDataset, is_sequence_dir
 from .tartanair import TartanAirDataset
 from .tum import TumDataset
+from .tumvi import TumviDataset, tumvi_root
 
 LOADERS: dict[str, type[Dataset]] = {
     "tum": TumDataset,
     "euroc": EurocDataset,
+    "tumvi": TumviDataset,
     "kitti": KittiDataset,
     "tartanair": TartanAirDataset,
     "7scenes": SevenScenesDataset,
@@ -41,6 +44,8 @@ def detect_format(path: str | Path) -> str:
         if path.suffix.lower() in VIDEO_EXTENSIONS:
             return "video"
         raise DataError(f"{path}: a file that is not a video ({', '.join(VIDEO_EXTENSIONS)}); give a dataset folder")
+    if tumvi_root(path) is not None:
+        return "tumvi"
     if mav0_dir(path) is not None:
         return "euroc"
     if (path / "image_0").is_dir() and (path / "calib.txt").is_file():
@@ -54,7 +59,7 @@ def detect_format(path: str | Path) -> str:
     if list_images(path):
         return "folder"
     raise DataError(
-        f"{path}: unknown dataset layout (looked for mav0/cam0 (EuRoC), image_0 + calib.txt (KITTI), "
+        f"{path}: unknown dataset layout (looked for dso/camchain.yaml + mav0/cam0 (TUM-VI), mav0/cam0 (EuRoC), image_0 + calib.txt (KITTI), "
         "image_left (TartanAir), rgb.txt (TUM), seq-NN/frame-*.color.* (7-Scenes), image files (folder))"
     )
 
