@@ -128,3 +128,24 @@ def test_a_run_with_a_wrong_stream_stops_before_any_work(tmp_path):
     with pytest.raises(DataError, match="accelerometer is likely in g"):
         run_slam(ds, cfg, tmp_path / "out", progress=False)
     assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_inertial_state_in_the_summary_and_the_console_report():
+    """summary.json ``inertial`` from the service's mapping, and its console line (not initialised, and
+    initialised with a monocular scale and an input warning)."""
+    from fgslam.commands.run import inertial_text
+    from fgslam.outputs import inertial_summary
+
+    assert inertial_summary(None) is None
+    idle = inertial_summary({"initialized": False, "init_time": None, "scale": None, "gravity_W": None}, 100.0)
+    assert idle["initialized"] is False and idle["init_after_s"] is None and idle["bias_gyro_norm"] is None
+    assert inertial_text(idle) == "not initialised"
+    state = {"initialized": True, "init_time": 102.5, "scale": 0.84, "gravity_W": [0.0, 6.0, 8.0],
+             "bias_gyro": [0.003, 0.0, 0.004], "bias_accel": [0.0, 0.03, 0.04], "links": 7,
+             "input_warnings": ["IMU rate 10.0 Hz ..."]}
+    out = inertial_summary(state, 100.0)
+    assert out["init_after_s"] == pytest.approx(2.5) and out["gravity_norm"] == pytest.approx(10.0)
+    assert out["bias_gyro_norm"] == pytest.approx(0.005) and out["bias_accel_norm"] == pytest.approx(0.05)
+    assert out["scale"] == 0.84 and out["links"] == 7
+    assert inertial_text(out) == ("initialised 2.50 s after the first frame, scale 0.8400, |g| 10.000 m/s^2, "
+                                  "bias |gyro| 0.0050 rad/s, |accel| 0.0500 m/s^2; input: IMU rate 10.0 Hz ...")

@@ -94,6 +94,8 @@ def test_stereo_inertial_runs_on_the_tumvi_layout(tumvi, tmp_path):
     ds = open_slam_dataset(root, cfg)
     summary = run_slam(ds, cfg, tmp_path / "out", progress=False)
     assert summary.failures["tracking"] == 0 and summary.frames_with_pose == FRAMES
+    assert summary.dataset["format"] == "tumvi" and summary.inertial["initialized"]
+    assert summary.inertial["input_warnings"] == []  # the stream passes the IMU checks (units, axes, clock)
     est = np.loadtxt(tmp_path / "out" / "trajectory_tum.txt")
     res = evaluate(ds.groundtruth, Trajectory.from_position_quaternion(est[:, 0], est[:, 1:4], est[:, 4:8]),
                    EvalConfig(align="se3"))
