@@ -120,7 +120,7 @@ class PointmapFrontend(BackendFrontend):
         self._kf: PointmapKeyframe | None = None  # the current keyframe
         self._T_CkCf = np.eye(4)  # last tracked frame relative to the current keyframe
         self._motion_prior = None  # the IMU service's prediction (connect)
-        self._T_CkCf_imu: np.ndarray | None = None  # the current frame's pose from the motion prior, relative to the keyframe
+        self._T_WC_imu: np.ndarray | None = None  # the current frame's pose from the motion prior (None: none)
         self._uv_prev: torch.Tensor | None = None  # previous frame's matches into the current keyframe
         self._since_kf = 0
         self._init_fid: int | None = None
@@ -241,6 +241,7 @@ class PointmapFrontend(BackendFrontend):
                            is_keyframe, int(num_valid), list(events or []))
 
     def _measure_frame(self, fid: int, frame) -> FrameStatus:
+        self._T_WC_imu = None  # set by _track_frame (and _fail) for this frame
         grey = self.cam.image(frame.image)
         depth = self.cam.depth(frame.depth) if self.kind == "rgbd" else None
         right = self.cam.image(frame.image_right) if self.kind == "stereo" else None
@@ -262,20 +263,23 @@ class PointmapFrontend(BackendFrontend):
         super().connect(loops)
         self._motion_prior = motion_prior
 
-    def _prior_T_CkCf(self, timestamp: float) -> np.ndarray | None:
-        """The motion prior's pose of the frame at ``timestamp`` relative to the current keyframe, or None."""
+    def _prior_T_WC(self, timestamp: float) -> np.ndarray | None:
+        """The motion prior's ``T_WC`` of the frame at ``timestamp`` once the map has a keyframe, or None."""
         if self._motion_prior is None or self._kf is None:
             return None
-        T_WC = self._motion_prior(float(timestamp))
-        if T_WC is None:
+        return self._motion_prior(float(timestamp))
+
+    def prior_T_CkCf(self, kf_fid: int) -> np.ndarray | None:
+        """The current frame's motion-prior pose relative to keyframe ``kf_fid`` (rigid on a metric map), or None."""
+        if self._T_WC_imu is None:
             return None
-        T_CkCf = np.linalg.inv(self._keyframe_T_WC(self._kf.fid)) @ T_WC
+        T_CkCf = np.linalg.inv(self._keyframe_T_WC(kf_fid)) @ self._T_WC_imu
         return rigid(T_CkCf) if self.metric_scale else T_CkCf
 
     # ------------------------------------------------------------------ tracking
     def _track_frame(self, fid: int, frame, inputs, pair=None) -> FrameStatus:
         kf = self._kf
-        self._T_CkCf_imu = self._prior_T_CkCf(frame.timestamp)
+        self._T_WC_imu = self._prior_T_WC(frame.timestamp)
         surface = self._frame_surface
         res = self.tracker.track_against(kf, fid, self._T_CkCf, self._uv_prev, pair, surface)
         events = []
@@ -285,7 +289,6 @@ class PointmapFrontend(BackendFrontend):
         if not self.tracker.ok(res, min_fraction) and self.keyframing.promote_last():
             events.append(f"keyframe {self._kf.fid} (look-back)")  # the last good frame became the keyframe
             kf = self._kf
-            self._T_CkCf_imu = self._prior_T_CkCf(frame.timestamp)  # relative to the new keyframe
             res = self.tracker.track_against(kf, fid, self._T_CkCf, None, surface=surface)
         if not self.tracker.ok(res, min_fraction) and self.kind == "mono":
             status = self.tracker.track_pnp(fid, frame)  # no (usable) two-view pointmap: pose by PnP
@@ -347,7 +350,8 @@ class PointmapFrontend(BackendFrontend):
     def _fail(self, fid: int, frame, reason: str) -> FrameStatus:
         """Tracking lost: the motion prior's pose when it gives one (bridged by the IMU: ``imu``, not a
         failure), else the last tracked relative pose (``motion_model``, counted)."""
-        T_CkCf_imu = self._prior_T_CkCf(frame.timestamp) if self._kf is not None else None
+        self._T_WC_imu = self._prior_T_WC(frame.timestamp)
+        T_CkCf_imu = None if self._kf is None else self.prior_T_CkCf(self._kf.fid)
         if T_CkCf_imu is not None:
             self._T_CkCf = T_CkCf_imu
             self._records[fid] = RelativePose(self._kf.fid, T_CkCf_imu.copy())

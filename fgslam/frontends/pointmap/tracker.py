@@ -87,7 +87,8 @@ class PointmapTracker:
         the image measures nothing, the motion prior's (IMU) pose of the frame when there is one."""
         fe = self.fe
         # the motion prior's (IMU) pose of the frame, where the image measures none (else the last pose)
-        fallback = T_CkCf_pred if fe._T_CkCf_imu is None else fe._T_CkCf_imu
+        T_CkCf_imu = fe.prior_T_CkCf(kf.fid)
+        fallback = T_CkCf_pred if T_CkCf_imu is None else T_CkCf_imu
         if not fe.config.tracking.measure_pose:
             return fallback, True
         prev = fe._prev_fid
