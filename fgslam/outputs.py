@@ -15,7 +15,7 @@ import tempfile
 from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Mapping, Optional
 
 import numpy as np
 
@@ -171,6 +171,7 @@ class RunSummary:
     error: Optional[str] = None
     notes: list[str] = field(default_factory=list)
     loop: Optional[dict[str, Any]] = None  # SlamSystem.loop_summary(): loop closure counts (None: off)
+    inertial: Optional[dict[str, Any]] = None  # inertial_summary(): the IMU state at the end (None: no IMU service)
     interrupted: Optional[str] = None  # the signal that stopped the run (SIGINT, SIGTERM), None when it ran to the end
     output_errors: dict[str, str] = field(default_factory=dict)  # output kind -> why it could not be written
 
@@ -335,12 +336,13 @@ def finalize_run(
 
     stage_s: dict[str, float] = {}
     keyframes = -1
-    loop = None
+    loop = inertial = None
     points = None
     try:
         stage_s = {k: float(v) for k, v in system.stage_times().items()}
         keyframes = int(frontend.num_keyframes())
         loop = system.loop_summary()
+        inertial = inertial_summary(system.inertial_state(), float(dataset.timestamps[0]) if len(dataset) else None)
         if config.output.write_ply:
             points = frontend.keyframe_points()
             if points is None:
@@ -411,6 +413,7 @@ def finalize_run(
         error=error_text,
         notes=notes,
         loop=loop,
+        inertial=inertial,
         interrupted=interrupted,
         output_errors=output_errors,
     )
@@ -418,6 +421,39 @@ def finalize_run(
                          outputs, output_errors):
         logger.error("%s could not be written; the run summary is only on the console", out / SUMMARY_FILE)
     return summary, first_error
+
+
+def _vector(value: Any) -> Optional[list[float]]:
+    return None if value is None else [float(x) for x in value]
+
+
+def inertial_summary(state: Optional[Mapping[str, Any]], t_first: Optional[float] = None) -> Optional[dict[str, Any]]:
+    """``summary.json`` ``inertial`` from the IMU service's state mapping (``SlamSystem.inertial_state``;
+    keys ``initialized``, ``init_time``, ``scale``, ``gravity_W``, ``bias_gyro``, ``bias_accel``, counters;
+    missing ones are None): initialised or not, when (dataset clock and seconds after the first frame
+    ``t_first``), the metric scale applied (monocular), gravity and its magnitude, the bias norms."""
+    if state is None:
+        return None
+    gravity = _vector(state.get("gravity_W"))
+    bias_gyro, bias_accel = _vector(state.get("bias_gyro")), _vector(state.get("bias_accel"))
+    init_time = state.get("init_time")
+    out = {
+        "initialized": bool(state.get("initialized", False)),
+        "init_time": None if init_time is None else float(init_time),
+        "init_after_s": None if init_time is None or t_first is None else float(init_time) - t_first,
+        "scale": None if state.get("scale") is None else float(state["scale"]),
+        "gravity_W": gravity,
+        "gravity_norm": None if gravity is None else float(np.linalg.norm(gravity)),
+        "bias_gyro": bias_gyro,
+        "bias_gyro_norm": None if bias_gyro is None else float(np.linalg.norm(bias_gyro)),
+        "bias_accel": bias_accel,
+        "bias_accel_norm": None if bias_accel is None else float(np.linalg.norm(bias_accel)),
+        "input_warnings": list(state.get("input_warnings") or []),
+    }
+    for key in ("links", "unlinked_intervals", "bad_intervals", "predictions"):
+        if key in state:
+            out[key] = state[key]
+    return out
 
 
 def no_pose_reason(dataset: Dataset, config: SlamConfig, state: RunState) -> str:

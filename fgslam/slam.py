@@ -252,9 +252,16 @@ def run_slam(
     check_run_memory(config, dataset)
     out = prepare_output_dir(out_dir, dataset.root)
     clear_previous_outputs(out, overwrite)  # refused, or removed before the run starts
+    imu_input_warnings: list[str] = []
+    if config.imu.enabled and dataset.imu is not None:  # units, axes, clock: a named mistake before any work
+        from .services.imu_checks import check_imu_stream
+
+        imu_input_warnings = check_imu_stream(dataset.imu, dataset.timestamps, config.imu.checks, config.imu.gravity,
+                                              where=str(dataset.root), T_BC=getattr(dataset.calibration, "T_BC", None))
     system = SlamSystem.build(config, dataset.calibration, frontend=frontend, timestamps=dataset.timestamps,
                               has_imu=dataset.has_imu, imu_noise=getattr(dataset, "imu_noise", None),
                               where=str(dataset.root), rerun=rerun)
+    system.imu_input_warnings = imu_input_warnings
     load_average = [round(v, 2) for v in os.getloadavg()]
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
     state = RunState()

@@ -91,6 +91,7 @@ class SlamSystem:
         self.imu = imu
         self.plugins = plugins
         self.view = view
+        self.imu_input_warnings: list[str] = []  # the IMU stream's checks before the run (services/imu_checks.py)
         connect = getattr(frontend, "connect", None)
         if callable(connect):
             connect(loops=loops, motion_prior=None if imu is None else imu.predict)
@@ -225,6 +226,23 @@ class SlamSystem:
         if out is not None:
             self.frontend.add_loop_counts(out)
         return out
+
+    def inertial_state(self) -> Optional[dict]:
+        """The IMU service's state as a mapping for ``summary.json`` ``inertial``
+        (:func:`fgslam.outputs.inertial_summary`), None without IMU service: its ``summary()`` plus the
+        newest linked keyframe's bias and the input checks' warnings."""
+        if self.imu is None:
+            return None
+        state = dict(self.imu.summary())
+        state["input_warnings"] = list(self.imu_input_warnings)
+        if self.backend is not None:
+            for kf in sorted(self.backend.keyframe_ids, key=self.backend.timestamp, reverse=True):
+                bias = self.imu.bias(kf)
+                if bias is not None:
+                    state["bias_gyro"] = [float(x) for x in bias.gyroscope()]
+                    state["bias_accel"] = [float(x) for x in bias.accelerometer()]
+                    break
+        return state
 
     # ------------------------------------------------------------------ view
     def _loop_segments(self) -> list:

@@ -1,6 +1,11 @@
 """Benchmark visual-inertial SLAM (issue 14; fgslam/services/imu.py); prints one JSON object.
 
-Usage: python tools/bench_imu.py [--euroc DIR] [--synth-frames N] [--work DIR] [--skip-synth] [-o key=value ...]
+Usage: python tools/bench_imu.py [--euroc DIR] [--synth-frames N] [--work DIR] [--skip-synth] [--family F]
+       [--runs stereo_visual,stereo_inertial,...] [--skip-black] [-o key=value ...]
+
+``--family`` (patch, dense, pointmap; default patch) picks the presets ``<family>_stereo``,
+``<family>_stereo_inertial``, ``<family>_mono``, ``<family>_mono_inertial`` of the synthetic runs and
+the black-frame clip (issue 26: every family inertial); ``--runs`` keeps some of the four.
 
 - ``euroc_static``: the static EuRoC clip (``../shared/data/euroc_v101_micro``): static initialisation
   (gravity direction against the ground-truth orientation, gyroscope bias), stereo-inertial and
@@ -118,7 +123,11 @@ def euroc_static(root: Path, work: Path, overrides: list[str]) -> dict:
     return out
 
 
-def synthetic(work: Path, frames: int, overrides: list[str]) -> dict:
+SYNTH_RUNS = ("stereo_visual", "stereo_inertial", "mono_visual", "mono_inertial")
+
+
+def synthetic(work: Path, frames: int, overrides: list[str], family: str = "patch",
+              runs: tuple[str, ...] = SYNTH_RUNS, black: bool = True) -> dict:
     from fgslam.io.synth import SynthSequence, write_sequence
     from fgslam.io.synth.scenarios import load_synth_config
 
@@ -126,10 +135,12 @@ def synthetic(work: Path, frames: int, overrides: list[str]) -> dict:
     if not (root / "mav0").is_dir():
         write_sequence(SynthSequence(load_synth_config("room-loop", overrides=[f"frames={frames}", "camera.width=320",
                                                                                "camera.height=240"])), root)
-    out = {"frames": frames}
-    for name, preset, align in (("stereo_visual", "patch_stereo", "se3"), ("stereo_inertial", "patch_stereo_inertial", "se3"),
-                                ("mono_visual", "patch_mono", "sim3"), ("mono_inertial", "patch_mono_inertial", "se3")):
-        ds, summary, est, svc = _run(root, preset, work / f"synth_{name}", overrides)
+    out = {"frames": frames, "family": family}
+    presets = {"stereo_visual": (f"{family}_stereo", "se3"), "stereo_inertial": (f"{family}_stereo_inertial", "se3"),
+               "mono_visual": (f"{family}_mono", "sim3"), "mono_inertial": (f"{family}_mono_inertial", "se3")}
+    for name in runs:
+        preset, align = presets[name]
+        ds, summary, est, svc = _run(root, preset, work / f"synth_{family}_{name}", overrides)
         res = _evaluate(ds, est, align)
         entry = {"align": align, "ate_m": float(res.ate.rmse), "ate_percent_of_path": float(100 * res.ate.rmse / res.gt_path_length_m),
                  "path_m": float(res.gt_path_length_m), "tracking_failures": summary.failures["tracking"],
@@ -140,6 +151,8 @@ def synthetic(work: Path, frames: int, overrides: list[str]) -> dict:
             entry["scale_error_percent"] = float(100 * (sim.alignment.s - 1.0)) if name == "mono_inertial" else None
             entry["sim3_ate_percent_of_path"] = float(100 * sim.ate.rmse / sim.gt_path_length_m)
         out[name] = entry
+    if not black:
+        return out
     # black frames: 2 s (40 frames at 20 Hz) from frame 50
     import cv2
 
@@ -153,7 +166,7 @@ def synthetic(work: Path, frames: int, overrides: list[str]) -> dict:
         for k in black:
             img = cv2.imread(str(names[k]), cv2.IMREAD_UNCHANGED)
             cv2.imwrite(str(names[k]), np.zeros_like(img))
-    ds, summary, est, svc = _run(clip, "patch_stereo_inertial", work / "synth_black", overrides)
+    ds, summary, est, svc = _run(clip, f"{family}_stereo_inertial", work / f"synth_{family}_black", overrides)
     res = _evaluate(ds, est, "se3")
     P_gt = ds.groundtruth.T_WC[:, :3, 3]
     err = np.linalg.norm(np.diff(est[:, 1:4], axis=0) - np.diff(P_gt[:len(est)], axis=0), axis=1)
@@ -174,6 +187,9 @@ def main() -> int:
     parser.add_argument("--work", default="/tmp/fgslam_bench_imu")
     parser.add_argument("--skip-synth", action="store_true")
     parser.add_argument("--skip-euroc", action="store_true")
+    parser.add_argument("--family", default="patch", choices=("patch", "dense", "pointmap"))
+    parser.add_argument("--runs", default=",".join(SYNTH_RUNS), help="comma-separated synthetic runs (of %(default)s)")
+    parser.add_argument("--skip-black", action="store_true", help="no black-frame clip")
     parser.add_argument("-o", "--override", action="append", default=[])
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args()
@@ -185,7 +201,11 @@ def main() -> int:
     if not args.skip_euroc:
         result["euroc_static"] = euroc_static(Path(args.euroc), work, args.override)
     if not args.skip_synth:
-        result["synthetic"] = synthetic(work, args.synth_frames, args.override)
+        runs = tuple(r for r in args.runs.split(",") if r)
+        unknown = [r for r in runs if r not in SYNTH_RUNS]
+        if unknown:
+            parser.error(f"--runs: unknown {unknown} (of {', '.join(SYNTH_RUNS)})")
+        result["synthetic"] = synthetic(work, args.synth_frames, args.override, args.family, runs, not args.skip_black)
     result["wall_s"] = round(time.perf_counter() - t0, 1)
     print(json.dumps(result, indent=1))
     return 0

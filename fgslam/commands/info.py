@@ -9,7 +9,7 @@ from . import add_config_arguments
 
 HELP = "describe a dataset folder, video or ROS bag: format, frames, resolution, rate, stereo/depth/IMU/ground truth"
 
-FORMAT_CHOICES = ("auto", "tum", "euroc", "kitti", "tartanair", "7scenes", "folder", "video", "rosbag")
+FORMAT_CHOICES = ("auto", "tum", "euroc", "tumvi", "kitti", "tartanair", "7scenes", "folder", "video", "rosbag")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

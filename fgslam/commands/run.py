@@ -13,7 +13,7 @@ import json
 
 HELP = "run SLAM on a dataset (trajectory in TUM/KITTI formats, summary.json, trajectory.png)"
 
-FORMAT_CHOICES = ("auto", "tum", "euroc", "kitti", "tartanair", "7scenes", "folder", "video", "rosbag")
+FORMAT_CHOICES = ("auto", "tum", "euroc", "tumvi", "kitti", "tartanair", "7scenes", "folder", "video", "rosbag")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -81,6 +81,24 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def inertial_text(i: dict) -> str:
+    """One line of the IMU state of ``summary.json`` ``inertial``."""
+    if not i["initialized"]:
+        text = "not initialised"
+    else:
+        after = "" if i.get("init_after_s") is None else f" {i['init_after_s']:.2f} s after the first frame"
+        text = f"initialised{after}"
+        if i.get("scale") is not None:
+            text += f", scale {i['scale']:.4f}"
+        if i.get("gravity_norm") is not None:
+            text += f", |g| {i['gravity_norm']:.3f} m/s^2"
+        if i.get("bias_gyro_norm") is not None:
+            text += f", bias |gyro| {i['bias_gyro_norm']:.4f} rad/s, |accel| {i['bias_accel_norm']:.4f} m/s^2"
+    for warning in i.get("input_warnings") or []:
+        text += f"; input: {warning}"
+    return text
+
+
 def format_report(s: dict) -> str:
     """A short human-readable report of a run summary (``summary.json`` contents)."""
     lines = [
@@ -108,6 +126,9 @@ def format_report(s: dict) -> str:
             parts.append(f"proximity {p['accepted']} accepted of {p['candidates']} candidates, "
                          f"{p['global_ba_runs']} global BAs ({p['global_ba_s']:.1f} s)")
         lines.append(f"  loops:      {'; '.join(parts)} (mode {loop['mode']})")
+    inertial = s.get("inertial")
+    if inertial:
+        lines.append(f"  inertial:   {inertial_text(inertial)}")
     ev = s["evaluation"]
     if ev is not None:
         pct = ev["ate_percent_of_path"]

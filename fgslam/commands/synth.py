@@ -31,13 +31,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=int, default=None, help="image width in pixels")
     parser.add_argument("--height", type=int, default=None, help="image height in pixels")
     parser.add_argument("--colour", action="store_true", help="write RGB images instead of grey")
+    parser.add_argument("--layout", choices=("euroc", "tumvi"), default="euroc",
+                        help="euroc (default: mav0 with depth0 and sensor.yaml files) or tumvi (TUM-VI "
+                             "dataset-*_512_16: 16-bit PNGs, mav0/mocap0, dso/camchain.yaml; fisheye with "
+                             "-o camera.distortion_model=equidistant -o camera.distortion=[k1,k2,k3,k4])")
     add_config_arguments(parser, "SynthConfig", "fgslam/configs/synth.yaml")
 
 
 def run(args: argparse.Namespace) -> int:
     import time
 
-    from ..io.synth import SynthSequence, write_sequence
+    from ..io.synth import SynthSequence, write_sequence, write_tumvi_sequence
     from ..io.synth.scenarios import load_synth_config
 
     overrides = list(args.overrides or [])
@@ -51,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     seq = SynthSequence(cfg)
     t_build = time.perf_counter() - t0
-    summary = write_sequence(seq, args.out)
+    summary = (write_tumvi_sequence if args.layout == "tumvi" else write_sequence)(seq, args.out)
     t_total = time.perf_counter() - t0
     result = {"preset": cfg.preset, "out": str(summary.root), "frames": summary.frames,
               "imu_samples": summary.imu_samples, "duration_s": summary.duration_s,

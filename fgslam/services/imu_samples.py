@@ -16,6 +16,7 @@ import numpy as np
 
 from ..config import MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, MAX_WINDOW, ranged
 from ..factors.imu import ImuNoise, integration_steps, preintegrate
+from .imu_checks import ImuCheckConfig
 
 logger = logging.getLogger(__name__)
 
@@ -79,6 +80,7 @@ class ImuServiceConfig:
     max_interval_s: float = ranged(5.0, gt=0, le=MAX_SCALAR)  # s: longest keyframe interval given an IMU factor
     max_bridge_s: float = ranged(3.0, ge=0, le=MAX_SCALAR)  # s: IMU prediction from the newest linked keyframe up to this long
     init: ImuInitConfig = field(default_factory=ImuInitConfig)
+    checks: ImuCheckConfig = field(default_factory=ImuCheckConfig)  # the stream's units, axes and clock checked before a run (imu_checks.py)
 
     def noise(self, dataset_noise: Optional[dict] = None) -> ImuNoise:
         """Noise densities: config, else the dataset's, else EuRoC's (white noise times ``noise_inflation``)."""

@@ -104,6 +104,7 @@ class DenseFrontend(BackendFrontend):
         self._initialized = False
         self._last_fid: int | None = None
         self._velocity = np.eye(4)
+        self._motion_prior = None  # the IMU service's prediction (connect): tracking prior and bridge
         self._lost = 0
         self._failures = 0
         self._counts = {"keyframes_added": 0, "keyframes_removed": 0, "tracking_failures": 0, "map_restarts": 0,
@@ -236,7 +237,27 @@ class DenseFrontend(BackendFrontend):
                            T_WC=None if T is None else rigid(T), pose_source=source, is_keyframe=is_keyframe,
                            num_valid=int(num_valid), events=list(events or []))
 
-    def _predict(self) -> np.ndarray:
+    def connect(self, loops=None, motion_prior=None) -> None:
+        """Take the loop port and the motion prior (the IMU service's ``predict``): the prior is the
+        tracking prediction when it gives a pose, and the pose of a frame the flow loses (``imu``)."""
+        super().connect(loops)
+        self._motion_prior = motion_prior
+
+    def _prior_pose(self, timestamp: float | None) -> np.ndarray | None:
+        """The motion prior's ``T_WC`` at ``timestamp`` once the map is initialised (rigid for a metric
+        map, whose keyframes are at scale 1 as the constant-velocity prediction's), else None."""
+        if self._motion_prior is None or timestamp is None or not self._initialized:
+            return None
+        T_WC = self._motion_prior(float(timestamp))
+        if T_WC is None:
+            return None
+        return rigid(T_WC) if self.metric_scale else T_WC
+
+    def _predict(self, timestamp: float | None = None) -> np.ndarray:
+        """The motion prior's pose at ``timestamp`` when it gives one, else the damped constant velocity."""
+        T_WC_prior = self._prior_pose(timestamp)
+        if T_WC_prior is not None:
+            return T_WC_prior
         T_WC_last = self._pose_of(self._last_fid) if self._last_fid is not None else None
         if T_WC_last is None:
             return np.eye(4) if self._pending_origin is None else self._pending_origin
@@ -274,7 +295,7 @@ class DenseFrontend(BackendFrontend):
             return self._status(fid, frame, "initializing", is_keyframe=True)
         t0 = time.perf_counter()
         kf_fid = g.active[-1]
-        T_WC_pred = self._predict()
+        T_WC_pred = self._predict(frame.timestamp)
         events = []
         added = False
         textured = textured_share(self._cropped(frame.image), self.stride, self.config.tracking.texture_gradient)
@@ -334,13 +355,21 @@ class DenseFrontend(BackendFrontend):
         return self._status(fid, frame, "tracked", fid in g.keyframes, n_conf, events)
 
     def _fail(self, fid: int, frame, reason: str, T_WC_pred: np.ndarray | None = None) -> FrameStatus:
-        """Tracking failure: predicted pose relative to the newest keyframe, counted; a map restart
-        after ``tracking.max_lost`` in a row."""
+        """Tracking failure: the motion prior's pose when it gives one (bridged by the IMU: ``imu``, not a
+        failure), else the predicted pose relative to the newest keyframe, counted; a map restart after
+        ``tracking.max_lost`` in a row."""
+        g = self.graph
+        T_WC_imu = self._prior_pose(frame.timestamp)
+        if T_WC_imu is not None and g is not None and g.active and self._last_fid is not None:
+            ref = g.active[-1]
+            self._records[fid] = RelativePose(ref, np.linalg.inv(self._keyframe_T_WC(ref)) @ T_WC_imu)
+            self._last_fid = fid
+            logger.info("frame %d: %s; pose from the IMU", frame.index, reason)
+            return self._status(fid, frame, "imu", events=[reason, "imu bridge"])
         self._failures += 1
         self._counts["tracking_failures"] += 1
         self._lost += 1
         events = [reason]
-        g = self.graph
         if g is not None and g.active and self._last_fid is not None:
             if T_WC_pred is None:
                 T_WC_pred = self._predict()

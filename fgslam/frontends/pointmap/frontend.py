@@ -126,6 +126,8 @@ class PointmapFrontend(BackendFrontend):
         self._kfs: dict[int, PointmapKeyframe] = {}  # every keyframe, insertion order
         self._kf: PointmapKeyframe | None = None  # the current keyframe
         self._T_CkCf = np.eye(4)  # last tracked frame relative to the current keyframe
+        self._motion_prior = None  # the IMU service's prediction (connect)
+        self._T_WC_imu: np.ndarray | None = None  # the current frame's pose from the motion prior (None: none)
         self._uv_prev: torch.Tensor | None = None  # previous frame's matches into the current keyframe
         self._since_kf = 0
         self._init_fid: int | None = None
@@ -250,6 +252,7 @@ class PointmapFrontend(BackendFrontend):
                            is_keyframe, int(num_valid), list(events or []))
 
     def _measure_frame(self, fid: int, frame) -> FrameStatus:
+        self._T_WC_imu = None  # set by _track_frame (and _fail) for this frame
         grey = self.cam.image(frame.image)
         depth = self.cam.depth(frame.depth) if self.kind == "rgbd" else None
         right = self.cam.image(frame.image_right) if self.kind == "stereo" else None
@@ -266,11 +269,31 @@ class PointmapFrontend(BackendFrontend):
             return self.keyframing.initialize(fid, frame, inputs)
         return self._track_frame(fid, frame, inputs)
 
+    def connect(self, loops=None, motion_prior=None) -> None:
+        """Take the loop port and the motion prior (the IMU service's ``predict``): the prediction of a
+        metric frame the image cannot measure, and the pose of a frame tracking loses (``imu``)."""
+        super().connect(loops)
+        self._motion_prior = motion_prior
+
+    def _prior_T_WC(self, timestamp: float) -> np.ndarray | None:
+        """The motion prior's ``T_WC`` of the frame at ``timestamp`` once the map has a keyframe, or None."""
+        if self._motion_prior is None or self._kf is None:
+            return None
+        return self._motion_prior(float(timestamp))
+
+    def prior_T_CkCf(self, kf_fid: int) -> np.ndarray | None:
+        """The current frame's motion-prior pose relative to keyframe ``kf_fid`` (rigid on a metric map), or None."""
+        if self._T_WC_imu is None:
+            return None
+        T_CkCf = np.linalg.inv(self._keyframe_T_WC(kf_fid)) @ self._T_WC_imu
+        return rigid(T_CkCf) if self.metric_scale else T_CkCf
+
     # ------------------------------------------------------------------ tracking
     def _track_frame(self, fid: int, frame, inputs, pair=None) -> FrameStatus:
         if self.features is not None and pair is None:  # monocular: the pose of every frame by the corners
             return self.tracker.track_features(fid, frame, inputs)
         kf = self._kf
+        self._T_WC_imu = self._prior_T_WC(frame.timestamp)
         surface = self._frame_surface
         res = self.tracker.track_against(kf, fid, self._T_CkCf, self._uv_prev, pair, surface)
         events = []
@@ -339,6 +362,16 @@ class PointmapFrontend(BackendFrontend):
         return self._status(fid, frame, "tracked", new_kf, 0, events)
 
     def _fail(self, fid: int, frame, reason: str) -> FrameStatus:
+        """Tracking lost: the motion prior's pose when it gives one (bridged by the IMU: ``imu``, not a
+        failure), else the last tracked relative pose (``motion_model``, counted)."""
+        self._T_WC_imu = self._prior_T_WC(frame.timestamp)
+        T_CkCf_imu = None if self._kf is None else self.prior_T_CkCf(self._kf.fid)
+        if T_CkCf_imu is not None:
+            self._T_CkCf = T_CkCf_imu
+            self._records[fid] = RelativePose(self._kf.fid, T_CkCf_imu.copy())
+            self._uv_prev = None
+            logger.info("pointmap frame %d: %s; pose from the IMU", frame.index, reason)
+            return self._status(fid, frame, "imu", events=[reason, "imu bridge"])
         self._failures += 1
         self._counts["failed"] += 1
         logger.info("pointmap frame %d: %s", frame.index, reason)

@@ -86,16 +86,20 @@ class PointmapTracker:
         """Metric sources: ``T_CkCf`` with the last step measured by PnP on the dense flow from the previous
         frame (``T_CkCp T_CpCf``; from the keyframe itself right after a keyframe change), which stays
         reliable at video rate where the flow to an older keyframe fails; ``T_CkCf_pred`` when that fails.
-        Second: whether the image measured it (``tracking.measure_pose`` off: counted as measured)."""
+        Second: whether the image measured it (``tracking.measure_pose`` off: counted as measured). Where
+        the image measures nothing, the motion prior's (IMU) pose of the frame when there is one."""
         fe = self.fe
+        # the motion prior's (IMU) pose of the frame, where the image measures none (else the last pose)
+        T_CkCf_imu = fe.prior_T_CkCf(kf.fid)
+        fallback = T_CkCf_pred if T_CkCf_imu is None else T_CkCf_imu
         if not fe.config.tracking.measure_pose:
-            return T_CkCf_pred, True
+            return fallback, True
         prev = fe._prev_fid
         if prev is None or prev not in fe.source_cache or prev == kf.fid or fe._prev_kf != kf.fid:
             T_CkCf = fe.source.predict(kf.fid, fid, None).T_CiCj
-            return (T_CkCf_pred, False) if T_CkCf is None else (np.asarray(T_CkCf, np.float64), True)
+            return (fallback, False) if T_CkCf is None else (np.asarray(T_CkCf, np.float64), True)
         T_CpCf = fe.source.predict(prev, fid, None).T_CiCj
-        return (T_CkCf_pred, False) if T_CpCf is None else (T_CkCf_pred @ np.asarray(T_CpCf, np.float64), True)
+        return (fallback, False) if T_CpCf is None else (T_CkCf_pred @ np.asarray(T_CpCf, np.float64), True)
 
     def _depth_prediction(self, kf: PointmapKeyframe, T_CkCf_pred: np.ndarray, surface):
         """RGB-D depth alignment: the prediction ``T_CkCf_pred`` aligned to ``kf`` by depth when the depth

@@ -2,7 +2,8 @@
 7-Scenes, image folders, videos and ROS 1 / ROS 2 bags.  ``open_dataset`` picks the loader from the folder layout.
 
 Detection order (``fmt="auto"``): a ``.bag`` file or a folder with ``metadata.yaml`` -> ``rosbag``
-(ROS 1 / ROS 2); a file with a video extension -> ``video``; ``mav0/cam0`` or
+(ROS 1 / ROS 2); a file with a video extension -> ``video``; ``dso/camchain.yaml`` with
+``mav0/cam0`` -> ``tumvi``; ``mav0/cam0`` or
 ``cam0/data.csv`` -> ``euroc``; ``image_0/`` + ``calib.txt`` -> ``kitti``; ``image_left/`` ->
 ``tartanair``; ``rgb.txt`` -> ``tum``; ``seq-NN/frame-*.color.*`` (or such frames directly) ->
 ``7scenes``; a folder with images -> ``folder``.
@@ -21,10 +22,12 @@ from .rosbag import RosbagDataset, is_bag
 from .sevenscenes import SevenScenesDataset, is_sequence_dir
 from .tartanair import TartanAirDataset
 from .tum import TumDataset
+from .tumvi import TumviDataset, tumvi_root
 
 LOADERS: dict[str, type[Dataset]] = {
     "tum": TumDataset,
     "euroc": EurocDataset,
+    "tumvi": TumviDataset,
     "kitti": KittiDataset,
     "tartanair": TartanAirDataset,
     "7scenes": SevenScenesDataset,
@@ -47,6 +50,8 @@ def detect_format(path: str | Path) -> str:
             return "video"
         raise DataError(f"{path}: a file that is neither a video ({', '.join(VIDEO_EXTENSIONS)}) nor a ROS 1 .bag; "
                         "give a dataset folder")
+    if tumvi_root(path) is not None:
+        return "tumvi"
     if mav0_dir(path) is not None:
         return "euroc"
     if (path / "image_0").is_dir() and (path / "calib.txt").is_file():
@@ -60,7 +65,7 @@ def detect_format(path: str | Path) -> str:
     if list_images(path):
         return "folder"
     raise DataError(
-        f"{path}: unknown dataset layout (looked for mav0/cam0 (EuRoC), image_0 + calib.txt (KITTI), "
+        f"{path}: unknown dataset layout (looked for dso/camchain.yaml + mav0/cam0 (TUM-VI), mav0/cam0 (EuRoC), image_0 + calib.txt (KITTI), "
         "image_left (TartanAir), rgb.txt (TUM), seq-NN/frame-*.color.* (7-Scenes), image files (folder))"
     )
 

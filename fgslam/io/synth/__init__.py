@@ -3,7 +3,7 @@ written in the EuRoC layout (see :mod:`.writer`)."""
 
 from .scenarios import PRESET_NAMES, SynthConfig, default_config
 from .sequence import StereoFrame, SynthSequence
-from .writer import WriteSummary, write_sequence
+from .writer import WriteSummary, write_sequence, write_tumvi_sequence
 
 __all__ = ["PRESET_NAMES", "SynthConfig", "default_config", "SynthSequence", "StereoFrame",
-           "WriteSummary", "write_sequence"]
+           "WriteSummary", "write_sequence", "write_tumvi_sequence"]

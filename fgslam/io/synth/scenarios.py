@@ -110,6 +110,10 @@ R_W_KITTI = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 STYLE_WALL, STYLE_GROUND, STYLE_OBJECT = 0, 1, 2
 
 
+#: lens models of the synthetic raw images (camera.distortion_model; fgslam/io/synth/distortion.py)
+DISTORTION_MODELS = ("radtan", "equidistant")
+
+
 @dataclass
 class CameraConfig:
     """Rectified stereo pair (same intrinsics) and its mounting on the body (IMU) frame."""
@@ -127,6 +131,9 @@ class CameraConfig:
     distortion: list[float] = ranged(default_factory=lambda: [0.0, 0.0, 0.0, 0.0], ge=-1, le=1)  # radial-tangential
     # (k1, k2, p1, p2) of the raw images (OpenCV model, as EuRoC's sensor.yaml): all zero = pinhole images; otherwise
     # every image (and depth0) is rendered through it and sensor.yaml carries it, so that the loaders undistort
+    # radtan: camera.distortion is (k1, k2, p1, p2); equidistant: Kannala-Brandt fisheye (k1, k2, k3, k4) on the
+    # ray angle (TUM-VI's model, OpenCV cv2.fisheye), fx = fy from hfov_deg as for the pinhole
+    distortion_model: str = "radtan"
     exposure_s: float = ranged(0.0, ge=0, le=MAX_SCALAR)  # motion blur: images are the mean of blur_samples renders over
     # this exposure centred on the frame time (0: instantaneous); depth0 is the frame time's
     blur_samples: int = ranged(8, ge=2, le=MAX_COUNT)
@@ -356,6 +363,9 @@ class SynthConfig:
         if len(self.texture.plain.albedo) != 3:
             raise ConfigError("texture.plain.albedo: expected 3 albedos (plain, tiles, door), "
                               f"got {len(self.texture.plain.albedo)}")
+        if self.camera.distortion_model not in DISTORTION_MODELS:
+            raise ConfigError(f"camera.distortion_model: expected one of {', '.join(DISTORTION_MODELS)}, "
+                              f"got {self.camera.distortion_model!r}")
         if len(self.camera.distortion) != 4:
             raise ConfigError("camera.distortion: expected 4 radial-tangential coefficients (k1, k2, p1, p2), "
                               f"got {len(self.camera.distortion)}")

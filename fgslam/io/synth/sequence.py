@@ -57,7 +57,8 @@ class SynthSequence:
         f = 0.5 * cam.width / np.tan(0.5 * np.deg2rad(cam.hfov_deg))
         self.K = (float(f), float(f), 0.5 * cam.width, 0.5 * cam.height)
         # raw images with lens distortion (camera.distortion not all zero): a pinhole canvas resampled
-        self.distorted = DistortedCamera(self.K, cam.width, cam.height, cam.distortion) if any(cam.distortion) else None
+        self.distorted = DistortedCamera(self.K, cam.width, cam.height, cam.distortion, cam.distortion_model) \
+            if any(cam.distortion) else None
         if self.distorted is None:
             self.renderer = Renderer(self.scene, self.atlas, self.K, cam.width, cam.height, cfg.render)
         else:

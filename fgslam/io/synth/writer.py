@@ -18,6 +18,13 @@
 
 Timestamps are ``start_time_ns + i * period_ns`` (integers), so camera and IMU stamps coincide
 whenever the rates allow.
+
+:func:`write_tumvi_sequence` writes the same sequence in the TUM-VI ``dataset-*_512_16`` layout
+(:mod:`fgslam.io.datasets.tumvi`): 16-bit PNGs in ``mav0/cam0``, ``mav0/cam1``, ``mav0/imu0/data.csv``,
+``mav0/mocap0/data.csv`` (``T_WB``: position and quaternion), ``dso/camchain.yaml`` (Kalibr: intrinsics,
+``distortion_model`` and ``distortion_coeffs``, ``T_cam_imu``, cam1's ``T_cn_cnm1``) and
+``dso/imu_config.yaml`` (noise densities); no depth. Give it a sequence rendered with
+``camera.distortion_model: equidistant`` for TUM-VI's fisheye images.
 """
 
 from __future__ import annotations
@@ -37,6 +44,11 @@ from .sequence import SynthSequence
 logger = logging.getLogger(__name__)
 
 _UINT16_MAX = 65535
+_UINT8_TO_UINT16 = 257  # 8-bit grey to the 16-bit range (255 -> 65535; the loaders read the high byte back)
+#: camera.distortion_model -> the distortion_model name of the EuRoC sensor.yaml / Kalibr camchain
+_SENSOR_MODEL_NAMES = {"radtan": "radial-tangential", "equidistant": "equidistant"}
+_IMU_HEADER = ("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+               "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]")
 
 
 @dataclass(frozen=True)
@@ -97,7 +109,7 @@ def _camera_yaml(seq: SynthSequence, T_BS: np.ndarray, comment: str, extra: str 
             f"resolution: [{cam.width}, {cam.height}]\n"
             "camera_model: pinhole\n"
             f"intrinsics: [{fx:.12g}, {fy:.12g}, {cx:.12g}, {cy:.12g}] #fu, fv, cu, cv\n"
-            "distortion_model: radial-tangential\n"
+            f"distortion_model: {_SENSOR_MODEL_NAMES[cam.distortion_model]}\n"
             f"distortion_coefficients: [{', '.join(repr(float(c)) for c in cam.distortion)}]\n" + extra)
 
 
@@ -152,7 +164,6 @@ def write_sequence(seq: SynthSequence, root: str | Path,
         raise DataError(f"cannot create output folders under {root}: {exc}") from exc
 
     cam_period_ns = int(round(1e9 / cfg.camera.rate_hz))
-    imu_period_ns = int(round(1e9 / cfg.imu.rate_hz))
     n = cfg.frames
     cam_ns = cfg.start_time_ns + np.arange(n, dtype=np.int64) * cam_period_ns
     names = [f"{ts}.png" for ts in cam_ns]
@@ -169,12 +180,7 @@ def write_sequence(seq: SynthSequence, root: str | Path,
             progress(i + 1, n)
 
     imu = seq.imu
-    imu_ns = cfg.start_time_ns + np.arange(len(imu.t), dtype=np.int64) * imu_period_ns
-    header = ("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
-              "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]")
-    rows = [f"{ts}," + ",".join(f"{v:.12g}" for v in row)
-            for ts, row in zip(imu_ns, np.hstack([imu.gyro, imu.accel]))]
-    (dirs["imu0"] / "data.csv").write_text("\n".join([header] + rows) + "\n")
+    imu_ns = _write_imu(seq, dirs["imu0"] / "data.csv")
 
     st = seq.states(imu.t)
     q = continuous_quaternions(rotation_to_quaternion_wxyz(st.R_WB))
@@ -195,8 +201,91 @@ def write_sequence(seq: SynthSequence, root: str | Path,
     (mav0 / "body.yaml").write_text("%YAML:1.0\ncomment: fgslam synthetic body (= IMU frame)\n")
     (root / "synth_config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
 
+    return _summary(seq, root)
+
+
+def _summary(seq: SynthSequence, root: Path) -> WriteSummary:
+    n = seq.cfg.frames
     p = seq.states(seq.frame_times()).p_WB
     length = float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if n > 1 else 0.0
-    logger.info("wrote %d frames and %d IMU samples to %s", n, len(imu.t), root)
-    return WriteSummary(root=root, frames=n, imu_samples=len(imu.t),
-                        duration_s=(n - 1) / cfg.camera.rate_hz, path_length_m=length)
+    logger.info("wrote %d frames and %d IMU samples to %s", n, len(seq.imu.t), root)
+    return WriteSummary(root=root, frames=n, imu_samples=len(seq.imu.t),
+                        duration_s=(n - 1) / seq.cfg.camera.rate_hz, path_length_m=length)
+
+
+def _write_imu(seq: SynthSequence, path: Path) -> np.ndarray:
+    """``imu0/data.csv`` (EuRoC / TUM-VI columns); the sample stamps (ns)."""
+    cfg, imu = seq.cfg, seq.imu
+    imu_ns = cfg.start_time_ns + np.arange(len(imu.t), dtype=np.int64) * int(round(1e9 / cfg.imu.rate_hz))
+    rows = [f"{ts}," + ",".join(f"{v:.12g}" for v in row)
+            for ts, row in zip(imu_ns, np.hstack([imu.gyro, imu.accel]))]
+    path.write_text("\n".join([_IMU_HEADER] + rows) + "\n")
+    return imu_ns
+
+
+def _kalibr_rows(T: np.ndarray, indent: str = "  ") -> str:
+    return "".join(f"{indent}- [{', '.join(f'{v:.12g}' for v in row)}]\n" for row in np.asarray(T, np.float64))
+
+
+def _kalibr_camera(seq: SynthSequence, T_cam_imu: np.ndarray, T_cn_cnm1: np.ndarray | None = None) -> str:
+    cam = seq.cfg.camera
+    out = "  T_cam_imu:\n" + _kalibr_rows(T_cam_imu, "  ")
+    if T_cn_cnm1 is not None:
+        out += "  T_cn_cnm1:\n" + _kalibr_rows(T_cn_cnm1, "  ")
+    return (out + "  camera_model: pinhole\n"
+            f"  distortion_coeffs: [{', '.join(repr(float(c)) for c in cam.distortion)}]\n"
+            f"  distortion_model: {_SENSOR_MODEL_NAMES[cam.distortion_model]}\n"
+            f"  intrinsics: [{', '.join(f'{k:.12g}' for k in seq.K)}]\n"
+            f"  resolution: [{cam.width}, {cam.height}]\n")
+
+
+def write_tumvi_sequence(seq: SynthSequence, root: str | Path,
+                         progress: Callable[[int, int], None] | None = None) -> WriteSummary:
+    """Render every frame of ``seq`` and write it under ``root`` in the TUM-VI layout (module docstring)."""
+    from ...config import to_dict
+
+    cfg = seq.cfg
+    if cfg.camera.colour:
+        raise DataError("TUM-VI sequences are grey: render with camera.colour: false")
+    root = Path(root)
+    mav0, dso = root / "mav0", root / "dso"
+    try:
+        for name in ("cam0", "cam1"):
+            (mav0 / name / "data").mkdir(parents=True, exist_ok=True)
+        for folder in (mav0 / "imu0", mav0 / "mocap0", dso):
+            folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DataError(f"cannot create output folders under {root}: {exc}") from exc
+    n = cfg.frames
+    cam_ns = cfg.start_time_ns + np.arange(n, dtype=np.int64) * int(round(1e9 / cfg.camera.rate_hz))
+    names = [f"{ts}.png" for ts in cam_ns]
+    for name in ("cam0", "cam1"):
+        lines = ["#timestamp [ns],filename"] + [f"{ts},{fn}" for ts, fn in zip(cam_ns, names)]
+        (mav0 / name / "data.csv").write_text("\n".join(lines) + "\n")
+    for i in range(n):
+        fr = seq.frame(i)
+        for name, img in (("cam0", fr.image0), ("cam1", fr.image1)):
+            _write_png(mav0 / name / "data" / names[i], _to_uint8(img).astype(np.uint16) * np.uint16(_UINT8_TO_UINT16))
+        if progress is not None:
+            progress(i + 1, n)
+    imu_ns = _write_imu(seq, mav0 / "imu0" / "data.csv")
+    st = seq.states(seq.imu.t)
+    q = continuous_quaternions(rotation_to_quaternion_wxyz(st.R_WB))
+    rows = [f"{ts}," + ",".join(f"{v:.12g}" for v in row) for ts, row in zip(imu_ns, np.hstack([st.p_WB, q]))]
+    header = "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"
+    (mav0 / "mocap0" / "data.csv").write_text("\n".join([header] + rows) + "\n")
+    T_C0I = np.linalg.inv(seq.T_BS0)
+    T_C1I = np.linalg.inv(seq.T_BS1)
+    (dso / "camchain.yaml").write_text("cam0:\n" + _kalibr_camera(seq, T_C0I) + "  rostopic: /cam0/image_raw\n"
+                                       "cam1:\n" + _kalibr_camera(seq, T_C1I, T_C1I @ seq.T_BS0)
+                                       + "  rostopic: /cam1/image_raw\n")
+    c = cfg.imu
+    (dso / "imu_config.yaml").write_text(
+        f"accelerometer_noise_density: {c.accelerometer_noise_density:.6g}\n"
+        f"accelerometer_random_walk: {c.accelerometer_random_walk:.6g}\n"
+        f"gyroscope_noise_density: {c.gyroscope_noise_density:.6g}\n"
+        f"gyroscope_random_walk: {c.gyroscope_random_walk:.6g}\n"
+        "rostopic: /imu0\n"
+        f"update_rate: {c.rate_hz:g}\n")
+    (root / "synth_config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    return _summary(seq, root)
