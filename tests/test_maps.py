@@ -178,6 +178,25 @@ def test_run_saves_a_map_that_reloads_identically(room_map, tmp_path):
     assert (tmp_path / "again.fgmap").read_bytes() == stored_path.read_bytes()
 
 
+def test_the_same_run_saved_to_two_paths_gives_the_same_bytes(room_map, tmp_path):
+    """Nothing in a map depends on where it is saved nor where its data lies: the same run, from a
+    copy of the data in another folder, saved to another path, gives the same bytes."""
+    import shutil
+
+    stored_path, roots, _ = room_map
+    data = tmp_path / "elsewhere" / "copy_of_the_room"
+    shutil.copytree(roots["map"], data)
+    other = tmp_path / "another" / "name.fgmap"
+    other.parent.mkdir()
+    assert main(["run", "patch_rgbd", "--data", str(data), "--out", str(tmp_path / "run"), "--no-progress",
+                 "--save-map", str(other)]) == 0
+    assert other.read_bytes() == stored_path.read_bytes()
+    meta = json.dumps(load_stored_map(other).meta)
+    for path in (other, data, roots["map"], stored_path):
+        assert str(path) not in meta
+    assert "name.fgmap" not in meta and "copy_of_the_room" not in meta
+
+
 def test_localize_the_same_room_on_another_path(room_map, tmp_path, capsys):
     stored, roots, _ = room_map
     out = tmp_path / "loc"
