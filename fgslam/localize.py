@@ -34,7 +34,7 @@ import resource
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -47,7 +47,7 @@ from .loop.records import RelocalizationConfig
 logger = logging.getLogger(__name__)
 
 TRAJECTORY_FILE = "trajectory_tum.txt"
-STATUS_FILE = "localization.csv"
+STATUS_FILE = "localization.csv"  # also in fgslam.outputs.RUN_OUTPUT_FILES (a previous run's outputs)
 SUMMARY_FILE = "summary.json"
 STATUSES = ("tracked", "relocalised", "not_localised")
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)  # set bits of each byte value
@@ -293,12 +293,14 @@ def _ate(positions: np.ndarray, gt: np.ndarray, A: np.ndarray) -> float:
 
 
 def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path, config: LocalizeConfig | None = None,
-                     fmt: str = "auto", start: int | None = None, end: int | None = None, stride: int = 1
-                     ) -> dict[str, Any]:
+                     fmt: str = "auto", start: int | None = None, end: int | None = None, stride: int = 1,
+                     prepare_out: Callable[[Path], Any] | None = None) -> dict[str, Any]:
     """Localise the sequence ``data`` (raw frames ``start`` .. ``end``, every ``stride``-th; the
     other dataset settings, e.g. the image size, are the map run's) in the map at ``map_path``; writes
-    the outputs (module docstring) to ``out_dir`` and returns the summary. Raises
-    :class:`NotLocalisedError` (after writing) when no frame localised."""
+    the outputs (module docstring) to ``out_dir`` and returns the summary. ``prepare_out(out_dir)``
+    is called once the map, the sequence and their cameras are checked, before anything is written
+    (the CLI: ``fgslam run``'s rule for a previous run's outputs, :func:`fgslam.outputs.clear_previous_outputs`).
+    Raises :class:`NotLocalisedError` (after writing) when no frame localised."""
     from .io.trajectory import Trajectory, write_trajectory
 
     config = config or LocalizeConfig()
@@ -316,6 +318,8 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     c = dataset.calibration
     check_map_camera(stored, c.K, c.width, c.height, map_path, data)
     out = Path(out_dir)
+    if prepare_out is not None:
+        prepare_out(out)
     out.mkdir(parents=True, exist_ok=True)
     localizer = MapLocalizer(stored, config)
     setup_cpu = time.process_time() - cpu0

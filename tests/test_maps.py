@@ -230,6 +230,30 @@ def test_a_room_never_seen_localises_no_frame(room_map, tmp_path, capsys):
     assert json.loads((out / "summary.json").read_text())["localised"] == 0
 
 
+def test_localize_keeps_a_previous_output_folder_unless_overwrite(room_map, tmp_path, capsys):
+    """``fgslam localize`` treats an existing --out as ``fgslam run`` does: a folder holding a previous
+    run's (or localisation's) outputs is refused, untouched, unless --overwrite replaces them."""
+    stored, roots, _ = room_map
+    out = tmp_path / "loc"
+    args = ["localize", str(stored), "--data", str(roots["other_path"]), "--out", str(out)]
+    assert main(args) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    (out / "points.ply").write_text("a previous run's output\n")
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "previous run" in err[0] and "--overwrite" in err[0]
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.name != "points.ply"} == before
+    assert main(args + ["--overwrite"]) == 0
+    after = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert "points.ply" not in after  # the previous run's outputs are removed, not mixed with the new ones
+    for name in ("trajectory_tum.txt", "localization.csv"):
+        assert after[name] == before[name]
+    run_folder = stored.parent / "run"  # a SLAM run's output folder is refused the same way
+    assert main(["localize", str(stored), "--data", str(roots["other_path"]), "--out", str(run_folder)]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+
+
 def test_localize_refuses_another_camera(room_map, tmp_path, capsys):
     stored_path, roots, _ = room_map
     stored = load_stored_map(stored_path)
