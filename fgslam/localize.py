@@ -14,11 +14,16 @@ the map's settings, :mod:`fgslam.export.mapfile`):
    queried in the map's keyframe database (:class:`fgslam.loop.bow.BowDatabase`) and the best
    ``relocalization.max_candidates`` keyframes are verified one by one by matching and PnP with the
    stricter ``relocalization`` thresholds (the loop closer's);
-3. else the frame is "not localised": no pose is made up (no motion model).
+3. a tracked or relocalised pose is kept only when it is well conditioned: the standard deviation
+   of its position for 1 px of pixel noise, from its inliers' geometry
+   (:func:`relative_position_std`), over their median depth is at most ``max_position_std`` (a
+   quality gate; the default, 1.0, gates nothing in practice: on 7-Scenes it trades localised
+   frames for accuracy, README "Maps");
+4. else the frame is "not localised": no pose is made up (no motion model).
 
 Outputs (``DIR``): ``trajectory_tum.txt`` (localised frames only, map frame), ``localization.csv``
 (every frame: index, timestamp, status ``tracked`` / ``relocalised`` / ``not_localised``, keyframe id,
-inliers) and ``summary.json`` (counts, CPU time per frame, the map, and, when the sequence has ground
+inliers, ``position_std``: :func:`relative_position_std` of the pose, empty without one) and ``summary.json`` (counts, CPU time per frame, the map, and, when the sequence has ground
 truth and the map its run's alignment to ground truth, the ATE of the localised poses with that
 alignment applied unchanged, beside the ATE of holding the first localised pose: doing nothing).
 A sequence where no frame localises writes the CSV and summary and raises :class:`NotLocalisedError`.
@@ -34,7 +39,7 @@ import resource
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -47,10 +52,40 @@ from .loop.records import RelocalizationConfig
 logger = logging.getLogger(__name__)
 
 TRAJECTORY_FILE = "trajectory_tum.txt"
-STATUS_FILE = "localization.csv"
+STATUS_FILE = "localization.csv"  # also in fgslam.outputs.RUN_OUTPUT_FILES (a previous run's outputs)
 SUMMARY_FILE = "summary.json"
 STATUSES = ("tracked", "relocalised", "not_localised")
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)  # set bits of each byte value
+
+
+def relative_position_std(T_WC: np.ndarray, X_W: np.ndarray, K: np.ndarray) -> float:
+    """Conditioning of a pose solved from the points ``X_W`` (N, 3, world) seen by the camera
+    ``T_WC`` (intrinsics ``K`` = fx, fy, cx, cy): the standard deviation of the camera position
+    (root of the trace of its covariance) when every pixel has 1 px of noise, from the Gauss-Newton
+    information of the reprojection residuals (6-dof, right perturbation of ``T_WC``), divided by
+    the points' median depth (scale-free: the same for a monocular map of any scale). Infinite when
+    the pose is not determined (fewer than 3 points in front, or a singular information)."""
+    T_CW = np.linalg.inv(T_WC)
+    X_C = X_W @ T_CW[:3, :3].T + T_CW[:3, 3]
+    X_C = X_C[X_C[:, 2] > 0]
+    if len(X_C) < 3:
+        return float("inf")
+    x, y, z = X_C.T
+    J_proj = np.zeros((len(X_C), 2, 3))               # d(pixel) / d(X_C)
+    J_proj[:, 0, 0] = K[0] / z
+    J_proj[:, 0, 2] = -K[0] * x / z ** 2
+    J_proj[:, 1, 1] = K[1] / z
+    J_proj[:, 1, 2] = -K[1] * y / z ** 2
+    skew = np.zeros((len(X_C), 3, 3))                 # [X_C]x
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -z, y, -x
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = z, -y, x
+    J = np.concatenate([-J_proj, J_proj @ skew], axis=2).reshape(-1, 6)  # X_C' = X_C - dt + [X_C]x dw
+    try:
+        cov = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    var = float(np.trace(cov[:3, :3]))
+    return float(np.sqrt(var) / np.median(z)) if var > 0 and np.isfinite(var) else float("inf")
 
 
 class NotLocalisedError(FGSlamError):
@@ -92,6 +127,7 @@ class LocalizeConfig:
     relocalization: RelocalizationConfig = field(
         default_factory=lambda: RelocalizationConfig(min_inliers=30, pnp_reprojection_px=2.0))
     confirm_inliers: int = ranged(100, ge=4, le=MAX_COUNT)  # a relocalised pose needs this many local-map inliers at it
+    max_position_std: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # quality gate: largest position std of a pose (1 px noise, its inliers) / their median depth (1.0: none in practice)
     merge: MapMergeConfig = field(default_factory=MapMergeConfig)
 
     def validate(self) -> None:
@@ -107,6 +143,7 @@ class FrameLocalization:
     T_WC: np.ndarray | None = None
     kf_id: int = -1
     inliers: int = 0
+    position_std: float = float("nan")  # :func:`relative_position_std` of the pose (NaN: no pose)
 
 
 class MapLocalizer:
@@ -158,8 +195,8 @@ class MapLocalizer:
 
     def _verify(self, positions: list[int], uv: np.ndarray, desc: np.ndarray, max_hamming: int, ratio: float,
                 min_matches: int, min_inliers: int, px: float, iterations: int, confidence: float
-                ) -> tuple[np.ndarray, int, int] | None:
-        """``(T_WC, kf_id, inliers)`` of the frame matched to the keyframes ``positions`` (each query
+                ) -> tuple[np.ndarray, int, int, float] | None:
+        """``(T_WC, kf_id, inliers, position_std)`` of the frame matched to the keyframes ``positions`` (each query
         feature kept with its first keyframe), or None."""
         from .loop.verification import match_descriptors, solve_pnp
 
@@ -183,7 +220,7 @@ class MapLocalizer:
             return None
         T_WC, inl = pnp
         best = int(np.bincount(np.concatenate(owner)[inl]).argmax())
-        return T_WC, int(self.map.kf_ids[best]), len(inl)
+        return T_WC, int(self.map.kf_ids[best]), len(inl), relative_position_std(T_WC, np.concatenate(X)[inl], self.K)
 
     def nearest_local_points(self, T_WC: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(X_W, descriptors, keyframe position)`` of the local map around ``T_WC``: the points of
@@ -199,10 +236,10 @@ class MapLocalizer:
                 np.concatenate([np.full(len(self._X_W[k]), k) for k in chosen]))
 
     def _guided(self, T_pred: np.ndarray, uv: np.ndarray, desc: np.ndarray, min_inliers: int
-                ) -> tuple[np.ndarray, int, int] | None:
+                ) -> tuple[np.ndarray, int, int, float] | None:
         """Matches by projection: the local map around ``T_pred`` projected into it, each feature
         matched to the best of the projected points within ``search_radius_px`` (ratio test), one
-        feature per map point; then PnP RANSAC. ``(T_WC, kf_id, inliers)`` or None."""
+        feature per map point; then PnP RANSAC. ``(T_WC, kf_id, inliers, position_std)`` or None."""
         from scipy.spatial import cKDTree
 
         from .loop.verification import solve_pnp
@@ -248,7 +285,7 @@ class MapLocalizer:
             return None
         T_WC, inl = pnp
         kf = int(np.bincount(owner[mi[inl]]).argmax())
-        return T_WC, int(self.map.kf_ids[kf]), len(inl)
+        return T_WC, int(self.map.kf_ids[kf]), len(inl), relative_position_std(T_WC, X_W[mi[inl]], self.K)
 
     def localize(self, image: np.ndarray) -> FrameLocalization:
         """One frame (grey or RGB at the map's camera resolution): track, else relocalise, else
@@ -266,9 +303,9 @@ class MapLocalizer:
                 res = self._verify(self.nearest_keyframes(self.last), uv, desc, tc.max_hamming, tc.ratio,
                                    tc.min_inliers, tc.min_inliers, tc.pnp_reprojection_px, tc.pnp_iterations,
                                    tc.pnp_confidence)
-            if res is not None:
+            if res is not None and res[3] <= self.cfg.max_position_std:
                 self.prev, self.last = self.last, res[0]
-                return FrameLocalization("tracked", res[0], res[1], res[2])
+                return FrameLocalization("tracked", *res)
         self.prev = self.last = None
         if len(uv) >= rc.min_matches:
             bow, _ = self.vocabulary.transform(desc)
@@ -279,9 +316,9 @@ class MapLocalizer:
                     continue
                 # verified again against the local map at that pose (a wrong pose finds no support there)
                 res = self._guided(res[0], uv, desc, self.cfg.confirm_inliers)
-                if res is not None:
+                if res is not None and res[3] <= self.cfg.max_position_std:
                     self.last = res[0]
-                    return FrameLocalization("relocalised", res[0], res[1], res[2])
+                    return FrameLocalization("relocalised", *res)
         return FrameLocalization("not_localised")
 
 
@@ -293,12 +330,14 @@ def _ate(positions: np.ndarray, gt: np.ndarray, A: np.ndarray) -> float:
 
 
 def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path, config: LocalizeConfig | None = None,
-                     fmt: str = "auto", start: int | None = None, end: int | None = None, stride: int = 1
-                     ) -> dict[str, Any]:
+                     fmt: str = "auto", start: int | None = None, end: int | None = None, stride: int = 1,
+                     prepare_out: Callable[[Path], Any] | None = None) -> dict[str, Any]:
     """Localise the sequence ``data`` (raw frames ``start`` .. ``end``, every ``stride``-th; the
     other dataset settings, e.g. the image size, are the map run's) in the map at ``map_path``; writes
-    the outputs (module docstring) to ``out_dir`` and returns the summary. Raises
-    :class:`NotLocalisedError` (after writing) when no frame localised."""
+    the outputs (module docstring) to ``out_dir`` and returns the summary. ``prepare_out(out_dir)``
+    is called once the map, the sequence and their cameras are checked, before anything is written
+    (the CLI: ``fgslam run``'s rule for a previous run's outputs, :func:`fgslam.outputs.clear_previous_outputs`).
+    Raises :class:`NotLocalisedError` (after writing) when no frame localised."""
     from .io.trajectory import Trajectory, write_trajectory
 
     config = config or LocalizeConfig()
@@ -316,15 +355,17 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     c = dataset.calibration
     check_map_camera(stored, c.K, c.width, c.height, map_path, data)
     out = Path(out_dir)
+    if prepare_out is not None:
+        prepare_out(out)
     out.mkdir(parents=True, exist_ok=True)
     localizer = MapLocalizer(stored, config)
     setup_cpu = time.process_time() - cpu0
-    rows: list[tuple[int, float, str, int, int]] = []
+    rows: list[tuple[int, float, str, int, int, float]] = []
     stamps, poses, gt_pos, has_gt = [], [], [], []
     loop_cpu0 = time.process_time()
     for frame in dataset:
         res = localizer.localize(frame.image)
-        rows.append((int(frame.index), float(frame.timestamp), res.status, res.kf_id, res.inliers))
+        rows.append((int(frame.index), float(frame.timestamp), res.status, res.kf_id, res.inliers, res.position_std))
         if res.T_WC is not None:
             stamps.append(frame.timestamp)
             poses.append(res.T_WC)
@@ -335,9 +376,9 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     n = len(rows)
     with open(out / STATUS_FILE, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
-        w.writerow(("frame", "timestamp", "status", "keyframe", "inliers"))
+        w.writerow(("frame", "timestamp", "status", "keyframe", "inliers", "position_std"))
         for r in rows:
-            w.writerow((r[0], f"{r[1]:.17g}", r[2], r[3], r[4]))
+            w.writerow((r[0], f"{r[1]:.17g}", r[2], r[3], r[4], "" if np.isnan(r[5]) else f"{r[5]:.6g}"))
     localised = n - counts["not_localised"]
     summary: dict[str, Any] = {
         "map": str(map_path), "data": str(data), "frames": n, "localised": localised,

@@ -139,6 +139,34 @@ def test_cli_bad_map_is_one_line(tmp_path, capsys):
     assert rc == 2 and len(err) == 1 and "none.fgmap: no such map file" in err[0]
 
 
+def test_position_std_matches_the_spread_of_noisy_pnp_solutions():
+    """:func:`relative_position_std` (the quality gate's measure) against Monte Carlo: the spread of
+    the camera positions that PnP finds from pixels with 1 px of noise; a narrower view (the same
+    points seen from farther) is worse conditioned."""
+    from fgslam.localize import relative_position_std
+    from fgslam.loop.verification import solve_pnp
+
+    rng = np.random.default_rng(5)
+    K = np.array([260.0, 260.0, 159.5, 119.5])
+    X_W = np.column_stack([rng.uniform(-1.5, 1.5, 60), rng.uniform(-1.0, 1.0, 60), rng.uniform(2.0, 4.0, 60)])
+    stds = []
+    for back in (0.0, 3.0):
+        T_WC = np.eye(4)
+        T_WC[2, 3] = -back
+        X_C = X_W - T_WC[:3, 3]
+        uv = np.column_stack([K[0] * X_C[:, 0] / X_C[:, 2] + K[2], K[1] * X_C[:, 1] / X_C[:, 2] + K[3]])
+        positions = []
+        for _ in range(200):
+            T, _ = solve_pnp(X_W, uv + rng.normal(size=uv.shape), K, 4.0, 50, 0.99, 50)
+            positions.append(T[:3, 3])
+        spread = np.sqrt(np.trace(np.cov(np.array(positions).T))) / np.median(X_C[:, 2])
+        predicted = relative_position_std(T_WC, X_W, K)
+        assert 0.8 * spread < predicted < 1.25 * spread
+        stds.append(predicted)
+    assert stds[1] > 1.5 * stds[0]
+    assert relative_position_std(np.eye(4), X_W[:2], K) == float("inf")
+
+
 # ----------------------------------------------------------------------------------- end to end
 
 SYNTH = ["camera.rate_hz=8", "camera.width=320", "camera.height=240", "frames=32"]
@@ -178,6 +206,25 @@ def test_run_saves_a_map_that_reloads_identically(room_map, tmp_path):
     assert (tmp_path / "again.fgmap").read_bytes() == stored_path.read_bytes()
 
 
+def test_the_same_run_saved_to_two_paths_gives_the_same_bytes(room_map, tmp_path):
+    """Nothing in a map depends on where it is saved nor where its data lies: the same run, from a
+    copy of the data in another folder, saved to another path, gives the same bytes."""
+    import shutil
+
+    stored_path, roots, _ = room_map
+    data = tmp_path / "elsewhere" / "copy_of_the_room"
+    shutil.copytree(roots["map"], data)
+    other = tmp_path / "another" / "name.fgmap"
+    other.parent.mkdir()
+    assert main(["run", "patch_rgbd", "--data", str(data), "--out", str(tmp_path / "run"), "--no-progress",
+                 "--save-map", str(other)]) == 0
+    assert other.read_bytes() == stored_path.read_bytes()
+    meta = json.dumps(load_stored_map(other).meta)
+    for path in (other, data, roots["map"], stored_path):
+        assert str(path) not in meta
+    assert "name.fgmap" not in meta and "copy_of_the_room" not in meta
+
+
 def test_localize_the_same_room_on_another_path(room_map, tmp_path, capsys):
     stored, roots, _ = room_map
     out = tmp_path / "loc"
@@ -199,6 +246,22 @@ def test_localize_the_same_room_on_another_path(room_map, tmp_path, capsys):
         assert (again / name).read_bytes() == (out / name).read_bytes()
 
 
+def test_the_quality_gate_rejects_poorly_conditioned_poses(room_map, tmp_path, capsys):
+    """Every localised frame's ``position_std`` is in localization.csv; ``max_position_std`` below
+    them all leaves no frame localised (a gated pose is never reported), above them all changes nothing."""
+    stored, roots, _ = room_map
+    base = ["localize", str(stored), "--data", str(roots["other_path"])]
+    assert main(base + ["--out", str(tmp_path / "a")]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "a" / "localization.csv")))
+    std = np.array([float(r["position_std"]) for r in rows if r["status"] != "not_localised"])
+    assert len(std) >= 0.95 * 32 and np.all((std > 0) & np.isfinite(std))
+    capsys.readouterr()
+    assert main(base + ["--out", str(tmp_path / "b"), "-o", f"max_position_std={0.5 * std.min():.9f}"]) == 2
+    assert "none of the 32 frames localised" in capsys.readouterr().err
+    assert main(base + ["--out", str(tmp_path / "c"), "-o", f"max_position_std={2 * std.max():.9f}"]) == 0
+    assert (tmp_path / "c" / "localization.csv").read_bytes() == (tmp_path / "a" / "localization.csv").read_bytes()
+
+
 def test_a_room_never_seen_localises_no_frame(room_map, tmp_path, capsys):
     stored, roots, _ = room_map
     out = tmp_path / "loc"
@@ -209,6 +272,30 @@ def test_a_room_never_seen_localises_no_frame(room_map, tmp_path, capsys):
     assert len(rows) == 8 and {r["status"] for r in rows} == {"not_localised"}
     assert not (out / "trajectory_tum.txt").exists()  # never a made-up trajectory
     assert json.loads((out / "summary.json").read_text())["localised"] == 0
+
+
+def test_localize_keeps_a_previous_output_folder_unless_overwrite(room_map, tmp_path, capsys):
+    """``fgslam localize`` treats an existing --out as ``fgslam run`` does: a folder holding a previous
+    run's (or localisation's) outputs is refused, untouched, unless --overwrite replaces them."""
+    stored, roots, _ = room_map
+    out = tmp_path / "loc"
+    args = ["localize", str(stored), "--data", str(roots["other_path"]), "--out", str(out)]
+    assert main(args) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    (out / "points.ply").write_text("a previous run's output\n")
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "previous run" in err[0] and "--overwrite" in err[0]
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.name != "points.ply"} == before
+    assert main(args + ["--overwrite"]) == 0
+    after = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert "points.ply" not in after  # the previous run's outputs are removed, not mixed with the new ones
+    for name in ("trajectory_tum.txt", "localization.csv"):
+        assert after[name] == before[name]
+    run_folder = stored.parent / "run"  # a SLAM run's output folder is refused the same way
+    assert main(["localize", str(stored), "--data", str(roots["other_path"]), "--out", str(run_folder)]) == 2
+    assert "--overwrite" in capsys.readouterr().err
 
 
 def test_localize_refuses_another_camera(room_map, tmp_path, capsys):

@@ -51,7 +51,8 @@ def main() -> None:
     common = ["--no-progress", "--overwrite"]
     mapped = fgslam("run", p, "--data", d, "--out", str(w / "map"), *common, "-o", f"dataset.end={SPLIT}",
                     "--save-map", str(stored))
-    loc = fgslam("localize", str(stored), "--data", d, "--out", str(w / "loc"), "--start", str(SPLIT))
+    loc = fgslam("localize", str(stored), "--data", d, "--out", str(w / "loc"), "--start", str(SPLIT),
+                 "--overwrite")
     ext = fgslam("run", p, "--data", d, "--out", str(w / "ext"), *common, "-o", f"dataset.start={SPLIT}",
                  "--map", str(stored), "--save-map", str(merged_map))
     single = fgslam("run", p, "--data", d, "--out", str(w / "single"), *common)

@@ -17,6 +17,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("map", metavar="MAP", help="stored map (fgslam run ... --save-map MAP)")
     parser.add_argument("--data", required=True, metavar="PATH", help="dataset folder (or video file)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the outputs of a previous run in --out (without it such a folder is an error)")
     parser.add_argument("--format", default="auto", choices=FORMAT_CHOICES, help="dataset loader (default: detect)")
     parser.add_argument("--start", type=int, default=None, metavar="N", help="first raw frame index (default 0)")
     parser.add_argument("--end", type=int, default=None, metavar="N", help="one past the last raw frame index")
@@ -27,10 +29,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..localize import LocalizeConfig, run_localization
+    from ..outputs import clear_previous_outputs, prepare_output_dir
 
     config = load_config(LocalizeConfig, args.config, args.overrides)
+
+    def prepare_out(out) -> None:  # fgslam run's rule for --out, once the map and the sequence are checked:
+        prepare_output_dir(out, args.data)  # writable, not the dataset folder nor inside it
+        clear_previous_outputs(out, args.overwrite)  # a previous run's outputs: refused, or removed with --overwrite
+
     s = run_localization(args.map, args.data, args.out, config, fmt=args.format, start=args.start, end=args.end,
-                         stride=args.stride)
+                         stride=args.stride, prepare_out=prepare_out)
     if args.json:
         print(json.dumps(s))
         return 0

@@ -11,8 +11,11 @@ entry dates, no compression and in a fixed order, so the same map always gives t
 ``height``: the run's output images, which a sequence localised in the map must match),
 ``features`` (the settings the keyframe features were made with: ``image_scale``, the ORB settings,
 the vocabulary, and ``K``/``width``/``height`` of the scaled feature image), ``config`` (the run's
-resolved configuration), ``dataset`` (name, format, selection) and ``groundtruth_alignment`` (the
-map run's own alignment to its ground truth, 4x4 ``[[s R, t], [0, 1]]`` with its method, or null).
+resolved configuration less its machine-dependent fields, :func:`portable_config`), ``dataset``
+(format and number of frames: no name or path) and ``groundtruth_alignment`` (the map run's own
+alignment to its ground truth, 4x4 ``[[s R, t], [0, 1]]`` with its method, or null). Nothing in a
+map depends on where it is saved or where its data lies: the same run saved to two paths, or from
+a copy of its data in another folder, gives the same bytes.
 
 Per keyframe ``k`` (K keyframes, in id order): ``kf_ids`` (K,) int64, ``kf_timestamps`` (K,)
 float64 s, ``kf_frame_index`` (K,) int64 dataset index of the keyframe's image, ``T_WC`` (K, 4, 4)
@@ -60,6 +63,10 @@ _ZIP_DATE = (1980, 1, 1, 0, 0, 0)        # fixed entry date: identical maps give
 _ZIP_MAGIC = b"PK\x03\x04"
 _CAMERA_RTOL = 1e-6                      # intrinsics equal up to float round-off
 DESCRIPTOR_BYTES = 32
+#: config keys whose values are file paths on the machine that ran (the map file itself, the map it
+#: extends, calibration / ground-truth files, network checkpoints): left out of a map's meta
+MACHINE_DEPENDENT_KEYS = ("save_map", "extend_map", "checkpoint")
+MACHINE_DEPENDENT_SUFFIXES = ("_file", "_path", "_dir")
 
 #: array name -> (dtype, trailing shape); the archive holds them in this order after ``meta``
 ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
@@ -268,6 +275,17 @@ def check_map_camera(stored: StoredMap, K: np.ndarray, width: int, height: int, 
 
 # ----------------------------------------------------------------------------------- building
 
+def portable_config(config: dict) -> dict:
+    """``config`` (a resolved configuration as a dict) without its machine-dependent fields, at any
+    depth: the keys :data:`MACHINE_DEPENDENT_KEYS` and those ending with
+    :data:`MACHINE_DEPENDENT_SUFFIXES` (file paths). What is left is content: the same settings on
+    another machine or with other paths give the same dict."""
+    def machine(key: str) -> bool:
+        return key in MACHINE_DEPENDENT_KEYS or key.endswith(MACHINE_DEPENDENT_SUFFIXES)
+
+    return {k: portable_config(v) if isinstance(v, dict) else v for k, v in config.items() if not machine(str(k))}
+
+
 def feature_camera(K: np.ndarray, width: int, height: int, scale: float) -> tuple[np.ndarray, int, int]:
     """Intrinsics and size of the feature image: the run's image resized by ``scale`` (pixel centres
     at integer coordinates: ``c' = (c + 0.5) s - 0.5``)."""
@@ -374,9 +392,8 @@ def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, 
         "features": {"image_scale": features.image_scale, "K": [float(v) for v in K_feat], "width": w_feat,
                      "height": h_feat, "vocabulary": features.bow.vocabulary,
                      "orb": {k: getattr(orb, k) for k in orb.__dataclass_fields__}},
-        "config": config,
-        "dataset": {"name": str(getattr(dataset, "name", "")), "format": str(getattr(dataset, "format", "")),
-                    "frames": int(len(indices))},
+        "config": portable_config(config),
+        "dataset": {"format": str(getattr(dataset, "format", "")), "frames": int(len(indices))},
         "groundtruth_alignment": groundtruth_alignment,
     }
     stored = StoredMap(
