@@ -168,8 +168,9 @@ def require_xfeat():
 
 
 class XFeatExtractor:
-    """XFeat keypoints and descriptors of one image (CPU unless torch sees a GPU). The model is
-    read-only after loading, so one extractor may serve several threads."""
+    """XFeat keypoints and descriptors of one image, on the CPU always (XFeat moves itself to a GPU
+    when torch sees one; the loop closer's results must be the same bytes on every machine). The
+    model is read-only after loading, so one extractor may serve several threads."""
 
     def __init__(self, cfg: XFeatConfig | None = None):
         import torch
@@ -180,6 +181,8 @@ class XFeatExtractor:
         # the weights as a state dict: XFeat prints the path when it loads them itself
         state = torch.load(str(weights_path), map_location="cpu", weights_only=True)
         self._model = XFeat(weights=state, top_k=self.cfg.top_k, detection_threshold=self.cfg.detection_threshold)
+        self._model.dev = torch.device("cpu")
+        self._model.net.to(self._model.dev)
 
     def __call__(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(uv (N, 2) float32, descriptors (N, 64) float32, unit norm)``; N = 0 without texture."""
