@@ -162,9 +162,7 @@ class ImuService:
             if not self.initialized:
                 keep_from = min(keep_from, self._kfs[0][0])
             elif not self.metric and self._refinements < len(self.config.init.refine_at_s):
-                # the refinements read back to the initialisation (inertial-only: to the first keyframe)
-                first = self._kfs[0][0] if self.config.init.refine_method == "inertial_only" else self.init_time
-                keep_from = min(keep_from, first)
+                keep_from = min(keep_from, self.init_time)  # the scale refinements read back to the initialisation
         if keep_from is None or not self._static_done:
             return
         self.buffer.prune(keep_from)
@@ -366,8 +364,8 @@ class ImuService:
         logger.info("IMU: scale refined by %.4f (%.1f s after the initialisation)", s, t_last - self.init_time)
 
     def _refine_inertial_only(self) -> Optional[InertialOnlyResult]:
-        """ORB-SLAM3's inertial-only optimisation over every keyframe of the map (those since the
-        initialisation where the samples do not cover the older ones) with their visual poses held
+        """ORB-SLAM3's inertial-only optimisation over every keyframe since the initialisation with
+        their visual poses held
         (:func:`solve_inertial_only`), applied: the map rescaled (monocular, when the change exceeds
         ``init.refine_min_change`` and sigma(log scale) is below ``init.inertial_only_max_log_scale_sigma``), gravity, the linked keyframes' velocities and
         biases set, the IMU links rebuilt at the new gravity and bias, then
@@ -375,9 +373,7 @@ class ImuService:
         the scale's standard deviation."""
         ic = self.config.init
         start = time.perf_counter()
-        window = list(self._kfs)  # the whole map, as ORB-SLAM3 (keyframes before the initialisation included)
-        if not self.covered(window[0][0], window[-1][0]):
-            window = [(t, k) for t, k in self._kfs if t >= self.init_time]
+        window = [(t, k) for t, k in self._kfs if t >= self.init_time]
         if len(window) < 3 or not self.covered(window[0][0], window[-1][0]):
             return None
         poses = [self.backend.pose(k) for _, k in window]
