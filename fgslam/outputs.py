@@ -432,7 +432,8 @@ def inertial_summary(state: Optional[Mapping[str, Any]], t_first: Optional[float
     """``summary.json`` ``inertial`` from the IMU service's state mapping (``SlamSystem.inertial_state``;
     keys ``initialized``, ``init_time``, ``scale``, ``gravity_W``, ``bias_gyro``, ``bias_accel``, counters;
     missing ones are None): initialised or not, when (dataset clock and seconds after the first frame
-    ``t_first``), the metric scale applied (monocular), gravity and its magnitude, the bias norms."""
+    ``t_first``), the metric scale applied (monocular) with the last inertial-only optimisation's ``scale_sigma`` and
+    how many ran, gravity and its magnitude, the bias norms."""
     if state is None:
         return None
     gravity = _vector(state.get("gravity_W"))
@@ -443,6 +444,8 @@ def inertial_summary(state: Optional[Mapping[str, Any]], t_first: Optional[float
         "init_time": None if init_time is None else float(init_time),
         "init_after_s": None if init_time is None or t_first is None else float(init_time) - t_first,
         "scale": None if state.get("scale") is None else float(state["scale"]),
+        "scale_sigma": None if state.get("scale_sigma") is None else float(state["scale_sigma"]),
+        "inertial_only_runs": int(state.get("inertial_only_runs") or 0),
         "gravity_W": gravity,
         "gravity_norm": None if gravity is None else float(np.linalg.norm(gravity)),
         "bias_gyro": bias_gyro,

@@ -122,18 +122,22 @@ class SlamSystem:
         if backend is None and needs_backend:
             raise ConfigError(f"{', '.join(needs_backend)}: frontend '{getattr(frontend, 'name', type(frontend).__name__)}' "
                               "feeds no backend, so these services cannot apply")
-        loops = cls._loop_service(frontend, config.loop_closure) if backend is not None else None
         imu = None
+        contributor = _contributor(frontend)
         if config.imu.enabled:
+            from .services.contributor import ObservedContributor
             from .services.imu import make_imu_service
 
             imu = make_imu_service(config.imu, backend, calibration, has_imu, config.sensor,
-                                   contributor=_contributor(frontend), dataset_noise=imu_noise, where=where)
+                                   contributor=contributor, dataset_noise=imu_noise, where=where)
+            if imu is not None:  # map corrections of loops and plugins move the IMU states too
+                contributor = ObservedContributor(contributor, imu.adapt_correction, (imu.on_correction,))
+        loops = cls._loop_service(frontend, config.loop_closure, contributor) if backend is not None else None
         plugins = None
         if config.factors:
             from .services.plugins import FactorPlugins
 
-            plugins = FactorPlugins(config.factors, backend, timestamps, contributor=_contributor(frontend))
+            plugins = FactorPlugins(config.factors, backend, timestamps, contributor=contributor)
         view = None
         if rerun:
             from .export.rerun import RerunView, check_rerun_target
@@ -149,8 +153,10 @@ class SlamSystem:
         return cls(frontend, loops=cls._loop_service(frontend, loop_config))
 
     @staticmethod
-    def _loop_service(frontend: Frontend, loop_config: Optional["LoopClosureConfig"]) -> Optional["LoopService"]:
-        """The loop-closure service with ``frontend`` as its contributor (None: ``loop_config`` None or off,
+    def _loop_service(frontend: Frontend, loop_config: Optional["LoopClosureConfig"],
+                      contributor: Any = None) -> Optional["LoopService"]:
+        """The loop-closure service with ``frontend`` as its contributor (or ``contributor``, the
+        frontend's seen through the IMU's correction hooks) (None: ``loop_config`` None or off,
         unless the frontend hands global optimisations to the service's worker: then a service with
         loop closure off, inert but for them)."""
         if loop_config is None or loop_config.mode == "off":
@@ -161,7 +167,7 @@ class SlamSystem:
             loop_config = loop_config if loop_config is not None else LoopClosureConfig(mode="off")
         from .services.loops import LoopService
 
-        return LoopService(_contributor(frontend), loop_config, metric=bool(getattr(frontend, "metric_scale", False)),
+        return LoopService(contributor if contributor is not None else _contributor(frontend), loop_config, metric=bool(getattr(frontend, "metric_scale", False)),
                            proximity=getattr(frontend, "proximity_gates", None))
 
     # ------------------------------------------------------------------ the run

@@ -15,6 +15,14 @@ the black-frame clip (issue 26: every family inertial); ``--runs`` keeps some of
   SE(3) ATE in % of the path against visual-only stereo; mono-inertial SE(3) ATE without Sim(3)
   alignment and the scale error (Sim(3) alignment scale - 1); black-frame bridge (2 s of black frames:
   tracking failures, frames posed by the IMU, the largest step error across the gap).
+- ``street``: the synthetic street-loop drive (``--street-frames``, 1,100: 665 m, back to the start;
+  ``--street DIR`` reuses a written one): stereo-inertial with the driving settings of
+  ``driving_stereo``, without and with loop closure ``both`` (SE(3) ATE); monocular-inertial with the
+  preset as it is (SE(3) ATE without scale alignment, scale error). ``--skip-street`` leaves it out.
+- ``inertial_state``: the IMU service's :class:`~fgslam.services.imu.InertialState` of each run (where
+  the tree has it) and the inertial-only optimisations (scale change, sigma of log-scale).
+- Run with another tree's interpreter (e.g. ``/work/main/.venv/bin/python tools/bench_imu.py``) for a
+  "before" column: the script uses only the run API.
 - Speed: ``cpu_s`` per run (process CPU, comparable under load), ``cpu_fps``; the IMU service's own time
   per IMU factor built (``imu_update_ms_per_factor``: preintegration, relinking, marginalisation) and the BA stage
   per frame against visual-only (the VI graph update inside the window BA).
@@ -77,6 +85,14 @@ def _speed(summary, service) -> dict:
         out["imu_update_ms_per_factor"] = round(1e3 * s["update_s"] / kfs, 3)
         out["imu"] = {k: s[k] for k in ("initialized", "scale", "links", "unlinked_intervals", "marginalised",
                                           "bad_intervals", "predictions")}
+        state = getattr(service, "inertial_state", None)  # trees before issue 26 have none
+        if state is not None:
+            out["inertial_state"] = state.to_dict()
+            out["inertial_only"] = [{k: e[k] for k in ("t", "keyframes", "scale_change", "applied", "log_scale_sigma")}
+                                    for e in service.inertial_only]
+    loop = getattr(summary, "loop", None)
+    if loop:
+        out["loop"] = {k: loop.get(k) for k in ("accepted_loops", "corrections_applied") if k in loop}
     return out
 
 
@@ -180,6 +196,37 @@ def synthetic(work: Path, frames: int, overrides: list[str], family: str = "patc
     return out
 
 
+#: driving_stereo's patch settings, for the inertial presets on the street drive
+DRIVING = ["patch.lk.auto_width=376", "patch.ba.rounds=1", "patch.ba.iterations=2", "patch.ba.measured_huber=true",
+           "patch.ba.stereo_init_inv_depth=0.05", "patch.tracking.motion_damping=1.0"]
+
+
+def street(work: Path, frames: int, overrides: list[str], root: Path | None = None) -> dict:
+    from fgslam.io.synth import SynthSequence, write_sequence
+    from fgslam.io.synth.scenarios import load_synth_config
+
+    if root is None:
+        root = work / f"street_{frames}"
+        if not (root / "mav0").is_dir():
+            write_sequence(SynthSequence(load_synth_config("street-loop", overrides=[f"frames={frames}"])), root)
+    out = {"frames": frames, "data": str(root)}
+    # stereo with driving_stereo's settings; monocular with patch_street_loop's (the patch defaults)
+    for name, preset, extra in (("stereo_inertial_no_loops", "patch_stereo_inertial", DRIVING + ["loop_closure.mode=off"]),
+                                ("stereo_inertial_loops_both", "patch_stereo_inertial", DRIVING + ["loop_closure.mode=both"]),
+                                ("mono_inertial", "patch_mono_inertial", [])):
+        ds, summary, est, svc = _run(root, preset, work / f"street_{name}", extra + overrides)
+        res = _evaluate(ds, est, "se3")
+        entry = {"ate_m": float(res.ate.rmse), "ate_percent_of_path": float(100 * res.ate.rmse / res.gt_path_length_m),
+                 "path_m": float(res.gt_path_length_m), "frames_with_pose": int(len(est)),
+                 "tracking_failures": summary.failures["tracking"], **_speed(summary, svc)}
+        if name.startswith("mono"):
+            sim = _evaluate(ds, est, "sim3")
+            entry["scale_error_percent"] = float(100 * (sim.alignment.s - 1.0))
+            entry["sim3_ate_percent_of_path"] = float(100 * sim.ate.rmse / sim.gt_path_length_m)
+        out[name] = entry
+    return out
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--euroc", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "euroc_v101_micro"))
@@ -190,6 +237,9 @@ def main() -> int:
     parser.add_argument("--family", default="patch", choices=("patch", "dense", "pointmap"))
     parser.add_argument("--runs", default=",".join(SYNTH_RUNS), help="comma-separated synthetic runs (of %(default)s)")
     parser.add_argument("--skip-black", action="store_true", help="no black-frame clip")
+    parser.add_argument("--street-frames", type=int, default=1100)
+    parser.add_argument("--street", default=None, help="a written street-loop sequence to reuse")
+    parser.add_argument("--skip-street", action="store_true")
     parser.add_argument("-o", "--override", action="append", default=[])
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args()
@@ -206,6 +256,8 @@ def main() -> int:
         if unknown:
             parser.error(f"--runs: unknown {unknown} (of {', '.join(SYNTH_RUNS)})")
         result["synthetic"] = synthetic(work, args.synth_frames, args.override, args.family, runs, not args.skip_black)
+    if not args.skip_street:
+        result["street"] = street(work, args.street_frames, args.override, Path(args.street) if args.street else None)
     result["wall_s"] = round(time.perf_counter() - t0, 1)
     print(json.dumps(result, indent=1))
     return 0

@@ -90,6 +90,8 @@ def inertial_text(i: dict) -> str:
         text = f"initialised{after}"
         if i.get("scale") is not None:
             text += f", scale {i['scale']:.4f}"
+            if i.get("scale_sigma") is not None:
+                text += f" +- {i['scale_sigma']:.4f} ({i.get('inertial_only_runs', 0)} inertial-only optimisations)"
         if i.get("gravity_norm") is not None:
             text += f", |g| {i['gravity_norm']:.3f} m/s^2"
         if i.get("bias_gyro_norm") is not None:

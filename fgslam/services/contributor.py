@@ -98,3 +98,33 @@ class ProximityContributor(Contributor, Protocol):
         keyframes unchanged since the snapshot, loop edges ``keep_loop`` (bool over the job's loop
         edges) into the contributor's store."""
         ...
+
+
+class ObservedContributor:
+    """A contributor whose map corrections pass through the run's correction hooks (the IMU service:
+    :meth:`fgslam.services.imu.ImuService.adapt_correction` and ``on_correction``): ``adapt``
+    (``correction -> correction``) may rewrite a correction before the contributor applies it (a
+    monocular-inertial map whose scale is fixed takes loop corrections as SE(3)); each listener
+    sees the correction the contributor applied, right after it (the IMU velocities follow the poses).
+    Every other attribute is the contributor's own."""
+
+    def __init__(self, contributor: Any, adapt: Optional[Callable[[PoseCorrection], PoseCorrection]] = None,
+                 listeners: tuple = ()) -> None:
+        self._contributor = contributor
+        self._adapt = adapt
+        self._listeners = tuple(listeners)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._contributor, name)
+
+    @property
+    def wrapped(self) -> Any:
+        """The contributor itself."""
+        return self._contributor
+
+    def apply_correction(self, correction: PoseCorrection) -> None:
+        if self._adapt is not None:
+            correction = self._adapt(correction)
+        self._contributor.apply_correction(correction)
+        for listener in self._listeners:
+            listener(correction)

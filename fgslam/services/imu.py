@@ -28,6 +28,16 @@ feeds it keyframes (``on_keyframe``):
   A monocular map is rescaled to metric through the contributor's ``apply_correction`` with a uniform
   scale :class:`~fgslam.loop.records.PoseCorrection` (the scale folded into the structure, as
   position priors do), and continues visual-inertial;
+- inertial-only optimisation (issue 26; ``init.refine_method: inertial_only``): right after a
+  monocular initialisation and at each ``init.refine_at_s``, the scale, gravity direction, velocities
+  and one bias over every keyframe since the initialisation with the visual poses held
+  (:func:`~fgslam.services.imu_init.solve_inertial_only`), applied (rescale, gravity, velocities,
+  biases, links rebuilt) and followed by a short visual-inertial window optimisation; its result and
+  the standard deviation of the log-scale are logged and reported (:class:`InertialState`);
+- map corrections (loops, global BA, plugins, its own rescale): :meth:`ImuService.adapt_correction`
+  (SE(3) once the IMU fixed a monocular map's scale) before the contributor applies one and
+  :meth:`ImuService.on_correction` after: velocities turn (and scale) with the poses, biases are kept,
+  marginal priors are re-anchored (rigid) or dropped (:class:`~fgslam.services.contributor.ObservedContributor`);
 - IMU prediction (:meth:`ImuService.predict`): the pose at a time from the newest linked keyframe's
   state (pose, velocity, bias) and the buffered samples; the patch frontend uses it as motion prior
   and to pose frames whose visual tracking fails (bridging up to ``max_bridge_s``).
@@ -44,6 +54,7 @@ from __future__ import annotations
 import bisect
 import logging
 import time
+from dataclasses import asdict, dataclass
 from typing import Any, Optional
 
 import numpy as np
@@ -51,12 +62,38 @@ import numpy as np
 from ..errors import DataError
 from ..factors.imu import body_pose, combined_params, imu_factor_on_sim3, sim3_from_body_pose
 from ..backend.keys import bias_key, pose_key, velocity_key
-from .imu_init import detect_static, solve_visual_inertial, spaced
+from ..lie import sim3_matrix_parts
+from .imu_init import InertialOnlyResult, detect_static, solve_inertial_only, solve_visual_inertial, spaced
 from .imu_samples import ImuBuffer, ImuServiceConfig, ImuStats, StaticInit
 
 logger = logging.getLogger(__name__)
 
 OWNER = "imu"
+_MIN_CENTRE_STEP = 1e-9  # map units: neighbouring camera centres closer than this give no local scale of a correction
+_RIGID_SCALE_TOL = 1e-9  # a correction whose local scales all lie this close to 1 is rigid (marginal priors re-anchored)
+
+
+@dataclass(frozen=True)
+class InertialState:
+    """The IMU state of a run as the summary reports it (:attr:`ImuService.inertial_state`):
+    initialised or not, when (s, the first linked keyframe's time), the metric scale applied to a
+    monocular map (map units at the start -> m; 1 for metric maps) with the standard deviation of the
+    last inertial-only optimisation (``scale * sigma(log scale)``; None before one), gravity in the map
+    frame (m/s^2), the newest linked keyframe's bias norms (m/s^2, rad/s) and the number of
+    inertial-only optimisations applied."""
+
+    initialised: bool
+    time_init: Optional[float]
+    scale: Optional[float]
+    scale_sigma: Optional[float]
+    gravity_W: Optional[list[float]]
+    accel_bias_norm: Optional[float]
+    gyro_bias_norm: Optional[float]
+    inertial_only_runs: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready values."""
+        return asdict(self)
 
 
 class ImuService:
@@ -98,6 +135,9 @@ class ImuService:
         self.init_time: Optional[float] = None
         self._refinements = 0
         self.scale_refinements: list[float] = []
+        self.scale_sigma: Optional[float] = None  # of the last inertial-only optimisation
+        self.inertial_only: list[dict[str, Any]] = []  # each inertial-only optimisation's result (log)
+        self._marginal_lin: dict[int, Any] = {}  # marginal prior handle -> its linearisation point (gtsam.Values)
         backend.on_keyframe(self._on_keyframe)
         backend.on_keyframe_removed(self._on_removed)
         if config.free_window_states:
@@ -230,8 +270,12 @@ class ImuService:
         linked = [k for _, k in self._kfs if k in self._linked]
         while len(linked) > self.config.window_keyframes:
             kf = linked.pop(0)
-            self.backend.marginalize_variables([velocity_key(kf), bias_key(kf)], condition_on=[pose_key(kf)],
-                                               owner=OWNER)
+            handles = self.backend.marginalize_variables([velocity_key(kf), bias_key(kf)], condition_on=[pose_key(kf)],
+                                                         owner=OWNER)
+            alive = set(self.backend.factor_handles(OWNER))
+            self._marginal_lin = {h: lin for h, lin in self._marginal_lin.items() if h in alive}
+            for h in handles:  # the estimate is the linearisation point right after the marginalisation
+                self._marginal_lin[h] = self.backend.values_of(list(self.backend.factor(h).keys()))
             self._linked.discard(kf)
             self._starts.pop(kf, None)
             for pair in [p for p in self._links if kf in p]:
@@ -290,15 +334,22 @@ class ImuService:
             self._rescale(scale)  # the velocities were solved in metres already
         bias = gtsam.imuBias.ConstantBias(np.zeros(3), bg)
         self._start(g_W, {kf: v for (_, kf), v in zip(window, velocities)}, bias, "visual-inertial")
+        if not self.metric and ic.refine_method == "inertial_only" and ic.inertial_only_at_init:
+            self._refine_inertial_only()
 
     def _try_refine_scale(self) -> None:
-        """Monocular: the scale again (gravity known) over every keyframe since the initialisation, at
-        ``init.refine_at_s``; the map and the velocities rescaled when it changed (module docstring)."""
+        """Monocular: at ``init.refine_at_s`` after the initialisation, the scale again over every
+        keyframe since the initialisation: ``init.refine_method`` inertial_only
+        (:meth:`_refine_inertial_only`) or linear (gravity known; the map and velocities rescaled when
+        the scale changed by more than ``init.refine_min_change``)."""
         ic = self.config.init
         t_last = self._kfs[-1][0]
         if t_last - self.init_time < ic.refine_at_s[self._refinements]:
             return
         self._refinements += 1
+        if ic.refine_method == "inertial_only":
+            self._refine_inertial_only()
+            return
         window = spaced([(t, k) for t, k in self._kfs if t >= self.init_time], ic.spacing_s)
         if len(window) < 3 or not self.covered(window[0][0], window[-1][0]):
             return
@@ -309,17 +360,236 @@ class ImuService:
         self.scale_refinements.append(float(s))
         if abs(np.log(s)) <= ic.refine_min_change:
             return
-        self._rescale(s)
+        self._rescale(s)  # velocities follow (on_correction); marginal priors dropped there
+        logger.info("IMU: scale refined by %.4f (%.1f s after the initialisation)", s, t_last - self.init_time)
+
+    def _refine_inertial_only(self) -> Optional[InertialOnlyResult]:
+        """ORB-SLAM3's inertial-only optimisation over every keyframe since the initialisation with
+        their visual poses held
+        (:func:`solve_inertial_only`), applied: the map rescaled (monocular, when the change exceeds
+        ``init.refine_min_change`` and sigma(log scale) is below ``init.inertial_only_max_log_scale_sigma``), gravity, the linked keyframes' velocities and
+        biases set, the IMU links rebuilt at the new gravity and bias, then
+        ``init.inertial_only_ba_iterations`` of the visual-inertial window optimisation. Logged with
+        the scale's standard deviation."""
+        ic = self.config.init
+        start = time.perf_counter()
+        window = [(t, k) for t, k in self._kfs if t >= self.init_time]
+        if len(window) < 3 or not self.covered(window[0][0], window[-1][0]):
+            return None
+        poses = [self.backend.pose(k) for _, k in window]
+        newest = next(k for _, k in reversed(self._kfs) if k in self._linked)
+        bias0 = self._state(newest)[2]
+        v0 = self._start_velocities(window, poses)
+        settings = self.backend.optimizer.settings(ic.inertial_only_iterations)
+        result = solve_inertial_only(window, poses, self.T_CB, self.buffer, self.config, self.noise, self.metric,
+                                     self.gravity_W, v0, bias0, settings)
+        if result is None:
+            return None
+        s = result.scale if not self.metric else 1.0
+        rescaled = abs(np.log(s)) > ic.refine_min_change and result.log_scale_sigma < ic.inertial_only_max_log_scale_sigma
+        if rescaled:
+            self._rescale(s)
+        self.gravity_W = np.asarray(result.gravity_W, dtype=np.float64)
+        self.params = combined_params(self.gravity_W, self.noise)
+        # velocities in the map's units: the unapplied scale change divides them (metric: 1)
+        v_factor = 1.0 if rescaled or self.metric else 1.0 / result.scale
+        velocity = {k: v_factor * v for (_, k), v in zip(window, result.velocities)}
         for kf in self._linked:
-            v = np.asarray(self.backend.values_of([velocity_key(kf)]).atPoint3(velocity_key(kf)))
-            self.backend.set_value(velocity_key(kf), s * v)
+            if kf in velocity:
+                self.backend.set_value(velocity_key(kf), np.asarray(velocity[kf], dtype=np.float64))
+            self.backend.set_value(bias_key(kf), result.bias)
+        self._rebuild_links(velocity)
+        if ic.inertial_only_ba_iterations > 0:
+            self.backend.optimize_window([newest], iterations=ic.inertial_only_ba_iterations)
+        total = (self.scale_applied or 1.0) * (s if not rescaled else 1.0)
+        self.scale_sigma = float(total * result.log_scale_sigma)
+        b = result.bias
+        entry = {"t": float(self._kfs[-1][0] - self.init_time), "keyframes": len(window), "scale_change": float(result.scale),
+                 "applied": bool(rescaled), "log_scale_sigma": float(result.log_scale_sigma),
+                 "gravity_W": [float(x) for x in self.gravity_W],
+                 "accel_bias_norm": float(np.linalg.norm(b.accelerometer())), "gyro_bias_norm": float(np.linalg.norm(b.gyroscope())),
+                 "cost": [result.initial_cost, result.final_cost], "seconds": time.perf_counter() - start}
+        self.inertial_only.append(entry)
+        self.scale_refinements.append(float(result.scale))
+        self.stats.update_s += entry["seconds"]
+        logger.info("IMU: inertial-only optimisation over %d keyframes (%.1f s after the initialisation): scale x%.4f "
+                    "(sigma of log-scale %.4f; %s), gravity %s m/s^2, bias |a| %.4f m/s^2 |w| %.5f rad/s, cost %.4g -> %.4g",
+                    len(window), entry["t"], result.scale, result.log_scale_sigma, "applied" if rescaled else "kept",
+                    np.round(self.gravity_W, 4), entry["accel_bias_norm"], entry["gyro_bias_norm"], *entry["cost"])
+        return result
+
+    def _start_velocities(self, window, poses) -> np.ndarray:
+        """(n, 3) start of the window's velocities: the linked keyframes' own, else the body centres'
+        central differences (m/s, map frame)."""
+        p = np.array([np.asarray(body_pose(S, self.T_CB).translation()) for S in poses])
+        t = np.array([tk for tk, _ in window])
+        v = np.gradient(p, t, axis=0)
+        for i, (_, kf) in enumerate(window):
+            if kf in self._linked:
+                v[i] = self.velocity(kf)
+        return v
+
+    def _rebuild_links(self, velocity: dict[int, np.ndarray]) -> None:
+        """Every IMU link and chain-start prior again at the current gravity and biases (marginal priors
+        dropped: linearised at the old state); the oldest linked keyframe gets start priors."""
+        for handle in list(self._links.values()) + [h for hs in self._starts.values() for h in hs]:
+            self.backend.remove_factor(handle)
+        self._links.clear()
+        self._starts.clear()
+        self._drop_marginals()
+        linked = [k for _, k in self._kfs if k in self._linked]
+        if not linked:
+            return
+        first = linked[0]
+        T_WB, v, bias = self._state(first)
+        self._starts[first] = self._start_priors(first, v, bias, self.config.init.velocity_sigma)
+        self._relink()
+
+    def _drop_marginals(self) -> None:
         import gtsam
 
-        for handle in self.backend.factor_handles(OWNER):  # marginal priors linearised at the old scale
+        for handle in self.backend.factor_handles(OWNER):  # marginal priors linearised at the old state
             if isinstance(self.backend.factor(handle), gtsam.LinearContainerFactor):
                 self.backend.remove_factor(handle)
-        self.scale_applied *= s
-        logger.info("IMU: scale refined by %.4f (%.1f s after the initialisation)", s, t_last - self.init_time)
+        self._marginal_lin.clear()
+
+    # ------------------------------------------------------------------ map corrections
+    @property
+    def scale_fixed(self) -> bool:
+        """Whether the map's scale is held by the IMU (initialised; a metric map always is)."""
+        return self.metric or self.initialized
+
+    def adapt_correction(self, correction):
+        """A correction before the contributor applies it (:class:`~fgslam.services.contributor.ObservedContributor`):
+        once a monocular map's scale is fixed by the IMU, a Sim(3) correction whose scale would be
+        folded into the structure is taken as SE(3): each listed keyframe keeps its corrected centre
+        and rotation, the scale change is dropped (nothing folded). Otherwise unchanged."""
+        if self.metric or not self.initialized or not correction.fold_scale:
+            return correction
+        from ..loop.records import PoseCorrection
+
+        def rigid(M):
+            R, t, _ = sim3_matrix_parts(M, project=True)
+            out = np.eye(4)
+            out[:3, :3], out[:3, 3] = R, t
+            return out
+
+        old = {k: rigid(np.linalg.inv(U) @ correction.T_WC_new[k]) for k, U in correction.T_update.items()}
+        new = {k: rigid(correction.T_WC_new[k]) for k in correction.T_update}
+        scales = [s for s in correction.scale.values()]
+        logger.info("IMU: loop correction taken as SE(3) (the IMU fixes the scale; its scale changes %.4f..%.4f dropped)",
+                    min(scales, default=1.0), max(scales, default=1.0))
+        return PoseCorrection.between(old, new, correction.solve_time_s, fold_scale=False, loops=correction.loops,
+                                      n_accepted=correction.n_accepted, hold_older=correction.hold_older)
+
+    def on_correction(self, correction) -> None:
+        """After a map correction (loop, global BA, rescale; the keyframe poses already moved): each
+        linked keyframe's velocity turns with its update's rotation and scales with the local scale of
+        the correction (``v <- s_loc R_U v``; ``s_loc`` the ratio of its neighbouring keyframes' centre
+        distances after and before: 1 for a rigid correction, the factor of a uniform rescale); biases
+        are kept; chain-start priors move with their velocity; the marginal priors are re-anchored at the
+        corrected linearisation point (rigid corrections: velocity columns turned) or dropped."""
+        if not self._linked:
+            return
+        linked = [k for _, k in self._kfs if k in self._linked]
+        c_new, c_old = {}, {}
+        for kf in linked:
+            U, _ = correction.update_for(kf)
+            T = self.backend.pose_matrix(kf)
+            c_new[kf] = T[:3, 3].copy()
+            c_old[kf] = (np.linalg.inv(U) @ np.append(T[:3, 3], 1.0))[:3]
+        rotations, local_scales = {}, {}
+        for i, kf in enumerate(linked):
+            U, _ = correction.update_for(kf)
+            R, _, _ = sim3_matrix_parts(U, project=True)
+            a, b = linked[max(i - 1, 0)], linked[min(i + 1, len(linked) - 1)]
+            d_old = float(np.linalg.norm(c_old[b] - c_old[a]))
+            s_loc = float(np.linalg.norm(c_new[b] - c_new[a])) / d_old if a != b and d_old > _MIN_CENTRE_STEP \
+                else sim3_matrix_parts(U)[2]
+            rotations[kf], local_scales[kf] = R, s_loc
+            v = self.velocity(kf)
+            self.backend.set_value(velocity_key(kf), s_loc * (R @ v))
+        import gtsam
+
+        for kf, handles in list(self._starts.items()):
+            if kf not in rotations:
+                continue
+            new_handles = []
+            for handle in handles:
+                f = self.backend.factor(handle)
+                self.backend.remove_factor(handle)
+                if isinstance(f, gtsam.PriorFactorPoint3):
+                    f = gtsam.PriorFactorPoint3(velocity_key(kf), local_scales[kf] * (rotations[kf] @ np.asarray(f.prior())),
+                                                f.noiseModel())
+                new_handles.append(self.backend.add_factor(f, OWNER))
+            self._starts[kf] = new_handles
+        if all(abs(s - 1.0) <= _RIGID_SCALE_TOL for s in local_scales.values()) and not correction.fold_scale:
+            self._reanchor_marginals(correction, rotations)
+        else:
+            self._drop_marginals()
+
+    def _reanchor_marginals(self, correction, rotations: dict[int, np.ndarray]) -> None:
+        """Rigid correction: each marginal prior at the corrected linearisation point (poses ``U T``:
+        their right-perturbation columns unchanged; velocities ``R v``: columns ``A_v R^T``; biases
+        unchanged); a prior it cannot rebuild (more than 3 keys, unknown linearisation point) is dropped."""
+        import gtsam
+
+        from ..lie import gtsam_matrix, gtsam_sim3
+        from ..backend.keys import kf_id_of
+
+        for handle in [h for h in self.backend.factor_handles(OWNER)
+                       if isinstance(self.backend.factor(h), gtsam.LinearContainerFactor)]:
+            f = self.backend.factor(handle)
+            lin = self._marginal_lin.pop(handle, None)
+            self.backend.remove_factor(handle)
+            keys = [int(k) for k in f.keys()]
+            if lin is None or len(keys) > 3:
+                continue
+            try:
+                jf = gtsam.JacobianFactor(f.factor())
+            except RuntimeError:
+                continue
+            A, b = jf.jacobian()
+            A = np.asarray(A)
+            new_lin = gtsam.Values()
+            blocks, col = [], 0
+            for key in keys:
+                kf = kf_id_of(key)
+                U, _ = correction.update_for(kf)
+                R = rotations.get(kf, sim3_matrix_parts(U, project=True)[0])
+                if key == pose_key(kf):
+                    T_new, _ = correction.apply_pose(kf, gtsam_matrix(lin.atSimilarity3(key)))
+                    new_lin.insert(key, gtsam_sim3(T_new))
+                    dim = 7
+                    blocks.append(A[:, col:col + dim])
+                elif key == velocity_key(kf):
+                    new_lin.insert(key, R @ np.asarray(lin.atPoint3(key)))
+                    dim = 3
+                    blocks.append(A[:, col:col + dim] @ R.T)
+                else:
+                    new_lin.insert(key, lin.atConstantBias(key))
+                    dim = 6
+                    blocks.append(A[:, col:col + dim])
+                col += dim
+            unit = gtsam.noiseModel.Diagonal.Sigmas(np.ones(A.shape[0]))
+            args = [x for key, block in zip(keys, blocks) for x in (key, block)]
+            new = gtsam.LinearContainerFactor(gtsam.JacobianFactor(*args, np.asarray(b, dtype=np.float64), unit), new_lin)
+            h = self.backend.add_factor(new, OWNER)
+            self._marginal_lin[h] = new_lin
+
+    @property
+    def inertial_state(self) -> InertialState:
+        """The run's :class:`InertialState` (for the summary and the console report)."""
+        acc = gyr = None
+        linked = [k for _, k in self._kfs if k in self._linked]
+        if self.initialized and linked:
+            b = self.bias(linked[-1])
+            acc, gyr = float(np.linalg.norm(b.accelerometer())), float(np.linalg.norm(b.gyroscope()))
+        scale = None if not self.initialized else (1.0 if self.metric else self.scale_applied)
+        return InertialState(initialised=self.initialized, time_init=self.init_time,
+                             scale=None if scale is None else float(scale), scale_sigma=self.scale_sigma,
+                             gravity_W=None if self.gravity_W is None else [float(x) for x in self.gravity_W],
+                             accel_bias_norm=acc, gyro_bias_norm=gyr, inertial_only_runs=len(self.inertial_only))
 
     def _visual_inertial(self, window, gravity_W: Optional[np.ndarray] = None):
         """:func:`solve_visual_inertial` over ``window`` (list of (t, kf)) at the keyframes' current poses."""
@@ -327,14 +597,17 @@ class ImuService:
                                      self.config, self.noise, self.metric, self.static, gravity_W)
 
     def _rescale(self, scale: float) -> None:
-        """Monocular: the map to metric, through the contributor (scale folded into its structure)."""
+        """Monocular: the map to metric, through the contributor (scale folded into its structure);
+        the linked velocities follow (:meth:`on_correction`)."""
         from .plugins import CorrectedBackend, apply_correction, uniform_correction
 
         U = np.eye(4)
         U[:3, :3] *= scale
         target = CorrectedBackend(self.backend, [self.contributor]) if self.contributor is not None else self.backend
-        apply_correction(target, uniform_correction(target, U))
-        self.scale_applied = scale
+        correction = uniform_correction(target, U)
+        apply_correction(target, correction)
+        self.on_correction(correction)
+        self.scale_applied = scale * (self.scale_applied if self.scale_applied is not None else 1.0)
 
     def _start(self, g_W: np.ndarray, velocities: dict[int, np.ndarray], bias, how: str) -> None:
         """Gravity fixed, keys and links from the oldest given keyframe on."""
@@ -395,7 +668,8 @@ class ImuService:
                 "gravity_W": None if self.gravity_W is None else [float(x) for x in self.gravity_W],
                 "samples": s.samples, "dropped_samples": s.dropped_samples, "bad_intervals": s.bad_intervals,
                 "links": s.links, "unlinked_intervals": s.unlinked, "marginalised": s.marginalised,
-                "predictions": s.predictions, "update_s": s.update_s}
+                "predictions": s.predictions, "update_s": s.update_s, "scale_sigma": self.scale_sigma,
+                "inertial_only_runs": len(self.inertial_only)}
 
 
 # ----------------------------------------------------------------------------------------- the run

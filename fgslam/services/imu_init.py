@@ -10,6 +10,7 @@ Frames: ``g_W`` and the velocities are in the map's world frame (m/s^2, m/s); a 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
@@ -168,3 +169,150 @@ def solve_visual_inertial(window: Sequence[tuple[float, int]], poses: Sequence, 
     logger.info("IMU: visual-inertial initialisation over %d keyframes (%.2f s): scale %.4f, gyroscope bias %s",
                 n, ts[-1] - ts[0], s, np.round(bg, 5))
     return g_W, s, v, bg
+
+
+# ----------------------------------------------------------------------------------------- inertial-only
+
+
+def rotation_to_gravity_frame(gravity_W: np.ndarray) -> np.ndarray:
+    """The smallest rotation ``R_GW`` taking the direction of ``gravity_W`` to ``-z`` (the gravity
+    frame G of the inertial-only optimisation, where gravity is ``(0, 0, -|g|)``)."""
+    a = np.asarray(gravity_W, dtype=np.float64) / np.linalg.norm(gravity_W)
+    b = np.array([0.0, 0.0, -1.0])
+    axis = np.cross(a, b)
+    sin, cos = float(np.linalg.norm(axis)), float(a @ b)
+    if sin < _BIAS_CONVERGED:  # parallel (or opposite: a half turn about x)
+        return np.eye(3) if cos > 0 else np.diag([1.0, -1.0, -1.0])
+    k = axis / sin
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + sin * K + (1 - cos) * K @ K
+
+
+def inertial_only_factor(keys: tuple[int, int, int, int, int], pim, T_WB_i, T_WB_j, centres: tuple):
+    """A factor on ``(log_scale, R_GW, v_i, v_j, b)`` (``Vector`` (1,), ``Rot3``, ``Point3`` velocities
+    in the gravity frame G, one ``ConstantBias``) for the inertial-only optimisation: the error of
+    gtsam's ``CombinedImuFactor(pim)`` (gravity ``-z`` of G in ``pim``'s params) at the body poses
+    ``T_GB_k = Pose3(R_GW) * T_WB_k(s)`` with ``T_WB_k(s)`` the fixed visual pose whose camera centre
+    is scaled: ``p_WB_k(s) = s c_k + R_WC_k t_CB`` (``s = exp(log_scale)``), biases ``b_i = b_j = b``.
+
+    ``T_WB_i``, ``T_WB_j``: the body poses at scale 1 (``gtsam.Pose3``); ``t_CB_scaled``: the camera
+    centres ``(c_i, c_j)`` in map units. Jacobians (chained through gtsam's): right perturbations,
+    ``R_GW Exp(w)`` moves ``T_GB`` by ``Ad(T_WB^-1) [w, 0]``; ``d log_scale`` moves its position by
+    ``s c`` in W, ``R_WB^T s c`` in the body frame (tested against finite differences)."""
+    import gtsam
+
+    inner = gtsam.CombinedImuFactor(0, 1, 2, 3, 4, 5, pim)
+    unit = gtsam.noiseModel.Unit.Create(15)
+    kl, kr, kvi, kvj, kb = (int(k) for k in keys)
+    c_i, c_j = (np.asarray(c, dtype=np.float64) for c in centres)
+    R_i, R_j = np.asarray(T_WB_i.rotation().matrix()), np.asarray(T_WB_j.rotation().matrix())
+    p_i, p_j = np.asarray(T_WB_i.translation()), np.asarray(T_WB_j.translation())
+
+    def body(R_GW, R_WB, p_WB, c, s):
+        return gtsam.Pose3(R_GW, np.zeros(3)).compose(gtsam.Pose3(gtsam.Rot3(R_WB), p_WB + (s - 1.0) * c))
+
+    def error(this, values, H):
+        s = float(np.exp(values.atVector(kl)[0]))
+        R_GW = values.atRot3(kr)
+        bias = values.atConstantBias(kb)
+        local = gtsam.Values()
+        local.insert(0, body(R_GW, R_i, p_i, c_i, s))
+        local.insert(1, values.atPoint3(kvi))
+        local.insert(2, body(R_GW, R_j, p_j, c_j, s))
+        local.insert(3, values.atPoint3(kvj))
+        local.insert(4, bias)
+        local.insert(5, bias)
+        if H is None:
+            return np.asarray(inner.whitenedError(local), dtype=np.float64)
+        A, b = inner.linearize(local).jacobian()
+        A = np.asarray(A)
+        A_pi, A_pj = A[:, 0:6], A[:, 9:15]
+        J_i, J_j = np.zeros((6, 1)), np.zeros((6, 1))
+        J_i[3:, 0] = R_i.T @ (s * c_i)
+        J_j[3:, 0] = R_j.T @ (s * c_j)
+        Ad_i = np.asarray(gtsam.Pose3(gtsam.Rot3(R_i), p_i + (s - 1.0) * c_i).inverse().AdjointMap())[:, :3]
+        Ad_j = np.asarray(gtsam.Pose3(gtsam.Rot3(R_j), p_j + (s - 1.0) * c_j).inverse().AdjointMap())[:, :3]
+        H[0] = A_pi @ J_i + A_pj @ J_j
+        H[1] = A_pi @ Ad_i + A_pj @ Ad_j
+        H[2] = A[:, 6:9]
+        H[3] = A[:, 15:18]
+        H[4] = A[:, 18:24] + A[:, 24:30]
+        return -np.asarray(b, dtype=np.float64)
+
+    return gtsam.CustomFactor(unit, [kl, kr, kvi, kvj, kb], error)
+
+
+@dataclass(frozen=True)
+class InertialOnlyResult:
+    """The inertial-only optimisation's estimate: the scale to apply to the map (``s``, map units -> m)
+    with the marginal standard deviation of ``log s``, gravity in the map frame, the velocities (n, 3)
+    of the window's keyframes (m/s, map frame, after the rescale) and the one bias; ``cost`` before/after."""
+
+    scale: float
+    log_scale_sigma: float
+    gravity_W: np.ndarray
+    velocities: np.ndarray
+    bias: object
+    initial_cost: float
+    final_cost: float
+
+
+def solve_inertial_only(window: Sequence[tuple[float, int]], poses: Sequence, T_CB, buffer: ImuBuffer,
+                        config: ImuServiceConfig, noise: ImuNoise, metric: bool, gravity_W: np.ndarray,
+                        velocities_W: np.ndarray, bias, settings) -> Optional["InertialOnlyResult"]:
+    """ORB-SLAM3's inertial-only optimisation over ``window`` (list of (t, kf)) with the keyframes'
+    visual poses ``poses`` (``T_WC`` Similarity3 each) held: the log-scale (held by a tight prior on a
+    metric map), the gravity direction (``R_GW``, its yaw about gravity held by ``gauge_sigma``), the
+    velocities and one bias (prior ``init.inertial_only_*_bias_sigma`` about ``bias``), with gtsam's preintegrated
+    ``CombinedImuFactor`` (:func:`inertial_only_factor`) between consecutive keyframes, solved by the
+    one LM loop with ``settings``. ``velocities_W`` (n, 3): the start (m/s, map frame). None when
+    the window is too short or the solve fails (logged)."""
+    import gtsam
+
+    from ..backend.solver import NonlinearProblem, levenberg_marquardt
+    from ..factors.imu import body_pose
+
+    ic = config.init
+    n = len(window)
+    if n < 3:
+        return None
+    G = config.gravity
+    params = combined_params(np.array([0.0, 0.0, -G]), noise)
+    ts = [t for t, _ in window]
+    T_WB = [body_pose(S, T_CB) for S in poses]
+    c = [float(S.scale()) * np.asarray(S.translation(), dtype=np.float64) for S in poses]
+    R_GW = rotation_to_gravity_frame(gravity_W)
+    L, RG, B = gtsam.symbol("l", 0), gtsam.symbol("g", 0), gtsam.symbol("b", 0)
+    V = [gtsam.symbol("v", i) for i in range(n)]
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    values.insert(L, np.zeros(1))
+    values.insert(RG, gtsam.Rot3(R_GW))
+    values.insert(B, bias)
+    for i in range(n):
+        values.insert(V[i], R_GW @ np.asarray(velocities_W[i], dtype=np.float64))
+    for i in range(n - 1):
+        pim = buffer.preintegrate(params, ts[i], ts[i + 1], bias)
+        graph.add(inertial_only_factor((L, RG, V[i], V[i + 1], B), pim, T_WB[i], T_WB[i + 1], (c[i], c[i + 1])))
+    bias_sigmas = np.array([ic.inertial_only_accel_bias_sigma] * 3 + [ic.inertial_only_gyro_bias_sigma] * 3)
+    graph.add(gtsam.PriorFactorConstantBias(B, bias, gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
+    # gauge: the yaw about gravity is unobservable; R_GW Exp(w) turns about G's z by (R_GW^T e_z) . w
+    up = R_GW.T @ np.array([0.0, 0.0, 1.0])
+    info = np.outer(up, up) / ic.inertial_only_gauge_sigma ** 2 + np.eye(3) * ic.inertial_only_gravity_prior ** -2
+    graph.add(gtsam.PriorFactorRot3(RG, gtsam.Rot3(R_GW), gtsam.noiseModel.Gaussian.Information(info)))
+    log_scale_sigma = ic.inertial_only_gauge_sigma if metric else ic.inertial_only_log_scale_prior
+    graph.add(gtsam.PriorFactorVector(L, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, log_scale_sigma)))
+    problem = NonlinearProblem(graph, values)
+    report = levenberg_marquardt(problem, settings)
+    out = problem.values
+    try:
+        sigma = float(np.sqrt(gtsam.Marginals(graph, out).marginalCovariance(L)[0, 0]))
+    except RuntimeError as exc:  # indeterminate system: no uncertainty, no result
+        logger.info("IMU: inertial-only optimisation: no marginal of the scale (%s)", exc)
+        return None
+    R = np.asarray(out.atRot3(RG).matrix())
+    s = float(np.exp(out.atVector(L)[0]))
+    v_W = np.array([R.T @ np.asarray(out.atPoint3(V[i])) for i in range(n)])
+    return InertialOnlyResult(scale=s, log_scale_sigma=sigma, gravity_W=R.T @ np.array([0.0, 0.0, -G]),
+                              velocities=v_W, bias=out.atConstantBias(B), initial_cost=float(report.initial_cost),
+                              final_cost=float(report.final_cost))

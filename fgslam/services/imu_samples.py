@@ -47,6 +47,21 @@ class ImuInitConfig:
     # this many seconds after it; the map is rescaled when it changed by more than refine_min_change
     refine_at_s: list[float] = ranged(default_factory=lambda: [3.0, 6.0, 9.0, 12.0, 15.0], gt=0, le=MAX_SCALAR)
     refine_min_change: float = ranged(0.01, ge=0, le=MAX_SCALAR)  # relative scale change worth a rescale
+    # how each refinement estimates: inertial_only (ORB-SLAM3: scale, gravity direction, velocities and
+    # one bias by least squares on the preintegrated IMU factors, the visual poses held; then the IMU
+    # links rebuilt and a short visual-inertial window optimisation) or linear (scale only, gravity known)
+    refine_method: Literal["inertial_only", "linear"] = "inertial_only"
+    inertial_only_at_init: bool = True  # monocular: an inertial-only optimisation right after the linear initialisation
+    inertial_only_iterations: int = ranged(10, ge=1, le=MAX_ITERATIONS)  # LM iterations of the inertial-only optimisation
+    inertial_only_gauge_sigma: float = ranged(1e-6, gt=0, le=MAX_SCALAR)  # rad (and log-scale on metric maps): holds the unobservable yaw about gravity
+    inertial_only_gravity_prior: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # rad: weak prior on the gravity direction (keeps a short window determinate)
+    inertial_only_log_scale_prior: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # weak prior on log(scale change) (monocular)
+    inertial_only_max_log_scale_sigma: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # monocular: the scale is applied only when sigma(log scale) is below this
+    # the one bias's prior (about the current estimate); measured on the room loop: 0.1 / 0.01 gave a
+    # 2.7 % scale error, ORB-SLAM3's 0.003 / 0.1 (with the whole map's keyframes and a 0.1 gate) 54 % (README)
+    inertial_only_accel_bias_sigma: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # m/s^2
+    inertial_only_gyro_bias_sigma: float = ranged(0.01, gt=0, le=MAX_SCALAR)  # rad/s
+    inertial_only_ba_iterations: int = ranged(2, ge=0, le=MAX_ITERATIONS)  # LM iterations of the visual-inertial optimisation after it (0: none)
     max_scale_rel_sigma: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # monocular: the scale's relative standard deviation (least squares) must be below this
     gyro_bias_iterations: int = ranged(5, ge=1, le=MAX_ITERATIONS)  # Gauss-Newton iterations of the gyroscope bias
     gravity_tolerance: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # relative |g| error beyond which the unconstrained solve is rejected
