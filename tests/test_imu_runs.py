@@ -74,10 +74,7 @@ def test_mono_inertial_initialises_and_rescales_to_metric(room, tmp_path, caplog
 
     caplog.set_level(logging.INFO, logger="fgslam.services.imu")
     ds, summary, est = _run(room, "patch_mono_inertial", tmp_path / "mono",
-                            ["imu.init.min_duration_s=2.0", "imu.init.max_scale_rel_sigma=0.1",
-                             # a 6 s clip: only confident inertial-only scales (the 1.8 s window right after the
-                             # initialisation gave x0.44 with sigma(log scale) 0.38; applied, log scale error 1.37)
-                             "imu.init.inertial_only_max_log_scale_sigma=0.1"])
+                            ["imu.init.min_duration_s=2.0", "imu.init.max_scale_rel_sigma=0.1"])
     assert "initialised (visual-inertial)" in caplog.text
     res = _ate(ds, est, "sim3")  # the scale the map needs after the rescale: 1 when metric
     vision = _ate(ds, _run(room, "patch_mono", tmp_path / "v")[2], "sim3")
