@@ -446,14 +446,17 @@ def _project_rotation(M: np.ndarray) -> np.ndarray:
 
 
 def merge_recording(stored: StoredMap, recording: StoredMap, config: LocalizeConfig | None = None,
-                    metric: bool = True) -> MapMerge | None:
+                    metric: bool | None = None) -> MapMerge | None:
     """Localise the keyframes of a ``recording`` (a stored map of the new run, own frame) in
     ``stored`` one after the other (:class:`MapLocalizer`: retrieval + verification, then tracking),
     and estimate the transform between the two frames from the localised keyframes: the rotation
     from their poses (the map-from-recording rotations within ``merge.max_rotation_deg`` of the
-    best-supported one, averaged), the scale (monocular: not ``metric``) and translation from their
+    best-supported one, averaged), the scale (unless ``metric``: by default when both maps are metric,
+    ``meta["metric"]``; a monocular map on either side has its own scale) and translation from their
     positions (least squares). None (no merge) with fewer than ``merge.min_keyframes`` consistent."""
     config = config or LocalizeConfig()
+    if metric is None:
+        metric = stored.metric and recording.metric
     mc = config.merge
     if stored.meta["features"] != recording.meta["features"]:
         logger.warning("map merge: the recording's keyframe features were made with other settings than the "

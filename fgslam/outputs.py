@@ -536,7 +536,7 @@ def _save_stored_map(out: Path, traj: Trajectory, dataset: Dataset, frontend: Fr
 
         try:
             stored = load_stored_map(config.output.extend_map)
-            merge = merge_recording(stored, recording, metric=config.sensor != "mono")
+            merge = merge_recording(stored, recording)  # Sim(3) unless both are metric
         except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
             output_errors["merge"] = f"--map {config.output.extend_map}: {type(exc).__name__}: {exc}"
             logger.error("could not merge the recording into %s: %s", config.output.extend_map, exc)

@@ -372,3 +372,67 @@ def test_a_recording_that_does_not_localise_is_not_merged(room_map):
     recording = toy_map(6, n_feat=300, seed=4)  # random descriptors: nothing of it is in the room
     recording.meta["features"] = stored.meta["features"]
     assert merge_recording(stored, recording) is None
+
+
+def _rescaled(stored: StoredMap, scale: float, R0: np.ndarray, t0: np.ndarray) -> StoredMap:
+    """``stored`` as a monocular map of another scale and frame: rigid poses with positions
+    ``scale R0 t + t0``, camera points and structure scaled by ``scale`` (``meta.metric`` false)."""
+    import copy
+
+    out = copy.deepcopy(stored)
+    out.meta.update(sensor="mono", metric=False)
+    out.T_WC[:, :3, :3] = R0[None] @ stored.T_WC[:, :3, :3]
+    out.T_WC[:, :3, 3] = scale * stored.T_WC[:, :3, 3] @ R0.T + t0
+    out.feat_X_C[:] = scale * stored.feat_X_C
+    out.points_X_W[:] = scale * stored.points_X_W @ R0.T + t0
+    return out
+
+
+def _rotation_z(deg: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_a_monocular_recording_of_another_scale_merges_by_sim3(room_map):
+    """The Sim(3) merge: a monocular recording (twice the map's scale, another frame) merged into a
+    metric map recovers scale 0.5 and puts its keyframes on the map's (the map run's alignment then
+    applies to them unchanged); forced metric it cannot (scale 1: far off)."""
+    from fgslam.localize import combine_maps, merge_recording
+
+    stored = load_stored_map(room_map[0])
+    recording = _rescaled(stored, 2.0, _rotation_z(30.0), np.array([1.0, -2.0, 0.5]))
+    merge = merge_recording(stored, recording)
+    assert merge is not None and merge.consistent >= 3
+    scale = float(np.cbrt(np.linalg.det(merge.S_MR[:3, :3])))
+    assert abs(scale - 0.5) < 0.01
+    merged = combine_maps(stored, recording, merge.S_MR)
+    assert merged.meta["recordings"] == 2 and merged.metric
+    k = stored.num_keyframes
+    ate = np.sqrt(np.mean(np.sum((merged.T_WC[k:, :3, 3] - stored.T_WC[:, :3, 3]) ** 2, axis=1)))
+    assert ate < 0.03  # metres (the map's units; measured 0.016 over a 1.1 m keyframe extent)
+    assert merge_recording(stored, recording, metric=True) is None  # rigid: the positions cannot agree
+
+
+def test_run_with_map_extends_a_monocular_map_by_sim3(room_map, tmp_path):
+    """``fgslam run patch_rgbd --map`` on a monocular stored map (its own scale: twice the room's):
+    the RGB-D recording is merged with a scale (about 2), not forced metric, and its frames in the
+    map's frame lie on the ground truth with the map run's alignment."""
+    stored_path, roots, _ = room_map
+    stored = load_stored_map(stored_path)
+    R0, t0 = _rotation_z(-20.0), np.array([0.5, 0.3, -1.0])
+    mono = _rescaled(stored, 2.0, R0, t0)
+    A = np.asarray(stored.meta["groundtruth_alignment"]["matrix"])  # ground truth from the room's frame
+    S_inv = np.eye(4)
+    S_inv[:3, :3] = 0.5 * R0.T
+    S_inv[:3, 3] = -0.5 * R0.T @ t0
+    mono.meta["groundtruth_alignment"] = {"align": "sim3", "matrix": (A @ S_inv).tolist()}
+    mono_path = tmp_path / "mono.fgmap"
+    save_stored_map(mono_path, mono)
+    out = tmp_path / "ext"
+    assert main(["run", "patch_rgbd", "--data", str(roots["other_path"]), "--out", str(out), "--no-progress",
+                 "--map", str(mono_path)]) == 0
+    merge = json.loads((out / "merge.json").read_text())
+    assert merge["merged"]
+    scale = float(np.cbrt(np.linalg.det(np.asarray(merge["S_MR"])[:3, :3])))
+    assert abs(scale - 2.0) < 0.1
+    assert _ate_with(A @ S_inv, out / "merged_trajectory_tum.txt", roots["other_path"]) < 0.05
