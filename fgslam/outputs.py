@@ -107,6 +107,23 @@ def prepare_output_dir(out_dir: str | Path, data: str | Path | None = None) -> P
     return out
 
 
+def check_save_map_path(save_map: str | Path, out_dir: str | Path, extend_map: str | Path | None,
+                        overwrite: bool) -> None:
+    """``--save-map``: ConfigError when the path is one of the run's own output files in ``out_dir``
+    (:data:`RUN_OUTPUT_FILES`, ``depth/``), or an existing file that is not the ``--map`` being
+    extended and ``overwrite`` is not given (a map is never replaced silently)."""
+    path = Path(save_map).resolve()
+    out = Path(out_dir).resolve()
+    if path.parent == out and path.name in RUN_OUTPUT_FILES or out / DEPTH_DIR in (path, *path.parents):
+        raise ConfigError(f"--save-map {save_map}: that is one of the run's own output files in {out_dir}; "
+                          "choose another name")
+    if path.is_dir():
+        raise ConfigError(f"--save-map {save_map}: is a folder")
+    if path.exists() and not overwrite and (extend_map is None or Path(extend_map).resolve() != path):
+        raise ConfigError(f"--save-map {save_map}: the file exists; use --overwrite to replace it "
+                          "(or save the extended map over its --map)")
+
+
 def previous_run_outputs(out_dir: str | Path) -> list[Path]:
     """The outputs of a previous run in ``out_dir`` (:data:`RUN_OUTPUT_FILES` and ``depth/``)."""
     out = Path(out_dir)

@@ -436,3 +436,23 @@ def test_run_with_map_extends_a_monocular_map_by_sim3(room_map, tmp_path):
     scale = float(np.cbrt(np.linalg.det(np.asarray(merge["S_MR"])[:3, :3])))
     assert abs(scale - 2.0) < 0.1
     assert _ate_with(A @ S_inv, out / "merged_trajectory_tum.txt", roots["other_path"]) < 0.05
+
+
+def test_save_map_never_replaces_a_file_silently(room_map, tmp_path, capsys):
+    """``--save-map`` refuses an existing file (untouched) unless --overwrite or it is the --map being
+    extended, and a path that is one of the run's own outputs in --out; refused before any work."""
+    stored_path, roots, _ = room_map
+    existing = tmp_path / "existing.fgmap"
+    existing.write_text("keep me\n")
+    base = ["run", "patch_rgbd", "--data", str(roots["other_room"]), "--no-progress"]
+    assert main(base + ["--out", str(tmp_path / "a"), "--save-map", str(existing)]) == 2
+    err = capsys.readouterr().err
+    assert "existing.fgmap: the file exists" in err and "--overwrite" in err
+    assert existing.read_text() == "keep me\n" and not (tmp_path / "a" / "summary.json").exists()
+    out = tmp_path / "b"
+    for name in ("summary.json", "trajectory_tum.txt", "depth/x.fgmap"):
+        (out / "depth").mkdir(parents=True, exist_ok=True)
+        assert main(base + ["--out", str(out), "--save-map", str(out / name)]) == 2
+        assert "one of the run's own output files" in capsys.readouterr().err
+    assert main(base + ["--out", str(tmp_path / "c"), "--save-map", str(existing), "--overwrite"]) == 0
+    assert load_stored_map(existing).meta["family"] == "patch"
