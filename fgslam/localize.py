@@ -129,9 +129,17 @@ class LocalizeConfig:
     confirm_inliers: int = ranged(100, ge=4, le=MAX_COUNT)  # a relocalised pose needs this many local-map inliers at it
     max_position_std: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # quality gate: largest position std of a pose (1 px noise, its inliers) / their median depth (1.0: none in practice)
     merge: MapMergeConfig = field(default_factory=MapMergeConfig)
+    #: dataset settings (:class:`fgslam.io.datasets.DatasetConfig` keys) merged over the map run's,
+    #: e.g. ``-o dataset.calibration_file=cam.yaml -o dataset.groundtruth_file=gt.txt`` (a map keeps no paths)
+    dataset: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> None:
         check_ranges(self)
+        from .errors import ConfigError
+
+        unknown = sorted(set(self.dataset) - set(DatasetConfig.__dataclass_fields__))
+        if unknown:
+            raise ConfigError(f"dataset: unknown key(s) {', '.join(unknown)} (DatasetConfig fields)")
 
 
 @dataclass
@@ -333,7 +341,8 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
                      fmt: str = "auto", start: int | None = None, end: int | None = None, stride: int = 1,
                      prepare_out: Callable[[Path], Any] | None = None) -> dict[str, Any]:
     """Localise the sequence ``data`` (raw frames ``start`` .. ``end``, every ``stride``-th; the
-    other dataset settings, e.g. the image size, are the map run's) in the map at ``map_path``; writes
+    other dataset settings, e.g. the image size, are the map run's, with ``config.dataset`` merged
+    over them) in the map at ``map_path``; writes
     the outputs (module docstring) to ``out_dir`` and returns the summary. ``prepare_out(out_dir)``
     is called once the map, the sequence and their cameras are checked, before anything is written
     (the CLI: ``fgslam run``'s rule for a previous run's outputs, :func:`fgslam.outputs.clear_previous_outputs`).
@@ -347,6 +356,7 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     ds_dict = dict((stored.meta.get("config") or {}).get("dataset") or {})
     ds_dict.update(load_rgb=False, load_depth=False, load_right=False, load_imu=False, start=0, end=None,
                    stride=int(stride))
+    ds_dict.update(config.dataset)  # the command's dataset section: e.g. a calibration or ground-truth file
     if start is not None:
         ds_dict["start"] = int(start)
     if end is not None:

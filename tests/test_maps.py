@@ -456,3 +456,32 @@ def test_save_map_never_replaces_a_file_silently(room_map, tmp_path, capsys):
         assert "one of the run's own output files" in capsys.readouterr().err
     assert main(base + ["--out", str(tmp_path / "c"), "--save-map", str(existing), "--overwrite"]) == 0
     assert load_stored_map(existing).meta["family"] == "patch"
+
+
+def test_localize_an_image_folder_with_an_external_calibration(room_map, tmp_path, capsys):
+    """A map keeps no file paths, so a folder dataset whose calibration YAML lies elsewhere needs
+    ``-o dataset.calibration_file=...`` (the localize config's dataset section): without it a clear
+    error, with it the frames localise."""
+    import shutil
+
+    import yaml
+
+    from fgslam.io.datasets import open_dataset
+
+    stored, roots, _ = room_map
+    seq = open_dataset(roots["other_path"])
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for k, png in enumerate(sorted((roots["other_path"] / "mav0" / "cam0" / "data").glob("*.png"))):
+        shutil.copy(png, folder / f"{k:06d}.png")
+    calib = tmp_path / "elsewhere.yaml"
+    calib.write_text(yaml.safe_dump({"width": int(seq.raw_calibration.width), "height": int(seq.raw_calibration.height),
+                                     "intrinsics": [float(v) for v in seq.raw_calibration.K]}))
+    base = ["localize", str(stored), "--data", str(folder), "--format", "folder"]
+    assert main(base + ["--out", str(tmp_path / "a")]) == 2
+    assert "missing calibration YAML" in capsys.readouterr().err
+    assert main(base + ["--out", str(tmp_path / "b"), "--json", "-o", f"dataset.calibration_file={calib}"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["frames"] == 32 and s["localised"] >= 0.9 * 32
+    assert main(base + ["--out", str(tmp_path / "c"), "-o", "dataset.no_such_key=1"]) == 2
+    assert "no_such_key" in capsys.readouterr().err
