@@ -485,3 +485,32 @@ def test_localize_an_image_folder_with_an_external_calibration(room_map, tmp_pat
     assert s["frames"] == 32 and s["localised"] >= 0.9 * 32
     assert main(base + ["--out", str(tmp_path / "c"), "-o", "dataset.no_such_key=1"]) == 2
     assert "no_such_key" in capsys.readouterr().err
+
+
+def test_crafted_maps_are_clear_errors_not_key_errors(tmp_path):
+    """:meth:`StoredMap.check` (on save and load) names the file and what is wrong for a map whose
+    features section is missing or malformed, whose tracks name unknown keyframes or whose keyframe
+    ids repeat: never a bare KeyError later in ``fgslam localize``."""
+    good = tmp_path / "good.fgmap"
+    save_stored_map(good, toy_map(10))
+    base = toy_map(10).meta["features"]
+    cases = {
+        "no features": ({"features": None}, "no features section"),
+        "features without orb": ({"features": {k: v for k, v in base.items() if k != "orb"}}, "features has no orb"),
+        "features K": ({"features": dict(base, K=[1.0, 2.0])}, "K must be 4 numbers"),
+        "camera": ({"camera": {"K": K_CAM, "width": "wide", "height": 240}}, "no camera"),
+    }
+    for what, (change, message) in cases.items():
+        path = tmp_path / f"{what.replace(' ', '_')}.fgmap"
+        _rewrite_meta(good, path, **change)
+        with pytest.raises(MapFileError, match=message) as exc:
+            load_stored_map(path)
+        assert str(path) in str(exc.value), what
+    bad = toy_map(10)
+    bad.track_kf[1] = 1  # not a keyframe id (ids are 0, 3, 6, ...)
+    with pytest.raises(MapFileError, match="track_kf names a keyframe id"):
+        save_stored_map(tmp_path / "bad.fgmap", bad)
+    bad = toy_map(10)
+    bad.kf_ids[2] = bad.kf_ids[1]
+    with pytest.raises(MapFileError, match="kf_ids are not unique"):
+        save_stored_map(tmp_path / "bad.fgmap", bad)

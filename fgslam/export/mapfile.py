@@ -177,9 +177,31 @@ class StoredMap:
             raise bad("a track names a point that does not exist")
         if not np.isfinite(self.T_WC).all():
             raise bad("a keyframe pose is not finite")
-        camera = self.meta.get("camera") or {}
-        if len(camera.get("K", ())) != 4 or "width" not in camera or "height" not in camera:
-            raise bad("meta has no camera (K, width, height)")
+        if len(np.unique(self.kf_ids)) != k:
+            raise bad("kf_ids are not unique")
+        if t and not np.isin(self.track_kf, self.kf_ids).all():
+            raise bad("track_kf names a keyframe id that is not in kf_ids")
+        camera = self.meta.get("camera")
+        if not isinstance(camera, dict) or not _numbers(camera.get("K"), 4) or not _numbers(
+                [camera.get("width"), camera.get("height")], 2):
+            raise bad("meta has no camera (K: 4 numbers, width, height)")
+        features = self.meta.get("features")
+        if not isinstance(features, dict):
+            raise bad("meta has no features section")
+        missing = [key for key in ("image_scale", "K", "width", "height", "vocabulary", "orb") if key not in features]
+        if missing:
+            raise bad(f"meta features has no {', '.join(missing)}")
+        if not _numbers(features["K"], 4) or not _numbers([features["image_scale"], features["width"],
+                                                            features["height"]], 3):
+            raise bad("meta features: K must be 4 numbers, image_scale / width / height numbers")
+        if not isinstance(features["orb"], dict) or not isinstance(features["vocabulary"], str):
+            raise bad("meta features: orb must be a mapping, vocabulary a name")
+
+
+def _numbers(values: Any, n: int) -> bool:
+    """``values`` is a list of ``n`` finite numbers (not booleans)."""
+    return (isinstance(values, (list, tuple)) and len(values) == n
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in values))
 
 
 # ----------------------------------------------------------------------------------- save / load
