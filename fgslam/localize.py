@@ -45,7 +45,7 @@ import numpy as np
 
 from .config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, from_dict, ranged, to_dict
 from .errors import FGSlamError
-from .export.mapfile import StoredMap, check_map_camera, feature_image, load_stored_map
+from .export.mapfile import MapMergeConfig, StoredMap, check_map_camera, feature_image, load_stored_map
 from .io.datasets import DatasetConfig, open_dataset
 from .loop.records import RelocalizationConfig
 
@@ -108,15 +108,6 @@ class MapTrackingConfig:
     pnp_reprojection_px: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # PnP inlier threshold (feature-image pixels)
     pnp_iterations: int = ranged(100, ge=1, le=MAX_ITERATIONS)  # PnP RANSAC hypotheses
     pnp_confidence: float = ranged(0.99, gt=0, lt=1)  # PnP RANSAC early-stop confidence
-
-
-@dataclass
-class MapMergeConfig:
-    """Merging a recording into a stored map (``fgslam run ... --map MAP``, :func:`merge_recording`)."""
-
-    min_keyframes: int = ranged(3, ge=1, le=MAX_KEYFRAMES)  # recording keyframes localised in the map (consistently) to merge
-    max_rotation_deg: float = ranged(5.0, gt=0, le=180)  # consistent: their map-from-recording rotations within this of each other
-    max_position_error: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # ... and their positions within this share of the keyframes' extent
 
 
 @dataclass

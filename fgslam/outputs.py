@@ -549,11 +549,11 @@ def _save_stored_map(out: Path, traj: Trajectory, dataset: Dataset, frontend: Fr
     to_save = recording
     if config.output.extend_map:
         from .io.trajectory import Trajectory
-        from .localize import combine_maps, merge_recording, rigid_in_map
+        from .localize import LocalizeConfig, combine_maps, merge_recording, rigid_in_map
 
         try:
             stored = load_stored_map(config.output.extend_map)
-            merge = merge_recording(stored, recording)  # Sim(3) unless both are metric
+            merge = merge_recording(stored, recording, LocalizeConfig(merge=config.output.map_merge))  # Sim(3) unless both metric
         except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
             output_errors["merge"] = f"--map {config.output.extend_map}: {type(exc).__name__}: {exc}"
             logger.error("could not merge the recording into %s: %s", config.output.extend_map, exc)

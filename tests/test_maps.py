@@ -514,3 +514,14 @@ def test_crafted_maps_are_clear_errors_not_key_errors(tmp_path):
     bad.kf_ids[2] = bad.kf_ids[1]
     with pytest.raises(MapFileError, match="kf_ids are not unique"):
         save_stored_map(tmp_path / "bad.fgmap", bad)
+
+
+def test_merge_thresholds_are_run_config(room_map, tmp_path):
+    """``output.map_merge`` reaches the merge of ``fgslam run --map``: more consistent keyframes than
+    the recording has leaves it unmerged (with the defaults it merges: test_run_with_map_merges_the_recording)."""
+    stored_path, roots, _ = room_map
+    out = tmp_path / "ext"
+    assert main(["run", "patch_rgbd", "--data", str(roots["other_path"]), "--out", str(out), "--no-progress",
+                 "--map", str(stored_path), "-o", "output.map_merge.min_keyframes=1000"]) == 0
+    assert json.loads((out / "merge.json").read_text())["merged"] is False
+    assert not (out / "merged_trajectory_tum.txt").exists()

@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from ..config import MAX_SCALAR, check_ranges, ranged
+from ..config import MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
 from ..errors import DataError
 from ..loop.bow import BowConfig
 from ..loop.features import OrbConfig
@@ -106,6 +106,16 @@ class MapFeaturesConfig:
     def validate(self) -> None:
         check_ranges(self)
         self.bow.orb.validate()
+
+
+@dataclass
+class MapMergeConfig:
+    """Merging a recording into a stored map (``fgslam run ... --map MAP``, :func:`fgslam.localize.merge_recording`;
+    ``output.map_merge`` of a run, ``merge`` of ``fgslam localize``'s config)."""
+
+    min_keyframes: int = ranged(3, ge=1, le=MAX_KEYFRAMES)  # recording keyframes localised in the map (consistently) to merge
+    max_rotation_deg: float = ranged(5.0, gt=0, le=180)  # consistent: their map-from-recording rotations within this of each other
+    max_position_error: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # ... and their positions within this share of the keyframes' extent
 
 
 @dataclass
