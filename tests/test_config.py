@@ -442,3 +442,17 @@ def test_import_object_errors_name_what_it_is_for():
                         ("fgslam.config:Nothing", "has no attribute 'Nothing'")):
         with pytest.raises(ConfigError, match=f"factors\\[0\\].class: .*{why}"):
             import_object(target, "factors[0].class")
+
+
+def test_localize_yaml_shows_every_key_with_its_default():
+    """fgslam/configs/localize.yaml says "every key is optional, defaults shown": it lists exactly the
+    fields of LocalizeConfig, each with its default."""
+    from importlib.resources import files
+
+    import yaml
+
+    from fgslam.config import to_dict
+    from fgslam.localize import LocalizeConfig
+
+    shown = yaml.safe_load(files("fgslam").joinpath("configs", "localize.yaml").read_text())
+    assert shown == to_dict(LocalizeConfig())
