@@ -22,7 +22,7 @@ the map's settings, :mod:`fgslam.export.mapfile`):
 4. else the frame is "not localised": no pose is made up (no motion model).
 
 Outputs (``DIR``): ``trajectory_tum.txt`` (localised frames only, map frame), ``localization.csv``
-(every frame: index, timestamp, status ``tracked`` / ``relocalised`` / ``not_localised``, keyframe id,
+(every frame: raw (source) frame index, as ``--start`` counts, timestamp, status ``tracked`` / ``relocalised`` / ``not_localised``, keyframe id,
 inliers, ``position_std``: :func:`relative_position_std` of the pose, empty without one) and ``summary.json`` (counts, CPU time per frame, the map, and, when the sequence has ground
 truth and the map its run's alignment to ground truth, the ATE of the localised poses with that
 alignment applied unchanged, beside the ATE of holding the first localised pose: doing nothing).
@@ -366,7 +366,7 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     loop_cpu0 = time.process_time()
     for frame in dataset:
         res = localizer.localize(frame.image)
-        rows.append((int(frame.index), float(frame.timestamp), res.status, res.kf_id, res.inliers, res.position_std))
+        rows.append((int(frame.source_index), float(frame.timestamp), res.status, res.kf_id, res.inliers, res.position_std))
         if res.T_WC is not None:
             stamps.append(frame.timestamp)
             poses.append(res.T_WC)

@@ -199,6 +199,7 @@ def test_run_saves_a_map_that_reloads_identically(room_map, tmp_path):
     assert stored.num_keyframes == summary["keyframes"]
     assert stored.meta["sensor"] == "rgbd" and stored.meta["family"] == "patch"
     assert stored.meta["config"]["frontend"] == "patch"
+    assert stored.meta["dataset"] == {"format": "euroc", "frames": 32, "start": 0, "end": None, "stride": 1}
     assert stored.meta["groundtruth_alignment"]["align"] == "se3"
     with_point = np.isfinite(stored.feat_X_C[:, 0])
     assert with_point.sum() > 0.5 * len(with_point)  # RGB-D: most features have a sensor depth
@@ -525,3 +526,14 @@ def test_merge_thresholds_are_run_config(room_map, tmp_path):
                  "--map", str(stored_path), "-o", "output.map_merge.min_keyframes=1000"]) == 0
     assert json.loads((out / "merge.json").read_text())["merged"] is False
     assert not (out / "merged_trajectory_tum.txt").exists()
+
+
+def test_localization_csv_counts_raw_frames(room_map, tmp_path):
+    """The CSV's frame column is the raw (source) index, as --start / --end count, not the position
+    in the localised slice."""
+    stored, roots, _ = room_map
+    out = tmp_path / "loc"
+    assert main(["localize", str(stored), "--data", str(roots["other_path"]), "--out", str(out),
+                 "--start", "4", "--end", "12", "--stride", "2"]) == 0
+    rows = list(csv.DictReader(open(out / "localization.csv")))
+    assert [int(r["frame"]) for r in rows] == [4, 6, 8, 10]

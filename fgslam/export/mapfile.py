@@ -12,7 +12,7 @@ entry dates, no compression and in a fixed order, so the same map always gives t
 ``features`` (the settings the keyframe features were made with: ``image_scale``, the ORB settings,
 the vocabulary, and ``K``/``width``/``height`` of the scaled feature image), ``config`` (the run's
 resolved configuration less its machine-dependent fields, :func:`portable_config`), ``dataset``
-(format and number of frames: no name or path) and ``groundtruth_alignment`` (the map run's own
+(format, number of frames and the run's raw ``start``, ``end``, ``stride``: no name or path) and ``groundtruth_alignment`` (the map run's own
 alignment to its ground truth, 4x4 ``[[s R, t], [0, 1]]`` with its method, or null). Nothing in a
 map depends on where it is saved or where its data lies: the same run saved to two paths, or from
 a copy of its data in another folder, gives the same bytes.
@@ -361,6 +361,14 @@ def depth_points(uv: np.ndarray, depth: np.ndarray, K_feat: np.ndarray, scale: f
     return X
 
 
+def _frame_range(dataset) -> dict[str, Any]:
+    """The raw frames of the map run: ``start``, ``end`` (None: to the end) and ``stride``."""
+    cfg = getattr(dataset, "config", None)
+    if cfg is None:
+        return {}
+    return {"start": int(cfg.start), "end": None if cfg.end is None else int(cfg.end), "stride": int(cfg.stride)}
+
+
 def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, config: dict,
                      features: MapFeaturesConfig, verification=None, groundtruth_alignment: dict | None = None,
                      frame_indices: np.ndarray | None = None) -> StoredMap:
@@ -425,7 +433,8 @@ def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, 
                      "height": h_feat, "vocabulary": features.bow.vocabulary,
                      "orb": {k: getattr(orb, k) for k in orb.__dataclass_fields__}},
         "config": portable_config(config),
-        "dataset": {"format": str(getattr(dataset, "format", "")), "frames": int(len(indices))},
+        "dataset": {"format": str(getattr(dataset, "format", "")), "frames": int(len(indices)),
+                    **_frame_range(dataset)},
         "groundtruth_alignment": groundtruth_alignment,
     }
     stored = StoredMap(
