@@ -45,17 +45,16 @@ import numpy as np
 
 from .config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, from_dict, ranged, to_dict
 from .errors import FGSlamError
-from .export.mapfile import MapMergeConfig, StoredMap, check_map_camera, feature_image, load_stored_map
+from .export.mapfile import DESCRIPTOR_BYTES, MapMergeConfig, StoredMap, check_map_camera, feature_image, load_stored_map
 from .io.datasets import DatasetConfig, open_dataset
+from .io.run_files import LOCALIZATION_FILE, SUMMARY_FILE, TUM_FILE
 from .loop.records import RelocalizationConfig
 
 logger = logging.getLogger(__name__)
 
-TRAJECTORY_FILE = "trajectory_tum.txt"
-STATUS_FILE = "localization.csv"  # also in fgslam.outputs.RUN_OUTPUT_FILES (a previous run's outputs)
-SUMMARY_FILE = "summary.json"
+TRAJECTORY_FILE = TUM_FILE
+STATUS_FILE = LOCALIZATION_FILE  # also in fgslam.outputs.RUN_OUTPUT_FILES (a previous run's outputs)
 STATUSES = ("tracked", "relocalised", "not_localised")
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)  # set bits of each byte value
 
 
 def relative_position_std(T_WC: np.ndarray, X_W: np.ndarray, K: np.ndarray) -> float:
@@ -230,7 +229,7 @@ class MapLocalizer:
         d = np.where(self.views @ view >= np.cos(np.deg2rad(tc.max_angle_deg)), d, np.inf)
         chosen = [int(k) for k in np.argsort(d, kind="stable")[:tc.local_keyframes] if np.isfinite(d[k])]
         if not chosen:
-            return np.zeros((0, 3)), np.zeros((0, 32), np.uint8), np.zeros(0, np.int64)
+            return np.zeros((0, 3)), np.zeros((0, DESCRIPTOR_BYTES), np.uint8), np.zeros(0, np.int64)
         return (np.concatenate([self._X_W[k] for k in chosen]), np.concatenate([self._desc[k] for k in chosen]),
                 np.concatenate([np.full(len(self._X_W[k]), k) for k in chosen]))
 
@@ -263,7 +262,8 @@ class MapLocalizer:
         dist_px, nn = dist_px.reshape(len(uv), k), nn.reshape(len(uv), k)
         valid = np.isfinite(dist_px)
         cand = idx_vis[np.where(valid, nn, 0)]
-        ham = _POPCOUNT[np.bitwise_xor(desc[:, None, :], mdesc[cand])].sum(axis=2, dtype=np.int64)
+        # Hamming distance of each feature to its projected candidates only (as loop.vocabulary.hamming_matrix)
+        ham = np.bitwise_count(np.bitwise_xor(desc[:, None, :], mdesc[cand])).sum(axis=2, dtype=np.int64)
         ham = np.where(valid, ham, 1 << 16)
         order = np.argsort(ham, axis=1, kind="stable")
         best = np.take_along_axis(ham, order[:, :1], 1)[:, 0]

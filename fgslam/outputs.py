@@ -24,23 +24,18 @@ from .errors import ConfigError, DataError, EvaluationError
 from .eval import EvalResult, evaluate
 from .frontends.base import Frontend
 from .io.datasets import Dataset
+from .io.run_files import LOCALIZATION_FILE, SUMMARY_FILE, TUM_FILE
 from .io.trajectory import Trajectory, write_trajectory
 from .runconfig import SlamConfig
 from .system import SlamSystem
 
 logger = logging.getLogger(__name__)
 
-# Output file names (stable: tools and tests read them).
-TUM_FILE = "trajectory_tum.txt"
-
-
+# Output file names (stable: tools and tests read them; those several layers use: fgslam.io.run_files).
 KITTI_FILE = "trajectory_kitti.txt"
 
 
 KITTI_TIMES_FILE = "trajectory_kitti_times.txt"
-
-
-SUMMARY_FILE = "summary.json"
 
 
 PLOT_FILE = "trajectory.png"
@@ -52,7 +47,6 @@ PLY_FILE = "points.ply"
 MAP_FILE = "map.npz"  # fgslam.export.map.MAP_FILE
 MERGED_TUM_FILE = "merged_trajectory_tum.txt"  # fgslam run --map: frames from the merge on, in the stored map's frame
 MERGE_FILE = "merge.json"  # fgslam run --map: the merge (transform, keyframes) or why none
-LOCALIZATION_FILE = "localization.csv"  # fgslam localize: every frame's status (fgslam.localize.STATUS_FILE)
 
 
 DEPTH_DIR = "depth"  # depth/<kf:06d>.png per keyframe (output.write_depth)

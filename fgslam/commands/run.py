@@ -11,9 +11,9 @@ from __future__ import annotations
 import argparse
 import json
 
-HELP = "run SLAM on a dataset (trajectory in TUM/KITTI formats, summary.json, trajectory.png)"
+from . import FORMAT_CHOICES
 
-FORMAT_CHOICES = ("auto", "tum", "euroc", "tumvi", "kitti", "tartanair", "7scenes", "folder", "video", "rosbag")
+HELP = "run SLAM on a dataset (trajectory in TUM/KITTI formats, summary.json, trajectory.png)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

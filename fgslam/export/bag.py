@@ -22,12 +22,13 @@ import numpy as np
 
 from ..errors import DataError
 from ..io.datasets.rosbag import ROS1_SUFFIX, import_rosbags, is_bag
+from ..io.run_files import TUM_FILE
 from ..io.trajectory import Trajectory, read_trajectory, rotation_to_quaternion_xyzw
 
 logger = logging.getLogger(__name__)
 
 NS_PER_S = 1_000_000_000
-TRAJECTORY_FILE = "trajectory_tum.txt"
+TRAJECTORY_FILE = TUM_FILE
 PATH_TYPE = "nav_msgs/msg/Path"
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
