@@ -456,3 +456,17 @@ def test_localize_yaml_shows_every_key_with_its_default():
 
     shown = yaml.safe_load(files("fgslam").joinpath("configs", "localize.yaml").read_text())
     assert shown == to_dict(LocalizeConfig())
+
+
+def test_bag_only_dataset_keys_warn_for_other_loaders(tmp_path, caplog):
+    """``dataset.T_BC`` / ``dataset.topics`` do nothing outside ROS bags: a warning names them."""
+    import logging
+
+    from fgslam.io.datasets.common import BagTopicsConfig, DatasetConfig
+
+    assert DatasetConfig().warn_unused_bag_keys("folder") == []
+    cfg = DatasetConfig(T_BC=[1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0], topics=BagTopicsConfig(left="/cam0"))
+    assert cfg.warn_unused_bag_keys("rosbag") == []
+    with caplog.at_level(logging.WARNING):
+        assert cfg.warn_unused_bag_keys("euroc") == ["dataset.T_BC", "dataset.topics"]
+    assert "only apply to ROS bags: ignored for the euroc loader" in caplog.text
