@@ -43,13 +43,13 @@ from typing import Any, Callable, Optional
 
 from .config import MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, from_dict, ranged, read_yaml
 from .errors import ConfigError, DataError
+from .io.run_files import SUMMARY_FILE
 
 logger = logging.getLogger(__name__)
 
 BATCH_JSON = "batch.json"
 BATCH_CSV = "batch.csv"
 BATCH_MD = "batch.md"
-SUMMARY_FILE = "summary.json"
 COLUMNS = ("config", "dataset", "status", "ate_m", "align", "ate_percent", "fps", "frames", "frames_with_pose",
            "keyframes", "wall_s", "cpu_s", "skipped", "error", "out")
 

@@ -22,7 +22,7 @@ the map's settings, :mod:`fgslam.export.mapfile`):
 4. else the frame is "not localised": no pose is made up (no motion model).
 
 Outputs (``DIR``): ``trajectory_tum.txt`` (localised frames only, map frame), ``localization.csv``
-(every frame: index, timestamp, status ``tracked`` / ``relocalised`` / ``not_localised``, keyframe id,
+(every frame: raw (source) frame index, as ``--start`` counts, timestamp, status ``tracked`` / ``relocalised`` / ``not_localised``, keyframe id,
 inliers, ``position_std``: :func:`relative_position_std` of the pose, empty without one) and ``summary.json`` (counts, CPU time per frame, the map, and, when the sequence has ground
 truth and the map its run's alignment to ground truth, the ATE of the localised poses with that
 alignment applied unchanged, beside the ATE of holding the first localised pose: doing nothing).
@@ -45,17 +45,16 @@ import numpy as np
 
 from .config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, from_dict, ranged, to_dict
 from .errors import FGSlamError
-from .export.mapfile import StoredMap, check_map_camera, feature_image, load_stored_map
+from .export.mapfile import DESCRIPTOR_BYTES, MapMergeConfig, StoredMap, check_map_camera, feature_image, load_stored_map
 from .io.datasets import DatasetConfig, open_dataset
+from .io.run_files import LOCALIZATION_FILE, SUMMARY_FILE, TUM_FILE
 from .loop.records import RelocalizationConfig
 
 logger = logging.getLogger(__name__)
 
-TRAJECTORY_FILE = "trajectory_tum.txt"
-STATUS_FILE = "localization.csv"  # also in fgslam.outputs.RUN_OUTPUT_FILES (a previous run's outputs)
-SUMMARY_FILE = "summary.json"
+TRAJECTORY_FILE = TUM_FILE
+STATUS_FILE = LOCALIZATION_FILE  # also in fgslam.outputs.RUN_OUTPUT_FILES (a previous run's outputs)
 STATUSES = ("tracked", "relocalised", "not_localised")
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)  # set bits of each byte value
 
 
 def relative_position_std(T_WC: np.ndarray, X_W: np.ndarray, K: np.ndarray) -> float:
@@ -111,15 +110,6 @@ class MapTrackingConfig:
 
 
 @dataclass
-class MapMergeConfig:
-    """Merging a recording into a stored map (``fgslam run ... --map MAP``, :func:`merge_recording`)."""
-
-    min_keyframes: int = ranged(3, ge=1, le=MAX_KEYFRAMES)  # recording keyframes localised in the map (consistently) to merge
-    max_rotation_deg: float = ranged(5.0, gt=0, le=180)  # consistent: their map-from-recording rotations within this of each other
-    max_position_error: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # ... and their positions within this share of the keyframes' extent
-
-
-@dataclass
 class LocalizeConfig:
     """``fgslam localize`` (preset ``fgslam/configs/localize.yaml``)."""
 
@@ -129,9 +119,17 @@ class LocalizeConfig:
     confirm_inliers: int = ranged(100, ge=4, le=MAX_COUNT)  # a relocalised pose needs this many local-map inliers at it
     max_position_std: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # quality gate: largest position std of a pose (1 px noise, its inliers) / their median depth (1.0: none in practice)
     merge: MapMergeConfig = field(default_factory=MapMergeConfig)
+    #: dataset settings (:class:`fgslam.io.datasets.DatasetConfig` keys) merged over the map run's,
+    #: e.g. ``-o dataset.calibration_file=cam.yaml -o dataset.groundtruth_file=gt.txt`` (a map keeps no paths)
+    dataset: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> None:
         check_ranges(self)
+        from .errors import ConfigError
+
+        unknown = sorted(set(self.dataset) - set(DatasetConfig.__dataclass_fields__))
+        if unknown:
+            raise ConfigError(f"dataset: unknown key(s) {', '.join(unknown)} (DatasetConfig fields)")
 
 
 @dataclass
@@ -231,7 +229,7 @@ class MapLocalizer:
         d = np.where(self.views @ view >= np.cos(np.deg2rad(tc.max_angle_deg)), d, np.inf)
         chosen = [int(k) for k in np.argsort(d, kind="stable")[:tc.local_keyframes] if np.isfinite(d[k])]
         if not chosen:
-            return np.zeros((0, 3)), np.zeros((0, 32), np.uint8), np.zeros(0, np.int64)
+            return np.zeros((0, 3)), np.zeros((0, DESCRIPTOR_BYTES), np.uint8), np.zeros(0, np.int64)
         return (np.concatenate([self._X_W[k] for k in chosen]), np.concatenate([self._desc[k] for k in chosen]),
                 np.concatenate([np.full(len(self._X_W[k]), k) for k in chosen]))
 
@@ -264,7 +262,8 @@ class MapLocalizer:
         dist_px, nn = dist_px.reshape(len(uv), k), nn.reshape(len(uv), k)
         valid = np.isfinite(dist_px)
         cand = idx_vis[np.where(valid, nn, 0)]
-        ham = _POPCOUNT[np.bitwise_xor(desc[:, None, :], mdesc[cand])].sum(axis=2, dtype=np.int64)
+        # Hamming distance of each feature to its projected candidates only (as loop.vocabulary.hamming_matrix)
+        ham = np.bitwise_count(np.bitwise_xor(desc[:, None, :], mdesc[cand])).sum(axis=2, dtype=np.int64)
         ham = np.where(valid, ham, 1 << 16)
         order = np.argsort(ham, axis=1, kind="stable")
         best = np.take_along_axis(ham, order[:, :1], 1)[:, 0]
@@ -333,7 +332,8 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
                      fmt: str = "auto", start: int | None = None, end: int | None = None, stride: int = 1,
                      prepare_out: Callable[[Path], Any] | None = None) -> dict[str, Any]:
     """Localise the sequence ``data`` (raw frames ``start`` .. ``end``, every ``stride``-th; the
-    other dataset settings, e.g. the image size, are the map run's) in the map at ``map_path``; writes
+    other dataset settings, e.g. the image size, are the map run's, with ``config.dataset`` merged
+    over them) in the map at ``map_path``; writes
     the outputs (module docstring) to ``out_dir`` and returns the summary. ``prepare_out(out_dir)``
     is called once the map, the sequence and their cameras are checked, before anything is written
     (the CLI: ``fgslam run``'s rule for a previous run's outputs, :func:`fgslam.outputs.clear_previous_outputs`).
@@ -347,6 +347,7 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     ds_dict = dict((stored.meta.get("config") or {}).get("dataset") or {})
     ds_dict.update(load_rgb=False, load_depth=False, load_right=False, load_imu=False, start=0, end=None,
                    stride=int(stride))
+    ds_dict.update(config.dataset)  # the command's dataset section: e.g. a calibration or ground-truth file
     if start is not None:
         ds_dict["start"] = int(start)
     if end is not None:
@@ -365,7 +366,7 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     loop_cpu0 = time.process_time()
     for frame in dataset:
         res = localizer.localize(frame.image)
-        rows.append((int(frame.index), float(frame.timestamp), res.status, res.kf_id, res.inliers, res.position_std))
+        rows.append((int(frame.source_index), float(frame.timestamp), res.status, res.kf_id, res.inliers, res.position_std))
         if res.T_WC is not None:
             stamps.append(frame.timestamp)
             poses.append(res.T_WC)
@@ -446,14 +447,17 @@ def _project_rotation(M: np.ndarray) -> np.ndarray:
 
 
 def merge_recording(stored: StoredMap, recording: StoredMap, config: LocalizeConfig | None = None,
-                    metric: bool = True) -> MapMerge | None:
+                    metric: bool | None = None) -> MapMerge | None:
     """Localise the keyframes of a ``recording`` (a stored map of the new run, own frame) in
     ``stored`` one after the other (:class:`MapLocalizer`: retrieval + verification, then tracking),
     and estimate the transform between the two frames from the localised keyframes: the rotation
     from their poses (the map-from-recording rotations within ``merge.max_rotation_deg`` of the
-    best-supported one, averaged), the scale (monocular: not ``metric``) and translation from their
+    best-supported one, averaged), the scale (unless ``metric``: by default when both maps are metric,
+    ``meta["metric"]``; a monocular map on either side has its own scale) and translation from their
     positions (least squares). None (no merge) with fewer than ``merge.min_keyframes`` consistent."""
     config = config or LocalizeConfig()
+    if metric is None:
+        metric = stored.metric and recording.metric
     mc = config.merge
     if stored.meta["features"] != recording.meta["features"]:
         logger.warning("map merge: the recording's keyframe features were made with other settings than the "

@@ -24,23 +24,18 @@ from .errors import ConfigError, DataError, EvaluationError
 from .eval import EvalResult, evaluate
 from .frontends.base import Frontend
 from .io.datasets import Dataset
+from .io.run_files import LOCALIZATION_FILE, SUMMARY_FILE, TUM_FILE
 from .io.trajectory import Trajectory, write_trajectory
 from .runconfig import SlamConfig
 from .system import SlamSystem
 
 logger = logging.getLogger(__name__)
 
-# Output file names (stable: tools and tests read them).
-TUM_FILE = "trajectory_tum.txt"
-
-
+# Output file names (stable: tools and tests read them; those several layers use: fgslam.io.run_files).
 KITTI_FILE = "trajectory_kitti.txt"
 
 
 KITTI_TIMES_FILE = "trajectory_kitti_times.txt"
-
-
-SUMMARY_FILE = "summary.json"
 
 
 PLOT_FILE = "trajectory.png"
@@ -52,7 +47,6 @@ PLY_FILE = "points.ply"
 MAP_FILE = "map.npz"  # fgslam.export.map.MAP_FILE
 MERGED_TUM_FILE = "merged_trajectory_tum.txt"  # fgslam run --map: frames from the merge on, in the stored map's frame
 MERGE_FILE = "merge.json"  # fgslam run --map: the merge (transform, keyframes) or why none
-LOCALIZATION_FILE = "localization.csv"  # fgslam localize: every frame's status (fgslam.localize.STATUS_FILE)
 
 
 DEPTH_DIR = "depth"  # depth/<kf:06d>.png per keyframe (output.write_depth)
@@ -105,6 +99,23 @@ def prepare_output_dir(out_dir: str | Path, data: str | Path | None = None) -> P
     except OSError as exc:
         raise DataError(f"{out}: the output folder is not writable: {exc.strerror or exc}") from exc
     return out
+
+
+def check_save_map_path(save_map: str | Path, out_dir: str | Path, extend_map: str | Path | None,
+                        overwrite: bool) -> None:
+    """``--save-map``: ConfigError when the path is one of the run's own output files in ``out_dir``
+    (:data:`RUN_OUTPUT_FILES`, ``depth/``), or an existing file that is not the ``--map`` being
+    extended and ``overwrite`` is not given (a map is never replaced silently)."""
+    path = Path(save_map).resolve()
+    out = Path(out_dir).resolve()
+    if path.parent == out and path.name in RUN_OUTPUT_FILES or out / DEPTH_DIR in (path, *path.parents):
+        raise ConfigError(f"--save-map {save_map}: that is one of the run's own output files in {out_dir}; "
+                          "choose another name")
+    if path.is_dir():
+        raise ConfigError(f"--save-map {save_map}: is a folder")
+    if path.exists() and not overwrite and (extend_map is None or Path(extend_map).resolve() != path):
+        raise ConfigError(f"--save-map {save_map}: the file exists; use --overwrite to replace it "
+                          "(or save the extended map over its --map)")
 
 
 def previous_run_outputs(out_dir: str | Path) -> list[Path]:
@@ -535,11 +546,11 @@ def _save_stored_map(out: Path, traj: Trajectory, dataset: Dataset, frontend: Fr
     to_save = recording
     if config.output.extend_map:
         from .io.trajectory import Trajectory
-        from .localize import combine_maps, merge_recording, rigid_in_map
+        from .localize import LocalizeConfig, combine_maps, merge_recording, rigid_in_map
 
         try:
             stored = load_stored_map(config.output.extend_map)
-            merge = merge_recording(stored, recording, metric=config.sensor != "mono")
+            merge = merge_recording(stored, recording, LocalizeConfig(merge=config.output.map_merge))  # Sim(3) unless both metric
         except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
             output_errors["merge"] = f"--map {config.output.extend_map}: {type(exc).__name__}: {exc}"
             logger.error("could not merge the recording into %s: %s", config.output.extend_map, exc)

@@ -11,7 +11,7 @@ from typing import Any, Literal, Optional
 from .backend.config import BackendConfig
 from .config import MAX_FRAMES, MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, ranged, with_sections
 from .eval import EvalConfig
-from .export.mapfile import MapFeaturesConfig
+from .export.mapfile import MapFeaturesConfig, MapMergeConfig
 from .export.rerun import RerunConfig
 from .frontends import FRONTEND_NAMES, family_config_classes
 from .io.datasets import DatasetConfig
@@ -35,6 +35,7 @@ class OutputConfig:
     save_map: Optional[str] = None  # also write a stored map here (`fgslam run --save-map MAP`; fgslam/export/mapfile.py)
     extend_map: Optional[str] = None  # the stored map this recording continues (`fgslam run --map MAP`; merged when localised in it)
     map_features: MapFeaturesConfig = field(default_factory=MapFeaturesConfig)  # keyframe features of a stored map
+    map_merge: MapMergeConfig = field(default_factory=MapMergeConfig)  # `--map`: when the recording is merged into the stored map
     rerun: RerunConfig = field(default_factory=RerunConfig)  # what `fgslam run --rerun out.rrd` logs (fgslam/export/rerun.py)
 
 

@@ -442,3 +442,31 @@ def test_import_object_errors_name_what_it_is_for():
                         ("fgslam.config:Nothing", "has no attribute 'Nothing'")):
         with pytest.raises(ConfigError, match=f"factors\\[0\\].class: .*{why}"):
             import_object(target, "factors[0].class")
+
+
+def test_localize_yaml_shows_every_key_with_its_default():
+    """fgslam/configs/localize.yaml says "every key is optional, defaults shown": it lists exactly the
+    fields of LocalizeConfig, each with its default."""
+    from importlib.resources import files
+
+    import yaml
+
+    from fgslam.config import to_dict
+    from fgslam.localize import LocalizeConfig
+
+    shown = yaml.safe_load(files("fgslam").joinpath("configs", "localize.yaml").read_text())
+    assert shown == to_dict(LocalizeConfig())
+
+
+def test_bag_only_dataset_keys_warn_for_other_loaders(tmp_path, caplog):
+    """``dataset.T_BC`` / ``dataset.topics`` do nothing outside ROS bags: a warning names them."""
+    import logging
+
+    from fgslam.io.datasets.common import BagTopicsConfig, DatasetConfig
+
+    assert DatasetConfig().warn_unused_bag_keys("folder") == []
+    cfg = DatasetConfig(T_BC=[1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0], topics=BagTopicsConfig(left="/cam0"))
+    assert cfg.warn_unused_bag_keys("rosbag") == []
+    with caplog.at_level(logging.WARNING):
+        assert cfg.warn_unused_bag_keys("euroc") == ["dataset.T_BC", "dataset.topics"]
+    assert "only apply to ROS bags: ignored for the euroc loader" in caplog.text

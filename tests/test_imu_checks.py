@@ -149,3 +149,20 @@ def test_inertial_state_in_the_summary_and_the_console_report():
     assert out["scale"] == 0.84 and out["links"] == 7
     assert inertial_text(out) == ("initialised 2.50 s after the first frame, scale 0.8400, |g| 10.000 m/s^2, "
                                   "bias |gyro| 0.0050 rad/s, |accel| 0.0500 m/s^2; input: IMU rate 10.0 Hz ...")
+
+
+def test_imu_timestamps_1000x_too_large_say_which_unit(stream):
+    imu, frames = stream
+    epoch = 1000.0  # absolute times: a stream 1000x too large no longer overlaps the frames
+    t = (imu.timestamps + epoch) * 1000.0  # the frames span 1e-3 of the IMU's time
+    found = _checks(ImuSamples(t, imu.gyro, imu.accel), frames + epoch)
+    message = next(f.message for f in found if f.check == "clock")
+    assert "frames' timestamps likely in microseconds" in message and "x 1000" not in message
+
+
+def test_a_rate_range_upside_down_is_a_config_error():
+    from fgslam.errors import ConfigError
+    from fgslam.slam import load_slam_config
+
+    with pytest.raises(ConfigError, match=r"min_rate_hz \(500\) must be <= max_rate_hz \(100\)"):
+        load_slam_config("patch_euroc_stereo", ["imu.checks.min_rate_hz=500", "imu.checks.max_rate_hz=100"])

@@ -199,6 +199,7 @@ def test_run_saves_a_map_that_reloads_identically(room_map, tmp_path):
     assert stored.num_keyframes == summary["keyframes"]
     assert stored.meta["sensor"] == "rgbd" and stored.meta["family"] == "patch"
     assert stored.meta["config"]["frontend"] == "patch"
+    assert stored.meta["dataset"] == {"format": "euroc", "frames": 32, "start": 0, "end": None, "stride": 1}
     assert stored.meta["groundtruth_alignment"]["align"] == "se3"
     with_point = np.isfinite(stored.feat_X_C[:, 0])
     assert with_point.sum() > 0.5 * len(with_point)  # RGB-D: most features have a sensor depth
@@ -372,3 +373,167 @@ def test_a_recording_that_does_not_localise_is_not_merged(room_map):
     recording = toy_map(6, n_feat=300, seed=4)  # random descriptors: nothing of it is in the room
     recording.meta["features"] = stored.meta["features"]
     assert merge_recording(stored, recording) is None
+
+
+def _rescaled(stored: StoredMap, scale: float, R0: np.ndarray, t0: np.ndarray) -> StoredMap:
+    """``stored`` as a monocular map of another scale and frame: rigid poses with positions
+    ``scale R0 t + t0``, camera points and structure scaled by ``scale`` (``meta.metric`` false)."""
+    import copy
+
+    out = copy.deepcopy(stored)
+    out.meta.update(sensor="mono", metric=False)
+    out.T_WC[:, :3, :3] = R0[None] @ stored.T_WC[:, :3, :3]
+    out.T_WC[:, :3, 3] = scale * stored.T_WC[:, :3, 3] @ R0.T + t0
+    out.feat_X_C[:] = scale * stored.feat_X_C
+    out.points_X_W[:] = scale * stored.points_X_W @ R0.T + t0
+    return out
+
+
+def _rotation_z(deg: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_a_monocular_recording_of_another_scale_merges_by_sim3(room_map):
+    """The Sim(3) merge: a monocular recording (twice the map's scale, another frame) merged into a
+    metric map recovers scale 0.5 and puts its keyframes on the map's (the map run's alignment then
+    applies to them unchanged); forced metric it cannot (scale 1: far off)."""
+    from fgslam.localize import combine_maps, merge_recording
+
+    stored = load_stored_map(room_map[0])
+    recording = _rescaled(stored, 2.0, _rotation_z(30.0), np.array([1.0, -2.0, 0.5]))
+    merge = merge_recording(stored, recording)
+    assert merge is not None and merge.consistent >= 3
+    scale = float(np.cbrt(np.linalg.det(merge.S_MR[:3, :3])))
+    assert abs(scale - 0.5) < 0.01
+    merged = combine_maps(stored, recording, merge.S_MR)
+    assert merged.meta["recordings"] == 2 and merged.metric
+    k = stored.num_keyframes
+    ate = np.sqrt(np.mean(np.sum((merged.T_WC[k:, :3, 3] - stored.T_WC[:, :3, 3]) ** 2, axis=1)))
+    assert ate < 0.03  # metres (the map's units; measured 0.016 over a 1.1 m keyframe extent)
+    assert merge_recording(stored, recording, metric=True) is None  # rigid: the positions cannot agree
+
+
+def test_run_with_map_extends_a_monocular_map_by_sim3(room_map, tmp_path):
+    """``fgslam run patch_rgbd --map`` on a monocular stored map (its own scale: twice the room's):
+    the RGB-D recording is merged with a scale (about 2), not forced metric, and its frames in the
+    map's frame lie on the ground truth with the map run's alignment."""
+    stored_path, roots, _ = room_map
+    stored = load_stored_map(stored_path)
+    R0, t0 = _rotation_z(-20.0), np.array([0.5, 0.3, -1.0])
+    mono = _rescaled(stored, 2.0, R0, t0)
+    A = np.asarray(stored.meta["groundtruth_alignment"]["matrix"])  # ground truth from the room's frame
+    S_inv = np.eye(4)
+    S_inv[:3, :3] = 0.5 * R0.T
+    S_inv[:3, 3] = -0.5 * R0.T @ t0
+    mono.meta["groundtruth_alignment"] = {"align": "sim3", "matrix": (A @ S_inv).tolist()}
+    mono_path = tmp_path / "mono.fgmap"
+    save_stored_map(mono_path, mono)
+    out = tmp_path / "ext"
+    assert main(["run", "patch_rgbd", "--data", str(roots["other_path"]), "--out", str(out), "--no-progress",
+                 "--map", str(mono_path)]) == 0
+    merge = json.loads((out / "merge.json").read_text())
+    assert merge["merged"]
+    scale = float(np.cbrt(np.linalg.det(np.asarray(merge["S_MR"])[:3, :3])))
+    assert abs(scale - 2.0) < 0.1
+    assert _ate_with(A @ S_inv, out / "merged_trajectory_tum.txt", roots["other_path"]) < 0.05
+
+
+def test_save_map_never_replaces_a_file_silently(room_map, tmp_path, capsys):
+    """``--save-map`` refuses an existing file (untouched) unless --overwrite or it is the --map being
+    extended, and a path that is one of the run's own outputs in --out; refused before any work."""
+    stored_path, roots, _ = room_map
+    existing = tmp_path / "existing.fgmap"
+    existing.write_text("keep me\n")
+    base = ["run", "patch_rgbd", "--data", str(roots["other_room"]), "--no-progress"]
+    assert main(base + ["--out", str(tmp_path / "a"), "--save-map", str(existing)]) == 2
+    err = capsys.readouterr().err
+    assert "existing.fgmap: the file exists" in err and "--overwrite" in err
+    assert existing.read_text() == "keep me\n" and not (tmp_path / "a" / "summary.json").exists()
+    out = tmp_path / "b"
+    for name in ("summary.json", "trajectory_tum.txt", "depth/x.fgmap"):
+        (out / "depth").mkdir(parents=True, exist_ok=True)
+        assert main(base + ["--out", str(out), "--save-map", str(out / name)]) == 2
+        assert "one of the run's own output files" in capsys.readouterr().err
+    assert main(base + ["--out", str(tmp_path / "c"), "--save-map", str(existing), "--overwrite"]) == 0
+    assert load_stored_map(existing).meta["family"] == "patch"
+
+
+def test_localize_an_image_folder_with_an_external_calibration(room_map, tmp_path, capsys):
+    """A map keeps no file paths, so a folder dataset whose calibration YAML lies elsewhere needs
+    ``-o dataset.calibration_file=...`` (the localize config's dataset section): without it a clear
+    error, with it the frames localise."""
+    import shutil
+
+    import yaml
+
+    from fgslam.io.datasets import open_dataset
+
+    stored, roots, _ = room_map
+    seq = open_dataset(roots["other_path"])
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for k, png in enumerate(sorted((roots["other_path"] / "mav0" / "cam0" / "data").glob("*.png"))):
+        shutil.copy(png, folder / f"{k:06d}.png")
+    calib = tmp_path / "elsewhere.yaml"
+    calib.write_text(yaml.safe_dump({"width": int(seq.raw_calibration.width), "height": int(seq.raw_calibration.height),
+                                     "intrinsics": [float(v) for v in seq.raw_calibration.K]}))
+    base = ["localize", str(stored), "--data", str(folder), "--format", "folder"]
+    assert main(base + ["--out", str(tmp_path / "a")]) == 2
+    assert "missing calibration YAML" in capsys.readouterr().err
+    assert main(base + ["--out", str(tmp_path / "b"), "--json", "-o", f"dataset.calibration_file={calib}"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["frames"] == 32 and s["localised"] >= 0.9 * 32
+    assert main(base + ["--out", str(tmp_path / "c"), "-o", "dataset.no_such_key=1"]) == 2
+    assert "no_such_key" in capsys.readouterr().err
+
+
+def test_crafted_maps_are_clear_errors_not_key_errors(tmp_path):
+    """:meth:`StoredMap.check` (on save and load) names the file and what is wrong for a map whose
+    features section is missing or malformed, whose tracks name unknown keyframes or whose keyframe
+    ids repeat: never a bare KeyError later in ``fgslam localize``."""
+    good = tmp_path / "good.fgmap"
+    save_stored_map(good, toy_map(10))
+    base = toy_map(10).meta["features"]
+    cases = {
+        "no features": ({"features": None}, "no features section"),
+        "features without orb": ({"features": {k: v for k, v in base.items() if k != "orb"}}, "features has no orb"),
+        "features K": ({"features": dict(base, K=[1.0, 2.0])}, "K must be 4 numbers"),
+        "camera": ({"camera": {"K": K_CAM, "width": "wide", "height": 240}}, "no camera"),
+    }
+    for what, (change, message) in cases.items():
+        path = tmp_path / f"{what.replace(' ', '_')}.fgmap"
+        _rewrite_meta(good, path, **change)
+        with pytest.raises(MapFileError, match=message) as exc:
+            load_stored_map(path)
+        assert str(path) in str(exc.value), what
+    bad = toy_map(10)
+    bad.track_kf[1] = 1  # not a keyframe id (ids are 0, 3, 6, ...)
+    with pytest.raises(MapFileError, match="track_kf names a keyframe id"):
+        save_stored_map(tmp_path / "bad.fgmap", bad)
+    bad = toy_map(10)
+    bad.kf_ids[2] = bad.kf_ids[1]
+    with pytest.raises(MapFileError, match="kf_ids are not unique"):
+        save_stored_map(tmp_path / "bad.fgmap", bad)
+
+
+def test_merge_thresholds_are_run_config(room_map, tmp_path):
+    """``output.map_merge`` reaches the merge of ``fgslam run --map``: more consistent keyframes than
+    the recording has leaves it unmerged (with the defaults it merges: test_run_with_map_merges_the_recording)."""
+    stored_path, roots, _ = room_map
+    out = tmp_path / "ext"
+    assert main(["run", "patch_rgbd", "--data", str(roots["other_path"]), "--out", str(out), "--no-progress",
+                 "--map", str(stored_path), "-o", "output.map_merge.min_keyframes=1000"]) == 0
+    assert json.loads((out / "merge.json").read_text())["merged"] is False
+    assert not (out / "merged_trajectory_tum.txt").exists()
+
+
+def test_localization_csv_counts_raw_frames(room_map, tmp_path):
+    """The CSV's frame column is the raw (source) index, as --start / --end count, not the position
+    in the localised slice."""
+    stored, roots, _ = room_map
+    out = tmp_path / "loc"
+    assert main(["localize", str(stored), "--data", str(roots["other_path"]), "--out", str(out),
+                 "--start", "4", "--end", "12", "--stride", "2"]) == 0
+    rows = list(csv.DictReader(open(out / "localization.csv")))
+    assert [int(r["frame"]) for r in rows] == [4, 6, 8, 10]

@@ -340,3 +340,35 @@ def test_export_trajectory_to_a_bag_reads_back(tmp_path, out_name, capsys):
     assert main(["export", str(run), "--bag", str(out)]) == 2  # exists: refused without --overwrite (a data error)
     assert "exists (use --overwrite" in capsys.readouterr().err
     assert main(["export", str(run), "--bag", str(out), "--overwrite"]) == 0
+
+
+def test_export_overwrite_replaces_only_a_bag(tmp_path, capsys):
+    """``export --bag OUT --overwrite`` replaces a bag, never another folder or file (those are left
+    untouched with a clear error), and leaves no temporary file; a failed write keeps the old bag."""
+    from unittest import mock
+
+    import fgslam.export.bag as bag_export
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "trajectory_tum.txt").write_text("100.0 0 0 0 0 0 0 1\n100.1 0.1 0 0 0 0 0 1\n")
+    folder = tmp_path / "results"
+    folder.mkdir()
+    (folder / "precious.txt").write_text("keep\n")
+    for target in (folder, tmp_path / "notes.txt"):
+        if not target.exists():
+            target.write_text("keep\n")
+        assert main(["export", str(run), "--bag", str(target), "--overwrite"]) == 2
+        assert "is not a ROS bag" in capsys.readouterr().err
+    assert (folder / "precious.txt").read_text() == "keep\n" and (tmp_path / "notes.txt").read_text() == "keep\n"
+    for name in ("traj.bag", "traj_ros2"):
+        out = tmp_path / name
+        assert main(["export", str(run), "--bag", str(out)]) == 0
+        before = sorted(p.read_bytes() for p in ([out] if out.is_file() else out.iterdir()))
+        with mock.patch.object(bag_export, "write_trajectory_bag", side_effect=OSError("disk full")):
+            with pytest.raises(OSError):
+                bag_export.export_bag(run, out, overwrite=True)
+        assert sorted(p.read_bytes() for p in ([out] if out.is_file() else out.iterdir())) == before
+        assert main(["export", str(run), "--bag", str(out), "--overwrite"]) == 0
+        assert bag_export.is_bag(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "results", "run", "traj.bag", "traj_ros2"]

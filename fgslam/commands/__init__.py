@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+#: ``--format`` of the commands that open a dataset (fgslam.io.datasets' loaders; auto: detect)
+FORMAT_CHOICES = ("auto", "tum", "euroc", "tumvi", "kitti", "tartanair", "7scenes", "folder", "video", "rosbag")
+
 
 def add_config_arguments(parser: argparse.ArgumentParser, config_name: str, example: str) -> None:
     """The options every configurable command shares: ``--config YAML``, ``-o KEY=VALUE`` and ``--json``.

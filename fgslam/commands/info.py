@@ -5,11 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 
-from . import add_config_arguments
+from . import FORMAT_CHOICES, add_config_arguments
 
 HELP = "describe a dataset folder, video or ROS bag: format, frames, resolution, rate, stereo/depth/IMU/ground truth"
-
-FORMAT_CHOICES = ("auto", "tum", "euroc", "tumvi", "kitti", "tartanair", "7scenes", "folder", "video", "rosbag")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

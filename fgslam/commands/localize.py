@@ -6,11 +6,9 @@ from __future__ import annotations
 import argparse
 import json
 
-from . import add_config_arguments
+from . import FORMAT_CHOICES, add_config_arguments
 
 HELP = "localise a sequence in a stored map (pose per frame in the map's frame, or 'not localised')"
-
-FORMAT_CHOICES = ("auto", "tum", "euroc", "kitti", "tartanair", "7scenes", "folder", "video")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -11,9 +11,9 @@ from __future__ import annotations
 import argparse
 import json
 
-HELP = "run SLAM on a dataset (trajectory in TUM/KITTI formats, summary.json, trajectory.png)"
+from . import FORMAT_CHOICES
 
-FORMAT_CHOICES = ("auto", "tum", "euroc", "tumvi", "kitti", "tartanair", "7scenes", "folder", "video", "rosbag")
+HELP = "run SLAM on a dataset (trajectory in TUM/KITTI formats, summary.json, trajectory.png)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -28,7 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, metavar="PATH", help="dataset folder (or video file)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace the outputs of a previous run in --out (without it such a folder is an error)")
+                        help="replace the outputs of a previous run in --out (without it such a folder is an error) "
+                             "and an existing --save-map file")
     parser.add_argument("--format", default="auto", choices=FORMAT_CHOICES, help="dataset loader (default: detect)")
     parser.add_argument("-o", "--override", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a SlamConfig field, e.g. -o sensor=rgbd -o dataset.end=100 (repeatable)")
@@ -42,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "in it (merge.json, merged_trajectory_tum.txt; --save-map saves the merged map)")
     parser.add_argument("--save-map", metavar="MAP", default=None,
                         help="also save the map (keyframes, structure, features, retrieval database, calibration, "
-                             "config) to this file, for `fgslam localize` (fgslam/export/mapfile.py)")
+                             "config) to this file, for `fgslam localize` (fgslam/export/mapfile.py); an existing file only "
+                             "with --overwrite or when it is the --map being extended")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -56,6 +58,9 @@ def run(args: argparse.Namespace) -> int:
 
         if not Path(args.save_map).resolve().parent.is_dir():
             raise ConfigError(f"--save-map {args.save_map}: its folder does not exist")
+        from ..outputs import check_save_map_path
+
+        check_save_map_path(args.save_map, args.out, args.map, args.overwrite)
         overrides.append(f"output.save_map={args.save_map}")
     if args.map:
         overrides.append(f"output.extend_map={args.map}")

@@ -12,6 +12,7 @@ in the dataset's time base: a bag's header stamps for a bag input). Written with
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,13 +21,14 @@ from typing import Any, Literal
 import numpy as np
 
 from ..errors import DataError
-from ..io.datasets.rosbag import ROS1_SUFFIX, import_rosbags
-from ..io.trajectory import Trajectory, read_trajectory
+from ..io.datasets.rosbag import ROS1_SUFFIX, import_rosbags, is_bag
+from ..io.run_files import TUM_FILE
+from ..io.trajectory import Trajectory, read_trajectory, rotation_to_quaternion_xyzw
 
 logger = logging.getLogger(__name__)
 
 NS_PER_S = 1_000_000_000
-TRAJECTORY_FILE = "trajectory_tum.txt"
+TRAJECTORY_FILE = TUM_FILE
 PATH_TYPE = "nav_msgs/msg/Path"
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
@@ -102,9 +104,7 @@ def stamp_ns(t: float) -> int:
 
 
 def _pose(types: dict, T: np.ndarray) -> Any:
-    from scipy.spatial.transform import Rotation
-
-    qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()
+    qx, qy, qz, qw = rotation_to_quaternion_xyzw(T[:3, :3])
     x, y, z = (float(v) for v in T[:3, 3])
     return types["geometry_msgs/msg/Pose"](
         position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
@@ -146,10 +146,27 @@ def export_bag(run_dir: str | Path, out: str | Path, overwrite: bool = False,
     traj = read_trajectory(src, "tum")
     if len(traj) == 0:
         raise DataError(f"{src}: empty trajectory")
-    if out.exists():
+    if out.exists() or out.is_symlink():
         if not overwrite:
             raise DataError(f"{out} exists (use --overwrite to replace it)")
-        shutil.rmtree(out) if out.is_dir() else out.unlink()
-    result = write_trajectory_bag(traj, out, config)
+        if out.is_symlink() or not is_bag(out):
+            raise DataError(f"{out} exists and is not a ROS bag (a .bag file or a folder with metadata.yaml): "
+                            "not replaced, even with --overwrite; choose another path")
+    # written into a temporary sibling folder and renamed into place: a failure leaves OUT as it was
+    staging = out.parent / f".{out.name}.tmp{os.getpid()}"
+    old = out.parent / f".{out.name}.old{os.getpid()}"
+    try:
+        staging.mkdir()
+        result = write_trajectory_bag(traj, staging / out.name, config)
+        if out.exists():
+            os.replace(out, old)
+        os.replace(staging / out.name, out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+        if old.is_dir():
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            old.unlink(missing_ok=True)
+    result["bag"] = str(out)
     logger.info("wrote %d poses to %s", len(traj), out)
     return result

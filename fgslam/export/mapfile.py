@@ -12,7 +12,7 @@ entry dates, no compression and in a fixed order, so the same map always gives t
 ``features`` (the settings the keyframe features were made with: ``image_scale``, the ORB settings,
 the vocabulary, and ``K``/``width``/``height`` of the scaled feature image), ``config`` (the run's
 resolved configuration less its machine-dependent fields, :func:`portable_config`), ``dataset``
-(format and number of frames: no name or path) and ``groundtruth_alignment`` (the map run's own
+(format, number of frames and the run's raw ``start``, ``end``, ``stride``: no name or path) and ``groundtruth_alignment`` (the map run's own
 alignment to its ground truth, 4x4 ``[[s R, t], [0, 1]]`` with its method, or null). Nothing in a
 map depends on where it is saved or where its data lies: the same run saved to two paths, or from
 a copy of its data in another folder, gives the same bytes.
@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from ..config import MAX_SCALAR, check_ranges, ranged
+from ..config import MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
 from ..errors import DataError
 from ..loop.bow import BowConfig
 from ..loop.features import OrbConfig
@@ -106,6 +106,16 @@ class MapFeaturesConfig:
     def validate(self) -> None:
         check_ranges(self)
         self.bow.orb.validate()
+
+
+@dataclass
+class MapMergeConfig:
+    """Merging a recording into a stored map (``fgslam run ... --map MAP``, :func:`fgslam.localize.merge_recording`;
+    ``output.map_merge`` of a run, ``merge`` of ``fgslam localize``'s config)."""
+
+    min_keyframes: int = ranged(3, ge=1, le=MAX_KEYFRAMES)  # recording keyframes localised in the map (consistently) to merge
+    max_rotation_deg: float = ranged(5.0, gt=0, le=180)  # consistent: their map-from-recording rotations within this of each other
+    max_position_error: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # ... and their positions within this share of the keyframes' extent
 
 
 @dataclass
@@ -177,9 +187,31 @@ class StoredMap:
             raise bad("a track names a point that does not exist")
         if not np.isfinite(self.T_WC).all():
             raise bad("a keyframe pose is not finite")
-        camera = self.meta.get("camera") or {}
-        if len(camera.get("K", ())) != 4 or "width" not in camera or "height" not in camera:
-            raise bad("meta has no camera (K, width, height)")
+        if len(np.unique(self.kf_ids)) != k:
+            raise bad("kf_ids are not unique")
+        if t and not np.isin(self.track_kf, self.kf_ids).all():
+            raise bad("track_kf names a keyframe id that is not in kf_ids")
+        camera = self.meta.get("camera")
+        if not isinstance(camera, dict) or not _numbers(camera.get("K"), 4) or not _numbers(
+                [camera.get("width"), camera.get("height")], 2):
+            raise bad("meta has no camera (K: 4 numbers, width, height)")
+        features = self.meta.get("features")
+        if not isinstance(features, dict):
+            raise bad("meta has no features section")
+        missing = [key for key in ("image_scale", "K", "width", "height", "vocabulary", "orb") if key not in features]
+        if missing:
+            raise bad(f"meta features has no {', '.join(missing)}")
+        if not _numbers(features["K"], 4) or not _numbers([features["image_scale"], features["width"],
+                                                            features["height"]], 3):
+            raise bad("meta features: K must be 4 numbers, image_scale / width / height numbers")
+        if not isinstance(features["orb"], dict) or not isinstance(features["vocabulary"], str):
+            raise bad("meta features: orb must be a mapping, vocabulary a name")
+
+
+def _numbers(values: Any, n: int) -> bool:
+    """``values`` is a list of ``n`` finite numbers (not booleans)."""
+    return (isinstance(values, (list, tuple)) and len(values) == n
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in values))
 
 
 # ----------------------------------------------------------------------------------- save / load
@@ -329,6 +361,14 @@ def depth_points(uv: np.ndarray, depth: np.ndarray, K_feat: np.ndarray, scale: f
     return X
 
 
+def _frame_range(dataset) -> dict[str, Any]:
+    """The raw frames of the map run: ``start``, ``end`` (None: to the end) and ``stride``."""
+    cfg = getattr(dataset, "config", None)
+    if cfg is None:
+        return {}
+    return {"start": int(cfg.start), "end": None if cfg.end is None else int(cfg.end), "stride": int(cfg.stride)}
+
+
 def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, config: dict,
                      features: MapFeaturesConfig, verification=None, groundtruth_alignment: dict | None = None,
                      frame_indices: np.ndarray | None = None) -> StoredMap:
@@ -393,7 +433,8 @@ def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, 
                      "height": h_feat, "vocabulary": features.bow.vocabulary,
                      "orb": {k: getattr(orb, k) for k in orb.__dataclass_fields__}},
         "config": portable_config(config),
-        "dataset": {"format": str(getattr(dataset, "format", "")), "frames": int(len(indices))},
+        "dataset": {"format": str(getattr(dataset, "format", "")), "frames": int(len(indices)),
+                    **_frame_range(dataset)},
         "groundtruth_alignment": groundtruth_alignment,
     }
     stored = StoredMap(

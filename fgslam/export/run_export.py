@@ -19,14 +19,13 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, DataError
+from ..io.run_files import SUMMARY_FILE, TUM_FILE
 from .colmap import IMAGES_SUBDIR, SPARSE_SUBDIR, ColmapExportConfig, build_reconstruction, write_model
 from .map import MAP_FILE, RunMap, load_run_map
 
 logger = logging.getLogger(__name__)
 
 IMAGE_NAME = "{index:06d}.png"
-SUMMARY_FILE = "summary.json"
-TUM_FILE = "trajectory_tum.txt"
 
 
 @dataclass

@@ -169,7 +169,8 @@ def require_xfeat():
 
 class XFeatExtractor:
     """XFeat keypoints and descriptors of one image, on the CPU always (XFeat moves itself to a GPU
-    when torch sees one; the loop closer's results must be the same bytes on every machine). The
+    when torch sees one; the loop closer's results must not depend on the machine: the same bytes on
+    the same CPU and thread count, as far as torch's CPU kernels are deterministic there). The
     model is read-only after loading, so one extractor may serve several threads."""
 
     def __init__(self, cfg: XFeatConfig | None = None):

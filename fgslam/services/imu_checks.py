@@ -32,14 +32,18 @@ from typing import Literal, Optional
 
 import numpy as np
 
-from ..config import MAX_SCALAR, ranged
-from ..errors import DataError
+from ..config import MAX_SCALAR, check_ranges, ranged
+from ..errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
 
 DEG_PER_RAD = 180.0 / np.pi
 # span ratios (frames / IMU) of the usual time-unit mistakes: micro- or milliseconds read as nanoseconds
-_TIME_UNIT_RATIOS = {1e3: "microseconds", 1e6: "milliseconds", 1e-3: "nanoseconds x 1000"}
+_TIME_UNIT_RATIOS = {
+    1e3: "IMU timestamps likely in microseconds, not nanoseconds",
+    1e6: "IMU timestamps likely in milliseconds, not nanoseconds",
+    1e-3: "the frames' timestamps likely in microseconds, not nanoseconds (or the IMU's 1000x too large)",
+}
 _TIME_UNIT_TOLERANCE = 0.5  # |log10(ratio / unit ratio)| below this names the unit mistake
 
 
@@ -60,6 +64,12 @@ class ImuCheckConfig:
     max_up_angle_deg: float = ranged(60.0, gt=0, le=180)  # deg between the measured up direction (camera frame) and the image's up (a camera pitched further is warned about)
     min_rate_hz: float = ranged(20.0, gt=0, le=MAX_SCALAR)  # plausible IMU rates
     max_rate_hz: float = ranged(10000.0, gt=0, le=MAX_SCALAR)
+
+    def validate(self) -> None:
+        check_ranges(self)
+        if self.min_rate_hz > self.max_rate_hz:
+            raise ConfigError(f"imu.checks: min_rate_hz ({self.min_rate_hz:g}) must be <= max_rate_hz "
+                              f"({self.max_rate_hz:g})")
 
 
 @dataclass(frozen=True)
@@ -98,7 +108,7 @@ def find_imu_problems(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, frame_
             ratio = (f1 - f0) / max(float(t[-1] - t[0]), 1e-12)
             unit = next((name for r, name in _TIME_UNIT_RATIOS.items()
                          if abs(np.log10(ratio / r)) < _TIME_UNIT_TOLERANCE), None)
-            hint = (f"; the frames span {ratio:.3g}x the IMU's time: IMU timestamps likely in {unit}, not nanoseconds"
+            hint = (f"; the frames span {ratio:.3g}x the IMU's time: {unit}"
                     if unit else "; IMU and camera timestamps are likely on different clocks or in different units")
             out.append(ImuFinding("clock", True, f"the IMU samples ({t[0]:.3f}..{t[-1]:.3f} s) cover "
                                   f"{100 * coverage:.0f} % of the frames' time span ({f0:.3f}..{f1:.3f} s){hint}"))

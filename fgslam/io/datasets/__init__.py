@@ -79,7 +79,9 @@ def open_dataset(path: str | Path, fmt: str = "auto", config: DatasetConfig | No
         raise DataError(f"{path}: unknown dataset format {fmt!r} (expected auto or one of {', '.join(FORMATS)})")
     elif not path.exists():
         raise DataError(f"{path}: no such file or folder")
-    return LOADERS[fmt](path, config if config is not None else DatasetConfig())
+    config = config if config is not None else DatasetConfig()
+    config.warn_unused_bag_keys(fmt)
+    return LOADERS[fmt](path, config)
 
 
 __all__ = ["Dataset", "DatasetConfig", "FORMATS", "LOADERS", "detect_format", "open_dataset"] + [

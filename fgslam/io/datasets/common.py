@@ -94,6 +94,17 @@ class DatasetConfig:
         if self.tum_camera is not None and self.tum_camera not in ("fr1", "fr2", "fr3"):
             raise ConfigError(f"tum_camera must be fr1, fr2 or fr3, got {self.tum_camera!r}")
 
+    def warn_unused_bag_keys(self, fmt: str, bag_format: str = "rosbag") -> list[str]:
+        """Log a warning naming ``T_BC`` / ``topics`` when they are set for a loader other than the
+        ROS bag one (they do nothing there); returns the keys named."""
+        keys = ([] if self.T_BC is None else ["dataset.T_BC"]) + (
+            [] if self.topics == BagTopicsConfig() else ["dataset.topics"])
+        if keys and fmt != bag_format:
+            logger.warning("%s only apply to ROS bags: ignored for the %s loader (calibration, topics: "
+                           "its own files)", " and ".join(keys), fmt)
+            return keys
+        return []
+
     def resize_keys(self) -> list[str]:
         """The keys that set the output size, with their values (``key=value`` each)."""
         if self.resize_width or self.resize_height:
