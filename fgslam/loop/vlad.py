@@ -31,6 +31,7 @@ from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_SEED, check_ranges, ranged
 from ..errors import ConfigError, DataError, FormatError
 from .bow import KeyframeDatabase, KeyframeFeatures, LoopDetectionConfig, LoopDetector, LoopQuery
 from .features import XFEAT_DESCRIPTOR_DIM, XFeatConfig
+from .vocabulary import read_versioned_npz
 
 logger = logging.getLogger(__name__)
 
@@ -116,19 +117,7 @@ class VladCentres:
 
     @staticmethod
     def load(path: str | Path) -> "VladCentres":
-        path = Path(path)
-        if not path.is_file():
-            raise DataError(f"{path}: VLAD centres file not found")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                data = {key: z[key] for key in z.files}
-        except (OSError, ValueError) as exc:
-            raise FormatError(f"{path}: not a readable .npz of VLAD centres ({exc})") from exc
-        if "format_version" not in data or "centres" not in data:
-            raise FormatError(f"{path}: missing arrays (format_version, centres)")
-        if int(data["format_version"]) != CENTRES_FORMAT_VERSION:
-            raise FormatError(f"{path}: format_version {int(data['format_version'])} "
-                              f"(this fgslam reads {CENTRES_FORMAT_VERSION})")
+        data = read_versioned_npz(path, "VLAD centres", ("centres",), CENTRES_FORMAT_VERSION)
         if data["centres"].ndim != 2 or data["centres"].shape[1] != XFEAT_DESCRIPTOR_DIM:
             raise FormatError(f"{path}: centres of shape {data['centres'].shape} "
                               f"(expected (k, {XFEAT_DESCRIPTOR_DIM}) XFeat centres)")

@@ -289,25 +289,31 @@ class Vocabulary:
 
     @staticmethod
     def load(path: str | Path) -> "Vocabulary":
-        path = Path(path)
-        if not path.is_file():
-            raise DataError(f"{path}: vocabulary file not found")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                data = {key: z[key] for key in z.files}
-        except (OSError, ValueError) as exc:
-            raise FormatError(f"{path}: not a readable .npz vocabulary ({exc})") from exc
-        required = ("format_version", "branching", "depth", "node_descriptors", "child_start",
-                    "child_count", "node_word", "idf")
-        missing = [key for key in required if key not in data]
-        if missing:
-            raise FormatError(f"{path}: missing arrays {missing}")
-        if int(data["format_version"]) != VOCABULARY_FORMAT_VERSION:
-            raise FormatError(f"{path}: format_version {int(data['format_version'])} "
-                              f"(this fgslam reads {VOCABULARY_FORMAT_VERSION})")
+        required = ("branching", "depth", "node_descriptors", "child_start", "child_count", "node_word", "idf")
+        data = read_versioned_npz(path, "vocabulary", required, VOCABULARY_FORMAT_VERSION)
         return Vocabulary(data["node_descriptors"], data["child_start"], data["child_count"],
                           data["node_word"], data["idf"], int(data["branching"]), int(data["depth"]),
                           int(data.get("n_training_images", 0)), source=str(path))
+
+
+def read_versioned_npz(path: str | Path, what: str, required: tuple[str, ...], version: int) -> dict[str, np.ndarray]:
+    """The arrays of a versioned ``.npz`` data file (``what``: a vocabulary, VLAD centres), read without
+    pickle: DataError when it is missing, FormatError when it is unreadable, lacks ``format_version`` or
+    one of ``required``, or has another format version (each naming the file)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: {what} file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {key: z[key] for key in z.files}
+    except (OSError, ValueError) as exc:
+        raise FormatError(f"{path}: not a readable .npz {what} ({exc})") from exc
+    missing = [key for key in ("format_version", *required) if key not in data]
+    if missing:
+        raise FormatError(f"{path}: missing arrays {missing}")
+    if int(data["format_version"]) != version:
+        raise FormatError(f"{path}: format_version {int(data['format_version'])} (this fgslam reads {version})")
+    return data
 
 
 def default_vocabulary_path() -> Path:
