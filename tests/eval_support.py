@@ -7,9 +7,12 @@ below it (:data:`BEAT_FACTOR`), on top of any absolute bound the test has."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from fgslam.eval import EvalConfig, evaluate
+from fgslam.io.run_files import TUM_FILE
 from fgslam.io.trajectory import Trajectory
 
 BEAT_FACTOR = 0.5  # the estimate's ATE must be below this fraction of the stationary estimate's
@@ -55,3 +58,20 @@ def timeless(value):
     if isinstance(value, list):
         return [timeless(v) for v in value]
     return value
+
+
+def run_preset(root, preset: str, out, overrides=()):
+    """``(dataset, summary, est)`` of ``fgslam``'s run of ``preset`` (with ``overrides``) on the dataset
+    at ``root`` into ``out``; ``est`` is the written TUM trajectory as an (N, 8) array."""
+    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+
+    cfg = load_slam_config(preset, list(overrides))
+    ds = open_slam_dataset(root, cfg)
+    summary = run_slam(ds, cfg, out, progress=False)
+    return ds, summary, np.loadtxt(Path(out) / TUM_FILE)
+
+
+def evaluate_tum_rows(groundtruth: Trajectory, est, align: str):
+    """:func:`fgslam.eval.evaluate` of a TUM trajectory given as an (N, 8) array against ``groundtruth``."""
+    return evaluate(groundtruth, Trajectory.from_position_quaternion(est[:, 0], est[:, 1:4], est[:, 4:8]),
+                    EvalConfig(align=align))

@@ -10,11 +10,8 @@ import pytest
 
 pytest.importorskip("gtsam")
 
-from fgslam.eval import EvalConfig, evaluate
-from fgslam.io.trajectory import Trajectory
-from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
 
-from eval_support import assert_beats_doing_nothing
+from eval_support import assert_beats_doing_nothing, evaluate_tum_rows, run_preset
 from patch_support import render_room
 
 FRAMES = 120
@@ -42,29 +39,16 @@ def black_room(room, tmp_path_factory):
     return clip
 
 
-def _run(root, preset, out, overrides=()):
-    cfg = load_slam_config(preset, list(overrides))
-    ds = open_slam_dataset(root, cfg)
-    summary = run_slam(ds, cfg, out, progress=False)
-    est = np.loadtxt(out / "trajectory_tum.txt")
-    return ds, summary, est
-
-
-def _ate(ds, est, align):
-    return evaluate(ds.groundtruth, Trajectory.from_position_quaternion(est[:, 0], est[:, 1:4], est[:, 4:8]),
-                    EvalConfig(align=align))
-
-
 @pytest.mark.parametrize("family", FAMILIES)
 def test_stereo_inertial_bridges_black_frames(family, black_room, tmp_path):
-    ds, summary, est = _run(black_room, f"{family}_stereo_inertial", tmp_path / "vi", FAST.get(family, ()))
+    ds, summary, est = run_preset(black_room, f"{family}_stereo_inertial", tmp_path / "vi", FAST.get(family, ()))
     inertial = summary.inertial
     assert inertial["initialized"] and inertial["links"] > 0 and abs(inertial["gravity_norm"] - 9.81) < 1e-6
     assert inertial["bias_gyro_norm"] is not None and inertial["init_after_s"] < 2.0
     # the black frames: posed by the IMU prediction, no tracking failure, no map restart
     assert summary.failures["tracking"] == 0 and summary.frames_with_pose == FRAMES
     assert summary.pose_sources.get("imu", 0) >= len(BLACK) - 2
-    res = _ate(ds, est, "se3")
+    res = evaluate_tum_rows(ds.groundtruth, est, "se3")
     assert_beats_doing_nothing(res.ate.rmse, ds.groundtruth, est[:, 0], "se3")
     assert res.ate.rmse < 0.01 * res.gt_path_length_m  # the gap included
     steps = np.linalg.norm(np.diff(est[:, 1:4], axis=0), axis=1)
@@ -76,10 +60,10 @@ def test_stereo_inertial_bridges_black_frames(family, black_room, tmp_path):
 # 400 frames) for the linear initialisation's gates: it does not initialise there (README, issue 26)
 @pytest.mark.parametrize("family", ["dense"])
 def test_mono_inertial_initialises_and_rescales_to_metric(family, room, tmp_path):
-    ds, summary, est = _run(room, f"{family}_mono_inertial", tmp_path / "mono",
+    ds, summary, est = run_preset(room, f"{family}_mono_inertial", tmp_path / "mono",
                             ["imu.init.min_duration_s=2.0", "imu.init.max_scale_rel_sigma=0.1"])
     inertial = summary.inertial
     assert inertial["initialized"] and inertial["scale"] is not None
-    sim = _ate(ds, est, "sim3")  # the scale the map still needs after the rescale: 1 when metric
+    sim = evaluate_tum_rows(ds.groundtruth, est, "sim3")  # the scale the map still needs after the rescale: 1 when metric
     assert abs(sim.alignment.s - 1.0) < 0.25
-    assert_beats_doing_nothing(_ate(ds, est, "se3").ate.rmse, ds.groundtruth, est[:, 0], "se3")
+    assert_beats_doing_nothing(evaluate_tum_rows(ds.groundtruth, est, "se3").ate.rmse, ds.groundtruth, est[:, 0], "se3")

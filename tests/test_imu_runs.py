@@ -9,11 +9,8 @@ import pytest
 
 pytest.importorskip("gtsam")
 
-from fgslam.eval import EvalConfig, evaluate
-from fgslam.io.trajectory import Trajectory
-from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
 
-from eval_support import BEAT_FACTOR, assert_beats_doing_nothing
+from eval_support import BEAT_FACTOR, assert_beats_doing_nothing, evaluate_tum_rows, run_preset
 from patch_support import render_room
 
 FRAMES = 120
@@ -26,22 +23,13 @@ def room(tmp_path_factory):
 
 
 def _run(root, preset, out, overrides=()):
-    cfg = load_slam_config(preset, list(overrides) + ["patch.graph.patches_per_frame=64"])
-    ds = open_slam_dataset(root, cfg)
-    summary = run_slam(ds, cfg, out, progress=False)
-    est = np.loadtxt(out / "trajectory_tum.txt")
-    return ds, summary, est
-
-
-def _ate(ds, est, align):
-    return evaluate(ds.groundtruth, Trajectory.from_position_quaternion(est[:, 0], est[:, 1:4], est[:, 4:8]),
-                    EvalConfig(align=align))
+    return run_preset(root, preset, out, list(overrides) + ["patch.graph.patches_per_frame=64"])
 
 
 def test_stereo_inertial_run_initialises_and_tracks(room, tmp_path):
     ds, summary, est = _run(room, "patch_stereo_inertial", tmp_path / "vi")
     assert summary.failures["tracking"] == 0 and summary.frames_with_pose == FRAMES
-    res = _ate(ds, est, "se3")
+    res = evaluate_tum_rows(ds.groundtruth, est, "se3")
     assert res.ate.rmse < 0.005 * res.gt_path_length_m  # measured 0.16 % at 120 frames
 
 
@@ -60,7 +48,7 @@ def test_black_frames_are_bridged_by_the_imu(room, tmp_path):
     assert summary.pose_sources.get("imu", 0) >= len(BLACK) - 2
     gt = ds.groundtruth
     P_gt = gt.T_WC[:, :3, 3]
-    res = _ate(ds, est, "se3")
+    res = evaluate_tum_rows(ds.groundtruth, est, "se3")
     # no jump: the step across the end of the gap is as large as the true step (within IMU drift)
     steps = np.linalg.norm(np.diff(est[:, 1:4], axis=0), axis=1)
     steps_gt = np.linalg.norm(np.diff(P_gt, axis=0), axis=1)
@@ -76,8 +64,8 @@ def test_mono_inertial_initialises_and_rescales_to_metric(room, tmp_path, caplog
     ds, summary, est = _run(room, "patch_mono_inertial", tmp_path / "mono",
                             ["imu.init.min_duration_s=2.0", "imu.init.max_scale_rel_sigma=0.1"])
     assert "initialised (visual-inertial)" in caplog.text
-    res = _ate(ds, est, "sim3")  # the scale the map needs after the rescale: 1 when metric
-    vision = _ate(ds, _run(room, "patch_mono", tmp_path / "v")[2], "sim3")
+    res = evaluate_tum_rows(ds.groundtruth, est, "sim3")  # the scale the map needs after the rescale: 1 when metric
+    vision = evaluate_tum_rows(ds.groundtruth, _run(room, "patch_mono", tmp_path / "v")[2], "sim3")
     # the rescale brings the map from its arbitrary scale (vision only: Sim(3) scale 0.11 here) to within
     # a factor 2.2 of metric (measured 2.15 on this 6 s clip: the linear initialisation underestimates the
     # scale with little acceleration, and the window BA does not correct it yet; README, IMU section)

@@ -8,11 +8,9 @@ import pytest
 pytest.importorskip("gtsam")
 
 from fgslam.errors import DataError
-from fgslam.eval import EvalConfig, evaluate
 from fgslam.io.datasets import DatasetConfig, detect_format, open_dataset
-from fgslam.io.trajectory import Trajectory
 
-from eval_support import assert_beats_doing_nothing
+from eval_support import assert_beats_doing_nothing, evaluate_tum_rows, run_preset
 
 FRAMES = 100
 # a mild Kannala-Brandt fisheye, as TUM-VI's (k1..k4 of the order 1e-3); hfov 80: rays up to ~60 deg
@@ -87,17 +85,11 @@ def test_missing_camchain_camera_is_a_clear_error(tumvi, tmp_path):
 
 
 def test_stereo_inertial_runs_on_the_tumvi_layout(tumvi, tmp_path):
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
-
     _, root = tumvi
-    cfg = load_slam_config("patch_stereo_inertial", ["patch.graph.patches_per_frame=64"])
-    ds = open_slam_dataset(root, cfg)
-    summary = run_slam(ds, cfg, tmp_path / "out", progress=False)
+    ds, summary, est = run_preset(root, "patch_stereo_inertial", tmp_path / "out", ["patch.graph.patches_per_frame=64"])
     assert summary.failures["tracking"] == 0 and summary.frames_with_pose == FRAMES
     assert summary.dataset["format"] == "tumvi" and summary.inertial["initialized"]
     assert summary.inertial["input_warnings"] == []  # the stream passes the IMU checks (units, axes, clock)
-    est = np.loadtxt(tmp_path / "out" / "trajectory_tum.txt")
-    res = evaluate(ds.groundtruth, Trajectory.from_position_quaternion(est[:, 0], est[:, 1:4], est[:, 4:8]),
-                   EvalConfig(align="se3"))
+    res = evaluate_tum_rows(ds.groundtruth, est, "se3")
     assert_beats_doing_nothing(res.ate.rmse, ds.groundtruth, est[:, 0], "se3")
     assert res.ate.rmse < 0.01 * res.gt_path_length_m
