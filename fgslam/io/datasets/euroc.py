@@ -198,12 +198,7 @@ class EurocDataset(Dataset):
         return None
 
     def _raw_groundtruth(self) -> Optional[np.ndarray]:
-        if self._gt_path is None:
-            return None
-        traj_WB = read_trajectory(self._gt_path, "euroc")
-        T_WC = traj_WB.T_WC @ self.raw_calibration.T_BC
-        return interpolate_poses(self.raw_timestamps, traj_WB.timestamps, T_WC,
-                                 self.config.gt_max_gap, self.config.gt_snap_dt)
+        return body_groundtruth_at_frames(self._gt_path, self.raw_calibration.T_BC, self.raw_timestamps, self.config)
 
     def _read_raw(self, raw_index: int) -> RawFrame:
         path = self._left[raw_index]
@@ -215,6 +210,18 @@ class EurocDataset(Dataset):
             d = read_image(self._depth[raw_index])
             depth = d.astype(np.float32) / np.float32(self.depth_scale)
         return RawFrame(image, path, right, depth)
+
+
+def body_groundtruth_at_frames(gt_path: Optional[Path], T_BC: np.ndarray, timestamps: np.ndarray,
+                               config: DatasetConfig) -> Optional[np.ndarray]:
+    """Camera poses ``T_WC = T_WB T_BC`` at the frames' ``timestamps`` from a ground truth of the body
+    (IMU) in the EuRoC csv layout (EuRoC's state estimate, TUM-VI's mocap), interpolated within
+    ``config.gt_max_gap``; None without a file."""
+    if gt_path is None:
+        return None
+    traj_WB = read_trajectory(gt_path, "euroc")
+    return interpolate_poses(timestamps, traj_WB.timestamps, traj_WB.T_WC @ T_BC, config.gt_max_gap,
+                             config.gt_snap_dt)
 
 
 #: the noise keys of an EuRoC imu0/sensor.yaml (continuous-time densities)

@@ -29,9 +29,8 @@ import numpy as np
 
 from ...errors import DataError
 from ..calibration import Calibration, read_yaml_file
-from ..trajectory import read_trajectory
-from .common import Dataset, DatasetConfig, RawFrame, interpolate_poses, ns_to_seconds, read_image, require_dir, require_file
-from .euroc import DISTORTION_NAMES, _imu_noise, _match, _read_imu, _read_stream
+from .common import Dataset, DatasetConfig, RawFrame, ns_to_seconds, read_image, require_dir, require_file
+from .euroc import DISTORTION_NAMES, _imu_noise, _match, _read_imu, _read_stream, body_groundtruth_at_frames
 
 logger = logging.getLogger(__name__)
 
@@ -140,12 +139,7 @@ class TumviDataset(Dataset):
         return gt if gt.is_file() else None
 
     def _raw_groundtruth(self) -> Optional[np.ndarray]:
-        if self._gt_path is None:
-            return None
-        traj_WB = read_trajectory(self._gt_path, "euroc")
-        T_WC = traj_WB.T_WC @ self.raw_calibration.T_BC
-        return interpolate_poses(self.raw_timestamps, traj_WB.timestamps, T_WC,
-                                 self.config.gt_max_gap, self.config.gt_snap_dt)
+        return body_groundtruth_at_frames(self._gt_path, self.raw_calibration.T_BC, self.raw_timestamps, self.config)
 
     def _read_raw(self, raw_index: int) -> RawFrame:
         path = self._left[raw_index]
