@@ -34,6 +34,9 @@ def _run(frames, config=None):
     return fe, statuses
 
 
+MOTION_MODEL_FRACTION_7SCENES = 0.7  # the 7-Scenes slice's bound: its ATE over the motion model's (docstring)
+
+
 def motion_model_ate(frames, stamps) -> float:
     """Sim(3) ATE of the motion model alone: constant velocity from the ground truth of the first two frames."""
     gt = frames_groundtruth(frames)
@@ -122,9 +125,12 @@ def test_carried_pointmap_is_the_keyframe_seen_from_the_frame():
 def test_7scenes_mono_slice_is_measured_every_frame(shared_data):
     """7-Scenes kitchen frames 0-149 (5 s, 0.9 m of hand-held motion), monocular at 320x240 (the preset's
     width): every frame after the two-view start posed by the corners, none by the motion model, and the
-    Sim(3) ATE clearly below standing still and the motion model alone. Measured: 0.033 m against 0.28 m
-    standing still and 0.082 m for the motion model alone (the two-view source of issue 13: 0.049 m over
-    frames 0-199, 0.276 m over 0-599)."""
+    Sim(3) ATE clearly below standing still and the motion model alone. Measured with the calibration's
+    focal length changed by -1, 0, +1 and +2 parts per million (tools/bench_stability.py's perturbation):
+    0.046-0.050 m against 0.28 m standing still and 0.082 m for the motion model alone. (With corner fusion,
+    off by default since it made long runs chaotic: 0.036-0.043 m, so its former bound of half the motion
+    model, 0.041 m, held by luck on one machine; the two-view source of issue 13: 0.049 m over frames 0-199.)
+    The bounds sit 20 % (0.06 m) and 13 % (0.7 x 0.082 m) above the largest of those four runs."""
     from fgslam.io.datasets import DatasetConfig, open_dataset
 
     frames = list(open_dataset(shared_data / "7scenes_redkitchen_0-599",
@@ -139,4 +145,4 @@ def test_7scenes_mono_slice_is_measured_every_frame(shared_data):
     ate = float(evaluate(gt, Trajectory(t, T), EvalConfig(align="sim3")).ate.rmse)
     assert ate < 0.06
     assert_beats_doing_nothing(ate, gt, t, "sim3")
-    assert ate < 0.5 * motion_model_ate(frames, t)
+    assert ate < MOTION_MODEL_FRACTION_7SCENES * motion_model_ate(frames, t)

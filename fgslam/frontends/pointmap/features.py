@@ -57,13 +57,17 @@ class FeaturePoseConfig:
     min_inliers: int = ranged(20, ge=6, le=MAX_COUNT)  # fewer PnP inliers: no pose (relocalisation / failure)
     min_inlier_ratio: float = ranged(0.5, ge=0, le=1)  # a smaller inlier share of the surviving tracks: no pose
     new_keyframe_fraction: float = ranged(0.5, ge=0, le=1)  # a new keyframe when the inliers fall below this share of the keyframe's corners
-    new_keyframe_inliers: int = ranged(80, ge=6, le=MAX_COUNT)  # ... or below this many
+    new_keyframe_inliers: int = ranged(80, ge=6, le=MAX_COUNT)  # ... or when they fall below this many (a keyframe born with fewer: the share rule alone)
     # the new keyframe's pose refined by projective matching and the tracking solve on its pointmap: Sim(3),
     # SE(3) (the scale stays the corners' PnP scale, carried by the map) or off (the corners' pose and edge;
     # the default: 7-Scenes 0-599 0.150 m against 0.176 m with se3, room-loop 1.02 % against 1.12 %)
     keyframe_refine: Literal["sim3", "se3", "off"] = "off"
     extra_edges: int = ranged(0, ge=0, le=MAX_COUNT)  # a new keyframe also gets measured edges to this many keyframes before the previous one
-    fuse_corners: bool = True  # each measured frame's corners triangulated with its pose and fused (eq. 9) into the keyframe's pointmap
+    # each measured frame's corners triangulated with its pose and fused (eq. 9) into the keyframe's pointmap.
+    # Off by default: the corners' points then follow the poses measured from them (a loop of gain near one
+    # over short baselines), which made the run chaotic: 7-Scenes 0-599 ATE 0.18-0.42 m across 1-ppm focal
+    # changes and CPU kernels (max/min 2.3), off 0.230-0.251 m (1.09; tools/bench_stability.py)
+    fuse_corners: bool = False
     carried_confidence: float = ranged(1.0, ge=0, le=1)  # confidence factor of the previous keyframe's points carried into a new keyframe
 
 

@@ -283,7 +283,11 @@ class PointmapTracker:
             self._fuse_corners(kf, fe._T_CkCf)
         kc = fe.config.keyframe
         fc = fe.config.features
-        new_kf = (meas.fraction < fc.new_keyframe_fraction or meas.inliers < fc.new_keyframe_inliers
+        # the absolute rule asks the tracks to have *fallen* below new_keyframe_inliers: a keyframe born with
+        # fewer corners (a poor view) is kept until the fractional rule, else every next frame, one frame of
+        # parallax away, would become a keyframe (a cascade that one corner more or less at birth decides)
+        fell = ft.count >= fc.new_keyframe_inliers and meas.inliers < fc.new_keyframe_inliers
+        new_kf = (meas.fraction < fc.new_keyframe_fraction or fell
                   or (kc.max_gap > 0 and fe._since_kf >= kc.max_gap))
         if not new_kf:
             fe._records[fid] = RelativePose(kf.fid, fe._T_CkCf.copy())
