@@ -9,8 +9,8 @@ of the input that a SLAM system should notice:
 - ``focal+1ppm`` / ``focal-1ppm``: the calibration's focal lengths (fx, fy; KITTI's ``fx * baseline``
   with them) scaled by 1 +- 1e-6 in a copy of the sequence whose other files are links;
 - ``threads1`` / ``threads2``: ``-o threads=N`` (torch and OpenCV threads of the run);
-- ``oldcpu``: another CPU's kernels: ``ATEN_CPU_CAPABILITY=default``, ``OPENBLAS_CORETYPE=Haswell``,
-  ``OPENCV_CPU_DISABLE`` = OpenCV's AVX2/FMA3/AVX512 dispatch (``OLD_CPU_ENV``).
+- ``oldcpu``: another CPU's kernels (torch, oneDNN, MKL, OpenBLAS, OpenCV): the variables of
+  ``tools/old-cpu.env``, which CI's second step also uses.
 
 Targets (issue 36): max/min ATE <= 1.25 for the recommended presets, <= 1.5 for each family's main
 presets. Runs are separate ``fgslam run`` processes (``--jobs`` at a time); synthetic sequences are
@@ -43,10 +43,7 @@ DEFAULT_DATA = REPO.parent / "shared" / "data"
 RECOMMENDED_RATIO = 1.25  # max/min ATE across perturbations, a recommended preset
 FAMILY_RATIO = 1.5  # the same, a family's main preset
 FOCAL_PPM = 1e-6
-# Another CPU's kernels on this one: torch's portable kernels, OpenBLAS's Haswell kernels (no AVX-512),
-# OpenCV without its AVX2 / FMA3 / AVX-512 dispatch.
-OLD_CPU_ENV = {"ATEN_CPU_CAPABILITY": "default", "OPENBLAS_CORETYPE": "Haswell",
-               "OPENCV_CPU_DISABLE": "AVX512_SKX,AVX512_COMMON,AVX2,FMA3"}
+OLD_CPU_ENV_FILE = REPO / "tools" / "old-cpu.env"  # another CPU's kernels on this one (also used by .ci/run)
 CALIBRATION_NAMES = ("camera-intrinsics.txt", "calib.txt", "sensor.yaml")
 
 
@@ -114,7 +111,7 @@ def sequence_root(case: Case, args: argparse.Namespace) -> Path:
     if not (root / ".complete").exists():
         shutil.rmtree(root, ignore_errors=True)
         subprocess.run(fgslam_command() + ["-q", "synth", "--preset", preset, "--frames", frames, "--out", str(root)],
-                       check=True)
+                       check=True, stdout=sys.stderr)  # stdout carries the report alone
         (root / ".complete").write_text("")
     return root
 
@@ -160,6 +157,12 @@ def perturbed_copy(root: Path, dest: Path, factor: float) -> Path:
     return dest
 
 
+def old_cpu_env() -> dict[str, str]:
+    """The ``VAR=VALUE`` lines of ``tools/old-cpu.env``."""
+    lines = (line.strip() for line in OLD_CPU_ENV_FILE.read_text().splitlines())
+    return dict(line.split("=", 1) for line in lines if line and not line.startswith("#"))
+
+
 def perturbation_setup(name: str, root: Path, work: Path) -> tuple[Path, list[str], dict[str, str]]:
     """(sequence root, overrides, environment additions) of one perturbation."""
     if name.startswith("focal"):
@@ -168,7 +171,7 @@ def perturbation_setup(name: str, root: Path, work: Path) -> tuple[Path, list[st
     if name.startswith("threads"):
         return root, [f"threads={name[len('threads'):]}"], {}
     if name == "oldcpu":
-        return root, [], dict(OLD_CPU_ENV)
+        return root, [], old_cpu_env()
     return root, [], {}
 
 
@@ -180,14 +183,18 @@ def run_one(case: Case, root: Path, perturbation: str, out: Path, args: argparse
     for item in (*case.overrides, *args.overrides, *overrides):
         cmd += ["-o", item]
     env = {**os.environ, **env_add}
-    t0, c0 = time.perf_counter(), os.times()
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    c1 = os.times()
+    t0 = time.perf_counter()
+    with tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=err, text=True)
+        _, status, usage = os.wait4(proc.pid, 0)  # this child's own CPU time (runs may overlap: --jobs)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        err.seek(0)
+        stderr = err.read()
     result = {"perturbation": perturbation, "returncode": proc.returncode, "wall_s": round(time.perf_counter() - t0, 1),
-              "cpu_s": round(c1.children_user + c1.children_system - c0.children_user - c0.children_system, 1)}
+              "cpu_s": round(usage.ru_utime + usage.ru_stime, 1)}
     summary_file = out / "summary.json"
     if proc.returncode != 0 or not summary_file.exists():
-        result["error"] = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+        result["error"] = (stderr.strip().splitlines() or ["no output"])[-1]
         return result
     s = json.loads(summary_file.read_text())
     ate = ((s.get("evaluation") or {}).get("ate") or {}).get("rmse")

@@ -1,0 +1,78 @@
+"""tools/bench_stability.py: the perturbed copies of a sequence change the focal lengths of every
+calibration format by the factor and nothing else; the old-CPU variables parse; the summary's ratio."""
+
+import numpy as np
+import pytest
+from tool_support import load_tool
+
+FACTOR = 1.0 + 1e-6
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return load_tool("bench_stability")
+
+
+def _numbers(text: str) -> np.ndarray:
+    return np.array([float(v) for v in text.replace(":", " ").replace("[", " ").replace("]", " ").replace(",", " ").split()
+                     if v.replace(".", "", 1).replace("e-", "", 1).replace("e+", "", 1).lstrip("-").isdigit()])
+
+
+def test_seven_scenes_intrinsics_scale_fx_and_fy_only(bench, tmp_path):
+    path = tmp_path / "camera-intrinsics.txt"
+    path.write_text("5.85e+02 0 3.2e+02\n0 5.85e+02 2.4e+02\n0 0 1\n")
+    before, after = _numbers(path.read_text()), _numbers(bench.perturbed_calibration(path, FACTOR))
+    expect = before.copy()
+    expect[[0, 4]] *= FACTOR
+    np.testing.assert_array_equal(after, expect)
+
+
+def test_kitti_calib_scales_fx_fy_and_the_baseline_term(bench, tmp_path):
+    path = tmp_path / "calib.txt"
+    path.write_text("P0: 718.856 0 607.1928 0 0 718.856 185.2157 0 0 0 1 0\n"
+                    "P1: 718.856 0 607.1928 -386.1448 0 718.856 185.2157 0 0 0 1 0\n")
+    lines = bench.perturbed_calibration(path, FACTOR).splitlines()
+    for line, original in zip(lines, path.read_text().splitlines()):
+        assert line.split(":")[0] == original.split(":")[0]
+        before, after = np.array(original.split()[1:], float), np.array(line.split()[1:], float)
+        expect = before.copy()
+        expect[[0, 3, 5]] *= FACTOR  # fx, fx * baseline, fy: the baseline itself is unchanged
+        np.testing.assert_array_equal(after, expect)
+
+
+def test_euroc_sensor_yaml_scales_the_focal_entries(bench, tmp_path):
+    path = tmp_path / "sensor.yaml"
+    path.write_text("sensor_type: camera\nrate_hz: 20\nresolution: [752, 480]\n"
+                    "intrinsics: [458.654, 457.296, 367.215, 248.375]\n")
+    out = bench.perturbed_calibration(path, FACTOR).splitlines()
+    assert out[:3] == path.read_text().splitlines()[:3]
+    values = [float(v) for v in out[3].split("[")[1].rstrip("]").split(",")]
+    assert values == [458.654 * FACTOR, 457.296 * FACTOR, 367.215, 248.375]
+
+
+def test_perturbed_copy_links_everything_but_the_calibration(bench, tmp_path):
+    root = tmp_path / "seq"
+    (root / "mav0" / "cam0" / "data").mkdir(parents=True)
+    (root / "mav0" / "cam0" / "data" / "0.png").write_bytes(b"x")
+    (root / "mav0" / "cam0" / "sensor.yaml").write_text("intrinsics: [100.0, 100.0, 50.0, 40.0]\n")
+    (root / "groundtruth.txt").write_text("0 0 0 0 1 0 0 0\n")
+    copy = bench.perturbed_copy(root, tmp_path / "copy", FACTOR)
+    assert (copy / "groundtruth.txt").is_symlink() and (copy / "mav0" / "cam0" / "data").is_symlink()
+    sensor = copy / "mav0" / "cam0" / "sensor.yaml"
+    assert not sensor.is_symlink() and sensor.read_text() == f"intrinsics: [{100.0 * FACTOR!r}, {100.0 * FACTOR!r}, 50.0, 40.0]\n"
+
+
+def test_old_cpu_variables_parse(bench):
+    env = bench.old_cpu_env()
+    assert env["ATEN_CPU_CAPABILITY"] == "default" and "OPENCV_CPU_DISABLE" in env
+    assert all(k.isupper() and v for k, v in env.items())
+
+
+def test_summary_ratio_and_target(bench):
+    case = bench.Case("p", "d", 1.25)
+    runs = [{"perturbation": "base", "ate_rmse_m": 0.10}, {"perturbation": "oldcpu", "ate_rmse_m": 0.12}]
+    s = bench.summarise("c", case, runs)
+    assert s["ratio"] == pytest.approx(1.2) and s["ok"] and s["median_ate_m"] == pytest.approx(0.11)
+    s = bench.summarise("c", case, runs + [{"perturbation": "threads1", "ate_rmse_m": 0.2}])
+    assert s["ratio"] == pytest.approx(2.0) and not s["ok"]
+    assert not bench.summarise("c", case, runs + [{"perturbation": "x", "error": "failed"}])["ok"]
