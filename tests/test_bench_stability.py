@@ -18,13 +18,17 @@ def _numbers(text: str) -> np.ndarray:
                      if v.replace(".", "", 1).replace("e-", "", 1).replace("e+", "", 1).lstrip("-").isdigit()])
 
 
+def _assert_scaled(original: str, perturbed: str, positions: tuple[int, ...]) -> None:
+    """``perturbed`` holds the numbers of ``original``, those at ``positions`` multiplied by FACTOR."""
+    expect = _numbers(original)
+    expect[list(positions)] *= FACTOR
+    np.testing.assert_array_equal(_numbers(perturbed), expect)
+
+
 def test_seven_scenes_intrinsics_scale_fx_and_fy_only(bench, tmp_path):
     path = tmp_path / "camera-intrinsics.txt"
     path.write_text("5.85e+02 0 3.2e+02\n0 5.85e+02 2.4e+02\n0 0 1\n")
-    before, after = _numbers(path.read_text()), _numbers(bench.perturbed_calibration(path, FACTOR))
-    expect = before.copy()
-    expect[[0, 4]] *= FACTOR
-    np.testing.assert_array_equal(after, expect)
+    _assert_scaled(path.read_text(), bench.perturbed_calibration(path, FACTOR), (0, 4))
 
 
 def test_kitti_calib_scales_fx_fy_and_the_baseline_term(bench, tmp_path):
@@ -34,10 +38,7 @@ def test_kitti_calib_scales_fx_fy_and_the_baseline_term(bench, tmp_path):
     lines = bench.perturbed_calibration(path, FACTOR).splitlines()
     for line, original in zip(lines, path.read_text().splitlines()):
         assert line.split(":")[0] == original.split(":")[0]
-        before, after = np.array(original.split()[1:], float), np.array(line.split()[1:], float)
-        expect = before.copy()
-        expect[[0, 3, 5]] *= FACTOR  # fx, fx * baseline, fy: the baseline itself is unchanged
-        np.testing.assert_array_equal(after, expect)
+        _assert_scaled(original, line, (0, 3, 5))  # fx, fx * baseline, fy: the baseline itself is unchanged
 
 
 def test_euroc_sensor_yaml_scales_the_focal_entries(bench, tmp_path):
