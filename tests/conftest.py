@@ -21,7 +21,7 @@ NUMERICAL_MODULES = frozenset({"test_determinism", "test_dense_loop", "test_patc
 def pytest_collection_modifyitems(config, items):
     """Mark the numerical tests (above) ``numerical``."""
     for item in items:
-        module = getattr(item.module, "__name__", "").rsplit(".", 1)[-1]
+        module = getattr(getattr(item, "module", None), "__name__", "").rsplit(".", 1)[-1]
         if NUMERICAL_FIXTURES.intersection(getattr(item, "fixturenames", ())) or module in NUMERICAL_MODULES:
             item.add_marker(pytest.mark.numerical)
 
