@@ -125,7 +125,7 @@ class SlamSystem:
         imu = None
         contributor = _contributor(frontend)
         if config.imu.enabled:
-            from .services.contributor import ObservedContributor
+            from .services.corrections import ObservedContributor
             from .services.imu import make_imu_service
 
             imu = make_imu_service(config.imu, backend, calibration, has_imu, config.sensor,

@@ -13,7 +13,7 @@ from eval_support import assert_beats_doing_nothing
 from fgslam.backend import Backend
 from fgslam.frontends.base import BackendFrontend, Frontend, LoopPort
 from fgslam.loop.records import LoopClosureConfig
-from fgslam.services.contributor import Contributor
+from fgslam.contracts.contributor import Contributor
 from fgslam.slam import SlamConfig, open_slam_dataset, run_slam
 from plugin_support import write_positions
 from toy_frontend import ToyConfig, ToyFrontend

@@ -12,7 +12,7 @@ from fgslam.backend.keys import velocity_key
 from fgslam.io.frame import ImuSamples
 from fgslam.lie import gtsam_sim3
 from fgslam.loop.records import PoseCorrection
-from fgslam.services.contributor import ObservedContributor
+from fgslam.services.corrections import ObservedContributor
 from fgslam.services.imu import OWNER, ImuService
 from fgslam.services.imu_init import inertial_only_factor, rotation_to_gravity_frame, solve_inertial_only
 from fgslam.services.imu_samples import ImuBuffer, ImuServiceConfig, ImuStats

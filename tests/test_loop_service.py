@@ -1,5 +1,5 @@
 """The loop-closure service (fgslam.services.loops) through the contributor contract
-(fgslam.services.contributor), with toy contributors instead of the patch frontend:
+(fgslam.contracts.contributor), with toy contributors instead of the patch frontend:
 
 - a classical one that only keeps keyframe images and drifted poses and records the corrections it
   is given, driving the classical closer on a synthetic room-loop drive (the project's renderer);
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from geometry_support import rigid, rot_y
 
-from fgslam.services.contributor import Contributor, GlobalBAJob, KeyframeImage, PoseCorrection, ProximityContributor
+from fgslam.contracts.contributor import Contributor, GlobalBAJob, KeyframeImage, PoseCorrection, ProximityContributor
 from fgslam.services.loops import LoopService
 from fgslam.errors import OptimizationError
 from fgslam.eval import EvalConfig, evaluate

@@ -22,7 +22,7 @@ from fgslam.errors import ConfigError
 from fgslam.frontends.base import BackendFrontend, FrameStatus
 from fgslam.frontends.records import KeyframePose
 from fgslam.lie import gtsam_sim3
-from fgslam.services.contributor import KeyframeImage, PoseCorrection
+from fgslam.contracts.contributor import KeyframeImage, PoseCorrection
 
 
 @dataclass

@@ -6,7 +6,7 @@ and sets its measurement blocks on the run's backend, which the system hands it.
 backend and no service. The system owns the backend and the services (loop closure, IMU, plugins,
 live view) and runs the per-frame skeleton around :meth:`Frontend.process`; the frontend reaches
 loop closure only through the narrow :class:`LoopPort` the system connects (:meth:`Frontend.connect`),
-and the services reach the frontend only through :mod:`fgslam.services.contributor`.
+and the services reach the frontend only through :mod:`fgslam.contracts.contributor`.
 
 At the end the system asks for the poses of every input frame with :meth:`Frontend.trajectory`.
 """
@@ -158,7 +158,7 @@ class Frontend(abc.ABC):
 
     @property
     def contributor(self):
-        """What the services talk to (:mod:`fgslam.services.contributor`: keyframe images and poses,
+        """What the services talk to (:mod:`fgslam.contracts.contributor`: keyframe images and poses,
         corrections, long-range edges): a family's collaborator set as ``_contributor``, else the
         frontend itself."""
         return self.__dict__.get("_contributor", self)

@@ -14,7 +14,7 @@ dropped initialisation attempt):
   by its flow, a frame dropped from the initialisation buffer).
 
 :func:`resolve_pose` follows the references (with a cache); :meth:`PoseRecord.corrected` re-expresses
-a record under a :class:`~fgslam.services.contributor.PoseCorrection` (loop closure, global BA).
+a record under a :class:`~fgslam.contracts.contributor.PoseCorrection` (loop closure, global BA).
 Poses are 4x4 Sim(3) matrices ``[[s R, t], [0, 1]]``.
 """
 

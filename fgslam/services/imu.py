@@ -37,7 +37,7 @@ feeds it keyframes (``on_keyframe``):
 - map corrections (loops, global BA, plugins, its own rescale): :meth:`ImuService.adapt_correction`
   (SE(3) once the IMU fixed a monocular map's scale) before the contributor applies one and
   :meth:`ImuService.on_correction` after: velocities turn (and scale) with the poses, biases are kept,
-  marginal priors are re-anchored (rigid) or dropped (:class:`~fgslam.services.contributor.ObservedContributor`);
+  marginal priors are re-anchored (rigid) or dropped (:class:`~fgslam.services.corrections.ObservedContributor`);
 - IMU prediction (:meth:`ImuService.predict`): the pose at a time from the newest linked keyframe's
   state (pose, velocity, bias) and the buffered samples; the patch frontend uses it as motion prior
   and to pose frames whose visual tracking fails (bridging up to ``max_bridge_s``).
@@ -460,7 +460,7 @@ class ImuService:
         return self.metric or self.initialized
 
     def adapt_correction(self, correction):
-        """A correction before the contributor applies it (:class:`~fgslam.services.contributor.ObservedContributor`):
+        """A correction before the contributor applies it (:class:`~fgslam.services.corrections.ObservedContributor`):
         once a monocular map's scale is fixed by the IMU, a Sim(3) correction whose scale would be
         folded into the structure is taken as SE(3): each listed keyframe keeps its corrected centre
         and rotation, the scale change is dropped (nothing folded). Otherwise unchanged."""

@@ -1,7 +1,7 @@
 """Loop closure as a shared service: classical loops (retrieval, verification, Sim(3) pose graph),
 relocalisation, and proximity loops closed by a global bundle adjustment (DPV-SLAM sections 3.3 and
 3.2), beside tracking, for any frontend that implements the contributor contract
-(:mod:`fgslam.services.contributor`).
+(:mod:`fgslam.contracts.contributor`).
 
 The run's system (:class:`fgslam.system.SlamSystem`) holds one :class:`LoopService`, runs
 :meth:`LoopService.poll`, :meth:`LoopService.wait` and :meth:`LoopService.finish`, and connects it to
@@ -22,7 +22,7 @@ calls the rest at fixed points of its frame loop:
   frontend starts a new map, :meth:`LoopService.finish` at the end.
 
 Classical (``mode`` classical or both): :class:`fgslam.loop.closure.LoopCloser` in its worker thread;
-a correction is a :class:`~fgslam.services.contributor.PoseCorrection` (metric maps: SE(3)).
+a correction is a :class:`~fgslam.contracts.contributor.PoseCorrection` (metric maps: SE(3)).
 
 Proximity (``mode`` proximity or both): :class:`fgslam.services.proximity.ProximityLoops` searches
 loops among the settled keyframes and closes each by a global bundle adjustment in the background,
@@ -42,7 +42,7 @@ import numpy as np
 
 from ..loop.closure import LoopCloser
 from ..loop.records import LoopClosureConfig, PoseCorrection
-from .contributor import Contributor
+from ..contracts.contributor import Contributor
 from .proximity import ProximityGates, ProximityLoops
 
 logger = logging.getLogger(__name__)
@@ -52,8 +52,8 @@ class LoopService:
     """Loop closure beside one contributor (see the module docstring).
 
     Args:
-        contributor: the frontend (:class:`~fgslam.services.contributor.Contributor`; for proximity
-            loops a :class:`~fgslam.services.contributor.ProximityContributor`).
+        contributor: the frontend (:class:`~fgslam.contracts.contributor.Contributor`; for proximity
+            loops a :class:`~fgslam.contracts.contributor.ProximityContributor`).
         config: ``loop_closure`` (None: off).
         metric: the map has a metric scale (stereo / RGB-D): classical corrections are SE(3).
         proximity: the family's proximity gates (needed when ``config.proximity``).

@@ -10,7 +10,7 @@ A run's ``factors`` section lists plugins::
 
 Each class is imported by its dotted path and built as ``Cls(options: dict, key: str)`` where ``key``
 is its config key (``"factors[0]"``): the plugin validates its own options and names bad ones as
-``factors[0].options.<name>`` (:func:`parse_options` does that for a typed options dataclass). Loading
+``factors[0].options.<name>`` (:func:`fgslam.contracts.plugins.parse_options` does that for a typed options dataclass). Loading
 a config builds each plugin once to check it (:func:`validate_factor_entries`) and the run builds it
 again, so a constructor only validates (files are read when the run starts: ``check_run``/``attach``). It
 must have ``attach(backend)``, called once when the run's :class:`~fgslam.backend.graph.Backend`
@@ -47,11 +47,12 @@ import logging
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Optional, Protocol, TypeVar, Union
+from typing import Any, Optional, Union
 
 import numpy as np
 
-from ..config import MAX_COUNT, MAX_KEYFRAMES, MAX_SCALAR, MAX_TIME_OFFSET_S, from_dict, ranged
+from ..config import MAX_COUNT, MAX_KEYFRAMES, MAX_SCALAR, MAX_TIME_OFFSET_S, ranged
+from ..contracts.plugins import parse_options
 from ..errors import ConfigError, FGSlamError
 from ..factors.planar import fit_plane, planar_factor, plane_in_keyframe, plane_in_world, plane_of_keyframe, unit_up
 from ..factors.position import camera_centre, position_noise, position_prior_factor
@@ -59,16 +60,9 @@ from ..io.positions import PositionTrack, read_positions
 
 logger = logging.getLogger(__name__)
 
-T = TypeVar("T")
 
 FACTORS_KEY = "factors"  # the SlamConfig section
 ENTRY_KEYS = ("class", "options")
-
-
-class FactorPlugin(Protocol):
-    """What the runner needs from a plugin class (built as ``Cls(options, key)``)."""
-
-    def attach(self, backend: Any) -> None: ...
 
 
 # ----------------------------------------------------------------------------------------- loading
@@ -164,12 +158,6 @@ def finish_plugins(plugins: Sequence[Any], backend: Any) -> None:
         finish = getattr(plugin, "finish", None)
         if callable(finish):
             finish(backend)
-
-
-def parse_options(cls: type[T], options: Mapping[str, Any], key: str) -> T:
-    """A plugin's options as the typed dataclass ``cls`` (ranges checked); a ConfigError names the
-    option as ``<key>.options.<name>``."""
-    return from_dict(cls, options, source="factor plugin", prefix=f"{key}.options.")
 
 
 # ----------------------------------------------------------------------------------------- corrections

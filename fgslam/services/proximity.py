@@ -1,6 +1,6 @@
 """Proximity loops closed by a global bundle adjustment (DPV-SLAM section 3.2): the part of the
 loop-closure service (:class:`fgslam.services.loops.LoopService`) that searches them and runs, gates
-and applies their global BAs, through the contributor contract (:mod:`fgslam.services.contributor`).
+and applies their global BAs, through the contributor contract (:mod:`fgslam.contracts.contributor`).
 
 Proximity (``mode`` proximity or both): the newest settled keyframe is a query unless the
 ``cooldown`` of the last verified loop lasts; the contributor picks the best candidate among the
@@ -44,24 +44,13 @@ import numpy as np
 
 from ..errors import OptimizationError
 from ..loop.closure import LoopCloser
-from ..loop.records import LoopClosureConfig, PoseCorrection
-from .contributor import GlobalBAJob, ProximityContributor
+from ..loop.records import LoopClosureConfig
+from ..contracts.contributor import GlobalBAJob, ProximityContributor, apply_global_ba_result
 
 logger = logging.getLogger(__name__)
 
 # numerical trouble in a global BA (gtsam/torch/numpy): the loop is undone, the run goes on
 _SOLVER_ERRORS = (OptimizationError, RuntimeError, np.linalg.LinAlgError)
-
-
-def apply_global_ba_result(contributor: ProximityContributor, job: GlobalBAJob, result: Any, keep: np.ndarray,
-                           seconds: float = 0.0) -> None:
-    """Apply an accepted global BA (module docstring, step 3): ``contributor.apply_global_ba``, then
-    the correction ``U_k = T_new_k T_snapshot_k^-1`` of every snapshot keyframe on its current pose
-    (also the synchronous path of a contributor that runs a job at once, e.g. the dense family's final one)."""
-    ids = [int(k) for k in job.kf_ids]
-    corr = PoseCorrection.between(dict(zip(ids, job.T_WC)), dict(zip(ids, result.T_WC)), seconds, hold_older=True)
-    contributor.apply_global_ba(job, result, keep)
-    contributor.apply_correction(corr)
 
 
 def _warm_up() -> None:
@@ -95,7 +84,7 @@ class ProximityLoops:
     """Proximity loops and their global BAs beside one contributor (module docstring).
 
     Args:
-        contributor: the frontend (a :class:`~fgslam.services.contributor.ProximityContributor`).
+        contributor: the frontend (a :class:`~fgslam.contracts.contributor.ProximityContributor`).
         config: ``loop_closure``.
         gates: the family's proximity gates (None: no proximity loops; :meth:`run_global_ba` still works).
         closer: the classical closer (or None), whose pose table follows every applied global BA.

@@ -18,8 +18,8 @@ from ...backend.snapshot import SnapshotProblem, optimize_snapshot
 from ...factors.dense import DenseBlock, DenseEdge, DenseKeyframe
 from ...factors.reprojection import ReprojectionConfig
 from ...factors.schur import torch_threads
-from ...services.contributor import GlobalBAJob
-from ...services.proximity import apply_global_ba_result
+from ...contracts.contributor import GlobalBAJob
+from ...contracts.contributor import apply_global_ba_result
 from ..records import rigid
 from .config import DenseConfig, DenseProximityConfig
 from .graph import DenseKeyframeState, EdgeMeasurement, FrameGraph, select_global_edges

@@ -1,6 +1,6 @@
 """The dense frontend's side of loop closure: the hand-over of settled keyframes to the loop port, and
-the contributor contract (:mod:`fgslam.services.contributor`) the frontend delegates to, proximity
-loops and the global optimisation's hand-over included (:class:`~fgslam.services.contributor.ProximityContributor`):
+the contributor contract (:mod:`fgslam.contracts.contributor`) the frontend delegates to, proximity
+loops and the global optimisation's hand-over included (:class:`~fgslam.contracts.contributor.ProximityContributor`):
 
 - *proximity candidates*: settled keyframes of the map with images, at least ``proximity.min_gap``
   keyframes before the query, near it in pose (camera centre within ``radius`` median query depths,
@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Optional
 import numpy as np
 
 from ...lie import sim3_matrix_parts
-from ...services.contributor import GlobalBAJob, KeyframeImage, PoseCorrection
+from ...contracts.contributor import GlobalBAJob, KeyframeImage, PoseCorrection
 
 if TYPE_CHECKING:
     from .frontend import DenseFrontend

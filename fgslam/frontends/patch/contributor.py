@@ -4,7 +4,7 @@ Loop closure, classical and proximity with the global bundle adjustment, is the 
 :class:`fgslam.services.loops.LoopService` that the system owns and connects as the frontend's loop
 port; this collaborator keeps what it needs (keyframe images while a frame may become a loop
 keyframe, settled keyframes' packed source features in a :class:`~.proximity.KeyframeStore`), feeds
-it keyframes, and implements the contract of :mod:`fgslam.services.contributor`: keyframe images and
+it keyframes, and implements the contract of :mod:`fgslam.contracts.contributor`: keyframe images and
 poses, pose corrections, proximity candidates, long-range edges, the global BA's snapshot
 (:meth:`PatchContributor.global_ba_job`, solved by :func:`.global_ba.global_bundle_adjustment`) and
 its hand-over. Finalised keyframes (out of the graph) keep their pose and patches for it."""
@@ -17,7 +17,7 @@ from functools import partial
 
 import numpy as np
 
-from ...services.contributor import GlobalBAJob, KeyframeImage, PoseCorrection
+from ...contracts.contributor import GlobalBAJob, KeyframeImage, PoseCorrection
 from ...factors.depth import depth_priors
 from ..base import NO_LOOPS, LoopPort
 from ..records import AbsolutePose
@@ -128,7 +128,7 @@ class PatchContributor:
         if query is not None:
             self.loops.search(query.fid)
 
-    # ------------------------------------------------------------------ contributor contract (fgslam.services.contributor)
+    # ------------------------------------------------------------------ contributor contract (fgslam.contracts.contributor)
     def keyframe_image(self, kf_id: int) -> KeyframeImage | None:
         kept = self.images.get(kf_id)
         if kept is None:

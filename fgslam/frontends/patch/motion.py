@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...services.contributor import PoseCorrection
+from ...contracts.contributor import PoseCorrection
 from ..base import MotionPrior
 from ..records import per_frame_motion
 from ..records import rigid as _rigid

@@ -1,4 +1,4 @@
-"""The pointmap frontend's contributor contract (:mod:`fgslam.services.contributor`), which the frontend
+"""The pointmap frontend's contributor contract (:mod:`fgslam.contracts.contributor`), which the frontend
 delegates to: keyframe images and poses for the loop service, and its corrections applied."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
-from ...services.contributor import KeyframeImage, PoseCorrection
+from ...contracts.contributor import KeyframeImage, PoseCorrection
 
 if TYPE_CHECKING:
     from .frontend import PointmapFrontend

@@ -10,7 +10,7 @@ primary frontend that feeds the backend (the patch family today)::
 It registers ``backend.on_keyframe`` and, at the safe point after every frame (``poll``), takes the
 primary's keyframes that are at least ``lag`` keyframes old and still in the backend (the patch family
 removes redundant keyframes a few frames after adding them), gets their images from the primary
-(:meth:`~fgslam.services.contributor.Contributor.keyframe_image`: grey image, intrinsics, depth), builds
+(:meth:`~fgslam.contracts.contributor.Contributor.keyframe_image`: grey image, intrinsics, depth), builds
 their pointmaps with a built-in source (``rgbd`` when the images carry depth, else the monocular
 two-view source against the previous pointmap keyframe, scaled to the backend's relative translation;
 images resized to ``pointmap.image_width``)
@@ -35,7 +35,7 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
-from ...services.plugins import parse_options
+from ...contracts.plugins import parse_options
 from ...config import MAX_KEYFRAMES, ranged
 from ...errors import DataError, OptimizationError
 from ...factors.pointmap_block import PointmapBlock

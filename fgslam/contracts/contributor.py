@@ -27,7 +27,7 @@ import numpy as np
 
 from ..loop.records import PoseCorrection
 
-__all__ = ["Contributor", "GlobalBAJob", "KeyframeImage", "PoseCorrection", "ProximityContributor"]
+__all__ = ["Contributor", "GlobalBAJob", "KeyframeImage", "PoseCorrection", "ProximityContributor", "apply_global_ba_result"]
 
 
 @dataclass(frozen=True)
@@ -100,31 +100,13 @@ class ProximityContributor(Contributor, Protocol):
         ...
 
 
-class ObservedContributor:
-    """A contributor whose map corrections pass through the run's correction hooks (the IMU service:
-    :meth:`fgslam.services.imu.ImuService.adapt_correction` and ``on_correction``): ``adapt``
-    (``correction -> correction``) may rewrite a correction before the contributor applies it (a
-    monocular-inertial map whose scale is fixed takes loop corrections as SE(3)); each listener
-    sees the correction the contributor applied, right after it (the IMU velocities follow the poses).
-    Every other attribute is the contributor's own."""
-
-    def __init__(self, contributor: Any, adapt: Optional[Callable[[PoseCorrection], PoseCorrection]] = None,
-                 listeners: tuple = ()) -> None:
-        self._contributor = contributor
-        self._adapt = adapt
-        self._listeners = tuple(listeners)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._contributor, name)
-
-    @property
-    def wrapped(self) -> Any:
-        """The contributor itself."""
-        return self._contributor
-
-    def apply_correction(self, correction: PoseCorrection) -> None:
-        if self._adapt is not None:
-            correction = self._adapt(correction)
-        self._contributor.apply_correction(correction)
-        for listener in self._listeners:
-            listener(correction)
+def apply_global_ba_result(contributor: ProximityContributor, job: GlobalBAJob, result: Any, keep: np.ndarray,
+                           seconds: float = 0.0) -> None:
+    """Apply an accepted global BA: ``contributor.apply_global_ba``, then the correction
+    ``U_k = T_new_k T_snapshot_k^-1`` of every snapshot keyframe on its current pose (the proximity
+    service's hand-over, and the synchronous path of a contributor that runs a job at once, e.g. the
+    dense family's final one)."""
+    ids = [int(k) for k in job.kf_ids]
+    corr = PoseCorrection.between(dict(zip(ids, job.T_WC)), dict(zip(ids, result.T_WC)), seconds, hold_older=True)
+    contributor.apply_global_ba(job, result, keep)
+    contributor.apply_correction(corr)
