@@ -30,20 +30,24 @@ table of ATE and frames/s per cell).
 from __future__ import annotations
 
 import csv
+import importlib.util
 import io
 import json
 import logging
 import os
 import signal
 import socket
+import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, TypedDict
 
 from .config import MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, from_dict, ranged, read_yaml
-from .errors import ConfigError, DataError
+from .errors import ConfigError, DataError, Interrupted
 from .io.run_files import SUMMARY_FILE
+from .run.signals import StopOnSignal
 
 logger = logging.getLogger(__name__)
 
@@ -147,7 +151,19 @@ def load_matrix(path: str | Path) -> tuple[BatchMatrix, Path]:
     return matrix, out
 
 
-def cells_of(matrix: BatchMatrix, out: Path) -> list[dict[str, Any]]:
+class Cell(TypedDict):
+    """One cell of the matrix, as a plain dict (what a Ray task receives)."""
+
+    config: str  # the config's name in the matrix
+    dataset: str  # the dataset's name in the matrix
+    preset: str  # preset name or YAML path
+    data: str  # dataset folder
+    format: str  # dataset loader
+    overrides: list[str]  # the cell's -o key=value: threads, the matrix's, the config's, the dataset's
+    out: str  # the cell's output folder
+
+
+def cells_of(matrix: BatchMatrix, out: Path) -> list[Cell]:
     """One plain dict per cell (what a Ray task receives)."""
     cells = []
     for cname, c in matrix.configs.items():
@@ -160,10 +176,10 @@ def cells_of(matrix: BatchMatrix, out: Path) -> list[dict[str, Any]]:
     return cells
 
 
-def check_cells(cells: list[dict[str, Any]]) -> None:
+def check_cells(cells: list[Cell]) -> None:
     """Load every cell's config before anything runs: a bad key fails the batch at once, naming the
     cell (a missing dataset folder does not: that cell fails and the others run)."""
-    from .slam import load_slam_config
+    from .run.config import load_slam_config  # deferred: the run package pulls torch (fgslam --help stays fast)
 
     for cell in cells:
         try:
@@ -172,7 +188,7 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
             raise ConfigError(f"cell {cell['config']} x {cell['dataset']}: {exc}") from exc
 
 
-def finished_row(cell: dict[str, Any]) -> Optional[dict[str, Any]]:
+def finished_row(cell: Cell) -> Optional[dict[str, Any]]:
     """The row of a cell whose folder holds a successful summary (None: run it)."""
     path = Path(cell["out"]) / SUMMARY_FILE
     try:
@@ -184,7 +200,7 @@ def finished_row(cell: dict[str, Any]) -> Optional[dict[str, Any]]:
     return _row(cell, summary, skipped=True)
 
 
-def _row(cell: dict[str, Any], summary: Optional[dict[str, Any]], skipped: bool = False, error: str = "") -> dict[str, Any]:
+def _row(cell: Cell, summary: Optional[dict[str, Any]], skipped: bool = False, error: str = "") -> dict[str, Any]:
     row = {k: None for k in COLUMNS}
     row.update(config=cell["config"], dataset=cell["dataset"], out=cell["out"], skipped=skipped, error=error or None)
     if summary is not None:
@@ -198,17 +214,19 @@ def _row(cell: dict[str, Any], summary: Optional[dict[str, Any]], skipped: bool 
     return row
 
 
-def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
+def run_cell(cell: Cell) -> dict[str, Any]:
     """Run one cell (in a Ray worker or in this process); never raises: a failure is the row's error."""
-    from .slam import load_slam_config, open_slam_dataset, run_slam
+    from .run.config import load_slam_config  # deferred: the run package pulls torch (fgslam --help stays fast)
+    from .run.prepare import prepare_run  # deferred: as above
+    from .run.runner import run_prepared  # deferred: as above
 
     summary = None
     started_ns = time.time_ns()
     try:
         config = load_slam_config(cell["preset"], cell["overrides"])
-        dataset = open_slam_dataset(cell["data"], config, cell["format"])
         # the batch owns its cell folders: a cell not finished before is run again over its last attempt
-        result = run_slam(dataset, config, cell["out"], progress=False, overwrite=True)
+        run = prepare_run(cell["data"], config, cell["out"], fmt=cell["format"], overwrite=True)
+        result = run_prepared(run, progress=False)
         summary = result.to_dict()
         return _row(cell, json.loads(json.dumps(summary, default=str)))
     except Exception as exc:  # noqa: BLE001 - a failing cell is recorded, the batch goes on
@@ -226,8 +244,6 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
 
 def ray_available() -> bool:
     """Whether Ray is installed (found without importing it: importing Ray takes seconds)."""
-    import importlib.util
-
     return importlib.util.find_spec("ray") is not None
 
 
@@ -279,9 +295,6 @@ def _probe_ray_init(address: str, timeout_s: float) -> None:
     """Join the cluster at ``address`` once in a child process, killed after ``timeout_s``: Ray's own
     attempts retry for minutes inside its C++ client (no signal handled, no thread can stop them), so
     only a process of its own bounds them. DataError, one line naming the address, on failure."""
-    import subprocess
-    import sys
-
     logger.info("joining the Ray cluster at %s (at most %g s)", address, timeout_s)
     try:
         proc = subprocess.run([sys.executable, "-c", _PROBE_RAY_INIT, address], capture_output=True, text=True,
@@ -294,11 +307,11 @@ def _probe_ray_init(address: str, timeout_s: float) -> None:
         raise DataError(f"Ray cluster at {address}: joining it failed: {last}")
 
 
-def _init_ray(kwargs: dict[str, Any], address: str | None, timeout_s: float) -> None:
+def _init_ray(kwargs: dict[str, object], address: str | None, timeout_s: float) -> None:
     """``ray.init(**kwargs)``; a cluster at ``address`` is first joined once by a child process
     bounded by ``timeout_s`` (:func:`_probe_ray_init`). The batch's SIGTERM handler is kept (ray.init
     installs its own, a ``sys.exit``)."""
-    import ray
+    import ray  # deferred: ray (optional, seconds to import)
 
     if address:
         _probe_ray_init(address, timeout_s)
@@ -360,9 +373,6 @@ def run_batch(matrix: BatchMatrix, out: Path, options: BatchOptions | None = Non
 
     facts: dict[str, Any] = {"engine": engine, "cells": len(cells), "run": len(todo), "skipped": len(cells) - len(todo),
                              "load_average_start": [round(v, 2) for v in os.getloadavg()]}
-    from .errors import Interrupted
-    from .slam import StopOnSignal
-
     try:
         with StopOnSignal((signal.SIGTERM,)):  # SIGTERM (and Ctrl-C) stop the batch; the finished rows are kept
             if engine == "ray" and todo:
@@ -383,12 +393,13 @@ def run_batch(matrix: BatchMatrix, out: Path, options: BatchOptions | None = Non
     return ordered, facts
 
 
-def _run_ray(cells, todo, cpus, options: BatchOptions, address, record) -> dict[str, Any]:
-    import ray
+def _run_ray(cells: list[Cell], todo: list[int], cpus: int, options: BatchOptions, address: Optional[str],
+             record: Callable[[int, dict[str, Any]], None]) -> dict[str, Any]:
+    import ray  # deferred: ray (optional, seconds to import)
 
     started_here = not ray.is_initialized()
     if started_here:
-        kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
+        kwargs: dict[str, object] = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
         if address:
             kwargs["address"] = address
         else:
@@ -420,7 +431,7 @@ def _run_ray(cells, todo, cpus, options: BatchOptions, address, record) -> dict[
 # ----------------------------------------------------------------------------------------- tables
 
 
-def _fmt(value: Any, digits: int = 3) -> str:
+def _fmt(value: object, digits: int = 3) -> str:
     if value is None:
         return "-"
     if isinstance(value, float):

@@ -26,11 +26,14 @@ import types
 import typing
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import yaml
 
 from .errors import ConfigError
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
 T = TypeVar("T")
 
@@ -116,7 +119,7 @@ def field_range(f: dataclasses.Field) -> Range | None:
     return f.metadata.get(RANGE_KEY)
 
 
-def _check_range(value: Any, rng: Range, key: str, source: str) -> None:
+def _check_range(value: object, rng: Range, key: str, source: str) -> None:
     items = value if isinstance(value, (list, tuple)) else [value]
     for item in items:
         if item is None or isinstance(item, bool) or not isinstance(item, (int, float)):
@@ -129,7 +132,7 @@ def _check_range(value: Any, rng: Range, key: str, source: str) -> None:
             raise ConfigError(f"{source}: key '{key}': must be {rng.text()} (got {value!r})")
 
 
-def check_ranges(obj: Any, prefix: str = "", source: str = "config") -> None:
+def check_ranges(obj: DataclassInstance, prefix: str = "", source: str = "config") -> None:
     """Check every :func:`ranged` field of the dataclass instance ``obj`` and of its nested sections
     (for configs built in code, which :func:`load_config` never saw); ConfigError naming the key."""
     for f in dataclasses.fields(obj):
@@ -178,7 +181,7 @@ def with_sections(sections: Callable[[], Mapping[str, type]], after: str) -> Cal
         clash = sorted(set(added) & set(own))
         if clash:
             raise TypeError(f"{cls.__name__}: section {clash[0]!r} is both a field and a registered section")
-        annotations: dict[str, Any] = {}
+        annotations: dict[str, object] = {}
         for name, tp in own.items():
             annotations[name] = tp
             if name == after:
@@ -195,12 +198,13 @@ def with_sections(sections: Callable[[], Mapping[str, type]], after: str) -> Cal
 _BOOL_WORDS = {False: ("off", "no", "false"), True: ("on", "yes", "true")}
 
 
-def _type_name(tp: Any) -> str:
+def _type_name(tp: object) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 
-def _convert(value: Any, tp: Any, key: str, source: str) -> Any:
-    """Check/convert ``value`` to type ``tp``; raise ConfigError naming ``key`` and ``source``."""
+def _convert(value: Any, tp: object, key: str, source: str) -> Any:
+    """Check/convert ``value`` (parsed YAML, or a value given in code) to the field type ``tp`` (a
+    class or a typing form); raise ConfigError naming ``key`` and ``source``."""
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
 
@@ -325,7 +329,7 @@ def from_dict(cls: type[T], data: Mapping[str, Any] | None, source: str = "<dict
     return _build(cls, data, source, prefix=prefix)
 
 
-def to_dict(obj: Any) -> Any:
+def to_dict(obj: object) -> Any:
     """Plain-YAML/JSON form of a config dataclass (paths and tuples become strings and lists)."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}

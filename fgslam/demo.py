@@ -2,7 +2,7 @@
 frontend, monocular) on it, evaluate against the exact ground truth and report.
 
 Configuration: :class:`DemoConfig`, preset ``fgslam/configs/demo.yaml``, with two sections: ``scene``
-(:class:`DemoSceneConfig`: what is rendered) and ``slam`` (a :class:`fgslam.runconfig.SlamConfig`: what
+(:class:`DemoSceneConfig`: what is rendered) and ``slam`` (a :class:`fgslam.run.config.SlamConfig`: what
 is run). ``-o scene.frames=200`` / ``-o slam.patch.ba.iterations=3`` override.
 
 Outputs under the demo folder: ``sequence/`` (the rendered EuRoC-layout sequence, reused when a
@@ -14,15 +14,17 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Sequence
 
 import yaml
 
 from .config import MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, MAX_SEED, load_config, ranged, to_dict
 from .io.synth import SynthSequence, write_sequence
 from .io.synth.scenarios import load_synth_config
-from .presets import configs_dir
-from .slam import SlamConfig, open_slam_dataset, run_slam
+from .run.config import SlamConfig
+from .run.prepare import prepare_run
+from .run.presets import configs_dir
+from .run.runner import run_prepared
 
 PRESET_NAME = "demo"  # fgslam/configs/demo.yaml
 
@@ -47,7 +49,7 @@ class DemoConfig:
     slam: SlamConfig = field(default_factory=SlamConfig)
 
 
-def load_demo_config(path=None, overrides=()) -> DemoConfig:
+def load_demo_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> DemoConfig:
     """DemoConfig from a YAML file (None: the preset ``fgslam/configs/demo.yaml`` when it exists, else the defaults)."""
     if path is None:
         default = configs_dir() / f"{PRESET_NAME}.yaml"
@@ -55,7 +57,7 @@ def load_demo_config(path=None, overrides=()) -> DemoConfig:
     return load_config(DemoConfig, path, overrides)
 
 
-def render_scene(scene: DemoSceneConfig, root) -> dict:
+def render_scene(scene: DemoSceneConfig, root: str | Path) -> dict:
     """Render ``scene`` under ``root`` unless the same scene is already there; returns facts about it."""
     root = Path(root)
     cfg = load_synth_config(scene.preset, None, [
@@ -72,15 +74,15 @@ def render_scene(scene: DemoSceneConfig, root) -> dict:
     return {"path": str(root), "reused": False, "render_s": time.perf_counter() - t0}
 
 
-def run_demo(config: DemoConfig, out_dir, progress: bool = True) -> dict:
+def run_demo(config: DemoConfig, out_dir: str | Path, progress: bool = True) -> dict:
     """Render (or reuse) the scene under ``out_dir/sequence``, run SLAM into ``out_dir/run``.
 
     Returns ``{"scene", "sequence", "total_s", "summary"}`` (the run's summary.json content)."""
     out = Path(out_dir)
     t0 = time.perf_counter()
     rendered = render_scene(config.scene, out / "sequence")
-    dataset = open_slam_dataset(out / "sequence", config.slam, "euroc")
-    summary = run_slam(dataset, config.slam, out / "run", progress=progress, overwrite=True).to_dict()  # the demo's own run folder
+    run = prepare_run(out / "sequence", config.slam, out / "run", fmt="euroc", overwrite=True)  # the demo's own run folder
+    summary = run_prepared(run, progress=progress).to_dict()
     return {"scene": to_dict(config.scene), "sequence": rendered, "total_s": time.perf_counter() - t0,
             "summary": summary}
 

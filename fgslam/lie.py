@@ -16,7 +16,8 @@ Conventions (the standard ones, mapped exactly onto gtsam's at every gtsam bound
 * ``adjoint()`` follows gtsam's ``AdjointMap``: ``T Exp(xi) T^-1 = Exp(Ad_T xi)``.
 
 All closed forms have series branches near zero angle / zero log-scale, and ``so3_log`` is stable
-at angles near pi, so identity and near-identity elements give no NaN.
+at angles near pi, so identity and near-identity elements give no NaN. The rotation part (``skew``,
+``so3_exp``, ``so3_log``) is :mod:`fgslam.so3`.
 """
 
 from __future__ import annotations
@@ -27,9 +28,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-# Below this rotation angle (radians) the trigonometric coefficient functions switch to their Taylor
-# series (truncated after theta^4: truncation error < 1e-16 relative in float64, < 1e-9 in float32).
-_SMALL_ANGLE = {torch.float64: 1e-2, torch.float32: 1e-1}
+from .so3 import batch_eye, project_so3, skew, small_angle, so3_exp, so3_log
+
 # |lambda| below which the moments m_k(lambda) = int_0^1 tau^k e^(lambda tau) dtau use their power
 # series (30 terms: truncation < 1e-23); above it the upward recurrence amplifies rounding <= 6!/2^6.
 _SERIES_LAMBDA = 2.0
@@ -38,76 +38,6 @@ _SERIES_TERMS = 30
 # series is truncated after degree 14 (remainder < 0.5^15/15! ~ 2e-17 relative).
 _PHI_SCALED_NORM = 0.5
 _PHI_TAYLOR_DEGREE = 14
-# sin(theta) below which (with cos(theta) < 0) so3_log takes the axis from the symmetric part of R.
-_NEAR_PI_SIN = 0.5
-
-
-def _small_angle(dtype: torch.dtype) -> float:
-    return _SMALL_ANGLE.get(dtype, _SMALL_ANGLE[torch.float32])
-
-
-def skew(v: torch.Tensor) -> torch.Tensor:
-    """Skew-symmetric matrix ``[v]x`` (..., 3, 3) with ``[v]x y = v x y`` for v (..., 3)."""
-    x, y, z = v.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(v.shape[:-1] + (3, 3))
-
-
-def _vee(M: torch.Tensor) -> torch.Tensor:
-    """``vee(M - M^T) / 2`` for a (..., 3, 3) matrix (the axial vector of its skew part)."""
-    return 0.5 * torch.stack(
-        [M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1
-    )
-
-
-def _eye(shape: Sequence[int], n: int, like: torch.Tensor) -> torch.Tensor:
-    return torch.eye(n, dtype=like.dtype, device=like.device).expand(*shape, n, n)
-
-
-def _so3_coeffs(theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``A = sin(theta)/theta`` and ``B = (1 - cos theta)/theta^2`` with a series near 0."""
-    small = theta < _small_angle(theta.dtype)
-    th = torch.where(small, torch.ones_like(theta), theta)
-    t2 = theta * theta
-    A = torch.where(small, 1 - t2 / 6 * (1 - t2 / 20), torch.sin(th) / th)
-    half = torch.sin(0.5 * th) / th
-    B = torch.where(small, 0.5 - t2 / 24 * (1 - t2 / 30), 2 * half * half)
-    return A, B
-
-
-def so3_exp(w: torch.Tensor) -> torch.Tensor:
-    """Rotation matrix ``exp([w]x)`` (..., 3, 3) of a rotation vector w (..., 3) (Rodrigues)."""
-    theta = torch.linalg.vector_norm(w, dim=-1)
-    A, B = _so3_coeffs(theta)
-    W = skew(w)
-    return _eye(w.shape[:-1], 3, w) + A[..., None, None] * W + B[..., None, None] * (W @ W)
-
-
-def so3_log(R: torch.Tensor) -> torch.Tensor:
-    """Rotation vector w (..., 3) with ``so3_exp(w) = R``, angle in [0, pi] (equal to gtsam Rot3.Logmap).
-
-    The angle is ``atan2(sin, cos)`` (well conditioned everywhere); near pi the axis comes from the
-    symmetric part ``(R + R^T)/2 - cos I = (1 - cos) n n^T`` with the sign of the skew part.
-    """
-    v = _vee(R)  # = sin(theta) n
-    sin_t = torch.linalg.vector_norm(v, dim=-1)
-    cos_t = 0.5 * (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1)
-    theta = torch.atan2(sin_t, cos_t)
-    # Generic / small angle: w = theta / sin(theta) * v.
-    small = theta < _small_angle(R.dtype)
-    t2 = theta * theta
-    safe_sin = torch.where(small, torch.ones_like(sin_t), sin_t)
-    factor = torch.where(small, 1 + t2 / 6 * (1 + 7 * t2 / 60), theta / safe_sin)
-    w_generic = factor[..., None] * v
-    # Near pi: axis from the largest column of the symmetric part.
-    near_pi = (cos_t < 0) & (sin_t < _NEAR_PI_SIN)
-    S = 0.5 * (R + R.transpose(-1, -2)) - cos_t[..., None, None] * _eye(R.shape[:-2], 3, R)
-    k = S.diagonal(dim1=-2, dim2=-1).argmax(-1)
-    col = torch.gather(S, -1, k[..., None, None].expand(*S.shape[:-1], 1)).squeeze(-1)
-    n = col / torch.linalg.vector_norm(col, dim=-1, keepdim=True).clamp_min(torch.finfo(R.dtype).tiny)
-    sign = torch.where((n * v).sum(-1) < 0, -torch.ones_like(theta), torch.ones_like(theta))
-    w_pi = (sign * theta)[..., None] * n
-    return torch.where(near_pi[..., None], w_pi, w_generic)
 
 
 def _moments(lam: torch.Tensor, kmax: int) -> list[torch.Tensor]:
@@ -137,7 +67,7 @@ def _sim3_v_coeffs(theta: torch.Tensor, lam: torch.Tensor) -> tuple[torch.Tensor
     """
     m = _moments(lam, 6)
     a = m[0]
-    small = theta < _small_angle(theta.dtype)
+    small = theta < small_angle(theta.dtype)
     t2 = theta * theta
     b_ser = m[1] - t2 * m[3] / 6 + t2 * t2 * m[5] / 120
     c_ser = m[2] / 2 - t2 * m[4] / 24 + t2 * t2 * m[6] / 720
@@ -218,7 +148,7 @@ class SE3:
     @staticmethod
     def from_matrix(M: torch.Tensor) -> SE3:
         """From homogeneous (..., 4, 4) matrices; the rotation block is projected onto SO(3)."""
-        return SE3(_project_so3(M[..., :3, :3]), M[..., :3, 3].clone())
+        return SE3(project_so3(M[..., :3, :3]), M[..., :3, 3].clone())
 
     # ----- group operations
     def log(self) -> torch.Tensor:
@@ -245,7 +175,7 @@ class SE3:
 
     def act_jacobian(self, X: torch.Tensor) -> torch.Tensor:
         """``d(T Exp(xi) X)/dxi`` at xi = 0: ``R [-[X]x, I]`` (..., 3, 6)."""
-        eye = _eye(X.shape[:-1], 3, X)
+        eye = batch_eye(X.shape[:-1], 3, X)
         return self.R @ torch.cat([-skew(X), eye], -1)
 
     def adjoint(self) -> torch.Tensor:
@@ -290,7 +220,7 @@ class SE3:
         """``gtsam.Pose3`` for an unbatched element, else a flat list (row-major over the batch).
 
         Always float64; rotations of lower precision are projected onto SO(3) first."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         shape = self.shape
         R = _rotations_for_gtsam(self.R.detach().expand(*shape, 3, 3)).reshape(-1, 3, 3).numpy()
@@ -301,8 +231,6 @@ class SE3:
     @staticmethod
     def from_gtsam(obj, dtype: torch.dtype = torch.float64) -> SE3:
         """From one ``gtsam.Pose3`` (shape ()) or a list of them (shape (N,))."""
-        import numpy as np
-
         items = obj if isinstance(obj, (list, tuple)) else [obj]
         R = torch.as_tensor(np.stack([p.rotation().matrix() for p in items]), dtype=dtype)
         t = torch.as_tensor(np.stack([np.asarray(p.translation()) for p in items]), dtype=dtype)
@@ -369,7 +297,7 @@ class Sim3:
         """From (..., 4, 4) matrices ``[[s R, t], [0, 1]]``: s = cbrt(det), R projected onto SO(3)."""
         A = M[..., :3, :3]
         s = torch.linalg.det(A).abs() ** (1.0 / 3.0)
-        return Sim3(_project_so3(A / s[..., None, None]), M[..., :3, 3].clone(), s)
+        return Sim3(project_so3(A / s[..., None, None]), M[..., :3, 3].clone(), s)
 
     # ----- group operations
     def log(self) -> torch.Tensor:
@@ -398,7 +326,7 @@ class Sim3:
 
     def act_jacobian(self, X: torch.Tensor) -> torch.Tensor:
         """``d(T Exp(xi) X)/dxi`` at xi = 0: ``s R [-[X]x, I, X]`` (..., 3, 7)."""
-        eye = _eye(X.shape[:-1], 3, X)
+        eye = batch_eye(X.shape[:-1], 3, X)
         return self.s[..., None, None] * (self.R @ torch.cat([-skew(X), eye, X[..., None]], -1))
 
     def adjoint(self) -> torch.Tensor:
@@ -436,7 +364,7 @@ class Sim3:
         W = skew(w)
         out[..., :3, :3] = W
         out[..., 3:6, :3] = skew(u)
-        out[..., 3:6, 3:6] = W + lam[..., None, None] * _eye(xi.shape[:-1], 3, xi)
+        out[..., 3:6, 3:6] = W + lam[..., None, None] * batch_eye(xi.shape[:-1], 3, xi)
         out[..., 3:6, 6] = -u
         return out
 
@@ -464,8 +392,6 @@ class Sim3:
     @staticmethod
     def from_gtsam(obj, dtype: torch.dtype = torch.float64) -> Sim3:
         """From one ``gtsam.Similarity3`` (shape ()) or a list of them (shape (N,))."""
-        import numpy as np
-
         items = obj if isinstance(obj, (list, tuple)) else [obj]
         R = torch.as_tensor(np.stack([p.rotation().matrix() for p in items]), dtype=dtype)
         s = torch.as_tensor(np.array([p.scale() for p in items]), dtype=dtype)
@@ -505,7 +431,7 @@ def _right_jacobian(ad: torch.Tensor) -> torch.Tensor:
     norm = torch.linalg.matrix_norm(A, ord=1).max().item() if A.numel() else 0.0
     m = max(0, math.ceil(math.log2(norm / _PHI_SCALED_NORM))) if norm > _PHI_SCALED_NORM else 0
     A = A / (2.0**m)
-    eye = _eye(ad.shape[:-2], n, ad)
+    eye = batch_eye(ad.shape[:-2], n, ad)
     term, E, Phi = eye, eye.clone(), eye.clone()
     for k in range(1, _PHI_TAYLOR_DEGREE + 1):
         term = term @ A / k
@@ -522,16 +448,8 @@ def _rotations_for_gtsam(R: torch.Tensor) -> torch.Tensor:
     matrix as given, and a float32-rounded rotation is orthonormal only to ~1e-7)."""
     if R.dtype == torch.float64:
         return R.cpu()
-    return _project_so3(R.to(torch.float64)).cpu()
+    return project_so3(R.to(torch.float64)).cpu()
 
-
-def _project_so3(A: torch.Tensor) -> torch.Tensor:
-    """Nearest rotation matrix (Frobenius) to each (..., 3, 3) matrix, via SVD."""
-    U, _, Vh = torch.linalg.svd(A)
-    d = torch.sign(torch.linalg.det(U @ Vh))
-    D = torch.ones(*A.shape[:-2], 3, dtype=A.dtype, device=A.device)
-    D[..., 2] = d
-    return (U * D[..., None, :]) @ Vh
 
 
 def stack(elements: Sequence[SE3] | Sequence[Sim3], dim: int = 0) -> SE3 | Sim3:
@@ -548,10 +466,6 @@ def stack(elements: Sequence[SE3] | Sequence[Sim3], dim: int = 0) -> SE3 | Sim3:
     if isinstance(first, Sim3):
         return Sim3(R, t, torch.stack([e.s.expand(e.shape) for e in elements], dim))
     return SE3(R, t)
-
-
-__all__ = ["SE3", "Sim3", "skew", "so3_exp", "so3_log", "stack"]
-
 
 
 def sim3_matrix_parts(M: np.ndarray, project: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
@@ -572,7 +486,7 @@ def similarity3(R: np.ndarray, t: np.ndarray, s: float):
     """``gtsam.Similarity3`` of rotation ``R``, translation ``t`` and scale ``s`` of the matrix
     ``[[s R, t], [0, 1]]`` (gtsam acts as ``s (R p + t_g)``, so ``t_g = t / s``): the one conversion
     into gtsam, used by :meth:`Sim3.to_gtsam` and :func:`gtsam_sim3`."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     return gtsam.Similarity3(gtsam.Rot3(R), t / s, s)
 

@@ -113,7 +113,7 @@ class PGOResult:
 
 def pose_to_gtsam(dim: int, pose: np.ndarray) -> gtsam.Pose2 | gtsam.Pose3:
     """``[x, y, theta]`` -> Pose2, ``[x, y, z, qx, qy, qz, qw]`` -> Pose3."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     if dim == 2:
         return gtsam.Pose2(float(pose[0]), float(pose[1]), float(pose[2]))
@@ -141,7 +141,7 @@ def information_to_gtsam(dim: int, information: np.ndarray) -> np.ndarray:
 
 def gauge_prior_factors(graph: PoseGraph, config: PGOConfig) -> list:
     """Priors fixing the gauge: on the FIX vertices, else on the first vertex (at the file pose or identity)."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     anchors = graph.fixed if graph.fixed else [int(graph.ids[0])]
     row_of = {int(v): k for k, v in enumerate(graph.ids.tolist())}
@@ -163,7 +163,7 @@ def build_factor_graph(graph: PoseGraph, config: PGOConfig) -> tuple[gtsam.Nonli
 
     Returns the graph and the number of edges left out because of non-positive-definite information.
     """
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     skip = set(graph.indefinite_edges.tolist())
     if skip and config.indefinite_information == "error":
@@ -213,7 +213,7 @@ def _check_connected(graph: PoseGraph, skip: set[int]) -> None:
 
 def initial_estimate(graph: PoseGraph, factors: gtsam.NonlinearFactorGraph, init: str) -> gtsam.Values:
     """Initial ``T_W_i``: the file poses (``as-is``) or chordal relaxation (InitializePose3 / LAGO)."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     if init == "as-is":
         if graph.poses is None:
@@ -244,7 +244,7 @@ def diagonalised_pose2_graph(factors: gtsam.NonlinearFactorGraph) -> gtsam.Nonli
     gtsam's LAGO only accepts diagonal noise models (it reads the theta sigma); the marginal variances
     (diagonal of the covariance) keep each edge's rotation uncertainty exact. Used for initialisation only.
     """
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     diagonal = gtsam.NonlinearFactorGraph()
     for k in range(factors.size()):
@@ -260,7 +260,7 @@ def diagonalised_pose2_graph(factors: gtsam.NonlinearFactorGraph) -> gtsam.Nonli
 
 def lm_params(config: PGOConfig) -> gtsam.LevenbergMarquardtParams:
     """gtsam's own LM parameters with the settings of :func:`lm_settings` (side-by-side benchmarks)."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)

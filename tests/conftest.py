@@ -82,7 +82,9 @@ def room_loop_rgbd_both(room_loop_clip, tmp_path_factory):
     closure against the run without."""
     import json
 
-    from fgslam.slam import SUMMARY_FILE, open_slam_dataset, run_slam
+    from fgslam.io.run_files import SUMMARY_FILE
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
     from patch_support import room_loop_slam_config
 
     root, _ = room_loop_clip(4.0, 19)

@@ -63,7 +63,9 @@ def timeless(value):
 def run_preset(root, preset: str, out, overrides=()):
     """``(dataset, summary, est)`` of ``fgslam``'s run of ``preset`` (with ``overrides``) on the dataset
     at ``root`` into ``out``; ``est`` is the written TUM trajectory as an (N, 8) array."""
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
 
     cfg = load_slam_config(preset, list(overrides))
     ds = open_slam_dataset(root, cfg)

@@ -40,7 +40,7 @@ def room_loop_slam_config(mode: str, sensor: str = "mono", threaded: bool = Fals
     """The run config of the loop-closure tests on the 4 Hz room loop: the light patch graph, loop
     closure ``mode`` (``threaded``: in its worker threads and process, else synchronously), no plots."""
     from fgslam.loop.closure import LoopClosureConfig
-    from fgslam.slam import SlamConfig
+    from fgslam.run.config import SlamConfig
 
     cfg = SlamConfig(sensor=sensor, patch=light_patch_config())
     cfg.loop_closure = LoopClosureConfig(mode=mode, run_in_thread=threaded)

@@ -12,8 +12,8 @@ import numpy as np
 from fgslam.backend.graph import as_similarity3
 from fgslam.frontends.base import FrameStatus, Frontend
 from fgslam.backend.keys import pose_key
-from fgslam.io.synth.scenarios import build_trajectory, default_config
-from fgslam.io.synth.sequence import camera_mount
+from fgslam.io.synth.motions import build_trajectory
+from fgslam.io.synth.scenarios import camera_mount, default_config
 from fgslam.loop.records import LoopCorrection
 
 
@@ -49,7 +49,7 @@ def write_positions(path: Path, t: np.ndarray, T_WC: np.ndarray, rate_hz: float,
     return path
 
 
-class DriftingOdometry:
+class DriftingOdometry(Frontend):
     """A toy contributor that feeds keyframes and Sim(3) odometry factors into a backend, the way a
     visual-odometry frontend would: each new keyframe is dead-reckoned from the backend's current
     estimate of the previous one with a measured relative pose, the measurement being the true one
@@ -100,8 +100,12 @@ class DriftingOdometry:
         """The frontend interface of a run (the system steps it: see :func:`plugin_system`)."""
         self.step(k)
 
-    def finish(self) -> None:
-        pass
+    def trajectory(self):
+        ids = self.backend.keyframe_ids
+        return self.t[ids], np.array([self.backend.pose_matrix(k) for k in ids]), ["tracked"] * len(ids)
+
+    def num_keyframes(self) -> int:
+        return len(self.backend.keyframe_ids)
 
     def _add_factor(self, i: int, j: int) -> None:
         factor = gtsam.BetweenFactorSimilarity3(pose_key(i), pose_key(j), as_similarity3(self.Z[(i, j)]),
@@ -128,7 +132,7 @@ def plugin_system(odometry, entries, timestamps=None):
     """The run's system around ``odometry`` (a DriftingOdometry, or one without ``apply_correction``)
     with the factor plugins of ``entries`` (none: no plugin service); it steps keyframe numbers as frames."""
     from fgslam.services.plugins import FactorPlugins
-    from fgslam.system import SlamSystem
+    from fgslam.run.system import SlamSystem
 
     plugins = FactorPlugins(entries, odometry.backend, timestamps, contributor=odometry) if entries else None
     return SlamSystem(odometry, odometry.backend, plugins=plugins)
@@ -180,7 +184,7 @@ class OdometryFrontend(Frontend):
         return len(self.backend.keyframe_ids)
 
 
-class NoContributor:
+class NoContributor(Frontend):
     """The same odometry as a frontend without ``apply_correction``: plugins' corrections then move the
     backend's keyframes with their Sim(3) scales (nothing folds them), which a Sim(3) map absorbs: new
     keyframes are dead-reckoned from the corrected, scaled poses."""
@@ -192,5 +196,8 @@ class NoContributor:
     def process(self, k: int) -> None:
         self.odometry.step(k)
 
-    def finish(self) -> None:
-        pass
+    def trajectory(self):
+        return self.odometry.trajectory()
+
+    def num_keyframes(self) -> int:
+        return self.odometry.num_keyframes()

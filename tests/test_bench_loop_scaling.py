@@ -1,8 +1,6 @@
 """tools/bench_loop_scaling.py at tiny sizes: the parts run and give well-formed JSON (no timing checks)."""
 
 import json
-import sys
-from dataclasses import replace
 
 import numpy as np
 import pytest

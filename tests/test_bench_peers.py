@@ -85,7 +85,7 @@ def test_sequence_selection_and_commands(bench, tmp_path):
     assert fg[fg.index("run") + 1] == "patch_kitti_mono"
     assert [fg[i + 1] for i, a in enumerate(fg) if a == "-o"] == ["patch.ba.iterations=3", "loop_closure.mode=off"]
     # every sequence's fgslam preset exists
-    from fgslam.slam import load_slam_config
+    from fgslam.run.config import load_slam_config
 
     for seq in bench.SEQUENCES.values():
         load_slam_config(seq.preset, [])
@@ -175,7 +175,8 @@ def _fake_peer(tmp_path: Path) -> tuple[Path, Path]:
 
 
 def test_whole_run_with_fake_peer_and_fake_fgslam(bench, shared_data, tmp_path, monkeypatch, capsys):
-    from fgslam.slam import load_slam_config, open_slam_dataset
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
 
     ds = open_slam_dataset(shared_data / "kitti00_0-199", load_slam_config("patch_kitti_mono", []))
     gt = ds.groundtruth

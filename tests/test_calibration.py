@@ -1,4 +1,4 @@
-"""Tests of fgslam.io.calibration: Calibration validation/YAML and the OpenCV Undistorter."""
+"""Tests of fgslam.io.calibration (Calibration validation/YAML) and fgslam.io.undistort (the OpenCV Undistorter)."""
 
 import re
 
@@ -8,7 +8,8 @@ import pytest
 import yaml
 
 from fgslam.errors import DataError
-from fgslam.io.calibration import Calibration, Undistorter
+from fgslam.io.calibration import Calibration
+from fgslam.io.undistort import Undistorter
 
 W, H = 320, 240
 K_RAW = [260.0, 255.0, 161.3, 118.7]

@@ -58,7 +58,8 @@ def _aligned_fgslam_cloud(out, groundtruth) -> np.ndarray:
     from fgslam.eval import EvalConfig, evaluate
     from fgslam.export.map import load_run_map
     from fgslam.io.trajectory import read_trajectory
-    from fgslam.slam import MAP_FILE, TUM_FILE
+    from fgslam.io.run_files import TUM_FILE
+    from fgslam.run.files import MAP_FILE
 
     a = evaluate(groundtruth, read_trajectory(out / "fgslam" / TUM_FILE, "tum"), EvalConfig(align="sim3")).alignment
     return a.s * load_run_map(out / "fgslam" / MAP_FILE).map.X_W @ a.R.T + a.t

@@ -142,7 +142,7 @@ def test_shipped_presets_load_from_the_package_data():
     names a module config class, loads by its bare name and passes its range and validate checks."""
     from importlib import resources
 
-    from fgslam.presets import available_presets, load_preset_file
+    from fgslam.run.presets import available_presets, load_preset_file
 
     listed = sorted(p.name[: -len(".yaml")] for p in resources.files("fgslam").joinpath("configs").iterdir()
                     if p.name.endswith(".yaml"))
@@ -214,8 +214,8 @@ def _load_class(target: str) -> type:
 
 
 def _config_classes() -> list[type]:
-    """Every config dataclass reachable from the preset roots (fgslam/presets.py) and the extras."""
-    from fgslam.presets import PRESET_CLASSES, RUN_CONFIG_CLASS
+    """Every config dataclass reachable from the preset roots (fgslam/run/presets.py) and the extras."""
+    from fgslam.run.presets import PRESET_CLASSES, RUN_CONFIG_CLASS
 
     seen: list[type] = []
 
@@ -325,7 +325,7 @@ ISSUE9_OUT_OF_RANGE = [
     ("log_interval_s=0", "log_interval_s"),
 ])
 def test_load_slam_config_rejects_out_of_range_values_naming_the_key(override, key):
-    from fgslam.slam import load_slam_config
+    from fgslam.run.config import load_slam_config
 
     with pytest.raises(ConfigError, match=rf"patch_mono.yaml with overrides .*key '{key}': must be "):
         load_slam_config("patch_mono", [override])
@@ -362,7 +362,7 @@ ISSUE21_TOO_LARGE = [
     ("patch.ba.pixel_sigma=.nan", "patch.ba.pixel_sigma"),
 ])
 def test_infinity_and_nan_are_refused_naming_the_key(override, key):
-    from fgslam.slam import load_slam_config
+    from fgslam.run.config import load_slam_config
 
     with pytest.raises(ConfigError, match=rf"key '{re.escape(key)}': must be a finite number \(got -?(inf|nan)\)"):
         load_slam_config("patch_mono", [override])
@@ -370,7 +370,7 @@ def test_infinity_and_nan_are_refused_naming_the_key(override, key):
 
 @pytest.mark.parametrize("override, key", ISSUE21_TOO_LARGE)
 def test_values_beyond_any_real_use_are_refused_naming_the_key(override, key):
-    from fgslam.slam import load_slam_config
+    from fgslam.run.config import load_slam_config
 
     with pytest.raises(ConfigError, match=rf"key '{key}': must be >= \d+ and <= \d+ \(got \d+\)"):
         load_slam_config("patch_mono", [override])
@@ -380,7 +380,7 @@ def test_values_beyond_any_real_use_are_refused_naming_the_key(override, key):
                                            ("patch.ba.pixel_sigma=1" + "0" * 400, "patch.ba.pixel_sigma")])
 def test_integers_beyond_any_float_are_refused_naming_the_key(override, key):
     """An integer too large for a float (an OverflowError before) is a ConfigError naming the key."""
-    from fgslam.slam import load_slam_config
+    from fgslam.run.config import load_slam_config
 
     with pytest.raises(ConfigError, match=rf"key '{re.escape(key)}': must be"):
         load_slam_config("patch_mono", [override])
@@ -452,7 +452,7 @@ def test_localize_yaml_shows_every_key_with_its_default():
     import yaml
 
     from fgslam.config import to_dict
-    from fgslam.localize import LocalizeConfig
+    from fgslam.localize.localizer import LocalizeConfig
 
     shown = yaml.safe_load(files("fgslam").joinpath("configs", "localize.yaml").read_text())
     assert shown == to_dict(LocalizeConfig())

@@ -9,7 +9,7 @@ import pytest
 
 from fgslam.demo import DemoConfig, DemoSceneConfig, format_demo_report, load_demo_config, render_scene
 from fgslam.errors import ConfigError
-from fgslam.slam import SUMMARY_FILE, TUM_FILE
+from fgslam.io.run_files import SUMMARY_FILE, TUM_FILE
 
 REPO = Path(__file__).resolve().parents[1]
 

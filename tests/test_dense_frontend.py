@@ -131,7 +131,9 @@ def test_blank_frames_and_depth_holes_are_counted_and_recovered(room, caplog):
 def test_registry_presets_swap_and_runner_outputs(room, tmp_path):
     """``frontend: dense`` from the registry, ``-o frontend=dense`` on a patch preset, and a run writing
     depth/<kf>.png (16-bit millimetres) and points.ply."""
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
 
     config = load_slam_config("patch_rgbd", ["frontend=dense", "dense.ba.window=4", "output.write_depth=true",
                                              "output.write_ply=true", "output.plot=false"])

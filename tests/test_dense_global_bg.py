@@ -25,8 +25,11 @@ from fgslam.frontends.dense import DenseConfig, DenseFrontend
 from fgslam.io.trajectory import Trajectory
 from fgslam.loop.records import LoopClosureConfig
 from fgslam.services.proximity import ProximityLoops
-from fgslam.slam import SUMMARY_FILE, load_slam_config, open_slam_dataset, run_slam
-from fgslam.system import SlamSystem
+from fgslam.io.run_files import SUMMARY_FILE
+from fgslam.run.config import load_slam_config
+from fgslam.run.prepare import open_slam_dataset
+from fgslam.run.runner import run_slam
+from fgslam.run.system import SlamSystem
 from eval_support import assert_beats_doing_nothing, timeless
 from patch_support import open_frames, render_room
 
@@ -143,7 +146,8 @@ def test_proximity_loops_close_the_return(there_and_back, proximity_run):
     assert returns, accepted
     for iq, ic in returns:  # the query on the way back, its candidate on the way out, at nearly the same place
         assert np.linalg.norm(gt[iq][:3, 3] - gt[ic][:3, 3]) <= 0.05, (iq, ic)
-    assert fe._loop_edges and all(e[0] in fe.graph.keyframes and e[1] in fe.graph.keyframes for e in fe._loop_edges)
+    st = fe.state
+    assert st.loop_edges and all(e[0] in st.graph.keyframes and e[1] in st.graph.keyframes for e in st.loop_edges)
     stamps, poses, _ = fe.trajectory()
     gt_traj = Trajectory(np.array([f.timestamp for f in there_and_back]), np.stack([f.T_WC_gt for f in there_and_back]))
     res = evaluate(gt_traj, Trajectory(stamps, poses), EvalConfig(align="se3"))
@@ -156,12 +160,13 @@ def test_unrelated_image_is_rejected_by_verification(there_and_back, proximity_r
     flow of an unrelated place looks like to the source) the same pair does not."""
     fe, _ = proximity_run
     index = fe.frame_indices()
-    by_index = {index[f]: f for f in fe.graph.keyframes}
+    st = fe.state
+    by_index = {index[f]: f for f in st.graph.keyframes}
     query, candidate = by_index[30], by_index[12]
     assert fe.contributor.long_range_edges(query, candidate) is not None
-    noise = np.random.default_rng(0).integers(0, 256, size=fe.crop, dtype=np.uint8)
-    for fid in fe.graph.keyframes:  # the candidate and its neighbours
+    noise = np.random.default_rng(0).integers(0, 256, size=st.crop, dtype=np.uint8)
+    for fid in st.graph.keyframes:  # the candidate and its neighbours
         if abs(index[fid] - 12) <= 3:
-            fe.source.remove_frame(fid)
-            fe.source.add_frame(fid, noise)
+            st.source.remove_frame(fid)
+            st.source.add_frame(fid, noise)
     assert fe.contributor.long_range_edges(query, candidate) is None

@@ -10,7 +10,10 @@ import pytest
 
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.io.trajectory import read_trajectory
-from fgslam.slam import SUMMARY_FILE, TUM_FILE, load_slam_config, open_slam_dataset, run_slam
+from fgslam.io.run_files import SUMMARY_FILE, TUM_FILE
+from fgslam.run.config import load_slam_config
+from fgslam.run.prepare import open_slam_dataset
+from fgslam.run.runner import run_slam
 from eval_support import assert_beats_doing_nothing
 
 RATE_HZ = 4.0

@@ -16,8 +16,9 @@ import numpy as np
 
 from fgslam.eval import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory
-from fgslam.slam import load_slam_config, open_slam_dataset
-from fgslam.system import SlamSystem, run_frames
+from fgslam.run.config import load_slam_config
+from fgslam.run.prepare import open_slam_dataset
+from fgslam.run.system import SlamSystem, run_frames
 from eval_support import assert_beats_doing_nothing
 
 RGBD_SLICE_M = 0.015  # SE(3) ATE bound of the 60-frame RGB-D slice (measured 0.0057 m)

@@ -15,7 +15,9 @@ import pytest
 
 from fgslam.loop.closure import LoopCloser
 from fgslam.services.proximity import ProximityLoops
-from fgslam.slam import SUMMARY_FILE, open_slam_dataset, run_slam
+from fgslam.io.run_files import SUMMARY_FILE
+from fgslam.run.prepare import open_slam_dataset
+from fgslam.run.runner import run_slam
 from eval_support import timeless
 from patch_support import room_loop_slam_config
 

@@ -14,7 +14,9 @@ from fgslam.backend import Backend
 from fgslam.frontends.base import BackendFrontend, Frontend, LoopPort
 from fgslam.loop.records import LoopClosureConfig
 from fgslam.contracts.contributor import Contributor
-from fgslam.slam import SlamConfig, open_slam_dataset, run_slam
+from fgslam.run.config import SlamConfig
+from fgslam.run.prepare import open_slam_dataset
+from fgslam.run.runner import run_slam
 from plugin_support import write_positions
 from toy_frontend import ToyConfig, ToyFrontend
 

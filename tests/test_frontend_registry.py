@@ -1,6 +1,6 @@
 """The frontend registry (fgslam/frontends/__init__.py) and the per-family sections of SlamConfig.
 
-The registry must not import the runner (fgslam.slam imports it, never the reverse), and adding a
+The registry must not import the run package (fgslam.run imports it, never the reverse), and adding a
 family must be one registry entry: SlamConfig, the YAML loader, overrides, the config dump and the
 preset prefixes pick the new section up without an edit.
 """
@@ -21,7 +21,7 @@ from fgslam.config import to_dict
 from fgslam.errors import ConfigError
 from fgslam.frontends import FAMILIES, FRONTEND_NAMES, family_config_classes, frontend_family, make_frontend
 from fgslam.frontends.patch.config import PatchConfig
-from fgslam.slam import SlamConfig, load_slam_config
+from fgslam.run.config import SlamConfig, load_slam_config
 from fgslam.backend import Backend, BackendConfig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -46,19 +46,19 @@ def _imported_modules(path: Path, module: str) -> set[str]:
 
 
 def test_no_frontend_module_imports_the_runner():
-    """Static: no module under fgslam/frontends/ imports fgslam.slam, not even for type checking."""
+    """Static: no module under fgslam/frontends/ imports fgslam.run, not even for type checking."""
     offenders = []
     for path in sorted((REPO / "fgslam" / "frontends").rglob("*.py")):
         module = ".".join(path.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__")
-        if any(name == "fgslam.slam" or name.startswith("fgslam.slam.") for name in _imported_modules(path, module)):
+        if any(name == "fgslam.run" or name.startswith("fgslam.run.") for name in _imported_modules(path, module)):
             offenders.append(str(path.relative_to(REPO)))
-    assert not offenders, f"frontend modules importing the runner fgslam.slam: {offenders}"
+    assert not offenders, f"frontend modules importing the run package fgslam.run: {offenders}"
 
 
 def test_importing_the_registry_does_not_import_the_runner():
-    """Importing fgslam.frontends and resolving every family's config class leaves fgslam.slam unloaded."""
+    """Importing fgslam.frontends and resolving every family's config class leaves fgslam.run unloaded."""
     code = ("import sys, fgslam.frontends as f; classes = f.family_config_classes(); "
-            "print(' '.join(sorted(classes)), 'fgslam.slam' in sys.modules)")
+            "print(' '.join(sorted(classes)), 'fgslam.run' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out == ["dense", "patch", "pointmap", "False"]
 
@@ -145,8 +145,8 @@ registry.FRONTEND_NAMES = tuple(f.name for f in registry.FAMILIES)
 
 from fgslam.config import to_dict
 from fgslam.errors import ConfigError
-from fgslam.presets import load_preset_file
-from fgslam.slam import SlamConfig, load_slam_config
+from fgslam.run.config import SlamConfig, load_slam_config
+from fgslam.run.presets import load_preset_file
 from fgslam.backend import Backend
 
 config = load_slam_config(sys.argv[1], ["toy.window.size=7"])

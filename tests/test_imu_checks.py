@@ -26,7 +26,8 @@ def R_CB():
 def stream():
     """20 s of the room loop's hand-held motion: IMU samples at 200 Hz and frame times at 20 Hz (s)."""
     from fgslam.io.synth.imu import simulate_imu
-    from fgslam.io.synth.scenarios import build_trajectory, load_synth_config
+    from fgslam.io.synth.motions import build_trajectory
+    from fgslam.io.synth.scenarios import load_synth_config
 
     cfg = load_synth_config("room-loop", overrides=["frames=401"])
     t = np.arange(0.0, 20.0 + 1e-9, 1.0 / cfg.imu.rate_hz)
@@ -114,7 +115,9 @@ def test_a_run_with_a_wrong_stream_stops_before_any_work(tmp_path):
     pytest.importorskip("gtsam")
     from fgslam.io.synth import SynthSequence, write_sequence
     from fgslam.io.synth.scenarios import load_synth_config
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
 
     root = tmp_path / "clip"
     write_sequence(SynthSequence(load_synth_config("room-loop", overrides=["frames=12", "camera.width=64",
@@ -134,7 +137,7 @@ def test_inertial_state_in_the_summary_and_the_console_report():
     """summary.json ``inertial`` from the service's mapping, and its console line (not initialised, and
     initialised with a monocular scale and an input warning)."""
     from fgslam.commands.run import inertial_text
-    from fgslam.outputs import inertial_summary
+    from fgslam.run.results import inertial_summary
 
     assert inertial_summary(None) is None
     idle = inertial_summary({"initialized": False, "init_time": None, "scale": None, "gravity_W": None}, 100.0)
@@ -162,7 +165,7 @@ def test_imu_timestamps_1000x_too_large_say_which_unit(stream):
 
 def test_a_rate_range_upside_down_is_a_config_error():
     from fgslam.errors import ConfigError
-    from fgslam.slam import load_slam_config
+    from fgslam.run.config import load_slam_config
 
     with pytest.raises(ConfigError, match=r"min_rate_hz \(500\) must be <= max_rate_hz \(100\)"):
         load_slam_config("patch_euroc_stereo", ["imu.checks.min_rate_hz=500", "imu.checks.max_rate_hz=100"])

@@ -13,7 +13,8 @@ from fgslam.io.frame import ImuSamples
 from fgslam.lie import gtsam_sim3
 from fgslam.loop.records import PoseCorrection
 from fgslam.services.corrections import ObservedContributor
-from fgslam.services.imu import OWNER, ImuService
+from fgslam.services.imu import ImuService
+from fgslam.services.imu_chain import OWNER
 from fgslam.services.imu_init import inertial_only_factor, rotation_to_gravity_frame, solve_inertial_only
 from fgslam.services.imu_samples import ImuBuffer, ImuServiceConfig, ImuStats
 from fgslam.factors.imu import ImuNoise, combined_params
@@ -102,7 +103,7 @@ def test_loop_correction_turns_velocities_and_keeps_imu_factors_consistent():
     before = _imu_errors(backend)
     n_marginal = _marginal_priors(backend)
     assert n_marginal > 0
-    v_drift = {kf: service.velocity(kf) for kf in service._linked}
+    v_drift = {kf: service.velocity(kf) for kf in service.chain.linked}
     # the loop correction takes the drifted keyframes back to the ground truth (as a pose graph would)
     ids = backend.keyframe_ids
     corr = PoseCorrection.between({k: backend.pose_matrix(k) for k in ids}, {k: _T_WC(backend.timestamp(k)) for k in ids})
@@ -115,7 +116,7 @@ def test_loop_correction_turns_velocities_and_keeps_imu_factors_consistent():
     observed = ObservedContributor(Moves(), service.adapt_correction, (service.on_correction,))
     observed.apply_correction(corr)
     after = _imu_errors(backend)
-    for kf in service._linked:
+    for kf in service.chain.linked:
         v_gt = _gt(backend.timestamp(kf))[2]
         np.testing.assert_allclose(service.velocity(kf), v_gt, atol=0.02)  # corrected frame = ground truth
         assert np.linalg.norm(v_drift[kf] - v_gt) > 0.1  # they were in the drifted frame
@@ -129,7 +130,7 @@ def test_loop_correction_turns_velocities_and_keeps_imu_factors_consistent():
 
 def test_rescale_scales_velocities_and_sim3_corrections_become_se3_once_scale_is_fixed():
     backend, service = _drifted_run(np.eye(4), seconds=2.0)
-    v0 = {kf: service.velocity(kf) for kf in service._linked}
+    v0 = {kf: service.velocity(kf) for kf in service.chain.linked}
     service._rescale(2.0)  # no contributor: the keyframe poses scale (centres x2)
     for kf, v in v0.items():
         np.testing.assert_allclose(service.velocity(kf), 2.0 * v, rtol=1e-9)

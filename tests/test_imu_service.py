@@ -89,7 +89,7 @@ def test_still_synthetic_stream_initialises_and_links_keyframes(solver, history)
     assert service.initialized
     np.testing.assert_allclose(service.gravity_W, [0, 0, -9.81], atol=1e-9)
     ids = backend.keyframe_ids
-    assert len(service._links) == len(ids) - 1
+    assert len(service.chain.links) == len(ids) - 1
     for kf in ids:
         assert set(backend.attached_keys(kf)) == {velocity_key(kf), bias_key(kf)}
     report = backend.optimize_window(ids[1:])
@@ -127,7 +127,7 @@ def test_bad_streams_are_logged_and_fall_back_to_vision(kind, caplog):
     assert "fall back to vision only" in caplog.text
     assert not service.covered(1.0, 1.5) and service.covered(1.6, 1.9)
     # the interval (20, 30) over the bad frame 25 has no IMU factor; its neighbours do
-    assert (20, 30) not in service._links and (10, 20) in service._links and (30, 40) in service._links
+    assert (20, 30) not in service.chain.links and (10, 20) in service.chain.links and (30, 40) in service.chain.links
     assert service.stats.unlinked == 1
     assert backend.optimize_window(backend.keyframe_ids[1:]).final_cost < 1e-6  # chain-start priors: determinate
 
@@ -153,9 +153,9 @@ def test_removed_keyframe_merges_intervals_and_window_marginalises():
         service.poll()
         if k == 50:
             backend.remove_keyframe(45)  # a frontend drops a redundant keyframe
-            assert (40, 50) in service._links
+            assert (40, 50) in service.chain.links
             assert not backend.has_key(velocity_key(45)) and not backend.has_key(bias_key(45))
-    linked = sorted(service._linked)
+    linked = sorted(service.chain.linked)
     assert linked == [50, 55, 60]  # the window: older velocities and biases marginalised
     assert service.stats.marginalised > 0
     assert not backend.has_key(velocity_key(5)) and backend.has_keyframe(5)  # the pose stays in the map

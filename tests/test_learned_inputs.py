@@ -17,12 +17,12 @@ import pytest
 import torch
 import yaml
 
-from fgslam.frontends.dense.frontend import DenseFrontend
+from fgslam.frontends.dense.state import DenseState
 from fgslam.frontends.dense.source import DenseSourceConfig, make_dense_source
 from fgslam.frontends.patch import PatchConfig, make_source
 from fgslam.frontends.patch.patches import PatchMeasurer
 from fgslam.io.datasets import open_dataset
-from fgslam.runconfig import dataset_config_for, load_slam_config
+from fgslam.run.config import dataset_config_for, load_slam_config
 from nets_support import official_dpvo_file, official_droid_file
 from nets_support import one_thread  # noqa: F401 (autouse fixture)
 
@@ -89,8 +89,8 @@ def test_droid_source_gets_rgb_with_imagenet_normalisation(ckpts, files, kind):
     source = make_dense_source(DenseSourceConfig(kind="droid", checkpoint=checkpoint))
     fnet_in, cnet_in = _capture(source._runner.net.fnet), _capture(source._runner.net.cnet)
     # the dense frontend's routing (its crop is the whole 64 x 96 image here)
-    stub = SimpleNamespace(source=source, crop=(H, W), _cropped=lambda image: DenseFrontend._cropped(stub, image))
-    source.add_frame(0, DenseFrontend._source_image(stub, frame))
+    stub = SimpleNamespace(source=source, crop=(H, W), cropped=lambda image: DenseState.cropped(stub, image))
+    source.add_frame(0, DenseState.source_image(stub, frame))
     expected = _droid_expected(bgr)
     torch.testing.assert_close(fnet_in[0], expected, rtol=0, atol=1e-5)
     torch.testing.assert_close(cnet_in[0], expected, rtol=0, atol=1e-5)

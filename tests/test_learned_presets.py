@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from fgslam.runconfig import load_slam_config
+from fgslam.run.config import load_slam_config
 
 DROID_GRID = 8  # DROID's distances are 1/8-resolution pixels; fgslam's image pixels
 DROID_DEMO = {"filter_thresh": 2.4, "warmup": 8, "keyframe_thresh": 4.0, "frontend_thresh": 16.0,
@@ -173,17 +173,17 @@ def test_dense_initialisation_starts_on_the_neighbourhood_edges(room_rgbd):
     calls, measure = [], fe.ba.measure
 
     def recording(edges):
-        calls.append((fe._initialized, list(edges)))
+        calls.append((fe.state.initialized, list(edges)))
         return measure(edges)
     fe.ba.measure = recording
     for frame in room_rgbd:
         fe.process(frame)
-        if fe._initialized:
+        if fe.state.initialized:
             break
-    assert fe._initialized
+    assert fe.state.initialized
     init = [edges for done, edges in calls if not done]
     assert len(init) == 3
-    pos = {f: k for k, f in enumerate(fe.graph.order())}
+    pos = {f: k for k, f in enumerate(fe.state.graph.order())}
     n = cfg.graph.init_keyframes
     neighbourhood = sorted((f, g) for f in pos for g in pos if 0 < abs(pos[f] - pos[g]) <= 1 and pos[f] < n and pos[g] < n)
     assert sorted(init[0]) == sorted(init[1]) == neighbourhood

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.lie import SE3, Sim3, sim3_matrix_components, sim3_matrix_parts, skew, so3_exp, so3_log, stack
+from fgslam.lie import SE3, Sim3, sim3_matrix_components, sim3_matrix_parts, stack
+from fgslam.so3 import skew, so3_exp, so3_log
 
 F64 = torch.float64
 N_RANDOM = 1000

@@ -47,7 +47,7 @@ def test_config_default_orb_and_validation():
 
 
 def test_every_preset_keeps_orb():
-    from fgslam.presets import load_preset_file, run_presets
+    from fgslam.run.presets import load_preset_file, run_presets
 
     checked = 0
     for name in run_presets():

@@ -1,5 +1,5 @@
 """Maps that persist (issue 25): the stored map format (fgslam/export/mapfile.py: deterministic bytes,
-every bad input one clear error) and ``fgslam localize`` (fgslam/localize.py) end to end on two renders
+every bad input one clear error) and ``fgslam localize`` (fgslam/localize/) end to end on two renders
 of the same synthetic room on different paths, a room it has never seen, and the 7-Scenes kitchen."""
 
 import csv
@@ -61,7 +61,7 @@ def test_save_load_save_is_byte_identical_and_pickle_free(tmp_path):
 
 
 def test_loaded_keyframes_and_database_are_the_saved_ones(tmp_path):
-    from fgslam.localize import MapLocalizer
+    from fgslam.localize.localizer import MapLocalizer
 
     stored = toy_map(200, seed=1)
     save_stored_map(tmp_path / "m.fgmap", stored)
@@ -143,7 +143,7 @@ def test_position_std_matches_the_spread_of_noisy_pnp_solutions():
     """:func:`relative_position_std` (the quality gate's measure) against Monte Carlo: the spread of
     the camera positions that PnP finds from pixels with 1 px of noise; a narrower view (the same
     points seen from farther) is worse conditioned."""
-    from fgslam.localize import relative_position_std
+    from fgslam.localize.localizer import relative_position_std
     from fgslam.loop.verification import solve_pnp
 
     rng = np.random.default_rng(5)
@@ -367,7 +367,7 @@ def test_run_with_map_merges_the_recording(room_map, tmp_path):
 
 
 def test_a_recording_that_does_not_localise_is_not_merged(room_map):
-    from fgslam.localize import merge_recording
+    from fgslam.localize.merge import merge_recording
 
     stored = load_stored_map(room_map[0])
     recording = toy_map(6, n_feat=300, seed=4)  # random descriptors: nothing of it is in the room
@@ -398,7 +398,7 @@ def test_a_monocular_recording_of_another_scale_merges_by_sim3(room_map):
     """The Sim(3) merge: a monocular recording (twice the map's scale, another frame) merged into a
     metric map recovers scale 0.5 and puts its keyframes on the map's (the map run's alignment then
     applies to them unchanged); forced metric it cannot (scale 1: far off)."""
-    from fgslam.localize import combine_maps, merge_recording
+    from fgslam.localize.merge import combine_maps, merge_recording
 
     stored = load_stored_map(room_map[0])
     recording = _rescaled(stored, 2.0, _rotation_z(30.0), np.array([1.0, -2.0, 0.5]))

@@ -1,4 +1,4 @@
-"""Peak-memory estimate of a run (fgslam/memory.py) and the image-size bound of the datasets (issue 21)."""
+"""Peak-memory estimate of a run (fgslam/run/memory.py) and the image-size bound of the datasets (issue 21)."""
 
 import dataclasses
 import time
@@ -7,8 +7,9 @@ import pytest
 
 from fgslam.config import MAX_IMAGE_SIDE
 from fgslam.errors import ConfigError
-from fgslam.memory import GIB, check_run_memory, estimate_run_memory
-from fgslam.slam import load_slam_config
+from fgslam.frontends import GIB
+from fgslam.run.memory import check_run_memory, estimate_run_memory
+from fgslam.run.config import load_slam_config
 
 #: (output width, height, frames) of each preset's intended data: KITTI 00 (4541 frames; also the
 #: driving_* presets), 7-Scenes (1000 frames a sequence), EuRoC (MH_01: 3682 frames), the synthetic
@@ -19,7 +20,7 @@ GENERIC_DATA = (640, 480, 3000)
 
 
 def _run_presets() -> list[str]:
-    from fgslam.presets import run_presets
+    from fgslam.run.presets import run_presets
 
     return list(run_presets())  # the families' presets and the recommended per-sensor-class ones
 

@@ -23,7 +23,7 @@ def _scene(rng, n_frames=5, n_patches=40):
     t = []
     for f in range(n_frames):
         w = torch.tensor([0.0, 0.03 * f, 0.01 * f], dtype=torch.float64)
-        from fgslam.lie import so3_exp
+        from fgslam.so3 import so3_exp
 
         R.append(so3_exp(w))
         t.append(torch.tensor([0.15 * f, 0.02 * f, 0.05 * f], dtype=torch.float64))

@@ -13,7 +13,9 @@ from fgslam.backend import Backend, BackendConfig, pose_key
 from fgslam.config import load_config
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.frontends.records import RelativePose
-from fgslam.slam import SlamConfig, open_slam_dataset, run_slam
+from fgslam.run.config import SlamConfig
+from fgslam.run.prepare import open_slam_dataset
+from fgslam.run.runner import run_slam
 from patch_support import light_patch_config, open_frames, render_room
 
 FRAMES = 40

@@ -17,11 +17,14 @@ import numpy as np
 import pytest
 
 from fgslam.errors import ConfigError
-from fgslam.system import SlamSystem
+from fgslam.run.system import SlamSystem
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.loop.records import LoopClosureConfig
-from fgslam.presets import config_class_for, load_preset_file
-from fgslam.slam import SUMMARY_FILE, SlamConfig, load_slam_config, open_slam_dataset, run_slam
+from fgslam.run.presets import config_class_for, load_preset_file
+from fgslam.io.run_files import SUMMARY_FILE
+from fgslam.run.config import SlamConfig, load_slam_config
+from fgslam.run.prepare import open_slam_dataset
+from fgslam.run.runner import run_slam
 from fgslam.backend import Backend, BackendConfig
 from patch_support import light_patch_config
 

@@ -90,7 +90,9 @@ def test_kitti_mono_with_measured_huber(shared_data, tmp_path):
     measured, 0.455 m with the setting off (the preset's default: with it on and the inlier share as
     the only check, alternating images were no longer reported as implausible-motion failures; the
     motion check reports them either way, see test_patch_motion)."""
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
 
     cfg = load_slam_config("patch_kitti_mono", ["patch.ba.measured_huber=true"])
     summary = run_slam(open_slam_dataset(shared_data / "kitti00_0-199", cfg), cfg, tmp_path / "out", progress=False)

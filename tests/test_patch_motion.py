@@ -43,8 +43,9 @@ def _seven_scenes_clip(src, dst, order):
 
 
 def _run_preset(path, preset, overrides=()):
-    from fgslam.slam import load_slam_config, open_slam_dataset
-    from fgslam.system import SlamSystem, run_frames
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.system import SlamSystem, run_frames
 
     cfg = load_slam_config(preset, list(overrides))
     ds = open_slam_dataset(path, cfg)

@@ -13,7 +13,8 @@ from fgslam.eval import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.frontends.patch.ba import PatchBlock
 from fgslam.io.trajectory import Trajectory
-from fgslam.lie import Sim3, sim3_matrix_parts, so3_exp
+from fgslam.lie import Sim3, sim3_matrix_parts
+from fgslam.so3 import so3_exp
 from fgslam.backend.keys import pose_key
 from fgslam.backend import Backend, BackendConfig
 from patch_support import light_patch_config, render_room

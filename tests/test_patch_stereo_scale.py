@@ -73,8 +73,9 @@ def test_driving_stereo_keeps_metric_scale_on_a_drive(drive):
     length matches the ground truth's."""
     from fgslam.eval import EvalConfig, associate
     from fgslam.io.trajectory import Trajectory
-    from fgslam.slam import load_slam_config, open_slam_dataset
-    from fgslam.system import SlamSystem, run_frames
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.system import SlamSystem, run_frames
 
     cfg = load_slam_config("driving_stereo", ["output.plot=false"])
     ds = open_slam_dataset(drive, cfg)

@@ -2,9 +2,6 @@
 key, option validation, the positions file reader's errors, factors on unknown keys, and the two
 built-in plugins on synthetic drives fed keyframe by keyframe into a backend by a drifting odometry."""
 
-import logging
-import math
-from pathlib import Path
 
 import gtsam
 import numpy as np
@@ -24,9 +21,10 @@ from fgslam.services.plugins import (
 )
 from fgslam.config import load_config
 from fgslam.errors import ConfigError, DataError, FormatError, OptimizationError
+from fgslam.frontends.base import Frontend
 from fgslam.geometry import umeyama
 from fgslam.io.positions import read_positions
-from fgslam.slam import SlamConfig
+from fgslam.run.config import SlamConfig
 
 from plugin_support import (DriftingOdometry, NoContributor, ate_se3, drive, path_length, plugin_system, run_drive,
                             write_positions)
@@ -125,7 +123,7 @@ def test_slam_config_factors_section_loads_and_reports_the_key(tmp_path):
 
 
 def test_shipped_plugin_examples_load():
-    from fgslam.presets import load_preset_file, resolve_preset
+    from fgslam.run.presets import load_preset_file, resolve_preset
 
     for name in ("patch_mono_gps", "patch_mono_planar"):
         config = load_preset_file(resolve_preset(name))
@@ -133,14 +131,20 @@ def test_shipped_plugin_examples_load():
 
 
 def test_factors_need_a_frontend_that_feeds_a_backend():
-    class NoBackend:
+    class NoBackend(Frontend):
         name = "toy"
 
         def process(self, frame):
             return frame
 
-    from fgslam.slam import SlamConfig
-    from fgslam.system import SlamSystem
+        def trajectory(self):
+            return np.zeros(0), np.zeros((0, 4, 4)), []
+
+        def num_keyframes(self) -> int:
+            return 0
+
+    from fgslam.run.config import SlamConfig
+    from fgslam.run.system import SlamSystem
 
     config = SlamConfig()
     assert SlamSystem.build(config, None, frontend=NoBackend()).plugins is None
@@ -350,8 +354,9 @@ def test_run_with_position_prior_preset_on_a_synthetic_street_drive(tmp_path):
     from fgslam.io.synth import SynthSequence
     from fgslam.io.synth.scenarios import load_synth_config
     from fgslam.io.synth.writer import write_sequence
-    from fgslam.presets import load_preset_file
-    from fgslam.slam import open_slam_dataset, run_slam
+    from fgslam.run.presets import load_preset_file
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
 
     from plugin_support import OdometryFrontend
 

@@ -127,7 +127,9 @@ def test_mono_without_overlap_never_initialises_and_never_raises(room):
 def test_frontend_pointmap_from_any_preset(room, tmp_path):
     """``frontend: pointmap`` on a patch preset: the source follows the sensor (auto); the run writes its
     outputs and the PLY of the canonical pointmaps."""
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
 
     config = load_slam_config("patch_rgbd", ["frontend=pointmap", "output.write_ply=true", "output.plot=false",
                                              "dataset.end=12"])
@@ -138,7 +140,7 @@ def test_frontend_pointmap_from_any_preset(room, tmp_path):
     assert result.ate_rmse < 0.01
     assert (tmp_path / "run" / "points.ply").stat().st_size > 1000
     fe = make_frontend("pointmap", config, open_clip(room, "rgbd")[0].calibration, "rgbd", backend=Backend(BackendConfig()))
-    assert isinstance(fe, PointmapFrontend) and fe.kind == "rgbd" and fe.fixed_scale
+    assert isinstance(fe, PointmapFrontend) and fe.state.kind == "rgbd" and fe.state.fixed_scale
 
 
 def test_sensor_and_source_mismatch_is_a_config_error():

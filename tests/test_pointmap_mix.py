@@ -25,7 +25,9 @@ def room(tmp_path_factory):
 
 
 def _run(room, out, loop_mode, factors):
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
 
     config = load_slam_config("patch_rgbd", ["output.plot=false", f"loop_closure.mode={loop_mode}",
                                              "loop_closure.run_in_thread=false"])

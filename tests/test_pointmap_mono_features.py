@@ -57,8 +57,9 @@ def test_every_frame_is_measured_and_accurate(room):
     assert "motion_model" not in sources and "relocalized" not in sources
     started = sources.index("tracked")
     assert started <= 6 and sources[started:] == ["tracked"] * (FRAMES - started)
-    assert fe._counts["feature_tracked"] + fe._counts["keyframes"] >= FRAMES - started
-    assert fe._counts["keyframes"] >= 2 and len(fe.graph.edges) == fe._counts["keyframes"] - 1
+    counts = fe.state.counts
+    assert counts["feature_tracked"] + counts["keyframes"] >= FRAMES - started
+    assert counts["keyframes"] >= 2 and len(fe.graph.edges) == counts["keyframes"] - 1
     ate, pct = ate_percent(fe, frames, "sim3")
     assert pct <= 1.5, (ate, pct)
     t = fe.trajectory()[0]

@@ -19,7 +19,7 @@ from fgslam.cli import main  # noqa: E402
 from fgslam.errors import DataError  # noqa: E402
 from fgslam.io.datasets import DatasetConfig, detect_format, open_dataset  # noqa: E402
 from fgslam.io.datasets.common import BagTopicsConfig  # noqa: E402
-from fgslam.io.datasets.rosbag import calibration_from_camera_info  # noqa: E402
+from fgslam.io.datasets.ros_messages import calibration_from_camera_info  # noqa: E402
 
 _clips = load_tool("bench_rosbag")  # the clip-to-bag writers shared with the benchmark
 write_7scenes_bag, write_euroc_bag, write_small_bag = _clips.write_7scenes_bag, _clips.write_euroc_bag, _clips.write_small_bag

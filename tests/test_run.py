@@ -1,4 +1,4 @@
-"""The SLAM runner (fgslam.slam), the frontend registry, the presets and ``fgslam run``.
+"""The SLAM runner (fgslam.run), the frontend registry, the presets and ``fgslam run``.
 
 Most tests drive the runner with a fake frontend that returns the ground truth in a different
 world frame (and scale) plus noise, so the expected ATE and counts are known by construction.
@@ -18,27 +18,17 @@ import pytest
 from fgslam.backend import Backend, BackendConfig
 from fgslam.config import load_config
 from fgslam.errors import ConfigError, DataError, FGSlamError
-from fgslam.frontends import FRONTEND_NAMES, make_frontend
+from fgslam.frontends import make_frontend
 from fgslam.frontends.base import FrameStatus, Frontend
 from fgslam.io.synth import SynthSequence, write_sequence
 from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.io.trajectory import read_trajectory
-from fgslam.presets import configs_dir, resolve_preset
-from fgslam.slam import (
-    KITTI_FILE,
-    KITTI_TIMES_FILE,
-    PLOT_FILE,
-    PLY_FILE,
-    SUMMARY_FILE,
-    TUM_FILE,
-    NoPoseError,
-    RunError,
-    SlamConfig,
-    check_sensor,
-    load_slam_config,
-    open_slam_dataset,
-    run_slam,
-)
+from fgslam.run.presets import configs_dir, resolve_preset
+from fgslam.io.run_files import SUMMARY_FILE, TUM_FILE
+from fgslam.run.config import SlamConfig, load_slam_config
+from fgslam.run.files import KITTI_FILE, KITTI_TIMES_FILE, PLOT_FILE, PLY_FILE
+from fgslam.run.prepare import check_sensor, open_slam_dataset
+from fgslam.run.runner import NoPoseError, RunError, run_slam
 from test_config import ISSUE9_OUT_OF_RANGE, ISSUE21_INFINITE, ISSUE21_TOO_LARGE
 
 N_FRAMES = 16
@@ -238,9 +228,9 @@ def test_explicit_alignment_overrides_auto(synth_root, tmp_path):
 
 
 def test_progress_lines(synth_root, tmp_path, caplog):
-    caplog.set_level("INFO", logger="fgslam.slam")
+    caplog.set_level("INFO", logger="fgslam.run.runner")
     _run(synth_root, tmp_path, overrides=("log_interval_frames=5", "log_interval_s=1000"))
-    lines = [r.getMessage() for r in caplog.records if r.name == "fgslam.slam" and "frames/s" in r.getMessage()]
+    lines = [r.getMessage() for r in caplog.records if r.name == "fgslam.run.runner" and "frames/s" in r.getMessage()]
     assert len(lines) == N_FRAMES // 5 + 1  # every 5 frames plus the final line
     assert lines[0].startswith(f"frame 5/{N_FRAMES}") and "ETA" in lines[0] and "keyframes" in lines[0]
     assert lines[-1].startswith(f"frame {N_FRAMES}/{N_FRAMES} (100%)")
@@ -546,7 +536,7 @@ def test_importing_fgslam_installs_no_signal_handler():
     import subprocess
     import sys
 
-    code = ("import signal; before = signal.getsignal(signal.SIGTERM); import fgslam.slam, fgslam.cli; "
+    code = ("import signal; before = signal.getsignal(signal.SIGTERM); import fgslam.run.runner, fgslam.cli; "
             "print(signal.getsignal(signal.SIGTERM) is before)")
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "True"
 
@@ -665,7 +655,7 @@ def _one_error_line(err: str) -> str:
 
 def test_failing_plot_leaves_every_other_output(synth_root, tmp_path, monkeypatch):
     import fgslam.io.plot
-    from fgslam.slam import OutputError
+    from fgslam.run.runner import OutputError
 
     def broken_plot(*args, **kwargs):
         raise RuntimeError("matplotlib backend exploded")
@@ -694,7 +684,7 @@ def _full_disk(path: Path) -> None:
 
 
 def test_full_disk_on_one_trajectory_leaves_the_others(synth_root, tmp_path):
-    from fgslam.slam import OutputError
+    from fgslam.run.runner import OutputError
 
     out = tmp_path / "out"
     out.mkdir()
@@ -725,13 +715,12 @@ def test_full_disk_on_the_summary_still_reports_on_the_console(synth_root, tmp_p
 
 
 def test_output_folder_checked_before_any_work(synth_root, tmp_path, capsys, cli_main, monkeypatch):
-    import fgslam.outputs
-    import fgslam.slam
+    import fgslam.run.prepare
 
     def no_work(*args, **kwargs):
         raise AssertionError("the dataset was opened before the output folder was checked")
 
-    monkeypatch.setattr(fgslam.slam, "open_slam_dataset", no_work)
+    monkeypatch.setattr(fgslam.run.prepare, "open_slam_dataset", no_work)
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
     for out in (blocker / "out", blocker):  # under a regular file; a regular file
@@ -742,7 +731,7 @@ def test_output_folder_checked_before_any_work(synth_root, tmp_path, capsys, cli
     def unwritable(*args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(fgslam.outputs.tempfile, "mkstemp", unwritable)
+    monkeypatch.setattr(fgslam.run.prepare.tempfile, "mkstemp", unwritable)
     rc = _cli_run(cli_main, synth_root, tmp_path / "ro")
     err = capsys.readouterr().err
     assert rc == 2 and "not writable: Permission denied" in _one_error_line(err)
@@ -794,7 +783,7 @@ def test_cli_refuses_infinite_and_huge_values_at_once(override, key, synth_root,
 
 def test_cli_refuses_a_run_whose_memory_estimate_exceeds_the_limit(synth_root, tmp_path, capsys, cli_main, monkeypatch):
     """Sizes each inside its range whose product is not (4096 patches x 200 frames x 199 edges each):
-    refused from the estimate (fgslam/memory.py) before any frame, naming the keys and the GiB."""
+    refused from the estimate (fgslam/run/memory.py) before any frame, naming the keys and the GiB."""
     from fgslam.frontends.patch.frontend import PatchFrontend
 
     processed = []

@@ -24,7 +24,7 @@ from fgslam.cli import main
 from fgslam.errors import ConfigError, DataError
 
 HUGE_SIDE = 10000  # the trial's image size (one black frame: decoding and undistorting it take seconds)
-LARGE_SIDE = 5000  # above fgslam.slam.LARGE_IMAGE_SIDE, below the size limit a dataset refuses at open (if any)
+LARGE_SIDE = 5000  # above fgslam.run.results.LARGE_IMAGE_SIDE, below the size limit a dataset refuses at open (if any)
 CLI_TIMEOUT_S = 180  # a subprocess that hangs fails the test instead of blocking the suite (slow shared machine)
 
 
@@ -274,7 +274,7 @@ def test_joining_a_cluster_that_never_answers_fails_after_the_init_timeout(tmp_p
         "import sys, time\n"
         "from fgslam.batch import BatchMatrix, BatchOptions, run_batch\n"
         "from fgslam.errors import FGSlamError\n"
-        "import fgslam.slam, ray  # imported before the clock starts: slow on a loaded machine\n"
+        "import fgslam.run.runner, ray  # imported before the clock starts: slow on a loaded machine\n"
         f"m = BatchMatrix(configs={{'mono': 'patch_mono'}}, datasets={{'d': {str(tmp_path / 'nothing')!r}}})\n"
         "t0 = time.perf_counter()\n"
         "try:\n"
@@ -315,7 +315,7 @@ def test_compare_colmap_without_a_registered_frame_fails_without_a_ratio(tmp_pat
 
 
 def test_events_are_counted_by_kind_without_ids():
-    from fgslam.slam import event_kind
+    from fgslam.run.runner import event_kind
 
     kinds = [event_kind(f"keyframe {i} removed") for i in range(376)]
     assert set(kinds) == {"keyframe removed"}
@@ -327,7 +327,9 @@ def test_events_are_counted_by_kind_without_ids():
 
 def test_summary_events_have_one_key_per_kind(room, tmp_path):
     from fgslam.frontends.base import FrameStatus, Frontend
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
 
     class Removing(Frontend):
         name = "removing"
@@ -409,7 +411,7 @@ def test_the_mast3r_checkpoint_message_reads_well():
 
 def test_yaml_syntax_errors_name_the_file_or_the_override(tmp_path):
     from fgslam.io.calibration import read_yaml_file
-    from fgslam.slam import load_slam_config
+    from fgslam.run.config import load_slam_config
 
     bad = tmp_path / "bad.yaml"
     bad.write_text("frontend: patch\nsensor: [mono\n")
@@ -445,7 +447,7 @@ def test_batch_md_shows_the_whole_error_with_pipes_escaped():
 
 
 def test_run_help_lists_every_preset_with_what_data_it_is_for(capsys):
-    from fgslam.presets import configs_dir, run_presets
+    from fgslam.run.presets import configs_dir, run_presets
 
     presets = run_presets()
     assert "patch_kitti_mono" in presets and "dense_mono" in presets and "pointmap_rgbd" in presets

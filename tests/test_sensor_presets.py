@@ -13,8 +13,8 @@ import pytest
 from fgslam.cli import main
 from fgslam.config import check_ranges
 from fgslam.errors import ConfigError
-from fgslam.presets import SENSOR_CLASSES, config_class_for, configs_dir, load_preset_file, run_presets
-from fgslam.runconfig import SlamConfig, load_slam_config
+from fgslam.run.presets import SENSOR_CLASSES, config_class_for, configs_dir, load_preset_file, run_presets
+from fgslam.run.config import SlamConfig, load_slam_config
 
 #: preset -> the sensor mode its name says
 SENSOR_PRESETS = {
@@ -96,7 +96,9 @@ def _stationary_ate(dataset) -> float:
 
 def _run(preset: str, data, out, overrides=()):
     """Run ``preset`` on ``data`` (no plot, no map); (summary dict, ATE, stationary ATE)."""
-    from fgslam.slam import SUMMARY_FILE, open_slam_dataset, run_slam
+    from fgslam.io.run_files import SUMMARY_FILE
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
 
     config = load_slam_config(preset, ["output.plot=false", "output.write_map=false", *overrides])
     dataset = open_slam_dataset(data, config)

@@ -13,8 +13,9 @@ from geometry_support import transfer_pixels
 
 from fgslam.io.synth import SynthSequence, write_sequence
 from fgslam.io.synth.imu import ImuConfig, simulate_imu, specific_force
-from fgslam.io.synth.scenarios import build_scene, build_trajectory, highway_centre_line, load_synth_config
-from fgslam.io.synth.sequence import camera_mount
+from fgslam.io.synth.layouts import build_scene, highway_centre_line
+from fgslam.io.synth.motions import build_trajectory
+from fgslam.io.synth.scenarios import camera_mount, load_synth_config
 from fgslam.io.synth.trajectory import AnalyticTrajectory, Fourier1D
 from fgslam.io.synth.writer import continuous_quaternions, depth_to_png16, rotation_to_quaternion_wxyz
 

@@ -14,7 +14,8 @@ import pytest
 from fgslam.io.synth import SynthSequence, write_sequence
 from fgslam.io.synth.distortion import distort_normalized, undistort_normalized
 from fgslam.io.synth.render import Renderer, RenderConfig
-from fgslam.io.synth.scenarios import load_synth_config, sweep_mean_angular_speed, sweep_rotation_scale
+from fgslam.io.synth.motions import sweep_mean_angular_speed, sweep_rotation_scale
+from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.io.synth.texture import (STYLE_DOOR, STYLE_PANELS, STYLE_TILES, PlainTextureConfig,
                                      make_plain_texture)
 

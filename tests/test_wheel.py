@@ -68,7 +68,7 @@ def _env() -> dict[str, str]:
 def test_installed_package_finds_presets_and_vocabulary(wheel_venv, tmp_path):
     code = (
         "import fgslam, pathlib\n"
-        "from fgslam.presets import available_presets, load_preset_file, resolve_preset\n"
+        "from fgslam.run.presets import available_presets, load_preset_file, resolve_preset\n"
         "from fgslam.loop.vocabulary import default_vocabulary_path, load_vocabulary\n"
         "names = available_presets()\n"
         "for n in names: load_preset_file(resolve_preset(n))\n"

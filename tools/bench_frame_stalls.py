@@ -30,8 +30,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--slowest", type=int, default=8, help="slowest frames reported")
     args = parser.parse_args(argv)
 
-    from fgslam.slam import SUMMARY_FILE, load_slam_config, open_slam_dataset, run_slam
-    from fgslam.system import SlamSystem
+    from fgslam.io.run_files import SUMMARY_FILE
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
+    from fgslam.run.system import SlamSystem
 
     cfg = load_slam_config(args.preset, ["output.plot=false", *args.overrides])
     frames = []

@@ -43,8 +43,11 @@ import numpy as np
 
 
 def _run(root: Path, preset: str, out: Path, overrides: list[str]):
-    import fgslam.services.imu as imu_mod
-    from fgslam.slam import SUMMARY_FILE, NoPoseError, load_slam_config, open_slam_dataset, run_slam
+    import fgslam.run.system as imu_mod  # the system builds the service through the name it imported
+    from fgslam.io.run_files import SUMMARY_FILE
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import NoPoseError, run_slam
 
     captured = {}
     original = imu_mod.make_imu_service

@@ -145,7 +145,9 @@ class TimedDataset:
 
 def run_child(args: argparse.Namespace) -> None:
     """One run in this process; writes its record (JSON) to the path in ``--child``."""
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
 
     family, mode, loops, out_json = args.child.split(",", 3)
     preset, preset_overrides = PRESETS[(family, mode)]

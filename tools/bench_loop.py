@@ -51,7 +51,7 @@ def _patch_run(n_frames: int, baseline: bool = True, threaded: bool = True) -> d
     from fgslam.backend import Backend, BackendConfig
     from fgslam.frontends.patch import PatchConfig, PatchFrontend
     from fgslam.io.calibration import Calibration
-    from fgslam.system import SlamSystem
+    from fgslam.run.system import SlamSystem
     from fgslam.io.frame import Frame
     from fgslam.io.synth import SynthSequence, default_config
 

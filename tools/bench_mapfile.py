@@ -4,7 +4,7 @@ Writes a synthetic map of ``--keyframes`` keyframes with ``--features`` features
 7-Scenes RGB-D maps: about 630 features and 300 BoW words per keyframe), then times, in CPU and wall
 seconds, :func:`fgslam.export.mapfile.save_stored_map`, :func:`~fgslam.export.mapfile.load_stored_map`
 and the localiser's set-up on it (retrieval database and per-keyframe world points:
-:class:`fgslam.localize.MapLocalizer`), and checks that a second save gives the same bytes.
+:class:`fgslam.localize.localizer.MapLocalizer`), and checks that a second save gives the same bytes.
 
 Usage:
   nice -n 5 .venv/bin/python tools/bench_mapfile.py --work /tmp/bench_mapfile [--keyframes 5000] [--features 650]
@@ -59,7 +59,7 @@ def main() -> None:
     ap.add_argument("--words", type=int, default=300)
     args = ap.parse_args()
     from fgslam.export.mapfile import load_stored_map, save_stored_map
-    from fgslam.localize import MapLocalizer
+    from fgslam.localize.localizer import MapLocalizer
     from fgslam.loop.vocabulary import load_vocabulary
 
     args.work.mkdir(parents=True, exist_ok=True)

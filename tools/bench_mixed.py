@@ -2,7 +2,7 @@
 
 Datasets (``--datasets``): the synthetic ``low-texture`` preset (RGB-D, 201 frames at 10 Hz, 320x240,
 rendered once into ``--synth-dir``), where patches find little texture, and 7-Scenes kitchen 0-599
-RGB-D (``--data``). Per dataset, three ``fgslam run``s through :func:`fgslam.slam.run_slam`:
+RGB-D (``--data``). Per dataset, three ``fgslam run``s through :func:`fgslam.run.runner.run_slam`:
 
 - ``patch``: the patch preset (``patch_rgbd`` / ``patch_7scenes_rgbd``) with ``loop_closure.mode:
   classical``: the patch family keeps keyframe images only with loop closure on, and the mixed run
@@ -47,7 +47,9 @@ def _root(spec: str, args) -> Path:
 
 
 def _run(root: Path, preset: str, overrides: list[str], factors: list) -> dict:
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
 
     config = load_slam_config(preset, ["output.plot=false", *overrides])
     config.factors = factors

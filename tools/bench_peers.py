@@ -146,7 +146,8 @@ def highway_root(args: argparse.Namespace) -> Path:
 
 
 def open_dataset(root: Path, preset: str, overrides: list[str]):
-    from fgslam.slam import load_slam_config, open_slam_dataset
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
 
     return open_slam_dataset(root, load_slam_config(preset, overrides))
 

@@ -54,7 +54,7 @@ def reconstruction(fe, frames, alignment) -> dict:
     by_time = {f.timestamp: f for f in frames}
     stride = fe.config.ply_stride
     ref = []
-    for kf in fe._kfs.values():  # the keyframes' true depth with their true poses
+    for kf in fe.state.kfs.values():  # the keyframes' true depth with their true poses
         f = by_time[kf.timestamp]
         depth = f.depth[::stride, ::stride]
         K = np.asarray(f.calibration.K, float) / stride  # pixel (u, v) of the strided grid is (stride u, stride v)
@@ -110,7 +110,7 @@ def run(root: Path, source: str, overrides: list[str]) -> dict:
            "ate_percent_of_path": 100.0 * float(res.ate.rmse) / path, "path_m": path,
            "fps": n / wall, "cpu_ms_per_frame": 1e3 * cpu / n,
            "stage_ms_per_frame": {k: round(1e3 * v / n, 1) for k, v in fe.stage_times().items()},
-           "counts": dict(fe._counts), "load_before": [round(x, 2) for x in load_before],
+           "counts": dict(fe.state.counts), "load_before": [round(x, 2) for x in load_before],
            "load_after": [round(x, 2) for x in os.getloadavg()]}
     alignment = (float(res.alignment.s), np.asarray(res.alignment.R), np.asarray(res.alignment.t))
     out["reconstruction"] = reconstruction(fe, frames, alignment)

@@ -26,7 +26,9 @@ from fgslam.eval import EvalConfig, evaluate
 from fgslam.io.synth import SynthSequence, write_sequence
 from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.io.trajectory import read_trajectory
-from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+from fgslam.run.config import load_slam_config
+from fgslam.run.prepare import open_slam_dataset
+from fgslam.run.runner import run_slam
 
 POSITION_PRIOR = "fgslam.services.plugins:PositionPrior"
 

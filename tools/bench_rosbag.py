@@ -32,7 +32,7 @@ from typing import Optional
 import numpy as np
 
 from fgslam.export.bag import BagWriter
-from fgslam.io.calibration import Undistorter
+from fgslam.io.undistort import Undistorter
 from fgslam.io.datasets import DatasetConfig, EurocDataset, SevenScenesDataset
 
 NS = 1_000_000_000

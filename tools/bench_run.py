@@ -154,7 +154,15 @@ def case_root(case: Case, args: argparse.Namespace) -> Path:
 def run_case(name: str, args: argparse.Namespace) -> dict:
     """Run one case in this process and return its result (JSON types)."""
     import fgslam
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+
+    # a --baseline tree that predates the run package (fgslam/run/) has its runner in fgslam.slam; decided by the
+    # tree, not by trying the import: an editable install finds the new tree's fgslam.run from any tree
+    if (Path(fgslam.__file__).parent / "run" / "runner.py").is_file():
+        from fgslam.run.config import load_slam_config
+        from fgslam.run.prepare import open_slam_dataset
+        from fgslam.run.runner import run_slam
+    else:  # only a baseline tree
+        from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
 
     preset, data, (metric, bound, text), case_overrides = CASES[name]
     config = load_slam_config(preset, list(case_overrides) + args.overrides)

@@ -66,11 +66,12 @@ _RULES: tuple[tuple[str, str, frozenset | None], ...] = (
     ("solve", "fgslam/factors/", frozenset({"back_substitute", "refine_structure"})),
     ("solve", "fgslam/frontends/patch/window.py", frozenset({"optimize"})),
     ("io", "fgslam/io/", None),
-    ("outputs", "fgslam/outputs.py", frozenset({"finalize_run", "outputs_text"})),
+    ("outputs", "fgslam/run/runner.py", frozenset({"_write_outputs"})),
+    ("outputs", "fgslam/run/results.py", frozenset({"outputs_text"})),
     ("outputs", "fgslam/eval.py", None),
     ("outputs", "fgslam/export/", None),
-    ("bookkeeping", "fgslam/slam.py", frozenset({"_loop"})),
-    ("bookkeeping", "fgslam/system.py", None),
+    ("bookkeeping", "fgslam/run/runner.py", frozenset({"_loop"})),
+    ("bookkeeping", "fgslam/run/system.py", None),
 )
 # GTSAM's elimination of a linear system (C++ builtins)
 _ELIMINATION_BUILTINS = ("optimize", "eliminate")
@@ -142,7 +143,9 @@ def top_functions(stats: pstats.Stats, n: int) -> list[dict]:
 def profile_run(config_name: str, data: str, overrides: list[str], end: int | None = None, timer: str = "cpu",
                 out_dir: str | None = None, top: int = 15, pstats_path: str | None = None) -> dict:
     """Profile one run (module docstring); the JSON-ready result."""
-    from fgslam.slam import load_slam_config, open_slam_dataset, run_slam
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+    from fgslam.run.runner import run_slam
 
     overrides = list(overrides)
     if end is not None:

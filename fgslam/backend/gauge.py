@@ -87,7 +87,7 @@ class Gauge:
 
     def factors(self, free_kfs: Iterable[int]) -> list:
         """The gauge factors of an optimisation whose free keyframes are ``free_kfs``."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         gauge = self.config
         out = []

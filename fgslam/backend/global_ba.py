@@ -374,7 +374,7 @@ class _ReducedSystem:
     fixed frame or padding, dropped), ``Hloc`` (ns, 6S, 6S), ``gloc`` (ns, 6S)."""
 
     def __init__(self, V: int):
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         self.V = V
         self.graph = gtsam.GaussianFactorGraph()
@@ -406,7 +406,7 @@ class _ReducedSystem:
 
     def dense(self) -> tuple[np.ndarray, np.ndarray]:
         """(H (6V, 6V), g (6V,)) as dense arrays (small problems, tests)."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         ordering = gtsam.Ordering()
         for key in range(self.V):

@@ -14,14 +14,19 @@ timestamps, other variables, keys attached to keyframes, keyframe callbacks) wit
 - ``optimizer`` (:class:`~fgslam.backend.optimizer.Optimizer`): the solves (window, global,
   pose-graph correction, marginalisation), all through the one LM loop
   (:func:`fgslam.backend.solver.levenberg_marquardt`); the problem of one optimisation is
-  :mod:`fgslam.backend.window`'s.
+  :mod:`fgslam.backend.window`'s;
+- ``contributors``: the map's correction route, the contributors (frontends) that take the
+  corrections a service makes (set with :meth:`Backend.set_contributors`; used by the factor
+  plugins' :func:`fgslam.services.plugins.apply_correction`): each moves its keyframes, whose poses
+  live here, and folds the scale into its structure; with none, :meth:`Backend.move_keyframes` sets
+  every keyframe pose (scales included: nothing to fold into).
 
 Tangents are gtsam's ``[w, u, lambda]`` with right perturbation.
 """
 
 from __future__ import annotations
 
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Protocol
 
 import numpy as np
 
@@ -30,12 +35,30 @@ from .gauge import Gauge
 from .optimizer import OptimizeReport, Optimizer
 from .store import GraphStore, as_similarity3
 
-__all__ = ["Backend", "OptimizeReport", "as_similarity3"]
+__all__ = ["Backend", "CorrectionTarget", "KeyframeCorrection", "OptimizeReport", "as_similarity3"]
+
+
+class KeyframeCorrection(Protocol):
+    """A correction of keyframe poses as the backend applies it (:meth:`Backend.move_keyframes`;
+    :class:`fgslam.loop.records.PoseCorrection` is one)."""
+
+    def apply_pose(self, kf_id: int, T_WC: np.ndarray) -> tuple[np.ndarray, float]:
+        """The corrected (4, 4) pose of keyframe ``kf_id`` from its current ``T_WC``, and its depth factor."""
+        ...
+
+
+class CorrectionTarget(Protocol):
+    """A contributor on the map's correction route (:attr:`Backend.contributors`): it moves its
+    keyframes and folds the correction's scale into its structure (the contributor contract's
+    :meth:`~fgslam.contracts.contributor.Contributor.apply_correction`)."""
+
+    def apply_correction(self, correction: KeyframeCorrection) -> None: ...
 
 
 class Backend(GraphStore):
     """The run's store of keyframes and variables (it is one) with its ``factors``, ``gauge`` and
-    ``optimizer`` (module docstring); the methods below are theirs, kept on the backend for callers.
+    ``optimizer`` (module docstring); the methods below are theirs, kept on the backend for callers,
+    and the map's correction route (``contributors``).
 
     Typical use by a frontend::
 
@@ -52,6 +75,7 @@ class Backend(GraphStore):
         self.config.validate()
         self.gauge = Gauge(self.config.gauge, self)  # registered first: the default gauge follows every keyframe
         self.optimizer = Optimizer(self.config, self, self.gauge)
+        self.contributors: tuple[CorrectionTarget, ...] = ()  # the correction route (module docstring)
 
     # ------------------------------------------------------------------ factors and blocks
     def add_factor(self, factor, owner: str = "user") -> int:
@@ -81,6 +105,19 @@ class Backend(GraphStore):
     def set_gauge(self, anchor: int | None = None, scale_pair: tuple[int, int] | None = None) -> None:
         """:meth:`Gauge.set <fgslam.backend.gauge.Gauge.set>`: the keyframes that carry the gauge factors."""
         self.gauge.set(anchor, scale_pair)
+
+    # ------------------------------------------------------------------ map corrections
+    def set_contributors(self, contributors: Iterable[CorrectionTarget]) -> None:
+        """The correction route: the contributors that take the corrections a service makes (the
+        factor plugins' service sets it before the plugins attach; none: :meth:`move_keyframes`)."""
+        self.contributors = tuple(contributors)
+
+    def move_keyframes(self, correction: KeyframeCorrection) -> None:
+        """Every keyframe to its corrected pose, scale included (the correction without a contributor
+        on the route: nothing folds the scale into structure, which a Sim(3) map absorbs)."""
+        for kf_id in self.keyframe_ids:
+            T_new, _ = correction.apply_pose(kf_id, self.pose_matrix(kf_id))
+            self.set_pose(kf_id, T_new)
 
     # ------------------------------------------------------------------ solves (Optimizer's)
     def on_window(self, hook: Callable[[list[int]], Iterable[int]]) -> None:

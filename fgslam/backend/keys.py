@@ -9,7 +9,7 @@ BIAS_CHAR = "b"  # IMU biases
 
 def symbol(char: str, index: int) -> int:
     """gtsam key of variable ``index`` of kind ``char``."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     return int(gtsam.symbol(char, int(index)))
 
@@ -29,7 +29,7 @@ def bias_key(kf_id: int) -> int:
 
 def key_name(key: int) -> str:
     """Readable name of a key for error messages: ``x12`` (symbol keys) or the integer."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     sym = gtsam.Symbol(int(key))
     char = chr(sym.chr()) if 32 < sym.chr() < 127 else ""
@@ -38,6 +38,6 @@ def key_name(key: int) -> str:
 
 def kf_id_of(key: int) -> int:
     """Keyframe id of a pose key."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     return int(gtsam.Symbol(int(key)).index())

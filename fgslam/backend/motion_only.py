@@ -75,7 +75,7 @@ class MotionOnlyProblem:
         return H, g, c
 
     def linearize(self):
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         H, g, c = self.reduced_system()
         self._diag = np.diag(H).copy()

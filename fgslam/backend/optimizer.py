@@ -35,6 +35,7 @@ from ..lie import gtsam_matrix
 from .config import BackendConfig
 from .gauge import Gauge
 from .keys import key_name, pose_key
+from .motion_only import optimize_pose
 from .pose_graph import PoseGraphIsam2, anchor_prior, diagonal_model
 from .solver import LMSettings, NonlinearProblem, levenberg_marquardt
 from .store import GraphStore
@@ -77,7 +78,7 @@ class Optimizer:
     def nonlinear_graph(self, include_gauge: bool = True):
         """Built-in factors (and the gauge factors of a global optimisation) as a NonlinearFactorGraph
         (blocks excluded)."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         graph = gtsam.NonlinearFactorGraph()
         for factor, _, _ in self.store.factors.entries.values():
@@ -89,7 +90,7 @@ class Optimizer:
 
     def _problem(self, free_keys: list[int], refine_steps: int | None = None) -> WindowProblem:
         """The optimisation problem over ``free_keys`` (module docstring)."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         free = set(free_keys)
         keyframe_of = self.store.keyframe_of
@@ -121,7 +122,7 @@ class Optimizer:
         range) that reach a key outside ``free``, linearised at the current estimate, the outside keys
         eliminated; the remaining linear factors on free keys as ``LinearContainerFactor``s (the
         prior they leave on the window)."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         estimate = self.store.estimate
         outside_factors = [(f, keys) for f, keys, _ in self.store.factors.entries.values()
@@ -155,7 +156,7 @@ class Optimizer:
     def marginal_covariances(self, kf_ids: list[int] | None = None) -> dict[int, np.ndarray]:
         """Marginal covariances (7, 7) of keyframe poses in the tangent ``[w, u, lambda]`` at the
         current estimate (Laplace approximation of the linearised problem, blocks included)."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         with torch_threads(self.config.threads):
             marginals = gtsam.Marginals(self.linearize(), self.store.estimate)
@@ -182,8 +183,6 @@ class Optimizer:
         """Motion-only optimisation of ``key`` against ``blocks`` whose other keys are held at ``values``
         (a frame tracked against its keyframe; :mod:`fgslam.backend.motion_only`), with the map's LM
         settings. The backend's own graph is not touched; returns a ``MotionOnlyResult``."""
-        from .motion_only import optimize_pose
-
         return optimize_pose(blocks, values, key, self.settings(iterations), hold)
 
     def optimize_window(self, free_kf_ids: Iterable[int], iterations: int | None = None,
@@ -235,7 +234,7 @@ class Optimizer:
         ``gtsam.LinearContainerFactor``s owned by ``owner``). Keys in ``condition_on`` are held at their
         current value instead (their columns dropped: the prior then does not touch them; e.g. a
         keyframe pose that stays in the map, fixed outside the window). Returns the new factors' handles."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         store = self.store
         keys = [int(k) for k in keys]
@@ -285,7 +284,7 @@ class Optimizer:
         ``map.pose_graph``), the persistent factors whose keys are all among them (loops, user
         factors), a 7-dof prior (``gauge.anchor_sigma``) on the first at its current pose; ``values``
         a copy of their current poses; ``ids`` the keyframes in insertion order."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         store = self.store
         all_ids = store.keyframe_ids
@@ -323,7 +322,7 @@ class Optimizer:
 def _linear_priors(remaining, lin_point) -> list:
     """The non-empty factors of the eliminated graph ``remaining`` as ``gtsam.LinearContainerFactor``s
     linearised at ``lin_point``."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     out = []
     for i in range(remaining.size()):

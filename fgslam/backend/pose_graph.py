@@ -25,7 +25,7 @@ RobustKernel = Literal["none", "huber", "cauchy"]
 def anchor_prior(key: int, pose, sigma: float):
     """``PriorFactorSimilarity3`` holding ``key`` at the ``gtsam.Similarity3`` ``pose`` (isotropic
     ``sigma`` on all 7 tangent directions)."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     return gtsam.PriorFactorSimilarity3(key, pose, gtsam.noiseModel.Isotropic.Sigma(SIM3_DOF, sigma))
 
@@ -33,7 +33,7 @@ def anchor_prior(key: int, pose, sigma: float):
 def diagonal_model(sigmas: np.ndarray, kernel: RobustKernel = "none", kernel_param: float = 0.0):
     """Diagonal noise model of ``sigmas``, inside gtsam's ``kernel`` m-estimator (threshold
     ``kernel_param``) unless ``kernel`` is ``"none"``."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, dtype=np.float64))
     if kernel == "none":
@@ -46,7 +46,7 @@ class PoseGraphIsam2:
     """iSAM2 step provider of a pose graph (only built-in factors: iSAM2 relinearises them itself)."""
 
     def __init__(self, graph, values):
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(0.0)
@@ -87,7 +87,7 @@ class LoopPoseGraph:
 
     def __init__(self, T_WC: Sim3, loop_i, loop_j, T_CiCj: Sim3, smooth_sigmas: np.ndarray, loop_sigmas,
                  prior_sigma: float, hold_scale_sigma: float | None, kernel: RobustKernel, kernel_param: float):
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         self.K = T_WC.shape[0]
         self.loop_i, self.loop_j, self.T_CiCj = loop_i, loop_j, T_CiCj
@@ -120,7 +120,7 @@ class LoopPoseGraph:
 
     def solve(self, active: np.ndarray, start, settings: LMSettings, robust: bool = True):
         """LM on the base graph + the ``active`` loops from ``start``; returns (graph, values)."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         graph = gtsam.NonlinearFactorGraph(self.base)
         for c in np.flatnonzero(active):

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import BackendConfig
+from .graph import Backend
 
 __all__ = ["SnapshotProblem", "optimize_snapshot"]
 
@@ -43,8 +44,6 @@ class SnapshotProblem:
 def optimize_snapshot(problem: SnapshotProblem) -> np.ndarray:
     """Optimise the snapshot (module docstring); returns the (K, 4, 4) poses of ``problem.kf_ids``
     (the blocks' structure is updated in place, as by the run's backend)."""
-    from .graph import Backend
-
     backend = Backend(problem.config)
     for kf, T, t in zip(problem.kf_ids, problem.T_WC, problem.timestamps):
         backend.add_keyframe(int(kf), np.asarray(T, np.float64), float(t))

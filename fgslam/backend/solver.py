@@ -131,7 +131,7 @@ class _Damper:
             self._layout(keys, [int(zero.dim(k)) for k in keys])
 
     def damped(self, gfg, lam: float):
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         out = gtsam.GaussianFactorGraph()
         out.push_back(gfg)  # shares the linearised factors
@@ -166,7 +166,7 @@ def _max_abs(vec: np.ndarray) -> float:
 
 
 def _solve(graph, settings: LMSettings, ordering_cache: list):
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     if settings.ordering == "metis":
         if not ordering_cache:

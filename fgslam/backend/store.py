@@ -23,7 +23,7 @@ from .keys import key_name, pose_key
 def as_similarity3(T_WC):
     """``gtsam.Similarity3`` of a pose given as one, as an unbatched :class:`fgslam.lie.Sim3` or as a
     (4, 4) Sim(3) matrix ``[[s R, t], [0, 1]]`` (R projected onto SO(3))."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     if isinstance(T_WC, gtsam.Similarity3):
         return T_WC
@@ -113,7 +113,7 @@ class GraphStore:
     """
 
     def __init__(self):
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         self.estimate = gtsam.Values()
         self.factors = FactorTable(self.has_key)
@@ -279,7 +279,7 @@ class GraphStore:
 
     def values_of(self, keys: Iterable[int]):
         """A gtsam.Values with the current values of ``keys`` (e.g. a block's keys)."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         keys = {int(k) for k in keys}
         for key in keys:
@@ -301,6 +301,6 @@ class GraphStore:
     @property
     def values(self):
         """A copy of the current gtsam.Values."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         return gtsam.Values(self.estimate)

@@ -26,7 +26,7 @@ NAMED_KEYS = 5  # keys an elimination error names
 def restricted_factor(gf, keys: tuple[int, ...], free: set, dims: dict):
     """The linear factor ``gf`` on ``keys`` conditioned on a zero step of its non-free keys (their
     columns dropped); None when no key is free."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     keep = [i for i, k in enumerate(keys) if k in free]
     if not keep:
@@ -58,7 +58,7 @@ def eliminate_keys(gfg, keys: list[int], dims: dict[int, int], regularization: f
     Raises:
         OptimizationError: the system is indeterminate (names up to ``NAMED_KEYS`` keys; ``hint`` appended).
     """
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     if regularization > 0:
         for key in keys:
@@ -82,7 +82,7 @@ class Isam2Stepper:
     ``LinearContainerFactor``s at every iteration (module docstring)."""
 
     def __init__(self, problem: "WindowProblem"):
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(0.0)
@@ -96,7 +96,7 @@ class Isam2Stepper:
         self.started = False
 
     def __call__(self, gfg):
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         prob = self.problem
         containers = gtsam.NonlinearFactorGraph()
@@ -137,7 +137,7 @@ class WindowProblem:
         self.last_extras: list = []
 
     def free_values(self):
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         sub = gtsam.Values(self.values)
         for key in self.values.keys():
@@ -164,8 +164,6 @@ class WindowProblem:
         )
 
     def linearize(self):
-        import gtsam
-
         gfg = self.inner.linearize(self.values)
         extras = []
         for factor in self.cross:
@@ -182,7 +180,7 @@ class WindowProblem:
     def _block_pieces(self) -> list:
         """Every block linearised and restricted to the free keys, summed per key (diagonal blocks) and
         per key pair (off-diagonal blocks) into ``HessianFactor`` pieces."""
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         diag: dict[int, np.ndarray] = {}
         grad: dict[int, np.ndarray] = {}
@@ -218,7 +216,7 @@ class WindowProblem:
         """``delta`` with zero steps for the fixed keys of structured blocks (their back-substitution)."""
         if not self.fixed_of_blocks:
             return delta
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         full = gtsam.VectorValues(delta)
         for key in self.fixed_of_blocks:

@@ -8,6 +8,14 @@ import argparse
 import json
 import logging
 import sys
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from ..batch import BatchOptions, load_matrix, markdown_table, run_batch
+from ..config import check_ranges
 
 HELP = "run a matrix of configs x datasets (on Ray when installed) and collect one summary table"
 
@@ -30,12 +38,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-    from pathlib import Path
-
-    from ..batch import BatchOptions, load_matrix, markdown_table, run_batch
-    from ..config import check_ranges
-
     matrix, out = load_matrix(args.matrix)
     if args.out:
         out = Path(args.out)
@@ -46,12 +48,10 @@ def run(args: argparse.Namespace) -> int:
     use_ray = False if args.sequential else True if (args.ray or args.address) else None
     bar = None
     if not args.no_progress and sys.stderr.isatty():
-        from tqdm import tqdm
-
         n = len(matrix.configs) * len(matrix.datasets)
         bar = tqdm(total=n, desc="cells", unit="cell", file=sys.stderr)
 
-    def on_row(row, done, total) -> None:
+    def on_row(row: dict[str, Any], done: int, total: int) -> None:
         if bar is not None:
             bar.update(1)
             bar.set_postfix_str(f"{row['config']} x {row['dataset']}: {row['status']}")

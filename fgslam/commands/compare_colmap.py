@@ -9,13 +9,25 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
+import time
+from dataclasses import asdict, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Optional
 
-if TYPE_CHECKING:
-    import numpy as np
+import numpy as np
 
+from ..errors import ConfigError, DataError, EvaluationError
+from ..eval import EvalResult, evaluate
+from ..geometry import Alignment, umeyama
+from ..io.datasets import DatasetConfig, open_dataset
+from ..io import plot  # called through the module (replaceable in tests, as the run's plot)
+from ..io.run_files import TUM_FILE
+from ..io.trajectory import Trajectory, read_trajectory
+
+if TYPE_CHECKING:  # the run package and the exports pull torch: imported in run() only (fgslam --help stays fast)
     from ..export.compare import CompareConfig
+    from ..run.prepare import PreparedRun
 
 logger = logging.getLogger(__name__)
 
@@ -40,12 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-
-    from ..errors import ConfigError, DataError
-    from ..export.compare import CompareConfig, preset_for
-    from ..io.datasets import DatasetConfig, open_dataset
-    from ..slam import load_slam_config, open_slam_dataset, prepare_output_dir
+    from ..export.compare import CompareConfig, preset_for  # deferred: torch (fgslam --help stays fast)
+    from ..run.config import load_slam_config  # deferred: the run package pulls torch
+    from ..run.prepare import prepare_output_dir, prepare_run  # deferred: as above
 
     if args.frames is not None and args.frames < 3:
         raise ConfigError(f"--frames must be at least 3 (got {args.frames})")
@@ -59,13 +68,14 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and any(out.iterdir()) and not args.overwrite:
         raise ConfigError(f"{out}: output folder exists and is not empty (use --overwrite or another --out)")
     prepare_output_dir(out, args.data)
-    dataset = open_slam_dataset(args.data, config, args.format)
+    # the compare folder is the command's (refused when not empty unless --overwrite): a previous run in it is replaced
+    prepared = prepare_run(args.data, config, out / "fgslam", fmt=args.format, overwrite=True)
     cfg = CompareConfig()
     if args.features is not None:
         if args.features < 16:
             raise ConfigError(f"--features must be at least 16 (got {args.features})")
         cfg = replace(cfg, colmap=replace(cfg.colmap, max_num_features=args.features))
-    report = compare_colmap(dataset, config, out, cfg, progress=not args.no_progress, preset=preset)
+    report = compare_colmap(prepared, out, cfg, progress=not args.no_progress, preset=preset)
     if args.json:
         print(json.dumps(report, default=float))
     else:
@@ -99,25 +109,18 @@ def format_report(r: dict) -> str:
     return "\n".join(lines)
 
 
-def compare_colmap(dataset, slam_config, out: Path, config: CompareConfig | None = None,
+def compare_colmap(run: PreparedRun, out: Path, config: CompareConfig | None = None,
                    progress: bool = True, preset: str = "") -> dict[str, Any]:
-    """Run fgslam and COLMAP on ``dataset`` (monocular), write ``compare.json`` and ``compare.png``
-    into ``out`` and return the report (see the module docstring)."""
-    import os
-    import time
-    from dataclasses import asdict, replace
+    """Run fgslam (the prepared monocular ``run``, into ``out/fgslam``) and COLMAP on its dataset,
+    write ``compare.json`` and ``compare.png`` into ``out`` and return the report (see the module
+    docstring)."""
+    from ..export.colmap import run_colmap_sfm  # deferred: torch (fgslam --help stays fast)
+    from ..export.compare import COMPARE_JSON, COMPARE_PNG, CompareConfig, compare_clouds, write_frames  # deferred: torch
+    from ..export.map import load_run_map  # deferred: torch
+    from ..run.files import MAP_FILE  # deferred: the run package pulls torch
+    from ..run.runner import run_prepared  # deferred: as above
 
-    import numpy as np
-
-    from ..errors import DataError, EvaluationError
-    from ..eval import evaluate
-    from ..export.colmap import run_colmap_sfm
-    from ..export.compare import COMPARE_JSON, COMPARE_PNG, CompareConfig, compare_clouds, write_frames
-    from ..export.map import load_run_map
-    from ..geometry import umeyama
-    from ..io.trajectory import read_trajectory
-    from ..slam import MAP_FILE, TUM_FILE, run_slam
-
+    dataset, slam_config = run.dataset, run.config
     config = config or CompareConfig()
     load = [round(v, 2) for v in os.getloadavg()]
     image_dir = out / "images"
@@ -125,8 +128,7 @@ def compare_colmap(dataset, slam_config, out: Path, config: CompareConfig | None
     names = write_frames(dataset, image_dir)
     write_s = time.perf_counter() - t0
 
-    # the compare folder is the command's (refused when not empty unless --overwrite): replace a previous run in it
-    summary = run_slam(dataset, slam_config, out / "fgslam", progress=progress, overwrite=True)
+    summary = run_prepared(run, progress=progress)
     sfm = run_colmap_sfm(image_dir, out / "colmap", dataset.calibration.K, config.colmap, sorted(names))
 
     gt = dataset.groundtruth
@@ -173,8 +175,6 @@ def compare_colmap(dataset, slam_config, out: Path, config: CompareConfig | None
     if gt is not None and fg_traj is not None and cm_traj is not None and len(cm_traj) >= 3:
         common = np.isin(np.round(fg_traj.timestamps, 6), np.round(cm_traj.timestamps, 6))
         if common.sum() >= 3:
-            from ..io.trajectory import Trajectory
-
             sub = Trajectory(fg_traj.timestamps[common], fg_traj.T_WC[common])
             try:
                 report["fgslam"]["ate_on_colmap_frames_m"] = evaluate(gt, sub, eval_cfg).ate.rmse
@@ -212,9 +212,9 @@ def compare_colmap(dataset, slam_config, out: Path, config: CompareConfig | None
     return report
 
 
-def _plot(path: Path, gt, results: dict, fg_traj, cm_traj, report: dict) -> None:
-    from ..io.plot import plot_trajectories, pose_errors
-    from ..outputs import auto_plane
+def _plot(path: Path, gt: Optional[Trajectory], results: dict[str, EvalResult], fg_traj: Optional[Trajectory],
+          cm_traj: Optional[Trajectory], report: dict[str, Any]) -> None:
+    from ..run.outputs import auto_plane  # deferred: the run package pulls torch
 
     trajs = {}
     for key, label, traj in (("fgslam", "fgslam", fg_traj), ("colmap", "COLMAP", cm_traj)):
@@ -223,15 +223,15 @@ def _plot(path: Path, gt, results: dict, fg_traj, cm_traj, report: dict) -> None
     if not trajs:
         return
     first, *rest = trajs.items()
-    errors = {("fgslam" if k == "fgslam" else "COLMAP"): pose_errors(r.matched_gt, r.aligned_est) for k, r in results.items()}
+    errors = {("fgslam" if k == "fgslam" else "COLMAP"): plot.pose_errors(r.matched_gt, r.aligned_est) for k, r in results.items()}
     fg, cm = report["fgslam"], report["colmap"]
     fmt = lambda v: "-" if v is None else f"{v:.3f} m"  # noqa: E731
     title = (f"fgslam {fmt(fg.get('ate_m'))} in {fg['wall_s']:.0f} s; COLMAP {fmt(cm.get('ate_m'))} in "
              f"{cm['wall_s']:.0f} s ({cm['registered_frames']} frames)")
     plane = auto_plane(gt if gt is not None else first[1])
-    plot_trajectories(path, gt, first[1], title=title, plane=plane, others=dict(rest), errors=errors or None,
-                      label=first[0])
+    plot.plot_trajectories(path, gt, first[1], title=title, plane=plane, others=dict(rest), errors=errors or None,
+                           label=first[0])
 
 
-def _apply(alignment, X: np.ndarray) -> np.ndarray:
+def _apply(alignment: Alignment, X: np.ndarray) -> np.ndarray:
     return alignment.s * X @ alignment.R.T + alignment.t

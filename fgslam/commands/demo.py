@@ -21,7 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..demo import format_demo_report, load_demo_config, run_demo
+    from ..demo import format_demo_report, load_demo_config, run_demo  # deferred: the demo runs SLAM (torch; fgslam --help stays fast)
 
     overrides = list(args.overrides)
     if args.frames is not None:

@@ -14,6 +14,11 @@ import argparse
 import dataclasses
 import json
 
+from ..config import load_config
+from ..errors import DataError
+from ..eval import EvalConfig, evaluate
+from ..io import plot  # called through the module: a test replaces plot.plot_trajectories
+from ..io.trajectory import read_trajectory
 from . import add_config_arguments
 
 HELP = "evaluate an estimated trajectory against ground truth (ATE, RPE, KITTI t_rel/r_rel)"
@@ -43,10 +48,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..config import load_config
-    from ..eval import EvalConfig, evaluate
-    from ..io.trajectory import read_trajectory
-
     gt_format = args.format
     est_format = args.est_format or args.format
     config = load_config(EvalConfig, args.config, args.overrides)
@@ -64,23 +65,18 @@ def run(args: argparse.Namespace) -> int:
     config = dataclasses.replace(config, association=association, kitti_metrics=kitti_metrics)
 
     if args.plot:
-        from ..io.plot import check_plot_path
-
-        check_plot_path(args.plot)
+        plot.check_plot_path(args.plot)
     gt = read_trajectory(args.gt, gt_format, args.gt_times)
     est = read_trajectory(args.est, est_format, args.est_times, unique_timestamps=True)
     result = evaluate(gt, est, config)
 
     plot_error = None
     if args.plot:
-        from ..errors import DataError
-        from ..io.plot import plot_trajectories, pose_errors
-
         plane = args.plane or ("xz" if gt_format == "kitti" else "xy")
         title = f"ATE {result.ate.rmse:.3f} m ({config.align}, {result.n_matched} poses)"
         try:
-            plot_trajectories(args.plot, gt, result.aligned_est, title=title, plane=plane,
-                              errors={"estimate": pose_errors(result.matched_gt, result.aligned_est)})
+            plot.plot_trajectories(args.plot, gt, result.aligned_est, title=title, plane=plane,
+                                   errors={"estimate": plot.pose_errors(result.matched_gt, result.aligned_est)})
         except DataError as exc:  # the results are still printed, then the error
             plot_error = exc
 

@@ -7,6 +7,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from ..export.bag import BagExportConfig, export_bag
+
 HELP = "export a run's map as a COLMAP model (binary or text, with images) or a PLY point cloud, or its trajectory as a ROS bag"
 
 
@@ -27,14 +29,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.bag:
-        from ..export.bag import BagExportConfig, export_bag
-
         result = export_bag(args.run_dir, args.bag, overwrite=args.overwrite,
                             config=BagExportConfig(storage=args.bag_storage))
         print(json.dumps(result) if args.json else
               f"wrote {result['poses']} poses to {result['bag']} (ROS {result['ros_version']}: {', '.join(result['topics'])})")
         return 0
-    from ..export.run_export import export_colmap, export_ply, open_run_folder
+    from ..export.run_export import export_colmap, export_ply, open_run_folder  # deferred: torch (fgslam --help stays fast)
 
     run_folder = open_run_folder(args.run_dir)
     if args.ply:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from ..config import load_config
+from ..io.datasets import DatasetConfig, open_dataset
 from . import FORMAT_CHOICES, add_config_arguments
 
 HELP = "describe a dataset folder, video or ROS bag: format, frames, resolution, rate, stereo/depth/IMU/ground truth"
@@ -17,8 +19,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..config import load_config
-    from ..io.datasets import DatasetConfig, open_dataset
 
     config = load_config(DatasetConfig, args.config, args.overrides)
     ds = open_dataset(args.path, args.format, config)

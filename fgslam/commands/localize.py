@@ -1,11 +1,13 @@
 """``fgslam localize MAP --data SEQ --out DIR``: track a new sequence against a stored map (``fgslam
-run ... --save-map MAP``) without growing it (:mod:`fgslam.localize`)."""
+run ... --save-map MAP``) without growing it (:mod:`fgslam.localize.sequence`)."""
 
 from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
+from ..config import load_config
 from . import FORMAT_CHOICES, add_config_arguments
 
 HELP = "localise a sequence in a stored map (pose per frame in the map's frame, or 'not localised')"
@@ -25,15 +27,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..config import load_config
-    from ..localize import LocalizeConfig, run_localization
-    from ..outputs import clear_previous_outputs, prepare_output_dir
+    from ..localize.localizer import LocalizeConfig  # deferred: localisation pulls torch (fgslam --help stays fast)
+    from ..localize.sequence import run_localization  # deferred: as above
+    from ..run.prepare import prepare_output, remove_previous_outputs  # deferred: as above
 
     config = load_config(LocalizeConfig, args.config, args.overrides)
 
-    def prepare_out(out) -> None:  # fgslam run's rule for --out, once the map and the sequence are checked:
-        prepare_output_dir(out, args.data)  # writable, not the dataset folder nor inside it
-        clear_previous_outputs(out, args.overwrite)  # a previous run's outputs: refused, or removed with --overwrite
+    def prepare_out(out: Path) -> None:  # fgslam run's rule for --out, once the map and the sequence are checked:
+        prepare_output(out, args.data, args.overwrite)  # writable, not the dataset folder nor inside it, no previous outputs
+        if args.overwrite:  # unless --overwrite: then removed
+            remove_previous_outputs(out)
 
     s = run_localization(args.map, args.data, args.out, config, fmt=args.format, start=args.start, end=args.end,
                          stride=args.stride, prepare_out=prepare_out)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from ..config import load_config
+from ..pgo import PGOConfig, run_pgo
 from . import add_config_arguments
 
 HELP = "optimise a g2o pose graph (SE2 / SE3:QUAT) and report initial/final cost, iterations and time"
@@ -20,8 +22,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..config import load_config
-    from ..pgo import PGOConfig, run_pgo
 
     overrides = list(args.overrides or [])
     if args.init is not None:

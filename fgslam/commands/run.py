@@ -1,5 +1,5 @@
 """``fgslam run CONFIG --data PATH --out DIR``: run SLAM on a dataset and write trajectories,
-``summary.json`` and ``trajectory.png`` (see :mod:`fgslam.slam`).
+``summary.json`` and ``trajectory.png`` (see :mod:`fgslam.run.runner`).
 
 CONFIG is a YAML file or the name of a preset shipped in the package's ``fgslam/configs/`` folder
 (``patch_kitti_mono``, ``patch_7scenes_rgbd``, ``patch_euroc_stereo``, ...). ``-o key=value``
@@ -10,15 +10,18 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import TYPE_CHECKING
 
+from ..run.presets import run_presets
 from . import FORMAT_CHOICES
+
+if TYPE_CHECKING:  # the run package pulls torch: imported in run() only (fgslam --help stays fast)
+    from ..run.results import RunSummary
 
 HELP = "run SLAM on a dataset (trajectory in TUM/KITTI formats, summary.json, trajectory.png)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..presets import run_presets
-
     presets = run_presets()  # each preset's own "# description:" line
     width = max(map(len, presets), default=0)
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -48,41 +51,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..slam import clear_previous_outputs, load_slam_config, open_slam_dataset, prepare_output_dir, run_slam
+    from ..run.config import load_slam_config  # deferred: the run package pulls torch (fgslam --help stays fast)
+    from ..run.prepare import check_save_map_path, prepare_run  # deferred: as above
+    from ..run.runner import run_prepared  # deferred: as above
 
     overrides = list(args.overrides)
     if args.save_map:
-        from pathlib import Path
-
-        from ..errors import ConfigError
-
-        if not Path(args.save_map).resolve().parent.is_dir():
-            raise ConfigError(f"--save-map {args.save_map}: its folder does not exist")
-        from ..outputs import check_save_map_path
-
         check_save_map_path(args.save_map, args.out, args.map, args.overwrite)
         overrides.append(f"output.save_map={args.save_map}")
     if args.map:
         overrides.append(f"output.extend_map={args.map}")
     config = load_slam_config(args.config, overrides)
-    if args.rerun:
-        from ..export.rerun import check_rerun_target
+    # every check before any work, once: rerun target, output folder, dataset, the --map's camera
+    prepared = prepare_run(args.data, config, args.out, fmt=args.format, overwrite=args.overwrite, rerun=args.rerun)
 
-        check_rerun_target(args.rerun)
-    prepare_output_dir(args.out, args.data)  # before any work: writable, not the dataset folder nor inside it
-    clear_previous_outputs(args.out, args.overwrite, remove=False)  # no previous run's outputs unless --overwrite
-    dataset = open_slam_dataset(args.data, config, args.format)
-    if args.map:  # before any work: a map that cannot be continued is refused now
-        from ..export.mapfile import check_map_camera, load_stored_map
-
-        c = dataset.calibration
-        check_map_camera(load_stored_map(args.map), c.K, c.width, c.height, args.map, args.data)
-
-    def report(summary) -> None:  # also when the run then fails or is interrupted (the error line follows)
+    def report(summary: RunSummary) -> None:  # also when the run then fails or is interrupted (the error line follows)
         print(json.dumps(summary.to_dict(), default=str) if args.json else format_report(summary.to_dict()), flush=True)
 
-    run_slam(dataset, config, args.out, progress=not args.no_progress, on_summary=report, rerun=args.rerun,
-             overwrite=args.overwrite)
+    run_prepared(prepared, progress=not args.no_progress, on_summary=report)
     return 0
 
 

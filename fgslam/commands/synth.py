@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 
 from . import add_config_arguments
 
@@ -39,10 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import time
-
-    from ..io.synth import SynthSequence, write_sequence, write_tumvi_sequence
-    from ..io.synth.scenarios import load_synth_config
+    from ..io.synth import SynthSequence, write_sequence, write_tumvi_sequence  # deferred: cv2 (fgslam --help stays fast)
+    from ..io.synth.scenarios import load_synth_config  # deferred: cv2
 
     overrides = list(args.overrides or [])
     for key, value in (("frames", args.frames), ("seed", args.seed), ("camera.width", args.width),

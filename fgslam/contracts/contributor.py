@@ -15,19 +15,21 @@ patch, dense and pointmap families (or two of them on one graph) share one servi
   observations between the neighbourhoods of two keyframes (None: none, or the family has none).
 
 Families with proximity loops also implement :class:`ProximityContributor` (candidate search and the
-global bundle adjustment's hand-over: a snapshot problem solved in the background and its result).
+global bundle adjustment's hand-over: a snapshot problem solved in the background and its result) and
+name their gates (:class:`ProximityGates`, the family's proximity config).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, Optional, Protocol, runtime_checkable
+from typing import Callable, Optional, Protocol, runtime_checkable
 
 import numpy as np
 
 from ..loop.records import PoseCorrection
 
-__all__ = ["Contributor", "GlobalBAJob", "KeyframeImage", "PoseCorrection", "ProximityContributor", "apply_global_ba_result"]
+__all__ = ["Contributor", "GlobalBAJob", "KeyframeImage", "PoseCorrection", "ProximityCandidate", "ProximityContributor",
+           "ProximityGates", "SolvedGlobalBA", "apply_global_ba_result"]
 
 
 @dataclass(frozen=True)
@@ -38,6 +40,22 @@ class KeyframeImage:
     K: np.ndarray  # (4,) fx, fy, cx, cy of the undistorted pinhole image
     timestamp: float
     depth: Optional[np.ndarray] = None  # (H, W) metres (RGB-D), None otherwise
+
+
+class SolvedGlobalBA(Protocol):
+    """What the service reads of a solved global BA (:attr:`GlobalBAJob.solve`'s result, e.g.
+    :class:`fgslam.backend.global_ba.GlobalBAResult`, the dense family's ``DenseGlobalResult``); the
+    contributor's own result type carries more."""
+
+    T_WC: np.ndarray  # (F, 4, 4) the problem's keyframe poses
+    robust: np.ndarray  # (N,) per edge: 0 where the edge lost its weight
+
+
+class ProximityCandidate(Protocol):
+    """A proximity candidate as the service sees it: keyframe ``fid`` and its flow to the query (px)."""
+
+    fid: int
+    flow: float
 
 
 @dataclass
@@ -56,14 +74,23 @@ class GlobalBAJob:
     ``global_ba_delay_frames`` (a contributor whose global BAs grow with its map asks for more, from
     the snapshot's size, so that tracking does not wait for it there)."""
 
-    solve: Callable[[], Any]
+    solve: Callable[[], SolvedGlobalBA]
     kf_ids: np.ndarray
     T_WC: np.ndarray
     is_loop: np.ndarray
     loop_edges: Optional[dict] = None
-    context: Any = None
+    context: object = None  # the contributor's own, opaque to the service
     in_process: bool = False
     delay_frames: int = 0
+
+
+class ProximityGates(Protocol):
+    """The proximity settings the loop service uses (the family's proximity config, e.g.
+    ``patch.proximity``; a frontend's ``proximity_gates``)."""
+
+    min_gap: int  # keyframes settled between a candidate and the query at least
+    cooldown: int  # keyframes after an accepted loop before the next query
+    min_ba_inlier_ratio: float  # share of the loop edges that must keep a weight after the global BA
 
 
 @runtime_checkable
@@ -85,7 +112,7 @@ class Contributor(Protocol):
 class ProximityContributor(Contributor, Protocol):
     """A contributor with proximity loops and a global bundle adjustment (patch and dense families)."""
 
-    def proximity_candidate(self, query_kf_id: int, candidate_kf_ids: list[int]) -> Any:
+    def proximity_candidate(self, query_kf_id: int, candidate_kf_ids: list[int]) -> Optional[ProximityCandidate]:
         """The best candidate among older keyframes (an object with ``fid`` and ``flow``) or None."""
         ...
 
@@ -93,14 +120,14 @@ class ProximityContributor(Contributor, Protocol):
         """Snapshot of the current map with every stored edge and ``loop_edges`` (None: no map)."""
         ...
 
-    def apply_global_ba(self, job: GlobalBAJob, result: Any, keep_loop: np.ndarray) -> None:
+    def apply_global_ba(self, job: GlobalBAJob, result: SolvedGlobalBA, keep_loop: np.ndarray) -> None:
         """Hand-over of an accepted result, before the pose correction is applied: structure of the
         keyframes unchanged since the snapshot, loop edges ``keep_loop`` (bool over the job's loop
         edges) into the contributor's store."""
         ...
 
 
-def apply_global_ba_result(contributor: ProximityContributor, job: GlobalBAJob, result: Any, keep: np.ndarray,
+def apply_global_ba_result(contributor: ProximityContributor, job: GlobalBAJob, result: SolvedGlobalBA, keep: np.ndarray,
                            seconds: float = 0.0) -> None:
     """Apply an accepted global BA: ``contributor.apply_global_ba``, then the correction
     ``U_k = T_new_k T_snapshot_k^-1`` of every snapshot keyframe on its current pose (the proximity

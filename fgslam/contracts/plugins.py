@@ -6,20 +6,25 @@ nothing of the service."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, Protocol, TypeVar
+from typing import TYPE_CHECKING, Protocol, TypeVar
 
 from ..config import from_dict
+
+if TYPE_CHECKING:
+    from ..backend.graph import Backend
 
 T = TypeVar("T")
 
 
 class FactorPlugin(Protocol):
-    """What the runner needs from a plugin class (built as ``Cls(options, key)``)."""
+    """What the runner needs from a plugin class (built as ``Cls(options, key)``): ``attach`` with
+    the run's backend; ``check_run(timestamps)``, ``poll(backend)`` and ``finish(backend)`` are
+    optional (:mod:`fgslam.services.plugins`)."""
 
-    def attach(self, backend: Any) -> None: ...
+    def attach(self, backend: Backend) -> None: ...
 
 
-def parse_options(cls: type[T], options: Mapping[str, Any], key: str) -> T:
-    """A plugin's options as the typed dataclass ``cls`` (ranges checked); a ConfigError names the
-    option as ``<key>.options.<name>``."""
+def parse_options(cls: type[T], options: Mapping[str, object], key: str) -> T:
+    """A plugin's options (the config's parsed values) as the typed dataclass ``cls`` (ranges
+    checked); a ConfigError names the option as ``<key>.options.<name>``."""
     return from_dict(cls, options, source="factor plugin", prefix=f"{key}.options.")

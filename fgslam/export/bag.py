@@ -16,7 +16,7 @@ import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -24,6 +24,9 @@ from ..errors import DataError
 from ..io.datasets.rosbag import ROS1_SUFFIX, import_rosbags, is_bag
 from ..io.run_files import TUM_FILE
 from ..io.trajectory import Trajectory, read_trajectory, rotation_to_quaternion_xyzw
+
+if TYPE_CHECKING:
+    from rosbags.interfaces import Connection
 
 logger = logging.getLogger(__name__)
 
@@ -49,30 +52,31 @@ class BagExportConfig:
 
 
 class BagWriter:
-    """ROS 1 (``.bag``) or ROS 2 (folder) bag writer over ``rosbags`` with typed messages."""
+    """ROS 1 (``.bag``) or ROS 2 (folder) bag writer over ``rosbags`` with typed messages (instances of
+    the typestore's message classes, built at run time: ``object`` here)."""
 
     def __init__(self, path: str | Path, storage: str = "sqlite3") -> None:
         import_rosbags()
-        from rosbags.typesys import Stores, get_typestore
+        from rosbags.typesys import Stores, get_typestore  # deferred: rosbags (optional extra)
 
         self.path = Path(path)
         self.ros1 = self.path.suffix == ROS1_SUFFIX
         self.typestore = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
         if TF_TYPE not in self.typestore.types:
-            from rosbags.typesys import get_types_from_msg
+            from rosbags.typesys import get_types_from_msg  # deferred: rosbags
 
             self.typestore.register(get_types_from_msg(TF_MESSAGE_DEF, TF_TYPE))
         self.types = self.typestore.types
         if self.ros1:
-            from rosbags.rosbag1 import Writer
+            from rosbags.rosbag1 import Writer  # deferred: rosbags
 
             self._writer = Writer(self.path)
         else:
-            from rosbags.rosbag2 import StoragePlugin, Writer
+            from rosbags.rosbag2 import StoragePlugin, Writer  # deferred: rosbags
 
             plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}[storage]
             self._writer = Writer(self.path, version=ROS2_BAG_VERSION, storage_plugin=plugin)
-        self._connections: dict[str, Any] = {}
+        self._connections: dict[str, Connection] = {}
         self._seq = 0
 
     def __enter__(self) -> "BagWriter":
@@ -82,14 +86,14 @@ class BagWriter:
     def __exit__(self, *exc) -> None:
         self._writer.close()
 
-    def header(self, stamp_ns: int, frame_id: str) -> Any:
+    def header(self, stamp_ns: int, frame_id: str) -> object:
         stamp = self.types["builtin_interfaces/msg/Time"](sec=int(stamp_ns // NS_PER_S), nanosec=int(stamp_ns % NS_PER_S))
         if self.ros1:
             self._seq += 1
             return self.types["std_msgs/msg/Header"](seq=self._seq, stamp=stamp, frame_id=frame_id)
         return self.types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
 
-    def write(self, topic: str, msgtype: str, log_ns: int, msg: Any) -> None:
+    def write(self, topic: str, msgtype: str, log_ns: int, msg: object) -> None:
         conn = self._connections.get(topic)
         if conn is None:
             conn = self._connections[topic] = self._writer.add_connection(topic, msgtype, typestore=self.typestore)
@@ -103,7 +107,7 @@ def stamp_ns(t: float) -> int:
     return int(round(float(t) * NS_PER_S))
 
 
-def _pose(types: dict, T: np.ndarray) -> Any:
+def _pose(types: dict, T: np.ndarray) -> object:
     qx, qy, qz, qw = rotation_to_quaternion_xyzw(T[:3, :3])
     x, y, z = (float(v) for v in T[:3, 3])
     return types["geometry_msgs/msg/Pose"](

@@ -31,6 +31,7 @@ import numpy as np
 
 from ..config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_KEYFRAMES, MAX_SCALAR, MAX_SEED, MAX_THREADS, ranged
 from ..errors import DataError
+from ..io.trajectory import Trajectory
 from .map import RunMap
 
 logger = logging.getLogger(__name__)
@@ -104,7 +105,7 @@ def build_reconstruction(run_map: RunMap, image_names: dict[int, str], config: C
     Returns:
         ``(reconstruction, ExportStats)``.
     """
-    import pycolmap
+    import pycolmap  # deferred: pycolmap
 
     config = config or ColmapExportConfig()
     m = run_map.map
@@ -167,7 +168,7 @@ def build_reconstruction(run_map: RunMap, image_names: dict[int, str], config: C
 
 
 def _cam_from_world(T_WC: np.ndarray):
-    import pycolmap
+    import pycolmap  # deferred: pycolmap
 
     T_CW = np.linalg.inv(np.asarray(T_WC, dtype=np.float64))
     return pycolmap.Rigid3d(T_CW[:3, :4])
@@ -209,8 +210,6 @@ class ColmapModel:
     def trajectory(self, timestamp_of_name: dict[str, float]):
         """The images whose names ``timestamp_of_name`` knows as a :class:`~fgslam.io.trajectory.Trajectory`
         (sorted by time); raises DataError when none does."""
-        from ..io.trajectory import Trajectory
-
         rows = sorted((timestamp_of_name[n], i) for i, n in enumerate(self.names) if n in timestamp_of_name)
         if not rows:
             raise DataError(f"none of the model's {len(self.names)} image names is a frame of the sequence "
@@ -236,7 +235,7 @@ def check_model_folder(folder: str | Path) -> str:
 
 def read_colmap_model(folder: str | Path) -> ColmapModel:
     """Read a COLMAP model (binary or text) from ``folder`` (or ``folder/sparse/0``)."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap
 
     folder = Path(folder)
     if not any((folder / f"{n}.{e}").exists() for n in MODEL_FILES for e in ("bin", "txt")) and (folder / SPARSE_SUBDIR).is_dir():
@@ -300,9 +299,9 @@ def run_colmap_sfm(image_dir: str | Path, work_dir: str | Path, intrinsics: np.n
     """pycolmap's SfM on the images in ``image_dir`` with a known pinhole camera (fgslam convention
     ``fx, fy, cx, cy``; kept fixed): SIFT on the CPU, sequential matching, incremental mapping.
     The database and models go to ``work_dir``."""
-    import resource
+    import resource  # deferred: Unix-only standard module (the SfM reports its CPU time)
 
-    import pycolmap
+    import pycolmap  # deferred: pycolmap
 
     config = config or ColmapSfmConfig()
     work = Path(work_dir)

@@ -3,7 +3,7 @@ written for COLMAP, and the point-cloud distances (the comparison that runs both
 :func:`fgslam.commands.compare_colmap.compare_colmap`).
 
 Both run monocular on the same undistorted frames with the same pinhole calibration (COLMAP's kept
-fixed): fgslam through :func:`fgslam.slam.run_slam`, COLMAP through
+fixed): fgslam through :func:`fgslam.run.runner.run_slam`, COLMAP through
 :func:`fgslam.export.colmap.run_colmap_sfm` (SIFT on the CPU, sequential matching, incremental
 mapping) on the frames written as PNG files (writing them is timed for neither).
 
@@ -61,7 +61,7 @@ def preset_for(fmt: str, root: str | Path | None = None) -> str:
 def cloud_distances(cloud: np.ndarray, reference: np.ndarray) -> dict[str, float]:
     """Accuracy (cloud -> reference) and completion (reference -> cloud): mean and median nearest
     neighbour distances."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # deferred: scipy
 
     if cloud.shape[0] == 0 or reference.shape[0] == 0:
         return {"accuracy_mean": float("nan"), "accuracy_median": float("nan"),
@@ -86,7 +86,7 @@ def compare_clouds(fg_cloud: np.ndarray, cm_cloud: np.ndarray, fg_centres: np.nd
     without its points farther from every camera of its own run than ``max_point_range_factor``
     times the median such distance of the cloud (far points: near-zero inverse depths, sky),
     counted in the report."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # deferred: scipy
 
     kept, limits = {}, {}
     for name, cloud, centres in (("fgslam", fg_cloud, fg_centres), ("colmap", cm_cloud, cm_centres)):
@@ -108,7 +108,7 @@ def compare_clouds(fg_cloud: np.ndarray, cm_cloud: np.ndarray, fg_centres: np.nd
 
 def write_frames(dataset, image_dir: Path) -> dict[str, float]:
     """Write the dataset's (undistorted) grey frames as PNG files; returns name -> timestamp."""
-    import cv2
+    import cv2  # deferred: cv2
 
     image_dir.mkdir(parents=True, exist_ok=True)
     names: dict[str, float] = {}

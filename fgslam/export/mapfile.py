@@ -42,6 +42,7 @@ import io
 import json
 import logging
 import os
+import threading
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,8 +52,10 @@ import numpy as np
 
 from ..config import MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
 from ..errors import DataError
-from ..loop.bow import BowConfig
-from ..loop.features import OrbConfig
+from ..loop.bow import BowConfig, KeyframeFeatures, PlaceRecognizer
+from ..loop.features import OrbConfig, to_grey_uint8
+from ..loop.records import VerificationConfig
+from ..loop.verification import LoopKeyframe, Verifier
 from ..mapdata import MapExport
 
 logger = logging.getLogger(__name__)
@@ -110,7 +113,7 @@ class MapFeaturesConfig:
 
 @dataclass
 class MapMergeConfig:
-    """Merging a recording into a stored map (``fgslam run ... --map MAP``, :func:`fgslam.localize.merge_recording`;
+    """Merging a recording into a stored map (``fgslam run ... --map MAP``, :func:`fgslam.localize.merge.merge_recording`;
     ``output.map_merge`` of a run, ``merge`` of ``fgslam localize``'s config)."""
 
     min_keyframes: int = ranged(3, ge=1, le=MAX_KEYFRAMES)  # recording keyframes localised in the map (consistently) to merge
@@ -208,7 +211,7 @@ class StoredMap:
             raise bad("meta features: orb must be a mapping, vocabulary a name")
 
 
-def _numbers(values: Any, n: int) -> bool:
+def _numbers(values: object, n: int) -> bool:
     """``values`` is a list of ``n`` finite numbers (not booleans)."""
     return (isinstance(values, (list, tuple)) and len(values) == n
             and all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in values))
@@ -329,9 +332,7 @@ def feature_camera(K: np.ndarray, width: int, height: int, scale: float) -> tupl
 
 def feature_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
     """The grey image resized to the feature image size (area interpolation)."""
-    import cv2
-
-    from ..loop.features import to_grey_uint8
+    import cv2  # deferred: cv2
 
     grey = to_grey_uint8(image)
     if grey.shape[1] == width and grey.shape[0] == height:
@@ -370,19 +371,13 @@ def _frame_range(dataset) -> dict[str, Any]:
 
 
 def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, config: dict,
-                     features: MapFeaturesConfig, verification=None, groundtruth_alignment: dict | None = None,
+                     features: MapFeaturesConfig, verification: VerificationConfig | None = None, groundtruth_alignment: dict | None = None,
                      frame_indices: np.ndarray | None = None) -> StoredMap:
     """The stored map of a run: the frontend's keyframes and structure (``exported``), the keyframe
     images re-read from ``dataset`` (the frame nearest to each keyframe's time among
     ``frame_indices``, default all) for their features, 3-D points from the sensor depth (``rgbd``)
     or triangulated between neighbouring keyframes (``verification``:
     :class:`fgslam.loop.records.VerificationConfig`), and their BoW vectors."""
-    import threading
-
-    from ..loop.bow import KeyframeFeatures, PlaceRecognizer
-    from ..loop.records import VerificationConfig
-    from ..loop.verification import LoopKeyframe, Verifier
-
     features.validate()
     calib = dataset.calibration
     K_feat, w_feat, h_feat = feature_camera(calib.K, calib.width, calib.height, features.image_scale)

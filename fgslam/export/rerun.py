@@ -3,7 +3,7 @@ running viewer): frames, camera poses, the trajectory, keyframe points and loop 
 
 rerun is an optional extra (``pip install 'fgslam[rerun]'``); without it ``--rerun`` is a clear
 error before the run starts. :class:`RerunView` is a peer service of the run's system
-(:class:`fgslam.system.SlamSystem`): after every frame the system hands it the frame and its status,
+(:class:`fgslam.run.system.SlamSystem`): after every frame the system hands it the frame and its status,
 and it logs the camera (pinhole + pose) on the ``frame`` timeline (and the frame's time on
 ``time``), the frame's image every ``image_every`` frames (JPEG); every ``map_every`` frames (and at
 the end) the system hands it the map: the frontend's keyframe points and the accepted loop edges
@@ -22,12 +22,20 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..config import MAX_FRAMES, MAX_SCALAR, ranged
 from ..errors import ConfigError, DataError
+
+if TYPE_CHECKING:
+    import rerun.blueprint as rrb
+
+    from ..backend.graph import Backend
+    from ..frontends.base import FrameStatus
+    from ..io.calibration import Calibration
+    from ..io.frame import Frame
 
 logger = logging.getLogger(__name__)
 
@@ -49,7 +57,7 @@ class RerunConfig:
 
 def rerun_available() -> bool:
     try:
-        import rerun  # noqa: F401
+        import rerun  # noqa: F401  # deferred: rerun (optional extra), only probed
     except ImportError:
         return False
     return True
@@ -68,10 +76,10 @@ def check_rerun_target(target: str) -> None:
         raise DataError(f"--rerun {target}: folder {path.parent} does not exist")
 
 
-def default_blueprint() -> Any:
+def default_blueprint() -> rrb.Blueprint:
     """The layout sent with a recording: the 3-D world (cameras, trajectory, keyframes, points, loops)
     beside the current image with its projected map points over the measurement count."""
-    import rerun.blueprint as rrb
+    import rerun.blueprint as rrb  # deferred: rerun (optional extra)
 
     return rrb.Blueprint(rrb.Horizontal(
         rrb.Spatial3DView(origin="world", name="map"),
@@ -83,8 +91,8 @@ def default_blueprint() -> Any:
 class RerunView:
     """A run's rerun log (see the module docstring); ``target`` is a ``.rrd`` file or ``live``."""
 
-    def __init__(self, target: str, calibration: Any, config: RerunConfig | None = None) -> None:
-        import rerun as rr
+    def __init__(self, target: str, calibration: Calibration, config: RerunConfig | None = None) -> None:
+        import rerun as rr  # deferred: rerun (optional extra)
 
         self._rr = rr
         self.config = config or RerunConfig()
@@ -121,7 +129,7 @@ class RerunView:
             logger.warning("rerun logging failed at the end: %s: %s", type(exc).__name__, exc)
 
     # ------------------------------------------------------------------ logging
-    def log_frame(self, frame: Any, status: Any) -> None:
+    def log_frame(self, frame: Frame, status: FrameStatus) -> None:
         """Log one frame: its camera pose (when it has one) and every ``image_every``-th image."""
         rr, rec, cfg = self._rr, self.rec, self.config
         rec.set_time("frame", sequence=int(frame.index))
@@ -139,7 +147,7 @@ class RerunView:
             if T is not None and self._map_points is not None:
                 rec.log("world/camera/image/map_points", rr.Points2D(self.project(T, self._map_points),
                                                                       radii=cfg.image_point_radius))
-            import cv2
+            import cv2  # deferred: cv2
 
             image = frame.image if getattr(frame, "rgb", None) is None else cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR)
             ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
@@ -175,7 +183,7 @@ class RerunView:
         return uv[inside]
 
 
-def loop_segments(pairs: list[tuple[int, int]], backend: Any) -> list[np.ndarray]:
+def loop_segments(pairs: list[tuple[int, int]], backend: Backend) -> list[np.ndarray]:
     """Loop edges ``(query id, candidate id)`` as (2, 3) segments between the keyframe centres of
     ``backend`` (pairs with a keyframe no longer in the backend are skipped)."""
     return [np.stack([backend.pose_matrix(q)[:3, 3], backend.pose_matrix(c)[:3, 3]]) for q, c in pairs

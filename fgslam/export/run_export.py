@@ -18,10 +18,14 @@ from typing import Any
 
 import numpy as np
 
+from ..config import from_dict
 from ..errors import ConfigError, DataError
+from ..io.datasets import DatasetConfig, open_dataset
 from ..io.run_files import SUMMARY_FILE, TUM_FILE
+from ..io.trajectory import read_trajectory
 from .colmap import IMAGES_SUBDIR, SPARSE_SUBDIR, ColmapExportConfig, build_reconstruction, write_model
 from .map import MAP_FILE, RunMap, load_run_map
+from .ply import write_ply
 
 logger = logging.getLogger(__name__)
 
@@ -69,8 +73,6 @@ def check_output(path: Path, overwrite: bool) -> None:
 
 
 def export_ply(run: RunFolder, path: str | Path, overwrite: bool = False) -> dict[str, Any]:
-    from .ply import write_ply
-
     path = Path(path)
     check_output(path, overwrite)
     if not path.parent.is_dir():
@@ -87,8 +89,6 @@ def _frame_names(run_map: RunMap) -> dict[int, str]:
 def _all_frame_poses(run: RunFolder, keyframe_indices: set[int]) -> dict[int, tuple[str, np.ndarray]]:
     """Frames that are not keyframes, with their poses from ``trajectory_tum.txt``: dataset index ->
     (image name, T_WC)."""
-    from ..io.trajectory import read_trajectory
-
     path = run.path / TUM_FILE
     if not path.is_file():
         raise DataError(f"{run.path}: --all-frames needs {TUM_FILE} (the run wrote no trajectory)")
@@ -132,10 +132,7 @@ def export_colmap(run: RunFolder, out_dir: str | Path, all_frames: bool = False,
 def write_frame_images(run: RunFolder, image_dir: Path, indices: list[int]) -> int:
     """Read frames ``indices`` again from the run's dataset (its path, format and dataset config
     from ``summary.json``) and write them as the frontend saw them (colour when the source has it)."""
-    import cv2
-
-    from ..config import from_dict
-    from ..io.datasets import DatasetConfig, open_dataset
+    import cv2  # deferred: cv2
 
     ds_info, cfg = run.summary.get("dataset", {}), run.summary.get("config", {})
     path = ds_info.get("path")

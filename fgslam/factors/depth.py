@@ -21,7 +21,7 @@ order ``[w, u, lambda]``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 import torch
@@ -29,7 +29,7 @@ import torch
 from ..camera import StereoRig
 from ..config import MAX_SCALAR, ranged
 from ..errors import ConfigError
-from .reprojection import ReprojectionConfig, ReprojectionResult, reproject_inv_depth
+from .reprojection import PoseLike, ReprojectionConfig, ReprojectionResult, reproject_inv_depth
 
 __all__ = [
     "DepthPriorConfig",
@@ -149,8 +149,8 @@ def depth_prior(
 def reproject_stereo(
     uv_left_i: torch.Tensor,
     inv_depth: torch.Tensor,
-    T_WCi: Any,
-    T_WCj: Any | None,
+    T_WCi: PoseLike,
+    T_WCj: PoseLike | None,
     rig: StereoRig,
     uv_right_target: torch.Tensor,
     *,

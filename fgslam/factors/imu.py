@@ -46,7 +46,7 @@ class ImuNoise:
 def combined_params(gravity_W: np.ndarray, noise: ImuNoise):
     """``gtsam.PreintegrationCombinedParams`` with gravity vector ``gravity_W`` (world frame, m/s^2,
     pointing down) and the noise densities squared as covariances."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     p = gtsam.PreintegrationCombinedParams(np.asarray(gravity_W, dtype=np.float64).reshape(3))
     eye = np.eye(3)
@@ -79,7 +79,7 @@ def integration_steps(t: np.ndarray, t_start: float, t_end: float) -> tuple[np.n
 def preintegrate(params, bias, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, t_start: float, t_end: float):
     """``gtsam.PreintegratedCombinedMeasurements`` of the samples between ``t_start`` and ``t_end``
     (:func:`integration_steps`) at the bias linearisation point ``bias`` (``gtsam.imuBias.ConstantBias``)."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
     idx, dt = integration_steps(t, t_start, t_end)
@@ -91,7 +91,7 @@ def preintegrate(params, bias, t: np.ndarray, gyro: np.ndarray, accel: np.ndarra
 
 def camera_pose(S_WC):
     """The rigid camera pose ``Pose3(R, s t_g)`` (rotation and centre) of a ``Similarity3`` T_WC."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     return gtsam.Pose3(S_WC.rotation(), float(S_WC.scale()) * np.asarray(S_WC.translation(), dtype=np.float64))
 
@@ -112,7 +112,7 @@ def body_pose_jacobian(S_WC, T_CB) -> np.ndarray:
 
 def sim3_from_body_pose(T_WB, T_CB, scale: float = 1.0):
     """The ``Similarity3`` T_WC with keyframe scale ``scale`` whose :func:`body_pose` is ``T_WB``."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     P = T_WB.compose(T_CB.inverse())
     return gtsam.Similarity3(P.rotation(), np.asarray(P.translation(), dtype=np.float64) / scale, scale)
@@ -127,7 +127,7 @@ def imu_factor_on_sim3(keys: tuple[int, int, int, int, int, int], pim, T_CB):
     ``imuBias.ConstantBias``) whose whitened error and Jacobians are those of
     ``gtsam.CombinedImuFactor(pim)`` at the body poses :func:`body_pose` (module docstring). A
     ``gtsam.CustomFactor`` with a unit noise model (the whitening happens in the inner factor)."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     inner = gtsam.CombinedImuFactor(*_INNER_KEYS, pim)
     unit = gtsam.noiseModel.Unit.Create(IMU_FACTOR_DIM)

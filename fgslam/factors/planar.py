@@ -145,7 +145,7 @@ def fit_plane(centres: np.ndarray, R_WC: np.ndarray, up_C: np.ndarray, height_si
 def planar_noise(height_sigma: float, tilt_sigma: float):
     """Diagonal gtsam noise model ``[height_sigma, tilt_sigma, tilt_sigma]`` (world units, sine of
     the tilt angle ~ radians); ValueError unless both are finite and positive."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     sig = np.array([height_sigma, tilt_sigma, tilt_sigma], dtype=np.float64)
     if not np.all(np.isfinite(sig)) or not np.all(sig > 0):
@@ -158,7 +158,7 @@ def planar_factor(key_ref: int, key: int, n_C: np.ndarray, d_C: float, up_C: Seq
     """``gtsam.CustomFactor`` on two Similarity3 keys: keyframe ``key`` on the camera plane
     ``n_C . x + d_C = 0`` held in the coordinates of keyframe ``key_ref`` (it moves with the map), with
     its up axis ``up_C`` along the plane's normal (:func:`planar_residual_relative`)."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     up = unit_up(up_C)
     n = unit_up(n_C)

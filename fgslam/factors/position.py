@@ -44,7 +44,7 @@ def position_noise(sigma: float | Sequence[float], huber_k: float | None = None)
     """gtsam noise model of a position measurement: isotropic for one ``sigma``, diagonal for three
     (metres, world axes); wrapped in gtsam's Huber m-estimator when ``huber_k`` (whitened threshold)
     is given. ValueError for a non-positive, non-finite or wrongly sized sigma."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     sig = np.atleast_1d(np.asarray(sigma, dtype=np.float64))
     if sig.shape not in ((1,), (POSITION_DIM,)) or not np.all(np.isfinite(sig)) or not np.all(sig > 0):
@@ -61,7 +61,7 @@ def position_noise(sigma: float | Sequence[float], huber_k: float | None = None)
 def position_prior_factor(key: int, p_W: np.ndarray, sigma: float | Sequence[float], huber_k: float | None = None):
     """``gtsam.CustomFactor`` on the Similarity3 at ``key``: camera centre ``s t`` at ``p_W`` (3,) with
     an isotropic (one sigma) or diagonal (three sigmas) noise model, optionally Huber-robust."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     p = np.array(p_W, dtype=np.float64).reshape(POSITION_DIM)
     if not np.all(np.isfinite(p)):

@@ -5,7 +5,7 @@ The residual of DROID-SLAM eq. 4 (Jacobians: appendix C, eqs. 6-14) and of DPV-S
 
 - Poses ``T_WCi``, ``T_WCj`` are camera-to-world Sim(3): ``X_W = s R X_C + t`` (``fgslam.lie.Sim3``).
   Anything with attributes ``.R (..., 3, 3)``, ``.t (..., 3)`` and optionally ``.s (...)`` (an SE3
-  object has scale 1), or a tuple ``(R, t, s)``, is accepted.
+  object has scale 1), or a tuple ``(R, t, s)``, is accepted (:data:`PoseLike`).
 - Jacobians are w.r.t. RIGHT perturbations ``T <- T Exp(xi)`` with the gtsam ``Similarity3``
   tangent order ``xi = [w (3), u (3), lambda]`` (rotation, translation, log-scale); columns 0-5
   are also the ``Pose3`` ``[w, v]`` Jacobian of an SE(3) pose held at scale 1.
@@ -47,7 +47,7 @@ residual and every Jacobian (never NaN or inf); ``n_invalid`` counts them.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Protocol, Union
 
 import numpy as np
 import torch
@@ -56,6 +56,7 @@ from ..config import MAX_SCALAR, ranged
 from ..errors import DataError
 
 __all__ = [
+    "PoseLike",
     "ReprojectionConfig",
     "ReprojectionResult",
     "flatten_patches",
@@ -64,6 +65,24 @@ __all__ = [
     "reproject_edges",
     "reproject_inv_depth",
 ]
+
+
+class RotationTranslation(Protocol):
+    """A batched pose with rotation ``R (..., 3, 3)`` and translation ``t (..., 3)``, and a scale
+    ``s (...)`` when it is a similarity (:class:`fgslam.lie.Sim3`; an :class:`fgslam.lie.SE3` has
+    none: scale 1)."""
+
+    @property
+    def R(self) -> torch.Tensor: ...
+
+    @property
+    def t(self) -> torch.Tensor: ...
+
+
+#: a pose argument: a Sim3/SE3-like object or an ``(R, t, s)`` tuple (``s`` a tensor or a number)
+PoseLike = Union[RotationTranslation, tuple[torch.Tensor, torch.Tensor, Union[torch.Tensor, float]]]
+#: a fixed 4x4 transform (an extrinsic such as ``T_CRCL``), numpy or torch
+Transform = Union[np.ndarray, torch.Tensor]
 
 
 @dataclass
@@ -97,7 +116,7 @@ class ReprojectionResult:
         return int(self.valid.numel() - int(self.valid.sum()))
 
 
-def pose_components(T: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def pose_components(T: PoseLike) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(R (..., 3, 3), t (..., 3), s (...))`` of a Sim3/SE3-like object or an ``(R, t, s)`` tuple.
 
     Objects without an ``s`` attribute (SE3) get scale 1.
@@ -111,7 +130,7 @@ def pose_components(T: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return T.R, T.t, s
 
 
-def _as_rigid(T: Any, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _as_rigid(T: Transform, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Rotation and translation of a fixed 4x4 transform (numpy or torch), cast like ``like``."""
     M = torch.as_tensor(np.asarray(T) if not isinstance(T, torch.Tensor) else T, dtype=like.dtype, device=like.device)
     return M[..., :3, :3], M[..., :3, 3]
@@ -120,11 +139,11 @@ def _as_rigid(T: Any, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 def _transfer(
     uv_i: torch.Tensor,
     inv_depth: torch.Tensor,
-    T_WCi: Any,
-    T_WCj: Any,
+    T_WCi: PoseLike,
+    T_WCj: PoseLike,
     K_i: torch.Tensor,
     K_t: torch.Tensor,
-    T_CtCj: Any,
+    T_CtCj: Transform | None,
     min_depth: float,
     jacobians: bool,
     rows_ok: torch.Tensor | None = None,
@@ -237,12 +256,12 @@ def _zero(x: torch.Tensor, valid: torch.Tensor, n_trailing: int) -> torch.Tensor
 def reproject(
     uv_i: torch.Tensor,
     inv_depth: torch.Tensor,
-    T_WCi: Any,
-    T_WCj: Any,
+    T_WCi: PoseLike,
+    T_WCj: PoseLike,
     K_i: torch.Tensor,
     K_j: torch.Tensor | None = None,
     *,
-    T_CtCj: Any = None,
+    T_CtCj: Transform | None = None,
     config: ReprojectionConfig | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Predicted pixel coordinates of source pixels in keyframe ``j`` (what a frontend tracks from).
@@ -267,13 +286,13 @@ def reproject(
 def reproject_inv_depth(
     uv_i: torch.Tensor,
     inv_depth: torch.Tensor,
-    T_WCi: Any,
-    T_WCj: Any,
+    T_WCi: PoseLike,
+    T_WCj: PoseLike,
     K_i: torch.Tensor,
     uv_target: torch.Tensor,
     K_j: torch.Tensor | None = None,
     *,
-    T_CtCj: Any = None,
+    T_CtCj: Transform | None = None,
     config: ReprojectionConfig | None = None,
 ) -> ReprojectionResult:
     """Inverse-depth reprojection residuals and Jacobians (DROID-SLAM eq. 4, DPV-SLAM eq. 3).
@@ -299,14 +318,14 @@ def reproject_inv_depth(
 def reproject_edges(
     uv_i: torch.Tensor,
     inv_depth: torch.Tensor,
-    T_WCi: Any,
-    T_WCj: Any,
+    T_WCi: PoseLike,
+    T_WCj: PoseLike,
     K: torch.Tensor,
     uv_target: torch.Tensor | None = None,
     *,
     right: torch.Tensor | None = None,
     K_right: torch.Tensor | None = None,
-    T_CRCL: Any = None,
+    T_CRCL: Transform | None = None,
     config: ReprojectionConfig | None = None,
 ) -> ReprojectionResult | tuple[torch.Tensor, torch.Tensor]:
     """Edges into the left image of keyframe ``j`` or, where ``right``, into its right image: the
@@ -338,7 +357,7 @@ def reproject_edges(
     if n_right and (K_right is None or T_CRCL is None):
         raise DataError("reproject_edges: right-image edges need K_right and T_CRCL")
 
-    def side(sel, K_t: torch.Tensor, T_ext: Any) -> tuple:
+    def side(sel: slice | torch.Tensor, K_t: torch.Tensor, T_ext: Transform | None) -> tuple:
         Ti = tuple(x[sel] for x in pose_components(T_WCi))
         Tj = tuple(x[sel] for x in pose_components(T_WCj))
         if uv_target is None:

@@ -289,7 +289,7 @@ def factorize_psd(H: np.ndarray, g: np.ndarray, c: float, rank_tolerance: float 
     ``n * eps * max(diag H)``). Exact when g lies in the range of H, which holds for Schur-reduced
     systems. ``e^2 = c - b^T b`` is clamped at 0.
     """
-    from scipy.linalg import lapack
+    from scipy.linalg import lapack  # deferred: scipy
 
     H = np.asarray(H, dtype=np.float64)
     g = np.asarray(g, dtype=np.float64)
@@ -318,7 +318,7 @@ def jacobian_factor(keys: Sequence[int], A: np.ndarray, rhs: np.ndarray, dim: in
     ``gtsam.GaussianConditional`` built from a ``VerticalBlockMatrix`` takes any number, *is* a
     ``JacobianFactor`` (same error, same elimination) and costs two Python calls.
     """
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     k = len(keys)
     dims = [int(dim)] * k if np.ndim(dim) == 0 else [int(d) for d in dim]
@@ -344,7 +344,7 @@ def to_gaussian_factor(keys: Sequence[int], H: np.ndarray, g: np.ndarray, c: flo
     Measured (docs/design.md section 6): this is 3x faster than assembling the HessianFactor from
     unary and pairwise pieces with ``gtsam.HessianFactor(GaussianFactorGraph)``.
     """
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     H = np.asarray(H, dtype=np.float64)
     g = np.asarray(g, dtype=np.float64)

@@ -78,7 +78,7 @@ def make_between_factors(
     the graph) and counted in a warning; the returned list holds the valid factors in input order.
     Inconsistent argument shapes raise ValueError.
     """
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     noise, ok = _checked_noise("make_between_factors", keys_i, keys_j, Z_ij, sigmas, information)
     measurements = Z_ij.to_gtsam()
@@ -115,7 +115,7 @@ def between_jacobian_factors(
     ``exact=False`` the result equals gtsam's own ``factor.linearize`` (same quadratic form).
     Degenerate measurements, noise or poses are left out and counted in a warning.
     """
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     noise, ok = _checked_noise("between_jacobian_factors", keys_i, keys_j, Z_ij, sigmas, information)
     n = len(keys_i)

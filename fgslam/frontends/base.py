@@ -1,4 +1,4 @@
-"""The contract between the system (:class:`fgslam.system.SlamSystem`) and a frontend family.
+"""The contract between the system (:class:`fgslam.run.system.SlamSystem`) and a frontend family.
 
 A frontend only measures: it consumes :class:`fgslam.io.frame.Frame` objects one at a time, owns
 its measurement source and its slice of the map (patches, depth maps, pointmaps), decides keyframes
@@ -15,10 +15,17 @@ from __future__ import annotations
 
 import abc
 import contextlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Literal, Optional, Protocol
+from typing import TYPE_CHECKING, Callable, Literal, Optional, Protocol
 
 import numpy as np
+
+from ..errors import ConfigError
+
+if TYPE_CHECKING:
+    from ..backend import Backend
+    from ..contracts.contributor import ProximityGates
 
 #: How a frame's pose was obtained.
 PoseSource = Literal["initializing", "tracked", "motion_model", "relocalized", "imu"]
@@ -64,13 +71,13 @@ class LoopPort(Protocol):
     def classical(self) -> bool: ...  # the classical closer (retrieval, relocalisation) runs
 
     @property
-    def proximity(self) -> Any: ...  # the proximity gates, None when proximity loops are off
+    def proximity(self) -> Optional[ProximityGates]: ...  # the proximity gates, None when proximity loops are off
 
-    def add_keyframe(self, kf_id: int, neighbours: Any = ()) -> bool: ...
+    def add_keyframe(self, kf_id: int, neighbours: Sequence[int] = ()) -> bool: ...
 
     def update_poses(self, T_WC_by_id: dict) -> None: ...
 
-    def relocalize(self, image: np.ndarray, K: Any) -> tuple[int, np.ndarray] | None: ...
+    def relocalize(self, image: np.ndarray, K: np.ndarray) -> tuple[int, np.ndarray] | None: ...
 
     def map_reset(self) -> None: ...
 
@@ -100,13 +107,13 @@ class NoLoops:
     runs_global_ba = False
     busy = False
 
-    def add_keyframe(self, kf_id: int, neighbours: Any = ()) -> bool:
+    def add_keyframe(self, kf_id: int, neighbours: Sequence[int] = ()) -> bool:
         return False
 
     def update_poses(self, T_WC_by_id: dict) -> None:
         return None
 
-    def relocalize(self, image: np.ndarray, K: Any) -> tuple[int, np.ndarray] | None:
+    def relocalize(self, image: np.ndarray, K: np.ndarray) -> tuple[int, np.ndarray] | None:
         return None
 
     def map_reset(self) -> None:
@@ -149,12 +156,14 @@ class Frontend(abc.ABC):
     #: the map has a metric scale (stereo / RGB-D): loop corrections are SE(3)
     metric_scale: bool = False
     #: the proximity-loop gates of the family (None: the family closes no proximity loops)
-    proximity_gates: Any = None
+    proximity_gates: Optional[ProximityGates] = None
     #: the family hands global optimisations to the loop service's background worker, so the system
     #: connects a loop service (inert but for them) even with loop closure off
     background_global_ba: bool = False
     #: the loop-closure port (:meth:`connect`)
     loops: LoopPort = NO_LOOPS
+    #: the run's backend the frontend feeds (None: a frontend that feeds none, e.g. a test's stand-in)
+    backend: Optional["Backend"] = None
 
     @property
     def contributor(self):
@@ -207,6 +216,10 @@ class Frontend(abc.ABC):
     def finish_map(self) -> None:
         """Called once after the last loop correction (final optimisation, the closing log line)."""
 
+    def abort(self) -> None:
+        """Called instead of the end (a stopped or failed run): stop the frontend's own background
+        work at once without applying it (default: none)."""
+
     def stage_times(self) -> dict[str, float]:
         """Accumulated wall time in seconds per stage (e.g. ``flow``, ``ba``, ``bookkeeping``)."""
         return {}
@@ -231,7 +244,7 @@ class Frontend(abc.ABC):
         points = self.keyframe_points()
         if points is None:
             return None
-        from ..mapdata import MapExport, rigid_poses
+        from ..mapdata import MapExport, rigid_poses  # deferred: torch (fgslam.mapdata; base is on the CLI's light path)
 
         backend = getattr(self, "backend", None)
         kf_ids = [] if backend is None else sorted(backend.keyframe_ids)
@@ -252,14 +265,12 @@ class BackendFrontend(Frontend):
     def _attach(self, config, sensor_mode: str, backend) -> None:
         """Validate ``config``, check ``sensor_mode`` and take the run's ``backend``. Sets ``config``,
         ``sensor_mode``, ``backend`` and the empty input bookkeeping."""
-        from ..errors import ConfigError
-
         config.validate()
         if sensor_mode not in SENSOR_MODES:
             raise ConfigError(f"sensor mode must be {', '.join(SENSOR_MODES[:-1])} or {SENSOR_MODES[-1]}, "
                               f"got {sensor_mode!r}")
         if backend is None:
-            raise ConfigError(f"frontend '{self.name}' needs the run's backend (built by fgslam.system.SlamSystem, "
+            raise ConfigError(f"frontend '{self.name}' needs the run's backend (built by fgslam.run.system.SlamSystem, "
                               "or fgslam.backend.Backend(config) in a test)")
         self.config = config
         self.sensor_mode = sensor_mode
@@ -320,7 +331,7 @@ class BackendFrontend(Frontend):
     def trajectory(self) -> tuple[np.ndarray, np.ndarray, list[str]]:
         """Every input frame's pose from its record (keyframes read through ``_keyframe_T_WC``, which
         the family defines), as a rigid ``T_WC``; frames without a pose are left out."""
-        from .records import resolve_pose, rigid
+        from .records import resolve_pose, rigid  # deferred: torch (via fgslam.loop.records; CLI's light path)
 
         stamps, poses, sources = [], [], []
         cache: dict = {}

@@ -51,7 +51,7 @@ def load_learned(slot: LearnedSlot, checkpoint: str | None, build):
     """``build(path)`` for the checked checkpoint of ``slot`` (:func:`checkpoint_path`); a file the
     loader rejects (:class:`fgslam.nets.checkpoint.CheckpointError`) is re-raised naming the config key
     and the built-in alternative."""
-    from ..nets.checkpoint import CheckpointError
+    from ..nets.checkpoint import CheckpointError  # deferred: torch (fgslam.nets; pointmap's source loads none)
 
     path = checkpoint_path(slot, checkpoint)
     try:

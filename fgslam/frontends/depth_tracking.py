@@ -20,6 +20,7 @@ import numpy as np
 
 from ..config import MAX_ITERATIONS, MAX_WINDOW, ranged
 from ..factors.depth_align import MAX_LEVELS, RIGID_DIM, DepthAlignBlock, DepthAlignConfig, DepthConstraint, DepthSurface
+from ..factors.schur import POSE_DIM
 from ..lie import gtsam_matrix, gtsam_sim3
 
 logger = logging.getLogger(__name__)
@@ -34,8 +35,6 @@ def pose_information(blocks, values, key: int) -> np.ndarray:
     """6x6 information (rotation, translation) on pose ``key`` of the measurement ``blocks`` at ``values``
     (their linear pieces' diagonal blocks of that key, summed): what a frame's image measurements add to
     its depth's count of constrained directions (:meth:`DepthTracking.hold`)."""
-    from ..factors.schur import POSE_DIM
-
     H = np.zeros((RIGID_DIM, RIGID_DIM))
     for block in blocks:
         for piece in block.linearize(values):
@@ -103,7 +102,7 @@ class DepthTracking:
 
     @staticmethod
     def _values(block: DepthAlignBlock, T_WCk: np.ndarray, T_WCf: np.ndarray):
-        import gtsam
+        import gtsam  # deferred: gtsam
 
         values = gtsam.Values()
         values.insert(block.key_k, gtsam_sim3(T_WCk))

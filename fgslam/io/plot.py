@@ -85,8 +85,8 @@ def plot_trajectories(
         raise DataError(f"plot: unknown plane {plane!r} (expected one of {', '.join(PLANES)})")
     path = check_plot_path(path_png)
     # Heavy imports stay local: importing fgslam.io must not load matplotlib.
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # deferred: matplotlib
+    from matplotlib.figure import Figure  # deferred: matplotlib
 
     a, b = PLANES[plane]
     fig = Figure(figsize=ERROR_FIGURE_SIZE_IN if errors else FIGURE_SIZE_IN, dpi=FIGURE_DPI)

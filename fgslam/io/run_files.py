@@ -1,5 +1,5 @@
 """Names of the files in a run's output folder that several layers read or write (``fgslam run``:
-:mod:`fgslam.outputs`; ``fgslam localize``: :mod:`fgslam.localize`; ``fgslam export --bag``:
+:mod:`fgslam.run.outputs`; ``fgslam localize``: :mod:`fgslam.localize`; ``fgslam export --bag``:
 :mod:`fgslam.export.bag`). Stable: tools and tests read them."""
 
 TUM_FILE = "trajectory_tum.txt"  # posed frames, camera-to-world, TUM format

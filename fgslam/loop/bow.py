@@ -18,7 +18,7 @@ import numpy as np
 
 from ..config import MAX_COUNT, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
 from ..errors import DataError
-from .features import OrbConfig
+from .features import OrbConfig, OrbExtractor
 from .vocabulary import BowVector, Vocabulary, l1_score, load_vocabulary
 
 logger = logging.getLogger(__name__)
@@ -301,8 +301,6 @@ class PlaceRecognizer:
     """ORB extraction + vocabulary + :class:`LoopDetector` built from one :class:`BowConfig`."""
 
     def __init__(self, cfg: BowConfig | None = None, vocabulary: Vocabulary | None = None):
-        from .features import OrbExtractor
-
         self.cfg = cfg or BowConfig()
         self.vocabulary = vocabulary or load_vocabulary(self.cfg.vocabulary)
         self.extractor = OrbExtractor(self.cfg.orb)

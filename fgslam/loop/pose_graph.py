@@ -67,6 +67,8 @@ from typing import Literal
 import numpy as np
 import torch
 
+from ..backend.pose_graph import LoopPoseGraph
+from ..backend.solver import LMSettings
 from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, check_ranges, ranged
 from ..errors import ConfigError, OptimizationError
 from ..factors.sim3 import SIM3_DOF, sim3_between_residual
@@ -291,8 +293,6 @@ class _LoopGraph:
     module's settings: LM settings of :class:`PoseGraphConfig`, chi-square of every candidate loop."""
 
     def __init__(self, T_WC: Sim3, loop_i, loop_j, T_CiCj: Sim3, cfg: PoseGraphConfig, hold_scale: bool):
-        from ..backend.pose_graph import LoopPoseGraph
-
         self.cfg = cfg
         self.graph = LoopPoseGraph(T_WC, loop_i, loop_j, T_CiCj, smooth_sigmas(T_WC, cfg), cfg.loop_sigmas,
                                    cfg.prior_sigma, cfg.hold_scale_sigma if hold_scale else None,
@@ -310,8 +310,6 @@ class _LoopGraph:
 
     def solve(self, active: np.ndarray, start, robust: bool = True, max_iterations: int | None = None):
         """LM on prior + smoothness + the ``active`` loops from ``start``; returns (graph, values)."""
-        from ..backend.solver import LMSettings
-
         cfg = self.cfg
         settings = LMSettings(
             max_iterations=cfg.max_iterations if max_iterations is None else max_iterations,
@@ -332,7 +330,7 @@ def _inconsistent(chi2: np.ndarray, active: np.ndarray, loop_i, loop_j, cfg: Pos
     active loops, the sum over their group (active loops with ends within ``pairwise_window``) exceeds
     the chi2(7 n) quantile: a consistent cluster of false loops that the graph bends to half-fit
     shows as many moderately large residuals, which only the joint test catches."""
-    from scipy.special import chdtri
+    from scipy.special import chdtri  # deferred: scipy
 
     p_out = 1.0 - cfg.consistency_probability
     bad = chi2 > chdtri(SIM3_DOF, p_out)
@@ -393,7 +391,7 @@ def optimize_sim3_pose_graph(
     ``scale_correction`` is then 1. Raises ``OptimizationError`` if gtsam fails or returns non-finite
     poses, ValueError for inconsistent input shapes, ConfigError for an invalid config.
     """
-    from scipy.special import chdtri
+    from scipy.special import chdtri  # deferred: scipy
 
     cfg = PoseGraphConfig() if config is None else config
     cfg.validate()

@@ -80,7 +80,7 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, max_hamming: int, 
     """ORB matches ``(ia, ib)``: nearest neighbour in Hamming distance among ``allowed`` (Na, Nb)
     pairs, best < ``ratio`` x second best, best <= ``max_hamming``, and (``mutual``) a's feature is
     also b's nearest. OpenCV's brute-force matcher (it releases the GIL)."""
-    import cv2
+    import cv2  # deferred: cv2
 
     empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
     if len(desc_a) == 0 or len(desc_b) == 0:
@@ -101,7 +101,7 @@ def solve_pnp(X: np.ndarray, uv: np.ndarray, K: np.ndarray, reprojection_px: flo
     """Pose of a camera that sees the points ``X`` (N, 3, in a frame A) at pixels ``uv`` (N, 2):
     ``(T_AC 4x4 rigid camera-to-A, inlier indices)`` by EPnP RANSAC (``refine``: then refined on the
     inliers by Levenberg-Marquardt), or None with fewer than ``min_inliers`` inliers. ``K`` = (fx, fy, cx, cy)."""
-    import cv2
+    import cv2  # deferred: cv2
 
     if len(X) < max(min_inliers, 4):
         return None

@@ -22,6 +22,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from functools import lru_cache
+from importlib import resources
 from pathlib import Path
 from typing import Literal
 
@@ -30,7 +31,7 @@ import numpy as np
 from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_SEED, check_ranges, ranged
 from ..errors import ConfigError, DataError, FormatError
 from .bow import KeyframeDatabase, KeyframeFeatures, LoopDetectionConfig, LoopDetector, LoopQuery
-from .features import XFEAT_DESCRIPTOR_DIM, XFeatConfig
+from .features import XFEAT_DESCRIPTOR_DIM, XFeatConfig, XFeatExtractor
 from .vocabulary import read_versioned_npz
 
 logger = logging.getLogger(__name__)
@@ -126,8 +127,6 @@ class VladCentres:
 
 @lru_cache(maxsize=1)
 def load_default_centres() -> VladCentres:
-    from importlib import resources
-
     return VladCentres.load(Path(str(resources.files(__package__).joinpath("data", DEFAULT_CENTRES_FILE))))
 
 
@@ -214,8 +213,6 @@ class XFeatPlaceRecognizer:
     (the interface of :class:`fgslam.loop.bow.PlaceRecognizer`)."""
 
     def __init__(self, cfg: LoopFeaturesConfig, centres: VladCentres | None = None, extractor=None):
-        from .features import XFeatExtractor
-
         self.cfg = cfg
         self.extractor = extractor or XFeatExtractor(cfg.xfeat)     # first: the error without the extra
         self.vocabulary = centres or load_centres(cfg.retrieval.centres)

@@ -25,6 +25,7 @@ import logging
 from collections import deque
 from dataclasses import dataclass
 from functools import lru_cache
+from importlib import resources
 from pathlib import Path
 from typing import Sequence
 
@@ -318,8 +319,6 @@ def read_versioned_npz(path: str | Path, what: str, required: tuple[str, ...], v
 
 def default_vocabulary_path() -> Path:
     """Path of the vocabulary shipped in ``fgslam/loop/data/``."""
-    from importlib import resources
-
     return Path(str(resources.files(__package__).joinpath("data", DEFAULT_VOCABULARY_FILE)))
 
 

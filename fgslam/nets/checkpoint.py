@@ -25,6 +25,8 @@ import torch
 import torch.nn as nn
 
 from ..errors import DataError
+from .dpvo import VONet
+from .droid import DroidNet
 
 logger = logging.getLogger(__name__)
 
@@ -93,9 +95,6 @@ def _check(net: nn.Module, state: dict, path: Path, title: str) -> None:
 
 def load_network(path: str | Path, network: str, device: torch.device | str = "cpu") -> nn.Module:
     """Build ``network`` (``droid`` or ``dpvo``), load ``path`` strictly, move to ``device``, eval mode."""
-    from .dpvo import VONet
-    from .droid import DroidNet
-
     builders = {"droid": (DroidNet, "DROID-SLAM (droid.pth)"), "dpvo": (VONet, "DPVO (dpvo.pth)")}
     if network not in builders:
         raise ValueError(f"unknown network {network!r}")

@@ -37,13 +37,15 @@ feeds it keyframes (``on_keyframe``):
 - map corrections (loops, global BA, plugins, its own rescale): :meth:`ImuService.adapt_correction`
   (SE(3) once the IMU fixed a monocular map's scale) before the contributor applies one and
   :meth:`ImuService.on_correction` after: velocities turn (and scale) with the poses, biases are kept,
-  marginal priors are re-anchored (rigid) or dropped (:class:`~fgslam.services.corrections.ObservedContributor`);
+  marginal priors are re-anchored (rigid) or dropped (:class:`~fgslam.services.corrections.ObservedContributor`;
+  :meth:`fgslam.services.imu_chain.ImuChain.follow_correction`);
 - IMU prediction (:meth:`ImuService.predict`): the pose at a time from the newest linked keyframe's
   state (pose, velocity, bias) and the buffered samples; the patch frontend uses it as motion prior
   and to pose frames whose visual tracking fails (bridging up to ``max_bridge_s``).
 
 Modules: the configuration, counters and sample buffer are in :mod:`fgslam.services.imu_samples`, the
-initialisation's solves in :mod:`fgslam.services.imu_init`.
+keyframe chain (keys, links, chain-start and marginal priors, how they follow a correction) in
+:mod:`fgslam.services.imu_chain`, the initialisation's solves in :mod:`fgslam.services.imu_init`.
 
 Gravity lives in the map's world frame (the first keyframe's camera frame for the patch frontend):
 ``g_W`` from the initialisation is the preintegration's gravity vector; the map is not rotated.
@@ -51,26 +53,33 @@ Gravity lives in the map's world frame (the first keyframe's camera frame for th
 
 from __future__ import annotations
 
-import bisect
 import logging
 import time
 from dataclasses import asdict, dataclass
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Optional, Union
 
 import numpy as np
 
+from ..backend.graph import Backend, CorrectionTarget
+from ..backend.keys import bias_key, velocity_key
 from ..errors import DataError
-from ..factors.imu import body_pose, combined_params, imu_factor_on_sim3, sim3_from_body_pose
-from ..backend.keys import bias_key, pose_key, velocity_key
-from ..lie import sim3_matrix_parts
+from ..factors.imu import body_pose, combined_params, sim3_from_body_pose
+from ..io.calibration import Calibration
+from ..io.frame import ImuSamples
+from ..lie import gtsam_matrix, sim3_matrix_parts
+from ..loop.records import PoseCorrection
+from .corrections import route_correction, takes_corrections, uniform_correction
+from .imu_chain import ImuChain
 from .imu_init import InertialOnlyResult, detect_static, solve_inertial_only, solve_visual_inertial, spaced
 from .imu_samples import ImuBuffer, ImuServiceConfig, ImuStats, StaticInit
 
+if TYPE_CHECKING:
+    import gtsam
+
 logger = logging.getLogger(__name__)
 
-OWNER = "imu"
-_MIN_CENTRE_STEP = 1e-9  # map units: neighbouring camera centres closer than this give no local scale of a correction
-_RIGID_SCALE_TOL = 1e-9  # a correction whose local scales all lie this close to 1 is rigid (marginal priors re-anchored)
+#: one inertial-only optimisation's log entry (:attr:`ImuService.inertial_only`)
+InertialOnlyEntry = dict[str, Union[float, int, bool, list[float]]]
 
 
 @dataclass(frozen=True)
@@ -91,13 +100,15 @@ class InertialState:
     gyro_bias_norm: Optional[float]
     inertial_only_runs: int = 0
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         """Plain JSON-ready values."""
         return asdict(self)
 
 
 class ImuService:
-    """IMU factors, velocity and bias keys, initialisation and prediction on a backend (module docstring).
+    """IMU factors, velocity and bias keys, initialisation and prediction on a backend (module
+    docstring); the keyframe chain's keys and factors are its :class:`~fgslam.services.imu_chain.ImuChain`
+    (``chain``).
 
     Args:
         config: the ``imu`` section.
@@ -108,9 +119,9 @@ class ImuService:
         dataset_noise: the dataset's noise densities (EuRoC ``sensor.yaml`` keys) or None.
     """
 
-    def __init__(self, config: ImuServiceConfig, backend, T_BC: np.ndarray, metric: bool, contributor=None,
-                 dataset_noise: Optional[dict] = None):
-        import gtsam
+    def __init__(self, config: ImuServiceConfig, backend: Backend, T_BC: np.ndarray, metric: bool,
+                 contributor: Optional[CorrectionTarget] = None, dataset_noise: Optional[dict[str, float]] = None):
+        import gtsam  # deferred: gtsam
 
         self.config = config
         self.backend = backend
@@ -121,30 +132,24 @@ class ImuService:
         self.T_CB = self.T_BC.inverse()
         self.stats = ImuStats()
         self.buffer = ImuBuffer(config.max_gap_s, self.stats)  # bounded by the linked keyframes' span
-        # keyframes in time order: (timestamp, kf_id)
-        self._kfs: list[tuple[float, int]] = []
-        self._linked: set[int] = set()  # keyframes with velocity and bias keys
-        self._links: dict[tuple[int, int], int] = {}  # (kf_a, kf_b) -> factor handle
-        self._starts: dict[int, list[int]] = {}  # chain-start prior handles per keyframe
+        self.chain = ImuChain(config, backend, self.T_CB, self.buffer, self.stats, on_relinked=self._prune)
         self.static: Optional[StaticInit] = None
         self._static_done = False
         self.initialized = False
         self.gravity_W: Optional[np.ndarray] = None
-        self.params = None
         self.scale_applied: Optional[float] = None  # monocular: the metric scale applied at initialisation
         self.init_time: Optional[float] = None
         self._refinements = 0
         self.scale_refinements: list[float] = []
         self.scale_sigma: Optional[float] = None  # of the last inertial-only optimisation
-        self.inertial_only: list[dict[str, Any]] = []  # each inertial-only optimisation's result (log)
-        self._marginal_lin: dict[int, Any] = {}  # marginal prior handle -> its linearisation point (gtsam.Values)
+        self.inertial_only: list[InertialOnlyEntry] = []  # each inertial-only optimisation's result (log)
         backend.on_keyframe(self._on_keyframe)
         backend.on_keyframe_removed(self._on_removed)
         if config.free_window_states:
-            backend.on_window(self._window_keys)
+            backend.on_window(self.chain.window_keys)
 
     # ------------------------------------------------------------------ samples
-    def feed(self, imu, frame_t: float) -> None:
+    def feed(self, imu: Optional[ImuSamples], frame_t: float) -> None:
         """Take the samples a frame carries (``fgslam.io.frame.ImuSamples`` of ``t_prev < t <= frame_t``,
         or None) into the buffer (:meth:`ImuBuffer.feed`: checked; bad stretches logged and remembered)."""
         self.buffer.feed(imu, frame_t)
@@ -154,13 +159,14 @@ class ImuService:
         return self.buffer.covered(t0, t1)
 
     def _prune(self) -> None:
-        """Drop samples and bad intervals before the oldest time still needed."""
+        """Drop samples and bad intervals before the oldest time still needed (after every relink)."""
         keep_from = None
-        if self._kfs:
-            linked = [t for t, kf in self._kfs if kf in self._linked]
-            keep_from = linked[0] if linked else self._kfs[max(0, len(self._kfs) - self.config.init.keyframes - 1)][0]
+        kfs = self.chain.kfs
+        if kfs:
+            linked = [t for t, kf in kfs if kf in self.chain.linked]
+            keep_from = linked[0] if linked else kfs[max(0, len(kfs) - self.config.init.keyframes - 1)][0]
             if not self.initialized:
-                keep_from = min(keep_from, self._kfs[0][0])
+                keep_from = min(keep_from, kfs[0][0])
             elif not self.metric and self._refinements < len(self.config.init.refine_at_s):
                 keep_from = min(keep_from, self.init_time)  # the scale refinements read back to the initialisation
         if keep_from is None or not self._static_done:
@@ -169,118 +175,16 @@ class ImuService:
 
     # ------------------------------------------------------------------ keyframes
     def _on_keyframe(self, kf_id: int, timestamp: float, key: int) -> None:
-        bisect.insort(self._kfs, (float(timestamp), int(kf_id)))
+        self.chain.insert(timestamp, kf_id)
         if self.initialized:
             start = time.perf_counter()
-            self._relink()
+            self.chain.relink()
             self.stats.update_s += time.perf_counter() - start
 
     def _on_removed(self, kf_id: int) -> None:
-        self._kfs = [(t, k) for t, k in self._kfs if k != kf_id]
-        self._linked.discard(kf_id)
-        self._starts.pop(kf_id, None)
-        for pair in [p for p in self._links if kf_id in p]:
-            del self._links[pair]  # the backend removed the factor with the keyframe
+        self.chain.remove(kf_id)
         if self.initialized:
-            self._relink()
-
-    def _window_keys(self, free_kf_ids: list[int]) -> list[int]:
-        """Velocity and bias keys of the linked keyframes (``free_window_states``)."""
-        return [key for kf in self._linked for key in (velocity_key(kf), bias_key(kf))]
-
-    def _state(self, kf_id: int):
-        """(T_WB Pose3, velocity, bias) of a linked keyframe."""
-        b = self.backend
-        values = b.values_of([pose_key(kf_id), velocity_key(kf_id), bias_key(kf_id)])
-        return (body_pose(values.atSimilarity3(pose_key(kf_id)), self.T_CB), np.asarray(values.atPoint3(velocity_key(kf_id))),
-                values.atConstantBias(bias_key(kf_id)))
-
-    def _relink(self) -> None:
-        """Velocity/bias keys for every keyframe from the first linked one on, links between consecutive
-        ones (in time) where the IMU covers the interval, chain-start priors where not; then the window."""
-        kfs = self._kfs
-        if not self._linked:
-            return
-        first = next(i for i, (_, k) in enumerate(kfs) if k in self._linked)
-        for i in range(first, len(kfs)):
-            t_b, kf_b = kfs[i]
-            if i == first:
-                continue
-            t_a, kf_a = kfs[i - 1]
-            link_ok = (t_b - t_a <= self.config.max_interval_s and t_b > t_a and self.covered(t_a, t_b))
-            if kf_b not in self._linked:
-                self._add_state(kf_b, kf_a if link_ok else None, t_a, t_b)
-            if (kf_a, kf_b) in self._links:
-                continue
-            # a link from another predecessor (the keyframe between was removed) is replaced
-            for pair in [p for p in self._links if p[1] == kf_b]:
-                self.backend.remove_factor(self._links.pop(pair))
-            if link_ok:
-                bias = self._state(kf_a)[2]
-                pim = self.buffer.preintegrate(self.params, t_a, t_b, bias)
-                keys = (pose_key(kf_a), velocity_key(kf_a), pose_key(kf_b), velocity_key(kf_b), bias_key(kf_a), bias_key(kf_b))
-                self._links[(kf_a, kf_b)] = self.backend.add_factor(imu_factor_on_sim3(keys, pim, self.T_CB), OWNER)
-                self.stats.links += 1
-                for handle in self._starts.pop(kf_b, []):  # linked now: no chain-start priors
-                    self.backend.remove_factor(handle)
-            elif kf_b not in self._starts:
-                self.stats.unlinked += 1
-                T_WB, v, bias = self._state(kf_b)
-                self._starts[kf_b] = self._start_priors(kf_b, v, bias, self.config.init.restart_velocity_sigma)
-        if self.config.history == "window":
-            self._marginalise_old()
-        self._prune()
-
-    def _add_state(self, kf_b: int, kf_a: Optional[int], t_a: float, t_b: float) -> None:
-        """Velocity and bias keys of a new keyframe: predicted from its predecessor when the IMU covers
-        the interval, else the predecessor's bias and its visual velocity."""
-        import gtsam
-
-        if kf_a is not None and kf_a in self._linked:
-            T_WB_a, v_a, bias = self._state(kf_a)
-            pim = self.buffer.preintegrate(self.params, t_a, t_b, bias)
-            v_b = np.asarray(pim.predict(gtsam.NavState(T_WB_a, v_a), bias).velocity())
-        else:
-            prev = [k for _, k in self._kfs if k in self._linked]
-            bias = self._state(prev[-1])[2] if prev else gtsam.imuBias.ConstantBias()
-            v_b = np.zeros(3)
-            if kf_a is not None and t_b > t_a:
-                c_a = body_pose(self.backend.pose(kf_a), self.T_CB).translation()
-                c_b = body_pose(self.backend.pose(kf_b), self.T_CB).translation()
-                v_b = (np.asarray(c_b) - np.asarray(c_a)) / (t_b - t_a)
-        self.backend.add_variable(velocity_key(kf_b), np.asarray(v_b, dtype=np.float64), attach_to=kf_b)
-        self.backend.add_variable(bias_key(kf_b), bias, attach_to=kf_b)
-        self._linked.add(kf_b)
-
-    def _start_priors(self, kf_id: int, v: np.ndarray, bias, velocity_sigma: float) -> list[int]:
-        import gtsam
-
-        ic = self.config.init
-        bias_sigmas = np.array([ic.bias_accel_sigma] * 3 + [ic.bias_gyro_sigma] * 3)
-        return [
-            self.backend.add_factor(gtsam.PriorFactorPoint3(velocity_key(kf_id), np.asarray(v, dtype=np.float64),
-                                                            gtsam.noiseModel.Isotropic.Sigma(3, velocity_sigma)), OWNER),
-            self.backend.add_factor(gtsam.PriorFactorConstantBias(bias_key(kf_id), bias,
-                                                                  gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)), OWNER),
-        ]
-
-    def _marginalise_old(self) -> None:
-        """history: window: the oldest linked keyframes beyond ``window_keyframes`` lose their velocity
-        and bias into a linear prior on what their factors reach (their pose held)."""
-        linked = [k for _, k in self._kfs if k in self._linked]
-        while len(linked) > self.config.window_keyframes:
-            kf = linked.pop(0)
-            handles = self.backend.marginalize_variables([velocity_key(kf), bias_key(kf)], condition_on=[pose_key(kf)],
-                                                         owner=OWNER)
-            alive = set(self.backend.factor_handles(OWNER))
-            self._marginal_lin = {h: lin for h, lin in self._marginal_lin.items() if h in alive}
-            for h in handles:  # the estimate is the linearisation point right after the marginalisation
-                self._marginal_lin[h] = self.backend.values_of(list(self.backend.factor(h).keys()))
-            self._linked.discard(kf)
-            self._starts.pop(kf, None)
-            for pair in [p for p in self._links if kf in p]:
-                del self._links[pair]
-            self.stats.marginalised += 1
+            self.chain.relink()
 
     # ------------------------------------------------------------------ initialisation
     def poll(self) -> None:
@@ -302,13 +206,13 @@ class ImuService:
         self.static = detect_static(buf, self.config)
 
     def _try_initialise(self) -> None:
-        import gtsam
+        import gtsam  # deferred: gtsam
 
-        if not self._kfs or not self._static_done:
+        if not self.chain.kfs or not self._static_done:
             return
         ic = self.config.init
         if self.metric and self.static is not None and ic.static_metric_start:
-            t_k, kf = self._kfs[0]
+            t_k, kf = self.chain.kfs[0]
             if self.covered(min(self.static.t, t_k), max(self.static.t, t_k)):
                 R_BsBk = self.buffer.rotation_between(self.static.t, t_k, self.static.gyro_bias)
                 T_WB = body_pose(self.backend.pose(kf), self.T_CB)
@@ -317,10 +221,10 @@ class ImuService:
                 self._start(g_W, {kf: np.zeros(3)}, bias, "static")
                 return
         duration = ic.metric_min_duration_s if self.metric else ic.min_duration_s
-        if len(self._kfs) < ic.keyframes or self._kfs[-1][0] - self._kfs[0][0] < duration:
+        if len(self.chain.kfs) < ic.keyframes or self.chain.kfs[-1][0] - self.chain.kfs[0][0] < duration:
             return
-        t_last = self._kfs[-1][0]
-        window = [(t, k) for t, k in self._kfs if t >= t_last - duration]
+        t_last = self.chain.kfs[-1][0]
+        window = [(t, k) for t, k in self.chain.kfs if t >= t_last - duration]
         window = spaced(window, ic.spacing_s)
         if len(window) < 3:
             return
@@ -343,14 +247,14 @@ class ImuService:
         (:meth:`_refine_inertial_only`) or linear (gravity known; the map and velocities rescaled when
         the scale changed by more than ``init.refine_min_change``)."""
         ic = self.config.init
-        t_last = self._kfs[-1][0]
+        t_last = self.chain.kfs[-1][0]
         if t_last - self.init_time < ic.refine_at_s[self._refinements]:
             return
         self._refinements += 1
         if ic.refine_method == "inertial_only":
             self._refine_inertial_only()
             return
-        window = spaced([(t, k) for t, k in self._kfs if t >= self.init_time], ic.spacing_s)
+        window = spaced([(t, k) for t, k in self.chain.kfs if t >= self.init_time], ic.spacing_s)
         if len(window) < 3 or not self.covered(window[0][0], window[-1][0]):
             return
         solution = self._visual_inertial(window, self.gravity_W)
@@ -373,13 +277,13 @@ class ImuService:
         the scale's standard deviation."""
         ic = self.config.init
         start = time.perf_counter()
-        window = [(t, k) for t, k in self._kfs if t >= self.init_time]
+        window = [(t, k) for t, k in self.chain.kfs if t >= self.init_time]
         if len(window) < 3 or not self.covered(window[0][0], window[-1][0]):
             return None
         poses = [self.backend.pose(k) for _, k in window]
-        newest = next(k for _, k in reversed(self._kfs) if k in self._linked)
-        bias0 = self._state(newest)[2]
-        v0 = self._start_velocities(window, poses)
+        newest = next(k for _, k in reversed(self.chain.kfs) if k in self.chain.linked)
+        bias0 = self.chain.state(newest)[2]
+        v0 = self.chain.start_velocities(window, poses)
         settings = self.backend.optimizer.settings(ic.inertial_only_iterations)
         result = solve_inertial_only(window, poses, self.T_CB, self.buffer, self.config, self.noise, self.metric,
                                      self.gravity_W, v0, bias0, settings)
@@ -390,21 +294,21 @@ class ImuService:
         if rescaled:
             self._rescale(s)
         self.gravity_W = np.asarray(result.gravity_W, dtype=np.float64)
-        self.params = combined_params(self.gravity_W, self.noise)
+        self.chain.params = combined_params(self.gravity_W, self.noise)
         # velocities in the map's units: the unapplied scale change divides them (metric: 1)
         v_factor = 1.0 if rescaled or self.metric else 1.0 / result.scale
         velocity = {k: v_factor * v for (_, k), v in zip(window, result.velocities)}
-        for kf in self._linked:
+        for kf in self.chain.linked:
             if kf in velocity:
                 self.backend.set_value(velocity_key(kf), np.asarray(velocity[kf], dtype=np.float64))
             self.backend.set_value(bias_key(kf), result.bias)
-        self._rebuild_links(velocity)
+        self.chain.rebuild_links()
         if ic.inertial_only_ba_iterations > 0:
             self.backend.optimize_window([newest], iterations=ic.inertial_only_ba_iterations)
         total = (self.scale_applied or 1.0) * (s if not rescaled else 1.0)
         self.scale_sigma = float(total * result.log_scale_sigma)
         b = result.bias
-        entry = {"t": float(self._kfs[-1][0] - self.init_time), "keyframes": len(window), "scale_change": float(result.scale),
+        entry = {"t": float(self.chain.kfs[-1][0] - self.init_time), "keyframes": len(window), "scale_change": float(result.scale),
                  "applied": bool(rescaled), "log_scale_sigma": float(result.log_scale_sigma),
                  "gravity_W": [float(x) for x in self.gravity_W],
                  "accel_bias_norm": float(np.linalg.norm(b.accelerometer())), "gyro_bias_norm": float(np.linalg.norm(b.gyroscope())),
@@ -418,40 +322,36 @@ class ImuService:
                     np.round(self.gravity_W, 4), entry["accel_bias_norm"], entry["gyro_bias_norm"], *entry["cost"])
         return result
 
-    def _start_velocities(self, window, poses) -> np.ndarray:
-        """(n, 3) start of the window's velocities: the linked keyframes' own, else the body centres'
-        central differences (m/s, map frame)."""
-        p = np.array([np.asarray(body_pose(S, self.T_CB).translation()) for S in poses])
-        t = np.array([tk for tk, _ in window])
-        v = np.gradient(p, t, axis=0)
-        for i, (_, kf) in enumerate(window):
-            if kf in self._linked:
-                v[i] = self.velocity(kf)
-        return v
+    def _visual_inertial(self, window: list[tuple[float, int]], gravity_W: Optional[np.ndarray] = None,
+                         ) -> Optional[tuple[np.ndarray, float, np.ndarray, np.ndarray]]:
+        """:func:`solve_visual_inertial` over ``window`` (list of (t, kf)) at the keyframes' current poses."""
+        return solve_visual_inertial(window, [self.backend.pose(kf) for _, kf in window], self.T_CB, self.buffer,
+                                     self.config, self.noise, self.metric, self.static, gravity_W)
 
-    def _rebuild_links(self, velocity: dict[int, np.ndarray]) -> None:
-        """Every IMU link and chain-start prior again at the current gravity and biases (marginal priors
-        dropped: linearised at the old state); the oldest linked keyframe gets start priors."""
-        for handle in list(self._links.values()) + [h for hs in self._starts.values() for h in hs]:
-            self.backend.remove_factor(handle)
-        self._links.clear()
-        self._starts.clear()
-        self._drop_marginals()
-        linked = [k for _, k in self._kfs if k in self._linked]
-        if not linked:
-            return
-        first = linked[0]
-        T_WB, v, bias = self._state(first)
-        self._starts[first] = self._start_priors(first, v, bias, self.config.init.velocity_sigma)
-        self._relink()
+    def _rescale(self, scale: float) -> None:
+        """Monocular: the map to metric, through the contributor (scale folded into its structure; without
+        one the keyframe poses scale); the linked velocities follow (:meth:`on_correction`)."""
+        U = np.eye(4)
+        U[:3, :3] *= scale
+        targets = () if self.contributor is None else (self.contributor,)
+        correction = uniform_correction(self.backend, U, fold_scale=bool(targets))
+        route_correction(self.backend, correction, targets)
+        self.on_correction(correction)
+        self.scale_applied = scale * (self.scale_applied if self.scale_applied is not None else 1.0)
 
-    def _drop_marginals(self) -> None:
-        import gtsam
-
-        for handle in self.backend.factor_handles(OWNER):  # marginal priors linearised at the old state
-            if isinstance(self.backend.factor(handle), gtsam.LinearContainerFactor):
-                self.backend.remove_factor(handle)
-        self._marginal_lin.clear()
+    def _start(self, g_W: np.ndarray, velocities: dict[int, np.ndarray], bias: gtsam.imuBias.ConstantBias,
+               how: str) -> None:
+        """Gravity fixed, keys and links from the oldest given keyframe on."""
+        start = time.perf_counter()
+        self.gravity_W = np.asarray(g_W, dtype=np.float64)
+        self.chain.params = combined_params(self.gravity_W, self.noise)
+        t0, kf0 = self.chain.seed(velocities, bias, self.config.init.velocity_sigma)
+        self.initialized = True
+        self.init_time = float(t0)
+        self.chain.relink()
+        self.stats.update_s += time.perf_counter() - start
+        logger.info("IMU: initialised (%s) at keyframe %d, gravity %s m/s^2 in the map frame", how, kf0,
+                    np.round(self.gravity_W, 4))
 
     # ------------------------------------------------------------------ map corrections
     @property
@@ -459,16 +359,15 @@ class ImuService:
         """Whether the map's scale is held by the IMU (initialised; a metric map always is)."""
         return self.metric or self.initialized
 
-    def adapt_correction(self, correction):
+    def adapt_correction(self, correction: PoseCorrection) -> PoseCorrection:
         """A correction before the contributor applies it (:class:`~fgslam.services.corrections.ObservedContributor`):
         once a monocular map's scale is fixed by the IMU, a Sim(3) correction whose scale would be
         folded into the structure is taken as SE(3): each listed keyframe keeps its corrected centre
         and rotation, the scale change is dropped (nothing folded). Otherwise unchanged."""
         if self.metric or not self.initialized or not correction.fold_scale:
             return correction
-        from ..loop.records import PoseCorrection
 
-        def rigid(M):
+        def rigid(M: np.ndarray) -> np.ndarray:
             R, t, _ = sim3_matrix_parts(M, project=True)
             out = np.eye(4)
             out[:3, :3], out[:3, 3] = R, t
@@ -482,106 +381,43 @@ class ImuService:
         return PoseCorrection.between(old, new, correction.solve_time_s, fold_scale=False, loops=correction.loops,
                                       n_accepted=correction.n_accepted, hold_older=correction.hold_older)
 
-    def on_correction(self, correction) -> None:
-        """After a map correction (loop, global BA, rescale; the keyframe poses already moved): each
-        linked keyframe's velocity turns with its update's rotation and scales with the local scale of
-        the correction (``v <- s_loc R_U v``; ``s_loc`` the ratio of its neighbouring keyframes' centre
-        distances after and before: 1 for a rigid correction, the factor of a uniform rescale); biases
-        are kept; chain-start priors move with their velocity; the marginal priors are re-anchored at the
-        corrected linearisation point (rigid corrections: velocity columns turned) or dropped."""
-        if not self._linked:
-            return
-        linked = [k for _, k in self._kfs if k in self._linked]
-        c_new, c_old = {}, {}
-        for kf in linked:
-            U, _ = correction.update_for(kf)
-            T = self.backend.pose_matrix(kf)
-            c_new[kf] = T[:3, 3].copy()
-            c_old[kf] = (np.linalg.inv(U) @ np.append(T[:3, 3], 1.0))[:3]
-        rotations, local_scales = {}, {}
-        for i, kf in enumerate(linked):
-            U, _ = correction.update_for(kf)
-            R, _, _ = sim3_matrix_parts(U, project=True)
-            a, b = linked[max(i - 1, 0)], linked[min(i + 1, len(linked) - 1)]
-            d_old = float(np.linalg.norm(c_old[b] - c_old[a]))
-            s_loc = float(np.linalg.norm(c_new[b] - c_new[a])) / d_old if a != b and d_old > _MIN_CENTRE_STEP \
-                else sim3_matrix_parts(U)[2]
-            rotations[kf], local_scales[kf] = R, s_loc
-            v = self.velocity(kf)
-            self.backend.set_value(velocity_key(kf), s_loc * (R @ v))
-        import gtsam
+    def on_correction(self, correction: PoseCorrection) -> None:
+        """After a map correction (loop, global BA, rescale; the keyframe poses already moved): the
+        linked velocities, chain-start and marginal priors follow it
+        (:meth:`~fgslam.services.imu_chain.ImuChain.follow_correction`); biases are kept."""
+        self.chain.follow_correction(correction)
 
-        for kf, handles in list(self._starts.items()):
-            if kf not in rotations:
-                continue
-            new_handles = []
-            for handle in handles:
-                f = self.backend.factor(handle)
-                self.backend.remove_factor(handle)
-                if isinstance(f, gtsam.PriorFactorPoint3):
-                    f = gtsam.PriorFactorPoint3(velocity_key(kf), local_scales[kf] * (rotations[kf] @ np.asarray(f.prior())),
-                                                f.noiseModel())
-                new_handles.append(self.backend.add_factor(f, OWNER))
-            self._starts[kf] = new_handles
-        if all(abs(s - 1.0) <= _RIGID_SCALE_TOL for s in local_scales.values()) and not correction.fold_scale:
-            self._reanchor_marginals(correction, rotations)
-        else:
-            self._drop_marginals()
+    # ------------------------------------------------------------------ prediction and reports
+    def predict(self, timestamp: float) -> Optional[np.ndarray]:
+        """T_WC (4x4 Sim(3) at the keyframe's scale) at ``timestamp`` predicted from the newest linked
+        keyframe's state, or None (not initialised, samples do not cover, longer than ``max_bridge_s``)."""
+        import gtsam  # deferred: gtsam
 
-    def _reanchor_marginals(self, correction, rotations: dict[int, np.ndarray]) -> None:
-        """Rigid correction: each marginal prior at the corrected linearisation point (poses ``U T``:
-        their right-perturbation columns unchanged; velocities ``R v``: columns ``A_v R^T``; biases
-        unchanged); a prior it cannot rebuild (more than 3 keys, unknown linearisation point) is dropped."""
-        import gtsam
+        if not self.initialized or not self.chain.linked:
+            return None
+        t_k, kf = next((t, k) for t, k in reversed(self.chain.kfs) if k in self.chain.linked)
+        if not 0 <= timestamp - t_k <= self.config.max_bridge_s or not self.covered(t_k, timestamp):
+            return None
+        T_WB, v, bias = self.chain.state(kf)
+        pim = self.buffer.preintegrate(self.chain.params, t_k, timestamp, bias)
+        nav = pim.predict(gtsam.NavState(T_WB, v), bias)
+        S = sim3_from_body_pose(nav.pose(), self.T_CB, float(self.backend.pose(kf).scale()))
+        self.stats.predictions += 1
+        return gtsam_matrix(S)
 
-        from ..lie import gtsam_matrix, gtsam_sim3
-        from ..backend.keys import kf_id_of
+    def velocity(self, kf_id: int) -> Optional[np.ndarray]:
+        """Keyframe ``kf_id``'s velocity (m/s, map frame) when it is linked, else None."""
+        return self.chain.velocity(kf_id)
 
-        for handle in [h for h in self.backend.factor_handles(OWNER)
-                       if isinstance(self.backend.factor(h), gtsam.LinearContainerFactor)]:
-            f = self.backend.factor(handle)
-            lin = self._marginal_lin.pop(handle, None)
-            self.backend.remove_factor(handle)
-            keys = [int(k) for k in f.keys()]
-            if lin is None or len(keys) > 3:
-                continue
-            try:
-                jf = gtsam.JacobianFactor(f.factor())
-            except RuntimeError:
-                continue
-            A, b = jf.jacobian()
-            A = np.asarray(A)
-            new_lin = gtsam.Values()
-            blocks, col = [], 0
-            for key in keys:
-                kf = kf_id_of(key)
-                U, _ = correction.update_for(kf)
-                R = rotations.get(kf, sim3_matrix_parts(U, project=True)[0])
-                if key == pose_key(kf):
-                    T_new, _ = correction.apply_pose(kf, gtsam_matrix(lin.atSimilarity3(key)))
-                    new_lin.insert(key, gtsam_sim3(T_new))
-                    dim = 7
-                    blocks.append(A[:, col:col + dim])
-                elif key == velocity_key(kf):
-                    new_lin.insert(key, R @ np.asarray(lin.atPoint3(key)))
-                    dim = 3
-                    blocks.append(A[:, col:col + dim] @ R.T)
-                else:
-                    new_lin.insert(key, lin.atConstantBias(key))
-                    dim = 6
-                    blocks.append(A[:, col:col + dim])
-                col += dim
-            unit = gtsam.noiseModel.Diagonal.Sigmas(np.ones(A.shape[0]))
-            args = [x for key, block in zip(keys, blocks) for x in (key, block)]
-            new = gtsam.LinearContainerFactor(gtsam.JacobianFactor(*args, np.asarray(b, dtype=np.float64), unit), new_lin)
-            h = self.backend.add_factor(new, OWNER)
-            self._marginal_lin[h] = new_lin
+    def bias(self, kf_id: int) -> Optional[gtsam.imuBias.ConstantBias]:
+        """Keyframe ``kf_id``'s IMU bias when it is linked, else None."""
+        return self.chain.bias(kf_id)
 
     @property
     def inertial_state(self) -> InertialState:
         """The run's :class:`InertialState` (for the summary and the console report)."""
         acc = gyr = None
-        linked = [k for _, k in self._kfs if k in self._linked]
+        linked = self.chain.linked_in_order()
         if self.initialized and linked:
             b = self.bias(linked[-1])
             acc, gyr = float(np.linalg.norm(b.accelerometer())), float(np.linalg.norm(b.gyroscope()))
@@ -591,78 +427,7 @@ class ImuService:
                              gravity_W=None if self.gravity_W is None else [float(x) for x in self.gravity_W],
                              accel_bias_norm=acc, gyro_bias_norm=gyr, inertial_only_runs=len(self.inertial_only))
 
-    def _visual_inertial(self, window, gravity_W: Optional[np.ndarray] = None):
-        """:func:`solve_visual_inertial` over ``window`` (list of (t, kf)) at the keyframes' current poses."""
-        return solve_visual_inertial(window, [self.backend.pose(kf) for _, kf in window], self.T_CB, self.buffer,
-                                     self.config, self.noise, self.metric, self.static, gravity_W)
-
-    def _rescale(self, scale: float) -> None:
-        """Monocular: the map to metric, through the contributor (scale folded into its structure);
-        the linked velocities follow (:meth:`on_correction`)."""
-        from .plugins import CorrectedBackend, apply_correction, uniform_correction
-
-        U = np.eye(4)
-        U[:3, :3] *= scale
-        target = CorrectedBackend(self.backend, [self.contributor]) if self.contributor is not None else self.backend
-        correction = uniform_correction(target, U)
-        apply_correction(target, correction)
-        self.on_correction(correction)
-        self.scale_applied = scale * (self.scale_applied if self.scale_applied is not None else 1.0)
-
-    def _start(self, g_W: np.ndarray, velocities: dict[int, np.ndarray], bias, how: str) -> None:
-        """Gravity fixed, keys and links from the oldest given keyframe on."""
-        start = time.perf_counter()
-        self.gravity_W = np.asarray(g_W, dtype=np.float64)
-        self.params = combined_params(self.gravity_W, self.noise)
-        ordered = [(t, k) for t, k in self._kfs if k in velocities]
-        t0, kf0 = ordered[0]
-        self.backend.add_variable(velocity_key(kf0), np.asarray(velocities[kf0], dtype=np.float64), attach_to=kf0)
-        self.backend.add_variable(bias_key(kf0), bias, attach_to=kf0)
-        self._linked.add(kf0)
-        self._starts[kf0] = self._start_priors(kf0, velocities[kf0], bias, self.config.init.velocity_sigma)
-        self.initialized = True
-        self.init_time = float(t0)
-        # the other keyframes of the initialisation take their solved velocities
-        i0 = self._kfs.index((t0, kf0))
-        for i in range(i0 + 1, len(self._kfs)):
-            t_b, kf_b = self._kfs[i]
-            if kf_b in velocities:
-                self.backend.add_variable(velocity_key(kf_b), np.asarray(velocities[kf_b], dtype=np.float64), attach_to=kf_b)
-                self.backend.add_variable(bias_key(kf_b), bias, attach_to=kf_b)
-                self._linked.add(kf_b)
-        self._relink()
-        self.stats.update_s += time.perf_counter() - start
-        logger.info("IMU: initialised (%s) at keyframe %d, gravity %s m/s^2 in the map frame", how, kf0,
-                    np.round(self.gravity_W, 4))
-
-    # ------------------------------------------------------------------ prediction
-    def predict(self, timestamp: float) -> Optional[np.ndarray]:
-        """T_WC (4x4 Sim(3) at the keyframe's scale) at ``timestamp`` predicted from the newest linked
-        keyframe's state, or None (not initialised, samples do not cover, longer than ``max_bridge_s``)."""
-        import gtsam
-
-        if not self.initialized or not self._linked:
-            return None
-        t_k, kf = next((t, k) for t, k in reversed(self._kfs) if k in self._linked)
-        if not 0 <= timestamp - t_k <= self.config.max_bridge_s or not self.covered(t_k, timestamp):
-            return None
-        T_WB, v, bias = self._state(kf)
-        pim = self.buffer.preintegrate(self.params, t_k, timestamp, bias)
-        nav = pim.predict(gtsam.NavState(T_WB, v), bias)
-        S = sim3_from_body_pose(nav.pose(), self.T_CB, float(self.backend.pose(kf).scale()))
-        self.stats.predictions += 1
-        from ..lie import gtsam_matrix
-
-        return gtsam_matrix(S)
-
-    def velocity(self, kf_id: int) -> Optional[np.ndarray]:
-        return np.asarray(self.backend.values_of([velocity_key(kf_id)]).atPoint3(velocity_key(kf_id))) \
-            if kf_id in self._linked else None
-
-    def bias(self, kf_id: int):
-        return self.backend.values_of([bias_key(kf_id)]).atConstantBias(bias_key(kf_id)) if kf_id in self._linked else None
-
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> dict[str, object]:
         s = self.stats
         return {"initialized": self.initialized, "init_time": self.init_time, "scale": self.scale_applied,
                 "gravity_W": None if self.gravity_W is None else [float(x) for x in self.gravity_W],
@@ -675,8 +440,8 @@ class ImuService:
 # ----------------------------------------------------------------------------------------- the run
 
 
-def make_imu_service(config: ImuServiceConfig, backend: Any, calibration: Any, has_imu: bool, sensor: str,
-                     contributor: Any = None, dataset_noise: Optional[dict] = None,
+def make_imu_service(config: ImuServiceConfig, backend: Backend, calibration: Optional[Calibration], has_imu: bool,
+                     sensor: str, contributor: object = None, dataset_noise: Optional[dict[str, float]] = None,
                      where: str = "the dataset") -> Optional[ImuService]:
     """The run's :class:`ImuService` on ``backend`` (``config.enabled``), else None. DataError when
     ``where`` has no IMU or its calibration no ``T_BC``. ``contributor`` (the frontend, when it has
@@ -689,8 +454,7 @@ def make_imu_service(config: ImuServiceConfig, backend: Any, calibration: Any, h
     T_BC = getattr(calibration, "T_BC", None)
     if T_BC is None:
         raise DataError(f"imu.enabled but the calibration of {where} has no camera-IMU transform T_BC")
-    if not callable(getattr(contributor, "apply_correction", None)):
-        contributor = None
-    service = ImuService(config, backend, T_BC, metric=sensor in ("stereo", "rgbd"), contributor=contributor,
+    service = ImuService(config, backend, T_BC, metric=sensor in ("stereo", "rgbd"),
+                         contributor=contributor if takes_corrections(contributor) else None,
                          dataset_noise=dataset_noise)
     return service

@@ -15,7 +15,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..factors.imu import ImuNoise, combined_params
+from ..backend.solver import NonlinearProblem, levenberg_marquardt
+from ..factors.imu import ImuNoise, body_pose, combined_params
 from .imu_samples import ImuBuffer, ImuServiceConfig, StaticInit, log_so3
 
 logger = logging.getLogger(__name__)
@@ -66,7 +67,7 @@ def solve_visual_inertial(window: Sequence[tuple[float, int]], poses: Sequence, 
     """Gravity ``g_W``, scale, velocities (n, 3) and gyroscope bias of ``window`` (list of (t, kf)) with
     the keyframes' poses ``poses`` (``T_WC`` each) and the camera-to-body ``T_CB``; ``gravity_W`` given:
     only the scale and velocities are solved. None when implausible (logged)."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     ic = config.init
     G = config.gravity
@@ -199,7 +200,7 @@ def inertial_only_factor(keys: tuple[int, int, int, int, int], pim, T_WB_i, T_WB
     centres ``(c_i, c_j)`` in map units. Jacobians (chained through gtsam's): right perturbations,
     ``R_GW Exp(w)`` moves ``T_GB`` by ``Ad(T_WB^-1) [w, 0]``; ``d log_scale`` moves its position by
     ``s c`` in W, ``R_WB^T s c`` in the body frame (tested against finite differences)."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     inner = gtsam.CombinedImuFactor(0, 1, 2, 3, 4, 5, pim)
     unit = gtsam.noiseModel.Unit.Create(15)
@@ -267,10 +268,7 @@ def solve_inertial_only(window: Sequence[tuple[float, int]], poses: Sequence, T_
     ``CombinedImuFactor`` (:func:`inertial_only_factor`) between consecutive keyframes, solved by the
     one LM loop with ``settings``. ``velocities_W`` (n, 3): the start (m/s, map frame). None when
     the window is too short or the solve fails (logged)."""
-    import gtsam
-
-    from ..backend.solver import NonlinearProblem, levenberg_marquardt
-    from ..factors.imu import body_pose
+    import gtsam  # deferred: gtsam
 
     ic = config.init
     n = len(window)

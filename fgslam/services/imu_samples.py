@@ -146,7 +146,7 @@ def rodrigues(w: np.ndarray) -> np.ndarray:
 
 def log_so3(R: np.ndarray) -> np.ndarray:
     """Rotation vector (rad) of the rotation matrix ``R`` (gtsam's ``Rot3.Logmap``)."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     return np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(R)))
 

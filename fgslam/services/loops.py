@@ -3,7 +3,7 @@ relocalisation, and proximity loops closed by a global bundle adjustment (DPV-SL
 3.2), beside tracking, for any frontend that implements the contributor contract
 (:mod:`fgslam.contracts.contributor`).
 
-The run's system (:class:`fgslam.system.SlamSystem`) holds one :class:`LoopService`, runs
+The run's system (:class:`fgslam.run.system.SlamSystem`) holds one :class:`LoopService`, runs
 :meth:`LoopService.poll`, :meth:`LoopService.wait` and :meth:`LoopService.finish`, and connects it to
 the frontend as its loop port (:class:`fgslam.frontends.base.LoopPort`), through which the frontend
 calls the rest at fixed points of its frame loop:
@@ -37,13 +37,14 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 
 import numpy as np
 
 from ..loop.closure import LoopCloser
 from ..loop.records import LoopClosureConfig, PoseCorrection
-from ..contracts.contributor import Contributor
-from .proximity import ProximityGates, ProximityLoops
+from ..contracts.contributor import Contributor, ProximityGates
+from .proximity import ProximityLoops
 
 logger = logging.getLogger(__name__)
 
@@ -141,7 +142,7 @@ class LoopService:
         self.proximity_closer.map_reset()
 
     # ------------------------------------------------------------------ classical
-    def add_keyframe(self, kf_id: int, neighbours=()) -> bool:
+    def add_keyframe(self, kf_id: int, neighbours: Sequence[int] = ()) -> bool:
         """Hand keyframe ``kf_id`` (pose final or about to be) to the closer, once; False when it was
         handed already or the contributor has no image of it."""
         if self.closer is None or kf_id <= self._last_added:
@@ -164,7 +165,7 @@ class LoopService:
             self.closer.update_poses(T_WC_by_id)
             self._times["loop"] += time.perf_counter() - t0
 
-    def relocalize(self, image: np.ndarray, K) -> tuple[int, np.ndarray] | None:
+    def relocalize(self, image: np.ndarray, K: np.ndarray) -> tuple[int, np.ndarray] | None:
         """``(kf_id, T_WC)`` of a lost frame's image on the keyframe database, or None."""
         if self.closer is None:
             return None

@@ -23,9 +23,11 @@ plugin may move the map: on_keyframe callbacks run inside a frontend's frame) an
 ``finish(backend)`` (after the last frame).
 
 A plugin moves the map with :func:`apply_correction` (a ``PoseCorrection``, as loop closure does):
-through ``backend.apply_correction`` when the backend offers it (:class:`CorrectedBackend`, which
-the runner hands to plugins: each contributor moves its keyframes and folds the scale into its
-structure); otherwise by setting every keyframe pose, scales included (nothing to fold into).
+through the backend's correction route (its ``contributors``, which :class:`FactorPlugins` sets to the
+run's frontend before the plugins attach: each contributor moves its keyframes and folds the scale
+into its structure); without one by setting every keyframe pose, scales included (nothing to fold
+into). :func:`can_fold` says which; the corrections themselves are built with
+:mod:`fgslam.services.corrections` (``uniform_correction``, ``pose_graph_correction``).
 
 Two built-in plugins:
 
@@ -47,16 +49,20 @@ import logging
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Optional, Union
+from typing import Optional, Union
 
 import numpy as np
 
+from ..backend.graph import Backend
 from ..config import MAX_COUNT, MAX_KEYFRAMES, MAX_SCALAR, MAX_TIME_OFFSET_S, ranged
-from ..contracts.plugins import parse_options
+from ..contracts.contributor import PoseCorrection
+from ..contracts.plugins import FactorPlugin, parse_options
 from ..errors import ConfigError, FGSlamError
 from ..factors.planar import fit_plane, planar_factor, plane_in_keyframe, plane_in_world, plane_of_keyframe, unit_up
 from ..factors.position import camera_centre, position_noise, position_prior_factor
+from ..geometry import umeyama
 from ..io.positions import PositionTrack, read_positions
+from .corrections import pose_graph_correction, route_correction, takes_corrections, uniform_correction
 
 logger = logging.getLogger(__name__)
 
@@ -77,7 +83,7 @@ def plugin_key(index: int) -> str:
 MOVED_MODULES = {"fgslam.backend.plugins": "fgslam.services.plugins"}
 
 
-def load_plugin_class(spec: Any, key: str) -> type:
+def load_plugin_class(spec: object, key: str) -> type[FactorPlugin]:
     """The class named by ``spec`` (``"package.module:ClassName"``); ConfigError naming ``<key>.class``
     when it is malformed, does not import, names no class there, or the class lacks ``attach``."""
     where = f"{key}.class"
@@ -103,7 +109,7 @@ def load_plugin_class(spec: Any, key: str) -> type:
     return cls
 
 
-def build_plugin(entry: Any, index: int) -> Any:
+def build_plugin(entry: object, index: int) -> FactorPlugin:
     """Build the plugin of one ``factors`` entry (``{class: ..., options: {...}}``); errors name the key."""
     key = plugin_key(index)
     if not isinstance(entry, Mapping):
@@ -125,26 +131,23 @@ def build_plugin(entry: Any, index: int) -> Any:
         raise ConfigError(f"{key}: building {entry['class']} failed: {type(exc).__name__}: {exc}") from exc
 
 
-def build_plugins(entries: Sequence[Any]) -> list[Any]:
+def build_plugins(entries: Sequence[object]) -> list[FactorPlugin]:
     """Build every plugin of a ``factors`` list, in order (see :func:`build_plugin`)."""
     return [build_plugin(entry, i) for i, entry in enumerate(entries)]
 
 
-def attach_plugins(plugins: Sequence[Any], backend: Any, timestamps: Optional[np.ndarray] = None,
-                   contributors: Sequence[Any] = ()) -> Any:
+def attach_plugins(plugins: Sequence[FactorPlugin], backend: Backend, timestamps: Optional[np.ndarray] = None) -> None:
     """Before the first frame: ``check_run(timestamps)`` (when the plugin has it and times are given),
-    then ``attach(...)``, for each plugin. With ``contributors`` the plugins get the backend wrapped in
-    :class:`CorrectedBackend` (their corrections reach the contributors); returns what they got."""
-    handle = CorrectedBackend(backend, contributors) if contributors else backend
+    then ``attach(backend)``, for each plugin (their corrections take the backend's route, its
+    ``contributors``: set it first)."""
     for plugin in plugins:
-        check = getattr(plugin, "check_run", None)
+        check = getattr(plugin, "check_run", None)  # optional members of a user plugin
         if timestamps is not None and callable(check):
             check(np.asarray(timestamps, dtype=np.float64))
-        plugin.attach(handle)
-    return handle
+        plugin.attach(backend)
 
 
-def poll_plugins(plugins: Sequence[Any], backend: Any) -> None:
+def poll_plugins(plugins: Sequence[FactorPlugin], backend: Backend) -> None:
     """At the frontend's safe point after each frame: ``poll(backend)`` of each plugin that has it."""
     for plugin in plugins:
         poll = getattr(plugin, "poll", None)
@@ -152,7 +155,7 @@ def poll_plugins(plugins: Sequence[Any], backend: Any) -> None:
             poll(backend)
 
 
-def finish_plugins(plugins: Sequence[Any], backend: Any) -> None:
+def finish_plugins(plugins: Sequence[FactorPlugin], backend: Backend) -> None:
     """After the last frame: ``finish(backend)`` of each plugin that has it."""
     for plugin in plugins:
         finish = getattr(plugin, "finish", None)
@@ -163,82 +166,40 @@ def finish_plugins(plugins: Sequence[Any], backend: Any) -> None:
 # ----------------------------------------------------------------------------------------- corrections
 
 
-class CorrectedBackend:
-    """The backend as the plugins of a run see it: every attribute of ``backend``, plus
-    :meth:`apply_correction`, which hands a correction to each contributor (a frontend:
-    ``contributor.apply_correction``), as loop closure does: the contributor moves its keyframes
-    (whose poses live in the backend) and folds the scale into its structure. Plugins call it only
-    at the safe point (``poll``, ``finish``)."""
-
-    def __init__(self, backend: Any, contributors: Sequence[Any]) -> None:
-        self._backend = backend
-        self.contributors = list(contributors)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._backend, name)
-
-    def apply_correction(self, correction: Any) -> None:
-        for contributor in self.contributors:
-            contributor.apply_correction(correction)
+def can_fold(backend: Backend) -> bool:
+    """Whether the backend's corrections reach contributors that fold their scale into structure (its
+    route, ``backend.contributors``; else a correction moves the keyframe poses with their scales: a
+    Sim(3) map stays consistent without folding)."""
+    return bool(backend.contributors)
 
 
-def can_fold(backend: Any) -> bool:
-    """Whether corrections reach contributors that fold their scale into structure (else a correction
-    moves the keyframe poses with their scales: a Sim(3) map stays consistent without folding)."""
-    return callable(getattr(backend, "apply_correction", None))
-
-
-def apply_correction(backend: Any, correction: Any) -> None:
+def apply_correction(backend: Backend, correction: PoseCorrection) -> None:
     """Move the map by a pose correction (``fgslam.loop.records.PoseCorrection``: a Sim(3) update per
-    keyframe): through ``backend.apply_correction`` when the backend has it (:class:`CorrectedBackend`:
-    the contributors move their keyframes and fold the scale into their structure); otherwise each
-    keyframe pose is set (build such corrections with ``fold_scale`` = :func:`can_fold`, False)."""
-    if can_fold(backend):
-        backend.apply_correction(correction)
-        return
-    for kf_id in backend.keyframe_ids:
-        T_new, _ = correction.apply_pose(kf_id, backend.pose_matrix(kf_id))
-        backend.set_pose(kf_id, T_new)
+    keyframe) along the backend's route: each of ``backend.contributors`` moves its keyframes and folds
+    the scale into its structure; without contributors each keyframe pose is set (build such
+    corrections with ``fold_scale`` = :func:`can_fold`, False)."""
+    route_correction(backend, correction, backend.contributors)
 
 
 class FactorPlugins:
     """The run's factor plugins (a ``factors`` list), a service of the run's system: built and attached
     to ``backend`` before the first frame (``check_run(timestamps)`` first), :meth:`poll` after each
-    frame (the safe point: no optimisation running) and :meth:`finish` after the last (its corrections
-    reach ``contributor``, the frontend, before its final trajectory is read)."""
+    frame (the safe point: no optimisation running) and :meth:`finish` after the last. It sets the
+    backend's correction route to ``contributor`` (the frontend, when it takes corrections), so the
+    plugins' corrections reach it before its final trajectory is read."""
 
-    def __init__(self, entries: Sequence[Any], backend: Any, timestamps: Optional[np.ndarray] = None,
-                 contributor: Any = None) -> None:
+    def __init__(self, entries: Sequence[object], backend: Backend, timestamps: Optional[np.ndarray] = None,
+                 contributor: object = None) -> None:
         self.plugins = build_plugins(entries)
-        contributors = [contributor] if callable(getattr(contributor, "apply_correction", None)) else []
-        self.target = attach_plugins(self.plugins, backend, timestamps, contributors)
+        self.backend = backend
+        backend.set_contributors([contributor] if takes_corrections(contributor) else [])
+        attach_plugins(self.plugins, backend, timestamps)
 
     def poll(self) -> None:
-        poll_plugins(self.plugins, self.target)
+        poll_plugins(self.plugins, self.backend)
 
     def finish(self) -> None:
-        finish_plugins(self.plugins, self.target)
-
-
-def uniform_correction(backend: Any, U: np.ndarray) -> Any:
-    """The correction moving every keyframe by the same Sim(3) ``U`` (4x4 ``[[s R, t], [0, 1]]``),
-    the scale folded into the structure when contributors can (:func:`can_fold`)."""
-    from ..loop.records import PoseCorrection
-
-    s = float(np.cbrt(np.linalg.det(U[:3, :3])))
-    ids = list(backend.keyframe_ids)
-    return PoseCorrection(T_update={k: U for k in ids}, scale={k: s for k in ids},
-                          T_WC_new={k: U @ backend.pose_matrix(k) for k in ids}, loops=[], fold_scale=can_fold(backend),
-                          n_accepted=0, solve_time_s=0.0)
-
-
-def pose_graph_correction(backend: Any, T_WC_new: Mapping[int, np.ndarray], solve_time_s: float = 0.0) -> Any:
-    """The correction taking each keyframe of ``T_WC_new`` from its current pose there, the scale
-    change folded into the structure when contributors can (:func:`can_fold`)."""
-    from ..loop.records import PoseCorrection
-
-    return PoseCorrection.between({k: backend.pose_matrix(k) for k in T_WC_new}, dict(T_WC_new), solve_time_s,
-                                  fold_scale=can_fold(backend))
+        finish_plugins(self.plugins, self.backend)
 
 
 # ----------------------------------------------------------------------------------------- PositionPrior
@@ -275,7 +236,7 @@ class PositionPrior:
     new priors and at :meth:`finish`.
     """
 
-    def __init__(self, options: Mapping[str, Any], key: str) -> None:
+    def __init__(self, options: Mapping[str, object], key: str) -> None:
         self.key = key
         self.options = opts = parse_options(PositionPriorOptions, options, key)
         if opts.file is None:
@@ -285,7 +246,7 @@ class PositionPrior:
         self.sigma = opts.sigma
         position_noise(self.sigma, opts.huber_k)  # the noise model is valid (ranges checked above)
         self._track: Optional[PositionTrack] = None  # read when the run starts (check_run / attach)
-        self.backend: Any = None
+        self.backend: Optional[Backend] = None
         self._kf_times: list[float] = []  # keyframes in arrival order
         self._kf_ids: list[int] = []
         self._kf_keys: dict[int, int] = {}
@@ -319,12 +280,12 @@ class PositionPrior:
             self.track.check_overlap(float(timestamps[0]) - self.options.time_offset,
                                      float(timestamps[-1]) - self.options.time_offset)
 
-    def attach(self, backend: Any) -> None:
+    def attach(self, backend: Backend) -> None:
         self._times = self.times
         self.backend = backend
         backend.on_keyframe(self._on_keyframe)
 
-    def finish(self, backend: Any) -> None:
+    def finish(self, backend: Backend) -> None:
         self._match_samples(math.inf)
         self._rematch()
         if not self.aligned:
@@ -340,7 +301,7 @@ class PositionPrior:
             return
         logger.info("%s: %d position priors, %d pose-graph corrections", self.key, len(self._handles), self.corrections)
 
-    def poll(self, backend: Any) -> None:
+    def poll(self, backend: Backend) -> None:
         """Safe point (after a frame, no optimisation running): align the map once the samples allow
         it, then a pose-graph correction after every ``correct_every`` new priors."""
         self._rematch()
@@ -404,8 +365,6 @@ class PositionPrior:
         return ids, centres, positions
 
     def _try_align(self) -> bool:
-        from ..geometry import umeyama
-
         ids, centres, positions = self._pairs()
         if len(ids) < self.options.min_samples:
             return False
@@ -419,7 +378,7 @@ class PositionPrior:
         U[:3, :3] = a.s * a.R
         U[:3, 3] = a.t
         rms_before = float(np.sqrt(np.mean(np.sum((centres - positions) ** 2, axis=1))))
-        apply_correction(self.backend, uniform_correction(self.backend, U))
+        apply_correction(self.backend, uniform_correction(self.backend, U, can_fold(self.backend)))
         self.alignment = U
         # from here the position priors fix the map's pose and scale: the anchor and range gauge
         # factors (at the map's own, now moved, first keyframes) would fight them
@@ -446,7 +405,7 @@ class PositionPrior:
         if not self._handles:
             return
         T_WC_new = self.backend.correct_pose_graph()
-        apply_correction(self.backend, pose_graph_correction(self.backend, T_WC_new))
+        apply_correction(self.backend, pose_graph_correction(self.backend, T_WC_new, can_fold(self.backend)))
         self._since_correction = 0
         self.corrections += 1
 
@@ -490,14 +449,14 @@ class PlanarMotion:
     constraint fixes each camera's height and tilt relative to that plane, not the map's tilt in an
     outside frame."""
 
-    def __init__(self, options: Mapping[str, Any], key: str) -> None:
+    def __init__(self, options: Mapping[str, object], key: str) -> None:
         self.key = key
         self.options = parse_options(PlanarMotionOptions, options, key)
         try:
             self.up_C = unit_up(self.options.up_axis)
         except ValueError as exc:
             raise ConfigError(f"{key}.options.up_axis: {exc} (the ground normal in camera coordinates)") from exc
-        self.backend: Any = None
+        self.backend: Optional[Backend] = None
         self.reference: Optional[int] = None  # keyframe whose coordinates hold the plane
         self.plane_C: Optional[tuple[np.ndarray, float]] = None  # (n, d): n . x + d = 0 in the reference camera
         self._plane_W: Optional[tuple[np.ndarray, float]] = None  # the plane in the world at the last (re)build
@@ -506,7 +465,7 @@ class PlanarMotion:
         self._since_fit = 0
         self.rebuilds = 0
 
-    def attach(self, backend: Any) -> None:
+    def attach(self, backend: Backend) -> None:
         self.backend = backend
         backend.on_keyframe(self._on_keyframe)
 
@@ -517,10 +476,10 @@ class PlanarMotion:
             return self._plane_W
         return plane_in_world(self.backend.pose(self.reference), *self.plane_C)
 
-    def finish(self, backend: Any) -> None:
+    def finish(self, backend: Backend) -> None:
         self.refit()
         if self.options.correct_at_finish and self._handles:
-            apply_correction(backend, pose_graph_correction(backend, backend.correct_pose_graph()))
+            apply_correction(backend, pose_graph_correction(backend, backend.correct_pose_graph(), can_fold(backend)))
             self.refit()
         plane = self.plane
         logger.info("%s: %d planar factors, plane normal %s offset %.3f, %d rebuilds", self.key,
@@ -591,7 +550,7 @@ class PlanarMotion:
 # ----------------------------------------------------------------------------------------- config validation
 
 
-def validate_factor_entries(entries: Sequence[Any]) -> None:
+def validate_factor_entries(entries: object) -> None:
     """Check a ``factors`` list before any work: each entry's class imports and has ``attach`` and
     its plugin accepts the options (built once and dropped; errors name ``factors[i]...``)."""
     if not isinstance(entries, (list, tuple)):

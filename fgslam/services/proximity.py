@@ -38,14 +38,15 @@ import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Optional, Protocol
+from typing import Optional
 
 import numpy as np
 
 from ..errors import OptimizationError
 from ..loop.closure import LoopCloser
 from ..loop.records import LoopClosureConfig
-from ..contracts.contributor import GlobalBAJob, ProximityContributor, apply_global_ba_result
+from ..contracts.contributor import (GlobalBAJob, ProximityContributor, ProximityGates, SolvedGlobalBA,
+                                     apply_global_ba_result)
 
 logger = logging.getLogger(__name__)
 
@@ -55,14 +56,6 @@ _SOLVER_ERRORS = (OptimizationError, RuntimeError, np.linalg.LinAlgError)
 
 def _warm_up() -> None:
     """Runs first in the worker process: it starts (spawn, imports) before the first global BA needs it."""
-
-
-class ProximityGates(Protocol):
-    """The proximity settings the service uses (the family's proximity config, e.g. ``patch.proximity``)."""
-
-    min_gap: int  # keyframes settled between a candidate and the query at least
-    cooldown: int  # keyframes after an accepted loop before the next query
-    min_ba_inlier_ratio: float  # share of the loop edges that must keep a weight after the global BA
 
 
 @dataclass
@@ -75,7 +68,7 @@ class _Running:
     due_tick: int  # the safe point at which its result is applied (waiting for it there)
     started: float = field(default_factory=time.perf_counter)
     thread: Optional[threading.Thread] = None
-    result: Any = None
+    result: Optional[SolvedGlobalBA] = None
     error: Optional[BaseException] = None
     seconds: float = 0.0
 

@@ -1,6 +1,7 @@
 """The dense frontend's bundle adjustment through the backend: edges measured from the field the current
 estimate induces, one :class:`~fgslam.factors.dense.DenseBlock` over them, the local BA of the newest
-keyframes (step 3 of :mod:`.frontend`) and the global optimisation of the map (step 5)."""
+keyframes (step 3 of :mod:`.frontend`) and the global optimisation of the map (step 5: its snapshot,
+solve and hand-over; :mod:`.contributor` runs it)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import logging
 import time
 from dataclasses import dataclass
 from functools import partial
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import numpy as np
 
@@ -19,15 +20,12 @@ from ...factors.dense import DenseBlock, DenseEdge, DenseKeyframe
 from ...factors.reprojection import ReprojectionConfig
 from ...factors.schur import torch_threads
 from ...contracts.contributor import GlobalBAJob
-from ...contracts.contributor import apply_global_ba_result
 from ..records import rigid
 from .config import DenseConfig, DenseProximityConfig
 from .graph import DenseKeyframeState, EdgeMeasurement, FrameGraph, select_global_edges
 from .source import make_dense_source
+from .state import DenseState
 from .weights import block_config, huber_weight, information
-
-if TYPE_CHECKING:
-    from .frontend import DenseFrontend
 
 logger = logging.getLogger(__name__)
 
@@ -74,113 +72,95 @@ def dense_block(g: FrameGraph, edges: list[tuple[int, int]], K_grid, config: Den
 
 
 class DenseBA:
-    """Measurement and optimisation of the keyframes of ``frontend`` (its graph, source, backend, counts
-    and stage times)."""
+    """Measurement and optimisation of the keyframes of the shared ``state`` (its graph, source, backend,
+    counts and stage times); ``name`` owns the dense blocks on the backend."""
 
-    def __init__(self, frontend: "DenseFrontend"):
-        self.fe = frontend
-        self.depth_name = f"{frontend.name}.depth"  # the owner of the depth-alignment blocks (RGB-D)
+    def __init__(self, state: DenseState, name: str):
+        self.state = state
+        self.name = name
+        self.depth_name = f"{name}.depth"  # the owner of the depth-alignment blocks (RGB-D)
 
     def measure(self, edges: list[tuple[int, int]], min_change: float = 0.0) -> None:
         """Measure ``edges`` from the fields the current estimate induces (:func:`measure_edges`; an edge
         whose field moved less than ``min_change`` image px since its last measurement keeps it)."""
         if not edges:
             return
-        fe = self.fe
+        st = self.state
         t0 = time.perf_counter()
-        fe._counts["edges_kept"] += measure_edges(fe.graph, fe.source, fe.config, fe.stride, edges, min_change)
-        fe._times["flow"] += time.perf_counter() - t0
+        st.counts["edges_kept"] += measure_edges(st.graph, st.source, st.config, st.stride, edges, min_change)
+        st.times["flow"] += time.perf_counter() - t0
 
     def block(self, edges: list[tuple[int, int]]) -> DenseBlock:
         """One dense block over the measured ``edges`` (:func:`dense_block`)."""
-        fe = self.fe
-        return dense_block(fe.graph, edges, fe.K_grid, fe.config, fe.stride, fe._reproj)
+        st = self.state
+        return dense_block(st.graph, edges, st.K_grid, st.config, st.stride, st.reproj)
 
     def optimize(self, free: list[int], edges: list[tuple[int, int]], iterations: int, init: bool) -> None:
         """One optimisation of the free keyframes with the dense block of ``edges`` through the backend
         (the local BA and the initialisation; the global optimisation is :func:`solve_dense_global`)."""
-        fe = self.fe
-        g = fe.graph
+        st = self.state
+        g = st.graph
         block = self.block(edges)
         free_keys = {pose_key(f) for f in free}
         depth_blocks = self.depth_blocks(free_keys, False)
         keys = set(block.keys).union(*(b.keys for b in depth_blocks))
         fixed = [k for k in keys if k not in free_keys]
         anchor = free[0] if (init or not fixed) else None
-        pair = (free[0], free[-1]) if init and fe.sensor_mode == "mono" and len(free) >= 2 else None
-        fe.backend.set_gauge(anchor=anchor, scale_pair=pair)
-        fe.backend.set_blocks(fe.name, [block])
-        if fe.depth.enabled:
-            fe.backend.set_blocks(self.depth_name, depth_blocks)
-        fe.backend.optimize_window(free, iterations)
+        pair = (free[0], free[-1]) if init and st.sensor_mode == "mono" and len(free) >= 2 else None
+        st.backend.set_gauge(anchor=anchor, scale_pair=pair)
+        st.backend.set_blocks(self.name, [block])
+        if st.depth.enabled:
+            st.backend.set_blocks(self.depth_name, depth_blocks)
+        st.backend.optimize_window(free, iterations)
         fid_of = {pose_key(f): f for f in g.keyframes}
         for src in block.sources:
             g.keyframes[fid_of[src.keys[0]]].inv_depth = src.inverse_depth.numpy().copy()
-        if fe.sensor_mode == "rgbd":  # sensor depths observe no Sim(3) scale: written back rigid (as patch)
+        if st.sensor_mode == "rgbd":  # sensor depths observe no Sim(3) scale: written back rigid (as patch)
             for f in free:
-                fe.backend.set_pose(f, rigid(fe.backend.pose_matrix(f)))
+                st.backend.set_pose(f, rigid(st.backend.pose_matrix(f)))
 
     def depth_blocks(self, free_keys: set[int], global_: bool) -> list:
         """RGB-D depth alignment: the depth blocks between consecutive keyframes of the map (with their
         surfaces) at least one of which is free; the newest ``depth_align.window_pairs`` of them, every one
         in the global optimisation. Empty when depth alignment is off."""
-        fe = self.fe
-        if not fe.depth.enabled:
+        st = self.state
+        if not st.depth.enabled:
             return []
-        g = fe.graph
+        g = st.graph
         frames = [(pose_key(f), g.keyframes[f].surface) for f in g.order()]
-        return fe.depth.chain(frames, free_keys, 0 if global_ else None)
+        return st.depth.chain(frames, free_keys, 0 if global_ else None)
 
     def local(self, new_fid: int, rounds: int | None = None) -> None:
         """Local BA after keyframe ``new_fid``: ``rounds`` (default ``ba.rounds``) of re-measuring the
         newest keyframes' edges and optimising the newest ``ba.window`` keyframes."""
-        fe = self.fe
+        st = self.state
         t0 = time.perf_counter()
-        g = fe.graph
-        cfg = fe.config.ba
+        g = st.graph
+        cfg = st.config.ba
         free = g.active[-cfg.window:]
         free_set = set(free)
         edges = [e for e in g.active_edges() if e[0] in free_set or e[1] in free_set]
         newest = set(g.active[-cfg.remeasure:]) | {new_fid}
         fresh = [e for e in edges if e[0] in newest or e[1] in newest]
-        flow0 = fe._times["flow"]
+        flow0 = st.times["flow"]
         for _ in range(cfg.rounds if rounds is None else rounds):
             self.measure(fresh, cfg.remeasure_min_change)
             self.optimize(free, edges, cfg.iterations, init=False)
-        fe._times["ba"] += time.perf_counter() - t0 - (fe._times["flow"] - flow0)
+        st.times["ba"] += time.perf_counter() - t0 - (st.times["flow"] - flow0)
 
+    def clear_blocks(self) -> None:
+        """Take this map's blocks (dense, and RGB-D depth alignment's) off the backend (a map restart)."""
+        st = self.state
+        st.backend.set_blocks(self.name, [])
+        if st.depth.enabled:
+            st.backend.set_blocks(self.depth_name, [])
 
     # ------------------------------------------------------------------ global optimisation
-    def global_ba(self, background: bool = False) -> None:
-        """The global optimisation of the map (step 5 of :mod:`.frontend`): a snapshot
-        (:meth:`global_job`) solved by :func:`solve_dense_global`. ``background`` (the periodic one,
-        ``global_ba.background`` on and a loop service connected): handed to the loop service, which
-        solves it in its worker and applies it at a later safe point (skipped while one runs: tried
-        again at the next keyframe); else solved and applied now (the final one)."""
-        fe = self.fe
-        t0 = time.perf_counter()
-        loops = fe.loops
-        if background and fe.config.global_ba.background and loops.runs_global_ba:
-            if not loops.busy:
-                fe._new_since_global = 0
-                loops.start_global_ba()
-            fe._times["global"] += time.perf_counter() - t0
-            return
-        fe._new_since_global = 0
-        job = self.global_job(None)
-        if job is None:
-            return
-        result = job.solve()
-        apply_global_ba_result(fe.contributor, job, result, np.zeros(0, bool), time.perf_counter() - t0)
-        fe._times["global"] += time.perf_counter() - t0
-        logger.info("dense global optimisation: %d keyframes, %d edges, %.2f s", len(job.kf_ids), result.num_edges,
-                    time.perf_counter() - t0)
-
     @property
     def jobs_in_process(self) -> bool:
         """Whether global jobs run in the loop service's worker process: the built-in flow source without
         RGB-D depth alignment (a learned source, or depth blocks the caller builds, keep them in a thread)."""
-        return self.fe.config.source.kind == "flow" and not self.fe.depth.enabled
+        return self.state.config.source.kind == "flow" and not self.state.depth.enabled
 
     def global_job(self, loop_edges: dict | None = None) -> GlobalBAJob | None:
         """Snapshot of the current map for a global optimisation (None: fewer than three keyframes with
@@ -189,8 +169,8 @@ class DenseBA:
         the stored edges of the others, the loop edges kept so far and ``loop_edges`` (measured). A source
         other than the built-in flow measures here, in the caller; the job then runs in a thread (as with
         RGB-D depth alignment, whose blocks the caller builds), else in the loop service's worker process."""
-        fe = self.fe
-        g = fe.graph
+        st = self.state
+        g = st.graph
         if g is None:
             return None
         kf_ids = g.order()
@@ -199,13 +179,13 @@ class DenseBA:
             return None
         imaged_set = set(imaged)
         stored = {e: m for e, m in g.edges.items() if not (e[0] in imaged_set and e[1] in imaged_set)}
-        fe._loop_edges = {e for e in fe._loop_edges if e[0] in g.keyframes and e[1] in g.keyframes}
-        extra = sorted(e for e in fe._loop_edges if e[0] in imaged_set and e[1] in imaged_set)
+        st.loop_edges = {e for e in st.loop_edges if e[0] in g.keyframes and e[1] in g.keyframes}
+        extra = sorted(e for e in st.loop_edges if e[0] in imaged_set and e[1] in imaged_set)
         measured = None
-        images = {f: fe._cropped(g.keyframes[f].image) for f in imaged}
+        images = {f: st.cropped(g.keyframes[f].image) for f in imaged}
         in_process = self.jobs_in_process
-        if fe.config.source.kind != "flow":  # the learned source stays in this process: measured here
-            edges = global_edges(g, imaged, fe.config)
+        if st.config.source.kind != "flow":  # the learned source stays in this process: measured here
+            edges = global_edges(g, imaged, st.config)
             chosen = set(edges)
             edges += [e for e in extra if e not in chosen]
             held = set(g.edges)
@@ -215,12 +195,12 @@ class DenseBA:
                 if e not in held:
                     del g.edges[e]
             images = {}
-        T_WC = np.stack([fe.backend.pose_matrix(f) for f in kf_ids])
+        T_WC = np.stack([st.backend.pose_matrix(f) for f in kf_ids])
         inv_depth = [g.keyframes[f].inv_depth for f in kf_ids]
-        settings = DenseGlobalSettings(config=fe.config, backend=fe.backend.config, K_grid=np.asarray(fe.K_grid),
-                                       shape=g.shape, stride=fe.stride, reprojection=fe._reproj,
-                                       mono=fe.sensor_mode == "mono", rigid=fe.sensor_mode == "rgbd",
-                                       proximity=fe.config.proximity)
+        settings = DenseGlobalSettings(config=st.config, backend=st.backend.config, K_grid=np.asarray(st.K_grid),
+                                       shape=g.shape, stride=st.stride, reprojection=st.reproj,
+                                       mono=st.sensor_mode == "mono", rigid=st.sensor_mode == "rgbd",
+                                       proximity=st.config.proximity)
         loop = None
         if loop_edges is not None and len(loop_edges["src"]):
             loop = {k: np.asarray(v) for k, v in loop_edges.items()}
@@ -233,7 +213,7 @@ class DenseBA:
         n_loop = 0 if loop is None else len(loop["src"])
         return GlobalBAJob(solve=partial(solve_dense_global, snapshot), kf_ids=np.asarray(kf_ids, np.int64), T_WC=T_WC,
                            is_loop=np.ones(n_loop, bool), loop_edges=loop, in_process=in_process,
-                           delay_frames=int(np.ceil(fe.config.global_ba.delay_frames_per_keyframe * len(kf_ids))),
+                           delay_frames=int(np.ceil(st.config.global_ba.delay_frames_per_keyframe * len(kf_ids))),
                            context={"inv_depth": inv_depth})
 
     def apply_global(self, job: GlobalBAJob, result: "DenseGlobalResult", keep_loop: np.ndarray) -> None:
@@ -243,16 +223,16 @@ class DenseBA:
         local BA's); the measured edges between active keyframes that the graph lacks (or whose
         keyframes did not change) join it; the loop edges that kept a weight join it and every later
         global optimisation."""
-        fe = self.fe
-        g = fe.graph
+        st = self.state
+        g = st.graph
         if g is None:
             return
         unchanged = set()
         for k, fid in enumerate(int(f) for f in job.kf_ids):
             kf = g.keyframes.get(fid)
-            if kf is None or not fe.backend.has_keyframe(fid):
+            if kf is None or not st.backend.has_keyframe(fid):
                 continue
-            if np.array_equal(fe.backend.pose_matrix(fid), job.T_WC[k]) and np.array_equal(kf.inv_depth, job.context["inv_depth"][k]):
+            if np.array_equal(st.backend.pose_matrix(fid), job.T_WC[k]) and np.array_equal(kf.inv_depth, job.context["inv_depth"][k]):
                 unchanged.add(fid)
                 kf.inv_depth = result.inv_depth[k]
                 if fid in result.confidence:
@@ -265,9 +245,9 @@ class DenseBA:
         for n in np.nonzero(np.asarray(keep_loop, bool))[0]:
             e = (int(loop["src"][n]), int(loop["tgt"][n]))
             if e[0] in g.keyframes and e[1] in g.keyframes:
-                fe._loop_edges.add(e)
+                st.loop_edges.add(e)
                 g.edges.setdefault(e, EdgeMeasurement(loop["target"][n], loop["weight"][n]))
-        fe._counts["global_runs"] += 1
+        st.counts["global_runs"] += 1
 
 
 def global_edges(g: FrameGraph, fids: list[int], config: DenseConfig) -> list[tuple[int, int]]:

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, ranged
 from ...errors import ConfigError
 from ...factors.depth import DepthPriorConfig
 from ..depth_tracking import DepthTrackingConfig
+from .. import GREY_BYTES, PYRAMID_FACTOR, MemoryPart, MemorySizes
 from ..flow import DenseFlowConfig
 from .source import DenseSourceConfig
 
@@ -149,3 +151,53 @@ class DenseConfig:
         if self.ba.window >= self.graph.active_keyframes:
             raise ConfigError(f"dense.ba.window ({self.ba.window}) must be smaller than dense.graph.active_keyframes "
                               f"({self.graph.active_keyframes}): some active keyframes hold the window's gauge")
+
+
+# ----------------------------------------------------------------------------------------- memory estimate
+
+#: B per grid pixel of a dense keyframe: inverse depth, confidence, flow-distance and source maps
+#: (float32, ~ 8 channels)
+DENSE_KEYFRAME_BYTES_PER_CELL = 32
+#: B per grid pixel of a dense edge: flow target, weights, residuals and the float32 Jacobian rows of
+#: the dense bundle adjustment (2 rows x (6 + 6 + 1) entries + 4 targets/weights, float64), and the
+#: induced field an active edge keeps for the local BA's re-measurement test (2 x float32)
+DENSE_EDGE_BYTES_PER_CELL = 248
+#: B per grid pixel of a learned (DROID) keyframe: feature and context maps (128 + 256 float32 channels)
+DROID_KEYFRAME_BYTES_PER_CELL = 384 * 4
+#: B per (grid pixel)^2 of one edge's all-pairs correlation volume (float32, all pyramid levels)
+DROID_CORRELATION_BYTES = 4 * PYRAMID_FACTOR
+#: B per image pixel of the dense optical flow (DIS) at ``dense.source.flow.image_scale``: two grey
+#: pyramids, the float32 flow field and its backward check
+DENSE_FLOW_BYTES_PER_PIXEL = 40
+
+
+def memory_parts(cfg: DenseConfig, sizes: MemorySizes) -> list[MemoryPart]:
+    """The dense family's parts of a run's peak-memory estimate (its registry entry's ``memory``,
+    :mod:`fgslam.run.memory`): the active and global keyframes' grids, the edges of the larger of the
+    local and global bundle adjustments, the optical flow, and for the learned source its
+    correlation volumes."""
+    width, height, size_keys = sizes.width, sizes.height, sizes.size_keys
+    src, graph, glob = cfg.source, cfg.graph, cfg.global_ba
+    cells = float(math.ceil(width / src.stride)) * math.ceil(height / src.stride)
+    learned = src.kind in ("droid", "learned")
+    kf_bytes = cells * (DENSE_KEYFRAME_BYTES_PER_CELL + DROID_KEYFRAME_BYTES_PER_CELL * learned)
+    active_edges = graph.active_keyframes * 2 * (graph.neighbours + graph.temporal_radius)
+    global_edges = min(glob.max_edges, glob.max_keyframes * 2 * (graph.neighbours + glob.temporal_radius))
+    scaled_px = float(width) * height * src.flow.image_scale**2
+    grid_keys = [f"dense.source.stride={src.stride}", *size_keys]
+    parts = [
+        MemoryPart("dense keyframes",
+                   (graph.active_keyframes + glob.max_keyframes) * (kf_bytes + scaled_px * GREY_BYTES),
+                   [f"dense.graph.active_keyframes={graph.active_keyframes}",
+                    f"dense.global_ba.max_keyframes={glob.max_keyframes}", *grid_keys]),
+        MemoryPart("dense edges", max(active_edges, global_edges) * cells * DENSE_EDGE_BYTES_PER_CELL,
+                   [f"dense.global_ba.max_edges={glob.max_edges}", f"dense.graph.neighbours={graph.neighbours}",
+                    *grid_keys]),
+        MemoryPart("dense flow", scaled_px * DENSE_FLOW_BYTES_PER_PIXEL,
+                   [f"dense.source.flow.image_scale={src.flow.image_scale:g}", *size_keys]),
+    ]
+    if learned:
+        chunk = src.droid.chunk_edges
+        parts.append(MemoryPart("dense correlation volumes", chunk * cells * cells * DROID_CORRELATION_BYTES,
+                                [f"dense.source.droid.chunk_edges={chunk}", *grid_keys]))
+    return parts

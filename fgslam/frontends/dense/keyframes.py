@@ -6,44 +6,44 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from ...factors.dense import DenseStereo
+from ...factors.reprojection import reproject
 from ..records import KeyframePose, RelativePose
+from .contributor import DenseLoopContributor
 from .graph import DenseKeyframeState
+from .state import DenseState
 from .weights import huber_weight, information, pool
-
-if TYPE_CHECKING:
-    from .frontend import DenseFrontend
 
 logger = logging.getLogger(__name__)
 
 
 class DenseKeyframes:
-    """Adds, connects, removes and retires the keyframes of ``frontend`` (its graph, source, backend,
-    pose records, counts and stage times)."""
+    """Adds, connects, removes and retires the keyframes of the shared ``state`` (its graph, source,
+    backend, pose records, counts and stage times); retired keyframes go to the loop ``contributor``."""
 
-    def __init__(self, frontend: "DenseFrontend"):
-        self.fe = frontend
+    def __init__(self, state: DenseState, contributor: DenseLoopContributor):
+        self.state = state
+        self.contributor = contributor
 
     def add(self, fid: int, frame, T_WC: np.ndarray, source_added: bool = False, surface=None) -> None:
         """Frame ``fid`` becomes a keyframe at ``T_WC`` (``source_added``: the source has its image;
         ``surface``: its depth surface, RGB-D depth alignment)."""
-        fe = self.fe
-        g = fe.graph
-        s = fe.stride
-        image = fe._cropped(frame.image)
+        st = self.state
+        g = st.graph
+        s = st.stride
+        image = st.cropped(frame.image)
         if not source_added:
-            fe.source.add_frame(fid, fe._source_image(frame))
-        rgb = fe._cropped(frame.rgb) if frame.rgb is not None else np.repeat(image[..., None], 3, axis=-1)
+            st.source.add_frame(fid, st.source_image(frame))
+        rgb = st.cropped(frame.rgb) if frame.rgb is not None else np.repeat(image[..., None], 3, axis=-1)
         colour = np.clip(pool(rgb.astype(np.float32), s), 0, 255).astype(np.uint8)
         sensor = None
         inv = None
-        if fe.sensor_mode == "rgbd":
-            sensor = self._grid_depth(fe._cropped(frame.depth))
+        if st.sensor_mode == "rgbd":
+            sensor = self._grid_depth(st.cropped(frame.depth))
             inv = 1.0 / sensor
         prev = g.keyframes[g.active[-1]] if g.active else None
         if inv is None or not np.isfinite(inv).any():
@@ -53,20 +53,20 @@ class DenseKeyframes:
             inv = np.where(np.isfinite(inv), inv, fill)
         kf = DenseKeyframeState(fid=fid, index=int(frame.index), timestamp=float(frame.timestamp), image=frame.image,
                                 inv_depth=inv.astype(np.float64), colour=colour, sensor_depth=sensor,
-                                depth_image=frame.depth if fe.sensor_mode == "rgbd" else None,
+                                depth_image=frame.depth if st.sensor_mode == "rgbd" else None,
                                 confidence=np.zeros(g.shape), surface=surface)
-        fe.backend.add_keyframe(fid, T_WC, float(frame.timestamp))
-        fe._records[fid] = KeyframePose()
+        st.backend.add_keyframe(fid, T_WC, float(frame.timestamp))
+        st.records[fid] = KeyframePose()
         g.add(kf)
-        fe._counts["keyframes_added"] += 1
-        if fe.sensor_mode == "stereo":
-            self._measure_stereo(kf, fe._source_image(frame, right=True), init_depth=True)
+        st.counts["keyframes_added"] += 1
+        if st.sensor_mode == "stereo":
+            self._measure_stereo(kf, st.source_image(frame, right=True), init_depth=True)
         self._connect(fid)
 
     def _grid_depth(self, depth: np.ndarray) -> np.ndarray:
         """Sensor depth per grid block (metres; NaN where the block has too few readings, or spans a depth
         edge / misregistered boundary: relative spread of its inverse depths above ``ba.depth_edge``)."""
-        s = self.fe.stride
+        s = self.state.stride
         z = np.asarray(depth, dtype=np.float64)
         ok = np.isfinite(z) & (z > 0)
         inv = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
@@ -75,8 +75,8 @@ class DenseKeyframes:
         sq = pool(inv * inv, s) / np.maximum(n, 1e-12)
         spread = np.sqrt(np.maximum(sq - mean * mean, 0.0)) / np.maximum(mean, 1e-12)
         good = (n >= 0.5) & (mean > 0)
-        if self.fe.config.ba.depth_edge > 0:
-            good &= spread <= self.fe.config.ba.depth_edge
+        if self.state.config.ba.depth_edge > 0:
+            good &= spread <= self.state.config.ba.depth_edge
         bad = int((~good).sum())
         if bad == good.size:
             logger.info("RGB-D keyframe: no valid sensor depth (holes / NaN); depth from the flow only")
@@ -85,17 +85,17 @@ class DenseKeyframes:
     def _splat_depth(self, prev: DenseKeyframeState, T_WC: np.ndarray) -> np.ndarray:
         """Inverse-depth map of a new keyframe at ``T_WC``: the previous keyframe's map transferred into it
         (z-buffered, nearest grid pixel), holes filled with the median."""
-        fe = self.fe
-        g = fe.graph
+        st = self.state
+        g = st.graph
         h, w = g.shape
-        fx, fy, cx, cy = fe.K_grid
-        T_WCp = fe._keyframe_T_WC(prev.fid)
+        fx, fy, cx, cy = st.K_grid
+        T_WCp = st.keyframe_T_WC(prev.fid)
         P = np.linalg.inv(T_WC) @ T_WCp  # prev camera -> new camera (Sim(3) matrices: metric per camera)
         z = 1.0 / np.maximum(prev.inv_depth, 1e-9)
         X = np.stack([(g.grid[..., 0] - cx) / fx * z, (g.grid[..., 1] - cy) / fy * z, z], -1).reshape(-1, 3)
         Xn = X @ P[:3, :3].T + P[:3, 3]
         zn = Xn[:, 2]
-        ok = zn > fe.config.ba.min_depth
+        ok = zn > st.config.ba.min_depth
         u = np.rint(fx * Xn[:, 0] / np.where(ok, zn, 1.0) + cx).astype(np.int64)
         v = np.rint(fy * Xn[:, 1] / np.where(ok, zn, 1.0) + cy).astype(np.int64)
         ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
@@ -107,40 +107,38 @@ class DenseKeyframes:
     def _measure_stereo(self, kf: DenseKeyframeState, right: np.ndarray, init_depth: bool) -> None:
         """Left-right flow of a stereo keyframe (its rows fix the metric depth through ``T_CRCL``);
         ``init_depth``: the keyframe's inverse depths from the measured disparity first."""
-        from ...factors.reprojection import reproject
-
-        fe = self.fe
-        g = fe.graph
+        st = self.state
+        g = st.graph
         rid = -(kf.fid + 1)
         t0 = time.perf_counter()
-        fe.source.add_frame(rid, right)
+        st.source.add_frame(rid, right)
         try:
             if init_depth:
-                (rev,) = fe.source.revise([(kf.fid, rid)], g.grid[None])
-                baseline = float(np.linalg.norm(fe.T_CRCL[:3, 3]))
+                (rev,) = st.source.revise([(kf.fid, rid)], g.grid[None])
+                baseline = float(np.linalg.norm(st.T_CRCL[:3, 3]))
                 disparity = g.grid[..., 0] - rev.target[..., 0]
-                good = (rev.weight.mean(-1) > fe.config.tracking.confident_weight) & (disparity > 1e-3)
+                good = (rev.weight.mean(-1) > st.config.tracking.confident_weight) & (disparity > 1e-3)
                 if good.sum() >= 0.05 * good.size:
-                    inv = disparity / (fe.K_grid[0] * baseline)
+                    inv = disparity / (st.K_grid[0] * baseline)
                     kf.inv_depth = np.where(good, inv, np.median(inv[good]))
             I = (torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), torch.ones((), dtype=torch.float64))
             uv, ok = reproject(torch.as_tensor(g.grid.reshape(-1, 2)), torch.as_tensor(kf.inv_depth.reshape(-1)), I, I,
-                               g.K, torch.as_tensor(fe.K_right_grid), T_CtCj=torch.as_tensor(fe.T_CRCL),
-                               config=fe._reproj)
+                               g.K, torch.as_tensor(st.K_right_grid), T_CtCj=torch.as_tensor(st.T_CRCL),
+                               config=st.reproj)
             induced = uv.numpy().reshape(*g.shape, 2).copy()
             induced[~ok.numpy().reshape(g.shape)] = np.nan
-            (rev,) = fe.source.revise([(kf.fid, rid)], induced[None])
+            (rev,) = st.source.revise([(kf.fid, rid)], induced[None])
         finally:
-            fe.source.remove_frame(rid)
-        fe._times["flow"] += time.perf_counter() - t0
-        weight = rev.weight * huber_weight(rev.target - induced, fe.config, fe.stride) * fe.config.ba.stereo_weight
-        kf.stereo = DenseStereo(rev.target, weight * information(fe.config, fe.stride), fe.K_right_grid, fe.T_CRCL)
+            st.source.remove_frame(rid)
+        st.times["flow"] += time.perf_counter() - t0
+        weight = rev.weight * huber_weight(rev.target - induced, st.config, st.stride) * st.config.ba.stereo_weight
+        kf.stereo = DenseStereo(rev.target, weight * information(st.config, st.stride), st.K_right_grid, st.T_CRCL)
 
     def _connect(self, fid: int) -> None:
         """Edges (both ways) from the new keyframe to the previous ``temporal_radius`` active keyframes
         and to the ``neighbours`` nearest others by flow distance (below ``max_edge_distance``)."""
-        g = self.fe.graph
-        cfg = self.fe.config.graph
+        g = self.state.graph
+        cfg = self.state.config.graph
         others = [f for f in g.active if f != fid]
         if not others:
             return
@@ -159,7 +157,7 @@ class DenseKeyframes:
     def connect_neighbourhood(self, radius: int) -> list[tuple[int, int]]:
         """Monocular initialisation, first phase: the edges (both ways) between active keyframes at most
         ``radius`` apart in order (DROID-SLAM's ``add_neighborhood_factors``), added where missing."""
-        g = self.fe.graph
+        g = self.state.graph
         free = list(g.active)
         edges = []
         for a, fa in enumerate(free):
@@ -171,8 +169,8 @@ class DenseKeyframes:
 
     def connect_all(self) -> None:
         """Monocular initialisation: each active keyframe connected to every other within reach (few keyframes)."""
-        g = self.fe.graph
-        cfg = self.fe.config.graph
+        g = self.state.graph
+        cfg = self.state.config.graph
         free = list(g.active)
         for fid in free:
             for f in free:
@@ -182,20 +180,20 @@ class DenseKeyframes:
     def remove_redundant(self) -> int | None:
         """Remove the second newest keyframe when its flow distance to the one before is below
         ``graph.remove_threshold`` (its pose kept relative to it); the removed frame's index, or None."""
-        fe = self.fe
-        g = fe.graph
-        thr = fe.config.graph.remove_threshold
+        st = self.state
+        g = st.graph
+        thr = st.config.graph.remove_threshold
         if thr <= 0 or len(g.active) < 4:
             return None
         a, b = g.active[-3], g.active[-2]
-        if g.distance(a, b, fe.config.graph.distance_stride) >= thr:
+        if g.distance(a, b, st.config.graph.distance_stride) >= thr:
             return None
         kf = g.keyframes[b]
-        fe._records[b] = RelativePose(a, np.linalg.inv(fe._keyframe_T_WC(a)) @ fe._keyframe_T_WC(b))
+        st.records[b] = RelativePose(a, np.linalg.inv(st.keyframe_T_WC(a)) @ st.keyframe_T_WC(b))
         g.remove(b)
-        fe.backend.remove_keyframe(b)
-        fe.source.remove_frame(b)
-        fe._counts["keyframes_removed"] += 1
+        st.backend.remove_keyframe(b)
+        st.source.remove_frame(b)
+        st.counts["keyframes_removed"] += 1
         # keep the newest keyframe connected to the older one
         new = g.active[-1]
         for e in ((new, a), (a, new)):
@@ -205,18 +203,18 @@ class DenseKeyframes:
     def retire(self) -> None:
         """Keyframes beyond ``active_keyframes`` leave the active graph (handed to the loop closer);
         images beyond ``global_ba.max_keyframes`` are dropped (their last edges kept)."""
-        fe = self.fe
-        g = fe.graph
-        while len(g.active) > fe.config.graph.active_keyframes:
+        st = self.state
+        g = st.graph
+        while len(g.active) > st.config.graph.active_keyframes:
             gone = g.active.pop(0)
             for e, m in g.edges.items():  # the local BA never re-measures it again: its induced field goes (memory)
                 if gone in e:
                     m.induced = None
-        fe.contributor.feed()
+        self.contributor.feed()
         order = g.order()
-        for fid in order[: max(0, len(order) - fe.config.global_ba.max_keyframes)]:
+        for fid in order[: max(0, len(order) - st.config.global_ba.max_keyframes)]:
             kf = g.keyframes[fid]
             if kf.image is not None and fid not in g.active:
                 kf.image = None
                 kf.surface = None
-                fe.source.remove_frame(fid)
+                st.source.remove_frame(fid)

@@ -69,7 +69,7 @@ class LearnedDroidSource(DenseSource):
     colour = True  # the official network's input: colour (RGB, fgslam.nets.sources.network_image)
 
     def __init__(self, checkpoint: str | None, stride: int = 8, config=None):
-        from ...nets.sources import DroidRunner
+        from ...nets.sources import DroidRunner  # deferred: the learned networks (fgslam.nets), only for kind droid
 
         self.stride = int(stride)
         slot = LearnedSlot("DROID-SLAM", "droid.pth", "dense.source.kind=droid", "dense.source.checkpoint",

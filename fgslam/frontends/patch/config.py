@@ -17,6 +17,7 @@ from ...errors import ConfigError
 from ...factors.depth import DepthPriorConfig
 from ...nets.config import DpvoNetConfig
 from ..depth_tracking import DepthTrackingConfig
+from .. import DEPTH_BYTES, PYRAMID_FACTOR, MemoryPart, MemorySizes
 
 
 @dataclass
@@ -205,3 +206,62 @@ class PatchConfig:
             raise ConfigError("patch.tracking.keyframe_flow must be raw or translation")
         if not self.tracking.keyframe_index < self.graph.optimization_window:
             raise ConfigError("patch.tracking.keyframe_index must be in [1, optimization_window)")
+
+
+# ----------------------------------------------------------------------------------------- memory estimate
+
+#: B per patch-graph edge: its bookkeeping rows (ids, uv, confidence, weights ~ 70 B) plus the
+#: bundle adjustment's linearisation (float64 residuals and 2 x 13 Jacobian entries, ~ 300 B)
+PATCH_EDGE_BYTES = 400
+#: B per edge of the inactive-edge store (uv_src, uv, confidence, inverse depth, ids)
+INACTIVE_EDGE_BYTES = 100
+#: B per patch of a graph frame (centre, inverse depths, colour, per-patch state)
+PATCH_BYTES = 64
+#: B per pixel of a keyframe image kept as PNG for proximity loop edges (compressed grey)
+PNG_BYTES_PER_PIXEL = 0.5
+#: B per pixel of a float32 image processing (corner score: gradients, structure tensor, response)
+SCORE_BYTES_PER_PIXEL = 24
+
+
+def _fit_width(width: int, height: int, target: int) -> tuple[int, int]:
+    """``width x height`` resized to at most ``target`` wide (aspect kept; 0: unchanged)."""
+    if target <= 0 or target >= width:
+        return width, height
+    return target, max(1, round(height * target / width))
+
+
+def memory_parts(cfg: PatchConfig, sizes: MemorySizes) -> list[MemoryPart]:
+    """The patch family's parts of a run's peak-memory estimate (its registry entry's ``memory``,
+    :mod:`fgslam.run.memory`): the tracked frames and their Lucas-Kanade pyramids, the graph's active
+    and inactive edges, and with proximity loops the stored keyframe images."""
+    width, height, size_keys = sizes.width, sizes.height, sizes.size_keys
+    g, lk = cfg.graph, cfg.lk
+    cams = 2 if sizes.stereo else 1
+    if lk.scale > 0:
+        lk_w, lk_h = max(1, round(width * lk.scale)), max(1, round(height * lk.scale))
+    else:
+        lk_w, lk_h = _fit_width(width, height, lk.auto_width)
+    score_w, score_h = _fit_width(width, height, g.score_width)
+    frames_kept = g.removal_window + cfg.tracking.init_max_frames
+    per_frame = (float(lk_w) * lk_h * PYRAMID_FACTOR * cams + float(width) * height * DEPTH_BYTES * sizes.rgbd
+                 + g.patches_per_frame * PATCH_BYTES)
+    edges = float(g.patches_per_frame) * g.removal_window * g.patch_lifetime * cams
+    parts = [
+        MemoryPart("patch frames", frames_kept * per_frame + float(score_w) * score_h * SCORE_BYTES_PER_PIXEL,
+                   [f"patch.graph.removal_window={g.removal_window}", f"patch.lk.auto_width={lk.auto_width}",
+                    f"patch.lk.scale={lk.scale:g}", f"patch.graph.score_width={g.score_width}", *size_keys]),
+        MemoryPart("patch graph edges", edges * PATCH_EDGE_BYTES,
+                   [f"patch.graph.patches_per_frame={g.patches_per_frame}",
+                    f"patch.graph.removal_window={g.removal_window}", f"patch.graph.patch_lifetime={g.patch_lifetime}"]),
+        MemoryPart("patch inactive edges", float(g.max_inactive_edges) * INACTIVE_EDGE_BYTES,
+                   [f"patch.graph.max_inactive_edges={g.max_inactive_edges}"]),
+    ]
+    if sizes.loop_mode in ("proximity", "both"):
+        p = cfg.proximity
+        parts.append(MemoryPart(
+            "patch proximity loops",
+            float(p.max_stored_keyframes) * lk_w * lk_h * PNG_BYTES_PER_PIXEL
+            + float(min(p.ba.chunk_edges, g.max_inactive_edges + edges)) * PATCH_EDGE_BYTES,
+            [f"patch.proximity.max_stored_keyframes={p.max_stored_keyframes}",
+             f"patch.proximity.ba.chunk_edges={p.ba.chunk_edges}"]))
+    return parts

@@ -18,11 +18,14 @@ Pure numpy bookkeeping: no images, no optimisation. All edge operations are vect
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
 from .config import PatchGraphConfig
+
+if TYPE_CHECKING:
+    from ...factors.depth_align import DepthSurface
 
 
 @dataclass
@@ -51,10 +54,10 @@ class GraphFrame:
     inv_depth: np.ndarray
     sensor_inv_depth: np.ndarray
     colour: np.ndarray
-    features: Any = None
-    features_right: Any = None
-    depth: Any = None
-    surface: Any = None
+    features: object = None  # the source's own (MeasurementSource.prepare), opaque here
+    features_right: object = None
+    depth: Optional[np.ndarray] = None
+    surface: Optional[DepthSurface] = None
 
 
 @dataclass

@@ -152,7 +152,7 @@ class Initialiser:
 
     def _two_view(self, uv0: np.ndarray, uv1: np.ndarray):
         """Essential-matrix test: (ok, T_C0C1 (4, 4) with |t| = 1, inverse depths of uv0 (NaN: none), parallax px)."""
-        import cv2
+        import cv2  # deferred: cv2
 
         tcfg = self.state.config.tracking
         K = self.state.K.numpy()

@@ -51,7 +51,7 @@ class LKSource(MeasurementSource):
     name = "lk"
 
     def __init__(self, config: LKConfig, window: int):
-        import cv2
+        import cv2  # deferred: cv2
 
         self.config = config
         self._window_input = window

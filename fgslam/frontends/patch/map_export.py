@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...mapdata import MapExport, rigid_poses
+
 from .graph import GraphFrame
 from .state import PatchState
 
@@ -32,8 +34,6 @@ def export_map(state: PatchState):
     """Keyframes (graph and finalised) and one point per patch of positive inverse depth, with
     its track: the source keyframe's patch centre plus every measured left-image edge of the
     patch into another keyframe (active and inactive edges; pixel where the source measured it)."""
-    from ...mapdata import MapExport, rigid_poses
-
     frames = sorted(list(state.final.values()) + state.graph.frames, key=lambda f: f.fid)
     if not frames:
         return None

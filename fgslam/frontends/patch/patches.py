@@ -30,7 +30,7 @@ def select_patches(image: np.ndarray, count: int, border: int, grid: list[int], 
     ``score_width`` > 0: the response is computed on the image resized to at most that width
     (centres are mapped back to full-resolution pixels).
     """
-    import cv2
+    import cv2  # deferred: cv2
 
     h, w = image.shape
     if method == "random":

@@ -89,7 +89,7 @@ def pose_filter(T_q: np.ndarray, T_c: np.ndarray, radius: float, max_angle_deg: 
 def fundamental_inliers(uv_a: np.ndarray, uv_b: np.ndarray, threshold_px: float) -> np.ndarray:
     """RANSAC fundamental-matrix inliers (bool (n,)) of correspondences ``uv_a <-> uv_b``; all False
     with fewer than 8 correspondences or when no model is found."""
-    import cv2
+    import cv2  # deferred: cv2
 
     n = len(uv_a)
     if n < 8:

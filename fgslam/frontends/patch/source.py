@@ -15,7 +15,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ...errors import ConfigError
+from ...nets.sources import DpvoRunner
 from ..checkpoints import LearnedSlot, load_learned
+from .lk import LKSource
 from .measurement import Measurement, MeasurementSource
 
 if TYPE_CHECKING:
@@ -34,8 +36,6 @@ class LearnedDPVOSource(MeasurementSource):
     colour = True  # the official network's input: colour (BGR, fgslam.nets.sources.network_image)
 
     def __init__(self, checkpoint: str | None, config=None):
-        from ...nets.sources import DpvoRunner
-
         slot = LearnedSlot("DPVO", "dpvo.pth", "patch.source=dpvo", "patch.checkpoint", "patch.source=lk")
         self._runner = load_learned(slot, checkpoint, lambda path: DpvoRunner(path, config))
 
@@ -59,8 +59,6 @@ class LearnedDPVOSource(MeasurementSource):
 def make_source(config: "PatchConfig") -> MeasurementSource:
     """The measurement source selected by ``config.source`` (``lk``, or ``dpvo`` = ``learned``)."""
     if config.source == "lk":
-        from .lk import LKSource
-
         return LKSource(config.lk, config.graph.patch_size * config.graph.patch_stride)
     if config.source in ("dpvo", "learned"):
         return LearnedDPVOSource(config.checkpoint, config.dpvo)

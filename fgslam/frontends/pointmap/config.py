@@ -11,6 +11,7 @@ from typing import Literal
 from ...config import MAX_COUNT, MAX_FRAMES, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, check_ranges, ranged
 from ...errors import ConfigError
 from ...factors.pointmap_block import PointmapBlockConfig
+from .. import KEYFRAME_SHARE, MemoryPart, MemorySizes
 from ..depth_tracking import DepthTrackingConfig
 from .features import FeaturePoseConfig
 from .matching import MatchingConfig
@@ -109,3 +110,31 @@ class PointmapConfig:
     def source_kind(self, sensor_mode: str) -> str:
         """The source kind for ``sensor_mode`` (``auto``: rgbd, stereo or mono from the sensor)."""
         return sensor_mode if self.source.kind == "auto" else self.source.kind
+
+
+# ----------------------------------------------------------------------------------------- memory estimate
+
+#: B per pointmap pixel of a keyframe: canonical float32 points (12 B), confidence (4 B), colour (3 B)
+POINTMAP_KEYFRAME_BYTES_PER_PIXEL = 20
+#: B per pointmap pixel of a frame whose source caches stay loaded: two 16-dimensional float32
+#: descriptors with confidences, the flow / depth maps
+POINTMAP_SOURCE_BYTES_PER_PIXEL = 160
+#: B per pointmap pixel of the matching and tracking of one frame (per-pixel LM states, rays, indices)
+POINTMAP_MATCHING_BYTES_PER_PIXEL = 200
+
+
+def memory_parts(cfg: PointmapConfig, sizes: MemorySizes) -> list[MemoryPart]:
+    """The pointmap family's parts of a run's peak-memory estimate (its registry entry's ``memory``,
+    :mod:`fgslam.run.memory`): the keyframes' pointmaps (a share of the frames) and one frame's
+    source caches, matching and tracking."""
+    width, height, frames, size_keys = sizes.width, sizes.height, sizes.frames, sizes.size_keys
+    pw, ph = (width, height) if cfg.image_width <= 0 else (cfg.image_width, max(1, round(height * cfg.image_width / width)))
+    ppx = float(pw) * ph
+    keys = [f"pointmap.image_width={cfg.image_width}"] + (size_keys if cfg.image_width <= 0 else [])
+    keep = cfg.keyframe.keep_source_frames
+    return [
+        MemoryPart(f"pointmap keyframes ({pw}x{ph}, {KEYFRAME_SHARE:.0%} of {frames} frames)",
+                   KEYFRAME_SHARE * frames * ppx * POINTMAP_KEYFRAME_BYTES_PER_PIXEL, keys),
+        MemoryPart("pointmap frames", ppx * ((keep + 1) * POINTMAP_SOURCE_BYTES_PER_PIXEL + POINTMAP_MATCHING_BYTES_PER_PIXEL),
+                   [*keys, f"pointmap.keyframe.keep_source_frames={keep}"]),
+    ]

@@ -3,50 +3,50 @@ delegates to: keyframe images and poses for the loop service, and its correction
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Optional
-
 import numpy as np
 
+from ...backend.keys import pose_key
 from ...contracts.contributor import KeyframeImage, PoseCorrection
-
-if TYPE_CHECKING:
-    from .frontend import PointmapFrontend
+from .edges import PointmapGraph
+from .state import PointmapState
 
 
 class PointmapLoopContributor:
-    """Keyframe images and poses of ``frontend`` for the loop service, and its corrections applied."""
+    """Keyframe images and poses of the shared state for the loop service, and its corrections applied
+    (to the keyframes, the pose records and the edges of ``graph``); ``name``: the family's."""
 
-    def __init__(self, frontend: "PointmapFrontend"):
-        self.fe = frontend
-        self.name = frontend.name
+    def __init__(self, state: PointmapState, graph: PointmapGraph, name: str):
+        self.state = state
+        self.graph = graph
+        self.name = name
 
-    def long_range_edges(self, query_kf_id: int, candidate_kf_id: int) -> Optional[dict]:
+    def long_range_edges(self, query_kf_id: int, candidate_kf_id: int) -> dict | None:
         return None  # no proximity loops in this family (loop edges come from the classical service)
 
     def keyframe_image(self, kf_id: int) -> KeyframeImage | None:
-        fe = self.fe
-        kf = fe._kfs.get(int(kf_id))
+        st = self.state
+        kf = st.kfs.get(int(kf_id))
         if kf is None:
             return None
-        return KeyframeImage(kf.grey, fe.cam.K.copy(), kf.timestamp, kf.depth)
+        return KeyframeImage(kf.grey, st.cam.K.copy(), kf.timestamp, kf.depth)
 
     def keyframe_pose(self, kf_id: int) -> np.ndarray | None:
-        fe = self.fe
-        return fe._keyframe_T_WC(int(kf_id)) if int(kf_id) in fe._kfs else None
+        st = self.state
+        return st.keyframe_T_WC(int(kf_id)) if int(kf_id) in st.kfs else None
 
     def apply_correction(self, correction: PoseCorrection) -> None:
         """Every keyframe moved by its update (a folded scale multiplies its canonical pointmap and its
         edges' points); non-keyframe records re-expressed, the current relative pose rescaled."""
-        fe = self.fe
-        for fid, kf in fe._kfs.items():
-            T_WC_new, s = correction.apply_pose(fid, fe._keyframe_T_WC(fid))
-            fe.backend.set_pose(fid, T_WC_new)
+        st = self.state
+        for fid, kf in st.kfs.items():
+            T_WC_new, s = correction.apply_pose(fid, st.keyframe_T_WC(fid))
+            st.backend.set_pose(fid, T_WC_new)
             if s != 1.0:
                 kf.X *= s
                 kf.changed()
-                fe.graph.scale_keyframe(fe.backend_key(fid), s)
-        for fid, rec in list(fe._records.items()):
+                self.graph.scale_keyframe(pose_key(fid), s)
+        for fid, rec in list(st.records.items()):
             if rec is not None:
-                fe._records[fid] = rec.corrected(fid, correction)
-        if correction.fold_scale and fe._kf is not None:
-            fe._T_CkCf = PoseCorrection.fold_relative(fe._T_CkCf, correction.update_for(fe._kf.fid)[1])
+                st.records[fid] = rec.corrected(fid, correction)
+        if correction.fold_scale and st.kf is not None:
+            st.T_CkCf = PoseCorrection.fold_relative(st.T_CkCf, correction.update_for(st.kf.fid)[1])

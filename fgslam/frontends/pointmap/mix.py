@@ -28,19 +28,21 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
-from typing import Any, Mapping
 
 import numpy as np
 import torch
 
-from ...contracts.plugins import parse_options
+from ...backend.graph import Backend
 from ...config import MAX_KEYFRAMES, ranged
+from ...contracts.contributor import Contributor
+from ...contracts.plugins import parse_options
 from ...errors import DataError, OptimizationError
-from ...factors.pointmap_block import PointmapBlock
+from ...factors.pointmap_block import PointmapBlock, PointmapEdge
+from .camera import WorkingCamera
 from .config import PointmapConfig
-from .frontend import WorkingCamera
 from .keyframes import PointmapKeyframe, measure_edge
 from .source import make_pointmap_source
 
@@ -63,15 +65,15 @@ class PointmapMixOptions:
 class PointmapMix:
     """A pointmap contributor beside the run's primary frontend (module docstring)."""
 
-    def __init__(self, options: Mapping[str, Any], key: str) -> None:
+    def __init__(self, options: Mapping[str, object], key: str) -> None:
         self.key = key
         self.options = parse_options(PointmapMixOptions, options, key)
         self.options.pointmap.validate()
-        self.backend: Any = None
-        self.primary: Any = None
+        self.backend: Backend | None = None
+        self.primary: Contributor | None = None  # the run's frontend (the first on the backend's correction route)
         self._queue: list[int] = []
         self._kfs: dict[int, PointmapKeyframe] = {}
-        self._edges: dict[tuple[int, int], Any] = {}
+        self._edges: dict[tuple[int, int], PointmapEdge] = {}
         self._source = None
         self._kind: str | None = None
         self._K: np.ndarray | None = None
@@ -81,9 +83,9 @@ class PointmapMix:
         self.counts = {"keyframes": 0, "edges": 0, "rejected": 0, "no_image": 0}
         self.seconds = 0.0
 
-    def attach(self, backend: Any) -> None:
+    def attach(self, backend: Backend) -> None:
         self.backend = backend
-        contributors = getattr(backend, "contributors", [])
+        contributors = backend.contributors
         self.primary = contributors[0] if contributors else None
         if self.primary is None or not callable(getattr(self.primary, "keyframe_image", None)):
             logger.warning("%s: the run's frontend gives no keyframe images; no pointmap edges", self.key)
@@ -93,7 +95,7 @@ class PointmapMix:
         self._queue.append(int(kf_id))
 
     # ------------------------------------------------------------------ safe point
-    def poll(self, backend: Any) -> None:
+    def poll(self, backend: Backend) -> None:
         if self.primary is None:
             return
         t0 = time.perf_counter()
@@ -104,7 +106,7 @@ class PointmapMix:
             logger.warning("%s: pointmap edge failed (%s); skipped", self.key, exc)
         self.seconds += time.perf_counter() - t0
 
-    def finish(self, backend: Any) -> None:
+    def finish(self, backend: Backend) -> None:
         self.poll(backend)
         logger.info("%s: %s (%.1f s)", self.key, self.counts, self.seconds)
 

@@ -4,41 +4,40 @@ frame tracked against the loop service's retrieval and the newest keyframes."""
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ...errors import DataError
-
-if TYPE_CHECKING:
-    from .frontend import PointmapFrontend
+from .keyframes import PointmapKeyframe
+from .state import PointmapState
+from .tracker import PointmapTracker
 
 logger = logging.getLogger(__name__)
 
 
-def relocalize(fe: "PointmapFrontend", fid: int, frame):
-    """(keyframe, tracking result) of the first candidate against which frame ``fid`` of ``fe`` tracks with
-    ``relocalization.min_valid_fraction`` valid matches: the loop service's retrieval first, then the
-    newest keyframes; None otherwise (an accepted candidate is counted)."""
-    rc = fe.config.relocalization
-    T_WC_pred = fe._keyframe_T_WC(fe._kf.fid) @ fe._T_CkCf
+def relocalize(state: PointmapState, tracker: PointmapTracker, fid: int, frame) -> tuple[PointmapKeyframe, dict] | None:
+    """(keyframe, tracking result) of the first candidate against which frame ``fid`` tracks (``tracker``)
+    with ``relocalization.min_valid_fraction`` valid matches: the loop service's retrieval first, then the
+    newest keyframes of ``state``; None otherwise (an accepted candidate is counted)."""
+    rc = state.config.relocalization
+    T_WC_pred = state.keyframe_T_WC(state.kf.fid) @ state.T_CkCf
     candidates: list[tuple[int, np.ndarray]] = []
-    found = fe.loops.relocalize(fe.cam.image(frame.image), fe.cam.K)
-    if found is not None and int(found[0]) in fe._kfs:
+    found = state.loops.relocalize(state.cam.image(frame.image), state.cam.K)
+    if found is not None and int(found[0]) in state.kfs:
         candidates.append((int(found[0]), np.asarray(found[1], np.float64)))
-    for kid in reversed(list(fe._kfs)[-rc.recent_keyframes:] if rc.recent_keyframes else []):
-        if kid != fe._kf.fid and all(kid != c for c, _ in candidates):
+    for kid in reversed(list(state.kfs)[-rc.recent_keyframes:] if rc.recent_keyframes else []):
+        if kid != state.kf.fid and all(kid != c for c, _ in candidates):
             candidates.append((kid, T_WC_pred))
     for kid, T_WC in candidates:
-        kf = fe._kfs[kid]
-        T_CkCf_pred = np.linalg.inv(fe._keyframe_T_WC(kid)) @ T_WC
+        kf = state.kfs[kid]
+        T_CkCf_pred = np.linalg.inv(state.keyframe_T_WC(kid)) @ T_WC
         try:
-            res = fe.tracker.track_against(kf, fid, T_CkCf_pred, None)
+            res = tracker.track_against(kf, fid, T_CkCf_pred, None)
         except (RuntimeError, DataError) as exc:
             logger.info("pointmap relocalisation against keyframe %d failed: %s", kid, exc)
             continue
-        if fe.tracker.ok(res, rc.min_valid_fraction):
-            fe._counts["relocalized"] += 1
+        if tracker.ok(res, rc.min_valid_fraction):
+            state.counts["relocalized"] += 1
             logger.info("pointmap frame %d relocalised on keyframe %d (%d inliers)", frame.index, kid, res["inliers"])
             return kf, res
     return None

@@ -79,7 +79,7 @@ def track_pose(T_init: Sim3, X_f_in_f: torch.Tensor, X_k_in_k: torch.Tensor, wei
     ``(N,)`` match confidences q, ``uv_k`` ``(N, 2)`` matched keyframe pixels and ``K`` ``(4,)`` for the
     calibrated mode; all float64. ``fixed_scale``: SE(3) (the scale of ``T_init`` is kept).
     ``extra_blocks``: other blocks over :data:`TRACK_KEYS` solved with the matches (RGB-D depth alignment)."""
-    import gtsam
+    import gtsam  # deferred: gtsam
 
     edge = PointmapEdge(_KEY_K, _KEY_F, X_k_in_k, X_f_in_f, weight, uv_k if block.mode == "calibrated" else None)
     pm = PointmapBlock([edge], block, None if K is None else K.numpy())

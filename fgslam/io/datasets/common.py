@@ -1,4 +1,5 @@
-"""Shared machinery of the dataset loaders: configuration, the lazy ``Dataset`` base class, helpers.
+"""Shared machinery of the dataset loaders: configuration, the lazy ``Dataset`` base class, time and
+pose helpers (the loaders read their files with :mod:`.files`).
 
 A ``Dataset`` is a lazy sequence of :class:`~fgslam.io.frame.Frame`: opening it reads only the
 index files (lists of frames, timestamps, calibration, IMU table) and one image to check the
@@ -33,9 +34,10 @@ import numpy as np
 
 from ...config import MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, check_ranges, ranged
 from ...errors import ConfigError, DataError
-from ..calibration import Calibration, Undistorter
+from ..calibration import Calibration
 from ..frame import Frame, FrameReadError, FrameSizeError, ImuSamples
-from ..trajectory import Trajectory, read_times_file
+from ..trajectory import Trajectory
+from .files import to_grey_and_rgb
 
 logger = logging.getLogger(__name__)
 
@@ -142,115 +144,6 @@ def ns_to_seconds(ns: np.ndarray) -> np.ndarray:
     return (ns // NS_PER_S).astype(np.float64) + (ns % NS_PER_S) / NS_PER_S
 
 
-def require_dir(path: Path, what: str) -> Path:
-    if not path.is_dir():
-        raise DataError(f"{path}: missing {what} folder")
-    return path
-
-
-def require_file(path: Path, what: str) -> Path:
-    if not path.is_file():
-        raise DataError(f"{path}: missing {what} file")
-    return path
-
-
-def read_text_lines(path: Path) -> list[tuple[int, str]]:
-    """Non-blank, non-``#`` lines of a text file as ``(1-based line number, stripped text)``."""
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(f"{path}: cannot read file: {exc}") from exc
-    out = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        line = line.strip()
-        if line and not line.startswith("#"):
-            out.append((lineno, line))
-    return out
-
-
-def read_number_table(path: Path, ncols: int, sep: Optional[str] = None, min_cols: bool = False) -> np.ndarray:
-    """Parse a table of numbers (``ncols`` per line, or at least that many with ``min_cols``)."""
-    rows = []
-    for lineno, line in read_text_lines(path):
-        tokens = line.split(sep) if sep else line.split()
-        if len(tokens) != ncols and not (min_cols and len(tokens) >= ncols):
-            raise DataError(f"{path}:{lineno}: expected {ncols} values, got {len(tokens)}")
-        try:
-            rows.append([float(t) for t in tokens[:ncols]])
-        except ValueError as exc:
-            raise DataError(f"{path}:{lineno}: not a number: {exc}") from exc
-    return np.asarray(rows, dtype=np.float64).reshape(-1, ncols)
-
-
-def check_increasing(path: Path, values: np.ndarray, line_numbers: list[int], what: str = "timestamp") -> None:
-    """DataError naming ``path`` and the line of the first value not above the previous one."""
-    values = np.asarray(values)
-    if values.size > 1:
-        bad = np.flatnonzero(np.diff(values) <= 0)
-        if bad.size:
-            i = int(bad[0]) + 1
-            raise DataError(
-                f"{path}:{line_numbers[i]}: {what} {values[i]} is not after the previous one ({values[i - 1]} on "
-                f"line {line_numbers[i - 1]}); {what}s must be strictly increasing"
-            )
-
-
-def read_times(path: Path) -> np.ndarray:
-    """A times file: one time (seconds) per line, strictly increasing (errors name file and line)."""
-    out, lines = read_times_file(path)
-    check_increasing(path, out, lines, "time")
-    return out
-
-
-# Markers that end a complete file: JPEG's end-of-image (after the last start-of-scan marker FFDA:
-# entropy-coded data never contains either, so a file cut short has none after its last scan) and
-# the type of PNG's final chunk.
-JPEG_SOI, JPEG_SOS, JPEG_EOI = b"\xff\xd8", b"\xff\xda", b"\xff\xd9"
-PNG_SIGNATURE, PNG_IEND = b"\x89PNG\r\n\x1a\n", b"IEND"
-
-
-def truncation_reason(data: bytes) -> Optional[str]:
-    """Why the bytes of a JPEG or PNG file are cut short (None: complete, or another format).
-
-    Decoders return a partly grey image for a truncated JPEG (with only a warning on stderr), so
-    completeness is checked on the bytes: a JPEG needs an end-of-image marker after its last scan,
-    a PNG its IEND chunk.
-    """
-    if data.startswith(JPEG_SOI):
-        if data.find(JPEG_EOI, max(data.rfind(JPEG_SOS), 0)) < 0:
-            return "truncated JPEG (no end-of-image marker after the last scan)"
-    elif data.startswith(PNG_SIGNATURE):
-        if data.rfind(PNG_IEND) < 0:
-            return "truncated PNG (no IEND chunk)"
-    return None
-
-
-def read_image(path: Path, flags: Optional[int] = None) -> np.ndarray:
-    """Decode an image file with OpenCV; FrameReadError (naming the file) when it is missing,
-    unreadable, truncated (see :func:`truncation_reason`) or not decodable."""
-    import cv2
-
-    if not path.exists():
-        raise FrameReadError(f"{path}: missing file")
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise FrameReadError(f"{path}: cannot read image: {exc}") from exc
-    reason = truncation_reason(data)
-    if reason is not None:
-        raise FrameReadError(f"{path}: {reason}")
-    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED if flags is None else flags) if data else None
-    if img is None or img.size == 0:
-        raise FrameReadError(f"{path}: unreadable or corrupt image")
-    return img
-
-
-def image_size(path: Path) -> tuple[int, int]:
-    """``(width, height)`` of an image file (reads it)."""
-    img = read_image(path)
-    return int(img.shape[1]), int(img.shape[0])
-
-
 def interpolate_poses(
     times: np.ndarray, gt_times: np.ndarray, gt_T: np.ndarray, max_gap: float, snap_dt: float
 ) -> np.ndarray:
@@ -260,7 +153,7 @@ def interpolate_poses(
     ``max_gap`` apart; times up to ``snap_dt`` outside ``[gt_times[0], gt_times[-1]]`` take the end
     sample; anything else gets NaN (never extrapolated).
     """
-    from scipy.spatial.transform import Rotation
+    from scipy.spatial.transform import Rotation  # deferred: scipy
 
     times = np.asarray(times, dtype=np.float64)
     out = np.full((times.shape[0], 4, 4), np.nan)
@@ -299,24 +192,6 @@ def nearest_rotation(R: np.ndarray) -> np.ndarray:
     D = np.ones(R.shape[:-1])
     D[..., -1] = np.sign(np.linalg.det(U @ Vt))
     return (U * D[..., None, :]) @ Vt
-
-
-def to_grey_and_rgb(img: np.ndarray, want_rgb: bool, path: Optional[Path]) -> tuple[np.ndarray, Optional[np.ndarray]]:
-    """uint8 grey ``(H, W)`` and (optionally) RGB ``(H, W, 3)`` from an OpenCV image."""
-    import cv2
-
-    if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
-    elif img.dtype != np.uint8:
-        raise FrameReadError(f"{path}: unsupported image type {img.dtype}")
-    if img.ndim == 2:
-        return img, None
-    if img.ndim == 3 and img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
-    if img.ndim != 3 or img.shape[2] != 3:
-        raise FrameReadError(f"{path}: unsupported image shape {img.shape}")
-    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    return grey, (cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if want_rgb else None)
 
 
 # ---------------------------------------------------------------------------- base class
@@ -380,6 +255,8 @@ class Dataset:
                 f"{cfg.resize_text()} gives {out_w}x{out_h} images from {calib.width}x{calib.height} "
                 f"({self.calibration_source}); at most {MAX_IMAGE_SIDE} pixels a side are supported: "
                 f"set dataset.resize_width or dataset.resize_scale to make them smaller")
+        from ..undistort import Undistorter  # deferred: OpenCV (importing the loaders' configs stays light)
+
         self._undistorter = Undistorter(
             calib,
             rectify=cfg.rectify_stereo,

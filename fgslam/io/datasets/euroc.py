@@ -28,18 +28,8 @@ from ...errors import DataError
 from ..calibration import Calibration, read_yaml_file
 from ..frame import ImuSamples
 from ..trajectory import read_trajectory
-from .common import (
-    Dataset,
-    DatasetConfig,
-    check_increasing,
-    RawFrame,
-    interpolate_poses,
-    ns_to_seconds,
-    read_image,
-    read_text_lines,
-    require_dir,
-    require_file,
-)
+from .common import Dataset, DatasetConfig, RawFrame, interpolate_poses, ns_to_seconds
+from .files import check_increasing, read_image, read_text_lines, require_dir, require_file
 
 logger = logging.getLogger(__name__)
 

@@ -21,7 +21,8 @@ import numpy as np
 from ...errors import DataError
 from ..calibration import Calibration, read_yaml_file
 from ..frame import FrameReadError
-from .common import Dataset, DatasetConfig, RawFrame, read_image, read_times, require_dir, require_file
+from .common import Dataset, DatasetConfig, RawFrame
+from .files import read_image, read_times, require_dir, require_file
 from .kitti import list_images
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg")
@@ -79,7 +80,7 @@ class VideoDataset(Dataset):
     format = "video"
 
     def __init__(self, root: Path, config: Optional[DatasetConfig] = None) -> None:
-        import cv2
+        import cv2  # deferred: OpenCV
 
         super().__init__(root, config)
         config = self.config
@@ -104,7 +105,7 @@ class VideoDataset(Dataset):
         self._setup()
 
     def _read_raw(self, raw_index: int) -> RawFrame:
-        import cv2
+        import cv2  # deferred: OpenCV
 
         if raw_index != self._next:
             self._cap.set(cv2.CAP_PROP_POS_FRAMES, raw_index)

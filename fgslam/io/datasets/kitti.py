@@ -22,7 +22,8 @@ import numpy as np
 from ...errors import DataError
 from ..calibration import Calibration
 from ..trajectory import read_trajectory
-from .common import Dataset, DatasetConfig, RawFrame, image_size, read_image, read_text_lines, read_times, require_dir, require_file
+from .common import Dataset, DatasetConfig, RawFrame
+from .files import image_size, read_image, read_text_lines, read_times, require_dir, require_file
 
 logger = logging.getLogger(__name__)
 

@@ -33,46 +33,45 @@ from __future__ import annotations
 
 import bisect
 import logging
+import sqlite3
 import struct
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import Any, Iterator, Optional
+from typing import TYPE_CHECKING, Any, Iterator, Optional
 
 import numpy as np
 
 from ...errors import ConfigError, DataError
 from ..calibration import Calibration
 from ..frame import FrameReadError, FrameSizeError, ImuSamples
-from .common import Dataset, DatasetConfig, RawFrame, ns_to_seconds, truncation_reason
+from .common import Dataset, DatasetConfig, RawFrame, ns_to_seconds
+from .ros_messages import (CAMERA_INFO, COMPRESSED, DEPTH_ENCODINGS, IMAGE, IMU, calibration_from_camera_info,
+                           camera_info_rectification, header_stamp_ns, image_from_message, imu_from_raw)
+
+if TYPE_CHECKING:  # the optional rosbags package (fgslam[bag]), imported when a bag is opened
+    from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import Connection
+    from rosbags.typesys import Stores
+    from rosbags.typesys.store import Typestore
 
 logger = logging.getLogger(__name__)
 
 BAG_EXTRA = "bag"  # the pyproject optional extra that installs rosbags
 ROS1_SUFFIX = ".bag"
 ROS2_METADATA = "metadata.yaml"
-IMAGE = "sensor_msgs/msg/Image"
-COMPRESSED = "sensor_msgs/msg/CompressedImage"
-CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
-IMU = "sensor_msgs/msg/Imu"
-COLOUR_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8", "rgba8", "bgra8", "8UC1", "8UC3")
-DEPTH_ENCODINGS = ("16UC1", "32FC1")
-DEPTH_MM_PER_M = 1000.0  # 16UC1 depth is in millimetres (REP 118)
-DEPTH_U16_INVALID = 65535  # besides 0 (saturated / no return), as the 7-Scenes folder loader
 COMPRESSED_SUFFIX = "/compressed"  # image_transport: <image topic>/compressed
 RIGHT_NAME_HINTS = ("right", "cam1")
 DEPTH_NAME_HINT = "depth"
-DISTORTION_MODELS = {"plumb_bob": "radtan", "rational_polynomial": "radtan", "equidistant": "equidistant",
-                     "fisheye": "equidistant"}
-RADTAN_BASE = 5  # k1 k2 p1 p2 k3; rational_polynomial adds k4 k5 k6 (OpenCV's rational model)
 ROLES = ("left", "right", "depth", "imu")
 
 
-def import_rosbags():
-    """The ``rosbags`` modules used here; DataError naming the extra when it is not installed."""
+def import_rosbags() -> tuple[type[AnyReader], type[Stores], Callable[[Stores], Typestore]]:
+    """The ``rosbags`` names used here; DataError naming the extra when it is not installed."""
     try:
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
+        from rosbags.highlevel import AnyReader  # deferred: optional rosbags
+        from rosbags.typesys import Stores, get_typestore  # deferred: optional rosbags
     except ImportError as exc:
         raise DataError(f"reading ROS bags needs the rosbags package: pip install 'fgslam[{BAG_EXTRA}]' "
                         f"({exc})") from exc
@@ -85,52 +84,16 @@ def is_bag(path: Path) -> bool:
 
 
 def _reader_errors() -> tuple[type[BaseException], ...]:
-    import sqlite3
-
     out: list[type[BaseException]] = [sqlite3.Error, struct.error, KeyError, ValueError, EOFError, OSError,
                                       IndexError, AssertionError]
     try:
-        from rosbags.highlevel import AnyReaderError
-        from rosbags.rosbag1 import ReaderError as Reader1Error
-        from rosbags.rosbag2 import ReaderError as Reader2Error
+        from rosbags.highlevel import AnyReaderError  # deferred: optional rosbags
+        from rosbags.rosbag1 import ReaderError as Reader1Error  # deferred: optional rosbags
+        from rosbags.rosbag2 import ReaderError as Reader2Error  # deferred: optional rosbags
         out += [AnyReaderError, Reader1Error, Reader2Error]
     except ImportError:  # pragma: no cover - import_rosbags reports it first
         pass
     return tuple(out)
-
-
-def header_stamp_ns(raw: bytes | memoryview, ros2: bool) -> int:
-    """Header stamp (ns) of a serialized message that starts with ``std_msgs/Header``.
-
-    ROS 1: ``uint32 seq, uint32 sec, uint32 nsec``; ROS 2 (CDR): 4-byte encapsulation header (byte 1:
-    1 little-endian, 0 big-endian), then ``int32 sec, uint32 nanosec``.
-    """
-    if ros2:
-        endian = "<" if raw[1] == 1 else ">"
-        sec, nsec = struct.unpack_from(endian + "iI", raw, 4)
-    else:
-        sec, nsec = struct.unpack_from("<II", raw, 4)
-    return int(sec) * 1_000_000_000 + int(nsec)
-
-
-IMU_DOUBLES = 4 + 9 + 3 + 9 + 3  # orientation, its covariance, angular velocity, its covariance, linear acceleration
-GYRO_AT, ACCEL_AT = 13, 25  # index of angular_velocity.x / linear_acceleration.x among those doubles
-
-
-def imu_from_raw(raw: bytes | memoryview, ros2: bool) -> tuple[int, tuple[float, ...]]:
-    """``(stamp ns, (wx, wy, wz, ax, ay, az))`` of a serialized ``sensor_msgs/Imu`` without deserializing.
-
-    ROS 1: header (``seq, sec, nsec``, frame_id as uint32 length + bytes), then packed float64s. ROS 2
-    (CDR): after the 4-byte encapsulation header, ``sec, nanosec``, frame_id (uint32 length with
-    the NUL + bytes), then float64s aligned to 8 bytes (relative to the end of the encapsulation header).
-    """
-    endian = ("<" if raw[1] == 1 else ">") if ros2 else "<"
-    sec, nsec, n = struct.unpack_from(endian + "iII" if ros2 else "<III", raw, 4)  # ROS 1: after the uint32 seq
-    off = 16 + n
-    if ros2:
-        off += (-(off - 4)) % 8
-    values = struct.unpack_from(f"{endian}{IMU_DOUBLES}d", raw, off)
-    return int(sec) * 1_000_000_000 + int(nsec), values[GYRO_AT:GYRO_AT + 3] + values[ACCEL_AT:ACCEL_AT + 3]
 
 
 @dataclass
@@ -139,7 +102,7 @@ class TopicIndex:
 
     topic: str
     msgtype: str
-    connection: Any
+    connection: Connection | None  # None in a pickled copy until the bag is opened again
     stamps_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     log_ns: list[int] = field(default_factory=list)  # log time of each message, in reader order
 
@@ -147,9 +110,9 @@ class TopicIndex:
 class _Cursor:
     """Sequential reader of one connection's messages (restarted on a backward jump)."""
 
-    def __init__(self, reader: Any, index: TopicIndex) -> None:
+    def __init__(self, reader: AnyReader, index: TopicIndex) -> None:
         self.reader, self.index = reader, index
-        self.gen: Optional[Iterator] = None
+        self.gen: Optional[Iterator[tuple[Connection, int, bytes]]] = None
         self.next_ordinal = 0
 
     def read(self, ordinal: int) -> bytes:
@@ -166,91 +129,6 @@ class _Cursor:
         raise FrameReadError(f"{self.index.topic}: message {ordinal} missing from the bag (truncated?)")
 
 
-def image_from_message(msg: Any, msgtype: str, topic: str, depth: bool) -> np.ndarray:
-    """OpenCV image (uint8/uint16 grey or BGR) or float32 depth (metres) of an Image / CompressedImage."""
-    import cv2
-
-    if msgtype == COMPRESSED:
-        fmt = str(msg.format)
-        data = bytes(np.asarray(msg.data, dtype=np.uint8))
-        if "compressedDepth" in fmt:
-            raise FrameReadError(f"{topic}: unsupported CompressedImage format {fmt!r} (compressedDepth)")
-        reason = truncation_reason(data)
-        if reason is not None:
-            raise FrameReadError(f"{topic}: {reason}")
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
-        if img is None or img.size == 0:
-            raise FrameReadError(f"{topic}: CompressedImage ({fmt!r}) not decodable")
-        if depth:
-            if img.dtype != np.uint16 or img.ndim != 2:
-                raise FrameReadError(f"{topic}: compressed depth must decode to 16-bit single-channel, got {img.dtype} {img.shape}")
-            return _depth_u16(img)
-        return img
-    enc, h, w, step = str(msg.encoding), int(msg.height), int(msg.width), int(msg.step)
-    data = np.asarray(msg.data, dtype=np.uint8)
-    if enc not in COLOUR_ENCODINGS + DEPTH_ENCODINGS:
-        raise FrameReadError(f"{topic}: unknown image encoding {enc!r} (supported: "
-                             f"{', '.join(COLOUR_ENCODINGS + DEPTH_ENCODINGS)})")
-    if depth != (enc in DEPTH_ENCODINGS):
-        raise FrameReadError(f"{topic}: encoding {enc!r} is not a {'depth' if depth else 'colour or grey'} encoding")
-    channels = {"rgb8": 3, "bgr8": 3, "8UC3": 3, "rgba8": 4, "bgra8": 4}.get(enc, 1)
-    itemsize = 2 if enc in ("mono16", "16UC1") else 4 if enc == "32FC1" else 1
-    if h <= 0 or w <= 0 or step < w * channels * itemsize or data.size < step * h:
-        raise FrameReadError(f"{topic}: Image of {w}x{h} ({enc}) with step {step} holds {data.size} bytes "
-                             f"(needs {step * h})")
-    rows = data[: step * h].reshape(h, step)[:, : w * channels * itemsize]
-    if itemsize > 1:
-        dtype = np.dtype({2: np.uint16, 4: np.float32}[itemsize]).newbyteorder(">" if msg.is_bigendian else "<")
-        rows = np.ascontiguousarray(rows).view(dtype).astype(dtype.newbyteorder("="))
-    img = rows.reshape(h, w, channels) if channels > 1 else rows.reshape(h, w)
-    if enc == "rgb8":
-        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-    elif enc == "rgba8":
-        img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGR)
-    elif enc == "bgra8":
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
-    if enc == "16UC1":
-        return _depth_u16(img)
-    if enc == "32FC1":
-        return img.astype(np.float32)
-    return np.ascontiguousarray(img)
-
-
-def _depth_u16(img: np.ndarray) -> np.ndarray:
-    depth = img.astype(np.float32) / np.float32(DEPTH_MM_PER_M)
-    depth[img == DEPTH_U16_INVALID] = 0.0
-    return depth
-
-
-def calibration_from_camera_info(msg: Any, topic: str) -> Calibration:
-    """Raw calibration (no extrinsics) of one CameraInfo message."""
-    model = DISTORTION_MODELS.get(str(msg.distortion_model))
-    D = np.asarray(msg.D if hasattr(msg, "D") else msg.d, dtype=np.float64).reshape(-1)
-    K = np.asarray(msg.K if hasattr(msg, "K") else msg.k, dtype=np.float64).reshape(-1)
-    if model is None and not (D.size == 0 or not np.any(D)):
-        raise DataError(f"{topic}: CameraInfo distortion_model {msg.distortion_model!r} not supported "
-                        f"(plumb_bob, rational_polynomial, equidistant); give dataset.calibration_file")
-    if K.size != 9 or K[0] <= 0 or K[4] <= 0:
-        raise DataError(f"{topic}: CameraInfo K is not a calibrated camera matrix ({K.tolist()}); "
-                        "give dataset.calibration_file")
-    if not np.any(D):
-        model, D = "none", np.zeros(0)
-    elif model == "radtan":
-        if D.size > RADTAN_BASE and np.any(D[RADTAN_BASE:]):
-            raise DataError(f"{topic}: rational_polynomial with non-zero k4..k6 ({D.tolist()}) is not supported; "
-                            "give dataset.calibration_file")
-        D = D[:RADTAN_BASE]
-        if D.size == RADTAN_BASE and D[4] == 0:  # plumb_bob with k3 = 0 is the 4-coefficient model
-            D = D[:4]
-    return Calibration(int(msg.width), int(msg.height), [K[0], K[4], K[2], K[5]], model, D)
-
-
-def _rect(msg: Any) -> tuple[np.ndarray, np.ndarray]:
-    R = np.asarray(msg.R if hasattr(msg, "R") else msg.r, dtype=np.float64).reshape(3, 3)
-    P = np.asarray(msg.P if hasattr(msg, "P") else msg.p, dtype=np.float64).reshape(3, 4)
-    return R, P
-
-
 class RosbagDataset(Dataset):
     """A ROS 1 or ROS 2 bag (see the module docstring)."""
 
@@ -263,7 +141,7 @@ class RosbagDataset(Dataset):
         self._ros2 = not self.root.is_file()
         self._typestore = self._make_typestore()
         self._lock = threading.Lock()
-        self._reader: Any = None
+        self._reader: Optional[AnyReader] = None
         self._cursors: dict[str, _Cursor] = {}
         with self._guard("cannot open the bag"):
             reader = self._open_reader()
@@ -286,15 +164,15 @@ class RosbagDataset(Dataset):
         self._setup()
 
     # ------------------------------------------------------------ reader plumbing
-    def _open_reader(self) -> Any:
+    def _open_reader(self) -> AnyReader:
         if self._reader is None:
-            AnyReader, _, _ = import_rosbags()
-            reader = AnyReader([self.root], default_typestore=self._typestore)
+            reader_class, _, _ = import_rosbags()
+            reader = reader_class([self.root], default_typestore=self._typestore)
             reader.open()
             self._reader = reader
         return self._reader
 
-    def _guard(self, what: str, topic: Optional[str] = None, error: type = DataError):
+    def _guard(self, what: str, topic: Optional[str] = None, error: type[Exception] = DataError):
         dataset = self
 
         class Guard:
@@ -311,7 +189,7 @@ class RosbagDataset(Dataset):
 
         return Guard()
 
-    def _make_typestore(self) -> Any:
+    def _make_typestore(self) -> Typestore:
         """Message types for bags without embedded definitions (ROS 2 Humble / ROS 1 Noetic)."""
         _, Stores, get_typestore = import_rosbags()
         return get_typestore(Stores.ROS2_HUMBLE if self._ros2 else Stores.ROS1_NOETIC)
@@ -332,19 +210,19 @@ class RosbagDataset(Dataset):
         for index in self._indices_by_role.values():
             index.connection = next(c for c in reader.connections if c.topic == index.topic)
 
-    def _deserialize(self, raw: bytes, msgtype: str) -> Any:
+    def _deserialize(self, raw: bytes, msgtype: str) -> Any:  # a message of the bag's typestore
         if self._ros2:
             return self._typestore.deserialize_cdr(raw, msgtype)
         return self._typestore.deserialize_ros1(raw, msgtype)
 
-    def _first_message(self, reader: Any, topic: str) -> Any:
+    def _first_message(self, reader: AnyReader, topic: str) -> Any:  # a message of the bag's typestore
         conns = [c for c in reader.connections if c.topic == topic]
         for conn, _, raw in reader.messages(connections=conns):
             return self._deserialize(raw, conn.msgtype)
         raise DataError(f"{self.root}: topic {topic} has no messages")
 
     # ------------------------------------------------------------ topics
-    def _choose_topics(self, reader: Any) -> dict[str, str]:
+    def _choose_topics(self, reader: AnyReader) -> dict[str, str]:
         cfg = self.config.topics
         types = self.topic_types
         images = sorted(t for t, ty in types.items() if ty in (IMAGE, COMPRESSED) and self.topic_counts[t])
@@ -396,7 +274,7 @@ class RosbagDataset(Dataset):
             roles.pop("depth", None)
         return roles
 
-    def _is_depth_topic(self, reader: Any, topic: str) -> bool:
+    def _is_depth_topic(self, reader: AnyReader, topic: str) -> bool:
         if self.config.topics.depth == topic:
             return True
         if topic in (self.config.topics.left, self.config.topics.right):
@@ -405,7 +283,7 @@ class RosbagDataset(Dataset):
             return DEPTH_NAME_HINT in topic.lower()
         return str(self._first_message(reader, topic).encoding) in DEPTH_ENCODINGS
 
-    def _index_topic(self, reader: Any, topic: str) -> TopicIndex:
+    def _index_topic(self, reader: AnyReader, topic: str) -> TopicIndex:
         conns = [c for c in reader.connections if c.topic == topic]
         if len(conns) != 1:
             raise DataError(f"{self.root}: topic {topic} has {len(conns)} connections (one expected)")
@@ -421,7 +299,7 @@ class RosbagDataset(Dataset):
         _check_increasing(self.root, topic, index.stamps_ns)
         return index
 
-    def _read_imu(self, reader: Any, topic: str) -> ImuSamples:
+    def _read_imu(self, reader: AnyReader, topic: str) -> ImuSamples:
         conns = [c for c in reader.connections if c.topic == topic]
         stamps, values = [], []
         with self._guard("cannot read the IMU messages", topic):
@@ -510,7 +388,7 @@ class RosbagDataset(Dataset):
                 with self._guard("cannot read the CameraInfo", right_topic):
                     right_msg = self._first_message(self._open_reader(), right_topic)
                 calib.right = calibration_from_camera_info(right_msg, right_topic)
-                (R1, P1), (R2, P2) = _rect(left_msg), _rect(right_msg)
+                (R1, P1), (R2, P2) = camera_info_rectification(left_msg), camera_info_rectification(right_msg)
                 if P2[0, 0] <= 0 or P2[0, 3] == 0:
                     raise DataError(f"{right_topic}: CameraInfo P has no baseline (P[0,3] = {P2[0, 3]}); a stereo pair "
                                     "needs rectified camera_infos or dataset.calibration_file")
@@ -574,7 +452,7 @@ class RosbagDataset(Dataset):
         if "right" in self.roles and self.config.load_right:
             right = self._read_sized("right", raw_index)
             if right.ndim == 3:
-                import cv2
+                import cv2  # deferred: OpenCV
 
                 right = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
         if "depth" in self.roles and self.config.load_depth:

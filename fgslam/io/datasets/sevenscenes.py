@@ -27,7 +27,8 @@ import numpy as np
 from ...errors import DataError
 from ..calibration import Calibration
 from ..frame import FrameReadError
-from .common import Dataset, DatasetConfig, RawFrame, nearest_rotation, read_image, read_number_table, require_dir
+from .common import Dataset, DatasetConfig, RawFrame, nearest_rotation
+from .files import read_image, read_number_table, require_dir
 
 logger = logging.getLogger(__name__)
 

@@ -23,7 +23,8 @@ from ...errors import DataError
 from ..calibration import Calibration
 from ..frame import FrameReadError
 from ..trajectory import quaternion_xyzw_to_rotation
-from .common import Dataset, DatasetConfig, RawFrame, read_image, read_number_table, require_dir
+from .common import Dataset, DatasetConfig, RawFrame
+from .files import read_image, read_number_table, require_dir
 from .kitti import list_images
 
 TARTANAIR_K = (320.0, 320.0, 320.0, 240.0)  # fx, fy, cx, cy of every TartanAir camera

@@ -23,7 +23,8 @@ import numpy as np
 from ...errors import DataError
 from ..calibration import Calibration
 from ..trajectory import read_trajectory
-from .common import Dataset, DatasetConfig, RawFrame, interpolate_poses, read_image, read_text_lines, require_file
+from .common import Dataset, DatasetConfig, RawFrame, interpolate_poses
+from .files import read_image, read_text_lines, require_file
 
 logger = logging.getLogger(__name__)
 

@@ -19,14 +19,16 @@ import numpy as np
 
 from .distortion import DistortedCamera
 from .imu import ImuData, simulate_imu
-from .scenarios import R_B_CAM_NOMINAL, SynthConfig, build_scene, build_trajectory, camera_mount
+from .layouts import build_scene
+from .motions import build_trajectory
+from .scenarios import SynthConfig, camera_mount
 from .render import Renderer, RenderOutput
 from .texture import build_atlas
 from .trajectory import BodyState
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["R_B_CAM_NOMINAL", "StereoFrame", "SynthSequence", "camera_mount"]
+__all__ = ["StereoFrame", "SynthSequence"]
 
 @dataclass(frozen=True)
 class StereoFrame:

@@ -34,7 +34,9 @@ _LINE_LENGTH_M = (0.1, 1.0)  # range of line segment lengths
 _LINE_WIDTH_M = (0.005, 0.03)  # range of line widths
 _NORMALISED_STD = 0.25  # standard deviation of a texture after normalisation (values in [0, 1])
 
-# texture styles beyond the textured ones of TextureConfig.style_mark_scale (0 wall, 1 ground, 2 object)
+# textured styles: index into TextureConfig.style_mark_scale
+STYLE_WALL, STYLE_GROUND, STYLE_OBJECT = 0, 1, 2
+# low-texture styles beyond the textured ones
 STYLE_PLAIN, STYLE_TILES, STYLE_DOOR, STYLE_PANELS = 3, 4, 5, 6
 PLAIN_STYLES = (STYLE_PLAIN, STYLE_TILES, STYLE_DOOR, STYLE_PANELS)
 

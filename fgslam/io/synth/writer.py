@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 import yaml
 
+from ...config import to_dict
 from ...errors import DataError
 from .sequence import SynthSequence
 
@@ -149,8 +150,6 @@ def _write_png(path: Path, img: np.ndarray) -> None:
 def write_sequence(seq: SynthSequence, root: str | Path,
                    progress: Callable[[int, int], None] | None = None) -> WriteSummary:
     """Render every frame of ``seq`` and write the EuRoC-style sequence under ``root``."""
-    from ...config import to_dict
-
     cfg = seq.cfg
     root = Path(root)
     mav0 = root / "mav0"
@@ -242,8 +241,6 @@ def _kalibr_camera(seq: SynthSequence, T_cam_imu: np.ndarray, T_cn_cnm1: np.ndar
 def write_tumvi_sequence(seq: SynthSequence, root: str | Path,
                          progress: Callable[[int, int], None] | None = None) -> WriteSummary:
     """Render every frame of ``seq`` and write it under ``root`` in the TUM-VI layout (module docstring)."""
-    from ...config import to_dict
-
     cfg = seq.cfg
     if cfg.camera.colour:
         raise DataError("TUM-VI sequences are grey: render with camera.colour: false")

@@ -13,8 +13,9 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-from .config import import_object, load_config
-from .errors import ConfigError
+from .. import frontends
+from ..config import import_object, load_config
+from ..errors import ConfigError
 
 #: Package (and folder inside it) holding the preset YAML files.
 PRESETS_PACKAGE = "fgslam"
@@ -31,12 +32,12 @@ PRESET_CLASSES: dict[str, str] = {
     "bow": "fgslam.loop.bow:BowConfig",
     "loop": "fgslam.loop.records:LoopClosureConfig",
     "demo": "fgslam.demo:DemoConfig",
-    "localize": "fgslam.localize:LocalizeConfig",
+    "localize": "fgslam.localize.localizer:LocalizeConfig",
 }
 
 #: The run config every frontend family's presets (``<family>_*.yaml``) and the recommended
 #: presets (``<sensor class>_*.yaml``) fill.
-RUN_CONFIG_CLASS = "fgslam.runconfig:SlamConfig"
+RUN_CONFIG_CLASS = "fgslam.run.config:SlamConfig"
 
 #: Sensor classes of the recommended presets, one preset per class and sensor (``handheld_rgbd``,
 #: ``handheld_mono``, ``handheld_stereo``, ``driving_mono``, ``driving_stereo``): the family and
@@ -46,10 +47,9 @@ SENSOR_CLASSES: tuple[str, ...] = ("handheld", "driving")
 
 def run_preset_prefixes() -> tuple[str, ...]:
     """The one table of stem prefixes that select :data:`RUN_CONFIG_CLASS` (the presets of ``fgslam
-    run``): the sensor classes of the recommended presets, then every frontend family's name."""
-    from .frontends import FRONTEND_NAMES  # function-local: fgslam.frontends is a layer above
-
-    return (*SENSOR_CLASSES, *FRONTEND_NAMES)
+    run``): the sensor classes of the recommended presets, then every frontend family's name (read
+    from the registry at each call: a family registered later is included)."""
+    return (*SENSOR_CLASSES, *frontends.FRONTEND_NAMES)
 
 
 def configs_dir() -> Path:

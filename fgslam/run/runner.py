@@ -1,9 +1,11 @@
 """The SLAM runner: a dataset in, the run's system in the middle, trajectories, a summary and a plot out.
 
-``SlamConfig`` (:mod:`fgslam.runconfig`) is the root configuration of a run (``fgslam/configs/*.yaml``
-are presets of it); :func:`run_slam` builds the run's :class:`~fgslam.system.SlamSystem` (backend,
-frontend, services), steps it over a :class:`~fgslam.io.datasets.Dataset` and writes
-(:mod:`fgslam.outputs`), in ``out_dir``:
+``SlamConfig`` (:mod:`fgslam.run.config`) is the root configuration of a run (``fgslam/configs/*.yaml``
+are presets of it). A run is prepared first (:mod:`fgslam.run.prepare`: every check before any work,
+once), then :func:`run_prepared` trusts its inputs: it builds the run's
+:class:`~fgslam.run.system.SlamSystem` (backend, frontend, services), steps it over the
+:class:`~fgslam.io.datasets.Dataset`, has the results collected (:mod:`fgslam.run.results`) and
+written (:mod:`fgslam.run.outputs`; the stored map: :mod:`fgslam.run.mapstore`), in the output folder:
 
 - ``trajectory_tum.txt``: ``t tx ty tz qx qy qz qw`` per frame with a pose (camera-to-world ``T_WC``
   in the estimate's world frame; monocular translations are in the map's arbitrary scale);
@@ -34,10 +36,11 @@ please wait") and ignored: they are completed. The handlers are installed only f
 the run and the previous ones are restored.
 
 No result: a run that ends without a pose for any frame writes its summary with the reason as its
-``error`` (:func:`no_pose_reason`) and raises :class:`NoPoseError`.
+``error`` (:func:`fgslam.run.results.no_pose_reason`) and raises :class:`NoPoseError`.
 
-Previous outputs: an ``out_dir`` that holds a previous run's outputs (:data:`RUN_OUTPUT_FILES`,
-``depth/``) is refused unless ``overwrite``, which removes them before the run starts.
+Previous outputs: an ``out_dir`` that holds a previous run's outputs
+(:data:`fgslam.run.files.RUN_OUTPUT_FILES`, ``depth/``) is refused unless ``overwrite``, which
+removes them before the run starts.
 
 Outputs are never lost to one failure: the output folder is checked (created, writable, not the
 dataset folder nor inside it) before any work, and every output (each trajectory format, plot, PLY,
@@ -58,35 +61,28 @@ import os
 import re
 import resource
 import signal
-import threading
+import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Callable, Optional
 
 import numpy as np
+from tqdm import tqdm
 
-from .config import check_ranges
-from .errors import ConfigError, DataError, FGSlamError, Interrupted
-from .frontends.base import FrameStatus, Frontend
-from .io.datasets import Dataset, open_dataset
-from .memory import check_run_memory
-from .outputs import (
-    DEPTH_DIR, KITTI_FILE, KITTI_TIMES_FILE, LARGE_IMAGE_SIDE, MAP_FILE, PLOT_FILE, PLY_FILE, RUN_OUTPUT_FILES,
-    SUMMARY_FILE, TUM_FILE, RunState, RunSummary, clear_previous_outputs, finalize_run, no_pose_reason, outputs_text,
-    prepare_output_dir, previous_run_outputs)
-from .runconfig import OutputConfig, SensorName, SlamConfig, dataset_config_for, load_slam_config
+from ..errors import DataError, FGSlamError, Interrupted
+from ..frontends.base import FrameStatus, Frontend
+from ..io.datasets import Dataset
+from ..io.trajectory import Trajectory
+from .config import SlamConfig
+from .mapstore import store_map
+from .outputs import (OutputWriter, write_keyframe_depths, write_map, write_plot, write_points, write_summary,
+                      write_trajectories)
+from .prepare import PreparedRun, prepare_opened, remove_previous_outputs
+from .results import ErrorAt, RunState, RunSummary, collect_results, outputs_text, summarize
+from .signals import StopOnSignal
 from .system import SlamSystem
 
 logger = logging.getLogger(__name__)
-
-#: the runner's public names: the run itself, and the configuration and outputs it uses (defined in
-#: :mod:`fgslam.runconfig` and :mod:`fgslam.outputs`)
-__all__ = ["DEPTH_DIR", "KITTI_FILE", "KITTI_TIMES_FILE", "LARGE_IMAGE_SIDE", "MAP_FILE", "PLOT_FILE", "PLY_FILE",
-           "RUN_OUTPUT_FILES", "SUMMARY_FILE", "TUM_FILE", "NoPoseError", "OutputConfig", "OutputError", "RunError",
-           "RunSummary", "SensorName", "SlamConfig", "StopOnSignal", "check_image_size", "check_sensor",
-           "clear_previous_outputs", "dataset_config_for", "event_kind", "load_slam_config", "no_pose_reason",
-           "open_slam_dataset", "prepare_output_dir", "previous_run_outputs", "run_slam"]
-
 
 MAX_LOGGED_FAILURES = 10  # tracking failures logged one by one before switching to the progress lines
 _WHERE_DATASET = "while reading the dataset"  # error location of a failure inside the dataset iterator
@@ -102,55 +98,6 @@ class OutputError(FGSlamError):
 
 class NoPoseError(FGSlamError):
     """A run that ended without a pose for any frame: no result (summary.json says why)."""
-
-
-# ----------------------------------------------------------------------------------------- dataset side
-
-
-def open_slam_dataset(path: str | Path, config: SlamConfig, fmt: str = "auto") -> Dataset:
-    """Open the dataset at ``path`` for ``config`` and check it has what ``config.sensor`` needs,
-    images of at least ``dataset.min_image_side`` pixels, and an estimated peak memory within
-    ``max_memory_gib`` (:mod:`fgslam.memory`)."""
-    dataset = open_dataset(path, fmt, dataset_config_for(config))
-    check_sensor(dataset, config.sensor)
-    check_image_size(dataset)
-    check_run_memory(config, dataset)
-    return dataset
-
-
-def check_image_size(dataset: Dataset) -> None:
-    """Raise ConfigError when the dataset's output images (after resizing and cropping) are smaller
-    than ``dataset.min_image_side`` on a side, naming the resize keys and both sizes."""
-    cfg = dataset.config
-    width, height = int(dataset.calibration.width), int(dataset.calibration.height)
-    if min(width, height) >= cfg.min_image_side:
-        return
-    raw = dataset.raw_calibration
-    source = f" from {raw.width}x{raw.height}" if raw is not None else ""
-    raise ConfigError(
-        f"{cfg.resize_text()} gives {width}x{height} images{source}"
-        f"{f' (after cropping to a multiple of {cfg.crop_multiple})' if cfg.crop_multiple > 1 else ''}; "
-        f"both sides must be at least dataset.min_image_side={cfg.min_image_side} pixels"
-    )
-
-
-def check_sensor(dataset: Dataset, sensor: str) -> None:
-    """Raise ConfigError when ``dataset`` lacks the images ``sensor`` needs (stereo: right images,
-    rgbd: depth maps)."""
-    where = f"{dataset.root} ({dataset.format})"
-    if sensor == "stereo" and not dataset.has_stereo:
-        why = "dataset.load_right is false" if not dataset.config.load_right else "it has no right camera images"
-        raise ConfigError(
-            f"sensor 'stereo' needs right camera images but {where}: {why}; use sensor=mono or a stereo dataset"
-        )
-    if sensor == "rgbd" and not dataset.has_depth:
-        why = "dataset.load_depth is false" if not dataset.config.load_depth else "it has no depth maps"
-        raise ConfigError(f"sensor 'rgbd' needs depth maps but {where}: {why}; use sensor=mono or an RGB-D dataset")
-    if sensor not in ("mono", "stereo", "rgbd"):
-        raise ConfigError(f"unknown sensor {sensor!r} (expected mono, stereo or rgbd)")
-
-
-# ----------------------------------------------------------------------------------------- summary
 
 
 # ----------------------------------------------------------------------------------------- the run
@@ -189,14 +136,10 @@ class _Progress:
         )
 
 
-def _progress_bar(total: int, unit: str):
+def _progress_bar(total: int, unit: str) -> Optional[tqdm]:
     """A tqdm bar on stderr when stderr is a terminal (None otherwise: log lines instead)."""
-    import sys
-
     if not (hasattr(sys.stderr, "isatty") and sys.stderr.isatty()):
         return None
-    from tqdm import tqdm
-
     return tqdm(total=total, unit=unit, file=sys.stderr, dynamic_ncols=True, leave=True)
 
 
@@ -216,10 +159,12 @@ def run_slam(
     rerun: Optional[str] = None,
     overwrite: bool = False,
 ) -> RunSummary:
-    """Run SLAM over ``dataset`` with ``config`` and write the outputs into ``out_dir``.
+    """Run SLAM over ``dataset`` with ``config`` and write the outputs into ``out_dir``: the run is
+    prepared (:func:`fgslam.run.prepare.prepare_opened`: every check before any work) and run
+    (:func:`run_prepared`).
 
     Args:
-        dataset: an opened dataset (see :func:`open_slam_dataset`); checked against ``config.sensor``.
+        dataset: an opened dataset (see :func:`fgslam.run.prepare.open_slam_dataset`); checked against ``config``.
         config: the run configuration.
         out_dir: output folder (created; checked writable and outside the dataset before any work).
         progress: log a progress line every ``config.log_interval_frames`` frames / ``log_interval_s`` s.
@@ -229,7 +174,7 @@ def run_slam(
         rerun: log the run to rerun: a ``.rrd`` file, or ``live`` for a running viewer
             (:mod:`fgslam.export.rerun`; the rerun SDK is an optional extra).
         overwrite: replace the outputs of a previous run in ``out_dir`` (removed before the run
-            starts); without it such a folder is a ConfigError (:func:`clear_previous_outputs`).
+            starts); without it such a folder is a ConfigError (:func:`fgslam.run.prepare.check_previous_outputs`).
 
     Returns:
         The :class:`RunSummary` also written to ``summary.json``.
@@ -245,26 +190,23 @@ def run_slam(
         OutputError: an output could not be written (every other one was).
         NoPoseError: the run ended without a pose for any frame (no result; the summary says why).
     """
-    config.validate()
-    check_ranges(config)
-    check_sensor(dataset, config.sensor)
-    check_image_size(dataset)
-    check_run_memory(config, dataset)
-    out = prepare_output_dir(out_dir, dataset.root)
-    clear_previous_outputs(out, overwrite)  # refused, or removed before the run starts
-    imu_input_warnings: list[str] = []
-    if config.imu.enabled and dataset.imu is not None:  # units, axes, clock: a named mistake before any work
-        from .services.imu_checks import check_imu_stream
+    run = prepare_opened(dataset, config, out_dir, overwrite=overwrite, rerun=rerun)
+    return run_prepared(run, progress=progress, frontend=frontend, on_summary=on_summary)
 
-        imu_input_warnings = check_imu_stream(dataset.imu, dataset.timestamps, config.imu.checks, config.imu.gravity,
-                                              where=str(dataset.root), T_BC=getattr(dataset.calibration, "T_BC", None))
+
+def run_prepared(run: PreparedRun, progress: bool = True, frontend: Optional[Frontend] = None,
+                 on_summary: Optional[Callable[[RunSummary], None]] = None) -> RunSummary:
+    """Run SLAM on a prepared run (:mod:`fgslam.run.prepare`: its inputs are trusted) and write the
+    outputs into ``run.out``; the arguments, the result and the errors raised are :func:`run_slam`'s."""
+    dataset, config, out = run.dataset, run.config, run.out
+    if run.overwrite:
+        remove_previous_outputs(out)  # a previous run's outputs go before the run starts
     system = SlamSystem.build(config, dataset.calibration, frontend=frontend, timestamps=dataset.timestamps,
-                              has_imu=dataset.has_imu, imu_noise=getattr(dataset, "imu_noise", None),
-                              where=str(dataset.root), rerun=rerun)
-    system.imu_input_warnings = imu_input_warnings
-    load_average = [round(v, 2) for v in os.getloadavg()]
+                              has_imu=dataset.has_imu, imu_noise=dataset.imu_noise,
+                              where=str(dataset.root), rerun=run.rerun)
+    system.imu_input_warnings = list(run.imu_warnings)
+    state = RunState(load_average=[round(v, 2) for v in os.getloadavg()])
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
-    state = RunState()
     with StopOnSignal((signal.SIGTERM, signal.SIGINT)) as stopper:
         t_start, cpu_start = time.perf_counter(), _cpu_seconds()
         saved_threads = _set_threads(config.threads)
@@ -276,7 +218,7 @@ def run_slam(
             stopper.finishing = True  # from here on a signal is logged and the outputs and report are completed
             _restore_threads(saved_threads)
         state.wall_s, state.cpu_s = time.perf_counter() - t_start, _cpu_seconds() - cpu_start
-        summary, error = finalize_run(dataset, gt, system, config, state, out, load_average, error)
+        summary, error = _write_outputs(run, system, state, gt, error)
         if on_summary is not None:  # still under the handlers: a second Ctrl-C never cuts the report
             try:
                 on_summary(summary)
@@ -302,6 +244,33 @@ def run_slam(
     return summary
 
 
+def _write_outputs(run: PreparedRun, system: SlamSystem, state: RunState, gt: Optional[Trajectory],
+                   error: Optional[ErrorAt]) -> tuple[RunSummary, Optional[ErrorAt]]:
+    """Once the loop stopped (with ``error``, the loop's, or None): the results collected, then the
+    outputs written, each on its own (a failing one is recorded in ``output_errors`` and never stops
+    the others), ``summary.json`` last. Returns the summary and the first error (the loop's, or one
+    raised by the frontend's end-of-run queries, which never prevents the writing)."""
+    config, frontend = run.config, system.frontend
+    results = collect_results(run, system, state, gt, error)
+    writer = OutputWriter(run.out)
+    traj = results.traj
+    if traj is not None:
+        write_trajectories(writer, traj)
+    if results.points is not None:
+        write_points(writer, results.points)
+    if config.output.write_depth:
+        write_keyframe_depths(writer, frontend, results.notes)
+    if config.output.write_map and traj is not None:  # no pose, no map (and no note that would blame the frontend)
+        write_map(writer, run.dataset, frontend, config.sensor, state, results.notes)
+    if (config.output.save_map or config.output.extend_map) and traj is not None:
+        store_map(writer, run, frontend, state, results)
+    if config.output.plot and traj is not None:
+        write_plot(writer, gt, traj, results.eval_result, config)
+    summary = summarize(run, state, results, writer.written, writer.errors)
+    write_summary(writer, summary)
+    return summary, results.first_error
+
+
 def _abort(system: SlamSystem) -> None:
     """Stop the run's background work without waiting for it (a stopped or failed run); a failure
     there is logged, never raised: the outputs are written next."""
@@ -311,44 +280,9 @@ def _abort(system: SlamSystem) -> None:
         logger.exception("stopping the background work failed")
 
 
-class StopOnSignal:
-    """While active (a ``with`` block in the main thread), the given signals raise
-    :class:`~fgslam.errors.Interrupted` (a ``KeyboardInterrupt``); once ``finishing`` is set (the
-    loop has stopped: the outputs and the report are being written), a further one, a second
-    Ctrl-C included, is logged and ignored so that they are completed. The previous handlers are
-    restored on exit (none is installed outside the main thread, where Python cannot)."""
-
-    def __init__(self, signums: tuple[int, ...]) -> None:
-        self.signums = signums
-        self.finishing = False
-        self._previous: dict[int, Any] = {}
-
-    def __enter__(self) -> "StopOnSignal":
-        if threading.current_thread() is not threading.main_thread():
-            logger.debug("not in the main thread: no handler for %s", [signal.Signals(s).name for s in self.signums])
-            return self
-        for signum in self.signums:
-            self._previous[signum] = signal.signal(signum, self._handle)
-        return self
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        name = signal.Signals(signum).name
-        if self.finishing:
-            logger.warning("%s received again: still stopping: writing outputs, please wait", name)
-            return
-        self.finishing = True  # set before raising: a second signal, however soon, never cuts the stop short
-        logger.warning("%s received: stopping: writing outputs, please wait", name)
-        raise Interrupted(name, signum)
-
-    def __exit__(self, *exc_info: Any) -> None:
-        for signum, previous in self._previous.items():
-            signal.signal(signum, signal.SIG_DFL if previous is None else previous)
-        self._previous.clear()
-
-
 def _loop(
     dataset: Dataset, system: SlamSystem, config: SlamConfig, state: RunState, progress: bool
-) -> Optional[tuple[BaseException, str]]:
+) -> Optional[ErrorAt]:
     """Iterate the dataset through the system's frame skeleton; returns ``(exception, where)`` instead of raising
     (an exception anywhere, an interrupt included, stops the loop and is returned with its place)."""
     meter = _Progress(len(dataset), config.log_interval_frames, config.log_interval_s, progress)
@@ -434,8 +368,8 @@ def _record(status: FrameStatus, timestamp: float, state: RunState) -> None:
 def _set_threads(threads: int) -> Optional[tuple[int, int]]:
     if threads <= 0:
         return None
-    import cv2
-    import torch
+    import cv2  # deferred: cv2
+    import torch  # deferred: torch
 
     saved = (torch.get_num_threads(), cv2.getNumThreads())
     torch.set_num_threads(threads)
@@ -446,10 +380,8 @@ def _set_threads(threads: int) -> Optional[tuple[int, int]]:
 def _restore_threads(saved: Optional[tuple[int, int]]) -> None:
     if saved is None:
         return
-    import cv2
-    import torch
+    import cv2  # deferred: cv2
+    import torch  # deferred: torch
 
     torch.set_num_threads(saved[0])
     cv2.setNumThreads(saved[1])
-
-

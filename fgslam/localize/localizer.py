@@ -1,5 +1,7 @@
-"""Localisation in a stored map (``fgslam localize MAP --data SEQ --out DIR``): every frame of a new
-sequence gets a pose in the map's frame or "not localised"; the map never grows.
+"""Localisation in a stored map, one frame at a time (:class:`MapLocalizer`): every frame gets a pose
+in the map's frame or "not localised"; the map never grows. ``fgslam localize`` runs it over a
+sequence (:mod:`fgslam.localize.sequence`); merging a recording into a map uses it on the
+recording's keyframes (:mod:`fgslam.localize.merge`).
 
 Per frame, on the map's feature image (the run's image scaled by the map's ``image_scale``; ORB with
 the map's settings, :mod:`fgslam.export.mapfile`):
@@ -20,40 +22,29 @@ the map's settings, :mod:`fgslam.export.mapfile`):
    quality gate; the default, 1.0, gates nothing in practice: on 7-Scenes it trades localised
    frames for accuracy, README "Maps");
 4. else the frame is "not localised": no pose is made up (no motion model).
-
-Outputs (``DIR``): ``trajectory_tum.txt`` (localised frames only, map frame), ``localization.csv``
-(every frame: raw (source) frame index, as ``--start`` counts, timestamp, status ``tracked`` / ``relocalised`` / ``not_localised``, keyframe id,
-inliers, ``position_std``: :func:`relative_position_std` of the pose, empty without one) and ``summary.json`` (counts, CPU time per frame, the map, and, when the sequence has ground
-truth and the map its run's alignment to ground truth, the ATE of the localised poses with that
-alignment applied unchanged, beside the ATE of holding the first localised pose: doing nothing).
-A sequence where no frame localises writes the CSV and summary and raises :class:`NotLocalisedError`.
 """
 
 from __future__ import annotations
 
-import csv
-import json
 import logging
-import os
-import resource
-import time
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from .config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, from_dict, ranged, to_dict
-from .errors import FGSlamError
-from .export.mapfile import DESCRIPTOR_BYTES, MapMergeConfig, StoredMap, check_map_camera, feature_image, load_stored_map
-from .io.datasets import DatasetConfig, open_dataset
-from .io.run_files import LOCALIZATION_FILE, SUMMARY_FILE, TUM_FILE
-from .loop.records import RelocalizationConfig
+from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, from_dict, ranged
+from ..errors import ConfigError
+from ..export.mapfile import DESCRIPTOR_BYTES, MapMergeConfig, StoredMap, feature_image
+from ..io.datasets import DatasetConfig
+from ..loop.bow import BowDatabase
+from ..loop.features import OrbConfig, OrbExtractor
+from ..loop.records import RelocalizationConfig
+from ..loop.verification import match_descriptors, solve_pnp
+from ..loop.vocabulary import BowVector, load_vocabulary
 
 logger = logging.getLogger(__name__)
 
-TRAJECTORY_FILE = TUM_FILE
-STATUS_FILE = LOCALIZATION_FILE  # also in fgslam.outputs.RUN_OUTPUT_FILES (a previous run's outputs)
+#: What :class:`FrameLocalization` says of a frame.
 STATUSES = ("tracked", "relocalised", "not_localised")
 
 
@@ -85,10 +76,6 @@ def relative_position_std(T_WC: np.ndarray, X_W: np.ndarray, K: np.ndarray) -> f
         return float("inf")
     var = float(np.trace(cov[:3, :3]))
     return float(np.sqrt(var) / np.median(z)) if var > 0 and np.isfinite(var) else float("inf")
-
-
-class NotLocalisedError(FGSlamError):
-    """No frame of the sequence localised in the map (outputs written; no trajectory)."""
 
 
 @dataclass
@@ -125,8 +112,6 @@ class LocalizeConfig:
 
     def validate(self) -> None:
         check_ranges(self)
-        from .errors import ConfigError
-
         unknown = sorted(set(self.dataset) - set(DatasetConfig.__dataclass_fields__))
         if unknown:
             raise ConfigError(f"dataset: unknown key(s) {', '.join(unknown)} (DatasetConfig fields)")
@@ -148,10 +133,6 @@ class MapLocalizer:
     """Tracks frames against a :class:`StoredMap` (module docstring); one frame at a time."""
 
     def __init__(self, stored: StoredMap, config: LocalizeConfig | None = None):
-        from .loop.bow import BowDatabase
-        from .loop.features import OrbConfig, OrbExtractor
-        from .loop.vocabulary import BowVector, load_vocabulary
-
         self.cfg = config or LocalizeConfig()
         self.cfg.validate()
         self.map = stored
@@ -196,8 +177,6 @@ class MapLocalizer:
                 ) -> tuple[np.ndarray, int, int, float] | None:
         """``(T_WC, kf_id, inliers, position_std)`` of the frame matched to the keyframes ``positions`` (each query
         feature kept with its first keyframe), or None."""
-        from .loop.verification import match_descriptors, solve_pnp
-
         taken = np.zeros(len(uv), bool)
         X, px_uv, owner = [], [], []
         for k in positions:
@@ -238,9 +217,7 @@ class MapLocalizer:
         """Matches by projection: the local map around ``T_pred`` projected into it, each feature
         matched to the best of the projected points within ``search_radius_px`` (ratio test), one
         feature per map point; then PnP RANSAC. ``(T_WC, kf_id, inliers, position_std)`` or None."""
-        from scipy.spatial import cKDTree
-
-        from .loop.verification import solve_pnp
+        from scipy.spatial import cKDTree  # deferred: scipy
 
         tc = self.cfg.tracking
         X_W, mdesc, owner = self.nearest_local_points(T_pred)
@@ -319,225 +296,3 @@ class MapLocalizer:
                     self.last = res[0]
                     return FrameLocalization("relocalised", *res)
         return FrameLocalization("not_localised")
-
-
-# ----------------------------------------------------------------------------------- the command
-
-def _ate(positions: np.ndarray, gt: np.ndarray, A: np.ndarray) -> float:
-    aligned = positions @ A[:3, :3].T + A[:3, 3]
-    return float(np.sqrt(np.mean(np.sum((aligned - gt) ** 2, axis=1))))
-
-
-def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path, config: LocalizeConfig | None = None,
-                     fmt: str = "auto", start: int | None = None, end: int | None = None, stride: int = 1,
-                     prepare_out: Callable[[Path], Any] | None = None) -> dict[str, Any]:
-    """Localise the sequence ``data`` (raw frames ``start`` .. ``end``, every ``stride``-th; the
-    other dataset settings, e.g. the image size, are the map run's, with ``config.dataset`` merged
-    over them) in the map at ``map_path``; writes
-    the outputs (module docstring) to ``out_dir`` and returns the summary. ``prepare_out(out_dir)``
-    is called once the map, the sequence and their cameras are checked, before anything is written
-    (the CLI: ``fgslam run``'s rule for a previous run's outputs, :func:`fgslam.outputs.clear_previous_outputs`).
-    Raises :class:`NotLocalisedError` (after writing) when no frame localised."""
-    from .io.trajectory import Trajectory, write_trajectory
-
-    config = config or LocalizeConfig()
-    config.validate()
-    cpu0, wall0 = time.process_time(), time.perf_counter()
-    stored = load_stored_map(map_path)
-    ds_dict = dict((stored.meta.get("config") or {}).get("dataset") or {})
-    ds_dict.update(load_rgb=False, load_depth=False, load_right=False, load_imu=False, start=0, end=None,
-                   stride=int(stride))
-    ds_dict.update(config.dataset)  # the command's dataset section: e.g. a calibration or ground-truth file
-    if start is not None:
-        ds_dict["start"] = int(start)
-    if end is not None:
-        ds_dict["end"] = int(end)
-    dataset = open_dataset(data, fmt, from_dict(DatasetConfig, ds_dict, f"{map_path} (dataset settings)"))
-    c = dataset.calibration
-    check_map_camera(stored, c.K, c.width, c.height, map_path, data)
-    out = Path(out_dir)
-    if prepare_out is not None:
-        prepare_out(out)
-    out.mkdir(parents=True, exist_ok=True)
-    localizer = MapLocalizer(stored, config)
-    setup_cpu = time.process_time() - cpu0
-    rows: list[tuple[int, float, str, int, int, float]] = []
-    stamps, poses, gt_pos, has_gt = [], [], [], []
-    loop_cpu0 = time.process_time()
-    for frame in dataset:
-        res = localizer.localize(frame.image)
-        rows.append((int(frame.source_index), float(frame.timestamp), res.status, res.kf_id, res.inliers, res.position_std))
-        if res.T_WC is not None:
-            stamps.append(frame.timestamp)
-            poses.append(res.T_WC)
-            has_gt.append(frame.T_WC_gt is not None)
-            gt_pos.append(frame.T_WC_gt[:3, 3] if frame.T_WC_gt is not None else np.full(3, np.nan))
-    loop_cpu = time.process_time() - loop_cpu0
-    counts = {s: sum(1 for r in rows if r[2] == s) for s in STATUSES}
-    n = len(rows)
-    with open(out / STATUS_FILE, "w", newline="", encoding="utf-8") as f:
-        w = csv.writer(f)
-        w.writerow(("frame", "timestamp", "status", "keyframe", "inliers", "position_std"))
-        for r in rows:
-            w.writerow((r[0], f"{r[1]:.17g}", r[2], r[3], r[4], "" if np.isnan(r[5]) else f"{r[5]:.6g}"))
-    localised = n - counts["not_localised"]
-    summary: dict[str, Any] = {
-        "map": str(map_path), "data": str(data), "frames": n, "localised": localised,
-        "not_localised": counts["not_localised"], "tracked": counts["tracked"], "relocalised": counts["relocalised"],
-        "localised_fraction": localised / n if n else 0.0, "map_keyframes": stored.num_keyframes,
-        "map_family": stored.meta.get("family"), "map_sensor": stored.meta.get("sensor"),
-        "cpu_s": time.process_time() - cpu0, "setup_cpu_s": setup_cpu, "wall_s": time.perf_counter() - wall0,
-        "cpu_ms_per_frame": 1000.0 * loop_cpu / n if n else None,
-        "frames_per_cpu_s": n / loop_cpu if loop_cpu > 0 else None,
-        "load_average": list(os.getloadavg()), "max_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "evaluation": None, "config": to_dict(config), "outputs": [STATUS_FILE, SUMMARY_FILE],
-    }
-    alignment = stored.meta.get("groundtruth_alignment")
-    if poses and alignment and any(has_gt):
-        sel = np.array(has_gt)
-        A = np.asarray(alignment["matrix"], np.float64)
-        P = np.stack([T[:3, 3] for T in poses])[sel]
-        G = np.stack(gt_pos)[sel]
-        summary["evaluation"] = {
-            "align": f"the map run's own ({alignment['align']}), applied unchanged",
-            "n_matched": int(sel.sum()),
-            "ate_rmse_m": _ate(P, G, A),
-            "stationary_ate_rmse_m": _ate(np.repeat(P[:1], len(P), axis=0), G, A),
-        }
-    if poses:
-        write_trajectory(out / TRAJECTORY_FILE, Trajectory(np.array(stamps), np.stack(poses)), "tum")
-        summary["outputs"].insert(0, TRAJECTORY_FILE)
-    else:
-        (out / TRAJECTORY_FILE).unlink(missing_ok=True)
-    tmp = out / f".{SUMMARY_FILE}.tmp"
-    tmp.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-    os.replace(tmp, out / SUMMARY_FILE)
-    if not poses:
-        raise NotLocalisedError(f"{data}: none of the {n} frames localised in the map {map_path} "
-                                f"(every frame 'not localised' in {out / STATUS_FILE}; no trajectory written)")
-    return summary
-
-
-# ----------------------------------------------------------------------------------- extending a map
-
-@dataclass
-class MapMerge:
-    """A recording merged into a stored map: ``S_MR`` (4x4 Sim(3), recording frame -> map frame;
-    rigid for metric maps), the first keyframe localised in the map (``merge_kf_id``, at
-    ``merge_time``: frames from then on are reported in the map's frame) and the keyframes that
-    support it (``verified`` of ``tried``)."""
-
-    S_MR: np.ndarray
-    merge_kf_id: int
-    merge_time: float
-    verified: int
-    consistent: int
-    tried: int
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"S_MR": self.S_MR.tolist(), "merge_keyframe": self.merge_kf_id, "merge_time": self.merge_time,
-                "verified_keyframes": self.verified, "consistent_keyframes": self.consistent,
-                "keyframes_tried": self.tried}
-
-
-def _project_rotation(M: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
-
-
-def merge_recording(stored: StoredMap, recording: StoredMap, config: LocalizeConfig | None = None,
-                    metric: bool | None = None) -> MapMerge | None:
-    """Localise the keyframes of a ``recording`` (a stored map of the new run, own frame) in
-    ``stored`` one after the other (:class:`MapLocalizer`: retrieval + verification, then tracking),
-    and estimate the transform between the two frames from the localised keyframes: the rotation
-    from their poses (the map-from-recording rotations within ``merge.max_rotation_deg`` of the
-    best-supported one, averaged), the scale (unless ``metric``: by default when both maps are metric,
-    ``meta["metric"]``; a monocular map on either side has its own scale) and translation from their
-    positions (least squares). None (no merge) with fewer than ``merge.min_keyframes`` consistent."""
-    config = config or LocalizeConfig()
-    if metric is None:
-        metric = stored.metric and recording.metric
-    mc = config.merge
-    if stored.meta["features"] != recording.meta["features"]:
-        logger.warning("map merge: the recording's keyframe features were made with other settings than the "
-                       "map's (output.map_features): not merged")
-        return None
-    localizer = MapLocalizer(stored, config)
-    pairs: list[tuple[int, np.ndarray, np.ndarray]] = []
-    for k in range(recording.num_keyframes):
-        uv, desc, _ = recording.features(k)
-        res = localizer.localize_features(uv, desc)
-        if res.T_WC is not None:
-            pairs.append((k, res.T_WC, recording.T_WC[k]))
-    if len(pairs) < mc.min_keyframes:
-        logger.info("map merge: %d of %d recording keyframes localised in the map (< %d): not merged",
-                    len(pairs), recording.num_keyframes, mc.min_keyframes)
-        return None
-    R_rec = [T_R[:3, :3] / np.cbrt(np.linalg.det(T_R[:3, :3])) for _, _, T_R in pairs]
-    R_MR = np.stack([T_M[:3, :3] @ R.T for (_, T_M, _), R in zip(pairs, R_rec)])
-    cos_max = np.cos(np.deg2rad(mc.max_rotation_deg))
-    agree = (np.einsum("aij,bij->ab", R_MR, R_MR) - 1.0) / 2.0 >= cos_max   # cos of the angle between each two
-    best = int(agree.sum(axis=1).argmax())
-    inl = np.flatnonzero(agree[best])
-    R = _project_rotation(R_MR[inl].sum(axis=0))
-    p_M = np.stack([pairs[i][1][:3, 3] for i in inl])
-    p_R = np.stack([pairs[i][2][:3, 3] for i in inl])
-    mM, mR = p_M.mean(axis=0), p_R.mean(axis=0)
-    q = (p_R - mR) @ R.T
-    scale = 1.0 if metric or not np.sum(q * q) > 0 else float(np.sum((p_M - mM) * q) / np.sum(q * q))
-    t = mM - scale * R @ mR
-    resid = np.linalg.norm(p_M - (scale * p_R @ R.T + t), axis=1)
-    extent = max(float(np.linalg.norm(p_M.max(axis=0) - p_M.min(axis=0))), float(np.finfo(float).eps))
-    consistent = inl[resid <= mc.max_position_error * extent] if len(inl) > 2 else inl
-    if len(consistent) < mc.min_keyframes or scale <= 0:
-        logger.info("map merge: %d consistent keyframes (< %d): not merged", len(consistent), mc.min_keyframes)
-        return None
-    S = np.eye(4)
-    S[:3, :3] = scale * R
-    S[:3, 3] = t
-    first = pairs[int(consistent.min())][0]
-    logger.info("map merge: %d of %d recording keyframes localised, %d consistent; merged from keyframe %d "
-                "(scale %.4f)", len(pairs), recording.num_keyframes, len(consistent),
-                int(recording.kf_ids[first]), scale)
-    return MapMerge(S, int(recording.kf_ids[first]), float(recording.kf_timestamps[first]), len(pairs),
-                    len(consistent), recording.num_keyframes)
-
-
-def combine_maps(stored: StoredMap, recording: StoredMap, S_MR: np.ndarray) -> StoredMap:
-    """The merged map: ``stored`` and the ``recording``'s keyframes, structure and database moved
-    into the map's frame by ``S_MR`` (Sim(3) poses ``S_MR T_WC``: camera points keep the
-    recording's units), the recording's keyframe ids after the stored ones."""
-    offset = int(stored.kf_ids.max()) + 1 if stored.num_keyframes else 0
-    meta = dict(stored.meta)
-    meta["recordings"] = int(stored.meta.get("recordings", 1)) + 1
-    X_new = recording.points_X_W @ S_MR[:3, :3].T + S_MR[:3, 3]
-    return StoredMap(
-        meta,
-        np.concatenate([stored.kf_ids, recording.kf_ids + offset]),
-        np.concatenate([stored.kf_timestamps, recording.kf_timestamps]),
-        np.concatenate([stored.kf_frame_index, recording.kf_frame_index]),
-        np.concatenate([stored.T_WC, S_MR[None] @ recording.T_WC]),
-        np.concatenate([stored.feat_ptr, recording.feat_ptr[1:] + stored.feat_ptr[-1]]),
-        np.concatenate([stored.feat_uv, recording.feat_uv]),
-        np.concatenate([stored.feat_desc, recording.feat_desc]),
-        np.concatenate([stored.feat_X_C, recording.feat_X_C]),
-        np.concatenate([stored.bow_ptr, recording.bow_ptr[1:] + stored.bow_ptr[-1]]),
-        np.concatenate([stored.bow_words, recording.bow_words]),
-        np.concatenate([stored.bow_weights, recording.bow_weights]),
-        np.concatenate([stored.points_X_W, X_new]),
-        np.concatenate([stored.points_colour, recording.points_colour]),
-        np.concatenate([stored.track_point, recording.track_point + len(stored.points_X_W)]),
-        np.concatenate([stored.track_kf, recording.track_kf + offset]),
-        np.concatenate([stored.track_uv, recording.track_uv]))
-
-
-def rigid_in_map(S_MR: np.ndarray, T_RC: np.ndarray) -> np.ndarray:
-    """(N, 4, 4) rigid camera poses of a recording, ``T_RC`` (N, 4, 4) rigid, in the map's frame:
-    rotation ``R R_RC``, position ``s R t_RC + t`` (``S_MR = [[s R, t], [0, 1]]``)."""
-    s = float(np.cbrt(np.linalg.det(S_MR[:3, :3])))
-    R = S_MR[:3, :3] / s
-    out = np.array(T_RC, dtype=np.float64, copy=True).reshape(-1, 4, 4)
-    out[:, :3, :3] = R[None] @ out[:, :3, :3]
-    out[:, :3, 3] = s * out[:, :3, 3] @ R.T + S_MR[:3, 3]
-    return out

@@ -8,15 +8,17 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, Optional
 
-from .backend.config import BackendConfig
-from .config import MAX_FRAMES, MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, ranged, with_sections
-from .eval import EvalConfig
-from .export.mapfile import MapFeaturesConfig, MapMergeConfig
-from .export.rerun import RerunConfig
-from .frontends import FRONTEND_NAMES, family_config_classes
-from .io.datasets import DatasetConfig
-from .loop.records import LoopClosureConfig
-from .services.imu_samples import ImuServiceConfig
+from ..backend.config import BackendConfig
+from ..config import MAX_FRAMES, MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, load_config, ranged, with_sections
+from ..eval import EvalConfig
+from ..export.mapfile import MapFeaturesConfig, MapMergeConfig
+from ..export.rerun import RerunConfig
+from ..frontends import FRONTEND_NAMES, family_config_classes
+from ..io.datasets import DatasetConfig
+from ..loop.records import LoopClosureConfig
+from ..services.imu_samples import ImuServiceConfig
+from ..services.plugins import validate_factor_entries
+from .presets import resolve_preset
 
 
 SensorName = Literal["mono", "stereo", "rgbd"]
@@ -62,19 +64,18 @@ class SlamConfig:
     output: OutputConfig = field(default_factory=OutputConfig)
     # loop closure (mode off | proximity | classical | both); off by default
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
-    max_memory_gib: float = ranged(16.0, gt=0, le=MAX_MEMORY_MIB / 1024)  # a run whose estimated peak memory (fgslam/memory.py) exceeds this is refused before any work
+    max_memory_gib: float = ranged(16.0, gt=0, le=MAX_MEMORY_MIB / 1024)  # a run whose estimated peak memory (fgslam/run/memory.py) exceeds this is refused before any work
     # user factor plugins, [{class: "package.module:ClassName", options: {...}}] (fgslam/services/plugins.py)
     factors: list[dict[str, Any]] = field(default_factory=list)
 
     def validate(self) -> None:
-        from .services.plugins import validate_factor_entries
-
         self.loop_closure.validate()
         validate_factor_entries(self.factors)
 
     def family_section(self, name: str | None = None) -> Any:
         """The config section of frontend family ``name`` (default: ``frontend``); None for a family
-        without one (planned families)."""
+        without one (planned families). ``Any``: the section class is the family's registry entry's
+        (a user's family included)."""
         return getattr(self, name or self.frontend, None)
 
     def needs_colour(self) -> bool:
@@ -106,8 +107,5 @@ def dataset_config_for(config: SlamConfig) -> DatasetConfig:
 
 def load_slam_config(name_or_path: str | Path | None, overrides: list[str] | tuple[str, ...] = ()) -> SlamConfig:
     """SlamConfig from a YAML path or preset name (None: defaults) with ``key=value`` overrides."""
-    from .config import load_config
-    from .presets import resolve_preset
-
     path = None if name_or_path is None else resolve_preset(name_or_path)
     return load_config(SlamConfig, path, overrides)

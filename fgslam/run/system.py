@@ -1,12 +1,13 @@
 """The run's system: one object that owns the backend and the services and runs the per-frame skeleton.
 
 :class:`SlamSystem` is built from a run config (:meth:`SlamSystem.build`; the runner
-:func:`fgslam.slam.run_slam` does it) or around a frontend built by hand (:meth:`SlamSystem.around`,
+:func:`fgslam.run.runner.run_prepared` does it) or around a frontend built by hand (:meth:`SlamSystem.around`,
 tests and tools). It owns, as peers:
 
 - the :class:`~fgslam.backend.Backend` (every keyframe pose, every factor, every optimisation);
 - the frontend (:class:`~fgslam.frontends.base.Frontend`), which only measures: it is built with the
-  backend and connected to the loop service through its narrow loop port;
+  backend and connected to the loop service through its narrow loop port; the system calls it only
+  through the members the ``Frontend`` contract declares;
 - the loop-closure service (:class:`~fgslam.services.loops.LoopService`, inert when
   ``loop_closure.mode`` is off), the IMU service (:class:`~fgslam.services.imu.ImuService`), the factor
   plugins (:class:`~fgslam.services.plugins.FactorPlugins`) and the live view
@@ -25,48 +26,29 @@ fixed point of the frame sequence, so a run gives the same bytes however fast th
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any, Iterable, Optional, Protocol
+from typing import Iterable, Optional
 
 import numpy as np
 
-from .errors import OptimizationError
-from .frontends.base import FrameStatus, Frontend
-
-if TYPE_CHECKING:
-    from .backend import Backend
-    from .backend.config import BackendConfig
-    from .export.rerun import RerunConfig
-    from .io.calibration import Calibration
-    from .io.frame import Frame
-    from .services.imu_samples import ImuServiceConfig
-    from .export.rerun import RerunView
-    from .loop.records import LoopClosureConfig
-    from .services.imu import ImuService
-    from .services.loops import LoopService
-    from .services.plugins import FactorPlugins
+from ..backend import Backend
+from ..contracts.contributor import Contributor
+from ..errors import ConfigError, OptimizationError
+from ..export.rerun import RerunView, loop_segments
+from ..frontends import make_frontend
+from ..frontends.base import FrameStatus, Frontend
+from ..io.calibration import Calibration
+from ..io.frame import Frame
+from ..loop.records import LoopClosureConfig
+from ..services.corrections import ObservedContributor
+from ..services.imu import ImuService, make_imu_service
+from ..services.loops import LoopService
+from ..services.plugins import FactorPlugins
+from .config import SlamConfig
 
 logger = logging.getLogger(__name__)
 
 # numerical trouble in a service's safe point (gtsam/numpy): logged, the visual run goes on
 _NUMERICAL_ERRORS = (OptimizationError, RuntimeError, np.linalg.LinAlgError)
-
-
-class RunOutputSettings(Protocol):
-    rerun: "RerunConfig"
-
-
-class RunSettings(Protocol):
-    """What :meth:`SlamSystem.build` reads of a run config (:class:`fgslam.runconfig.SlamConfig`)."""
-
-    frontend: str
-    sensor: str
-    map: "BackendConfig"
-    loop_closure: "LoopClosureConfig"
-    imu: "ImuServiceConfig"
-    factors: list
-    output: RunOutputSettings
-
-    def family_section(self, name: str | None = None) -> Any: ...
 
 
 class SlamSystem:
@@ -75,59 +57,51 @@ class SlamSystem:
     Args:
         frontend: the run's frontend, built with ``backend`` (a frontend without one, as in tests of
             the runner, gets no IMU or plugins).
-        backend: the run's backend (None: the frontend's ``backend`` attribute, if any).
+        backend: the run's backend (None: the frontend's :attr:`~fgslam.frontends.base.Frontend.backend`).
         loops: the loop-closure service (None: none; the frontend keeps its no-op loop port).
         imu: the IMU service (None: off).
         plugins: the factor plugins (None: none).
         view: the live view / rerun log (None: off).
     """
 
-    def __init__(self, frontend: Frontend, backend: Optional["Backend"] = None, loops: Optional["LoopService"] = None,
-                 imu: Optional["ImuService"] = None, plugins: Optional["FactorPlugins"] = None,
-                 view: Optional["RerunView"] = None) -> None:
+    def __init__(self, frontend: Frontend, backend: Optional[Backend] = None, loops: Optional[LoopService] = None,
+                 imu: Optional[ImuService] = None, plugins: Optional[FactorPlugins] = None,
+                 view: Optional[RerunView] = None) -> None:
         self.frontend = frontend
-        self.backend = backend if backend is not None else getattr(frontend, "backend", None)
+        self.backend = backend if backend is not None else frontend.backend
         self.loops = loops
         self.imu = imu
         self.plugins = plugins
         self.view = view
         self.imu_input_warnings: list[str] = []  # the IMU stream's checks before the run (services/imu_checks.py)
-        connect = getattr(frontend, "connect", None)
-        if callable(connect):
-            connect(loops=loops, motion_prior=None if imu is None else imu.predict)
+        frontend.connect(loops=loops, motion_prior=None if imu is None else imu.predict)
 
     # ------------------------------------------------------------------ building
     @classmethod
-    def build(cls, config: RunSettings, calibration: Optional["Calibration"], *, frontend: Optional[Frontend] = None,
+    def build(cls, config: SlamConfig, calibration: Optional[Calibration], *, frontend: Optional[Frontend] = None,
               timestamps: Optional[np.ndarray] = None, has_imu: bool = False, imu_noise: Optional[dict] = None,
               where: str = "the dataset", rerun: Optional[str] = None) -> "SlamSystem":
-        """The system of a run config (:class:`fgslam.runconfig.SlamConfig`): a backend from ``map``, the
-        ``frontend`` family built on it (or the given frontend), and the services the config turns on.
+        """The system of a run config (:class:`fgslam.run.config.SlamConfig`): a backend from ``map``, the
+        ``frontend`` family built on it (or the given frontend), and the services the config turns on
+        (``rerun``: the live view's target, checked before, :func:`fgslam.run.prepare.prepare_run`).
 
         Raises:
             ConfigError: the frontend is unknown, or a service needs a backend the given frontend lacks.
             DataError: ``imu.enabled`` but the data has no IMU (``has_imu``) or no ``T_BC``.
         """
-        from .backend import Backend
-        from .errors import ConfigError
-        from .frontends import make_frontend
-
         if frontend is None:
             backend = Backend(config.map)
             frontend = make_frontend(config.frontend, config, calibration, config.sensor, backend=backend)
         else:
-            backend = getattr(frontend, "backend", None)
+            backend = frontend.backend
         needs_backend = [key for key, on in (("imu.enabled", config.imu.enabled), ("factors", bool(config.factors)))
                          if on]
         if backend is None and needs_backend:
-            raise ConfigError(f"{', '.join(needs_backend)}: frontend '{getattr(frontend, 'name', type(frontend).__name__)}' "
+            raise ConfigError(f"{', '.join(needs_backend)}: frontend '{frontend.name}' "
                               "feeds no backend, so these services cannot apply")
         imu = None
-        contributor = _contributor(frontend)
+        contributor = frontend.contributor
         if config.imu.enabled:
-            from .services.corrections import ObservedContributor
-            from .services.imu import make_imu_service
-
             imu = make_imu_service(config.imu, backend, calibration, has_imu, config.sensor,
                                    contributor=contributor, dataset_noise=imu_noise, where=where)
             if imu is not None:  # map corrections of loops and plugins move the IMU states too
@@ -135,43 +109,34 @@ class SlamSystem:
         loops = cls._loop_service(frontend, config.loop_closure, contributor) if backend is not None else None
         plugins = None
         if config.factors:
-            from .services.plugins import FactorPlugins
-
             plugins = FactorPlugins(config.factors, backend, timestamps, contributor=contributor)
         view = None
         if rerun:
-            from .export.rerun import RerunView, check_rerun_target
-
-            check_rerun_target(rerun)
             view = RerunView(rerun, calibration, config.output.rerun)
         return cls(frontend, backend, loops=loops, imu=imu, plugins=plugins, view=view)
 
     @classmethod
-    def around(cls, frontend: Frontend, loop_config: Optional["LoopClosureConfig"] = None) -> "SlamSystem":
+    def around(cls, frontend: Frontend, loop_config: Optional[LoopClosureConfig] = None) -> "SlamSystem":
         """The system of a frontend built by hand on its backend, with loop closure from ``loop_config``
         (None: off) and no other service (tests, tools)."""
         return cls(frontend, loops=cls._loop_service(frontend, loop_config))
 
     @staticmethod
-    def _loop_service(frontend: Frontend, loop_config: Optional["LoopClosureConfig"],
-                      contributor: Any = None) -> Optional["LoopService"]:
+    def _loop_service(frontend: Frontend, loop_config: Optional[LoopClosureConfig],
+                      contributor: Optional[Contributor] = None) -> Optional[LoopService]:
         """The loop-closure service with ``frontend`` as its contributor (or ``contributor``, the
         frontend's seen through the IMU's correction hooks) (None: ``loop_config`` None or off,
         unless the frontend hands global optimisations to the service's worker: then a service with
         loop closure off, inert but for them)."""
         if loop_config is None or loop_config.mode == "off":
-            if not getattr(frontend, "background_global_ba", False):
+            if not frontend.background_global_ba:
                 return None
-            from .loop.records import LoopClosureConfig
-
             loop_config = loop_config if loop_config is not None else LoopClosureConfig(mode="off")
-        from .services.loops import LoopService
-
-        return LoopService(contributor if contributor is not None else _contributor(frontend), loop_config, metric=bool(getattr(frontend, "metric_scale", False)),
-                           proximity=getattr(frontend, "proximity_gates", None))
+        return LoopService(contributor if contributor is not None else frontend.contributor, loop_config,
+                           metric=bool(frontend.metric_scale), proximity=frontend.proximity_gates)
 
     # ------------------------------------------------------------------ the run
-    def step(self, frame: "Frame") -> FrameStatus:
+    def step(self, frame: Frame) -> FrameStatus:
         """One frame through the skeleton (module docstring); returns the frontend's status."""
         if self.imu is not None:
             self.imu.feed(frame.imu, frame.timestamp)
@@ -197,9 +162,7 @@ class SlamSystem:
         self.frontend.finish()
         if self.loops is not None:
             self.loops.finish()
-        finish_map = getattr(self.frontend, "finish_map", None)
-        if callable(finish_map):
-            finish_map()
+        self.frontend.finish_map()
         if self.imu is not None:
             logger.info("IMU: %s", self.imu.summary())
         if self.plugins is not None:
@@ -211,9 +174,7 @@ class SlamSystem:
         """Stop background work at once without applying it (a stopped or failed run)."""
         if self.loops is not None:
             self.loops.cancel()
-        abort = getattr(self.frontend, "abort", None)
-        if callable(abort):
-            abort()
+        self.frontend.abort()
 
     # ------------------------------------------------------------------ reports
     def stage_times(self) -> dict[str, float]:
@@ -235,7 +196,7 @@ class SlamSystem:
 
     def inertial_state(self) -> Optional[dict]:
         """The IMU service's state as a mapping for ``summary.json`` ``inertial``
-        (:func:`fgslam.outputs.inertial_summary`), None without IMU service: its ``summary()`` plus the
+        (:func:`fgslam.run.results.inertial_summary`), None without IMU service: its ``summary()`` plus the
         newest linked keyframe's bias and the input checks' warnings."""
         if self.imu is None:
             return None
@@ -254,11 +215,9 @@ class SlamSystem:
     def _loop_segments(self) -> list:
         if self.loops is None or self.backend is None:
             return []
-        from .export.rerun import loop_segments
-
         return loop_segments(self.loops.accepted_pairs(), self.backend)
 
-    def _view_frame(self, frame: "Frame", status: FrameStatus) -> None:
+    def _view_frame(self, frame: Frame, status: FrameStatus) -> None:
         try:
             self.view.log_frame(frame, status)
             if self.view.map_due():
@@ -267,13 +226,7 @@ class SlamSystem:
             logger.warning("rerun logging failed at frame %d: %s: %s", frame.index, type(exc).__name__, exc)
 
 
-def _contributor(frontend: Frontend) -> Any:
-    """What the services talk to: the frontend's ``contributor`` (a family's collaborator, or the
-    frontend itself), or a frontend without the protocol as it is."""
-    return getattr(frontend, "contributor", frontend)
-
-
-def run_frames(system: SlamSystem, frames: Iterable["Frame"]) -> list[FrameStatus]:
+def run_frames(system: SlamSystem, frames: Iterable[Frame]) -> list[FrameStatus]:
     """Every frame through ``system`` then :meth:`SlamSystem.finish` (tests, tools); the statuses."""
     statuses = [system.step(frame) for frame in frames]
     system.finish()

@@ -1,0 +1,87 @@
+"""``--save-map`` and ``--map`` of a run: a step of its own that the runner calls once the run's
+results are in (:func:`store_map`).
+
+``--save-map``: the stored map of :mod:`fgslam.export.mapfile` (keyframes, structure, features,
+retrieval database, calibration, config and the run's alignment to its ground truth), written
+atomically. ``--map``: the recording is merged into that stored map when its keyframes localise in it
+(:func:`fgslam.localize.merge.merge_recording`): ``merge.json`` and ``merged_trajectory_tum.txt`` (the
+frames from the merge on, in the map's frame), and ``--save-map`` saves the merged map. A failure is
+recorded among the run's output errors, never raised: the other outputs are written regardless."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..config import to_dict
+from ..export.mapfile import build_stored_map, load_stored_map, save_stored_map
+from ..frontends.base import Frontend
+from ..io.trajectory import Trajectory, write_trajectory
+from ..localize.localizer import LocalizeConfig
+from ..localize.merge import combine_maps, merge_recording, rigid_in_map
+from .files import MERGE_FILE, MERGED_TUM_FILE
+from .outputs import OutputWriter
+from .prepare import PreparedRun
+from .results import RunResults, RunState
+
+logger = logging.getLogger(__name__)
+
+
+def store_map(writer: OutputWriter, run: PreparedRun, frontend: Frontend, state: RunState, results: RunResults) -> None:
+    """Save the run's stored map (``output.save_map``) and, with ``output.extend_map``, merge the
+    recording into that map first (module docstring); the run has a final trajectory
+    (``results.traj``)."""
+    config, dataset, traj, notes = run.config, run.dataset, results.traj, results.notes
+    out, result = writer.out, results.eval_result
+    save_path = Path(config.output.save_map) if config.output.save_map else None
+    try:
+        exported = frontend.map_export()
+    except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+        writer.fail("stored_map", f"map_export() failed: {type(exc).__name__}: {exc}")
+        return
+    if exported is None or exported.num_keyframes == 0:
+        notes.append(f"frontend '{frontend.name}' exports no keyframes: no stored map written or extended")
+        return
+    alignment = None if result is None else {"align": result.align, "matrix": result.alignment.matrix().tolist()}
+    try:
+        recording = build_stored_map(
+            exported, dataset, sensor=config.sensor, family=frontend.name, config=to_dict(config),
+            features=config.output.map_features, verification=config.loop_closure.verification,
+            groundtruth_alignment=alignment, frame_indices=np.array(sorted(state.frame_paths), dtype=np.int64))
+    except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+        writer.fail("stored_map", f"building the stored map failed: {type(exc).__name__}: {exc}")
+        logger.error("could not build the stored map: %s: %s", type(exc).__name__, exc)
+        return
+    to_save = recording
+    if config.output.extend_map:
+        try:
+            stored = load_stored_map(config.output.extend_map)
+            merge = merge_recording(stored, recording, LocalizeConfig(merge=config.output.map_merge))  # Sim(3) unless both metric
+        except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+            writer.fail("merge", f"--map {config.output.extend_map}: {type(exc).__name__}: {exc}")
+            logger.error("could not merge the recording into %s: %s", config.output.extend_map, exc)
+            return
+        info = {"map": config.output.extend_map, "merged": merge is not None,
+                **({} if merge is None else merge.to_dict())}
+        if merge is None:
+            notes.append(f"--map {config.output.extend_map}: no keyframe of the recording localised in it "
+                         "consistently: not merged (the recording stays its own map)")
+        else:
+            keep = traj.timestamps >= merge.merge_time
+            merged = Trajectory(traj.timestamps[keep], rigid_in_map(merge.S_MR, traj.T_WC[keep]))
+            path = out / MERGED_TUM_FILE
+            writer.write("merged_trajectory", [path], lambda: write_trajectory(path, merged, "tum"))
+            to_save = combine_maps(stored, recording, merge.S_MR)
+        merge_path = out / MERGE_FILE
+        writer.write("merge", [merge_path],
+                     lambda: merge_path.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8"))
+    if save_path is not None:  # written atomically: a failure leaves an earlier file at that path as it was
+        try:
+            save_stored_map(save_path, to_save)
+            writer.record("stored_map", str(save_path))
+        except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
+            writer.fail("stored_map", f"{save_path}: {type(exc).__name__}: {exc}")
+            logger.error("could not write the stored map %s: %s", save_path, exc)
