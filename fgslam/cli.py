@@ -14,7 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from . import __version__
-from .errors import FGSlamError
+from .core.errors import FGSlamError
 
 #: Subcommands in the order ``fgslam --help`` lists them.
 COMMANDS: tuple[str, ...] = ("run", "localize", "demo", "synth", "info", "eval", "pgo", "export", "compare-colmap", "batch")
@@ -69,7 +69,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except FGSlamError as exc:
             print(f"fgslam: error: {exc}", file=sys.stderr)
             return 2
-        except KeyboardInterrupt as exc:  # Ctrl-C, or fgslam.errors.Interrupted (SIGINT/SIGTERM during a run)
+        except KeyboardInterrupt as exc:  # Ctrl-C, or fgslam.core.errors.Interrupted (SIGINT/SIGTERM during a run)
             print(f"fgslam: {str(exc) or 'interrupted'}", file=sys.stderr)
             return getattr(exc, "exit_code", 130)
 

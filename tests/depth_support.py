@@ -8,7 +8,7 @@ import dataclasses
 
 import numpy as np
 
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory
 from patch_support import render_room
 

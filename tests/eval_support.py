@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.io.run_files import TUM_FILE
 from fgslam.io.trajectory import Trajectory
 
@@ -74,6 +74,6 @@ def run_preset(root, preset: str, out, overrides=()):
 
 
 def evaluate_tum_rows(groundtruth: Trajectory, est, align: str):
-    """:func:`fgslam.eval.evaluate` of a TUM trajectory given as an (N, 8) array against ``groundtruth``."""
+    """:func:`fgslam.eval.trajectory.evaluate` of a TUM trajectory given as an (N, 8) array against ``groundtruth``."""
     return evaluate(groundtruth, Trajectory.from_position_quaternion(est[:, 0], est[:, 1:4], est[:, 4:8]),
                     EvalConfig(align=align))

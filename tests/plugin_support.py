@@ -149,7 +149,7 @@ def run_drive(system, n: int) -> np.ndarray:
 
 def ate_se3(T_est: np.ndarray, T_true: np.ndarray) -> float:
     """RMS position error after the best rigid (no scale) alignment."""
-    from fgslam.geometry import umeyama
+    from fgslam.core.geometry import umeyama
 
     a = umeyama(T_est[:, :3, 3], T_true[:, :3, 3], with_scale=False)
     aligned = T_est[:, :3, 3] @ a.R.T + a.t

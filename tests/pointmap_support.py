@@ -77,7 +77,7 @@ def open_clip(root, mode: str):
 
 def ate_percent(frontend, frames, align: str) -> tuple[float, float]:
     """(ATE RMSE, ATE as % of the ground-truth path) of a frontend's trajectory over ``frames``."""
-    from fgslam.eval import EvalConfig, evaluate
+    from fgslam.eval.trajectory import EvalConfig, evaluate
     from fgslam.io.trajectory import Trajectory
 
     t, T, _ = frontend.trajectory()

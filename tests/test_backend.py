@@ -9,11 +9,11 @@ import torch
 
 from fgslam.backend import Backend, BackendConfig, GaugeConfig, LinearPiece, key_name, pose_key
 from fgslam.backend.config import WindowConfig
-from fgslam.errors import OptimizationError
+from fgslam.core.errors import OptimizationError
 from fgslam.factors.reprojection import reproject
 from fgslam.factors.schur import POSE_DIM, torch_threads
 from fgslam.factors.visual_block import BlockConfig, InverseDepthBlock
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 D = POSE_DIM
 NUM_KF = 5
 POINTS_PER_KF = 50
@@ -508,8 +508,8 @@ def test_backend_bookkeeping_remove_keyframe_drops_factors_blocks_and_moves_anch
 
 
 def test_backend_config_preset_loads_with_overrides(repo_root):
-    from fgslam.config import load_config
-    from fgslam.errors import ConfigError
+    from fgslam.core.config import load_config
+    from fgslam.core.errors import ConfigError
 
     cfg = load_config(BackendConfig, repo_root / "fgslam" / "configs" / "map.yaml",
                       ["solver=isam2", "gauge.hold_scale=false", "window.leaving=marginalize"])

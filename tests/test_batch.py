@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from fgslam.batch import BatchMatrix, BatchOptions, load_matrix, run_batch
+from fgslam.run.batch import BatchMatrix, BatchOptions, load_matrix, run_batch
 from fgslam.cli import main
-from fgslam.errors import ConfigError, DataError
+from fgslam.core.errors import ConfigError, DataError
 
 LIGHT = ["output.plot=false"]
 
@@ -107,7 +107,7 @@ def test_unknown_matrix_keys_are_named(tmp_path, clip):
 
 
 def test_without_ray_runs_sequentially_and_says_so(tmp_path, clip, monkeypatch, caplog):
-    import fgslam.batch as batch
+    import fgslam.run.batch as batch
 
     monkeypatch.setattr(batch, "ray_available", lambda: False)
     matrix = BatchMatrix(configs={"mono": "patch_mono"}, datasets={"room": str(clip)}, overrides=list(LIGHT))
@@ -126,7 +126,7 @@ def test_without_ray_runs_sequentially_and_says_so(tmp_path, clip, monkeypatch, 
 def test_a_failing_cell_never_reports_an_earlier_attempts_figures(tmp_path):
     """A cell whose dataset does not open this time: its row has the error and none of the figures of
     the summary.json an earlier attempt left in the cell's folder."""
-    from fgslam.batch import run_cell
+    from fgslam.run.batch import run_cell
 
     out = tmp_path / "cell"
     out.mkdir()

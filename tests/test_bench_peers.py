@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from tool_support import load_tool
 
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory, write_trajectory
 
 

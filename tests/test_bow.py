@@ -8,8 +8,8 @@ import logging
 import numpy as np
 import pytest
 
-from fgslam.config import load_config
-from fgslam.errors import ConfigError, DataError, FormatError
+from fgslam.core.config import load_config
+from fgslam.core.errors import ConfigError, DataError, FormatError
 from fgslam.loop.bow import BowConfig, BowDatabase, LoopDetectionConfig, LoopDetector, PlaceRecognizer, same_place
 from fgslam.loop.vocabulary import (BowVector, Vocabulary, VocabularyTrainingConfig, build_tree, hamming_matrix,
                                     kmajority, l1_score, load_default_vocabulary, train_vocabulary)

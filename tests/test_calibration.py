@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
-from fgslam.errors import DataError
+from fgslam.core.errors import DataError
 from fgslam.io.calibration import Calibration
 from fgslam.io.undistort import Undistorter
 

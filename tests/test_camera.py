@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.camera import PinholeCamera, StereoRig, normalize_rays, pixel_rays, project, unproject
-from fgslam.errors import ConfigError
+from fgslam.core.camera import PinholeCamera, StereoRig, normalize_rays, pixel_rays, project, unproject
+from fgslam.core.errors import ConfigError
 
 F64 = torch.float64
 K_REF = torch.tensor([420.0, 410.0, 319.5, 239.5], dtype=F64)

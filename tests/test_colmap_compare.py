@@ -55,7 +55,7 @@ def _surface_distances(X_W: np.ndarray, frames) -> np.ndarray:
 
 def _aligned_fgslam_cloud(out, groundtruth) -> np.ndarray:
     """fgslam's map points in the ground truth's frame (its trajectory's Sim(3) alignment)."""
-    from fgslam.eval import EvalConfig, evaluate
+    from fgslam.eval.trajectory import EvalConfig, evaluate
     from fgslam.export.map import load_run_map
     from fgslam.io.trajectory import read_trajectory
     from fgslam.io.run_files import TUM_FILE

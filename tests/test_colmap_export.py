@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fgslam.errors import DataError
+from fgslam.core.errors import DataError
 from fgslam.export.colmap import (
     ColmapExportConfig,
     build_reconstruction,
@@ -14,7 +14,7 @@ from fgslam.export.colmap import (
     write_model,
 )
 from fgslam.export.map import RunMap, load_run_map, save_run_map
-from fgslam.mapdata import MapExport
+from fgslam.core.mapdata import MapExport
 
 K = np.array([300.0, 310.0, 159.5, 119.5])
 W, H = 320, 240

@@ -6,8 +6,8 @@ from typing import Literal, Optional
 
 import pytest
 
-from fgslam.config import from_dict, load_config, merge_overrides, to_dict
-from fgslam.errors import ConfigError
+from fgslam.core.config import from_dict, load_config, merge_overrides, to_dict
+from fgslam.core.errors import ConfigError
 
 
 @dataclass
@@ -181,7 +181,7 @@ import typing  # noqa: E402
 import math  # noqa: E402
 import re  # noqa: E402
 
-from fgslam.config import MAX_COUNT, MAX_SCALAR, Range, check_ranges, field_range, ranged  # noqa: E402
+from fgslam.core.config import MAX_COUNT, MAX_SCALAR, Range, check_ranges, field_range, ranged  # noqa: E402
 
 #: Config dataclasses used in code but not reachable from a preset root (factor tunables, vocabulary training).
 EXTRA_CONFIG_CLASSES = (
@@ -201,8 +201,8 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.services.plugins:PlanarMotionOptions",
     "fgslam.export.colmap:ColmapExportConfig",
     "fgslam.export.compare:CompareConfig",
-    "fgslam.batch:BatchMatrix",
-    "fgslam.batch:BatchOptions",
+    "fgslam.run.batch:BatchMatrix",
+    "fgslam.run.batch:BatchOptions",
     "fgslam.frontends.pointmap.mix:PointmapMixOptions",
     "fgslam.nets.dba:DenseBAStepConfig",
 )
@@ -408,7 +408,7 @@ def test_range_text_and_limits():
 
 
 def test_with_sections_adds_registered_sections_after_a_field():
-    from fgslam.config import with_sections
+    from fgslam.core.config import with_sections
 
     @dataclass
     class Extra:
@@ -435,11 +435,11 @@ def test_with_sections_adds_registered_sections_after_a_field():
 
 
 def test_import_object_errors_name_what_it_is_for():
-    from fgslam.config import import_object
+    from fgslam.core.config import import_object
 
-    assert import_object("fgslam.config:import_object") is import_object
-    for target, why in (("fgslam.config.import_object", "not of the form"), ("fgslam.nonexistent:X", "cannot import"),
-                        ("fgslam.config:Nothing", "has no attribute 'Nothing'")):
+    assert import_object("fgslam.core.config:import_object") is import_object
+    for target, why in (("fgslam.core.config.import_object", "not of the form"), ("fgslam.nonexistent:X", "cannot import"),
+                        ("fgslam.core.config:Nothing", "has no attribute 'Nothing'")):
         with pytest.raises(ConfigError, match=f"factors\\[0\\].class: .*{why}"):
             import_object(target, "factors[0].class")
 
@@ -451,7 +451,7 @@ def test_localize_yaml_shows_every_key_with_its_default():
 
     import yaml
 
-    from fgslam.config import to_dict
+    from fgslam.core.config import to_dict
     from fgslam.localize.localizer import LocalizeConfig
 
     shown = yaml.safe_load(files("fgslam").joinpath("configs", "localize.yaml").read_text())

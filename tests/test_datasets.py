@@ -18,8 +18,8 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from fgslam.commands import info as info_cmd
-from fgslam.errors import DataError
-from fgslam.config import load_config
+from fgslam.core.errors import DataError
+from fgslam.core.config import load_config
 from fgslam.io.datasets import DatasetConfig, EurocDataset, detect_format, open_dataset
 from fgslam.io.frame import FrameReadError
 from fgslam.io.trajectory import read_trajectory

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from fgslam.demo import DemoConfig, DemoSceneConfig, format_demo_report, load_demo_config, render_scene
-from fgslam.errors import ConfigError
+from fgslam.run.demo import DemoConfig, DemoSceneConfig, format_demo_report, load_demo_config, render_scene
+from fgslam.core.errors import ConfigError
 from fgslam.io.run_files import SUMMARY_FILE, TUM_FILE
 
 REPO = Path(__file__).resolve().parents[1]

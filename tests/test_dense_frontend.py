@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 import pytest
 
-from fgslam.errors import ConfigError
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.core.errors import ConfigError
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.frontends import make_frontend
 from fgslam.frontends.dense import DenseConfig, DenseFrontend
 from fgslam.frontends.dense.graph import select_global_edges

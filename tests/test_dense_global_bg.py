@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from fgslam.backend import Backend, BackendConfig
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.frontends.dense import DenseConfig, DenseFrontend
 from fgslam.io.trajectory import Trajectory
 from fgslam.loop.records import LoopClosureConfig

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.io.trajectory import read_trajectory
 from fgslam.io.run_files import SUMMARY_FILE, TUM_FILE
 from fgslam.run.config import load_slam_config

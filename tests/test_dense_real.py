@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory
 from fgslam.run.config import load_slam_config
 from fgslam.run.prepare import open_slam_dataset

@@ -12,8 +12,8 @@ import torch
 from dense_support import gauge_graph, solve
 from geometry_support import transfer_pixels
 from fgslam.backend.keys import pose_key
-from fgslam.camera import PinholeCamera
-from fgslam.errors import ConfigError, DataError
+from fgslam.core.camera import PinholeCamera
+from fgslam.core.errors import ConfigError, DataError
 from fgslam.factors.dense import DenseBlock, DenseBlockConfig, DenseEdge, DenseKeyframe
 from fgslam.factors.depth import DepthPriorConfig
 from fgslam.factors.reprojection import reproject
@@ -21,7 +21,7 @@ from fgslam.frontends.dense.source import DenseSourceConfig, LearnedDroidSource,
 from fgslam.frontends.flow import DenseFlowConfig, DenseFlowSource, grid_intrinsics, grid_to_image, image_to_grid
 from fgslam.io.synth import SynthSequence
 from fgslam.io.synth.scenarios import load_synth_config
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 
 S = 8  # grid stride
 

@@ -12,8 +12,8 @@ import pytest
 from fgslam.backend.keys import pose_key
 from fgslam.backend.motion_only import optimize_pose
 from fgslam.backend.solver import LMSettings
-from fgslam.errors import ConfigError, DataError
-from fgslam.lie import gtsam_matrix
+from fgslam.core.errors import ConfigError, DataError
+from fgslam.core.lie import gtsam_matrix
 from fgslam.factors.depth_align import DepthAlignBlock, DepthAlignConfig, DepthSurface, point_to_plane, relative_transform
 
 SETTINGS = LMSettings(max_iterations=20, lambda_initial=1e-6, lambda_factor=10.0, lambda_max=1e8,

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fgslam.errors import ConfigError, DataError, EvaluationError
-from fgslam.eval import (
+from fgslam.core.errors import ConfigError, DataError, EvaluationError
+from fgslam.eval.trajectory import (
     EvalConfig,
     associate_timestamps,
     compute_alignment,
@@ -16,7 +16,7 @@ from fgslam.eval import (
     kitti_relative_errors,
     rotation_angle,
 )
-from fgslam.geometry import umeyama
+from fgslam.core.geometry import umeyama
 from fgslam.io.plot import plot_trajectories
 from fgslam.io.trajectory import Trajectory, read_trajectory, write_trajectory
 
@@ -509,7 +509,7 @@ def test_cli_results_are_printed_when_the_plot_fails(run_cli, tmp_path, capsys, 
 
 
 def test_shipped_config_matches_the_defaults(repo_root):
-    from fgslam.config import load_config
+    from fgslam.core.config import load_config
 
     assert load_config(EvalConfig, repo_root / "fgslam" / "configs" / "eval.yaml") == EvalConfig()
 

@@ -15,7 +15,7 @@ from fgslam.factors.depth import DepthPriorConfig
 from fgslam.factors.reprojection import reproject
 from fgslam.factors.schur import POSE_DIM
 from fgslam.factors.visual_block import BlockConfig
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 
 D = POSE_DIM
 H_MAP, W_MAP = 6, 8  # a 1/8-resolution map of a 64 x 48 image

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.camera import PinholeCamera, StereoRig
-from fgslam.errors import ConfigError
+from fgslam.core.camera import PinholeCamera, StereoRig
+from fgslam.core.errors import ConfigError
 from fgslam.factors.depth import DepthPriorConfig, depth_prior, depth_priors, inv_depth_sigma, reproject_stereo
 from fgslam.factors.reprojection import ReprojectionConfig
 
@@ -296,7 +296,7 @@ def test_stereo_scale_means_world_units_per_metre(s):
 
 
 def test_configs_load_from_overrides():
-    from fgslam.config import load_config
+    from fgslam.core.config import load_config
 
     cfg = load_config(DepthPriorConfig, None, ["sigma=0.2", "noise=inverse"])
     assert (cfg.sigma, cfg.noise) == (0.2, "inverse")

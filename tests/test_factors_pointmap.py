@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.errors import DataError
+from fgslam.core.errors import DataError
 from fgslam.factors.pointmap import (
     PointmapResidualConfig,
     as_sim3,
@@ -19,7 +19,7 @@ from fgslam.factors.pointmap import (
     relative_to_global,
     relative_to_global_normal,
 )
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 
 FD_STEP = 1e-6
 N_MATCHES = 3
@@ -27,8 +27,8 @@ K_PINHOLE = np.array([420.0, 410.0, 320.0, 240.0])
 
 
 # ----------------------------------------------------------------------------- Sim(3) helpers
-# Poses are fgslam.lie.Sim3 batches (X -> s R X + t; right perturbation T @ Sim3.exp(xi), tangent
-# [w, u, lambda] = gtsam Similarity3.Logmap, which fgslam.lie's own tests check against gtsam).
+# Poses are fgslam.core.lie.Sim3 batches (X -> s R X + t; right perturbation T @ Sim3.exp(xi), tangent
+# [w, u, lambda] = gtsam Similarity3.Logmap, which fgslam.core.lie's own tests check against gtsam).
 
 
 def to_gtsam(R, t, s) -> gtsam.Similarity3:
@@ -360,7 +360,7 @@ def test_residuals_without_jacobians_are_the_same_residuals():
     import numpy as _np
 
     from fgslam.factors.pointmap import calibrated_residuals, point_residuals, ray_dist_residuals
-    from fgslam.lie import Sim3 as _Sim3
+    from fgslam.core.lie import Sim3 as _Sim3
 
     rng = _np.random.default_rng(11)
     n = 50

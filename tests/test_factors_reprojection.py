@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.errors import DataError
+from fgslam.core.errors import DataError
 from fgslam.factors.reprojection import (
     ReprojectionConfig,
     flatten_patches,
@@ -13,7 +13,7 @@ from fgslam.factors.reprojection import (
     reproject_edges,
     reproject_inv_depth,
 )
-from fgslam.lie import SE3, Sim3
+from fgslam.core.lie import SE3, Sim3
 
 F64 = torch.float64
 WIDTH, HEIGHT = 640, 480

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from fgslam.factors.sim3 import between_jacobian_factors, make_between_factors, sim3_between_residual
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 
 F64 = torch.float64
 

@@ -3,6 +3,7 @@ closure and a plugin factor (docs/design.md, "Adding a fourth frontend", which t
 
 from __future__ import annotations
 
+import importlib
 import re
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from toy_frontend import ToyConfig, ToyFrontend
 
 DESIGN = Path(__file__).resolve().parents[1] / "docs" / "design.md"
 SECTION = "Adding a fourth frontend"
+SHAPE = "### The shape of a run"  # the diagram of docs/design.md section 2
 RATE_HZ = 4.0
 EXTRA_FRAMES = 19  # frames past the first return to the start
 POSITION_SIGMA_M = 0.3  # coarse positions: their noise and the prior's sigma (m)
@@ -82,3 +84,40 @@ def test_the_toy_is_built_only_from_the_protocol():
     frontend = ToyFrontend(backend=Backend())
     assert isinstance(frontend, Contributor)
     assert not any(hasattr(frontend, attr) for attr in ("closer", "imu_service", "plugins")), "services stay out"
+
+
+def _resolves(dotted: str) -> bool:
+    """Whether ``dotted`` names an importable module or an attribute of one."""
+    parts = dotted.split(".")
+    for cut in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:cut]))
+        except ImportError:
+            continue
+        for name in parts[cut:]:
+            if not hasattr(obj, name):
+                return False
+            obj = getattr(obj, name)
+        return True
+    return False
+
+
+def test_the_design_diagram_names_what_the_code_has():
+    """Every fgslam name in the diagram of the run's shape exists, and the diagram names the plug-in
+    points this test's toy uses: the family registry, the frontend base class, the contributor
+    contract, the factor-plugin contract and the system that owns them."""
+    text = DESIGN.read_text()
+    start = text.index("```text", text.index(SHAPE))
+    block = text[start:text.index("```\n", start + len("```text"))]
+    names = set(re.findall(r"\bfgslam(?:\.\w+)+", block))
+    assert {"fgslam.frontends.FrontendFamily", "fgslam.frontends.base.BackendFrontend",
+            "fgslam.contracts.contributor.Contributor", "fgslam.contracts.plugins.FactorPlugin",
+            "fgslam.run.system.SlamSystem", "fgslam.backend.graph.Backend"} <= names
+    assert [name for name in sorted(names) if not _resolves(name)] == []
+    assert issubclass(ToyFrontend, BackendFrontend)  # the toy plugs in where the diagram says
+
+
+def test_diagram_resolver_rejects_a_wrong_name():
+    assert _resolves("fgslam.run.system.SlamSystem")
+    assert not _resolves("fgslam.run.system.NoSuchSystem")
+    assert not _resolves("fgslam.nosuchpackage.Thing")

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from fgslam.config import to_dict
-from fgslam.errors import ConfigError
+from fgslam.core.config import to_dict
+from fgslam.core.errors import ConfigError
 from fgslam.frontends import FAMILIES, FRONTEND_NAMES, family_config_classes, frontend_family, make_frontend
 from fgslam.frontends.patch.config import PatchConfig
 from fgslam.run.config import SlamConfig, load_slam_config
@@ -114,7 +114,7 @@ def test_make_frontend_takes_the_section_or_the_root_config():
 TOY_FAMILY = '''
 from dataclasses import dataclass, field
 
-from fgslam.config import ranged
+from fgslam.core.config import ranged
 
 
 @dataclass
@@ -143,8 +143,8 @@ registry.FAMILIES = registry.FAMILIES + (
     registry.FrontendFamily("toy", "a toy family", config="toy_family:ToyConfig", builder="toy_family:build"),)
 registry.FRONTEND_NAMES = tuple(f.name for f in registry.FAMILIES)
 
-from fgslam.config import to_dict
-from fgslam.errors import ConfigError
+from fgslam.core.config import to_dict
+from fgslam.core.errors import ConfigError
 from fgslam.run.config import SlamConfig, load_slam_config
 from fgslam.run.presets import load_preset_file
 from fgslam.backend import Backend

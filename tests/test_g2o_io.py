@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from fgslam.errors import FormatError
+from fgslam.core.errors import FormatError
 from fgslam.io.g2o import PoseGraph, read_g2o, write_g2o
 
 GOOD_2D = """# a comment line
@@ -188,7 +188,7 @@ def test_io_module_imports_no_slam_or_gtsam():
     code = (
         "import sys, fgslam.io.g2o\n"
         "bad = [m for m in sys.modules if m == 'gtsam' or m == 'torch' or m.startswith(('fgslam.factors', "
-        "'fgslam.frontends', 'fgslam.loop', 'fgslam.pgo'))]\n"
+        "'fgslam.frontends', 'fgslam.loop', 'fgslam.run.pgo'))]\n"
         "assert not bad, bad\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)

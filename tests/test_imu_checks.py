@@ -7,7 +7,7 @@ import logging
 import numpy as np
 import pytest
 
-from fgslam.errors import DataError
+from fgslam.core.errors import DataError
 from fgslam.io.frame import ImuSamples
 from fgslam.services.imu_checks import DEG_PER_RAD, ImuCheckConfig, check_imu_stream, find_imu_problems
 
@@ -164,7 +164,7 @@ def test_imu_timestamps_1000x_too_large_say_which_unit(stream):
 
 
 def test_a_rate_range_upside_down_is_a_config_error():
-    from fgslam.errors import ConfigError
+    from fgslam.core.errors import ConfigError
     from fgslam.run.config import load_slam_config
 
     with pytest.raises(ConfigError, match=r"min_rate_hz \(500\) must be <= max_rate_hz \(100\)"):

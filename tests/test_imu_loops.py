@@ -10,7 +10,7 @@ gtsam = pytest.importorskip("gtsam")
 from fgslam.backend import Backend
 from fgslam.backend.keys import velocity_key
 from fgslam.io.frame import ImuSamples
-from fgslam.lie import gtsam_sim3
+from fgslam.core.lie import gtsam_sim3
 from fgslam.loop.records import PoseCorrection
 from fgslam.services.corrections import ObservedContributor
 from fgslam.services.imu import ImuService

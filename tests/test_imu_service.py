@@ -12,7 +12,7 @@ from fgslam.backend import Backend, BackendConfig
 from fgslam.services.imu import ImuService, make_imu_service
 from fgslam.services.imu_samples import ImuServiceConfig
 from fgslam.backend.keys import bias_key, velocity_key
-from fgslam.errors import DataError
+from fgslam.core.errors import DataError
 from fgslam.io.frame import ImuSamples
 
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.config import load_config
-from fgslam.errors import ConfigError, DataError
+from fgslam.core.config import load_config
+from fgslam.core.errors import ConfigError, DataError
 from fgslam.frontends.dense.source import DenseSourceConfig, LearnedDroidSource, make_dense_source
 from fgslam.frontends.flow import DenseFlowSource, FlowRevision
 from fgslam.frontends.patch import PatchConfig, make_source
@@ -278,7 +278,7 @@ def test_patch_frontend_poses_from_the_dpvo_source_s_confidences(ckpts, dpvo_roo
     must then beat doing nothing, and fail to when the confidences are zeroed (the frontend does use
     what the source returns). Measured on 10 frames: 0.00009 m with the network's confidences, 0.0479 m
     with zero confidences, 0.0479 m standing still (and 0.0479 m for the plain random-weight run)."""
-    from fgslam.eval import EvalConfig, evaluate
+    from fgslam.eval.trajectory import EvalConfig, evaluate
     from fgslam.io.trajectory import Trajectory
     from eval_support import BEAT_FACTOR, do_nothing_ate, frames_groundtruth
 

@@ -1,4 +1,4 @@
-"""Tests of fgslam.lie against gtsam 4.3.0 (Pose3 / Similarity3), matrix exponentials and finite differences."""
+"""Tests of fgslam.core.lie against gtsam 4.3.0 (Pose3 / Similarity3), matrix exponentials and finite differences."""
 
 import math
 
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.lie import SE3, Sim3, sim3_matrix_components, sim3_matrix_parts, stack
-from fgslam.so3 import skew, so3_exp, so3_log
+from fgslam.core.lie import SE3, Sim3, sim3_matrix_components, sim3_matrix_parts, stack
+from fgslam.core.so3 import skew, so3_exp, so3_log
 
 F64 = torch.float64
 N_RANDOM = 1000

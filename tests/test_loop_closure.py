@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 from geometry_support import rigid, rot_y
 
-from fgslam.config import load_config
-from fgslam.errors import ConfigError
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.core.config import load_config
+from fgslam.core.errors import ConfigError
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory
 from fgslam.loop.closure import LoopCloser
 from fgslam.loop.records import LoopClosureConfig, LoopCorrection

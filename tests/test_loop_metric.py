@@ -5,7 +5,7 @@ frames) is in tests/test_loop_closure.py (``metric_run``); the rigid RANSAC fit 
 tests/test_sim3_estimation.py.
 
 Odometry here drifts in rotation and translation only (metric depth: no scale drift); ATE is
-SE(3)-aligned (fgslam.eval), which a scale error would show."""
+SE(3)-aligned (fgslam.eval.trajectory), which a scale error would show."""
 
 from __future__ import annotations
 
@@ -17,9 +17,9 @@ import pytest
 from tool_support import load_tool
 import torch
 
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 from fgslam.loop.pose_graph import PoseGraphConfig, optimize_sim3_pose_graph
 
 LOOP_LOG_SCALE_NOISE = 0.02  # log-scale noise of the loop measurements (a Sim(3) fit's scale error)

@@ -21,8 +21,8 @@ from geometry_support import rigid, rot_y
 
 from fgslam.contracts.contributor import Contributor, GlobalBAJob, KeyframeImage, PoseCorrection, ProximityContributor
 from fgslam.services.loops import LoopService
-from fgslam.errors import OptimizationError
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.core.errors import OptimizationError
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory
 from fgslam.loop.records import LoopClosureConfig
 

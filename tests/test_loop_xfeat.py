@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from fgslam.config import load_config
-from fgslam.errors import ConfigError
+from fgslam.core.config import load_config
+from fgslam.core.errors import ConfigError
 from fgslam.loop.closure import LoopCloser
 from fgslam.loop.records import LoopClosureConfig
 from fgslam.loop.verification import match_cosine

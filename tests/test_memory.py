@@ -5,8 +5,8 @@ import time
 
 import pytest
 
-from fgslam.config import MAX_IMAGE_SIDE
-from fgslam.errors import ConfigError
+from fgslam.core.config import MAX_IMAGE_SIDE
+from fgslam.core.errors import ConfigError
 from fgslam.frontends import GIB
 from fgslam.run.memory import check_run_memory, estimate_run_memory
 from fgslam.run.config import load_slam_config

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fgslam.errors import DataError
+from fgslam.core.errors import DataError
 from fgslam.nets.checkpoint import CheckpointError, load_dpvo, load_droid, save_checkpoint
 from fgslam.nets.common import scatter_softmax, window_lookup
 from fgslam.nets.dpvo import SoftAgg, VONet, neighbors, patch_correlation, pyramid

@@ -9,7 +9,7 @@ import torch
 
 from fgslam.backend.keys import pose_key
 from fgslam.factors.dense import DenseBlock, DenseEdge, DenseKeyframe
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 from fgslam.nets.dba import DenseBAStepConfig, dense_ba_step, dense_cost, induced_coords
 from nets_support import one_thread  # noqa: F401 (autouse fixture)
 

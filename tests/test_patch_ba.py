@@ -10,7 +10,7 @@ import torch
 from fgslam.factors.schur import schur_reduce
 from fgslam.factors.visual_block import InverseDepthBlock
 from fgslam.frontends.patch.ba import PatchBlock
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 from fgslam.backend import Backend, BackendConfig, GaugeConfig, pose_key
 
 K = torch.tensor([200.0, 200.0, 160.0, 120.0], dtype=torch.float64)
@@ -23,7 +23,7 @@ def _scene(rng, n_frames=5, n_patches=40):
     t = []
     for f in range(n_frames):
         w = torch.tensor([0.0, 0.03 * f, 0.01 * f], dtype=torch.float64)
-        from fgslam.so3 import so3_exp
+        from fgslam.core.so3 import so3_exp
 
         R.append(so3_exp(w))
         t.append(torch.tensor([0.15 * f, 0.02 * f, 0.05 * f], dtype=torch.float64))

@@ -10,7 +10,7 @@ import pytest
 import fgslam.backend.optimizer as backend_optimizer
 import fgslam.backend.window as backend_window
 from fgslam.backend import Backend, BackendConfig, pose_key
-from fgslam.config import load_config
+from fgslam.core.config import load_config
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.frontends.records import RelativePose
 from fgslam.run.config import SlamConfig

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.io.trajectory import Trajectory
 from fgslam.backend import Backend, BackendConfig

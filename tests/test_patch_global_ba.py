@@ -10,10 +10,10 @@ import torch
 
 from fgslam.backend.config import GlobalBAConfig
 from fgslam.backend.global_ba import GlobalBAProblem, _Problem, global_bundle_adjustment
-from fgslam.errors import OptimizationError
+from fgslam.core.errors import OptimizationError
 from fgslam.factors.reprojection import ReprojectionConfig, reproject
 from fgslam.frontends.patch.ba import PatchBlock
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 
 K = np.array([300.0, 300.0, 160.0, 120.0])
 W, H = 320, 240

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fgslam.errors import ConfigError, DataError
+from fgslam.core.errors import ConfigError, DataError
 from fgslam.frontends.patch.config import PatchGraphConfig, PatchConfig
 from fgslam.frontends.patch.graph import GraphFrame, InactiveEdges, PatchGraph
 from fgslam.frontends.patch.source import make_source
@@ -108,7 +108,7 @@ def test_config_validation_and_learned_source_errors(tmp_path):
 
 
 def test_patch_config_loads_from_yaml(tmp_path):
-    from fgslam.config import load_config
+    from fgslam.core.config import load_config
 
     path = tmp_path / "patch.yaml"
     path.write_text("source: lk\ngraph:\n  patches_per_frame: 64\n  patch_lifetime: 4\nlk:\n  scale: 0.5\n")

@@ -1,5 +1,5 @@
 """Speed paths of the patch frontend: PatchBlock's evaluation memo answers exactly what a fresh
-evaluation would, and the gtsam/numpy Sim(3) helpers of the frontend equal fgslam.lie's operations."""
+evaluation would, and the gtsam/numpy Sim(3) helpers of the frontend equal fgslam.core.lie's operations."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import torch
 
 from fgslam.frontends.patch.ba import PatchBlock
 from fgslam.frontends.records import sim3_interp as _interp, sim3_power as _sim3_power
-from fgslam.lie import gtsam_matrix as _gtsam_matrix, gtsam_sim3 as _gtsam_sim3
-from fgslam.lie import Sim3
+from fgslam.core.lie import gtsam_matrix as _gtsam_matrix, gtsam_sim3 as _gtsam_sim3
+from fgslam.core.lie import Sim3
 from fgslam.backend.keys import pose_key
 
 from test_patch_ba import K, _edges, _scene, _values

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fgslam.errors import ConfigError
+from fgslam.core.errors import ConfigError
 from fgslam.run.system import SlamSystem
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.loop.records import LoopClosureConfig

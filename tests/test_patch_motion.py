@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fgslam.errors import OptimizationError
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.core.errors import OptimizationError
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.frontends.patch.window import LocalBA
 from fgslam.io.trajectory import Trajectory

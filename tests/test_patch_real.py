@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchConfig, PatchFrontend
 from fgslam.io.trajectory import Trajectory
 from fgslam.backend import Backend, BackendConfig

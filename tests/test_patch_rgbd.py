@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.frontends.patch import PatchFrontend
 from fgslam.frontends.patch.ba import PatchBlock
 from fgslam.io.trajectory import Trajectory
-from fgslam.lie import Sim3, sim3_matrix_parts
-from fgslam.so3 import so3_exp
+from fgslam.core.lie import Sim3, sim3_matrix_parts
+from fgslam.core.so3 import so3_exp
 from fgslam.backend.keys import pose_key
 from fgslam.backend import Backend, BackendConfig
 from patch_support import light_patch_config, render_room
@@ -150,7 +150,7 @@ def test_depth_observation_model_accuracy(room, noise):
 
 @pytest.mark.parametrize("field,value", [("depth_model", "measurement"), ("depth_noise", "quadratic")])
 def test_depth_model_names_are_checked(field, value):
-    from fgslam.errors import ConfigError
+    from fgslam.core.errors import ConfigError
 
     cfg = light_patch_config()
     setattr(cfg.ba, field, value)

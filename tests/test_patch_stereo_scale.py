@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from fgslam.frontends.patch.motion import MotionModel
-from fgslam.lie import sim3_matrix_parts
+from fgslam.core.lie import sim3_matrix_parts
 
 DRIVE_FRAMES = 70  # without the fix the newest keyframes' scale is 1.02 here (1.05 at 100 frames)
 MAX_LOG_SCALE = 0.005  # every keyframe's Sim(3) scale within 0.5 % of 1
@@ -71,7 +71,7 @@ def test_driving_stereo_keeps_metric_scale_on_a_drive(drive):
     """driving_stereo on the first 70 frames of the synthetic kitti00-drive (320x96, 10 Hz, 0.54 m
     baseline, about 60 m): every graph keyframe's scale stays 1 (without the fix 1.02 here) and the path
     length matches the ground truth's."""
-    from fgslam.eval import EvalConfig, associate
+    from fgslam.eval.trajectory import EvalConfig, associate
     from fgslam.io.trajectory import Trajectory
     from fgslam.run.config import load_slam_config
     from fgslam.run.prepare import open_slam_dataset

@@ -1,4 +1,4 @@
-"""Tests of pose-graph optimisation (fgslam/pgo.py) and the ``fgslam pgo`` command."""
+"""Tests of pose-graph optimisation (fgslam/run/pgo.py) and the ``fgslam pgo`` command."""
 
 import json
 import math
@@ -8,10 +8,10 @@ import typing
 import numpy as np
 import pytest
 
-from fgslam.config import load_config
-from fgslam.errors import ConfigError, DataError, FormatError, OptimizationError
+from fgslam.core.config import load_config
+from fgslam.core.errors import ConfigError, DataError, FormatError, OptimizationError
 from fgslam.io.g2o import PoseGraph, read_g2o, write_g2o
-from fgslam.pgo import (
+from fgslam.run.pgo import (
     PGOConfig,
     build_factor_graph,
     lm_params,

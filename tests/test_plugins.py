@@ -19,10 +19,10 @@ from fgslam.services.plugins import (
     finish_plugins,
     load_plugin_class,
 )
-from fgslam.config import load_config
-from fgslam.errors import ConfigError, DataError, FormatError, OptimizationError
+from fgslam.core.config import load_config
+from fgslam.core.errors import ConfigError, DataError, FormatError, OptimizationError
 from fgslam.frontends.base import Frontend
-from fgslam.geometry import umeyama
+from fgslam.core.geometry import umeyama
 from fgslam.io.positions import read_positions
 from fgslam.run.config import SlamConfig
 

@@ -14,14 +14,14 @@ import torch
 from fgslam.factors.blocks import Block
 from fgslam.backend.keys import pose_key
 from fgslam.backend.solver import LMSettings, levenberg_marquardt
-from fgslam.errors import DataError
+from fgslam.core.errors import DataError
 from fgslam.factors.pointmap import PointmapResidualConfig
 from fgslam.factors.pointmap_block import PointmapBlock, PointmapBlockConfig, PointmapEdge
 from fgslam.factors.robust import RobustConfig, kernel_weight
 from fgslam.factors.schur import to_gaussian_factor
 from fgslam.frontends.pointmap.matching import RayImage, match_pointmaps
 from fgslam.frontends.pointmap.source import PointmapSourceConfig, make_pointmap_source
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 from pointmap_support import render, room_sequence, rotation_angle_deg
 
 K = np.array([160.0, 160.0, 160.0, 120.0])
@@ -213,7 +213,7 @@ def test_lm_recovers_rgbd_keyframe_poses_from_matched_pointmaps():
                                                      lambda_max=1e10, relative_tolerance=1e-10))
     assert report.final_cost < 0.1 * report.initial_cost
     for n in range(1, len(truth)):
-        # relative to the fixed first keyframe, as X -> s R X + t (fgslam.lie.Sim3)
+        # relative to the fixed first keyframe, as X -> s R X + t (fgslam.core.lie.Sim3)
         rel_est = Sim3.from_gtsam(truth[0].inverse().compose(problem.values.atSimilarity3(pose_key(n))))
         rel_true = Sim3.from_gtsam(truth[0].inverse().compose(truth[n]))
         assert abs(float(rel_est.s) - 1.0) < 0.01

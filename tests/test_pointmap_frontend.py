@@ -15,7 +15,7 @@ from fgslam.backend.keys import pose_key
 from fgslam.frontends import make_frontend
 from fgslam.frontends.pointmap.config import PointmapConfig
 from fgslam.frontends.pointmap.frontend import PointmapFrontend
-from fgslam.lie import sim3_matrix_parts
+from fgslam.core.lie import sim3_matrix_parts
 from fgslam.backend import Backend, BackendConfig
 from eval_support import assert_beats_doing_nothing, frames_groundtruth
 from pointmap_support import ate_percent, open_clip, render_clip
@@ -144,7 +144,7 @@ def test_frontend_pointmap_from_any_preset(room, tmp_path):
 
 
 def test_sensor_and_source_mismatch_is_a_config_error():
-    from fgslam.errors import ConfigError
+    from fgslam.core.errors import ConfigError
 
     cfg = PointmapConfig()
     cfg.source.kind = "rgbd"

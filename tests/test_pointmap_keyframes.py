@@ -13,8 +13,8 @@ from fgslam.frontends.pointmap.keyframes import PointmapKeyframe, measure_edge
 from fgslam.frontends.pointmap.matching import MatchingConfig
 from fgslam.frontends.pointmap.descriptors import DescriptorConfig
 from fgslam.frontends.pointmap.source import unproject_depth
-from fgslam.lie import Sim3
-from fgslam.so3 import so3_exp
+from fgslam.core.lie import Sim3
+from fgslam.core.so3 import so3_exp
 from pointmap_support import render, room_sequence, rotation_angle_deg
 
 I, J = 40, 50

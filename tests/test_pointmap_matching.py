@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.errors import DataError
+from fgslam.core.errors import DataError
 from fgslam.frontends.pointmap.matching import MatchingConfig, RayImage, match_pointmaps, pixel_grid_uv
 from fgslam.frontends.pointmap.source import PointmapSourceConfig, make_pointmap_source
 from pointmap_support import render, room_sequence, true_correspondences

@@ -9,7 +9,7 @@ import logging
 import pytest
 
 from fgslam.backend.keys import pose_key
-from fgslam.errors import ConfigError
+from fgslam.core.errors import ConfigError
 from fgslam.frontends.pointmap.mix import PointmapMix
 from eval_support import assert_beats_doing_nothing
 from pointmap_support import render_clip

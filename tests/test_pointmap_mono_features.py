@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from fgslam.backend import Backend, BackendConfig
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.frontends.pointmap.config import PointmapConfig
 from fgslam.frontends.pointmap.features import carry_pointmap
 from fgslam.frontends.pointmap.frontend import PointmapFrontend

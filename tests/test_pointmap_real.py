@@ -61,7 +61,7 @@ def test_euroc_static_stereo_reports_no_motion(shared_data):
 def test_frontend_on_7scenes_rgbd_slice(shared_data):
     """The pointmap frontend over the first 30 frames (1 s) of 7-Scenes RGB-D: every frame tracked,
     SE(3) ATE under 1 cm and under half a stationary estimate's (1.4 cm over this slice)."""
-    from fgslam.eval import EvalConfig, evaluate
+    from fgslam.eval.trajectory import EvalConfig, evaluate
     from fgslam.frontends.pointmap.frontend import PointmapFrontend
     from fgslam.io.datasets import DatasetConfig, open_dataset
     from fgslam.io.trajectory import Trajectory

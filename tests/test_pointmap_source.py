@@ -9,7 +9,7 @@ import logging
 import numpy as np
 import pytest
 
-from fgslam.errors import ConfigError, DataError
+from fgslam.core.errors import ConfigError, DataError
 from fgslam.frontends.pointmap.descriptors import DescriptorConfig, dense_descriptors
 from fgslam.frontends.pointmap.source import (
     Mast3rPointmapSource,

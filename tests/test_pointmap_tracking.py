@@ -10,7 +10,7 @@ import torch
 from fgslam.factors.pointmap_block import PointmapBlockConfig
 from fgslam.frontends.pointmap.config import PointmapTrackingConfig
 from fgslam.frontends.pointmap.tracking import fuse_pointmap, track_pose
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 
 K = torch.tensor([200.0, 200.0, 160.0, 120.0], dtype=torch.float64)
 

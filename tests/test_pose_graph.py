@@ -7,8 +7,8 @@ import pytest
 from tool_support import load_tool
 import torch
 
-from fgslam.errors import ConfigError
-from fgslam.lie import Sim3
+from fgslam.core.errors import ConfigError
+from fgslam.core.lie import Sim3
 from fgslam.loop.pose_graph import (
     PoseGraphConfig,
     correct_dependent_poses,
@@ -46,7 +46,7 @@ def _drift(T_gt: Sim3, yaw_per_step=0.001, log_scale_per_step=0.0015):
     for k in range(n - 1):
         step = Sim3(R_bias @ D.R[k], sigma[k] * D.t[k], torch.tensor(1.0, dtype=torch.float64))
         poses.append(poses[-1] @ step)
-    from fgslam.lie import stack
+    from fgslam.core.lie import stack
 
     return stack(poses), sigma
 
@@ -60,7 +60,7 @@ def _true_loops(T_gt: Sim3, sigma, pairs):
 
 
 def _ate(T_gt: Sim3, T: Sim3) -> float:
-    from fgslam.geometry import umeyama
+    from fgslam.core.geometry import umeyama
 
     al = umeyama(T.t.numpy(), T_gt.t.numpy(), with_scale=True)
     return float(np.sqrt(np.mean(np.sum((T.t.numpy() @ (al.s * al.R).T + al.t - T_gt.t.numpy()) ** 2, axis=1))))
@@ -127,7 +127,7 @@ def test_gate_rejects_implausible_and_invalid_loops():
     tiny = Sim3(torch.eye(3, **f64), torch.zeros(3, **f64), torch.tensor(0.05, **f64))
     nan = Sim3(torch.eye(3, **f64), torch.tensor([math.nan, 0, 0], **f64), torch.tensor(1.0, **f64))
     bad = [Z[0] @ flip, Z[1] @ far, Z[2] @ tiny, nan, Z[0], Z[0]]
-    from fgslam.lie import stack
+    from fgslam.core.lie import stack
 
     Z_all = stack([Z[k] for k in range(len(li))] + bad)
     li_all = np.concatenate([li, [li[0], li[1], li[2], 3, 5, 0]])
@@ -153,7 +153,7 @@ def test_isolated_plausible_false_loop_rejected():
     # of driving: passes the plausibility gate) with the odometry's relative rotation.
     f64 = dict(dtype=torch.float64)
     Z_false = Sim3((T_odom[5].inverse() @ T_odom[100]).R, torch.tensor([2.0, 0, 0], **f64), torch.tensor(1.0, **f64))
-    from fgslam.lie import stack
+    from fgslam.core.lie import stack
 
     Z_all = stack([Z[k] for k in range(len(li))] + [Z_false])
     res = optimize_sim3_pose_graph(T_odom, np.append(li, 5), np.append(lj, 100), Z_all)
@@ -177,7 +177,7 @@ def test_round_rejecting_every_loop_does_not_crash():
     T = Sim3(R, t, torch.ones(n, **f64))
     twist = Sim3(torch.from_numpy(_rot_y(math.radians(30.0))), torch.zeros(3, **f64), torch.tensor(1.0, **f64))
     pairs = [(50, 2), (51, 3)]
-    from fgslam.lie import stack
+    from fgslam.core.lie import stack
 
     Z = stack([(T[i].inverse() @ T[j]) @ twist for i, j in pairs])
     res = optimize_sim3_pose_graph(T, np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs]), Z,

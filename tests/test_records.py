@@ -77,7 +77,7 @@ def test_per_frame_motion_composes_back_to_the_whole_motion():
     import gtsam as _gtsam
 
     from fgslam.frontends.records import per_frame_motion
-    from fgslam.lie import gtsam_matrix
+    from fgslam.core.lie import gtsam_matrix
 
     T_prev = gtsam_matrix(_gtsam.Similarity3(_gtsam.Rot3.Expmap([0.1, -0.2, 0.05]), [0.3, 0.1, -0.2], 1.3))
     T_new = gtsam_matrix(_gtsam.Similarity3(_gtsam.Rot3.Expmap([0.3, -0.1, 0.15]), [0.6, 0.2, 0.1], 1.1))

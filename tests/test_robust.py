@@ -6,7 +6,7 @@ import gtsam
 import pytest
 import torch
 
-from fgslam.errors import ConfigError
+from fgslam.core.errors import ConfigError
 from fgslam.factors.robust import (
     RobustConfig,
     confidence_sqrt_information,

@@ -16,7 +16,7 @@ pytest.importorskip("rosbags", reason="rosbags is an optional extra (pip install
 from tool_support import load_tool  # noqa: E402
 
 from fgslam.cli import main  # noqa: E402
-from fgslam.errors import DataError  # noqa: E402
+from fgslam.core.errors import DataError  # noqa: E402
 from fgslam.io.datasets import DatasetConfig, detect_format, open_dataset  # noqa: E402
 from fgslam.io.datasets.common import BagTopicsConfig  # noqa: E402
 from fgslam.io.datasets.ros_messages import calibration_from_camera_info  # noqa: E402

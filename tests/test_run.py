@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from fgslam.backend import Backend, BackendConfig
-from fgslam.config import load_config
-from fgslam.errors import ConfigError, DataError, FGSlamError
+from fgslam.core.config import load_config
+from fgslam.core.errors import ConfigError, DataError, FGSlamError
 from fgslam.frontends import make_frontend
 from fgslam.frontends.base import FrameStatus, Frontend
 from fgslam.io.synth import SynthSequence, write_sequence
@@ -497,7 +497,7 @@ class SignallingFrontend(FakeFrontend):
 def test_sigterm_mid_run_writes_partial_outputs_and_restores_the_handler(synth_root, tmp_path):
     import signal
 
-    from fgslam.errors import Interrupted
+    from fgslam.core.errors import Interrupted
 
     config = _config("sensor=stereo")
     fe = SignallingFrontend(np.eye(4), 0.0, np.random.default_rng(0), signal_at=7, signum=signal.SIGTERM)
@@ -520,7 +520,7 @@ def test_sigterm_mid_run_writes_partial_outputs_and_restores_the_handler(synth_r
 def test_sigint_mid_run_keeps_exit_code_130(synth_root, tmp_path):
     import signal
 
-    from fgslam.errors import Interrupted
+    from fgslam.core.errors import Interrupted
 
     config = _config()
     fe = SignallingFrontend(np.eye(4), 0.0, np.random.default_rng(0), signal_at=9, signum=signal.SIGINT)

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from fgslam.cli import main
-from fgslam.errors import ConfigError, DataError
+from fgslam.core.errors import ConfigError, DataError
 
 HUGE_SIDE = 10000  # the trial's image size (one black frame: decoding and undistorting it take seconds)
 LARGE_SIDE = 5000  # above fgslam.run.results.LARGE_IMAGE_SIDE, below the size limit a dataset refuses at open (if any)
@@ -109,7 +109,7 @@ def test_a_run_without_any_pose_fails_with_one_reason_line(case, tmp_path, room,
 
 
 def test_batch_records_a_cell_without_any_pose_as_failed(tmp_path):
-    from fgslam.batch import BatchMatrix, finished_row, run_batch
+    from fgslam.run.batch import BatchMatrix, finished_row, run_batch
 
     data = _folder(tmp_path / "two", 2, 320, 240)
     matrix = BatchMatrix(configs={"mono": "patch_mono"}, datasets={"two": str(data)}, overrides=["output.plot=false"])
@@ -196,7 +196,7 @@ def test_batch_address_that_is_not_ray_fails_within_seconds(kind, tmp_path):
     """``fgslam batch --address`` in a subprocess (a hang fails the test, never blocks it): one error
     line, status 2, no traceback; the address check itself takes at most its timeout."""
     pytest.importorskip("ray", reason="Ray is an optional extra (pip install 'fgslam[batch]')")
-    from fgslam.batch import BatchOptions, check_address
+    from fgslam.run.batch import BatchOptions, check_address
 
     server = _Server(b"HTTP/1.1 400 Bad Request\r\n\r\n" if kind == "http" else b"") if kind in ("silent", "http") else None
     address = {"silent": f"127.0.0.1:{server.port if server else 0}", "http": f"127.0.0.1:{server.port if server else 0}",
@@ -272,8 +272,8 @@ def test_joining_a_cluster_that_never_answers_fails_after_the_init_timeout(tmp_p
     server = _FakeGrpc()
     code = (
         "import sys, time\n"
-        "from fgslam.batch import BatchMatrix, BatchOptions, run_batch\n"
-        "from fgslam.errors import FGSlamError\n"
+        "from fgslam.run.batch import BatchMatrix, BatchOptions, run_batch\n"
+        "from fgslam.core.errors import FGSlamError\n"
         "import fgslam.run.runner, ray  # imported before the clock starts: slow on a loaded machine\n"
         f"m = BatchMatrix(configs={{'mono': 'patch_mono'}}, datasets={{'d': {str(tmp_path / 'nothing')!r}}})\n"
         "t0 = time.perf_counter()\n"
@@ -433,7 +433,7 @@ def test_yaml_syntax_errors_name_the_file_or_the_override(tmp_path):
 
 
 def test_batch_md_shows_the_whole_error_with_pipes_escaped():
-    from fgslam.batch import markdown_table
+    from fgslam.run.batch import markdown_table
 
     error = "DataError: /very/long/path/to/some/dataset/folder/that/does/not/exist | more: no such folder\nsecond"
     rows = [{"config": "mono", "dataset": "d", "status": "failed", "error": error}]

@@ -16,7 +16,7 @@ from fgslam.factors.schur import (
     to_gaussian_factor,
 )
 from fgslam.factors.visual_block import BlockConfig, InverseDepthBlock
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 
 D = POSE_DIM
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from fgslam.cli import main
-from fgslam.config import check_ranges
-from fgslam.errors import ConfigError
+from fgslam.core.config import check_ranges
+from fgslam.core.errors import ConfigError
 from fgslam.run.presets import SENSOR_CLASSES, config_class_for, configs_dir, load_preset_file, run_presets
 from fgslam.run.config import SlamConfig, load_slam_config
 
@@ -156,7 +156,7 @@ def test_driving_stereo_starts_on_a_wide_baseline_where_the_default_start_measur
     """With the first frame's patches at the default 1 m (``patch.ba.stereo_init_inv_depth=1``) the
     right-image search on a 0.54 m baseline starts 200 px off and no patch is measured; the preset
     starts in the far field (20 m) and poses the first frame."""
-    from fgslam.errors import FGSlamError
+    from fgslam.core.errors import FGSlamError
 
     with pytest.raises(FGSlamError, match=r"never initialised.*waiting for depth"):
         _run("driving_stereo", street_stereo, tmp_path / "default", ["patch.ba.stereo_init_inv_depth=1.0",

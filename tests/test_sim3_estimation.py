@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from fgslam.errors import ConfigError
-from fgslam.lie import Sim3
+from fgslam.core.errors import ConfigError
+from fgslam.core.lie import Sim3
 from fgslam.loop.sim3_estimation import Sim3RansacConfig, estimate_sim3_ransac, sim3_errors
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fgslam.errors import ConfigError, DataError
+from fgslam.core.errors import ConfigError, DataError
 from fgslam.io.synth import SynthSequence, write_sequence
 from fgslam.io.synth.render import RenderConfig, Renderer
 from fgslam.io.synth.scenarios import load_synth_config

@@ -164,7 +164,7 @@ def test_cli_writes_low_texture_with_depth_for_mono_and_rgbd(tmp_path, capsys):
 
 
 def test_plain_albedo_list_checked():
-    from fgslam.errors import ConfigError
+    from fgslam.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="texture.plain.albedo"):
         load_synth_config("low-texture", None, ["texture.plain.albedo=[0.5, 0.5]"]).validate()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fgslam.errors import DataError, FormatError
+from fgslam.core.errors import DataError, FormatError
 from fgslam.io.trajectory import (
     Trajectory,
     quaternion_xyzw_to_rotation,

@@ -7,7 +7,7 @@ import pytest
 
 pytest.importorskip("gtsam")
 
-from fgslam.errors import DataError
+from fgslam.core.errors import DataError
 from fgslam.io.datasets import DatasetConfig, detect_format, open_dataset
 
 from eval_support import assert_beats_doing_nothing, evaluate_tum_rows, run_preset

@@ -17,11 +17,11 @@ import gtsam
 import numpy as np
 
 from fgslam.backend.keys import pose_key
-from fgslam.config import ranged
-from fgslam.errors import ConfigError
+from fgslam.core.config import ranged
+from fgslam.core.errors import ConfigError
 from fgslam.frontends.base import BackendFrontend, FrameStatus
 from fgslam.frontends.records import KeyframePose
-from fgslam.lie import gtsam_sim3
+from fgslam.core.lie import gtsam_sim3
 from fgslam.contracts.contributor import KeyframeImage, PoseCorrection
 
 

@@ -29,7 +29,7 @@ from fgslam.factors.reprojection import reproject
 from fgslam.frontends.flow import DenseFlowSource, grid_intrinsics
 from fgslam.io.synth import SynthSequence
 from fgslam.io.synth.scenarios import load_synth_config
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 
 STRIDE = 8
 

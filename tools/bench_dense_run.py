@@ -68,7 +68,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def synth_root(preset: str, args: argparse.Namespace) -> Path:
-    from fgslam.demo import DemoSceneConfig, render_scene
+    from fgslam.run.demo import DemoSceneConfig, render_scene
 
     w, h = (int(v) for v in args.synth_size.lower().split("x"))
     scene = DemoSceneConfig(preset=preset, frames=args.synth_frames, rate_hz=args.synth_rate, width=w, height=h)

@@ -28,7 +28,7 @@ import torch
 from fgslam.factors.reprojection import reproject_inv_depth
 from fgslam.factors.schur import SlotGroups, schur_reduce
 from fgslam.factors.visual_block import BlockConfig, InverseDepthBlock
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 from fgslam.backend import Backend, BackendConfig, GaugeConfig, pose_key
 
 K = torch.tensor([320.0, 320.0, 320.0, 240.0], dtype=torch.float64)

@@ -72,7 +72,7 @@ def _run(root: Path, preset: str, out: Path, overrides: list[str]):
 
 
 def _evaluate(ds, est, align):
-    from fgslam.eval import EvalConfig, evaluate
+    from fgslam.eval.trajectory import EvalConfig, evaluate
     from fgslam.io.trajectory import Trajectory
 
     return evaluate(ds.groundtruth, Trajectory.from_position_quaternion(est[:, 0], est[:, 1:4], est[:, 4:8]),

@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory
 from fgslam.loop.closure import LoopCloser
 from fgslam.loop.records import LoopClosureConfig

@@ -356,7 +356,7 @@ def make_ba_problem(n: int, cfg: BAScenarioConfig, seed: int) -> BAScenario:
 def bench_global_ba(n: int, seed: int, cfg: BAScenarioConfig, threads: int = 1, ba_options: dict | None = None) -> dict:
     """Build the problem for ``n`` keyframes and time one ``global_bundle_adjustment`` call
     (``GlobalBAConfig`` defaults with ``threads`` and the fields in ``ba_options``)."""
-    from fgslam.config import from_dict
+    from fgslam.core.config import from_dict
     from fgslam.backend.config import GlobalBAConfig
     from fgslam.backend.global_ba import GlobalBAProblem, global_bundle_adjustment
 

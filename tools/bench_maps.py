@@ -41,7 +41,7 @@ def main() -> None:
     ap.add_argument("--preset", default="patch_7scenes_rgbd")
     ap.add_argument("--data", type=Path, default=DATA)
     args = ap.parse_args()
-    from fgslam.eval import EvalConfig, evaluate
+    from fgslam.eval.trajectory import EvalConfig, evaluate
     from fgslam.io.datasets import open_dataset
     from fgslam.io.trajectory import Trajectory, read_trajectory
 

@@ -38,7 +38,7 @@ DATASETS = {  # name -> (patch preset, pointmap preset, data folder or a synthet
 def _root(spec: str, args) -> Path:
     if not spec.startswith("synthetic:"):
         return args.data / spec
-    from fgslam.demo import DemoSceneConfig, render_scene
+    from fgslam.run.demo import DemoSceneConfig, render_scene
 
     preset = spec.split(":", 1)[1]
     root = args.synth_dir / f"{preset}_320x240_201_10hz"

@@ -35,8 +35,8 @@ def main() -> int:
 
     torch.set_num_threads(args.threads)
     from fgslam.backend import Backend, BackendConfig
-    from fgslam.config import from_dict
-    from fgslam.eval import EvalConfig, evaluate
+    from fgslam.core.config import from_dict
+    from fgslam.eval.trajectory import EvalConfig, evaluate
     from fgslam.frontends.patch import PatchConfig, PatchFrontend
     from fgslam.io.datasets import DatasetConfig, open_dataset
     from fgslam.io.trajectory import Trajectory

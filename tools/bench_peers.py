@@ -134,7 +134,7 @@ def setup_hint(scripts: Path) -> str:
 
 def highway_root(args: argparse.Namespace) -> Path:
     """Render (or reuse) the synthetic highway clip; returns its root (EuRoC layout)."""
-    from fgslam.demo import DemoSceneConfig, render_scene
+    from fgslam.run.demo import DemoSceneConfig, render_scene
     from fgslam.io.synth.scenarios import default_config
 
     cam = default_config("highway").camera
@@ -218,8 +218,8 @@ def read_tum(path: Path):
 def ate_on_common_frames(gt, est_a, est_b, align: str, max_time_diff: float) -> dict:
     """ATE of ``est_a`` and of ``est_b`` against ``gt`` by fgslam's evaluator with the same ``align``,
     each over only the frames both posed (one-to-one timestamp match within ``max_time_diff``)."""
-    from fgslam.errors import FGSlamError
-    from fgslam.eval import EvalConfig, associate_timestamps, evaluate
+    from fgslam.core.errors import FGSlamError
+    from fgslam.eval.trajectory import EvalConfig, associate_timestamps, evaluate
 
     out = {"common_frames": 0, "ate_a_m": None, "ate_b_m": None, "ate_a_percent": None, "ate_b_percent": None,
            "scale_a": None, "scale_b": None, "path_m": None, "error": None}
@@ -244,8 +244,8 @@ def ate_on_common_frames(gt, est_a, est_b, align: str, max_time_diff: float) -> 
 
 def own_ate(gt, est, align: str, max_time_diff: float) -> Optional[float]:
     """ATE over all the frames one system posed (None when it cannot be evaluated)."""
-    from fgslam.errors import FGSlamError
-    from fgslam.eval import EvalConfig, evaluate
+    from fgslam.core.errors import FGSlamError
+    from fgslam.eval.trajectory import EvalConfig, evaluate
 
     if est is None or len(est) < 3:
         return None

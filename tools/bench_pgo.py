@@ -1,7 +1,7 @@
 """Benchmark ``fgslam pgo`` against gtsam's own reader + LM on the same g2o files; prints JSON.
 
 For each file:
-* fgslam: ``fgslam.pgo.run_pgo`` end to end (our parser, graph build, chordal init, LM).
+* fgslam: ``fgslam.run.pgo.run_pgo`` end to end (our parser, graph build, chordal init, LM).
 * gtsam: ``gtsam.readG2o`` + the same gauge prior + the same initialisation (InitializePose3 in 3-D;
   LAGO in 2-D, on the marginal-variance copy LAGO requires) + ``LevenbergMarquardtOptimizer`` with the
   same parameters.
@@ -24,7 +24,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from fgslam.pgo import PGOConfig, diagonalised_pose2_graph, lm_params, run_pgo
+from fgslam.run.pgo import PGOConfig, diagonalised_pose2_graph, lm_params, run_pgo
 
 FILES = ["sphere2500", "torus3D", "parking-garage", "kitti_00"]
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "g2o"

@@ -31,7 +31,7 @@ import numpy as np
 
 
 def render(preset: str, frames: int, rate: float, size: str, folder: Path) -> Path:
-    from fgslam.demo import DemoSceneConfig, render_scene
+    from fgslam.run.demo import DemoSceneConfig, render_scene
 
     w, h = (int(v) for v in size.lower().split("x"))
     root = folder / f"{preset}_{w}x{h}_{frames}_{rate:g}hz"
@@ -70,8 +70,8 @@ def reconstruction(fe, frames, alignment) -> dict:
 
 def run(root: Path, source: str, overrides: list[str]) -> dict:
     from fgslam.backend import Backend, BackendConfig
-    from fgslam.config import from_dict, to_dict
-    from fgslam.eval import EvalConfig, evaluate
+    from fgslam.core.config import from_dict, to_dict
+    from fgslam.eval.trajectory import EvalConfig, evaluate
     from fgslam.frontends.pointmap.config import PointmapConfig
     from fgslam.frontends.pointmap.frontend import PointmapFrontend
     from fgslam.io.datasets import DatasetConfig, open_dataset

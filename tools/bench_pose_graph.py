@@ -8,7 +8,7 @@ within ``loop_radius_m``, at least ``min_loop_gap_s`` apart) with noisy Sim(3) m
 the two keyframes' local scales, as a RANSAC Sim(3) between two triangulated neighbourhoods would;
 ``false_loop_fraction`` more loops join random non-revisit pairs with loop-like relative poses.
 
-Prints one JSON object: per sequence ATE (Sim(3)-aligned, fgslam.eval) of the drifted odometry and
+Prints one JSON object: per sequence ATE (Sim(3)-aligned, fgslam.eval.trajectory) of the drifted odometry and
 of the corrected keyframes, loop statistics and solve time; then solve time against the number of
 keyframes (KITTI 00 resampled to 100, 1,000 and 5,000 keyframes). ``aliasing`` repeats each sequence
 with false loops in clusters of 3 consistent ones (perceptual aliasing: they pass the pairwise check).
@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.io.trajectory import Trajectory, read_trajectory
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 from fgslam.loop.pose_graph import PoseGraphConfig, optimize_sim3_pose_graph
 
 KITTI_FRAME_RATE_HZ = 10.0  # KITTI odometry camera rate
@@ -186,7 +186,7 @@ def simulate_kitti_drift(gt_T_WC_all: np.ndarray, cfg: DriftSimConfig, frame_dt_
 
 
 def sim3_ate(gt_T_WC: np.ndarray, T_WC: Sim3) -> float:
-    """Sim(3)-aligned ATE RMSE (m) of keyframe poses against ground truth, via fgslam.eval."""
+    """Sim(3)-aligned ATE RMSE (m) of keyframe poses against ground truth, via fgslam.eval.trajectory."""
     K = gt_T_WC.shape[0]
     est = np.tile(np.eye(4), (K, 1, 1))
     est[:, :3, :3] = T_WC.R.numpy()

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fgslam.eval import EvalConfig, evaluate
+from fgslam.eval.trajectory import EvalConfig, evaluate
 from fgslam.io.synth import SynthSequence, write_sequence
 from fgslam.io.synth.scenarios import load_synth_config
 from fgslam.io.trajectory import read_trajectory

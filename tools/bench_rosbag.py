@@ -217,7 +217,7 @@ def _run(data: Path, out: Path, preset: str, overrides) -> dict:
 
 def _read_cpu(data: Path, overrides) -> dict:
     """CPU seconds to open the dataset and read every frame (in this process)."""
-    from fgslam.config import load_config
+    from fgslam.core.config import load_config
     from fgslam.io.datasets import DatasetConfig, open_dataset
 
     config = load_config(DatasetConfig, None, [o.removeprefix("dataset.") for o in overrides if o.startswith("dataset.")])

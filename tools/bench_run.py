@@ -118,7 +118,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def synth_root(args: argparse.Namespace) -> Path:
     """Render (or reuse) the synthetic room-loop sequence; returns its root."""
-    from fgslam.demo import DemoSceneConfig, render_scene
+    from fgslam.run.demo import DemoSceneConfig, render_scene
 
     w, h = (int(v) for v in args.synth_size.lower().split("x"))
     scene = DemoSceneConfig(preset="room-loop", frames=args.synth_frames, rate_hz=args.synth_rate, width=w, height=h)
@@ -129,7 +129,7 @@ def synth_root(args: argparse.Namespace) -> Path:
 
 def street_root(args: argparse.Namespace) -> Path:
     """Render (or reuse) the synthetic street-loop drive with the preset's own camera; returns its root."""
-    from fgslam.demo import DemoSceneConfig, render_scene
+    from fgslam.run.demo import DemoSceneConfig, render_scene
     from fgslam.io.synth.scenarios import default_config
 
     camera = default_config("street-loop").camera

@@ -68,7 +68,7 @@ _RULES: tuple[tuple[str, str, frozenset | None], ...] = (
     ("io", "fgslam/io/", None),
     ("outputs", "fgslam/run/runner.py", frozenset({"_write_outputs"})),
     ("outputs", "fgslam/run/results.py", frozenset({"outputs_text"})),
-    ("outputs", "fgslam/eval.py", None),
+    ("outputs", "fgslam/eval/trajectory.py", None),
     ("outputs", "fgslam/export/", None),
     ("bookkeeping", "fgslam/run/runner.py", frozenset({"_loop"})),
     ("bookkeeping", "fgslam/run/system.py", None),

@@ -61,8 +61,9 @@ def collaborator_accesses(package: Path) -> dict:
     return {"all": total, "private": private, "files": per_file}
 
 
-def _sccs(graph: grimp.ImportGraph, modules: set[str]) -> list[list[str]]:
-    """Strongly connected components (more than one module) of the import graph restricted to ``modules``."""
+def strongly_connected(graph: grimp.ImportGraph, modules: set[str]) -> list[list[str]]:
+    """Import cycles: the strongly connected components (more than one module) of the import graph
+    restricted to ``modules`` (Tarjan, iterative; tests/test_layers.py uses it too)."""
     index: dict[str, int] = {}
     low: dict[str, int] = {}
     stack: list[str] = []
@@ -114,7 +115,7 @@ def folder_cycles(name: str) -> list[list[str]]:
         folders.setdefault(module.rsplit(".", 1)[0], set()).add(module)
     cycles = []
     for folder in sorted(folders):
-        cycles += _sccs(graph, folders[folder])
+        cycles += strongly_connected(graph, folders[folder])
     return cycles
 
 

@@ -62,12 +62,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fgslam.config import check_ranges, ranged
-from fgslam.errors import FGSlamError, OptimizationError
+from fgslam.core.config import check_ranges, ranged
+from fgslam.core.errors import FGSlamError, OptimizationError
 from fgslam.frontends.flow import grid_intrinsics
 from fgslam.io.synth import SynthSequence
 from fgslam.io.synth.scenarios import load_synth_config
-from fgslam.lie import Sim3
+from fgslam.core.lie import Sim3
 from fgslam.nets.checkpoint import load_droid, save_checkpoint
 from fgslam.nets.config import resolve_device
 from fgslam.nets.dba import DenseBAStepConfig, dense_ba_step, induced_coords

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, check_ranges, ranged
-from ..errors import ConfigError
+from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, check_ranges, ranged
+from ..core.errors import ConfigError
 
 #: Accepted spellings of ``map.solver`` and the solver they name (``python_lm``: the name before the
 #: backend, kept as an alias; ``gtsam_lm``, the outer loop around gtsam's own optimizer, is gone: the

@@ -13,7 +13,7 @@ from typing import Iterable
 
 import numpy as np
 
-from ..errors import OptimizationError
+from ..core.errors import OptimizationError
 from ..factors.range import camera_centre, range_factor
 from ..factors.sim3 import SIM3_DOF
 from .config import GaugeConfig

@@ -6,7 +6,7 @@ in a worker process); the patch frontend builds the problem from its graph
 (:meth:`fgslam.frontends.patch.frontend.PatchFrontend.global_ba_job`).
 
 Problem (:class:`GlobalBAProblem`): F frames with Sim(3) poses ``T_WC`` (4x4 ``[[s R, t], [0, 1]]``;
-the scale of each pose is *held*: the update is SE(3), tangent ``[w, u]`` of ``fgslam.lie.Sim3``'s
+the scale of each pose is *held*: the update is SE(3), tangent ``[w, u]`` of ``fgslam.core.lie.Sim3``'s
 ``[w, u, lambda]`` with lambda = 0, right perturbation ``T <- T Exp(xi)``), P patches (each owned by
 one source frame, one inverse depth each) and N edges ``(src, tgt, right)``: patch centre
 ``uv_src`` of frame ``src`` seen at ``uv`` in frame ``tgt`` (its right image through ``T_CRCL``
@@ -46,12 +46,12 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ..errors import OptimizationError
+from ..core.errors import OptimizationError
 from ..factors.depth import depth_prior
 from ..factors.reprojection import ReprojectionConfig, reproject_edges
 from ..factors.robust import kernel_weight
 from ..factors.schur import eliminate_structure, information_inverse, to_gaussian_factor, torch_threads
-from ..lie import Sim3, sim3_matrix_components
+from ..core.lie import Sim3, sim3_matrix_components
 from .config import GlobalBAConfig
 from .solver import LMSettings, levenberg_marquardt
 
@@ -462,7 +462,7 @@ def global_bundle_adjustment(problem: GlobalBAProblem, config: GlobalBAConfig | 
                              reprojection: ReprojectionConfig | None = None) -> GlobalBAResult:
     """Optimise every non-fixed pose (held scale) and every patch inverse depth (module docstring).
 
-    Raises :class:`~fgslam.errors.OptimizationError` on inconsistent input; never returns NaN (a
+    Raises :class:`~fgslam.core.errors.OptimizationError` on inconsistent input; never returns NaN (a
     step that produces non-finite values is rejected like one that raises the cost).
     """
     cfg = config or GlobalBAConfig()

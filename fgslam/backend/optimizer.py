@@ -29,9 +29,9 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from ..errors import OptimizationError
+from ..core.errors import OptimizationError
 from ..factors.schur import torch_threads
-from ..lie import gtsam_matrix
+from ..core.lie import gtsam_matrix
 from .config import BackendConfig
 from .gauge import Gauge
 from .keys import key_name, pose_key

@@ -14,9 +14,9 @@ from typing import Literal
 
 import numpy as np
 
-from ..errors import OptimizationError
+from ..core.errors import OptimizationError
 from ..factors.sim3 import SIM3_DOF, make_between_factors
-from ..lie import Sim3
+from ..core.lie import Sim3
 from .solver import LMSettings, NonlinearProblem, levenberg_marquardt
 
 RobustKernel = Literal["none", "huber", "cauchy"]

@@ -2,7 +2,7 @@
 factors with owners and handles, and the contributors' blocks.
 
 Keyframe ``kf`` has the gtsam key :func:`~fgslam.backend.keys.pose_key` ``= gtsam.symbol('x', kf)``
-holding a ``gtsam.Similarity3`` T_WC (camera-to-world; fgslam.lie's ``Sim3(R, t, s)`` maps to
+holding a ``gtsam.Similarity3`` T_WC (camera-to-world; fgslam.core.lie's ``Sim3(R, t, s)`` maps to
 ``Similarity3(Rot3(R), t / s, s)``), and a timestamp. Other variables (velocities, biases, plugin
 variables) are added by key, optionally attached to a keyframe (:meth:`GraphStore.attach_key`: free,
 fixed, marginalised and removed with it). :class:`FactorTable` holds the built-in gtsam factors (each
@@ -15,13 +15,13 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from ..errors import OptimizationError
-from ..lie import Sim3, gtsam_matrix, gtsam_sim3
+from ..core.errors import OptimizationError
+from ..core.lie import Sim3, gtsam_matrix, gtsam_sim3
 from .keys import key_name, pose_key
 
 
 def as_similarity3(T_WC):
-    """``gtsam.Similarity3`` of a pose given as one, as an unbatched :class:`fgslam.lie.Sim3` or as a
+    """``gtsam.Similarity3`` of a pose given as one, as an unbatched :class:`fgslam.core.lie.Sim3` or as a
     (4, 4) Sim(3) matrix ``[[s R, t], [0, 1]]`` (R projected onto SO(3))."""
     import gtsam  # deferred: gtsam
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import OptimizationError
+from ..core.errors import OptimizationError
 from ..factors.schur import POSE_DIM, jacobian_factor
 from .keys import key_name
 

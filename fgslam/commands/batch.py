@@ -1,6 +1,6 @@
 """``fgslam batch MATRIX.yaml``: a matrix of configs x datasets, one run per cell (on Ray when it is
 installed: a local instance, or ``--address`` of a cluster), one table of ATE and frames/s
-(``batch.json``, ``batch.csv``, ``batch.md``; see :mod:`fgslam.batch`)."""
+(``batch.json``, ``batch.csv``, ``batch.md``; see :mod:`fgslam.run.batch`)."""
 
 from __future__ import annotations
 
@@ -14,12 +14,12 @@ from typing import Any
 
 from tqdm import tqdm
 
-from ..batch import BatchOptions, load_matrix, markdown_table, run_batch
-from ..config import check_ranges
+from ..run.batch import BatchOptions, load_matrix, markdown_table, run_batch
+from ..core.config import check_ranges
 
 HELP = "run a matrix of configs x datasets (on Ray when installed) and collect one summary table"
 
-logger = logging.getLogger("fgslam.batch")
+logger = logging.getLogger("fgslam.run.batch")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -17,9 +17,9 @@ from typing import TYPE_CHECKING, Any, Optional
 
 import numpy as np
 
-from ..errors import ConfigError, DataError, EvaluationError
-from ..eval import EvalResult, evaluate
-from ..geometry import Alignment, umeyama
+from ..core.errors import ConfigError, DataError, EvaluationError
+from ..eval.trajectory import EvalResult, evaluate
+from ..core.geometry import Alignment, umeyama
 from ..io.datasets import DatasetConfig, open_dataset
 from ..io import plot  # called through the module (replaceable in tests, as the run's plot)
 from ..io.run_files import TUM_FILE

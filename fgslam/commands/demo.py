@@ -1,4 +1,4 @@
-"""``fgslam demo``: the command line of :mod:`fgslam.demo` (render ``room-loop``, run patch SLAM, report)."""
+"""``fgslam demo``: the command line of :mod:`fgslam.run.demo` (render ``room-loop``, run patch SLAM, report)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..demo import format_demo_report, load_demo_config, run_demo  # deferred: the demo runs SLAM (torch; fgslam --help stays fast)
+    from ..run.demo import format_demo_report, load_demo_config, run_demo  # deferred: the demo runs SLAM (torch; fgslam --help stays fast)
 
     overrides = list(args.overrides)
     if args.frames is not None:

@@ -14,9 +14,9 @@ import argparse
 import dataclasses
 import json
 
-from ..config import load_config
-from ..errors import DataError
-from ..eval import EvalConfig, evaluate
+from ..core.config import load_config
+from ..core.errors import DataError
+from ..eval.trajectory import EvalConfig, evaluate
 from ..io import plot  # called through the module: a test replaces plot.plot_trajectories
 from ..io.trajectory import read_trajectory
 from . import add_config_arguments

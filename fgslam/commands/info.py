@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from ..config import load_config
+from ..core.config import load_config
 from ..io.datasets import DatasetConfig, open_dataset
 from . import FORMAT_CHOICES, add_config_arguments
 

@@ -7,7 +7,7 @@ import argparse
 import json
 from pathlib import Path
 
-from ..config import load_config
+from ..core.config import load_config
 from . import FORMAT_CHOICES, add_config_arguments
 
 HELP = "localise a sequence in a stored map (pose per frame in the map's frame, or 'not localised')"

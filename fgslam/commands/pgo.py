@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from ..config import load_config
-from ..pgo import PGOConfig, run_pgo
+from ..core.config import load_config
+from ..run.pgo import PGOConfig, run_pgo
 from . import add_config_arguments
 
 HELP = "optimise a g2o pose graph (SE2 / SE3:QUAT) and report initial/final cost, iterations and time"

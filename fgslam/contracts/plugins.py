@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Protocol, TypeVar
 
-from ..config import from_dict
+from ..core.config import from_dict
 
 if TYPE_CHECKING:
     from ..backend.graph import Backend

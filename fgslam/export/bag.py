@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from ..errors import DataError
+from ..core.errors import DataError
 from ..io.datasets.rosbag import ROS1_SUFFIX, import_rosbags, is_bag
 from ..io.run_files import TUM_FILE
 from ..io.trajectory import Trajectory, read_trajectory, rotation_to_quaternion_xyzw

@@ -29,8 +29,8 @@ from typing import Literal
 
 import numpy as np
 
-from ..config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_KEYFRAMES, MAX_SCALAR, MAX_SEED, MAX_THREADS, ranged
-from ..errors import DataError
+from ..core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_KEYFRAMES, MAX_SCALAR, MAX_SEED, MAX_THREADS, ranged
+from ..core.errors import DataError
 from ..io.trajectory import Trajectory
 from .map import RunMap
 

@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from ..config import MAX_COUNT, MAX_SCALAR, ranged
-from ..errors import DataError
+from ..core.config import MAX_COUNT, MAX_SCALAR, ranged
+from ..core.errors import DataError
 from .colmap import ColmapSfmConfig
 
 COMPARE_JSON = "compare.json"

@@ -1,6 +1,6 @@
 """The map a run saves for ``fgslam export`` (``map.npz`` in the run folder).
 
-:class:`~fgslam.mapdata.MapExport` (defined below the frontends, in :mod:`fgslam.mapdata`) is what
+:class:`~fgslam.core.mapdata.MapExport` (defined below the frontends, in :mod:`fgslam.core.mapdata`) is what
 :meth:`fgslam.frontends.base.Frontend.map_export` returns (any frontend): keyframes (id, timestamp,
 camera-to-world pose) and 3-D points with colour and tracks (the keyframe pixels that observe each
 point). :class:`RunMap` adds what only the runner knows: the
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataError
-from ..mapdata import MapExport
+from ..core.errors import DataError
+from ..core.mapdata import MapExport
 
 MAP_FILE = "map.npz"
 MAP_FORMAT_VERSION = 1

@@ -27,7 +27,7 @@ feature image, ``feat_desc`` (N, 32) uint8 ORB descriptors, ``feat_X_C`` (N, 3) 
 monocular and stereo: triangulated with neighbouring keyframes by the loop verifier's
 triangulation). Retrieval database, with offsets ``bow_ptr`` (K+1,) int64: ``bow_words`` int32 and
 ``bow_weights`` float64 of each keyframe's bag-of-words vector. The family's structure
-(:class:`fgslam.mapdata.MapExport`): ``points_X_W`` (M, 3) float64, ``points_colour`` (M, 3) uint8,
+(:class:`fgslam.core.mapdata.MapExport`): ``points_X_W`` (M, 3) float64, ``points_colour`` (M, 3) uint8,
 ``track_point`` / ``track_kf`` (T,) int64 and ``track_uv`` (T, 2) float64 (keyframe pixel of each
 observation).
 
@@ -50,13 +50,13 @@ from typing import Any
 
 import numpy as np
 
-from ..config import MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
-from ..errors import DataError
+from ..core.config import MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
+from ..core.errors import DataError
 from ..loop.bow import BowConfig, KeyframeFeatures, PlaceRecognizer
 from ..loop.features import OrbConfig, to_grey_uint8
 from ..loop.records import VerificationConfig
 from ..loop.verification import LoopKeyframe, Verifier
-from ..mapdata import MapExport
+from ..core.mapdata import MapExport
 
 logger = logging.getLogger(__name__)
 

@@ -26,8 +26,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import MAX_FRAMES, MAX_SCALAR, ranged
-from ..errors import ConfigError, DataError
+from ..core.config import MAX_FRAMES, MAX_SCALAR, ranged
+from ..core.errors import ConfigError, DataError
 
 if TYPE_CHECKING:
     import rerun.blueprint as rrb

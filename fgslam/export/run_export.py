@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from ..config import from_dict
-from ..errors import ConfigError, DataError
+from ..core.config import from_dict
+from ..core.errors import ConfigError, DataError
 from ..io.datasets import DatasetConfig, open_dataset
 from ..io.run_files import SUMMARY_FILE, TUM_FILE
 from ..io.trajectory import read_trajectory

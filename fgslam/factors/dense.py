@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from .blocks import LinearPiece
-from ..lie import Sim3
+from ..core.lie import Sim3
 from .depth import DepthPriorConfig, depth_prior, depth_priors
 from .reprojection import ReprojectionConfig, reproject_inv_depth
 from .schur import POSE_DIM, SlotGroups, schur_reduce, torch_threads

@@ -26,9 +26,9 @@ from typing import Literal
 import numpy as np
 import torch
 
-from ..camera import StereoRig
-from ..config import MAX_SCALAR, ranged
-from ..errors import ConfigError
+from ..core.camera import StereoRig
+from ..core.config import MAX_SCALAR, ranged
+from ..core.errors import ConfigError
 from .reprojection import PoseLike, ReprojectionConfig, ReprojectionResult, reproject_inv_depth
 
 __all__ = [

@@ -43,11 +43,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_SCALAR, ranged
+from ..core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_SCALAR, ranged
 
 MAX_LEVELS = 8  # pyramid levels of a depth surface (the coarsest steps 2^7 times the finest)
-from ..errors import ConfigError, DataError
-from ..lie import gtsam_matrix
+from ..core.errors import ConfigError, DataError
+from ..core.lie import gtsam_matrix
 from .blocks import LinearPiece, weighted_piece
 from .robust import RobustConfig, kernel_cost, kernel_weight
 from .schur import POSE_DIM

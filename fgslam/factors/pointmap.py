@@ -18,8 +18,8 @@ function                          residual rows (h(T) - z)     paper (main / sup
 
 Conventions
 -----------
-* Sim(3) ``T = (R, t, s)`` acts as ``X -> s R X + t`` (the ``fgslam.lie.Sim3`` contract). A pose
-  argument is a ``fgslam.lie.Sim3``, any object with tensor attributes ``.R (...,3,3)``,
+* Sim(3) ``T = (R, t, s)`` acts as ``X -> s R X + t`` (the ``fgslam.core.lie.Sim3`` contract). A pose
+  argument is a ``fgslam.core.lie.Sim3``, any object with tensor attributes ``.R (...,3,3)``,
   ``.t (...,3)``, ``.s (...)``, or a tuple ``(R, t, s)`` of such tensors.
 * Tangent ``xi = [w(3), u(3), lambda]`` in gtsam's ``Similarity3`` order, RIGHT perturbation:
   ``T (+) xi = T @ Exp(xi)``. Every Jacobian ``J`` is ``d r(T (+) xi) / d xi`` at ``xi = 0``.
@@ -49,10 +49,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..camera import project
-from ..config import MAX_SCALAR, ranged
-from ..errors import DataError
-from ..lie import Sim3
+from ..core.camera import project
+from ..core.config import MAX_SCALAR, ranged
+from ..core.errors import DataError
+from ..core.lie import Sim3
 
 logger = logging.getLogger(__name__)
 
@@ -249,7 +249,7 @@ def ray_dist_residuals(
 ) -> MatchResiduals:
     """Ray and distance residuals of the generic central camera (m = 4; eqs. 7, 10, 16-22).
 
-    With ``Y = T_CkCf X_f_in_f`` and ``psi(X) = X / ||X||`` (``fgslam.camera.normalize_rays``):
+    With ``Y = T_CkCf X_f_in_f`` and ``psi(X) = X / ||X||`` (``fgslam.core.camera.normalize_rays``):
     rows 0-2: ``psi(Y) - psi(X_k_in_k)``, ``d psi/dY = (I - psi psi^T) / ||Y||``;
     row 3: ``||Y|| - ||X_k_in_k||``, ``d||Y||/dY = psi(Y)^T``;
     chained with ``dY/dxi = s R [-[X_f]x, I, X_f]``.
@@ -302,7 +302,7 @@ def calibrated_residuals(
     """Calibrated pixel + log-depth residuals (m = 3; paper eqs. 11, 23-25).
 
     With ``Y = T_CkCf X_f_in_f`` and the pinhole ``pi`` of ``K = [fx, fy, cx, cy]`` (shape
-    ``(4,)`` or the pose batch ``(..., 4)``; ``fgslam.camera.project``):
+    ``(4,)`` or the pose batch ``(..., 4)``; ``fgslam.core.camera.project``):
     rows 0-1: ``pi(Y) - uv_k`` where ``uv_k (..., N, 2)`` is the matched pixel in keyframe k;
     row 2: ``log z(Y) - log z(X_k_in_k)``.
     ``d pi/dY = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]]``, ``d log z/dY = [0, 0, 1/z]``.

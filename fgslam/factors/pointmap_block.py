@@ -35,9 +35,9 @@ import numpy as np
 import torch
 
 from .blocks import LinearPiece
-from ..config import MAX_THREADS, ranged
-from ..errors import DataError
-from ..lie import Sim3
+from ..core.config import MAX_THREADS, ranged
+from ..core.errors import DataError
+from ..core.lie import Sim3
 from .pointmap import (PointmapResidualConfig, calibrated_prepared, prepare_matches, ray_dist_prepared,
                        relative_to_global_normal)
 from .robust import RobustConfig, kernel_cost, kernel_weight

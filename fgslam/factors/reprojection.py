@@ -3,7 +3,7 @@
 The residual of DROID-SLAM eq. 4 (Jacobians: appendix C, eqs. 6-14) and of DPV-SLAM eqs. 2-3
 (patches), in the conventions of fgslam:
 
-- Poses ``T_WCi``, ``T_WCj`` are camera-to-world Sim(3): ``X_W = s R X_C + t`` (``fgslam.lie.Sim3``).
+- Poses ``T_WCi``, ``T_WCj`` are camera-to-world Sim(3): ``X_W = s R X_C + t`` (``fgslam.core.lie.Sim3``).
   Anything with attributes ``.R (..., 3, 3)``, ``.t (..., 3)`` and optionally ``.s (...)`` (an SE3
   object has scale 1), or a tuple ``(R, t, s)``, is accepted (:data:`PoseLike`).
 - Jacobians are w.r.t. RIGHT perturbations ``T <- T Exp(xi)`` with the gtsam ``Similarity3``
@@ -52,8 +52,8 @@ from typing import Protocol, Union
 import numpy as np
 import torch
 
-from ..config import MAX_SCALAR, ranged
-from ..errors import DataError
+from ..core.config import MAX_SCALAR, ranged
+from ..core.errors import DataError
 
 __all__ = [
     "PoseLike",
@@ -69,7 +69,7 @@ __all__ = [
 
 class RotationTranslation(Protocol):
     """A batched pose with rotation ``R (..., 3, 3)`` and translation ``t (..., 3)``, and a scale
-    ``s (...)`` when it is a similarity (:class:`fgslam.lie.Sim3`; an :class:`fgslam.lie.SE3` has
+    ``s (...)`` when it is a similarity (:class:`fgslam.core.lie.Sim3`; an :class:`fgslam.core.lie.SE3` has
     none: scale 1)."""
 
     @property

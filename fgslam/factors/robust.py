@@ -23,8 +23,8 @@ from typing import Literal, NamedTuple
 
 import torch
 
-from ..config import MAX_SCALAR, ranged
-from ..errors import ConfigError
+from ..core.config import MAX_SCALAR, ranged
+from ..core.errors import ConfigError
 
 KernelKind = Literal["none", "huber", "cauchy", "tukey"]
 

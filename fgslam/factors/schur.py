@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..errors import OptimizationError
+from ..core.errors import OptimizationError
 
 POSE_DIM = 7  # dimension of gtsam.Similarity3's tangent space [w, u, lambda]
 

@@ -11,7 +11,7 @@ Right perturbations ``T <- T Exp(d)`` give the exact Jacobians::
     dr/dd_j =  Jr^-1(r)
     dr/dd_i = -Jr^-1(r) Ad(T_j^-1 T_i)
 
-where ``Jr^-1`` is the inverse right Jacobian of Sim(3) (:meth:`fgslam.lie.Sim3.right_jacobian_inv`).
+where ``Jr^-1`` is the inverse right Jacobian of Sim(3) (:meth:`fgslam.core.lie.Sim3.right_jacobian_inv`).
 gtsam 4.3.0's BetweenFactorSimilarity3 uses the first-order form without ``Jr^-1``
 (``I`` and ``-Ad(T_j^-1 T_i)``, exact only at r = 0; the error is O(|r|) relative), available here
 with ``exact=False``. Both give the same optimum (the residual is the same); the exact one converges
@@ -32,7 +32,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from ..lie import Sim3
+from ..core.lie import Sim3
 from .robust import kernel_weight
 
 logger = logging.getLogger(__name__)

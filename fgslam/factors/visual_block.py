@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, ranged
-from ..errors import OptimizationError
-from ..lie import Sim3
+from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, ranged
+from ..core.errors import OptimizationError
+from ..core.lie import Sim3
 from .blocks import LinearPiece
 from .reprojection import ReprojectionConfig, reproject, reproject_inv_depth
 from .schur import SchurSystem, SlotGroups, per_structure_cost, schur_reduce, structure_gauss_newton_step, torch_threads

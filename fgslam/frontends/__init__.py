@@ -20,7 +20,7 @@ family is imported only when its config class or builder is first needed, so imp
 Families: ``patch`` (DPVO / DPV-SLAM, issue 4), ``dense`` (DROID-SLAM, issue 12) and ``pointmap``
 (MASt3R-SLAM, issue 13) are implemented. A family listed without a builder is planned (no config
 section, no builder yet) and raises a
-:class:`~fgslam.errors.ConfigError` that says so.
+:class:`~fgslam.core.errors.ConfigError` that says so.
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Optional
 
-from ..config import import_object
-from ..errors import ConfigError
+from ..core.config import import_object
+from ..core.errors import ConfigError
 from .base import FrameStatus, Frontend, PoseSource, SensorMode
 
 if TYPE_CHECKING:

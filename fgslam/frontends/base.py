@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Callable, Literal, Optional, Protocol
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..core.errors import ConfigError
 
 if TYPE_CHECKING:
     from ..backend import Backend
@@ -235,7 +235,7 @@ class Frontend(abc.ABC):
         return None
 
     def map_export(self):
-        """The map a run saves for ``fgslam export`` (:class:`fgslam.mapdata.MapExport`: keyframe
+        """The map a run saves for ``fgslam export`` (:class:`fgslam.core.mapdata.MapExport`: keyframe
         ids, timestamps, rigid ``T_WC``, points with colour and tracks), or None.
 
         Default: the points of :meth:`keyframe_points` without tracks, and the keyframes of the
@@ -244,7 +244,7 @@ class Frontend(abc.ABC):
         points = self.keyframe_points()
         if points is None:
             return None
-        from ..mapdata import MapExport, rigid_poses  # deferred: torch (fgslam.mapdata; base is on the CLI's light path)
+        from ..core.mapdata import MapExport, rigid_poses  # deferred: torch (fgslam.core.mapdata; base is on the CLI's light path)
 
         backend = getattr(self, "backend", None)
         kf_ids = [] if backend is None else sorted(backend.keyframe_ids)

@@ -18,10 +18,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..config import MAX_ITERATIONS, MAX_WINDOW, ranged
+from ..core.config import MAX_ITERATIONS, MAX_WINDOW, ranged
 from ..factors.depth_align import MAX_LEVELS, RIGID_DIM, DepthAlignBlock, DepthAlignConfig, DepthConstraint, DepthSurface
 from ..factors.schur import POSE_DIM
-from ..lie import gtsam_matrix, gtsam_sim3
+from ..core.lie import gtsam_matrix, gtsam_sim3
 
 logger = logging.getLogger(__name__)
 

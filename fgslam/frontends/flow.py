@@ -18,8 +18,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..config import MAX_IMAGE_SIDE, MAX_SCALAR, ranged
-from ..errors import DataError
+from ..core.config import MAX_IMAGE_SIDE, MAX_SCALAR, ranged
+from ..core.errors import DataError
 
 _DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                 "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
@@ -65,7 +65,7 @@ def image_to_grid(uv: np.ndarray, stride: int) -> np.ndarray:
 
 def grid_intrinsics(K, stride: int) -> tuple[float, float, float, float]:
     """Intrinsics ``(fx, fy, cx, cy)`` of the grid of an image with intrinsics ``K`` (same convention
-    as :meth:`fgslam.camera.PinholeCamera.resized`)."""
+    as :meth:`fgslam.core.camera.PinholeCamera.resized`)."""
     fx, fy, cx, cy = (float(k) for k in K)
     return fx / stride, fy / stride, (cx + 0.5) / stride - 0.5, (cy + 0.5) / stride - 0.5
 

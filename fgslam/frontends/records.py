@@ -25,7 +25,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ..lie import gtsam_matrix, gtsam_sim3, sim3_matrix_parts
+from ..core.lie import gtsam_matrix, gtsam_sim3, sim3_matrix_parts
 from ..loop.records import PoseCorrection
 
 
@@ -50,7 +50,7 @@ def sim3_interp(Ta: np.ndarray, Tb: np.ndarray, alpha: float) -> np.ndarray:
 
 def sim3_power(M: np.ndarray, alpha: float) -> np.ndarray:
     """``Exp(alpha Log(M))`` of a Sim(3) matrix, through gtsam's ``Similarity3`` Logmap/Expmap (whose
-    tangent is ``fgslam.lie.Sim3``'s ``[w, u, lambda]``); per-frame motion model without torch."""
+    tangent is ``fgslam.core.lie.Sim3``'s ``[w, u, lambda]``); per-frame motion model without torch."""
     import gtsam  # deferred: gtsam
 
     return gtsam_matrix(gtsam.Similarity3.Expmap(alpha * gtsam.Similarity3.Logmap(gtsam_sim3(M))))

@@ -39,8 +39,8 @@ import numpy as np
 import yaml
 from numpy.typing import ArrayLike
 
-from ..config import yaml_error_text
-from ..errors import DataError
+from ..core.config import yaml_error_text
+from ..core.errors import DataError
 
 DISTORTION_MODELS = ("none", "radtan", "equidistant")
 # number of coefficients accepted per model (OpenCV order, see the module docstring)

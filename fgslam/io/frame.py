@@ -28,7 +28,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import DataError
+from ..core.errors import DataError
 from .calibration import Calibration
 
 

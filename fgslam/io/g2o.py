@@ -20,7 +20,7 @@ Conventions (those of g2o):
 
 Some published files (e.g. the KITTI and Manhattan benchmarks of SE-Sync) contain only edges: then
 ``poses`` is ``None`` and the vertex ids are those the edges use. When a file has vertex lines, every
-edge must join two declared vertices. Any deviation raises :class:`~fgslam.errors.FormatError`
+edge must join two declared vertices. Any deviation raises :class:`~fgslam.core.errors.FormatError`
 naming the file and the line.
 """
 
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataError, FormatError
+from ..core.errors import DataError, FormatError
 
 #: Tag -> (dimension, number of tokens on the line including the tag).
 _VERTEX_TAGS = {"VERTEX_SE2": (2, 5), "VERTEX_SE3:QUAT": (3, 9)}

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataError
+from ..core.errors import DataError
 from .trajectory import Trajectory
 
 logger = logging.getLogger(__name__)
@@ -72,7 +72,7 @@ def plot_trajectories(
     """Draw ``est`` (and ``gt`` when given, and ``others`` by label) seen on ``plane`` and save a
     PNG at ``path_png``.
 
-    Every trajectory is drawn as given: align the estimates first (``fgslam.eval``) to overlay
+    Every trajectory is drawn as given: align the estimates first (``fgslam.eval.trajectory``) to overlay
     them on the ground truth. Start points are marked with a circle. With ``errors`` (label ->
     ``(timestamps, errors in metres)``) a second panel shows the translation error over time (the
     ATE's per-pose errors). Returns the written path.

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataError, FormatError
+from ..core.errors import DataError, FormatError
 from .datasets.files import check_increasing, read_text_lines
 
 POSITION_COLUMNS = 4  # t x y z

@@ -22,7 +22,7 @@ Formats
   which are ignored) and the plain 8-column estimate csv.
 
 In every format, lines that are blank or start with ``#`` are skipped; any other line that does not
-parse raises :class:`~fgslam.errors.FormatError` naming the file and the line number.
+parse raises :class:`~fgslam.core.errors.FormatError` naming the file and the line number.
 
 Time units are checked, since a file read in the wrong format can still parse: stamps in seconds
 (``tum``, KITTI times files) above ``MAX_PLAUSIBLE_SECONDS`` are milli-, micro- or nanoseconds, and
@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataError, FormatError
+from ..core.errors import DataError, FormatError
 
 logger = logging.getLogger(__name__)
 

@@ -15,7 +15,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from ..errors import DataError
+from ..core.errors import DataError
 from .calibration import Calibration
 
 # Sanity of an undistortion (checked on its remap tables, whatever the model and coefficients):

@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, from_dict, ranged
-from ..errors import ConfigError
+from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, from_dict, ranged
+from ..core.errors import ConfigError
 from ..export.mapfile import DESCRIPTOR_BYTES, MapMergeConfig, StoredMap, feature_image
 from ..io.datasets import DatasetConfig
 from ..loop.bow import BowDatabase

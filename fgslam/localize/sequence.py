@@ -22,8 +22,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..config import from_dict, to_dict
-from ..errors import FGSlamError
+from ..core.config import from_dict, to_dict
+from ..core.errors import FGSlamError
 from ..export.mapfile import check_map_camera, load_stored_map
 from ..io.datasets import DatasetConfig, open_dataset
 from ..io.run_files import LOCALIZATION_FILE, SUMMARY_FILE, TUM_FILE

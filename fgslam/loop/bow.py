@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..config import MAX_COUNT, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
-from ..errors import DataError
+from ..core.config import MAX_COUNT, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
+from ..core.errors import DataError
 from .features import OrbConfig, OrbExtractor
 from .vocabulary import BowVector, Vocabulary, l1_score, load_vocabulary
 

@@ -23,7 +23,7 @@ graph), and each :class:`PoseCorrection` is SE(3): all ``scale`` are 1 and ``fol
 (nothing to fold). Relocalisation returns the metric PnP pose in both modes.
 
 Conventions: poses are camera-to-world Sim(3) ``T_WC`` (``X_W = s R X_C + t``, 4x4
-``[[s R, t], [0, 1]]`` or :class:`fgslam.lie.Sim3`); camera-frame points are in the units of their
+``[[s R, t], [0, 1]]`` or :class:`fgslam.core.lie.Sim3`); camera-frame points are in the units of their
 keyframe's pose (``X_C = T_WC^-1 X_W``); intrinsics ``K = (fx, fy, cx, cy)`` of an undistorted
 pinhole image; keyframe ids are the caller's integers, increasing in insertion order. In metric mode
 every keyframe shares one scale (1), so both keyframes of a loop are in the same (metric) units.
@@ -65,8 +65,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..errors import DataError, OptimizationError
-from ..lie import Sim3
+from ..core.errors import DataError, OptimizationError
+from ..core.lie import Sim3
 from .bow import PlaceRecognizer
 from .pose_graph import optimize_sim3_pose_graph
 from .records import LoopClosureConfig, LoopRecord, PoseCorrection, Verification

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_LEVELS, MAX_SCALAR, check_ranges, ranged
-from ..errors import ConfigError, DataError
+from ..core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_LEVELS, MAX_SCALAR, check_ranges, ranged
+from ..core.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
 

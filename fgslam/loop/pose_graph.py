@@ -1,6 +1,6 @@
 """Sim(3) pose-graph loop correction (DPV-SLAM sec. 3.3, eqs. 5-7) with false-loop rejection.
 
-Variables are the keyframe poses ``T_WC_k`` (``fgslam.lie.Sim3``, ``X_W = s R X_C + t``), gtsam key
+Variables are the keyframe poses ``T_WC_k`` (``fgslam.core.lie.Sim3``, ``X_W = s R X_C + t``), gtsam key
 ``k`` = keyframe index. Terms (all gtsam built-ins, solved by the backend's one Levenberg-Marquardt
 loop, :func:`fgslam.backend.solver.levenberg_marquardt`, with GTSAM's LM defaults):
 
@@ -69,10 +69,10 @@ import torch
 
 from ..backend.pose_graph import LoopPoseGraph
 from ..backend.solver import LMSettings
-from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, check_ranges, ranged
-from ..errors import ConfigError, OptimizationError
+from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, check_ranges, ranged
+from ..core.errors import ConfigError, OptimizationError
 from ..factors.sim3 import SIM3_DOF, sim3_between_residual
-from ..lie import Sim3
+from ..core.lie import Sim3
 
 logger = logging.getLogger(__name__)
 

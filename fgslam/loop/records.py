@@ -21,9 +21,9 @@ from typing import Literal, Sequence
 
 import numpy as np
 
-from ..config import MAX_COUNT, MAX_FRAMES, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
-from ..errors import ConfigError
-from ..lie import sim3_matrix_parts
+from ..core.config import MAX_COUNT, MAX_FRAMES, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
+from ..core.errors import ConfigError
+from ..core.lie import sim3_matrix_parts
 from .bow import BowConfig
 from .pose_graph import PoseGraphConfig
 from .sim3_estimation import Sim3RansacConfig

@@ -3,8 +3,8 @@
 Input: points ``X_a`` (N, 3) triangulated around keyframe a, expressed in camera frame a, and their
 matches ``X_b`` (N, 3) triangulated around keyframe b, in camera frame b; each side has its own
 (monocular, arbitrary) scale. Output: the similarity ``T_ab`` (``X_a = s R X_b + t``, the standard
-convention of :class:`fgslam.lie.Sim3`, i.e. ``T_CaCb``) estimated by RANSAC over minimal 3-point
-samples with Umeyama's closed form (:func:`fgslam.geometry.umeyama`, with scale), refined on all inliers.
+convention of :class:`fgslam.core.lie.Sim3`, i.e. ``T_CaCb``) estimated by RANSAC over minimal 3-point
+samples with Umeyama's closed form (:func:`fgslam.core.geometry.umeyama`, with scale), refined on all inliers.
 With ``with_scale=False`` (metric maps: stereo, RGB-D, where both sides are in metres) the fit is
 rigid (Umeyama without scale): ``T_ab`` has ``s = 1`` exactly and a scale difference between the two
 point sets shows as residuals instead of being absorbed.
@@ -36,10 +36,10 @@ from typing import Literal
 import numpy as np
 import torch
 
-from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_SCALAR, MAX_SEED, check_ranges, ranged
-from ..errors import ConfigError, EvaluationError
-from ..geometry import umeyama
-from ..lie import Sim3
+from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_SCALAR, MAX_SEED, check_ranges, ranged
+from ..core.errors import ConfigError, EvaluationError
+from ..core.geometry import umeyama
+from ..core.lie import Sim3
 
 logger = logging.getLogger(__name__)
 

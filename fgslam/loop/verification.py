@@ -31,7 +31,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..lie import sim3_matrix_parts
+from ..core.lie import sim3_matrix_parts
 from .bow import KeyframeFeatures
 from .records import Verification, VerificationConfig
 from .sim3_estimation import estimate_sim3_ransac

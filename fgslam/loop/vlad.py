@@ -28,8 +28,8 @@ from typing import Literal
 
 import numpy as np
 
-from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_SEED, check_ranges, ranged
-from ..errors import ConfigError, DataError, FormatError
+from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_SEED, check_ranges, ranged
+from ..core.errors import ConfigError, DataError, FormatError
 from .bow import KeyframeDatabase, KeyframeFeatures, LoopDetectionConfig, LoopDetector, LoopQuery
 from .features import XFEAT_DESCRIPTOR_DIM, XFeatConfig, XFeatExtractor
 from .vocabulary import read_versioned_npz

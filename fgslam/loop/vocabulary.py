@@ -31,8 +31,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_LEVELS, MAX_SEED, check_ranges, ranged
-from ..errors import DataError, FormatError
+from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_LEVELS, MAX_SEED, check_ranges, ranged
+from ..core.errors import DataError, FormatError
 from .features import DESCRIPTOR_BYTES
 
 logger = logging.getLogger(__name__)

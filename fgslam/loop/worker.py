@@ -13,7 +13,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Literal
 
-from ..errors import OptimizationError
+from ..core.errors import OptimizationError
 from .records import PoseCorrection
 
 logger = logging.getLogger(__name__)
@@ -53,7 +53,7 @@ class JobWorker:
             self._thread.start()
 
     def raise_error(self) -> None:
-        """Raise the kept failure of a job (as :class:`~fgslam.errors.OptimizationError`)."""
+        """Raise the kept failure of a job (as :class:`~fgslam.core.errors.OptimizationError`)."""
         if self.error is not None:
             raise OptimizationError(f"loop closure worker failed: {self.error!r}") from self.error
 

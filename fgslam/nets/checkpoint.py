@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 import torch.nn as nn
 
-from ..errors import DataError
+from ..core.errors import DataError
 from .dpvo import VONet
 from .droid import DroidNet
 

@@ -9,8 +9,8 @@ from typing import Literal
 
 import torch
 
-from ..config import MAX_COUNT, MAX_ITERATIONS, MAX_SCALAR, MAX_THREADS, ranged
-from ..errors import ConfigError
+from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_SCALAR, MAX_THREADS, ranged
+from ..core.errors import ConfigError
 
 __all__ = ["DpvoNetConfig", "DroidNetConfig", "NetRuntimeConfig", "network_runtime", "resolve_device"]
 

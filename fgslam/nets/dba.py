@@ -6,7 +6,7 @@ pieces, so training and the dense frontend minimise the same cost:
   dense block :mod:`fgslam.factors.dense`, DROID eq. 4), batched torch, differentiable by autograd;
 - per-pixel Schur elimination of the inverse depths with DROID's damping ``eta`` on the depth block
   (eq. 5): :func:`fgslam.factors.schur.eliminate_structure` and :meth:`SchurSystem.back_substitute`;
-- pose updates: :meth:`fgslam.lie.Sim3.retract` (right perturbation, tangent ``[w, u, lambda]``).
+- pose updates: :meth:`fgslam.core.lie.Sim3.retract` (right perturbation, tangent ``[w, u, lambda]``).
 
 What differs from the frontend is only the assembly of ``J^T W J`` (``schur_reduce`` accumulates
 into preallocated buffers with ``out=``, which autograd cannot follow; here one-hot slot matrices
@@ -28,10 +28,10 @@ from dataclasses import dataclass
 
 import torch
 
-from ..config import MAX_LAMBDA, MAX_SCALAR, ranged
+from ..core.config import MAX_LAMBDA, MAX_SCALAR, ranged
 from ..factors.reprojection import ReprojectionConfig, reproject, reproject_inv_depth
 from ..factors.schur import eliminate_structure
-from ..lie import Sim3
+from ..core.lie import Sim3
 
 __all__ = ["DenseBAStepConfig", "dense_ba_step", "dense_cost", "induced_coords"]
 

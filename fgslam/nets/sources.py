@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import ConfigError, DataError
+from ..core.errors import ConfigError, DataError
 from .checkpoint import load_dpvo, load_droid
 from .config import DpvoNetConfig, DroidNetConfig, network_runtime, resolve_device
 from .droid import CORR_LEVELS, AltCorr, CorrVolume, coords_grid

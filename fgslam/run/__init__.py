@@ -1,7 +1,11 @@
-"""One home for a SLAM run (``fgslam run``): its configuration, its checks, its system, its loop and its outputs.
+"""One home for a SLAM run (``fgslam run``): its configuration, its checks, its system, its loop and its outputs;
+and the runs built on it (a batch, the demo) or beside it (a g2o pose-graph optimisation).
 
 Modules, highest first (each imports only those below it; ``pyproject.toml``, contract ``run``):
 
+- :mod:`~fgslam.run.batch`, :mod:`~fgslam.run.demo`, :mod:`~fgslam.run.pgo`: ``fgslam batch`` (many
+  runs, one table), ``fgslam demo`` (render a synthetic scene and run on it), ``fgslam pgo`` (optimise
+  a g2o pose graph);
 - :mod:`~fgslam.run.runner`: :func:`~fgslam.run.runner.run_slam` (and
   :func:`~fgslam.run.runner.run_prepared`): builds the system, steps it over the dataset, then has
   the results collected, the outputs written and the stored map saved;

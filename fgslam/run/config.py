@@ -9,8 +9,8 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 from ..backend.config import BackendConfig
-from ..config import MAX_FRAMES, MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, load_config, ranged, with_sections
-from ..eval import EvalConfig
+from ..core.config import MAX_FRAMES, MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, load_config, ranged, with_sections
+from ..eval.trajectory import EvalConfig
 from ..export.mapfile import MapFeaturesConfig, MapMergeConfig
 from ..export.rerun import RerunConfig
 from ..frontends import FRONTEND_NAMES, family_config_classes

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import to_dict
+from ..core.config import to_dict
 from ..export.mapfile import build_stored_map, load_stored_map, save_stored_map
 from ..frontends.base import Frontend
 from ..io.trajectory import Trajectory, write_trajectory

@@ -6,7 +6,7 @@ output image size (after resizing), the frontend's per-frame and per-keyframe da
 frontend's parts come from its family's registry entry (:meth:`fgslam.frontends.FrontendFamily.memory_parts`,
 next to each family's config), so a family is one registry entry here too.
 :func:`check_run_memory` refuses a run whose estimate exceeds ``max_memory_gib`` with a
-:class:`~fgslam.errors.ConfigError` naming the keys that set the largest part, so that a typo such as
+:class:`~fgslam.core.errors.ConfigError` naming the keys that set the largest part, so that a typo such as
 ``dataset.resize_scale=4`` on 8K images stops at once instead of being killed by the kernel hours in.
 
 The model is not exact; it is an order-of-magnitude-honest sum of the arrays each part keeps (bytes
@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from ..errors import ConfigError
+from ..core.errors import ConfigError
 from ..frontends import DEPTH_BYTES, GIB, GREY_BYTES, KEYFRAME_SHARE, MemoryPart, MemorySizes, frontend_family
 from ..io.datasets import Dataset
 from .config import SlamConfig

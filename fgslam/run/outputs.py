@@ -14,7 +14,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ..eval import EvalResult
+from ..eval.trajectory import EvalResult
 from ..export.map import RunMap, save_run_map
 from ..export.ply import write_ply
 from ..frontends.base import Frontend

@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-from ..config import check_ranges
-from ..errors import ConfigError, DataError
+from ..core.config import check_ranges
+from ..core.errors import ConfigError, DataError
 from ..export.mapfile import check_map_camera, load_stored_map
 from ..export.rerun import check_rerun_target
 from ..io.datasets import Dataset, open_dataset

@@ -14,8 +14,8 @@ from importlib import resources
 from pathlib import Path
 
 from .. import frontends
-from ..config import import_object, load_config
-from ..errors import ConfigError
+from ..core.config import import_object, load_config
+from ..core.errors import ConfigError
 
 #: Package (and folder inside it) holding the preset YAML files.
 PRESETS_PACKAGE = "fgslam"
@@ -24,14 +24,14 @@ PRESETS_FOLDER = "configs"
 #: Preset stem prefix -> "module:Class" of the dataclass it configures (besides the run presets'
 #: prefixes, :func:`run_preset_prefixes`, which all select :data:`RUN_CONFIG_CLASS`).
 PRESET_CLASSES: dict[str, str] = {
-    "pgo": "fgslam.pgo:PGOConfig",
-    "eval": "fgslam.eval:EvalConfig",
+    "pgo": "fgslam.run.pgo:PGOConfig",
+    "eval": "fgslam.eval.trajectory:EvalConfig",
     "dataset": "fgslam.io.datasets.common:DatasetConfig",
     "synth": "fgslam.io.synth.scenarios:SynthConfig",
     "map": "fgslam.backend.config:BackendConfig",
     "bow": "fgslam.loop.bow:BowConfig",
     "loop": "fgslam.loop.records:LoopClosureConfig",
-    "demo": "fgslam.demo:DemoConfig",
+    "demo": "fgslam.run.demo:DemoConfig",
     "localize": "fgslam.localize.localizer:LocalizeConfig",
 }
 

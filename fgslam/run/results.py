@@ -15,9 +15,9 @@ from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from ..config import to_dict
-from ..errors import DataError, EvaluationError
-from ..eval import EvalResult, evaluate
+from ..core.config import to_dict
+from ..core.errors import DataError, EvaluationError
+from ..eval.trajectory import EvalResult, evaluate
 from ..frontends.base import Frontend
 from ..io.datasets import Dataset
 from ..io.run_files import SUMMARY_FILE

@@ -26,11 +26,11 @@ and counted; corrupt frames are skipped by the dataset and counted; a non-finite
 frontend is dropped and counted. If the frontend (or the dataset) raises mid-run, everything that
 exists is written first (partial trajectory from the frontend, else from the per-frame live
 estimates, and a summary with the error), then a :class:`RunError` (or the dataset's own
-:class:`~fgslam.errors.DataError`) is raised.
+:class:`~fgslam.core.errors.DataError`) is raised.
 
 Stopping: SIGINT (Ctrl-C) and SIGTERM (batch schedulers, ``timeout``) stop the loop at once; the
 partial outputs and a summary naming the signal are written, ``on_summary`` reports it, then
-:class:`~fgslam.errors.Interrupted` is raised (``exit_code`` 130 / 143). A further signal (a second
+:class:`~fgslam.core.errors.Interrupted` is raised (``exit_code`` 130 / 143). A further signal (a second
 Ctrl-C) arriving while the outputs are written and reported is logged ("stopping: writing outputs,
 please wait") and ignored: they are completed. The handlers are installed only for the duration of
 the run and the previous ones are restored.
@@ -69,7 +69,7 @@ from typing import Callable, Optional
 import numpy as np
 from tqdm import tqdm
 
-from ..errors import DataError, FGSlamError, Interrupted
+from ..core.errors import DataError, FGSlamError, Interrupted
 from ..frontends.base import FrameStatus, Frontend
 from ..io.datasets import Dataset
 from ..io.trajectory import Trajectory

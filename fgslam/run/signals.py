@@ -1,5 +1,5 @@
 """Stopping on a signal: :class:`StopOnSignal`, the handlers of a run (:mod:`fgslam.run.runner`) and
-of a batch of runs (:mod:`fgslam.batch`) while they work."""
+of a batch of runs (:mod:`fgslam.run.batch`) while they work."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import threading
 from types import FrameType
 from typing import Callable, Optional, Union
 
-from ..errors import Interrupted
+from ..core.errors import Interrupted
 
 logger = logging.getLogger(__name__)
 
@@ -19,7 +19,7 @@ _Handler = Union[Callable[[int, Optional[FrameType]], object], int, None]
 
 class StopOnSignal:
     """While active (a ``with`` block in the main thread), the given signals raise
-    :class:`~fgslam.errors.Interrupted` (a ``KeyboardInterrupt``); once ``finishing`` is set (the
+    :class:`~fgslam.core.errors.Interrupted` (a ``KeyboardInterrupt``); once ``finishing`` is set (the
     loop has stopped: the outputs and the report are being written), a further one, a second
     Ctrl-C included, is logged and ignored so that they are completed. The previous handlers are
     restored on exit (none is installed outside the main thread, where Python cannot)."""

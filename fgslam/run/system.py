@@ -32,7 +32,7 @@ import numpy as np
 
 from ..backend import Backend
 from ..contracts.contributor import Contributor
-from ..errors import ConfigError, OptimizationError
+from ..core.errors import ConfigError, OptimizationError
 from ..export.rerun import RerunView, loop_segments
 from ..frontends import make_frontend
 from ..frontends.base import FrameStatus, Frontend

@@ -62,11 +62,11 @@ import numpy as np
 
 from ..backend.graph import Backend, CorrectionTarget
 from ..backend.keys import bias_key, velocity_key
-from ..errors import DataError
+from ..core.errors import DataError
 from ..factors.imu import body_pose, combined_params, sim3_from_body_pose
 from ..io.calibration import Calibration
 from ..io.frame import ImuSamples
-from ..lie import gtsam_matrix, sim3_matrix_parts
+from ..core.lie import gtsam_matrix, sim3_matrix_parts
 from ..loop.records import PoseCorrection
 from .corrections import route_correction, takes_corrections, uniform_correction
 from .imu_chain import ImuChain

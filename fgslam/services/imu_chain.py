@@ -21,7 +21,7 @@ import numpy as np
 from ..backend.graph import Backend
 from ..backend.keys import bias_key, kf_id_of, pose_key, velocity_key
 from ..factors.imu import body_pose, imu_factor_on_sim3
-from ..lie import gtsam_matrix, gtsam_sim3, sim3_matrix_parts
+from ..core.lie import gtsam_matrix, gtsam_sim3, sim3_matrix_parts
 from ..loop.records import PoseCorrection
 from .imu_samples import ImuBuffer, ImuServiceConfig, ImuStats
 

@@ -19,7 +19,7 @@ the whole stream once, before the first frame, and names the likely mistake:
   seen in the camera frame more than ``max_up_angle_deg`` from the image's up direction (``-y``): a
   camera held upside down or looking straight down, or (more often) IMU axes or ``T_BC`` wrong; a warning.
 
-A recognised mistake raises :class:`~fgslam.errors.DataError` naming it (``on_mistake: error``) or is
+A recognised mistake raises :class:`~fgslam.core.errors.DataError` naming it (``on_mistake: error``) or is
 logged as a warning (``warn``); an implausible value without a recognised cause is a warning. The
 findings are returned (``summary.json`` ``inertial.input_warnings``).
 """
@@ -32,8 +32,8 @@ from typing import Literal, Optional
 
 import numpy as np
 
-from ..config import MAX_SCALAR, check_ranges, ranged
-from ..errors import ConfigError, DataError
+from ..core.config import MAX_SCALAR, check_ranges, ranged
+from ..core.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ from typing import Literal, Optional
 
 import numpy as np
 
-from ..config import MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, MAX_WINDOW, ranged
+from ..core.config import MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, MAX_WINDOW, ranged
 from ..factors.imu import ImuNoise, integration_steps, preintegrate
 from .imu_checks import ImuCheckConfig
 

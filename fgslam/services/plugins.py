@@ -16,7 +16,7 @@ again, so a constructor only validates (files are read when the run starts: ``ch
 must have ``attach(backend)``, called once when the run's :class:`~fgslam.backend.graph.Backend`
 exists: a plugin typically registers ``backend.on_keyframe(callback)`` (``callback(kf_id, timestamp,
 key)`` after each new keyframe) and adds GTSAM factors with ``backend.add_factor(factor, owner=key)``
-(an :class:`~fgslam.errors.OptimizationError` naming the key when a factor uses a key the backend
+(an :class:`~fgslam.core.errors.OptimizationError` naming the key when a factor uses a key the backend
 does not hold). Optional methods: ``check_run(timestamps)`` (the run's frame times, before the first
 frame: refuse data that cannot apply), ``poll(backend)`` (the safe point after every frame, where a
 plugin may move the map: on_keyframe callbacks run inside a frontend's frame) and
@@ -54,13 +54,13 @@ from typing import Optional, Union
 import numpy as np
 
 from ..backend.graph import Backend
-from ..config import MAX_COUNT, MAX_KEYFRAMES, MAX_SCALAR, MAX_TIME_OFFSET_S, ranged
+from ..core.config import MAX_COUNT, MAX_KEYFRAMES, MAX_SCALAR, MAX_TIME_OFFSET_S, ranged
 from ..contracts.contributor import PoseCorrection
 from ..contracts.plugins import FactorPlugin, parse_options
-from ..errors import ConfigError, FGSlamError
+from ..core.errors import ConfigError, FGSlamError
 from ..factors.planar import fit_plane, planar_factor, plane_in_keyframe, plane_in_world, plane_of_keyframe, unit_up
 from ..factors.position import camera_centre, position_noise, position_prior_factor
-from ..geometry import umeyama
+from ..core.geometry import umeyama
 from ..io.positions import PositionTrack, read_positions
 from .corrections import pose_graph_correction, route_correction, takes_corrections, uniform_correction
 

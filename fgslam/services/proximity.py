@@ -42,7 +42,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import OptimizationError
+from ..core.errors import OptimizationError
 from ..loop.closure import LoopCloser
 from ..loop.records import LoopClosureConfig
 from ..contracts.contributor import (GlobalBAJob, ProximityContributor, ProximityGates, SolvedGlobalBA,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, ranged
-from ...errors import ConfigError
+from ...core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, ranged
+from ...core.errors import ConfigError
 from ...factors.depth import DepthPriorConfig
 from ..depth_tracking import DepthTrackingConfig
 from .. import GREY_BYTES, PYRAMID_FACTOR, MemoryPart, MemorySizes

@@ -24,7 +24,7 @@ from typing import Optional
 
 import numpy as np
 
-from ...lie import sim3_matrix_parts
+from ...core.lie import sim3_matrix_parts
 from ...contracts.contributor import GlobalBAJob, KeyframeImage, PoseCorrection, apply_global_ba_result
 from .ba import DenseBA, DenseGlobalResult
 from .state import DenseState

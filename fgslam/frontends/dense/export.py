@@ -8,7 +8,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from ...lie import sim3_matrix_parts
+from ...core.lie import sim3_matrix_parts
 from .graph import DenseKeyframeState
 
 #: the smallest inverse depth inverted to a depth (guards the division)

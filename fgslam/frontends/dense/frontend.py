@@ -52,7 +52,7 @@ import cv2
 import numpy as np
 
 from ...backend.graph import Backend
-from ...errors import ConfigError, OptimizationError
+from ...core.errors import ConfigError, OptimizationError
 from ...factors.schur import torch_threads
 from ..base import BackendFrontend, FrameStatus, MotionPrior, SensorMode
 from ..records import RelativePose

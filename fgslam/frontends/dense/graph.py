@@ -17,7 +17,7 @@ import torch
 
 from ...factors.dense import DenseStereo
 from ...factors.reprojection import ReprojectionConfig, reproject
-from ...lie import sim3_matrix_components
+from ...core.lie import sim3_matrix_components
 
 
 @dataclass

@@ -18,7 +18,7 @@ Sources:
   warped target image and the image gradient energy along each axis (the aperture problem: a uniform
   wall or an edge constrains the flow only across the edge).
 - :class:`LearnedDroidSource` (``kind: droid``): DROID's learned update operator (:mod:`fgslam.nets`) from
-  the ``droid.pth`` checkpoint, which is not shipped: without one it is a :class:`~fgslam.errors.ConfigError`
+  the ``droid.pth`` checkpoint, which is not shipped: without one it is a :class:`~fgslam.core.errors.ConfigError`
   naming ``dense.source.checkpoint`` and the built-in alternative; no download is ever attempted.
 
 Grid convention: with stride ``s`` (8), grid pixel ``(x, y)`` covers image pixels ``s x .. s x + s - 1``
@@ -36,8 +36,8 @@ from typing import Literal, Optional
 
 import numpy as np
 
-from ...config import MAX_IMAGE_SIDE, ranged
-from ...errors import ConfigError
+from ...core.config import MAX_IMAGE_SIDE, ranged
+from ...core.errors import ConfigError
 from ...nets.config import DroidNetConfig
 from ..checkpoints import LearnedSlot, load_learned
 from ..flow import DenseFlowConfig, DenseFlowSource, DenseSource, FlowRevision

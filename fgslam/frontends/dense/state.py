@@ -14,7 +14,7 @@ import logging
 import numpy as np
 
 from ...backend.graph import Backend
-from ...errors import ConfigError
+from ...core.errors import ConfigError
 from ...factors.reprojection import ReprojectionConfig
 from ..base import NO_LOOPS, FrameStatus, LoopPort, MotionPrior
 from ..depth_tracking import DepthTracking

@@ -13,7 +13,7 @@ from ...backend.keys import pose_key
 from ...factors.dense import DenseEdge, DenseKeyframe, DenseSourceBlock
 from ...factors.reprojection import reproject
 from ...factors.schur import POSE_DIM
-from ...lie import gtsam_matrix, gtsam_sim3, sim3_matrix_components, sim3_matrix_parts
+from ...core.lie import gtsam_matrix, gtsam_sim3, sim3_matrix_components, sim3_matrix_parts
 from ..depth_tracking import pose_information
 from ..records import RelativePose
 from .graph import DenseKeyframeState

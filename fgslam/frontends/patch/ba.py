@@ -30,12 +30,12 @@ import numpy as np
 import torch
 
 from ...factors.blocks import LinearPiece
-from ...errors import OptimizationError
+from ...core.errors import OptimizationError
 from ...factors.depth import depth_prior
 from ...factors.reprojection import ReprojectionConfig, reproject_edges
 from ...factors.schur import POSE_DIM, SlotGroups, eliminate_structure, torch_threads
 from ...factors.visual_block import BlockConfig, BlockResiduals, VisualBlock
-from ...lie import Sim3
+from ...core.lie import Sim3
 
 
 class PatchBlock(VisualBlock):

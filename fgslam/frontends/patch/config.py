@@ -1,7 +1,7 @@
 """Typed configuration of the patch frontend (DPVO / DPV-SLAM family).
 
 ``PatchConfig`` is the root; it is the ``patch:`` section of the runner's ``SlamConfig`` and loads
-on its own with ``fgslam.config.load_config(PatchConfig, path, overrides)``. Pixel quantities are
+on its own with ``fgslam.core.config.load_config(PatchConfig, path, overrides)``. Pixel quantities are
 in pixels of the frames as the dataset delivers them (after resizing); windows are counted in
 frames of the patch graph (kept frames, DPVO's buffer positions).
 """
@@ -11,9 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
-from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_PATCHES_PER_FRAME, MAX_SCALAR, MAX_SEED, MAX_THREADS, MAX_WINDOW, check_ranges, ranged
+from ...core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_PATCHES_PER_FRAME, MAX_SCALAR, MAX_SEED, MAX_THREADS, MAX_WINDOW, check_ranges, ranged
 from ...backend.config import GlobalBAConfig
-from ...errors import ConfigError
+from ...core.errors import ConfigError
 from ...factors.depth import DepthPriorConfig
 from ...nets.config import DpvoNetConfig
 from ..depth_tracking import DepthTrackingConfig

@@ -32,7 +32,7 @@ import logging
 
 import numpy as np
 
-from ...errors import ConfigError, OptimizationError
+from ...core.errors import ConfigError, OptimizationError
 from ...factors.schur import torch_threads
 from ...backend.graph import Backend
 from ..base import BackendFrontend, FrameStatus, SensorMode

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...mapdata import MapExport, rigid_poses
+from ...core.mapdata import MapExport, rigid_poses
 
 from .graph import GraphFrame
 from .state import PatchState

@@ -12,7 +12,7 @@ import torch
 
 from ...factors.reprojection import reproject_edges
 from ...factors.robust import kernel_weight
-from ...lie import sim3_matrix_components
+from ...core.lie import sim3_matrix_components
 from .graph import GraphFrame
 from .state import BackendFrame, PatchState
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...lie import sim3_matrix_parts
+from ...core.lie import sim3_matrix_parts
 
 logger = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ...errors import ConfigError
+from ...core.errors import ConfigError
 from ...nets.sources import DpvoRunner
 from ..checkpoints import LearnedSlot, load_learned
 from .lk import LKSource

@@ -12,9 +12,9 @@ import numpy as np
 import torch
 
 from ...backend.graph import Backend
-from ...errors import ConfigError
+from ...core.errors import ConfigError
 from ...factors.reprojection import ReprojectionConfig, reproject
-from ...lie import sim3_matrix_components
+from ...core.lie import sim3_matrix_components
 from ..base import FrameStatus
 from ..depth_tracking import DepthTracking
 from ..records import resolve_pose

@@ -23,7 +23,7 @@ import torch
 
 from ...factors.depth_align import RIGID_DIM
 from ...factors.reprojection import reproject_inv_depth
-from ...lie import sim3_matrix_components
+from ...core.lie import sim3_matrix_components
 
 from ..base import FrameStatus
 from ..records import InterpolatedPose, KeyframePose, RelativePose

@@ -13,7 +13,7 @@ import torch
 from ...backend.keys import pose_key
 from ...factors.depth import depth_priors, inv_depth_sigma
 from ...factors.visual_block import BlockConfig
-from ...lie import sim3_matrix_components
+from ...core.lie import sim3_matrix_components
 from ..records import rigid as _rigid
 from .ba import PatchBlock
 from .keyframes import Keyframes

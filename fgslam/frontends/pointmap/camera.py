@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ...errors import ConfigError
+from ...core.errors import ConfigError
 
 
 class WorkingCamera:

@@ -8,8 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from ...config import MAX_COUNT, MAX_FRAMES, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, check_ranges, ranged
-from ...errors import ConfigError
+from ...core.config import MAX_COUNT, MAX_FRAMES, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, check_ranges, ranged
+from ...core.errors import ConfigError
 from ...factors.pointmap_block import PointmapBlockConfig
 from .. import KEYFRAME_SHARE, MemoryPart, MemorySizes
 from ..depth_tracking import DepthTrackingConfig

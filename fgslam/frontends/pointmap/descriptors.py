@@ -29,8 +29,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ...config import MAX_IMAGE_SIDE, MAX_SCALAR, ranged
-from ...errors import DataError
+from ...core.config import MAX_IMAGE_SIDE, MAX_SCALAR, ranged
+from ...core.errors import DataError
 
 __all__ = ["DescriptorConfig", "dense_descriptors"]
 

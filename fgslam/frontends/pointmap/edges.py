@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from ...backend.keys import pose_key
-from ...errors import OptimizationError
+from ...core.errors import OptimizationError
 from ...factors.pointmap_block import PointmapBlock, PointmapEdge
 from .keyframes import PointmapKeyframe, measure_edge
 from .state import PointmapState

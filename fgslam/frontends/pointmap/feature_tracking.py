@@ -14,7 +14,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from ...errors import DataError
+from ...core.errors import DataError
 from ..base import FrameStatus
 from ..records import RelativePose
 from .cache import SourceCache

@@ -28,7 +28,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_SCALAR, ranged
+from ...core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_SCALAR, ranged
 
 logger = logging.getLogger(__name__)
 

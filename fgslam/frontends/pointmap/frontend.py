@@ -66,7 +66,7 @@ import numpy as np
 import torch
 
 from ...backend.graph import Backend
-from ...errors import ConfigError, DataError, OptimizationError
+from ...core.errors import ConfigError, DataError, OptimizationError
 from ...factors.schur import torch_threads
 from ..base import BackendFrontend, FrameStatus, LoopPort, MotionPrior, SensorMode
 from ..records import RelativePose

@@ -23,7 +23,7 @@ import torch
 
 from ...backend.keys import pose_key
 from ...factors.pointmap_block import PointmapBlockConfig, PointmapEdge
-from ...lie import Sim3
+from ...core.lie import Sim3
 from .config import PointmapGraphConfig, PointmapTrackingConfig
 from .descriptors import DescriptorConfig, dense_descriptors
 from .matching import MatchingConfig, PointmapMatches, RayImage, match_pointmaps

@@ -36,8 +36,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...config import MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, ranged
-from ...errors import DataError
+from ...core.config import MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, ranged
+from ...core.errors import DataError
 from ...factors.schur import torch_threads
 
 logger = logging.getLogger(__name__)

@@ -36,10 +36,10 @@ import numpy as np
 import torch
 
 from ...backend.graph import Backend
-from ...config import MAX_KEYFRAMES, ranged
+from ...core.config import MAX_KEYFRAMES, ranged
 from ...contracts.contributor import Contributor
 from ...contracts.plugins import parse_options
-from ...errors import DataError, OptimizationError
+from ...core.errors import DataError, OptimizationError
 from ...factors.pointmap_block import PointmapBlock, PointmapEdge
 from .camera import WorkingCamera
 from .config import PointmapConfig

@@ -7,7 +7,7 @@ import logging
 
 import numpy as np
 
-from ...errors import DataError
+from ...core.errors import DataError
 from .keyframes import PointmapKeyframe
 from .state import PointmapState
 from .tracker import PointmapTracker

@@ -43,8 +43,8 @@ from typing import Literal, Optional
 import cv2
 import numpy as np
 
-from ...config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_PERCENT, MAX_SCALAR, ranged
-from ...errors import ConfigError, DataError
+from ...core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_PERCENT, MAX_SCALAR, ranged
+from ...core.errors import ConfigError, DataError
 from ..checkpoints import LearnedSlot, require_checkpoint
 from ..flow import DenseFlowConfig, DenseFlowSource
 from .descriptors import DescriptorConfig, dense_descriptors

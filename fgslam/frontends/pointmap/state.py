@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ...backend.graph import Backend
-from ...errors import ConfigError
+from ...core.errors import ConfigError
 from ..base import NO_LOOPS, FrameStatus, LoopPort, MotionPrior
 from ..depth_tracking import DepthTracking
 from ..records import resolve_pose, rigid

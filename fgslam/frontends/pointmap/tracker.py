@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from ...factors.pointmap_block import PointmapBlock, PointmapEdge
-from ...lie import Sim3
+from ...core.lie import Sim3
 from ..depth_tracking import pose_information
 from ..records import rigid
 from .cache import SourceCache
@@ -26,12 +26,12 @@ logger = logging.getLogger(__name__)
 
 
 def sim3_of(M: np.ndarray) -> Sim3:
-    """The :class:`~fgslam.lie.Sim3` of a 4x4 matrix."""
+    """The :class:`~fgslam.core.lie.Sim3` of a 4x4 matrix."""
     return Sim3.from_matrix(torch.as_tensor(np.asarray(M, np.float64)))
 
 
 def matrix_of(T: Sim3) -> np.ndarray:
-    """The 4x4 float64 matrix of a :class:`~fgslam.lie.Sim3`."""
+    """The 4x4 float64 matrix of a :class:`~fgslam.core.lie.Sim3`."""
     return T.matrix().numpy().astype(np.float64)
 
 

@@ -33,7 +33,7 @@ from ...backend.motion_only import optimize_pose
 from ...backend.solver import LMSettings
 from ...factors.pointmap_block import PointmapBlock, PointmapBlockConfig, PointmapEdge
 from ...factors.schur import POSE_DIM
-from ...lie import Sim3
+from ...core.lie import Sim3
 from .config import PointmapTrackingConfig
 
 logger = logging.getLogger(__name__)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ...errors import DataError
+from ...core.errors import DataError
 from .common import Dataset, DatasetConfig
 from .euroc import EurocDataset, mav0_dir
 from .folder import VIDEO_EXTENSIONS, FolderDataset, VideoDataset

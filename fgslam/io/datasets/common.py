@@ -10,7 +10,7 @@ Corrupt frames: ``dataset[i]`` raises :class:`~fgslam.io.frame.FrameReadError` f
 files cannot be read or have the wrong size; iterating a dataset skips such frames with a warning
 and records ``(index, reason)`` in ``dataset.skipped_frames`` (the next frame's IMU block then
 starts at the last frame actually yielded). More than ``DatasetConfig.max_skipped_fraction`` of the
-frames skipped raises :class:`~fgslam.errors.DataError`.
+frames skipped raises :class:`~fgslam.core.errors.DataError`.
 
 Depth: a frame whose depth map has no valid pixel is yielded as it is; at the end of an iteration
 a depth stream without a single valid pixel is reported once with a warning (``RGB-D: no valid
@@ -32,8 +32,8 @@ from typing import Iterator, NamedTuple, Optional
 
 import numpy as np
 
-from ...config import MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, check_ranges, ranged
-from ...errors import ConfigError, DataError
+from ...core.config import MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, check_ranges, ranged
+from ...core.errors import ConfigError, DataError
 from ..calibration import Calibration
 from ..frame import Frame, FrameReadError, FrameSizeError, ImuSamples
 from ..trajectory import Trajectory
@@ -58,7 +58,7 @@ class BagTopicsConfig:
 
 @dataclass
 class DatasetConfig:
-    """How a dataset is opened (all loaders). Loadable with ``fgslam.config.load_config``."""
+    """How a dataset is opened (all loaders). Loadable with ``fgslam.core.config.load_config``."""
 
     start: int = ranged(0, ge=0, le=MAX_FRAMES)  # first raw frame index used
     end: Optional[int] = ranged(None, ge=1, le=MAX_FRAMES)  # one past the last raw frame index used (None: to the end)

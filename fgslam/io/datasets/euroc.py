@@ -24,7 +24,7 @@ from typing import Optional
 
 import numpy as np
 
-from ...errors import DataError
+from ...core.errors import DataError
 from ..calibration import Calibration, read_yaml_file
 from ..frame import ImuSamples
 from ..trajectory import read_trajectory

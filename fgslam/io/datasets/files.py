@@ -11,7 +11,7 @@ from typing import Optional
 
 import numpy as np
 
-from ...errors import DataError
+from ...core.errors import DataError
 from ..frame import FrameReadError
 from ..trajectory import read_times_file
 

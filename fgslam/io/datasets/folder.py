@@ -18,7 +18,7 @@ from typing import Optional
 
 import numpy as np
 
-from ...errors import DataError
+from ...core.errors import DataError
 from ..calibration import Calibration, read_yaml_file
 from ..frame import FrameReadError
 from .common import Dataset, DatasetConfig, RawFrame

@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING, Any, Iterator, Optional
 
 import numpy as np
 
-from ...errors import ConfigError, DataError
+from ...core.errors import ConfigError, DataError
 from ..calibration import Calibration
 from ..frame import FrameReadError, FrameSizeError, ImuSamples
 from .common import Dataset, DatasetConfig, RawFrame, ns_to_seconds

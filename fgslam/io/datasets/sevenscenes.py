@@ -24,7 +24,7 @@ from typing import Optional
 
 import numpy as np
 
-from ...errors import DataError
+from ...core.errors import DataError
 from ..calibration import Calibration
 from ..frame import FrameReadError
 from .common import Dataset, DatasetConfig, RawFrame, nearest_rotation

@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-from ...errors import DataError
+from ...core.errors import DataError
 from ..calibration import Calibration
 from ..frame import FrameReadError
 from ..trajectory import quaternion_xyzw_to_rotation

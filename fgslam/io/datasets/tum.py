@@ -20,7 +20,7 @@ from typing import Optional
 
 import numpy as np
 
-from ...errors import DataError
+from ...core.errors import DataError
 from ..calibration import Calibration
 from ..trajectory import read_trajectory
 from .common import Dataset, DatasetConfig, RawFrame, interpolate_poses

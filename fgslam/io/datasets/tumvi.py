@@ -27,7 +27,7 @@ from typing import Optional
 
 import numpy as np
 
-from ...errors import DataError
+from ...core.errors import DataError
 from ..calibration import Calibration, read_yaml_file
 from .common import Dataset, DatasetConfig, RawFrame, ns_to_seconds
 from .euroc import DISTORTION_NAMES, _imu_noise, _match, _read_imu, _read_stream, body_groundtruth_at_frames

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...errors import ConfigError
+from ...core.errors import ConfigError
 from .render import RenderOutput
 
 _NEWTON_ITERATIONS = 50  # undistortion iterations (converges in < 10 for sane lenses)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...config import MAX_SCALAR, ranged
+from ...core.config import MAX_SCALAR, ranged
 from .trajectory import BodyState
 
 STANDARD_GRAVITY = 9.81  # m/s^2, the value the generator uses for |g_W| (TEAM.md contract)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...errors import ConfigError, DataError
+from ...core.errors import ConfigError, DataError
 from ..trajectory import read_trajectory
 from .scenarios import KittiDriveConfig, PanelRoomConfig, RotationSweepConfig, SynthConfig, camera_mount
 from .tables import Harmonics, motion_tables

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...config import MAX_SCALAR, ranged
-from ...errors import ConfigError
+from ...core.config import MAX_SCALAR, ranged
+from ...core.errors import ConfigError
 from .scene import SceneArrays
 from .texture import TextureAtlas
 

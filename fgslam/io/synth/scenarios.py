@@ -38,7 +38,7 @@ Presets:
   used); a street scene is built along that path: ground tiles following the road height, buildings
   with textured facades on both sides wherever they leave every part of the road clear, lamp poles,
   a coarse ground below. The file is read when the scene is built (never at import); a missing file
-  is a :class:`~fgslam.errors.DataError`. The scene covers the configured frames plus ``lookahead``
+  is a :class:`~fgslam.core.errors.DataError`. The scene covers the configured frames plus ``lookahead``
   metres of the path, so a prefix builds (and renders) quickly.
 
 Changing ``frames`` truncates or extends (periodically) the motion, it does not change its speed.
@@ -52,9 +52,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ...config import (MAX_COUNT, MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, MAX_SEED, MAX_TIME_NS, check_ranges,
+from ...core.config import (MAX_COUNT, MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, MAX_SEED, MAX_TIME_NS, check_ranges,
                        from_dict, merge_overrides, ranged, read_yaml, to_dict)
-from ...errors import ConfigError
+from ...core.errors import ConfigError
 from .imu import ImuConfig
 from .render import RenderConfig
 from .tables import PRESETS_FILE, preset_sections

@@ -5,7 +5,7 @@
 
 The files are read on first use (never at import) through :mod:`importlib.resources`, so an installed
 fgslam finds them as well as a checkout, and kept for the process; the returned tables are shared:
-read them, never change them. A malformed table is a :class:`~fgslam.errors.ConfigError` naming the
+read them, never change them. A malformed table is a :class:`~fgslam.core.errors.ConfigError` naming the
 file and the key.
 """
 
@@ -16,8 +16,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from ...config import read_yaml
-from ...errors import ConfigError
+from ...core.config import read_yaml
+from ...core.errors import ConfigError
 
 DATA_FOLDER = "data"
 PRESETS_FILE = "presets.yaml"

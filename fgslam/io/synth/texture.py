@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ...config import MAX_IMAGE_SIDE, MAX_LEVELS, MAX_SCALAR, ranged
-from ...errors import ConfigError
+from ...core.config import MAX_IMAGE_SIDE, MAX_LEVELS, MAX_SCALAR, ranged
+from ...core.errors import ConfigError
 from .scene import SceneArrays
 
 _GLYPHS = "ABCDEFGHJKLMNPQRSTUVWXYZ0123456789#&%@"

@@ -38,8 +38,8 @@ import cv2
 import numpy as np
 import yaml
 
-from ...config import to_dict
-from ...errors import DataError
+from ...core.config import to_dict
+from ...core.errors import DataError
 from .sequence import SynthSequence
 
 logger = logging.getLogger(__name__)

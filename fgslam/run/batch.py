@@ -44,10 +44,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional, TypedDict
 
-from .config import MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, from_dict, ranged, read_yaml
-from .errors import ConfigError, DataError, Interrupted
-from .io.run_files import SUMMARY_FILE
-from .run.signals import StopOnSignal
+from ..core.config import MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, from_dict, ranged, read_yaml
+from ..core.errors import ConfigError, DataError, Interrupted
+from ..io.run_files import SUMMARY_FILE
+from .signals import StopOnSignal
 
 logger = logging.getLogger(__name__)
 
@@ -179,7 +179,7 @@ def cells_of(matrix: BatchMatrix, out: Path) -> list[Cell]:
 def check_cells(cells: list[Cell]) -> None:
     """Load every cell's config before anything runs: a bad key fails the batch at once, naming the
     cell (a missing dataset folder does not: that cell fails and the others run)."""
-    from .run.config import load_slam_config  # deferred: the run package pulls torch (fgslam --help stays fast)
+    from .config import load_slam_config  # deferred: the run package pulls torch (fgslam --help stays fast)
 
     for cell in cells:
         try:
@@ -216,9 +216,9 @@ def _row(cell: Cell, summary: Optional[dict[str, Any]], skipped: bool = False, e
 
 def run_cell(cell: Cell) -> dict[str, Any]:
     """Run one cell (in a Ray worker or in this process); never raises: a failure is the row's error."""
-    from .run.config import load_slam_config  # deferred: the run package pulls torch (fgslam --help stays fast)
-    from .run.prepare import prepare_run  # deferred: as above
-    from .run.runner import run_prepared  # deferred: as above
+    from .config import load_slam_config  # deferred: the run package pulls torch (fgslam --help stays fast)
+    from .prepare import prepare_run  # deferred: as above
+    from .runner import run_prepared  # deferred: as above
 
     summary = None
     started_ns = time.time_ns()

@@ -18,13 +18,13 @@ from typing import Literal, Sequence
 
 import yaml
 
-from .config import MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, MAX_SEED, load_config, ranged, to_dict
-from .io.synth import SynthSequence, write_sequence
-from .io.synth.scenarios import load_synth_config
-from .run.config import SlamConfig
-from .run.prepare import prepare_run
-from .run.presets import configs_dir
-from .run.runner import run_prepared
+from ..core.config import MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, MAX_SEED, load_config, ranged, to_dict
+from ..io.synth import SynthSequence, write_sequence
+from ..io.synth.scenarios import load_synth_config
+from .config import SlamConfig
+from .prepare import prepare_run
+from .presets import configs_dir
+from .runner import run_prepared
 
 PRESET_NAME = "demo"  # fgslam/configs/demo.yaml
 

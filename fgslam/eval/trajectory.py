@@ -29,10 +29,10 @@ from typing import Literal
 
 import numpy as np
 
-from .config import MAX_FRAMES, MAX_SCALAR, MAX_TIME_OFFSET_S, check_ranges, ranged
-from .errors import ConfigError, EvaluationError
-from .geometry import Alignment, umeyama
-from .io.trajectory import Trajectory
+from ..core.config import MAX_FRAMES, MAX_SCALAR, MAX_TIME_OFFSET_S, check_ranges, ranged
+from ..core.errors import ConfigError, EvaluationError
+from ..core.geometry import Alignment, umeyama
+from ..io.trajectory import Trajectory
 
 logger = logging.getLogger(__name__)
 

@@ -24,10 +24,10 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from .backend.solver import LMSettings, NonlinearProblem, levenberg_marquardt
-from .config import MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, check_ranges, ranged
-from .errors import ConfigError, DataError, FormatError, OptimizationError
-from .io.g2o import PoseGraph, read_g2o, write_g2o
+from ..backend.solver import LMSettings, NonlinearProblem, levenberg_marquardt
+from ..core.config import MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, check_ranges, ranged
+from ..core.errors import ConfigError, DataError, FormatError, OptimizationError
+from ..io.g2o import PoseGraph, read_g2o, write_g2o
 
 if TYPE_CHECKING:  # gtsam is imported lazily (heavy import)
     import gtsam

@@ -1,7 +1,7 @@
 """Closed-form point-set alignment (numpy), below every user of it.
 
 :func:`umeyama` is the one least-squares similarity used by trajectory evaluation
-(:mod:`fgslam.eval`), loop-closure Sim(3) estimation (:mod:`fgslam.loop.sim3_estimation`), the
+(:mod:`fgslam.eval.trajectory`), loop-closure Sim(3) estimation (:mod:`fgslam.loop.sim3_estimation`), the
 COLMAP comparison and the runner's plugins.
 """
 

@@ -1,7 +1,7 @@
 """The rotation group SO(3) in torch (float32 / float64, any leading batch shape ``...``): skew
 matrices, Rodrigues' exponential, a logarithm stable at angles near pi (equal to gtsam's
 ``Rot3.Logmap``), and the projection of near-rotations onto SO(3); the rotation part of
-:mod:`fgslam.lie`'s SE(3) and Sim(3).
+:mod:`fgslam.core.lie`'s SE(3) and Sim(3).
 
 Near zero angle the coefficient functions switch to their Taylor series, so identity and
 near-identity rotations give no NaN.

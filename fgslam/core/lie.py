@@ -17,7 +17,7 @@ Conventions (the standard ones, mapped exactly onto gtsam's at every gtsam bound
 
 All closed forms have series branches near zero angle / zero log-scale, and ``so3_log`` is stable
 at angles near pi, so identity and near-identity elements give no NaN. The rotation part (``skew``,
-``so3_exp``, ``so3_log``) is :mod:`fgslam.so3`.
+``so3_exp``, ``so3_log``) is :mod:`fgslam.core.so3`.
 """
 
 from __future__ import annotations

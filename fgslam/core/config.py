@@ -3,7 +3,7 @@
 Every tunable of fgslam lives in a dataclass field (defaults plus a one-line comment). A YAML file
 in ``fgslam/configs/`` (the presets) sets some of them; ``-o section.key=value`` overrides set more. Anything that does
 not fit the dataclass (an unknown key, a string where a float belongs, a value outside a ``Literal``)
-is a :class:`~fgslam.errors.ConfigError` naming the key and where it came from.
+is a :class:`~fgslam.core.errors.ConfigError` naming the key and where it came from.
 
 Numeric fields declare their allowed range with :func:`ranged` (``x: float = ranged(1.0, gt=0, le=MAX_SCALAR)``);
 loading rejects a value outside it, naming the key, before any work starts. A range on a list or
@@ -105,7 +105,7 @@ def ranged(default: Any = dataclasses.MISSING, *, ge: float | None = None, gt: f
     """A dataclass field with an allowed range: ``pixel_sigma: float = ranged(1.0, gt=0)``.
 
     Loading (:func:`load_config`, :func:`from_dict`) rejects a value outside the range with a
-    :class:`~fgslam.errors.ConfigError` naming the key; None passes for ``Optional`` fields, and for a
+    :class:`~fgslam.core.errors.ConfigError` naming the key; None passes for ``Optional`` fields, and for a
     list/tuple field every item is checked.
     """
     meta = {RANGE_KEY: Range(ge=ge, gt=gt, le=le, lt=lt)}
