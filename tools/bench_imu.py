@@ -21,8 +21,7 @@ the black-frame clip (issue 26: every family inertial); ``--runs`` keeps some of
   preset as it is (SE(3) ATE without scale alignment, scale error). ``--skip-street`` leaves it out.
 - ``inertial_state``: the IMU service's :class:`~fgslam.services.imu.InertialState` of each run (where
   the tree has it) and the inertial-only optimisations (scale change, sigma of log-scale).
-- Run with another tree's interpreter (e.g. ``/work/main/.venv/bin/python tools/bench_imu.py``) for a
-  "before" column: the script uses only the run API.
+- Runs on this tree's run package (``fgslam.run``): trees from before it are not supported.
 - Speed: ``cpu_s`` per run (process CPU, comparable under load), ``cpu_fps``; the IMU service's own time
   per IMU factor built (``imu_update_ms_per_factor``: preintegration, relinking, marginalisation) and the BA stage
   per frame against visual-only (the VI graph update inside the window BA).

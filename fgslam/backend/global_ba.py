@@ -3,7 +3,7 @@ patch inverse depth of the active and inactive edges, with a sparse reduced came
 
 The backend's part: the problem as plain arrays and its solve (a picklable top-level function, run
 in a worker process); the patch frontend builds the problem from its graph
-(:meth:`fgslam.frontends.patch.frontend.PatchFrontend.global_ba_job`).
+(:meth:`fgslam.frontends.patch.contributor.PatchContributor.global_ba_job`).
 
 Problem (:class:`GlobalBAProblem`): F frames with Sim(3) poses ``T_WC`` (4x4 ``[[s R, t], [0, 1]]``;
 the scale of each pose is *held*: the update is SE(3), tangent ``[w, u]`` of ``fgslam.core.lie.Sim3``'s

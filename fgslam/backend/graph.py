@@ -15,8 +15,8 @@ timestamps, other variables, keys attached to keyframes, keyframe callbacks) wit
   pose-graph correction, marginalisation), all through the one LM loop
   (:func:`fgslam.backend.solver.levenberg_marquardt`); the problem of one optimisation is
   :mod:`fgslam.backend.window`'s;
-- ``contributors``: the map's correction route, the contributors (frontends) that take the
-  corrections a service makes (set with :meth:`Backend.set_contributors`; used by the factor
+- ``contributors``: the factor plugins' correction route, the contributors (frontends) that take the
+  corrections a plugin makes (set with :meth:`Backend.set_contributors` by the plugins' service; loop closure and the IMU keep their own; used by the
   plugins' :func:`fgslam.services.plugins.apply_correction`): each moves its keyframes, whose poses
   live here, and folds the scale into its structure; with none, :meth:`Backend.move_keyframes` sets
   every keyframe pose (scales included: nothing to fold into).
@@ -48,7 +48,7 @@ class KeyframeCorrection(Protocol):
 
 
 class CorrectionTarget(Protocol):
-    """A contributor on the map's correction route (:attr:`Backend.contributors`): it moves its
+    """A contributor on the factor plugins' correction route (:attr:`Backend.contributors`): it moves its
     keyframes and folds the correction's scale into its structure (the contributor contract's
     :meth:`~fgslam.contracts.contributor.Contributor.apply_correction`)."""
 

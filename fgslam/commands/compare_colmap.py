@@ -58,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.frames is not None and args.frames < 3:
         raise ConfigError(f"--frames must be at least 3 (got {args.frames})")
+    if args.features is not None and args.features < 16:
+        raise ConfigError(f"--features must be at least 16 (got {args.features})")
     probe = open_dataset(args.data, args.format, DatasetConfig(load_right=False, load_depth=False, load_imu=False))
     preset = args.preset or preset_for(probe.format, probe.root)
     overrides = ["sensor=mono", *args.overrides]
@@ -72,8 +74,6 @@ def run(args: argparse.Namespace) -> int:
     prepared = prepare_run(args.data, config, out / "fgslam", fmt=args.format, overwrite=True)
     cfg = CompareConfig()
     if args.features is not None:
-        if args.features < 16:
-            raise ConfigError(f"--features must be at least 16 (got {args.features})")
         cfg = replace(cfg, colmap=replace(cfg.colmap, max_num_features=args.features))
     report = compare_colmap(prepared, out, cfg, progress=not args.no_progress, preset=preset)
     if args.json:

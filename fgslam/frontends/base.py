@@ -246,7 +246,7 @@ class Frontend(abc.ABC):
             return None
         from ..core.mapdata import MapExport, rigid_poses  # deferred: torch (fgslam.core.mapdata; base is on the CLI's light path)
 
-        backend = getattr(self, "backend", None)
+        backend = self.backend
         kf_ids = [] if backend is None else sorted(backend.keyframe_ids)
         T_WC = rigid_poses(np.stack([backend.pose_matrix(k) for k in kf_ids])) if kf_ids else np.zeros((0, 4, 4))
         stamps = [backend.timestamp(k) for k in kf_ids]

@@ -66,24 +66,31 @@ def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fm
         check_rerun_target(rerun)
     out = prepare_output(out_dir, data, overwrite)
     dataset = open_slam_dataset(data, config, fmt)
-    if config.output.extend_map:  # a map that cannot be continued is refused before any work
-        c = dataset.calibration
-        check_map_camera(load_stored_map(config.output.extend_map), c.K, c.width, c.height,
-                         config.output.extend_map, data)
+    check_extended_map(dataset, config, data)
     return PreparedRun(dataset, config, out, overwrite, rerun, check_imu_input(dataset, config))
 
 
 def prepare_opened(dataset: Dataset, config: SlamConfig, out_dir: str | Path, *, overwrite: bool = False,
                    rerun: Optional[str] = None) -> PreparedRun:
     """Check a run on a dataset the caller opened: the config, the dataset against it
-    (:func:`check_dataset`), the output folder (:func:`prepare_output`), the rerun target and the IMU
-    stream. Raises as :func:`prepare_run`."""
+    (:func:`check_dataset`), the output folder (:func:`prepare_output`), the rerun target, the stored
+    map's camera (``output.extend_map``) and the IMU stream. Raises as :func:`prepare_run`."""
     check_config(config)
     check_dataset(dataset, config)
     out = prepare_output(out_dir, dataset.root, overwrite)
     if rerun:
         check_rerun_target(rerun)
+    check_extended_map(dataset, config, dataset.root)
     return PreparedRun(dataset, config, out, overwrite, rerun, check_imu_input(dataset, config))
+
+
+def check_extended_map(dataset: Dataset, config: SlamConfig, data: str | Path) -> None:
+    """A stored map the run continues (``output.extend_map``) must have been made with this camera:
+    refused before any work (:func:`fgslam.export.mapfile.check_map_camera` names what differs)."""
+    if config.output.extend_map:
+        c = dataset.calibration
+        check_map_camera(load_stored_map(config.output.extend_map), c.K, c.width, c.height,
+                         config.output.extend_map, data)
 
 
 def check_config(config: SlamConfig) -> None:

@@ -1,6 +1,6 @@
 """What a run ended with and its summary: the record the loop fills (:class:`RunState`), the results
-gathered once it stopped (:class:`RunResults`: the final trajectory, the evaluation, the frontend's
-and the services' end-of-run figures; :func:`collect_results`) and ``summary.json``'s content
+gathered once it stopped (:class:`RunResults`: the final trajectory, :func:`final_trajectory`, written
+first; the evaluation, the frontend's and the services' end-of-run figures, :func:`collect_results`) and ``summary.json``'s content
 (:class:`RunSummary`, :func:`summarize`; the file itself: :func:`fgslam.run.outputs.write_summary`)."""
 
 from __future__ import annotations
@@ -143,19 +143,24 @@ class RunResults:
         return self.errors[0] if self.errors else None
 
 
-def collect_results(run: PreparedRun, system: SlamSystem, state: RunState, gt: Optional[Trajectory],
-                    error: Optional[ErrorAt]) -> RunResults:
-    """The results of a run whose loop stopped (with ``error``, the loop's, or None): the final
-    trajectory (:func:`_final_trajectory`), its evaluation against ``gt``, and the frontend's and
-    the services' end-of-run queries; an error of those queries is recorded (after the loop's),
-    never raised: the outputs are written next."""
-    config, dataset, frontend = run.config, run.dataset, system.frontend
+def final_trajectory(system: SlamSystem, state: RunState, gt: Optional[Trajectory],
+                     error: Optional[ErrorAt]) -> RunResults:
+    """The first results of a run whose loop stopped (with ``error``, the loop's, or None): its final
+    trajectory (:func:`_final_trajectory`), written before anything else is asked of the run."""
     notes: list[str] = []
     errors: list[ErrorAt] = [] if error is None else [error]
-    traj, sources = _final_trajectory(frontend, state, notes, errors)
+    traj, sources = _final_trajectory(system.frontend, state, notes, errors)
     if traj is None and errors:  # without an error the summary's error says why (no_pose_reason)
         notes.append("no frame got a pose before the error: no trajectory files written")
-    results = RunResults(traj, sources, gt, notes, errors)
+    return RunResults(traj, sources, gt, notes, errors)
+
+
+def collect_results(run: PreparedRun, system: SlamSystem, results: RunResults) -> None:
+    """The rest of the results (into ``results``, from :func:`final_trajectory`): the trajectory's
+    evaluation against the ground truth, and the frontend's and the services' end-of-run queries; an
+    error of those queries is recorded (after the loop's), never raised: the outputs are written next."""
+    config, dataset, frontend = run.config, run.dataset, system.frontend
+    traj, gt, notes, errors = results.traj, results.gt, results.notes, results.errors
     if gt is not None and traj is not None:
         try:
             results.eval_result = _evaluate(gt, traj, config, notes)
@@ -176,7 +181,6 @@ def collect_results(run: PreparedRun, system: SlamSystem, state: RunState, gt: O
                 notes.append(f"output.write_ply: frontend '{frontend.name}' provides no points; no PLY written")
     except Exception as exc:  # noqa: BLE001 - recorded; the summary is still written
         errors.append((exc, "in its end-of-run queries (stage_times/num_keyframes/loop_summary/keyframe_points)"))
-    return results
 
 
 def summarize(run: PreparedRun, state: RunState, results: RunResults, written: dict[str, str],

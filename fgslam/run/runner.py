@@ -78,7 +78,7 @@ from .mapstore import store_map
 from .outputs import (OutputWriter, write_keyframe_depths, write_map, write_plot, write_points, write_summary,
                       write_trajectories)
 from .prepare import PreparedRun, prepare_opened, remove_previous_outputs
-from .results import ErrorAt, RunState, RunSummary, collect_results, outputs_text, summarize
+from .results import ErrorAt, RunState, RunSummary, collect_results, final_trajectory, outputs_text, summarize
 from .signals import StopOnSignal
 from .system import SlamSystem
 
@@ -251,11 +251,12 @@ def _write_outputs(run: PreparedRun, system: SlamSystem, state: RunState, gt: Op
     the others), ``summary.json`` last. Returns the summary and the first error (the loop's, or one
     raised by the frontend's end-of-run queries, which never prevents the writing)."""
     config, frontend = run.config, system.frontend
-    results = collect_results(run, system, state, gt, error)
+    results = final_trajectory(system, state, gt, error)
     writer = OutputWriter(run.out)
     traj = results.traj
-    if traj is not None:
+    if traj is not None:  # first: a run killed in its end-of-run work keeps its trajectory
         write_trajectories(writer, traj)
+    collect_results(run, system, results)
     if results.points is not None:
         write_points(writer, results.points)
     if config.output.write_depth:

@@ -14,7 +14,7 @@ equidistant, distortion_coeffs: [k1..k4], intrinsics: [fx, fy, cx, cy], resoluti
 T_cam_imu: 4x4 rows}``, and for cam1 ``T_cn_cnm1`` (cam0 -> cam1: ``X_C1 = T_cn_cnm1 X_C0``).
 So ``T_BC = T_cam_imu(cam0)^-1`` (body = IMU), ``T_CLCR = T_cn_cnm1^-1`` (from ``T_cam_imu`` of both
 cameras when ``T_cn_cnm1`` is absent). The equidistant (Kannala-Brandt) images are undistorted and
-the pair rectified to pinhole by :class:`~fgslam.io.calibration.Undistorter` (OpenCV ``cv2.fisheye``).
+the pair rectified to pinhole by :class:`~fgslam.io.undistort.Undistorter` (OpenCV ``cv2.fisheye``).
 Ground truth (``mocap0``, the motion-capture pose of the IMU ``T_WB``) gives ``T_WC = T_WB T_BC``;
 mocap covers only part of most TUM-VI sequences (frames outside it have no ground truth).
 """

@@ -12,7 +12,7 @@ OpenCV's approximate ``undistortPoints``); the pinhole canvas (same focal length
 all of them, rendered by :class:`~.render.Renderer`, and resampled at the rays of the raw pixels:
 bilinear for the image, nearest for the z-depth and the quad ids (z-depth is along the optical axis,
 so the raw pixel's ray has the depth of the canvas pixel it samples). The loaders undistort raw
-images with the same coefficients (:class:`fgslam.io.calibration.Undistorter`).
+images with the same coefficients (:class:`fgslam.io.undistort.Undistorter`).
 
 Model ``equidistant`` (Kannala-Brandt, TUM-VI's fisheye, OpenCV ``cv2.fisheye``) with ``(k1, k2, k3, k4)``
 on the angle ``theta = atan(r)`` of the undistorted ray, ``r = |(x, y)|``::
