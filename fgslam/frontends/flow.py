@@ -20,6 +20,7 @@ import numpy as np
 
 from ..core.config import MAX_IMAGE_SIDE, MAX_SCALAR, ranged
 from ..core.errors import DataError
+from .photometric import BrightnessModel, PhotometricModel
 
 _DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                 "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
@@ -37,6 +38,8 @@ class DenseFlowConfig:
     photo_sigma: float = ranged(12.0, gt=0, le=MAX_SCALAR)  # grey levels: photometric confidence exp(-0.5 (e / sigma)^2), e = block mean |I_j(p + f) - I_i(p)|
     aperture_gradient: float = ranged(3.0, ge=0, le=MAX_SCALAR)  # grey levels per px: per-axis confidence G / (G + a^2), G = block mean squared gradient along the axis; 0: off
     border: float = ranged(0.0, ge=0, le=MAX_IMAGE_SIDE)  # grid px: targets closer than this to the image border (or outside) get 0
+    photometric: PhotometricModel = "raw"  # raw (brightness constancy) | gain (undo a gain per image, auto-exposure: fgslam/frontends/photometric.py)
+    photometric_floor: float = ranged(4.0, gt=0, le=255)  # gain: added to each image's median (grey levels), so a nearly black image is not amplified
 
 
 @dataclass
@@ -114,6 +117,7 @@ class DenseFlowSource(DenseSource):
         self._frames: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # grey, gx^2, gy^2 (working scale)
         self._shape: tuple[int, int] | None = None
         self._dis = cv2.DISOpticalFlow_create(_DIS_PRESETS[self.config.preset])
+        self._brightness = BrightnessModel(self.config.photometric, self.config.photometric_floor)
 
     # ------------------------------------------------------------------ frames
     def add_frame(self, frame_id: int, image: np.ndarray) -> None:
@@ -133,6 +137,7 @@ class DenseFlowSource(DenseSource):
         a = self.config.image_scale
         Hw, Ww = self._working_shape()
         grey = image if (Hw, Ww) == (H, W) else cv2.resize(image, (Ww, Hw), interpolation=cv2.INTER_AREA)
+        grey = self._brightness(grey)
         # gradient energy per axis, in grey levels per image pixel (the working image is a times smaller)
         f = grey.astype(np.float32)
         gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, scale=a / 8.0)

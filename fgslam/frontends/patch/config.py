@@ -17,6 +17,7 @@ from ...core.errors import ConfigError
 from ...factors.depth import DepthPriorConfig
 from ...nets.config import DpvoNetConfig
 from ..depth_tracking import DepthTrackingConfig
+from ..photometric import PhotometricModel
 from .. import DEPTH_BYTES, PYRAMID_FACTOR, MemoryPart, MemorySizes
 
 
@@ -78,6 +79,8 @@ class LKConfig:
     fb_sigma: float = ranged(0.5, gt=0, le=MAX_SCALAR)  # forward-backward error (px) at which the confidence halves
     error_sigma: float = ranged(12.0, gt=0, le=MAX_SCALAR)  # mean absolute intensity error (grey levels) at which the confidence halves
     min_confidence: float = ranged(0.05, ge=0, le=1)  # tracks below this confidence are rejected
+    photometric: PhotometricModel = "raw"  # raw (brightness constancy) | gain (undo a gain per image, auto-exposure: fgslam/frontends/photometric.py)
+    photometric_floor: float = ranged(4.0, gt=0, le=255)  # gain: added to each image's median (grey levels), so a nearly black image is not amplified
 
 
 @dataclass

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..photometric import BrightnessModel
 from .config import LKConfig
 from .measurement import Measurement, MeasurementSource
 
@@ -59,6 +60,7 @@ class LKSource(MeasurementSource):
         if self.scale is not None:
             self._set_scale(self.scale)
         self._cv2 = cv2
+        self._brightness = BrightnessModel(config.photometric, config.photometric_floor)
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, config.iterations, config.epsilon)
 
     def _set_scale(self, scale: float) -> None:
@@ -74,6 +76,7 @@ class LKSource(MeasurementSource):
         if self.scale != 1.0:
             size = (max(1, round(w * self.scale)), max(1, round(h * self.scale)))
             image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        image = self._brightness(image)
         return LKFeatures(image=image, width=w, height=h)
 
     def pack(self, features: LKFeatures) -> tuple[bytes, int, int]:

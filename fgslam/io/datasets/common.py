@@ -68,6 +68,7 @@ class DatasetConfig:
     resize_scale: float = ranged(1.0, ge=0.05, le=4)  # scale factor of the output image (ignored when resize_width/height set)
     resize_width: int = ranged(0, ge=0, le=MAX_IMAGE_SIDE)  # output width before cropping (0: from resize_height/aspect or scale)
     resize_height: int = ranged(0, ge=0, le=MAX_IMAGE_SIDE)  # output height before cropping (0: from resize_width/aspect or scale)
+    max_width: int = ranged(0, ge=0, le=MAX_IMAGE_SIDE)  # wider outputs are scaled down to this width, aspect kept (0: off)
     crop_multiple: int = ranged(8, ge=0, le=MAX_IMAGE_SIDE)  # centre-crop output to multiples of this (network frontends need 8); 0 or 1: off
     min_image_side: int = ranged(32, ge=8, le=MAX_IMAGE_SIDE)  # a SLAM run needs output images (resized, cropped) at least this many px a side
     load_rgb: bool = True  # also return the RGB image of colour sources
@@ -109,16 +110,23 @@ class DatasetConfig:
 
     def resize_keys(self) -> list[str]:
         """The keys that set the output size, with their values (``key=value`` each)."""
+        cap = [f"dataset.max_width={self.max_width}"] if self.max_width else []
         if self.resize_width or self.resize_height:
-            return [f"dataset.resize_width={self.resize_width}", f"dataset.resize_height={self.resize_height}"]
-        return [f"dataset.resize_scale={self.resize_scale:g}"]
+            return [f"dataset.resize_width={self.resize_width}", f"dataset.resize_height={self.resize_height}", *cap]
+        return [f"dataset.resize_scale={self.resize_scale:g}", *cap]
 
     def resize_text(self) -> str:
         """The keys that set the output size, with their values (for error messages)."""
         return ", ".join(self.resize_keys())
 
     def output_size(self, width: int, height: int) -> tuple[int, int]:
-        """Output size before cropping for a raw ``width x height`` image."""
+        """Output size before cropping for a raw ``width x height`` image (at most ``max_width`` wide)."""
+        w, h = self._resized(width, height)
+        if self.max_width and w > self.max_width:
+            return self.max_width, max(1, round(h * self.max_width / w))
+        return w, h
+
+    def _resized(self, width: int, height: int) -> tuple[int, int]:
         if self.resize_width and self.resize_height:
             return self.resize_width, self.resize_height
         if self.resize_width:
