@@ -145,3 +145,19 @@ def test_the_benchmark_page_carries_the_committed_reports_results(bench):
     report = json.loads(REPORT.read_text())
     page = (REPO / "docs" / "benchmarks" / "classes.md").read_text()
     assert bench.details(report) in page, "regenerate: tools/bench_classes.py --from docs/benchmarks/classes.json --details docs/benchmarks/classes.md"
+
+
+def test_refreshing_digests_records_the_reason_and_needs_one(bench, tmp_path, capsys):
+    report = json.loads(REPORT.read_text())
+    report["digests"]["handheld_rgbd"] = "0" * 16  # as if measured before a config change
+    path = tmp_path / "classes.json"
+    path.write_text(json.dumps(report))
+    assert bench.main(["--update", str(path), "--refresh-digests", "a removed key that no preset set"]) == 0
+    refreshed = json.loads(path.read_text())
+    assert refreshed["digests"]["handheld_rgbd"] == bench.config_digest("handheld_rgbd")
+    assert refreshed["updates"][-1] == {"digests_refreshed": "a removed key that no preset set",
+                                        "presets": ["handheld_rgbd"]}
+    assert refreshed["classes"] == report["classes"]  # no runs, no figures changed
+    for argv in (["--refresh-digests", "why"], ["--update", str(path), "--refresh-digests", " "]):
+        with pytest.raises(SystemExit):
+            bench.parse_args(argv)

@@ -221,3 +221,46 @@ def test_whole_run_with_fake_peer_and_fake_fgslam(bench, shared_data, tmp_path, 
     links = sorted((view / "image_0").iterdir())
     assert len(links) == 200 and os.path.samefile(links[7], shared_data / "kitti00_0-199" / "image_0" / "000007.png")
     np.testing.assert_allclose(np.loadtxt(view / "times.txt"), ds.timestamps - t0, atol=1e-9)
+
+
+def test_preset_and_baseline_tree_run_alternately(bench, shared_data, tmp_path, monkeypatch, capsys):
+    """--preset runs another preset on a sequence; --baseline runs each fgslam run also on another
+    source tree, alternating, and reports the ratios to it."""
+    from fgslam.run.config import load_slam_config
+    from fgslam.run.prepare import open_slam_dataset
+
+    gt = open_slam_dataset(shared_data / "kitti00_0-199", load_slam_config("patch_kitti_mono", [])).groundtruth
+    t0 = float(gt.timestamps[0])
+    peer_file = tmp_path / "peer_in.tum"
+    write_trajectory(peer_file, Trajectory(gt.timestamps - t0, gt.T_WC), "tum")
+    monkeypatch.setenv("FAKE_PEER_TUM", str(peer_file))
+    shifted = gt.T_WC.copy()
+    shifted[:, 0, 3] += 0.2 * np.where(np.arange(len(gt)) % 2 == 0, 1.0, -1.0)
+    calls = []
+
+    def fake_fgslam(preset, data, out, overrides, timeout, tree=None):
+        calls.append((preset, None if tree is None else Path(tree).name))
+        cpu = 10.0 if tree is None else 20.0  # this tree twice as fast per CPU second
+        T = gt.T_WC if tree is None else shifted
+        return {"posed": 200, "frames": 200, "fps": 10.0, "cpu_s": cpu, "error": None,
+                "trajectory": Trajectory(gt.timestamps.copy(), T)}
+
+    base = tmp_path / "main"
+    (base / "fgslam").mkdir(parents=True)
+    (base / "fgslam" / "__init__.py").write_text("")
+    venv, scripts = _fake_peer(tmp_path)
+    argv = ["--peer", str(venv), "--peer-scripts", str(scripts), "--data", str(shared_data), "--sequences",
+            "kitti00_mono", "--repeats", "1", "--fgslam-repeats", "2", "--preset", "kitti00_mono=driving_mono",
+            "--baseline", str(base)]
+    assert bench.main(argv, fgslam_runner=fake_fgslam) == 0
+    r = json.loads(capsys.readouterr().out)["sequences"]["kitti00_mono"]
+    assert calls == [("driving_mono", None), ("driving_mono", "main")] * 2
+    assert r["fgslam_preset"] == "driving_mono"
+    b = r["baseline"]
+    assert b["frames_per_cpu_s"] == 10.0 and len(b["runs"]) == 2
+    assert b["ratios"]["frames_per_cpu_s_new_over_baseline"] == pytest.approx(2.0)
+    assert b["ratios"]["ate_new_over_baseline"] < 1e-3  # this tree: the truth; the baseline: 0.2 m off
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--baseline", str(tmp_path / "nowhere")])
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--preset", "nosuchsequence=driving_mono"])

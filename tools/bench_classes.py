@@ -547,6 +547,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--no-pace", action="store_true", help="feed ORB-SLAM3 as fast as it takes frames")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds after which one run is stopped")
     p.add_argument("--from", dest="from_report", type=Path, default=None, help="a saved report: no runs")
+    p.add_argument("--refresh-digests", metavar="REASON", default=None,
+                   help="with --update REPORT, no runs: record the presets' config digests as they are now, with "
+                        "REASON in the report's updates (only for a config change that computes the same: a "
+                        "removed key no preset set, a renamed one); any other change needs the runs")
     p.add_argument("--update", type=Path, default=None,
                    help="a saved report: rerun only --classes and keep its other classes (written back to the file)")
     p.add_argument("--peer-only", action="store_true",
@@ -563,7 +567,20 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error(bench_peers_problem(args))
     if args.peer_only and (args.update is None or args.peer is None):
         p.error("--peer-only needs --update REPORT and --peer")
+    if args.refresh_digests is not None and (args.update is None or not args.refresh_digests.strip()):
+        p.error("--refresh-digests needs a reason and --update REPORT")
     return args
+
+
+def refresh_digests(path: Path, reason: str) -> dict:
+    """The report at ``path`` with every preset's digest recomputed and the change recorded (no runs)."""
+    report = json.loads(path.read_text())
+    now = {p: config_digest(p) for p in report["digests"]}
+    changed = sorted(p for p, d in now.items() if report["digests"][p] != d)
+    report["digests"] = now
+    report["updates"] = [*report.get("updates", []), {"digests_refreshed": reason.strip(), "presets": changed}]
+    path.write_text(json.dumps(report, indent=1) + "\n")
+    return report
 
 
 def bench_peers_problem(args: argparse.Namespace) -> Optional[str]:
@@ -574,6 +591,10 @@ def bench_peers_problem(args: argparse.Namespace) -> Optional[str]:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.refresh_digests is not None:
+        report = refresh_digests(args.update, args.refresh_digests)
+        print(json.dumps(report["updates"][-1], indent=1))
+        return 0
     if args.from_report is not None:  # the rankings computed again by this version's scoring
         report = json.loads(args.from_report.read_text())
         report["classes"] = {name: class_report(name, CLASSES[name], c["cases"]) for name, c in report["classes"].items()}

@@ -99,6 +99,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--keep-outputs", type=Path, default=None, help="write every run's outputs under DIR")
     p.add_argument("-o", "--override", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="fgslam SlamConfig override applied to every sequence (repeatable)")
+    p.add_argument("--preset", dest="presets", action="append", default=[], metavar="SEQUENCE=PRESET",
+                   help="run this fgslam preset on the sequence instead of its default (repeatable; e.g. "
+                        "7scenes_rgbd=handheld_rgbd, the class benchmark's recommended preset)")
+    p.add_argument("--baseline", type=Path, default=None, metavar="DIR",
+                   help="also run every fgslam run on the fgslam source tree in DIR (e.g. `git worktree add /tmp/main "
+                        "main`), alternating with this tree's run by run; the report adds the baseline's figures and "
+                        "this tree's ratios to them")
     args = p.parse_args(argv)
     names = [n.strip() for n in args.sequences.split(",") if n.strip()]
     unknown = [n for n in names if n not in SEQUENCES]
@@ -109,6 +116,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     if args.highway_frames < 2:
         p.error("--highway-frames must be >= 2")
     args.names = names
+    args.preset_of = {}
+    for item in args.presets:
+        name, _, preset = item.partition("=")
+        if name not in SEQUENCES or not preset:
+            p.error(f"--preset {item}: expected SEQUENCE=PRESET with a sequence of: {', '.join(SEQUENCES)}")
+        args.preset_of[name] = preset
+    if args.baseline is not None and not (args.baseline / "fgslam" / "__init__.py").is_file():
+        p.error(f"--baseline {args.baseline}: not an fgslam source tree (no fgslam/__init__.py)")
     if args.peer is None and os.environ.get(PEER_ENV):
         args.peer = Path(os.environ[PEER_ENV])
     return args
@@ -264,12 +279,17 @@ def fgslam_command(preset: str, data: Path, out: Path, overrides: list[str]) -> 
     return cmd
 
 
-def run_fgslam(preset: str, data: Path, out: Path, overrides: list[str], timeout: float) -> dict:
-    """One ``fgslam run`` in its own process: its summary figures and trajectory."""
+def run_fgslam(preset: str, data: Path, out: Path, overrides: list[str], timeout: float,
+               tree: Optional[Path] = None) -> dict:
+    """One ``fgslam run`` in its own process (the fgslam source tree ``tree``; None: this one): its
+    summary figures and trajectory."""
     load = os.getloadavg()
+    env = dict(os.environ)
+    if tree is not None:
+        env["PYTHONPATH"] = str(Path(tree).resolve())
     try:
         proc = subprocess.run(fgslam_command(preset, data, out, overrides), capture_output=True, text=True,
-                              cwd=REPO, timeout=timeout)
+                              cwd=tree or REPO, timeout=timeout, env=env)
         rc, err = proc.returncode, proc.stderr.strip()[-1000:]
     except subprocess.TimeoutExpired:
         rc, err = None, f"stopped after {timeout:.0f} s"
@@ -399,15 +419,41 @@ def run_sequence(name: str, args: argparse.Namespace, work: Path,
             return {"sequence": name, "error": f"{root}: the calibration is not that of the stored {w}x{h} images"}
         settings = work / "orbslam3_settings.yaml"
         settings.write_text(orbslam3_settings(cal.K, cal.width, cal.height, rate, seq.orb_features))
-    fg_runs = [fgslam_runner(seq.preset, root, work / f"fgslam_{i}", args.overrides, args.timeout)
-               for i in range(args.fgslam_repeats)]
+    preset = args.preset_of.get(name, seq.preset)
+    fg_runs, base_runs = [], []
+    for i in range(args.fgslam_repeats):  # alternating with the baseline: both see the same load
+        fg_runs.append(fgslam_runner(preset, root, work / f"fgslam_{i}", args.overrides, args.timeout))
+        if args.baseline is not None:
+            base_runs.append(fgslam_runner(preset, root, work / f"baseline_{i}", args.overrides, args.timeout,
+                                           tree=args.baseline))
     peer_runs = [peer_runner(peer_command(args, seq.mode, settings, peer_seq, n, work / f"orbslam3_{j}"),
                              work / f"orbslam3_{j}", fed_t, dataset_t, args.timeout) for j in range(args.repeats)]
     result = {"sequence": name, "data": str(root), "mode": seq.mode, "align": ALIGN[seq.mode], "frames": n,
-              "rate_hz": rate, "fgslam_preset": seq.preset, "orbslam3_settings": str(settings),
+              "rate_hz": rate, "fgslam_preset": preset, "orbslam3_settings": str(settings),
               "orbslam3_paced": not args.no_pace}
     result.update(compare(gt, ALIGN[seq.mode], max_time_diff, fg_runs, peer_runs))
+    if base_runs:
+        result["baseline"] = baseline_comparison(gt, ALIGN[seq.mode], max_time_diff, fg_runs, base_runs, args.baseline)
     return result
+
+
+def baseline_comparison(gt, align: str, max_time_diff: float, fg_runs: list[dict], base_runs: list[dict],
+                        tree: Path) -> dict:
+    """The baseline tree's medians and this tree's ratios to them (frames per CPU second above 1: faster)."""
+    def per_cpu(runs: list[dict]) -> Optional[float]:
+        return _median(r["frames"] / r["cpu_s"] for r in runs if r.get("frames") and r.get("cpu_s"))
+
+    runs = []
+    for r in base_runs:
+        d = {k: v for k, v in r.items() if k != "trajectory"}
+        d["ate_own_m"] = own_ate(gt, r.get("trajectory"), align, max_time_diff)
+        runs.append(d)
+    ate_new = _median(own_ate(gt, r.get("trajectory"), align, max_time_diff) for r in fg_runs)
+    ate_base = _median(r["ate_own_m"] for r in runs)
+    return {"tree": str(tree), "posed": _median(r.get("posed") for r in runs), "fps": _median(r.get("fps") for r in runs),
+            "frames_per_cpu_s": per_cpu(runs), "ate_own_m": ate_base, "runs": runs,
+            "ratios": {"frames_per_cpu_s_new_over_baseline": _ratio(per_cpu(fg_runs), per_cpu(runs)),
+                       "ate_new_over_baseline": _ratio(ate_new, ate_base)}}
 
 
 def main(argv=None, fgslam_runner: Callable[..., dict] = run_fgslam, peer_runner: Callable[..., dict] = run_peer) -> int:

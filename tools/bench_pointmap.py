@@ -6,8 +6,8 @@ occlusions), against the generator's ground-truth correspondences:
 
 - ``matching``: :func:`fgslam.frontends.pointmap.matching.match_pointmaps` on all W x H pixels with the
   exact geometry (RGB-D pointmaps, true relative pose): cold (identity start) and warm (started from the
-  previous solution) LM alone, and LM + descriptor refinement (the default config; with ``--compile`` also
-  torch.compile'd, after its one-off compilation); wall ms (best of
+  previous solution) LM alone, and LM + descriptor refinement (the default config; the compiled kernels of
+  ``matching_jit``, loaded from numba's cache or compiled by the first call); wall ms (best of
   ``--repeat``) and CPU ms (``time.process_time``, comparable under load), median pixel error, valid
   fraction of the visible pixels, valid fraction of the occluded ones.
 - ``descriptors``: each descriptor kind: ms per image, and the refinement of matches whose geometry is
@@ -16,7 +16,7 @@ occlusions), against the generator's ground-truth correspondences:
 - ``sources``: ms per ``add_frame`` and ``predict`` of each built-in source (rgbd, stereo, mono).
 - ``block``: ms per ``linearize`` and ``cost`` of one edge with every valid match (ray mode).
 
-Usage: .venv/bin/python tools/bench_pointmap.py [--width 320 --height 240] [--repeat 3] [--compile]
+Usage: .venv/bin/python tools/bench_pointmap.py [--width 320 --height 240] [--repeat 3]
 """
 
 from __future__ import annotations
@@ -97,7 +97,6 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--compile", action="store_true", help="also time matching with torch.compile (compiles first)")
     args = parser.parse_args()
     load_before = [round(x, 2) for x in os.getloadavg()]
     seq = SynthSequence(load_synth_config("room-loop", None, [f"camera.width={args.width}", f"camera.height={args.height}",
@@ -138,16 +137,6 @@ def main() -> None:
     wall, cpu, _ = timed(lambda: match_pointmaps(ref, pair.X_j_in_i, D_i=pair.D_i, D_j=Dj,
                                                  config=MatchingConfig(threads=0)), args.repeat)
     matching["lm_cold_refined_torch_default_threads"] = {"wall_ms": round(1e3 * wall, 1), "cpu_ms": round(1e3 * cpu, 1)}
-    if args.compile:  # torch.compile'd LM step and refinement (first call compiles)
-        comp = MatchingConfig(compile=True)
-        t0 = time.perf_counter()
-        match_pointmaps(ref, pair.X_j_in_i, D_i=pair.D_i, D_j=Dj, config=comp)
-        matching["compile_s"] = round(time.perf_counter() - t0, 1)
-        for name, init in (("lm_cold_refined_compiled", None), ("lm_warm_refined_compiled", cold.uv_lm)):
-            wall, cpu, m = timed(lambda: match_pointmaps(ref, pair.X_j_in_i, init_uv=init, D_i=pair.D_i, D_j=Dj,
-                                                         config=comp), args.repeat)
-            matching[name] = {"wall_ms": round(1e3 * wall, 1), "cpu_ms": round(1e3 * cpu, 1),
-                              **accuracy(m, uv_true, visible, occluded)}
     out["matching"] = matching
 
     # ------------------------------------------------------------------ descriptors

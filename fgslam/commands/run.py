@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 from ..run.presets import run_presets
 from . import FORMAT_CHOICES
 
-if TYPE_CHECKING:  # the run package pulls torch: imported in run() only (fgslam --help stays fast)
+if TYPE_CHECKING:  # the run's results pull torch: imported in run() only (fgslam --help stays fast)
     from ..run.results import RunSummary
 
 HELP = "run SLAM on a dataset (trajectory in TUM/KITTI formats, summary.json, trajectory.png)"
@@ -51,9 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..run.config import load_slam_config  # deferred: the run package pulls torch (fgslam --help stays fast)
+    # the config and the checks import neither torch nor OpenCV nor gtsam (tests/test_startup.py): a refused run
+    # answers at once; the runner, which pulls them, is imported once every check has passed
+    from ..run.config import load_slam_config  # deferred: fgslam --help stays fast
     from ..run.prepare import check_save_map_path, prepare_run  # deferred: as above
-    from ..run.runner import run_prepared  # deferred: as above
 
     overrides = list(args.overrides)
     if args.save_map:
@@ -64,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_slam_config(args.config, overrides)
     # every check before any work, once: rerun target, output folder, dataset, the --map's camera
     prepared = prepare_run(args.data, config, args.out, fmt=args.format, overwrite=args.overwrite, rerun=args.rerun)
+    from ..run.runner import run_prepared  # deferred: torch, OpenCV, gtsam (after the checks, above)
 
     def report(summary: RunSummary) -> None:  # also when the run then fails or is interrupted (the error line follows)
         print(json.dumps(summary.to_dict(), default=str) if args.json else format_report(summary.to_dict()), flush=True)

@@ -13,13 +13,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import DataError
-from .lie import sim3_matrix_parts
 
 
 def rigid_poses(T_WC: np.ndarray) -> np.ndarray:
     """Rigid ``[R | t]`` of (N, 4, 4) Sim(3) matrices ``[[s R, t], [0, 1]]`` (the map's points stay
     where they are: a point seen at ``X_C`` by the Sim(3) pose is seen at ``s X_C`` by the rigid one,
     on the same pixel)."""
+    from .lie import sim3_matrix_parts  # deferred: lie pulls torch (loading a map, a config need none)
+
     T = np.array(T_WC, dtype=np.float64, copy=True).reshape(-1, 4, 4)
     for k in range(T.shape[0]):
         T[k, :3, :3] = sim3_matrix_parts(T[k], project=True)[0]

@@ -55,7 +55,6 @@ from ..core.errors import DataError
 from ..loop.bow import BowConfig, KeyframeFeatures, PlaceRecognizer
 from ..loop.features import OrbConfig, to_grey_uint8
 from ..loop.records import VerificationConfig
-from ..loop.verification import LoopKeyframe, Verifier
 from ..core.mapdata import MapExport
 
 logger = logging.getLogger(__name__)
@@ -247,8 +246,9 @@ def save_stored_map(path: str | Path, stored: StoredMap) -> Path:
     return path
 
 
-def load_stored_map(path: str | Path) -> StoredMap:
-    """Read a map written by :func:`save_stored_map` (:class:`MapFileError` on bad input)."""
+def check_map_file(path: str | Path) -> Path:
+    """The cheap checks of a map file, before any work (``fgslam run --map``: before the dataset is
+    opened): it exists and is a whole npz archive; :class:`MapFileError` otherwise."""
     path = Path(path)
     if not path.is_file():
         raise MapFileError(f"{path}: no such map file")
@@ -258,6 +258,12 @@ def load_stored_map(path: str | Path) -> StoredMap:
         raise MapFileError(f"{path}: not a fgslam map (not an npz archive)")
     if not zipfile.is_zipfile(path):
         raise MapFileError(f"{path}: truncated or damaged map file (no zip directory at its end)")
+    return path
+
+
+def load_stored_map(path: str | Path) -> StoredMap:
+    """Read a map written by :func:`save_stored_map` (:class:`MapFileError` on bad input)."""
+    path = check_map_file(path)
     try:
         with np.load(path, allow_pickle=False) as z:
             if "meta" not in z.files:
@@ -402,6 +408,8 @@ def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, 
         else:
             X_list.append(None)
     if any(X is None for X in X_list):  # no sensor depth: triangulate with neighbouring keyframes
+        from ..loop.verification import LoopKeyframe, Verifier  # deferred: torch (loading a map, a config need none)
+
         table = {int(i): LoopKeyframe(int(i), float(s), None, K_feat, (), f) for i, s, f in zip(kf_ids, stamps, feats)}
         verifier = Verifier(verification or VerificationConfig(), table, threading.RLock(), metric=sensor != "mono")
         poses = {int(i): T for i, T in zip(kf_ids, T_WC)}

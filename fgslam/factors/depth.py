@@ -21,14 +21,13 @@ order ``[w, u, lambda]``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import torch
 
 from ..core.camera import StereoRig
-from ..core.config import MAX_SCALAR, ranged
 from ..core.errors import ConfigError
+from .configs import DepthPriorConfig  # the config: torch-free (a run's config loads without torch)
 from .reprojection import PoseLike, ReprojectionConfig, ReprojectionResult, reproject_inv_depth
 
 __all__ = [
@@ -40,16 +39,6 @@ __all__ = [
     "inv_depth_sigma",
     "reproject_stereo",
 ]
-
-
-@dataclass
-class DepthPriorConfig:
-    """Noise model of sensor inverse depths (the RGB-D prior of DROID-SLAM section 3.4, and the
-    depth rows of the patch frontend's observation model). The patch frontend fills it from
-    ``patch.ba.depth_prior_sigma`` and ``patch.ba.depth_noise``."""
-
-    sigma: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # relative (noise: relative) or in 1/m of inverse depth (noise: inverse)
-    noise: Literal["relative", "inverse"] = "relative"  # relative: sigma_d = sigma * d_sensor (sigma_z grows with z); inverse: sigma_d = sigma (sigma_z grows with z^2, Kinect)
 
 
 def inv_depth_sigma(sensor_inv_depth, config: DepthPriorConfig):

@@ -38,51 +38,22 @@ tracks) can add their information to the count.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from ..core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_SCALAR, ranged
-
-MAX_LEVELS = 8  # pyramid levels of a depth surface (the coarsest steps 2^7 times the finest)
-from ..core.errors import ConfigError, DataError
+from ..core.errors import DataError
 from ..core.lie import gtsam_matrix
 from .blocks import LinearPiece, weighted_piece
-from .robust import RobustConfig, kernel_cost, kernel_weight
+from .configs import DepthAlignConfig  # the config: torch-free (a run's config loads without torch)
+from .robust import kernel_cost, kernel_weight
 from .schur import POSE_DIM
 
 __all__ = ["DepthAlignBlock", "DepthAlignConfig", "DepthConstraint", "DepthSurface", "depth_constraint",
            "point_to_plane", "relative_transform"]
 
 RIGID_DIM = 6  # rotation and translation of a Sim(3) tangent [w, u, lambda]
-
-
-@dataclass
-class DepthAlignConfig:
-    """Depth alignment (module docstring): the pyramid, the association gates, the noise model."""
-
-    grid_width: int = ranged(80, ge=4, le=MAX_IMAGE_SIDE)  # points across the finest level (its pixel step: image width // this)
-    levels: int = ranged(3, ge=1, le=MAX_LEVELS)  # pyramid levels, each coarser one at twice the step
-    min_depth: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # m; sensor depths below this are invalid
-    max_depth: float = ranged(8.0, gt=0, le=MAX_SCALAR)  # m; sensor depths above this are invalid
-    max_discontinuity: float = ranged(0.01, gt=0, le=MAX_SCALAR)  # relative depth jump per image pixel between grid neighbours that marks an edge (no normal)
-    max_distance: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # m; association gate on |T X_f - X_k| on the finest level (a level of stride s: s / finest stride times this)
-    max_normal_angle_deg: float = ranged(30.0, gt=0, le=180.0)  # association gate on the angle between the normals
-    sigma: float = ranged(0.01, gt=0, le=MAX_SCALAR)  # m; std of the point-to-plane distance at 1 m depth (grows with z^2)
-    robust: RobustConfig = field(default_factory=RobustConfig)  # kernel on the whitened distance
-    min_pairs: int = ranged(100, ge=1, le=MAX_COUNT)  # fewer associated pairs: the depth does not constrain the pose
-    min_pair_fraction: float = ranged(0.5, ge=0, le=1)  # fewer of the frame's vertices paired: the alignment is not trusted (little overlap, or a wrong minimum)
-    max_direction_sigma: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # m; a rigid direction counts as constrained when its standard deviation is below this (rotations as displacements at the median depth)
-
-    def validate(self) -> None:
-        if self.max_depth <= self.min_depth:
-            raise ConfigError(f"depth_align.max_depth ({self.max_depth}) must exceed min_depth ({self.min_depth})")
-
-    def strides(self, width: int) -> tuple[int, ...]:
-        """Pixel step of each level (coarse to fine) for images ``width`` pixels wide."""
-        finest = max(1, int(width) // self.grid_width)
-        return tuple(finest << (self.levels - 1 - i) for i in range(self.levels))
 
 
 @dataclass(frozen=True)
@@ -208,13 +179,13 @@ def point_to_plane(A: np.ndarray, X_f: np.ndarray, Y: np.ndarray, X_k: np.ndarra
         dY/dxi_f = A [-[X_f]x, I, X_f]   ->  J_f = [X_f x a, a, a . X_f]  with  a = A^T n_k
         dY/dxi_k = [[Y]x, -I, -Y]         ->  J_k = [n_k x Y, -n_k, -n_k . Y]
     """
-    r = np.einsum("ij,ij->i", n_k, Y - X_k)
+    from .depth_align_jit import point_to_plane_rows  # deferred: numba (compiled kernel, core/jit.py)
+
+    f64 = lambda x: np.ascontiguousarray(x, dtype=np.float64)  # noqa: E731 - one dtype for the kernel
+    r, J = point_to_plane_rows(f64(A), f64(X_f), f64(Y), f64(X_k), f64(n_k), bool(jacobians))
     if not jacobians:
         return r, None, None
-    a = n_k @ A
-    J_f = np.concatenate((np.cross(X_f, a), a, np.einsum("ij,ij->i", a, X_f)[:, None]), axis=1)
-    J_k = np.concatenate((np.cross(n_k, Y), -n_k, -np.einsum("ij,ij->i", n_k, Y)[:, None]), axis=1)
-    return r, J_k, J_f
+    return r, J[:, :POSE_DIM], J[:, POSE_DIM:]
 
 
 class DepthAlignBlock:
@@ -260,24 +231,6 @@ class DepthAlignBlock:
     def _transform(self, values) -> tuple[np.ndarray, np.ndarray]:
         return relative_transform(gtsam_matrix(values.atSimilarity3(self.key_k)), gtsam_matrix(values.atSimilarity3(self.key_f)))
 
-    def _associate(self, A: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per frame vertex (at ``Y`` in k) the reference grid index it lands on, whether that holds a
-        reference vertex (``seen``), and whether the two pair (``seen`` and within the gates)."""
-        ref = self._ref
-        fx, fy, cx, cy = ref.K
-        h, w = ref.shape
-        z = Y[:, 2]
-        front = z > self.config.min_depth
-        zs = np.where(front, z, 1.0)
-        u = np.rint(fx * Y[:, 0] / zs + cx)
-        v = np.rint(fy * Y[:, 1] / zs + cy)
-        inside = front & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-        idx = np.where(inside, v * w + u, 0).astype(np.int64)
-        seen = inside & ref.valid[idx]
-        d = np.linalg.norm(Y - ref.vertices[idx], axis=1)
-        agree = np.einsum("ij,ij->i", self._n_f @ A.T, ref.normals[idx]) >= self._cos * np.cbrt(np.linalg.det(A))
-        return idx, seen, seen & (d <= self.max_distance) & agree
-
     def _terms(self, values, jacobians: bool):
         """Whitened residuals, kernel costs (gate cost for seen unpaired vertices), IRLS weights (0
         unpaired) and the whitened Jacobian ``(M, 14)`` (or None) of the paired vertices, the pair mask."""
@@ -287,11 +240,14 @@ class DepthAlignBlock:
         memo = self._memo
         if memo is not None and (memo[2] or not jacobians) and np.array_equal(memo[0], A) and np.array_equal(memo[1], b):
             return memo[3]  # the same poses as the last evaluation (a cost, then a linearisation there)
-        Y = self._X_f @ A.T + b
-        idx, seen, paired = self._associate(A, Y)
-        sel = idx[paired]
-        r, J_k, J_f = point_to_plane(A, self._X_f[paired], Y[paired], self._ref.vertices[sel], self._ref.normals[sel],
-                                     jacobians)
+        from .depth_align_jit import associate_rows  # deferred: numba (compiled kernel, core/jit.py)
+
+        ref = self._ref
+        seen, paired, r_all, J_all = associate_rows(
+            A, b, self._X_f, self._n_f, ref.vertices, ref.normals, ref.valid, np.asarray(ref.K, dtype=np.float64),
+            np.asarray(ref.shape, dtype=np.int64), float(cfg.min_depth), float(self.max_distance),
+            self._cos * float(np.cbrt(np.linalg.det(A))), bool(jacobians))
+        r = r_all[paired]
         scale = self._sqrt_w[paired] / cfg.sigma
         e = r * scale
         norms = torch.from_numpy(np.minimum(np.abs(e), self._gate[paired]))
@@ -299,7 +255,7 @@ class DepthAlignBlock:
         weight = kernel_weight(norms, rb.kind, rb.delta).numpy()
         J = None
         if jacobians:
-            J = np.concatenate((J_k, J_f), axis=1) * scale[:, None]
+            J = J_all[paired] * scale[:, None]
         self._memo = (A, b, jacobians, (e, cost, weight, J, paired))
         return e, cost, weight, J, paired
 

@@ -50,24 +50,11 @@ import torch
 from torch import Tensor
 
 from ..core.camera import project
-from ..core.config import MAX_SCALAR, ranged
 from ..core.errors import DataError
 from ..core.lie import Sim3
+from .configs import PointmapResidualConfig  # the config: torch-free (a run's config loads without torch)
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class PointmapResidualConfig:
-    """Noise levels and degeneracy thresholds of the pointmap residuals (defaults: MASt3R-SLAM)."""
-
-    sigma_ray: float = ranged(0.003, gt=0, le=MAX_SCALAR)  # std of the unit-ray difference (dimensionless)
-    sigma_dist: float = ranged(10.0, gt=0, le=MAX_SCALAR)  # std of the distance-to-centre difference (pointmap units); weak term
-    sigma_point: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # std of the 3-D point difference (pointmap units)
-    sigma_pixel: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # std of the pixel difference (px)
-    sigma_log_depth: float = ranged(10.0, gt=0, le=MAX_SCALAR)  # std of the log-depth difference (dimensionless)
-    min_norm: float = ranged(1e-6, ge=0, le=MAX_SCALAR)  # points with a norm at or below this are degenerate (masked)
-    min_depth: float = ranged(1e-6, ge=0, le=MAX_SCALAR)  # calibrated case: z at or below this is behind the camera (masked)
 
 
 @dataclass(frozen=True)

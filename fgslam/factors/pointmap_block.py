@@ -28,19 +28,17 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Literal
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from .blocks import LinearPiece
-from ..core.config import MAX_THREADS, ranged
 from ..core.errors import DataError
 from ..core.lie import Sim3
-from .pointmap import (PointmapResidualConfig, calibrated_prepared, prepare_matches, ray_dist_prepared,
-                       relative_to_global_normal)
-from .robust import RobustConfig, kernel_cost, kernel_weight
+from .configs import PointmapBlockConfig  # the config: torch-free (a run's config loads without torch)
+from .pointmap import calibrated_prepared, prepare_matches, ray_dist_prepared, relative_to_global_normal
+from .robust import kernel_cost, kernel_weight
 from .schur import torch_threads
 
 logger = logging.getLogger(__name__)
@@ -49,16 +47,6 @@ __all__ = ["PointmapBlock", "PointmapBlockConfig", "PointmapEdge"]
 
 # row groups of each mode: (ray 3-vector, distance) / (pixel 2-vector, log depth)
 _GROUPS = {"ray": ((0, 3), (3, 4)), "calibrated": ((0, 2), (2, 3))}
-
-
-@dataclass
-class PointmapBlockConfig:
-    """Residuals, weighting and threads of the pointmap blocks."""
-
-    mode: Literal["ray", "calibrated"] = "ray"  # ray + distance rows, or pixel + log-depth rows (needs K and uv_i)
-    residual: PointmapResidualConfig = field(default_factory=PointmapResidualConfig)
-    robust: RobustConfig = field(default_factory=RobustConfig)  # kernel on each row group's whitened norm; min_confidence drops matches
-    threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch intra-op threads while linearising (0: torch's setting)
 
 
 @dataclass

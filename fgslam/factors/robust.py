@@ -18,28 +18,12 @@ each component instead of the vector norm by giving residuals a trailing dimensi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import torch
 
-from ..core.config import MAX_SCALAR, ranged
 from ..core.errors import ConfigError
-
-KernelKind = Literal["none", "huber", "cauchy", "tukey"]
-
-
-@dataclass
-class RobustConfig:
-    """Robust weighting of whitened residuals (see module docstring)."""
-
-    # Robust kernel applied to the whitened residual norm e.
-    kind: KernelKind = "huber"
-    # Kernel threshold in whitened units: 1.345 is Huber's 95%-efficiency constant under Gaussian
-    # noise (Cauchy: 2.3849, Tukey: 4.6851 for the same efficiency).
-    delta: float = ranged(1.345, gt=0, le=MAX_SCALAR)
-    # Measurements whose confidence is below this get zero weight (MASt3R's q_min; 0 keeps all).
-    min_confidence: float = ranged(0.0, ge=0, le=MAX_SCALAR)
+from .configs import KernelKind, RobustConfig  # the config: torch-free (a run's config loads without torch)
 
 
 class RobustWeights(NamedTuple):

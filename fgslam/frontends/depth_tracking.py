@@ -14,14 +14,15 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
 from ..core.config import MAX_ITERATIONS, MAX_WINDOW, ranged
-from ..factors.depth_align import MAX_LEVELS, RIGID_DIM, DepthAlignBlock, DepthAlignConfig, DepthConstraint, DepthSurface
-from ..factors.schur import POSE_DIM
-from ..core.lie import gtsam_matrix, gtsam_sim3
+from ..factors.configs import MAX_LEVELS, DepthAlignConfig
+
+if TYPE_CHECKING:  # the alignment pulls torch and gtsam: imported in the functions that run it
+    from ..factors.depth_align import DepthAlignBlock, DepthConstraint, DepthSurface
 
 logger = logging.getLogger(__name__)
 
@@ -35,6 +36,9 @@ def pose_information(blocks, values, key: int) -> np.ndarray:
     """6x6 information (rotation, translation) on pose ``key`` of the measurement ``blocks`` at ``values``
     (their linear pieces' diagonal blocks of that key, summed): what a frame's image measurements add to
     its depth's count of constrained directions (:meth:`DepthTracking.hold`)."""
+    from ..factors.depth_align import RIGID_DIM  # deferred: torch (DepthTrackingConfig loads without it)
+    from ..factors.schur import POSE_DIM  # deferred: torch (DepthTrackingConfig loads without it)
+
     H = np.zeros((RIGID_DIM, RIGID_DIM))
     for block in blocks:
         for piece in block.linearize(values):
@@ -89,6 +93,8 @@ class DepthTracking:
 
     def surface(self, depth: np.ndarray | None) -> DepthSurface | None:
         """The surface of a depth image (None without depth or when disabled)."""
+        from ..factors.depth_align import DepthSurface  # deferred: torch (DepthTrackingConfig loads without it)
+
         if not self.enabled or depth is None or self.K is None:
             return None
         return DepthSurface.from_depth(depth, self.K, self.config.align)
@@ -97,12 +103,16 @@ class DepthTracking:
               window: bool = False) -> DepthAlignBlock:
         """Point-to-plane block aligning ``key_f``'s surface to ``key_k``'s: on the finest level, or
         with ``window`` on the window's level (``window_level``)."""
+        from ..factors.depth_align import DepthAlignBlock  # deferred: torch (DepthTrackingConfig loads without it)
+
         level = min(self.config.window_level, len(surface_k.levels) - 1) if window else -1
         return DepthAlignBlock(key_k, key_f, surface_k, surface_f, self.config.align, level)
 
     @staticmethod
     def _values(block: DepthAlignBlock, T_WCk: np.ndarray, T_WCf: np.ndarray):
         import gtsam  # deferred: gtsam
+
+        from ..core.lie import gtsam_sim3  # deferred: torch (DepthTrackingConfig loads without it)
 
         values = gtsam.Values()
         values.insert(block.key_k, gtsam_sim3(T_WCk))
@@ -119,6 +129,8 @@ class DepthTracking:
         """The frame's pose ``T_WCf`` (4x4, the block's ``key_f``) aligned by depth alone to the reference
         at ``T_WCk`` (held), coarse to fine and rigid (the backend's motion-only solve), and what the depth
         constrains there. A pose that does not come out finite is returned unchanged."""
+        from ..core.lie import gtsam_matrix  # deferred: torch (DepthTrackingConfig loads without it)
+
         values = self._values(block, T_WCk, T_WCf)
         for level in range(len(block.reference.levels)):
             result = self.backend.optimize_pose([block.at_level(level)], values, block.key_f,

@@ -15,15 +15,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
-import cv2
 import numpy as np
 
 from ..core.config import MAX_IMAGE_SIDE, MAX_SCALAR, ranged
 from ..core.errors import DataError
 from .photometric import BrightnessModel, PhotometricModel
 
-_DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
-                "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+#: ``preset`` -> the name of its OpenCV constant (cv2 is imported where the flow runs)
+_DIS_PRESETS = {"ultrafast": "DISOPTICAL_FLOW_PRESET_ULTRAFAST", "fast": "DISOPTICAL_FLOW_PRESET_FAST",
+                "medium": "DISOPTICAL_FLOW_PRESET_MEDIUM"}
 
 
 @dataclass
@@ -112,15 +112,19 @@ class DenseFlowSource(DenseSource):
     name = "flow"
 
     def __init__(self, config: DenseFlowConfig | None = None, stride: int = 8):
+        import cv2  # deferred: OpenCV (DenseFlowConfig loads without it)
+
         self.config = config or DenseFlowConfig()
         self.stride = int(stride)
         self._frames: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # grey, gx^2, gy^2 (working scale)
         self._shape: tuple[int, int] | None = None
-        self._dis = cv2.DISOpticalFlow_create(_DIS_PRESETS[self.config.preset])
+        self._dis = cv2.DISOpticalFlow_create(getattr(cv2, _DIS_PRESETS[self.config.preset]))
         self._brightness = BrightnessModel(self.config.photometric, self.config.photometric_floor)
 
     # ------------------------------------------------------------------ frames
     def add_frame(self, frame_id: int, image: np.ndarray) -> None:
+        import cv2  # deferred: OpenCV (DenseFlowConfig loads without it)
+
         image = np.asarray(image)
         if image.ndim != 2 or image.dtype != np.uint8:
             raise DataError(f"dense flow source: frame {frame_id} must be a grey uint8 image, got "
@@ -171,6 +175,8 @@ class DenseFlowSource(DenseSource):
         return [self._revise_edge(i, j, uv_induced[n]) for n, (i, j) in enumerate(edges)]
 
     def _revise_edge(self, i: int, j: int, uv_induced: np.ndarray) -> FlowRevision:
+        import cv2  # deferred: OpenCV (DenseFlowConfig loads without it)
+
         cfg, s = self.config, self.stride
         Ii, gxx, gyy = self._frame(i)
         Ij = self._frame(j)[0]

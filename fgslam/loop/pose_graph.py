@@ -62,67 +62,18 @@ import logging
 import math
 import time
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import torch
 
 from ..backend.pose_graph import LoopPoseGraph
 from ..backend.solver import LMSettings
-from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, check_ranges, ranged
-from ..core.errors import ConfigError, OptimizationError
+from ..core.errors import OptimizationError
 from ..factors.sim3 import SIM3_DOF, sim3_between_residual
 from ..core.lie import Sim3
+from .records import PoseGraphConfig  # the config lives with loop closure's: torch-free (a run's config loads without torch)
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class PoseGraphConfig:
-    """Tunables of :func:`optimize_sim3_pose_graph`. Sigmas are in tangent order [w(3), u(3), log s]."""
-
-    smooth_sigmas: tuple[float, ...] = ranged((0.002, 0.002, 0.002, 0.02, 0.02, 0.02, 0.002), gt=0, le=MAX_SCALAR)  # consecutive keyframes
-    loop_sigmas: tuple[float, ...] = ranged((0.01, 0.01, 0.01, 0.1, 0.1, 0.1, 0.01), gt=0, le=MAX_SCALAR)  # loop terms (rad, local units, log s)
-    # Scale each smoothness sigma by sqrt(step / median step) (step = distance between consecutive
-    # keyframes): drift accrues per distance travelled, so the correction is spread per distance.
-    smooth_sigmas_per_distance: bool = True
-    min_step_fraction: float = ranged(0.1, gt=0, le=1)  # floor of step / median step in that scaling (standstill)
-    prior_sigma: float = ranged(1e-6, gt=0, le=MAX_SCALAR)  # gauge prior on keyframe 0, every tangent component
-    robust_kernel: Literal["none", "huber", "cauchy"] = "huber"  # m-estimator on the loop terms
-    robust_param: float = ranged(1.345, gt=0, le=MAX_SCALAR)  # kernel threshold in whitened units (Huber 95% efficiency constant)
-    max_iterations: int = ranged(100, ge=1, le=MAX_ITERATIONS)  # LM iterations per solve
-    relative_error_tol: float = ranged(1e-6, ge=0, le=MAX_SCALAR)  # LM stops when the relative cost decrease falls below this
-    absolute_error_tol: float = ranged(1e-9, ge=0, le=MAX_SCALAR)  # LM stops when the absolute cost decrease falls below this
-    lambda_initial: float = ranged(1e-5, gt=0, le=MAX_LAMBDA)  # initial LM damping (GTSAM's default)
-    lambda_factor: float = ranged(10.0, gt=1, le=MAX_SCALAR)  # LM damping multiplier on a rejected / accepted step
-    lambda_max: float = ranged(1e5, gt=0, le=MAX_LAMBDA)  # LM stops (no descent at any damping) above this
-    consistency_probability: float = ranged(0.9999, gt=0, lt=1)  # chi2(7) quantile above which a loop is inconsistent
-    max_rounds: int = ranged(8, ge=1, le=MAX_ITERATIONS)  # solves at most (reject inconsistent loops, re-admit consistent ones, re-solve)
-    # Per round, reject only the inconsistent loops whose chi2 is >= this x the round's largest one
-    # (worst first: a false loop distorts its neighbourhood, so true loops there look bad until it goes).
-    rejection_ratio: float = ranged(0.1, ge=0, le=1)
-    max_correction_rotation_deg: float = ranged(45.0, gt=0, le=180)  # plausibility gate: rotation a loop may correct
-    max_correction_translation_fraction: float = ranged(0.3, gt=0, le=MAX_SCALAR)  # gate: position change / path length between i and j
-    max_correction_log_scale: float = ranged(0.7, gt=0, le=MAX_SCALAR)  # gate: |log| of the scale change a loop may ask for (~x2)
-    # Pairwise consistency: a loop needs this many consistent partner loops (0 disables the check).
-    min_pairwise_support: int = ranged(1, ge=0, le=MAX_COUNT)
-    pairwise_window: int = ranged(30, ge=1, le=MAX_KEYFRAMES)  # partners: both ends within this many keyframes of the loop's ends
-    pairwise_sigma_multiple: float = ranged(5.0, ge=0, le=MAX_SCALAR)  # cycle tolerance, in loop sigmas (x sqrt 2: two loops)
-    pairwise_drift_fraction: float = ranged(0.05, ge=0, le=MAX_SCALAR)  # plus this fraction of the odometry path inside the cycle
-    pairwise_drift_rotation_deg: float = ranged(2.0, ge=0, le=180)  # plus this rotation (odometry drift inside the cycle)
-    max_readmission_trials: int = ranged(3, ge=0, le=MAX_ITERATIONS)  # rejected loop groups tried again on the final accepted set
-    l2_first_solve: bool = True  # first solve without kernel (every loop is a large residual at the start)
-    l2_max_iterations: int = ranged(10, ge=1, le=MAX_ITERATIONS)  # LM iterations of that warm-start solve
-    hold_scale_sigma: float = ranged(1e-9, gt=0, le=MAX_SCALAR)  # hold_scale: sigma of each keyframe's log-scale prior
-
-    def validate(self) -> None:
-        """Raise ConfigError naming the first invalid field."""
-        check_ranges(self, "PoseGraphConfig.")
-        for name in ("smooth_sigmas", "loop_sigmas"):
-            if len(getattr(self, name)) != SIM3_DOF:
-                raise ConfigError(f"PoseGraphConfig.{name}={getattr(self, name)!r}: need 7 finite sigmas > 0")
-        if self.robust_kernel not in ("none", "huber", "cauchy"):
-            raise ConfigError(f"PoseGraphConfig.robust_kernel={self.robust_kernel!r}: expected none, huber or cauchy")
 
 
 @dataclass

@@ -1,4 +1,5 @@
-"""Loop closure's data types: the ``loop_closure`` configuration, verification and loop records, and
+"""Loop closure's data types: the ``loop_closure`` configuration (with the pose graph's and the Sim(3)
+RANSAC's: this module imports no torch, so that a run's config loads without it), verification and loop records, and
 the :class:`PoseCorrection` that moves a map's keyframes (its use: :mod:`fgslam.loop.closure`).
 
 Conventions: poses are camera-to-world Sim(3) ``T_WC`` (``X_W = s R X_C + t``, 4x4
@@ -21,18 +22,87 @@ from typing import Literal, Sequence
 
 import numpy as np
 
-from ..core.config import MAX_COUNT, MAX_FRAMES, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
+from ..core.config import (MAX_COUNT, MAX_FRAMES, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_SEED,
+                           check_ranges, ranged)
 from ..core.errors import ConfigError
-from ..core.lie import sim3_matrix_parts
 from .bow import BowConfig
-from .pose_graph import PoseGraphConfig
-from .sim3_estimation import Sim3RansacConfig
 from .vlad import LoopFeaturesConfig
 
 LOOP_MODES = ("off", "proximity", "classical", "both")
+MINIMAL_SAMPLE = 3  # points that fix a Sim(3) (7 dof) in general position
+SIM3_DOF = 7  # tangent [w(3), u(3), log s] (fgslam.factors.sim3.SIM3_DOF, which imports torch)
 
 
 # ----------------------------------------------------------------------------------- configs
+
+@dataclass
+class Sim3RansacConfig:
+    """Tunables of :func:`fgslam.loop.sim3_estimation.estimate_sim3_ransac`."""
+
+    error_metric: Literal["relative", "absolute"] = "relative"  # see the docstring of fgslam.loop.sim3_estimation
+    inlier_threshold: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # inlier when the 3-D error (relative: fraction of point range) is below
+    min_inliers: int = ranged(20, ge=MINIMAL_SAMPLE, le=MAX_COUNT)  # fewer inliers than this: no solution
+    max_iterations: int = ranged(500, ge=1, le=MAX_ITERATIONS)  # RANSAC hypotheses at most (degenerate samples count)
+    confidence: float = ranged(0.999, gt=0, lt=1)  # adaptive stop: P(at least one all-inlier sample)
+    min_sample_spread: float = ranged(1e-3, ge=0, le=MAX_SCALAR)  # coincident sample: largest singular value < this x median range
+    min_sample_collinearity: float = ranged(0.05, ge=0, lt=1)  # collinear sample: sigma_2 / sigma_1 below this
+    refine_iterations: int = ranged(3, ge=0, le=MAX_ITERATIONS)  # re-fit on all inliers and re-classify, at most this many times
+    seed: int = ranged(0, ge=0, le=MAX_SEED)  # random generator seed (reproducible sampling)
+
+    def validate(self) -> None:
+        """Raise ConfigError naming the first invalid field."""
+        if self.error_metric not in ("relative", "absolute"):
+            raise ConfigError(f"Sim3RansacConfig.error_metric={self.error_metric!r}: expected relative or absolute")
+        check_ranges(self, "Sim3RansacConfig.")
+
+
+@dataclass
+class PoseGraphConfig:
+    """Tunables of :func:`fgslam.loop.pose_graph.optimize_sim3_pose_graph`. Sigmas are in tangent order [w(3), u(3), log s]."""
+
+    smooth_sigmas: tuple[float, ...] = ranged((0.002, 0.002, 0.002, 0.02, 0.02, 0.02, 0.002), gt=0, le=MAX_SCALAR)  # consecutive keyframes
+    loop_sigmas: tuple[float, ...] = ranged((0.01, 0.01, 0.01, 0.1, 0.1, 0.1, 0.01), gt=0, le=MAX_SCALAR)  # loop terms (rad, local units, log s)
+    # Scale each smoothness sigma by sqrt(step / median step) (step = distance between consecutive
+    # keyframes): drift accrues per distance travelled, so the correction is spread per distance.
+    smooth_sigmas_per_distance: bool = True
+    min_step_fraction: float = ranged(0.1, gt=0, le=1)  # floor of step / median step in that scaling (standstill)
+    prior_sigma: float = ranged(1e-6, gt=0, le=MAX_SCALAR)  # gauge prior on keyframe 0, every tangent component
+    robust_kernel: Literal["none", "huber", "cauchy"] = "huber"  # m-estimator on the loop terms
+    robust_param: float = ranged(1.345, gt=0, le=MAX_SCALAR)  # kernel threshold in whitened units (Huber 95% efficiency constant)
+    max_iterations: int = ranged(100, ge=1, le=MAX_ITERATIONS)  # LM iterations per solve
+    relative_error_tol: float = ranged(1e-6, ge=0, le=MAX_SCALAR)  # LM stops when the relative cost decrease falls below this
+    absolute_error_tol: float = ranged(1e-9, ge=0, le=MAX_SCALAR)  # LM stops when the absolute cost decrease falls below this
+    lambda_initial: float = ranged(1e-5, gt=0, le=MAX_LAMBDA)  # initial LM damping (GTSAM's default)
+    lambda_factor: float = ranged(10.0, gt=1, le=MAX_SCALAR)  # LM damping multiplier on a rejected / accepted step
+    lambda_max: float = ranged(1e5, gt=0, le=MAX_LAMBDA)  # LM stops (no descent at any damping) above this
+    consistency_probability: float = ranged(0.9999, gt=0, lt=1)  # chi2(7) quantile above which a loop is inconsistent
+    max_rounds: int = ranged(8, ge=1, le=MAX_ITERATIONS)  # solves at most (reject inconsistent loops, re-admit consistent ones, re-solve)
+    # Per round, reject only the inconsistent loops whose chi2 is >= this x the round's largest one
+    # (worst first: a false loop distorts its neighbourhood, so true loops there look bad until it goes).
+    rejection_ratio: float = ranged(0.1, ge=0, le=1)
+    max_correction_rotation_deg: float = ranged(45.0, gt=0, le=180)  # plausibility gate: rotation a loop may correct
+    max_correction_translation_fraction: float = ranged(0.3, gt=0, le=MAX_SCALAR)  # gate: position change / path length between i and j
+    max_correction_log_scale: float = ranged(0.7, gt=0, le=MAX_SCALAR)  # gate: |log| of the scale change a loop may ask for (~x2)
+    # Pairwise consistency: a loop needs this many consistent partner loops (0 disables the check).
+    min_pairwise_support: int = ranged(1, ge=0, le=MAX_COUNT)
+    pairwise_window: int = ranged(30, ge=1, le=MAX_KEYFRAMES)  # partners: both ends within this many keyframes of the loop's ends
+    pairwise_sigma_multiple: float = ranged(5.0, ge=0, le=MAX_SCALAR)  # cycle tolerance, in loop sigmas (x sqrt 2: two loops)
+    pairwise_drift_fraction: float = ranged(0.05, ge=0, le=MAX_SCALAR)  # plus this fraction of the odometry path inside the cycle
+    pairwise_drift_rotation_deg: float = ranged(2.0, ge=0, le=180)  # plus this rotation (odometry drift inside the cycle)
+    max_readmission_trials: int = ranged(3, ge=0, le=MAX_ITERATIONS)  # rejected loop groups tried again on the final accepted set
+    l2_first_solve: bool = True  # first solve without kernel (every loop is a large residual at the start)
+    l2_max_iterations: int = ranged(10, ge=1, le=MAX_ITERATIONS)  # LM iterations of that warm-start solve
+    hold_scale_sigma: float = ranged(1e-9, gt=0, le=MAX_SCALAR)  # hold_scale: sigma of each keyframe's log-scale prior
+
+    def validate(self) -> None:
+        """Raise ConfigError naming the first invalid field."""
+        check_ranges(self, "PoseGraphConfig.")
+        for name in ("smooth_sigmas", "loop_sigmas"):
+            if len(getattr(self, name)) != SIM3_DOF:
+                raise ConfigError(f"PoseGraphConfig.{name}={getattr(self, name)!r}: need 7 finite sigmas > 0")
+        if self.robust_kernel not in ("none", "huber", "cauchy"):
+            raise ConfigError(f"PoseGraphConfig.robust_kernel={self.robust_kernel!r}: expected none, huber or cauchy")
+
 
 @dataclass
 class VerificationConfig:
@@ -171,6 +241,8 @@ class PoseCorrection:
                 hold_older: bool = False) -> "PoseCorrection":
         """The correction that takes every keyframe from ``T_WC_old[k]`` to ``T_WC_new[k]`` (4x4 Sim(3)
         each, same keys): ``U_k = T_new T_old^-1``, ``scale[k] = s_new / s_old``."""
+        from ..core.lie import sim3_matrix_parts  # deferred: core.lie pulls torch (the config stays light)
+
         updates, scale = {}, {}
         for k, T_old in T_WC_old.items():
             T_new = np.asarray(T_WC_new[k], np.float64)
@@ -224,6 +296,8 @@ LoopCorrection = PoseCorrection  # former name
 def _project_sim3(M: np.ndarray) -> np.ndarray:
     """The nearest ``[[s R, t], [0, 1]]`` (R in SO(3)): repeated corrections must not let rounding
     errors grow."""
+    from ..core.lie import sim3_matrix_parts  # deferred: core.lie pulls torch (the config stays light)
+
     R, t, s = sim3_matrix_parts(M, project=True)
     out = np.eye(4)
     out[:3, :3], out[:3, 3] = s * R, t

@@ -31,40 +31,16 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 import torch
 
-from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_SCALAR, MAX_SEED, check_ranges, ranged
-from ..core.errors import ConfigError, EvaluationError
+from ..core.errors import EvaluationError
 from ..core.geometry import umeyama
 from ..core.lie import Sim3
+from .records import MINIMAL_SAMPLE, Sim3RansacConfig  # the config lives with loop closure's: torch-free (a run's config loads without torch)
 
 logger = logging.getLogger(__name__)
-
-MINIMAL_SAMPLE = 3  # points that fix a Sim(3) (7 dof) in general position
-
-
-@dataclass
-class Sim3RansacConfig:
-    """Tunables of :func:`estimate_sim3_ransac`."""
-
-    error_metric: Literal["relative", "absolute"] = "relative"  # see the module docstring
-    inlier_threshold: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # inlier when the 3-D error (relative: fraction of point range) is below
-    min_inliers: int = ranged(20, ge=MINIMAL_SAMPLE, le=MAX_COUNT)  # fewer inliers than this: no solution
-    max_iterations: int = ranged(500, ge=1, le=MAX_ITERATIONS)  # RANSAC hypotheses at most (degenerate samples count)
-    confidence: float = ranged(0.999, gt=0, lt=1)  # adaptive stop: P(at least one all-inlier sample)
-    min_sample_spread: float = ranged(1e-3, ge=0, le=MAX_SCALAR)  # coincident sample: largest singular value < this x median range
-    min_sample_collinearity: float = ranged(0.05, ge=0, lt=1)  # collinear sample: sigma_2 / sigma_1 below this
-    refine_iterations: int = ranged(3, ge=0, le=MAX_ITERATIONS)  # re-fit on all inliers and re-classify, at most this many times
-    seed: int = ranged(0, ge=0, le=MAX_SEED)  # random generator seed (reproducible sampling)
-
-    def validate(self) -> None:
-        """Raise ConfigError naming the first invalid field."""
-        if self.error_metric not in ("relative", "absolute"):
-            raise ConfigError(f"Sim3RansacConfig.error_metric={self.error_metric!r}: expected relative or absolute")
-        check_ranges(self, "Sim3RansacConfig.")
 
 
 @dataclass

@@ -5,12 +5,13 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Literal
-
-import torch
+from typing import TYPE_CHECKING, Literal
 
 from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_SCALAR, MAX_THREADS, ranged
 from ..core.errors import ConfigError
+
+if TYPE_CHECKING:  # torch is imported where the functions below run (the configs load without it)
+    import torch
 
 __all__ = ["DpvoNetConfig", "DroidNetConfig", "NetRuntimeConfig", "network_runtime", "resolve_device"]
 
@@ -42,6 +43,8 @@ class DpvoNetConfig(NetRuntimeConfig):
 
 def resolve_device(device: str) -> torch.device:
     """``auto`` -> CUDA when available, else CPU; ``cuda`` without CUDA is a ConfigError."""
+    import torch  # deferred: the configs above load without torch
+
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if device == "cuda" and not torch.cuda.is_available():
@@ -54,6 +57,8 @@ def resolve_device(device: str) -> torch.device:
 @contextlib.contextmanager
 def network_runtime(config: NetRuntimeConfig) -> Iterator[None]:
     """``torch.inference_mode`` with the configured CPU thread count, restored afterwards."""
+    import torch  # deferred: the configs above load without torch
+
     previous = torch.get_num_threads()
     if config.threads > 0:
         torch.set_num_threads(config.threads)

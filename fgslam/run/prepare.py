@@ -26,7 +26,7 @@ from typing import Optional
 
 from ..core.config import check_ranges
 from ..core.errors import ConfigError, DataError
-from ..export.mapfile import check_map_camera, load_stored_map
+from ..export.mapfile import check_map_camera, check_map_file, load_stored_map
 from ..export.rerun import check_rerun_target
 from ..io.datasets import Dataset, open_dataset
 from ..services.imu_checks import check_imu_stream
@@ -54,8 +54,8 @@ class PreparedRun:
 def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fmt: str = "auto",
                 overwrite: bool = False, rerun: Optional[str] = None) -> PreparedRun:
     """Check a run from its dataset's path, in the command line's order: the config, the rerun target,
-    the output folder (:func:`prepare_output`), then the dataset opened and checked
-    (:func:`open_slam_dataset`), the stored map's camera (``output.extend_map``) and the IMU stream.
+    the output folder (:func:`prepare_output`), the stored map's file (``output.extend_map``), then the
+    dataset opened and checked (:func:`open_slam_dataset`), the stored map's camera and the IMU stream.
 
     Raises:
         ConfigError: a check failed (naming the key, the folder or the file).
@@ -65,6 +65,8 @@ def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fm
     if rerun:
         check_rerun_target(rerun)
     out = prepare_output(out_dir, data, overwrite)
+    if config.output.extend_map:  # a missing or foreign map: refused before the dataset is opened
+        check_map_file(config.output.extend_map)
     dataset = open_slam_dataset(data, config, fmt)
     check_extended_map(dataset, config, data)
     return PreparedRun(dataset, config, out, overwrite, rerun, check_imu_input(dataset, config))

@@ -8,13 +8,15 @@ on their way in."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Callable, Optional, TypeGuard
+from typing import TYPE_CHECKING, Callable, Optional, TypeGuard
 
 import numpy as np
 
-from ..backend.graph import Backend, CorrectionTarget
 from ..contracts.contributor import (Contributor, GlobalBAJob, KeyframeImage, PoseCorrection, ProximityCandidate,
                                      SolvedGlobalBA)
+
+if TYPE_CHECKING:  # the backend pulls torch and gtsam: annotations only (a run's config checks the plugins without them)
+    from ..backend.graph import Backend, CorrectionTarget
 
 CorrectionHook = Callable[[PoseCorrection], PoseCorrection]
 CorrectionListener = Callable[[PoseCorrection], None]

@@ -49,11 +49,10 @@ import logging
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Optional, Union
+from typing import TYPE_CHECKING, Optional, Union
 
 import numpy as np
 
-from ..backend.graph import Backend
 from ..core.config import MAX_COUNT, MAX_KEYFRAMES, MAX_SCALAR, MAX_TIME_OFFSET_S, ranged
 from ..contracts.contributor import PoseCorrection
 from ..contracts.plugins import FactorPlugin, parse_options
@@ -63,6 +62,9 @@ from ..factors.position import camera_centre, position_noise, position_prior_fac
 from ..core.geometry import umeyama
 from ..io.positions import PositionTrack, read_positions
 from .corrections import pose_graph_correction, route_correction, takes_corrections, uniform_correction
+
+if TYPE_CHECKING:  # the backend pulls torch and gtsam: annotations only (a run's config checks the plugins without them)
+    from ..backend.graph import Backend
 
 logger = logging.getLogger(__name__)
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 from ...core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, ranged
 from ...core.errors import ConfigError
-from ...factors.depth import DepthPriorConfig
+from ...factors.configs import DepthPriorConfig
 from ..depth_tracking import DepthTrackingConfig
 from .. import GREY_BYTES, PYRAMID_FACTOR, MemoryPart, MemorySizes
 from ..flow import DenseFlowConfig

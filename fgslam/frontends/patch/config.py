@@ -14,7 +14,7 @@ from typing import Literal, Optional
 from ...core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_PATCHES_PER_FRAME, MAX_SCALAR, MAX_SEED, MAX_THREADS, MAX_WINDOW, check_ranges, ranged
 from ...backend.config import GlobalBAConfig
 from ...core.errors import ConfigError
-from ...factors.depth import DepthPriorConfig
+from ...factors.configs import DepthPriorConfig
 from ...nets.config import DpvoNetConfig
 from ..depth_tracking import DepthTrackingConfig
 from ..photometric import PhotometricModel

@@ -146,22 +146,13 @@ class LKSource(MeasurementSource):
         return out
 
     def _finish(self, request, forward, uv_back: np.ndarray, ok_back: np.ndarray) -> Measurement:
+        from .lk_jit import finish_tracks  # deferred: numba (compiled kernel, core/jit.py)
+
         cfg = self.config
         _, tgt, uv_src, uv_pred = request
         uv_fwd, ok_fwd, err, p_src = forward
-        fb = np.linalg.norm(uv_back.astype(np.float64) - p_src, axis=1) / self.scale
-        uv_out = self._from_lk(uv_fwd)
-        half = 0.5 * self.window / self.scale
-        inside = (
-            (uv_out[:, 0] >= half) & (uv_out[:, 0] <= tgt.width - 1 - half)
-            & (uv_out[:, 1] >= half) & (uv_out[:, 1] <= tgt.height - 1 - half)
-        )
-        finite = np.isfinite(uv_out).all(1) & np.isfinite(fb) & np.isfinite(err)
-        ok = ok_fwd & ok_back & inside & finite & (fb <= cfg.fb_threshold)
-        with np.errstate(invalid="ignore"):
-            err = np.clip(np.nan_to_num(err.astype(np.float64), nan=0.0, posinf=0.0), 0.0, 1e6)
-        fb = np.clip(np.nan_to_num(fb, nan=0.0, posinf=0.0), 0.0, 1e6)
-        confidence = 1.0 / (1.0 + (err / cfg.error_sigma) ** 2) / (1.0 + (fb / cfg.fb_sigma) ** 2)
-        confidence = np.where(ok & (confidence >= cfg.min_confidence), confidence, 0.0)
-        uv_out = np.where(ok[:, None], uv_out, np.asarray(uv_pred, dtype=np.float64))
+        uv_out, confidence, fb = finish_tracks(
+            uv_fwd, ok_fwd, err, p_src, uv_back, ok_back, np.ascontiguousarray(uv_pred, dtype=np.float64),
+            float(self.scale), 0.5 * self.window / self.scale, float(tgt.width), float(tgt.height),
+            float(cfg.fb_threshold), float(cfg.error_sigma), float(cfg.fb_sigma), float(cfg.min_confidence))
         return Measurement(uv=uv_out, confidence=confidence, fb_error=fb)

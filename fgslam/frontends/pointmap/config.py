@@ -6,16 +6,137 @@ the monocular two-view source)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, Optional
 
-from ...core.config import MAX_COUNT, MAX_FRAMES, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, check_ranges, ranged
+from ...core.config import (MAX_COUNT, MAX_FRAMES, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_PERCENT,
+                            MAX_SCALAR, MAX_THREADS, MAX_WINDOW, check_ranges, ranged)
 from ...core.errors import ConfigError
-from ...factors.pointmap_block import PointmapBlockConfig
+from ...factors.configs import PointmapBlockConfig
 from .. import KEYFRAME_SHARE, MemoryPart, MemorySizes
 from ..depth_tracking import DepthTrackingConfig
-from .features import FeaturePoseConfig
-from .matching import MatchingConfig
-from .source import PointmapSourceConfig
+from ..flow import DenseFlowConfig
+
+
+# ----------------------------------------------------------------------------------------- the parts' configs
+# (each re-exported by the module that uses it, where it is explained: this module imports neither torch nor
+# OpenCV, so that a run's config loads without them)
+
+
+@dataclass
+class DescriptorConfig:
+    """Which dense descriptor, and its scales (:mod:`fgslam.frontends.pointmap.descriptors`)."""
+
+    kind: Literal["patch", "gradient"] = "patch"  # normalised local patch, or gradient-orientation histograms
+    sigma: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # px: Gaussian smoothing before sampling (gradient: of the orientation channels)
+    step: int = ranged(2, ge=1, le=MAX_IMAGE_SIDE)  # px: spacing of the samples (patch: 4x4 grid; gradient: 2x2 cells)
+    texture: float = ranged(4.0, gt=0, le=MAX_SCALAR)  # grey levels: contrast at which the confidence Q is 1/2
+
+
+@dataclass
+class FeaturePoseConfig:
+    """Monocular per-frame pose by corners, KLT and PnP against the keyframe's pointmap (YAML ``pointmap.features``)."""
+
+    # features: the pose of every monocular frame by this module; two_view: the dense two-view pair per frame
+    # (essential matrix on the dense flow, PnP on the flow for frames without parallax), the issue-13 source
+    mode: Literal["features", "two_view"] = "features"
+    max_corners: int = ranged(500, ge=8, le=MAX_COUNT)  # corners detected per keyframe (Shi-Tomasi)
+    corner_quality: float = ranged(0.01, gt=0, le=1)  # cv2 qualityLevel: corners weaker than this times the best are dropped
+    corner_min_distance: int = ranged(7, ge=1, le=MAX_IMAGE_SIDE)  # px between corners
+    min_point_confidence: float = ranged(0.1, ge=0, le=MAX_SCALAR)  # a corner needs this canonical-pointmap confidence
+    lk_window: int = ranged(21, ge=3, le=MAX_IMAGE_SIDE)  # px: KLT window side
+    lk_levels: int = ranged(3, ge=0, le=10)  # KLT pyramid levels
+    lk_iterations: int = ranged(20, ge=1, le=MAX_ITERATIONS)  # KLT iterations per level
+    lk_epsilon: float = ranged(0.03, gt=0, le=MAX_SCALAR)  # px: KLT stops below this update
+    fb_threshold: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # px: forward-backward error above which a track is dropped
+    ransac_threshold: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # px: PnP RANSAC reprojection threshold
+    ransac_iterations: int = ranged(100, ge=1, le=MAX_ITERATIONS)  # PnP RANSAC iterations
+    ransac_confidence: float = ranged(0.999, gt=0, lt=1)  # PnP RANSAC success probability
+    min_inliers: int = ranged(20, ge=6, le=MAX_COUNT)  # fewer PnP inliers: no pose (relocalisation / failure)
+    min_inlier_ratio: float = ranged(0.5, ge=0, le=1)  # a smaller inlier share of the surviving tracks: no pose
+    new_keyframe_fraction: float = ranged(0.5, ge=0, le=1)  # a new keyframe when the inliers fall below this share of the keyframe's corners
+    new_keyframe_inliers: int = ranged(80, ge=6, le=MAX_COUNT)  # ... or when they fall below this many (a keyframe born with fewer: the share rule alone)
+    # the new keyframe's pose refined by projective matching and the tracking solve on its pointmap: Sim(3),
+    # SE(3) (the scale stays the corners' PnP scale, carried by the map) or off (the corners' pose and edge;
+    # the default: 7-Scenes 0-599 0.150 m against 0.176 m with se3, room-loop 1.02 % against 1.12 %)
+    keyframe_refine: Literal["sim3", "se3", "off"] = "off"
+    extra_edges: int = ranged(0, ge=0, le=MAX_COUNT)  # a new keyframe also gets measured edges to this many keyframes before the previous one
+    # each measured frame's corners triangulated with its pose and fused (eq. 9) into the keyframe's pointmap.
+    # Off by default: the corners' points then follow the poses measured from them (a loop of gain near one
+    # over short baselines), which made the run chaotic: 7-Scenes 0-599 ATE 0.18-0.42 m across 1-ppm focal
+    # changes and CPU kernels (max/min 2.3), off 0.230-0.251 m (1.09; tools/bench_stability.py)
+    fuse_corners: bool = False
+    carried_confidence: float = ranged(1.0, ge=0, le=1)  # confidence factor of the previous keyframe's points carried into a new keyframe
+
+
+@dataclass
+class MatchingConfig:
+    """Iterative projective matching and descriptor refinement (defaults: MASt3R-SLAM's where it has one)."""
+
+    max_iterations: int = ranged(10, ge=1, le=MAX_ITERATIONS)  # LM iterations per pixel (paper: 10)
+    lambda_initial: float = ranged(1e-3, gt=0, le=MAX_LAMBDA)  # per-pixel Marquardt damping at the start
+    lambda_factor: float = ranged(10.0, gt=1, le=MAX_SCALAR)  # damping divided by this after a good step, multiplied after a bad one
+    step_tolerance: float = ranged(1e-3, ge=0, le=MAX_SCALAR)  # px: a pixel whose step is below this has converged
+    max_distance: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # matched points further apart than this times the query's norm are invalid
+    max_ray_error: float = ranged(0.02, gt=0, le=MAX_SCALAR)  # final unit-ray error (~rad) above this: invalid (ray left the image)
+    refine_radius: int = ranged(1, ge=0, le=MAX_IMAGE_SIDE)  # px: descriptor search window radius around the LM solution (0: no refinement)
+    refine_dilations: list[int] = ranged(default_factory=lambda: [4, 2, 1], ge=1, le=MAX_IMAGE_SIDE)  # window spacings, coarse to fine
+    # (radius 1 at spacings 4, 2, 1 reaches 7 px with 27 candidates: measured in tools/bench_pointmap.py)
+    threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch intra-op threads while matching (0: torch's setting); 1: measured
+    # 10x faster than 2 threads on the loaded 2-core machine (tools/bench_pointmap.py)
+
+
+@dataclass
+class RelativePoseConfig:
+    """Relative pose of two views from the dense flow's confident correspondences (PnP or essential matrix)."""
+
+    flow: DenseFlowConfig = field(default_factory=lambda: DenseFlowConfig(warm_start=False, image_scale=1.0))  # DIS on the full-resolution pair
+    min_flow_confidence: float = ranged(0.1, ge=0, le=1)  # correspondences below this flow confidence are not used
+    sample_stride: int = ranged(4, ge=1, le=MAX_IMAGE_SIDE)  # px: one correspondence per stride x stride cell feeds RANSAC
+    ransac_threshold: float = ranged(0.5, gt=0, le=MAX_SCALAR)  # px: RANSAC inlier threshold (PnP reprojection / essential matrix)
+    ransac_confidence: float = ranged(0.999, gt=0, lt=1)  # RANSAC success probability
+    ransac_iterations: int = ranged(200, ge=1, le=MAX_ITERATIONS)  # PnP RANSAC iterations
+    min_inliers: int = ranged(30, ge=6, le=MAX_COUNT)  # fewer RANSAC inliers: no pose (the pair gets zero confidence)
+    min_inlier_ratio: float = ranged(0.3, ge=0, le=1)  # a smaller inlier fraction of the samples: no pose (no overlap)
+    min_overlap: float = ranged(0.1, ge=0, le=1)  # fewer pixels with a confident flow (either way): no overlap, no pose
+
+
+@dataclass
+class StereoMatchConfig:
+    """OpenCV semi-global block matching on the rectified pair (StereoSGBM)."""
+
+    num_disparities: int = ranged(64, ge=16, le=MAX_IMAGE_SIDE)  # disparity search range (px; rounded up to a multiple of 16)
+    block_size: int = ranged(5, ge=1, le=MAX_IMAGE_SIDE)  # matched block size (odd px)
+    uniqueness: int = ranged(10, ge=0, le=MAX_PERCENT)  # % margin of the best cost over the second best
+    disp12_max_diff: int = ranged(1, ge=-1, le=MAX_IMAGE_SIDE)  # px: left-right consistency check (-1: off)
+    speckle_window: int = ranged(100, ge=0, le=MAX_IMAGE_SIDE)  # px: speckle filter region size (0: off)
+    speckle_range: int = ranged(2, ge=0, le=MAX_IMAGE_SIDE)  # disparity variation inside a speckle region
+    min_disparity: float = ranged(0.5, gt=0, le=MAX_SCALAR)  # px: smaller disparities (very far points) are invalid
+
+
+@dataclass
+class TriangulationConfig:
+    """Monocular two-view reconstruction (essential matrix + triangulation)."""
+
+    angle_sigma_deg: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # confidence 1 - exp(-(angle / sigma)^2) of the triangulation angle
+    median_depth: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # the pair's arbitrary scale: median depth of X_i^i set to this
+    max_depth_ratio: float = ranged(50.0, gt=1, le=MAX_SCALAR)  # points deeper than this times the median depth are invalid
+
+
+@dataclass
+class PointmapSourceConfig:
+    """Which pointmap source, and its settings (YAML section ``pointmap.source``)."""
+
+    kind: Literal["auto", "rgbd", "stereo", "mono", "mast3r"] = "rgbd"  # sensor depth, stereo SGBM, two-view
+    # triangulation, MASt3R; auto (the pointmap frontend's default): the run's sensor mode picks rgbd, stereo or mono
+    checkpoint: Optional[str] = None  # mast3r: path of the MASt3R checkpoint
+    min_depth: float = ranged(1e-3, ge=0, le=MAX_SCALAR)  # metric sources: depths at or below this are invalid (m)
+    descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
+    pose: RelativePoseConfig = field(default_factory=RelativePoseConfig)
+    stereo: StereoMatchConfig = field(default_factory=StereoMatchConfig)
+    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
+
+
+# ----------------------------------------------------------------------------------------- the family's
 
 
 @dataclass

@@ -23,28 +23,15 @@ costs 40 ms per 320x240 image against 20 ms (once per frame, load ~10 on 2 cores
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal
-
 import cv2
 import numpy as np
 
-from ...core.config import MAX_IMAGE_SIDE, MAX_SCALAR, ranged
 from ...core.errors import DataError
+from .config import DescriptorConfig  # the config: in .config, torch- and OpenCV-free (a run's config loads without them)
 
 __all__ = ["DescriptorConfig", "dense_descriptors"]
 
 DESCRIPTOR_DIM = 16
-
-
-@dataclass
-class DescriptorConfig:
-    """Which dense descriptor, and its scales (module docstring)."""
-
-    kind: Literal["patch", "gradient"] = "patch"  # normalised local patch, or gradient-orientation histograms
-    sigma: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # px: Gaussian smoothing before sampling (gradient: of the orientation channels)
-    step: int = ranged(2, ge=1, le=MAX_IMAGE_SIDE)  # px: spacing of the samples (patch: 4x4 grid; gradient: 2x2 cells)
-    texture: float = ranged(4.0, gt=0, le=MAX_SCALAR)  # grey levels: contrast at which the confidence Q is 1/2
 
 
 def _stack_shifted(channels: list[np.ndarray], offsets: list[tuple[int, int]]) -> np.ndarray:

@@ -23,52 +23,15 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Literal
 
 import cv2
 import numpy as np
 
-from ...core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_SCALAR, ranged
+from .config import FeaturePoseConfig  # the config: in .config, torch- and OpenCV-free (a run's config loads without them)
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["FeaturePose", "FeaturePoseConfig", "FeatureTracks", "carry_pointmap"]
-
-
-@dataclass
-class FeaturePoseConfig:
-    """Monocular per-frame pose by corners, KLT and PnP against the keyframe's pointmap (YAML ``pointmap.features``)."""
-
-    # features: the pose of every monocular frame by this module; two_view: the dense two-view pair per frame
-    # (essential matrix on the dense flow, PnP on the flow for frames without parallax), the issue-13 source
-    mode: Literal["features", "two_view"] = "features"
-    max_corners: int = ranged(500, ge=8, le=MAX_COUNT)  # corners detected per keyframe (Shi-Tomasi)
-    corner_quality: float = ranged(0.01, gt=0, le=1)  # cv2 qualityLevel: corners weaker than this times the best are dropped
-    corner_min_distance: int = ranged(7, ge=1, le=MAX_IMAGE_SIDE)  # px between corners
-    min_point_confidence: float = ranged(0.1, ge=0, le=MAX_SCALAR)  # a corner needs this canonical-pointmap confidence
-    lk_window: int = ranged(21, ge=3, le=MAX_IMAGE_SIDE)  # px: KLT window side
-    lk_levels: int = ranged(3, ge=0, le=10)  # KLT pyramid levels
-    lk_iterations: int = ranged(20, ge=1, le=MAX_ITERATIONS)  # KLT iterations per level
-    lk_epsilon: float = ranged(0.03, gt=0, le=MAX_SCALAR)  # px: KLT stops below this update
-    fb_threshold: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # px: forward-backward error above which a track is dropped
-    ransac_threshold: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # px: PnP RANSAC reprojection threshold
-    ransac_iterations: int = ranged(100, ge=1, le=MAX_ITERATIONS)  # PnP RANSAC iterations
-    ransac_confidence: float = ranged(0.999, gt=0, lt=1)  # PnP RANSAC success probability
-    min_inliers: int = ranged(20, ge=6, le=MAX_COUNT)  # fewer PnP inliers: no pose (relocalisation / failure)
-    min_inlier_ratio: float = ranged(0.5, ge=0, le=1)  # a smaller inlier share of the surviving tracks: no pose
-    new_keyframe_fraction: float = ranged(0.5, ge=0, le=1)  # a new keyframe when the inliers fall below this share of the keyframe's corners
-    new_keyframe_inliers: int = ranged(80, ge=6, le=MAX_COUNT)  # ... or when they fall below this many (a keyframe born with fewer: the share rule alone)
-    # the new keyframe's pose refined by projective matching and the tracking solve on its pointmap: Sim(3),
-    # SE(3) (the scale stays the corners' PnP scale, carried by the map) or off (the corners' pose and edge;
-    # the default: 7-Scenes 0-599 0.150 m against 0.176 m with se3, room-loop 1.02 % against 1.12 %)
-    keyframe_refine: Literal["sim3", "se3", "off"] = "off"
-    extra_edges: int = ranged(0, ge=0, le=MAX_COUNT)  # a new keyframe also gets measured edges to this many keyframes before the previous one
-    # each measured frame's corners triangulated with its pose and fused (eq. 9) into the keyframe's pointmap.
-    # Off by default: the corners' points then follow the poses measured from them (a loop of gain near one
-    # over short baselines), which made the run chaotic: 7-Scenes 0-599 ATE 0.18-0.42 m across 1-ppm focal
-    # changes and CPU kernels (max/min 2.3), off 0.230-0.251 m (1.09; tools/bench_stability.py)
-    fuse_corners: bool = False
-    carried_confidence: float = ranged(1.0, ge=0, le=1)  # confidence factor of the previous keyframe's points carried into a new keyframe
 
 
 @dataclass

@@ -37,74 +37,23 @@ from __future__ import annotations
 
 import abc
 import logging
-from dataclasses import dataclass, field
-from typing import Literal, Optional
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from ...core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_PERCENT, MAX_SCALAR, ranged
 from ...core.errors import ConfigError, DataError
 from ..checkpoints import LearnedSlot, require_checkpoint
-from ..flow import DenseFlowConfig, DenseFlowSource
-from .descriptors import DescriptorConfig, dense_descriptors
+from ..flow import DenseFlowSource
+# the configs: in .config, torch- and OpenCV-free (a run's config loads without them)
+from .config import PointmapSourceConfig, RelativePoseConfig, StereoMatchConfig, TriangulationConfig
+from .descriptors import dense_descriptors
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["DepthPointmapSource", "Mast3rPointmapSource", "PointmapPair", "PointmapSource", "PointmapSourceConfig",
            "RelativePoseConfig", "StereoMatchConfig", "StereoPointmapSource", "TriangulationConfig",
            "TwoViewPointmapSource", "make_pointmap_source", "unproject_depth"]
-
-
-@dataclass
-class RelativePoseConfig:
-    """Relative pose of two views from the dense flow's confident correspondences (PnP or essential matrix)."""
-
-    flow: DenseFlowConfig = field(default_factory=lambda: DenseFlowConfig(warm_start=False, image_scale=1.0))  # DIS on the full-resolution pair
-    min_flow_confidence: float = ranged(0.1, ge=0, le=1)  # correspondences below this flow confidence are not used
-    sample_stride: int = ranged(4, ge=1, le=MAX_IMAGE_SIDE)  # px: one correspondence per stride x stride cell feeds RANSAC
-    ransac_threshold: float = ranged(0.5, gt=0, le=MAX_SCALAR)  # px: RANSAC inlier threshold (PnP reprojection / essential matrix)
-    ransac_confidence: float = ranged(0.999, gt=0, lt=1)  # RANSAC success probability
-    ransac_iterations: int = ranged(200, ge=1, le=MAX_ITERATIONS)  # PnP RANSAC iterations
-    min_inliers: int = ranged(30, ge=6, le=MAX_COUNT)  # fewer RANSAC inliers: no pose (the pair gets zero confidence)
-    min_inlier_ratio: float = ranged(0.3, ge=0, le=1)  # a smaller inlier fraction of the samples: no pose (no overlap)
-    min_overlap: float = ranged(0.1, ge=0, le=1)  # fewer pixels with a confident flow (either way): no overlap, no pose
-
-
-@dataclass
-class StereoMatchConfig:
-    """OpenCV semi-global block matching on the rectified pair (StereoSGBM)."""
-
-    num_disparities: int = ranged(64, ge=16, le=MAX_IMAGE_SIDE)  # disparity search range (px; rounded up to a multiple of 16)
-    block_size: int = ranged(5, ge=1, le=MAX_IMAGE_SIDE)  # matched block size (odd px)
-    uniqueness: int = ranged(10, ge=0, le=MAX_PERCENT)  # % margin of the best cost over the second best
-    disp12_max_diff: int = ranged(1, ge=-1, le=MAX_IMAGE_SIDE)  # px: left-right consistency check (-1: off)
-    speckle_window: int = ranged(100, ge=0, le=MAX_IMAGE_SIDE)  # px: speckle filter region size (0: off)
-    speckle_range: int = ranged(2, ge=0, le=MAX_IMAGE_SIDE)  # disparity variation inside a speckle region
-    min_disparity: float = ranged(0.5, gt=0, le=MAX_SCALAR)  # px: smaller disparities (very far points) are invalid
-
-
-@dataclass
-class TriangulationConfig:
-    """Monocular two-view reconstruction (essential matrix + triangulation)."""
-
-    angle_sigma_deg: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # confidence 1 - exp(-(angle / sigma)^2) of the triangulation angle
-    median_depth: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # the pair's arbitrary scale: median depth of X_i^i set to this
-    max_depth_ratio: float = ranged(50.0, gt=1, le=MAX_SCALAR)  # points deeper than this times the median depth are invalid
-
-
-@dataclass
-class PointmapSourceConfig:
-    """Which pointmap source, and its settings (YAML section ``pointmap.source``)."""
-
-    kind: Literal["auto", "rgbd", "stereo", "mono", "mast3r"] = "rgbd"  # sensor depth, stereo SGBM, two-view
-    # triangulation, MASt3R; auto (the pointmap frontend's default): the run's sensor mode picks rgbd, stereo or mono
-    checkpoint: Optional[str] = None  # mast3r: path of the MASt3R checkpoint
-    min_depth: float = ranged(1e-3, ge=0, le=MAX_SCALAR)  # metric sources: depths at or below this are invalid (m)
-    descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
-    pose: RelativePoseConfig = field(default_factory=RelativePoseConfig)
-    stereo: StereoMatchConfig = field(default_factory=StereoMatchConfig)
-    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
 
 
 @dataclass

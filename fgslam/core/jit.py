@@ -1,0 +1,36 @@
+"""Compiled numeric kernels: the one set of numba options every kernel of fgslam is compiled with.
+
+Hot loops whose cost is Python and numpy call overhead (many small array operations per edge, per
+patch, per vertex) are written as plain Python loops over rows and compiled by numba
+(https://numba.pydata.org: LLVM machine code from a prebuilt wheel, no compiler on the user's
+machine). The compiled function is the implementation: tests (finite-difference Jacobians
+included) call it, not a numpy twin.
+
+Options, and why:
+
+- ``cache=True``: the machine code is stored on disk beside the module (``__pycache__``, or numba's
+  per-user cache folder where that is read-only) and reused by later processes: the first run after
+  an install pays the compilation (README, "Compiled kernels"), later runs load it.
+- ``fastmath=False`` and no ``parallel``: IEEE arithmetic in the order written, no reassociated or
+  contracted (FMA) sums and no reductions split over threads, so a kernel gives the same bytes at any
+  load and on any x86-64 CPU.
+- ``nogil=True``: a kernel releases the GIL (the loop-closure and global-BA threads run meanwhile).
+- ``error_model="numpy"``: division by zero gives inf / NaN as in numpy (callers mask them).
+
+A module that defines kernels imports numba (about 0.3 s): such modules are imported where a run
+needs them (``# deferred`` imports), never on the way to a command's first check.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+KERNEL_OPTIONS = {"cache": True, "fastmath": False, "nogil": True, "error_model": "numpy"}
+
+
+def kernel(func: Callable) -> Callable:
+    """``func`` compiled with :data:`KERNEL_OPTIONS` (numba's dispatcher: compiled per argument types at
+    the first call, or loaded from the on-disk cache)."""
+    import numba  # deferred: numba (only modules that define kernels need it)
+
+    return numba.njit(**KERNEL_OPTIONS)(func)

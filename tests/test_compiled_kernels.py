@@ -1,0 +1,137 @@
+"""The compiled kernels (fgslam/core/jit.py): the depth-alignment association and residual rows, and
+the Lucas-Kanade track checks. Their rules on constructed cases, the same bytes call to call, and the
+options that keep them deterministic. (The point-to-plane Jacobians are checked against finite
+differences in tests/test_depth_align.py, through the same kernel.)"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fgslam.core.jit import KERNEL_OPTIONS
+from fgslam.factors.depth_align_jit import associate_rows, point_to_plane_rows
+from fgslam.frontends.patch.lk_jit import ERROR_CAP, finish_tracks
+
+
+def test_kernel_options_are_the_deterministic_ones():
+    assert KERNEL_OPTIONS["fastmath"] is False   # no reassociated or contracted (FMA) arithmetic
+    assert "parallel" not in KERNEL_OPTIONS      # no reductions split over threads
+    assert KERNEL_OPTIONS["cache"] is True       # compiled once per install, loaded afterwards
+
+
+# ------------------------------------------------------------------ depth alignment
+
+def _plane_reference(h=20, w=30, z=2.0, f=25.0):
+    """A fronto-parallel wall at depth ``z`` seen by a ``w`` x ``h`` grid camera: vertices, normals
+    (towards the camera), validity and intrinsics."""
+    K = np.array([f, f, (w - 1) / 2, (h - 1) / 2])
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    V = np.stack(((u - K[2]) / K[0] * z, (v - K[3]) / K[1] * z, np.full_like(u, z)), -1).reshape(-1, 3)
+    N = np.tile([0.0, 0.0, -1.0], (h * w, 1))
+    return V, N, np.ones(h * w, dtype=bool), K, np.array([h, w], dtype=np.int64)
+
+
+def _associate(A, b, X_f, n_f, ref, min_depth=0.1, max_distance=0.1, min_agree=0.8, jacobians=True):
+    V, N, valid, K, shape = ref
+    return associate_rows(A, b, X_f, n_f, V, N, valid, K, shape, min_depth, max_distance, min_agree, jacobians)
+
+
+def test_association_rules_on_a_wall():
+    ref = _plane_reference()
+    A, b = np.eye(3), np.zeros(3)
+    X_f = np.array([
+        [0.0, 0.0, 2.03],    # on the wall's ray, 3 cm behind it: paired, residual n . (Y - X_k) = -0.03
+        [0.0, 0.0, 2.5],     # 0.5 m behind: seen, beyond max_distance
+        [0.0, 0.0, -1.0],    # behind the camera: not seen
+        [5.0, 0.0, 2.0],     # projects outside the grid: not seen
+        [0.1, 0.1, 2.0],     # on the wall but its normal faces away: seen, not paired
+    ])
+    n_f = np.tile([0.0, 0.0, -1.0], (5, 1))
+    n_f[4] = [0.0, 0.0, 1.0]
+    seen, paired, r, J = _associate(A, b, X_f, n_f, ref)
+    assert seen.tolist() == [True, True, False, False, True]
+    assert paired.tolist() == [True, False, False, False, False]
+    assert r[0] == pytest.approx(-0.03, abs=1e-12)
+    assert np.all(r[1:] == 0) and np.all(J[1:] == 0)  # rows not paired stay zero
+
+
+def test_association_follows_the_relative_pose():
+    ref = _plane_reference()
+    X_f = np.array([[0.0, 0.0, 1.9]])
+    n_f = np.array([[0.0, 0.0, -1.0]])
+    # the frame camera 0.1 m in front of the reference along z: its point lands on the wall
+    seen, paired, r, _ = _associate(np.eye(3), np.array([0.0, 0.0, 0.1]), X_f, n_f, ref)
+    assert paired[0] and r[0] == pytest.approx(0.0, abs=1e-12)
+    # an invalid reference pixel there: not seen
+    V, N, valid, K, shape = ref
+    valid = valid.copy()
+    valid[int(round(K[3])) * shape[1] + int(round(K[2]))] = False
+    seen, paired, _, _ = associate_rows(np.eye(3), np.array([0.0, 0.0, 0.1]), X_f, n_f, V, N, valid, K, shape,
+                                        0.1, 0.1, 0.8, True)
+    assert not seen[0] and not paired[0]
+
+
+def test_association_rows_equal_the_point_to_plane_rows_and_repeat_bytewise():
+    rng = np.random.default_rng(3)
+    ref = _plane_reference(h=40, w=60)
+    V, N = ref[0], ref[1]
+    X_f = V[rng.choice(len(V), 300, replace=False)] + rng.normal(0, 0.01, (300, 3))
+    n_f = np.tile([0.0, 0.0, -1.0], (300, 1))
+    c, s = np.cos(0.01), np.sin(0.01)
+    A = 1.02 * np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    b = np.array([0.01, -0.02, 0.005])
+    first = _associate(A, b, X_f, n_f, ref, max_distance=0.2)
+    second = _associate(A, b, X_f, n_f, ref, max_distance=0.2)
+    for x, y in zip(first, second):
+        assert x.tobytes() == y.tobytes()
+    seen, paired, r, J = first
+    assert paired.sum() > 200
+    # the paired rows are the point-to-plane rows of the matched reference vertices
+    Y = X_f @ A.T + b
+    u = np.rint(ref[3][0] * Y[:, 0] / Y[:, 2] + ref[3][2]).astype(int)
+    v = np.rint(ref[3][1] * Y[:, 1] / Y[:, 2] + ref[3][3]).astype(int)
+    idx = v * ref[4][1] + u
+    r2, J2 = point_to_plane_rows(A, X_f[paired], Y[paired], V[idx[paired]], N[idx[paired]], True)
+    np.testing.assert_allclose(r[paired], r2, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(J[paired], J2, rtol=0, atol=1e-15)
+
+
+# ------------------------------------------------------------------ Lucas-Kanade track checks
+
+def _finish(uv_fwd, err, uv_back, p_src, uv_pred, ok_fwd=None, ok_back=None, scale=1.0, half=5.0, size=(100, 80),
+            fb_threshold=1.0, error_sigma=12.0, fb_sigma=0.5, min_confidence=0.05):
+    n = len(uv_fwd)
+    ok_fwd = np.ones(n, bool) if ok_fwd is None else np.asarray(ok_fwd)
+    ok_back = np.ones(n, bool) if ok_back is None else np.asarray(ok_back)
+    f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731 - OpenCV's dtypes
+    return finish_tracks(f32(uv_fwd), ok_fwd, f32(err), f32(p_src), f32(uv_back), ok_back,
+                         np.asarray(uv_pred, np.float64), scale, half, float(size[0]), float(size[1]),
+                         fb_threshold, error_sigma, fb_sigma, min_confidence)
+
+
+def test_track_checks():
+    p_src = [[50, 40]] * 6
+    uv_fwd = [[52, 41], [52, 41], [2, 41], [52, 41], [52, 41], [52, 41]]
+    uv_back = [[50.375, 40.5], [51.5, 40], [50, 40], [50, 40], [50, 40], [50, 40]]
+    err = [6.0, 0.0, 0.0, np.nan, 1e9, 0.0]
+    ok_back = [True, True, True, True, True, False]
+    uv_pred = np.full((6, 2), -7.0)
+    uv, conf, fb = _finish(uv_fwd, err, uv_back, p_src, uv_pred, ok_back=ok_back)
+    # a clean track: confidence from its photometric (6 grey levels) and forward-backward (0.625 px) errors
+    assert conf[0] == pytest.approx(1 / (1 + (6 / 12) ** 2) / (1 + (0.625 / 0.5) ** 2), rel=1e-12)
+    assert fb[0] == 0.625 and uv[0].tolist() == [52.0, 41.0]
+    assert conf[1] == 0 and uv[1].tolist() == [-7.0, -7.0]       # forward-backward 1.5 px > 1 px
+    assert conf[2] == 0 and uv[2].tolist() == [-7.0, -7.0]       # within 5 px of the border
+    assert conf[3] == 0 and uv[3].tolist() == [-7.0, -7.0]       # a NaN error is no track
+    assert conf[4] == 0 and uv[4].tolist() == [52.0, 41.0]       # a huge error: below min_confidence (kept in place)
+    assert conf[5] == 0                                          # the backward track failed
+    assert np.all(np.isfinite(fb)) and fb.max() <= ERROR_CAP
+
+
+def test_track_checks_at_the_lk_resolution():
+    # LK at half resolution: pixel centres at integers in both, errors reported in input pixels
+    uv, conf, fb = _finish([[25.5, 20.5]], [0.0], [[25.25, 20.0]], [[25.0, 20.0]], [[0.0, 0.0]], scale=0.5,
+                           half=5.0, fb_sigma=0.5)
+    assert uv[0].tolist() == [51.5, 41.5]
+    assert fb[0] == pytest.approx(0.5)
+    assert conf[0] == pytest.approx(0.5)
