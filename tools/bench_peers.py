@@ -346,15 +346,22 @@ def _ratio(a: Optional[float], b: Optional[float]) -> Optional[float]:
     return a / b if a is not None and b not in (None, 0) else None
 
 
+def _public(gt, align: str, max_time_diff: float, r: dict) -> dict:
+    """A run's figures for the report: its trajectory replaced by its ATE over its own posed frames."""
+    d = {k: v for k, v in r.items() if k != "trajectory"}
+    d["ate_own_m"] = own_ate(gt, r.get("trajectory"), align, max_time_diff)
+    return d
+
+
+def _per_cpu(runs: list[dict]) -> Optional[float]:
+    """Median frames per CPU second (all threads; less sensitive to a shared machine than frames/s)."""
+    return _median(r["frames"] / r["cpu_s"] for r in runs if r.get("frames") and r.get("cpu_s"))
+
+
 def compare(gt, align: str, max_time_diff: float, fg_runs: list[dict], peer_runs: list[dict]) -> dict:
     """Per-system medians, every (fgslam run, peer run) pair's common-frame ATE, their medians and ratios."""
-    def public(r: dict) -> dict:
-        d = {k: v for k, v in r.items() if k != "trajectory"}
-        d["ate_own_m"] = own_ate(gt, r.get("trajectory"), align, max_time_diff)
-        return d
-
-    fg = [public(r) for r in fg_runs]
-    pe = [public(r) for r in peer_runs]
+    fg = [_public(gt, align, max_time_diff, r) for r in fg_runs]
+    pe = [_public(gt, align, max_time_diff, r) for r in peer_runs]
     pairs = []
     for i, a in enumerate(fg_runs):
         for j, b in enumerate(peer_runs):
@@ -370,11 +377,8 @@ def compare(gt, align: str, max_time_diff: float, fg_runs: list[dict], peer_runs
         "path_m": _median(p["path_m"] for p in good),
         "pairs": pairs,
     }
-    def per_cpu(runs: list[dict]) -> Optional[float]:  # frames per CPU second: less sensitive to a shared machine
-        return _median(r["frames"] / r["cpu_s"] for r in runs if r.get("frames") and r.get("cpu_s"))
-
     fg_fps, pe_fps = _median(r.get("fps") for r in fg), _median(r.get("fps") for r in pe)
-    fg_cpu, pe_cpu = per_cpu(fg), per_cpu(pe)
+    fg_cpu, pe_cpu = _per_cpu(fg), _per_cpu(pe)
     return {
         "fgslam": {"posed": _median(r.get("posed") for r in fg), "fps": fg_fps, "frames_per_cpu_s": fg_cpu,
                    "cpu_s": _median(r.get("cpu_s") for r in fg), "ate_own_m": _median(r["ate_own_m"] for r in fg),
@@ -440,19 +444,12 @@ def run_sequence(name: str, args: argparse.Namespace, work: Path,
 def baseline_comparison(gt, align: str, max_time_diff: float, fg_runs: list[dict], base_runs: list[dict],
                         tree: Path) -> dict:
     """The baseline tree's medians and this tree's ratios to them (frames per CPU second above 1: faster)."""
-    def per_cpu(runs: list[dict]) -> Optional[float]:
-        return _median(r["frames"] / r["cpu_s"] for r in runs if r.get("frames") and r.get("cpu_s"))
-
-    runs = []
-    for r in base_runs:
-        d = {k: v for k, v in r.items() if k != "trajectory"}
-        d["ate_own_m"] = own_ate(gt, r.get("trajectory"), align, max_time_diff)
-        runs.append(d)
+    runs = [_public(gt, align, max_time_diff, r) for r in base_runs]
     ate_new = _median(own_ate(gt, r.get("trajectory"), align, max_time_diff) for r in fg_runs)
     ate_base = _median(r["ate_own_m"] for r in runs)
     return {"tree": str(tree), "posed": _median(r.get("posed") for r in runs), "fps": _median(r.get("fps") for r in runs),
-            "frames_per_cpu_s": per_cpu(runs), "ate_own_m": ate_base, "runs": runs,
-            "ratios": {"frames_per_cpu_s_new_over_baseline": _ratio(per_cpu(fg_runs), per_cpu(runs)),
+            "frames_per_cpu_s": _per_cpu(runs), "ate_own_m": ate_base, "runs": runs,
+            "ratios": {"frames_per_cpu_s_new_over_baseline": _ratio(_per_cpu(fg_runs), _per_cpu(runs)),
                        "ate_new_over_baseline": _ratio(ate_new, ate_base)}}
 
 

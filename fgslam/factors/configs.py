@@ -16,9 +16,10 @@ from typing import Literal
 from ..core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_SCALAR, MAX_THREADS, ranged
 from ..core.errors import ConfigError
 
-__all__ = ["MAX_LEVELS", "DepthAlignConfig", "DepthPriorConfig", "KernelKind", "PointmapBlockConfig", "PointmapResidualConfig", "RobustConfig"]
+__all__ = ["MAX_LEVELS", "SIM3_DOF", "DepthAlignConfig", "DepthPriorConfig", "KernelKind", "PointmapBlockConfig", "PointmapResidualConfig", "RobustConfig"]
 
 MAX_LEVELS = 8  # pyramid levels of a depth surface (the coarsest steps 2^7 times the finest)
+SIM3_DOF = 7  # dimension of the Sim(3) tangent [w(3), u(3), log s]
 
 KernelKind = Literal["none", "huber", "cauchy", "tukey"]
 

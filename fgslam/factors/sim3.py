@@ -33,11 +33,10 @@ import numpy as np
 import torch
 
 from ..core.lie import Sim3
+from .configs import SIM3_DOF  # defined with the torch-free configs (the loop configs load without torch)
 from .robust import kernel_weight
 
 logger = logging.getLogger(__name__)
-
-SIM3_DOF = 7
 
 
 def sim3_between_residual(

@@ -25,12 +25,12 @@ import numpy as np
 from ..core.config import (MAX_COUNT, MAX_FRAMES, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_SEED,
                            check_ranges, ranged)
 from ..core.errors import ConfigError
+from ..factors.configs import SIM3_DOF
 from .bow import BowConfig
 from .vlad import LoopFeaturesConfig
 
 LOOP_MODES = ("off", "proximity", "classical", "both")
 MINIMAL_SAMPLE = 3  # points that fix a Sim(3) (7 dof) in general position
-SIM3_DOF = 7  # tangent [w(3), u(3), log s] (fgslam.factors.sim3.SIM3_DOF, which imports torch)
 
 
 # ----------------------------------------------------------------------------------- configs

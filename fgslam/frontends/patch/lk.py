@@ -92,13 +92,10 @@ class LKSource(MeasurementSource):
         return LKFeatures(image=image, width=width, height=height)
 
     def _to_lk(self, uv: np.ndarray) -> np.ndarray:
-        """Input pixels -> LK-resolution pixels (pixel centres at integers in both)."""
+        """Input pixels -> LK-resolution pixels (pixel centres at integers in both; the way back is in
+        ``lk_jit.finish_tracks``)."""
         a = self.scale
         return np.ascontiguousarray((np.asarray(uv, np.float64) + 0.5) * a - 0.5, dtype=np.float32)
-
-    def _from_lk(self, uv: np.ndarray) -> np.ndarray:
-        a = self.scale
-        return (uv.astype(np.float64) + 0.5) / a - 0.5
 
     def _track(self, src: LKFeatures, tgt: LKFeatures, uv_src: np.ndarray, uv_init: np.ndarray):
         """One OpenCV call on LK-resolution points: (uv, ok, err)."""
