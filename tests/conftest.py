@@ -100,3 +100,30 @@ def depth_room(tmp_path_factory):
     from depth_support import render_depth_room
 
     return render_depth_room(tmp_path_factory)
+
+
+# the KITTI clip as a video (live input: tests/test_live.py, examples/live_camera.py)
+CLIP_FRAMES = 40
+CLIP_RATE_HZ = 10.0
+_KITTI_K = (718.856, 718.856, 607.1928, 185.2157)
+_WIDTH_MULTIPLE = 16  # the MJPG writer keeps widths of a multiple of 16: the clip is cropped to one
+
+
+@pytest.fixture(scope="session")
+def video_clip(shared_data, tmp_path_factory):
+    """KITTI 00's first frames as an MJPG video at 10 Hz with its calibration YAML beside it."""
+    import cv2
+    import numpy as np
+
+    folder = tmp_path_factory.mktemp("live")
+    images = sorted((shared_data / "kitti00_0-199" / "image_0").glob("*.png"))[:CLIP_FRAMES]
+    first = cv2.imread(str(images[0]))
+    height, width = first.shape[0], first.shape[1] // _WIDTH_MULTIPLE * _WIDTH_MULTIPLE
+    path = folder / "drive.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), CLIP_RATE_HZ, (width, height))
+    for image in images:
+        writer.write(np.ascontiguousarray(cv2.imread(str(image))[:, :width]))
+    writer.release()
+    fx, fy, cx, cy = _KITTI_K
+    (folder / "drive.yaml").write_text(f"width: {width}\nheight: {height}\nintrinsics: [{fx}, {fy}, {cx}, {cy}]\n")
+    return path

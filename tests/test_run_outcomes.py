@@ -315,7 +315,7 @@ def test_compare_colmap_without_a_registered_frame_fails_without_a_ratio(tmp_pat
 
 
 def test_events_are_counted_by_kind_without_ids():
-    from fgslam.run.runner import event_kind
+    from fgslam.run.session import event_kind
 
     kinds = [event_kind(f"keyframe {i} removed") for i in range(376)]
     assert set(kinds) == {"keyframe removed"}

@@ -16,6 +16,7 @@ from ..run.presets import run_presets
 from . import FORMAT_CHOICES
 
 if TYPE_CHECKING:  # the run's results pull torch: imported in run() only (fgslam --help stays fast)
+    from ..io.live import LiveConfig
     from ..run.results import RunSummary
 
 HELP = "run SLAM on a dataset (trajectory in TUM/KITTI formats, summary.json, trajectory.png)"
@@ -28,7 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "presets (CONFIG), and the data each is for:\n" + "\n".join(
         f"  {name:<{width}}  {text}" for name, text in presets.items())
     parser.add_argument("config", metavar="CONFIG", help="SlamConfig YAML file or preset name (listed below)")
-    parser.add_argument("--data", required=True, metavar="PATH", help="dataset folder (or video file)")
+    parser.add_argument("--data", required=True, metavar="PATH",
+                        help="dataset folder, video file, or camera:SPEC (a live OpenCV capture: camera:0, an RTSP/HTTP "
+                             "URL; with -o dataset.calibration_file=PATH)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the outputs of a previous run in --out (without it such a folder is an error) "
@@ -40,6 +43,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rerun", metavar="OUT.rrd", default=None,
                         help="log frames, poses, keyframe points and loop edges to a rerun file (or 'live': a running "
                              "viewer); needs the optional extra fgslam[rerun]")
+    parser.add_argument("--live", action="store_true",
+                        help="live mode: frames come at their own pace (a recording replays at its timestamps), the "
+                             "oldest waiting frame is dropped when the system is behind; the console shows latency "
+                             "and drops, summary.json 'live' has them (--data camera:SPEC is always live)")
+    parser.add_argument("--live-speed", type=float, default=None, metavar="X",
+                        help="live: replay a recording at X times its rate (default 1)")
+    parser.add_argument("--live-queue", type=int, default=None, metavar="N",
+                        help="live: frames waiting at most before the oldest is dropped (default 1)")
     parser.add_argument("--json", action="store_true", help="print the run summary as one JSON object")
     parser.add_argument("--map", metavar="MAP", default=None,
                         help="continue this stored map: the recording is merged into it once its keyframes localise "
@@ -64,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
         overrides.append(f"output.extend_map={args.map}")
     config = load_slam_config(args.config, overrides)
     # every check before any work, once: rerun target, output folder, dataset, the --map's camera
-    prepared = prepare_run(args.data, config, args.out, fmt=args.format, overwrite=args.overwrite, rerun=args.rerun)
+    prepared = prepare_run(args.data, config, args.out, fmt=args.format, overwrite=args.overwrite, rerun=args.rerun,
+                           live=live_config(args))
     from ..run.runner import run_prepared  # deferred: torch, OpenCV, gtsam (after the checks, above)
 
     def report(summary: RunSummary) -> None:  # also when the run then fails or is interrupted (the error line follows)
@@ -72,6 +84,18 @@ def run(args: argparse.Namespace) -> int:
 
     run_prepared(prepared, progress=not args.no_progress, on_summary=report)
     return 0
+
+
+def live_config(args: argparse.Namespace) -> "LiveConfig | None":
+    """The live options of ``--live``, ``--live-speed`` and ``--live-queue`` (None: not live; the speed
+    or queue size alone turn live mode on)."""
+    from ..io.live import LiveConfig  # deferred: light, but only live runs need it
+
+    if not (args.live or args.live_speed is not None or args.live_queue is not None):
+        return None
+    default = LiveConfig()
+    return LiveConfig(speed=default.speed if args.live_speed is None else args.live_speed,
+                      queue=default.queue if args.live_queue is None else args.live_queue)
 
 
 def inertial_text(i: dict) -> str:
@@ -134,6 +158,11 @@ def format_report(s: dict) -> str:
         m = s["motion"]
         lines.append(f"  motion:     path {m['path_length']:.3f}, largest distance from start "
                      f"{m['max_distance_from_start']:.3f} (estimate units; no ground truth evaluated)")
+    live = s.get("live")
+    if live:
+        p50, p99 = live["latency_ms_p50"], live["latency_ms_p99"]
+        latency = "no frame" if p50 is None else f"latency {p50:.0f} ms median, {p99:.0f} ms p99"
+        lines.append(f"  live:       {latency}; {live['dropped']} frames dropped (behind), {live['delivered']} processed")
     for note in s["notes"]:
         lines.append(f"  note:       {note}")
     if s.get("error"):

@@ -9,6 +9,8 @@ Modules, highest first (each imports only those below it; ``pyproject.toml``, co
 - :mod:`~fgslam.run.runner`: :func:`~fgslam.run.runner.run_slam` (and
   :func:`~fgslam.run.runner.run_prepared`): builds the system, steps it over the dataset, then has
   the results collected, the outputs written and the stored map saved;
+- :mod:`~fgslam.run.session`: :class:`~fgslam.run.session.Slam`, the per-frame path of every run, which
+  a script drives frame by frame (``fgslam.Slam``) and the runner steps over a dataset;
 - :mod:`~fgslam.run.mapstore`: ``--save-map`` / ``--map``: saving a stored map and merging a
   recording into one, a step of its own;
 - :mod:`~fgslam.run.outputs`: the writers (trajectories, PLY, keyframe depths, ``map.npz``, plot,

@@ -28,7 +28,8 @@ from ..core.config import check_ranges
 from ..core.errors import ConfigError, DataError
 from ..export.mapfile import check_map_camera, check_map_file, load_stored_map
 from ..export.rerun import check_rerun_target
-from ..io.datasets import Dataset, open_dataset
+from ..io.datasets import CaptureDataset, Dataset, open_dataset
+from ..io.live import LiveConfig
 from ..services.imu_checks import check_imu_stream
 from .config import SlamConfig, dataset_config_for
 from .files import DEPTH_DIR, RUN_OUTPUT_FILES
@@ -49,10 +50,11 @@ class PreparedRun:
     overwrite: bool = False
     rerun: Optional[str] = None
     imu_warnings: list[str] = field(default_factory=list)
+    live: Optional[LiveConfig] = None  # live mode: frames at their own pace, the oldest dropped when behind
 
 
 def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fmt: str = "auto",
-                overwrite: bool = False, rerun: Optional[str] = None) -> PreparedRun:
+                overwrite: bool = False, rerun: Optional[str] = None, live: Optional[LiveConfig] = None) -> PreparedRun:
     """Check a run from its dataset's path, in the command line's order: the config, the rerun target,
     the output folder (:func:`prepare_output`), the stored map's file (``output.extend_map``), then the
     dataset opened and checked (:func:`open_slam_dataset`), the stored map's camera and the IMU stream.
@@ -67,9 +69,15 @@ def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fm
     out = prepare_output(out_dir, data, overwrite)
     if config.output.extend_map:  # a missing or foreign map: refused before the dataset is opened
         check_map_file(config.output.extend_map)
+    if live is not None:
+        check_ranges(live, "live.", "the live options (--live-speed, --live-queue)")
     dataset = open_slam_dataset(data, config, fmt)
     check_extended_map(dataset, config, data)
-    return PreparedRun(dataset, config, out, overwrite, rerun, check_imu_input(dataset, config))
+    if isinstance(dataset, CaptureDataset):  # a capture is live: a device at its own pace, a file at its rate
+        live = live if live is not None else LiveConfig()
+        if not dataset.is_file:
+            live = LiveConfig(queue=live.queue, paced=False)
+    return PreparedRun(dataset, config, out, overwrite, rerun, check_imu_input(dataset, config), live)
 
 
 def prepare_opened(dataset: Dataset, config: SlamConfig, out_dir: str | Path, *, overwrite: bool = False,

@@ -83,6 +83,7 @@ class RunSummary:
     inertial: Optional[dict[str, Any]] = None  # inertial_summary(): the IMU state at the end (None: no IMU service)
     interrupted: Optional[str] = None  # the signal that stopped the run (SIGINT, SIGTERM), None when it ran to the end
     output_errors: dict[str, str] = field(default_factory=dict)  # output kind -> why it could not be written
+    live: Optional[dict[str, Any]] = None  # live_summary(): frames dropped, latency (None: not a live run)
 
     @property
     def ok(self) -> bool:
@@ -115,6 +116,8 @@ class RunState:
     cpu_s: float = 0.0
     frame_paths: dict[int, str] = field(default_factory=dict)  # dataset index -> image path (map.npz)
     load_average: list[float] = field(default_factory=list)  # os.getloadavg() at the start (shared machines)
+    latency_s: list[float] = field(default_factory=list)  # live runs: each frame's arrival to its result, seconds
+    live_dropped: int = 0  # live runs: frames dropped because the system was behind
 
 
 @dataclass
@@ -247,7 +250,27 @@ def summarize(run: PreparedRun, state: RunState, results: RunResults, written: d
         inertial=results.inertial,
         interrupted=interrupted,
         output_errors=output_errors,
+        live=live_summary(run, state),
     )
+
+
+#: the latency percentiles a live run reports
+LATENCY_PERCENTILES = (50, 99)
+MS_PER_S = 1000.0
+
+
+def live_summary(run: PreparedRun, state: RunState) -> Optional[dict[str, Any]]:
+    """``summary.json`` ``live``: frames dropped (the system was behind), delivered, and the latency of the
+    results (a frame's arrival to its pose) in milliseconds: percentiles and the largest; None when not live."""
+    if run.live is None:
+        return None
+    lat = np.asarray(state.latency_s, dtype=np.float64) * MS_PER_S
+    out: dict[str, Any] = {"speed": run.live.speed if run.live.paced else None, "queue": run.live.queue,
+                           "dropped": state.live_dropped, "delivered": int(lat.size)}
+    for q in LATENCY_PERCENTILES:
+        out[f"latency_ms_p{q}"] = float(np.percentile(lat, q)) if lat.size else None
+    out["latency_ms_max"] = float(lat.max()) if lat.size else None
+    return out
 
 
 def _final_trajectory(

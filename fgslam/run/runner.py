@@ -57,8 +57,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-import re
 import resource
 import signal
 import sys
@@ -66,25 +64,38 @@ import time
 from pathlib import Path
 from typing import Callable, Optional
 
-import numpy as np
 from tqdm import tqdm
 
 from ..core.errors import DataError, FGSlamError, Interrupted
-from ..frontends.base import FrameStatus, Frontend
+from ..frontends.base import Frontend
 from ..io.datasets import Dataset
+from ..io.live import LiveConfig, LiveFrames
 from ..io.trajectory import Trajectory
 from .config import SlamConfig
 from .mapstore import store_map
-from .outputs import (OutputWriter, write_keyframe_depths, write_map, write_plot, write_points, write_summary,
-                      write_trajectories)
+from .outputs import (
+    OutputWriter,
+    write_keyframe_depths,
+    write_map,
+    write_plot,
+    write_points,
+    write_summary,
+    write_trajectories,
+)
 from .prepare import PreparedRun, prepare_opened, remove_previous_outputs
-from .results import ErrorAt, RunState, RunSummary, collect_results, final_trajectory, outputs_text, summarize
+from .results import (
+    MS_PER_S,
+    ErrorAt,
+    RunSummary,
+    collect_results,
+    outputs_text,
+    summarize,
+)
+from .session import Slam
 from .signals import StopOnSignal
-from .system import SlamSystem
 
 logger = logging.getLogger(__name__)
 
-MAX_LOGGED_FAILURES = 10  # tracking failures logged one by one before switching to the progress lines
 _WHERE_DATASET = "while reading the dataset"  # error location of a failure inside the dataset iterator
 
 
@@ -112,13 +123,15 @@ class _Progress:
         self.t0 = time.perf_counter()
         self.last_t, self.last_n = self.t0, 0
         self.bar = _progress_bar(total, "frames") if enabled else None
+        self.live: Optional[tuple[float, int]] = None  # live runs: the last result's latency (s) and the drops so far
 
     def update(self, n: int, keyframes: int, failures: int, force: bool = False) -> None:
         if not self.enabled:
             return
         if self.bar is not None:
             self.bar.update(n - self.bar.n)
-            self.bar.set_postfix(keyframes=keyframes, failures=failures, refresh=False)
+            live = {} if self.live is None else {"latency_ms": f"{MS_PER_S * self.live[0]:.0f}", "dropped": self.live[1]}
+            self.bar.set_postfix(keyframes=keyframes, failures=failures, **live, refresh=False)
             if force:
                 self.bar.close()
             return
@@ -130,9 +143,10 @@ class _Progress:
         fps = n / elapsed if elapsed > 0 else 0.0
         eta = (self.total - n) / fps if fps > 0 else math.inf
         eta_txt = f"{eta:.0f} s" if math.isfinite(eta) else "?"
+        live = "" if self.live is None else f"  latency {MS_PER_S * self.live[0]:.0f} ms  {self.live[1]} dropped"
         logger.info(
-            "frame %d/%d (%.0f%%)  %.1f frames/s  %d keyframes  %d failures  ETA %s",
-            n, self.total, 100.0 * n / max(self.total, 1), fps, keyframes, failures, eta_txt,
+            "frame %d/%d (%.0f%%)  %.1f frames/s  %d keyframes  %d failures  ETA %s%s",
+            n, self.total, 100.0 * n / max(self.total, 1), fps, keyframes, failures, eta_txt, live,
         )
 
 
@@ -201,24 +215,25 @@ def run_prepared(run: PreparedRun, progress: bool = True, frontend: Optional[Fro
     dataset, config, out = run.dataset, run.config, run.out
     if run.overwrite:
         remove_previous_outputs(out)  # a previous run's outputs go before the run starts
-    system = SlamSystem.build(config, dataset.calibration, frontend=frontend, timestamps=dataset.timestamps,
-                              has_imu=dataset.has_imu, imu_noise=dataset.imu_noise,
-                              where=str(dataset.root), rerun=run.rerun)
-    system.imu_input_warnings = list(run.imu_warnings)
-    state = RunState(load_average=[round(v, 2) for v in os.getloadavg()])
+    # the per-frame path of a script (fgslam.Slam): the same object, fed the dataset's frames
+    slam = Slam(config, dataset.calibration, frontend=frontend, timestamps=dataset.timestamps,
+                has_imu=dataset.has_imu, imu_noise=dataset.imu_noise, where=str(dataset.root), rerun=run.rerun,
+                keep_frames=False)
+    slam.system.imu_input_warnings = list(run.imu_warnings)
+    state = slam.state
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
     with StopOnSignal((signal.SIGTERM, signal.SIGINT)) as stopper:
         t_start, cpu_start = time.perf_counter(), _cpu_seconds()
         saved_threads = _set_threads(config.threads)
         try:
-            error = _loop(dataset, system, config, state, progress)
+            error = _loop(dataset, slam, config, progress, run.live)
             if error is not None:
-                _abort(system)
+                _abort(slam)
         finally:
             stopper.finishing = True  # from here on a signal is logged and the outputs and report are completed
             _restore_threads(saved_threads)
         state.wall_s, state.cpu_s = time.perf_counter() - t_start, _cpu_seconds() - cpu_start
-        summary, error = _write_outputs(run, system, state, gt, error)
+        summary, error = _write_outputs(run, slam, gt, error)
         if on_summary is not None:  # still under the handlers: a second Ctrl-C never cuts the report
             try:
                 on_summary(summary)
@@ -244,14 +259,15 @@ def run_prepared(run: PreparedRun, progress: bool = True, frontend: Optional[Fro
     return summary
 
 
-def _write_outputs(run: PreparedRun, system: SlamSystem, state: RunState, gt: Optional[Trajectory],
+def _write_outputs(run: PreparedRun, slam: Slam, gt: Optional[Trajectory],
                    error: Optional[ErrorAt]) -> tuple[RunSummary, Optional[ErrorAt]]:
     """Once the loop stopped (with ``error``, the loop's, or None): the results collected, then the
     outputs written, each on its own (a failing one is recorded in ``output_errors`` and never stops
     the others), ``summary.json`` last. Returns the summary and the first error (the loop's, or one
     raised by the frontend's end-of-run queries, which never prevents the writing)."""
-    config, frontend = run.config, system.frontend
-    results = final_trajectory(system, state, gt, error)
+    config, system, state = run.config, slam.system, slam.state
+    frontend = system.frontend
+    results = slam.final_results(error, gt)
     writer = OutputWriter(run.out)
     traj = results.traj
     if traj is not None:  # first: a run killed in its end-of-run work keeps its trajectory
@@ -272,24 +288,27 @@ def _write_outputs(run: PreparedRun, system: SlamSystem, state: RunState, gt: Op
     return summary, results.first_error
 
 
-def _abort(system: SlamSystem) -> None:
+def _abort(slam: Slam) -> None:
     """Stop the run's background work without waiting for it (a stopped or failed run); a failure
     there is logged, never raised: the outputs are written next."""
     try:
-        system.abort()
+        slam.abort()
     except (Exception, KeyboardInterrupt):  # noqa: BLE001 - the run's own outcome is reported
         logger.exception("stopping the background work failed")
 
 
-def _loop(
-    dataset: Dataset, system: SlamSystem, config: SlamConfig, state: RunState, progress: bool
-) -> Optional[ErrorAt]:
-    """Iterate the dataset through the system's frame skeleton; returns ``(exception, where)`` instead of raising
-    (an exception anywhere, an interrupt included, stops the loop and is returned with its place)."""
+def _loop(dataset: Dataset, slam: Slam, config: SlamConfig, progress: bool,
+          live_config: Optional[LiveConfig] = None) -> Optional[ErrorAt]:
+    """Iterate the dataset through the run's :class:`~fgslam.run.session.Slam` (the system's frame skeleton);
+    returns ``(exception, where)`` instead of raising (an exception anywhere, an interrupt included, stops
+    the loop and is returned with its place). Live (``live_config``): the frames come through
+    :class:`~fgslam.io.live.LiveFrames` at their own pace; each result's latency and the drops are recorded."""
+    state, system = slam.state, slam.system
     meter = _Progress(len(dataset), config.log_interval_frames, config.log_interval_s, progress)
-    frames = iter(dataset)
+    live = None if live_config is None else LiveFrames(dataset, live_config)
+    frames = iter(dataset if live is None else live)
     where = _WHERE_DATASET
-    t_frontend = None  # start of the current frontend call (its time is counted even when it raises)
+    t_frontend = None  # start of the current frontend call (its time is counted even when it raises: below)
     try:
         while True:
             where = _WHERE_DATASET
@@ -303,64 +322,26 @@ def _loop(
             state.frames_read += 1
             state.frame_paths[frame.index] = "" if frame.path is None else str(frame.path)
             where = f"at frame {frame.index}" + (f" ({frame.path})" if frame.path is not None else "")
-            status = system.step(frame)
-            frame_s = time.perf_counter() - t_frontend
-            state.frontend_s += frame_s
-            state.max_frame_s = max(state.max_frame_s, frame_s)
+            slam.track_frame(frame)  # counts its own time, the frame and its status into the state
             t_frontend = None
-            state.frames_processed += 1
             where = f"after frame {frame.index}"
-            _record(status, frame.timestamp, state)
+            if live is not None:
+                state.latency_s.append(time.perf_counter() - live.arrival_s[frame.index])
+                state.live_dropped = live.dropped
+                meter.live = (state.latency_s[-1], live.dropped)
             meter.update(state.frames_processed, system.frontend.num_keyframes(), len(state.failure_frames))
         where = "in finish() after the last frame"
-        t_frontend = time.perf_counter()
-        system.finish()
-        state.frontend_s += time.perf_counter() - t_frontend
-        t_frontend = None
+        slam.finish_run()  # counts its own time
         meter.update(state.frames_processed, system.frontend.num_keyframes(), len(state.failure_frames), force=True)
     except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - reported with partial outputs
         if t_frontend is not None:
             state.frontend_s += time.perf_counter() - t_frontend
         return exc, where
+    finally:
+        if live is not None:
+            live.close()
+            state.live_dropped = live.dropped
     return None
-
-
-#: What varies inside one kind of event: numbers (ids, counts, values) and parentheses holding one.
-_EVENT_VARYING = re.compile(r"\([^()]*\d[^()]*\)|[-+]?\d+(?:\.\d+)?\s*%?")
-
-
-def event_kind(event: str) -> str:
-    """The kind of a frontend event, the key it is counted under in ``summary.json`` ``events``: the
-    text before the first ``:`` without the numbers in it (``"keyframe 12 removed"`` and
-    ``"keyframe removed: 12"`` -> ``"keyframe removed"``, ``"waiting for parallax (1.2 px)"`` ->
-    ``"waiting for parallax"``)."""
-    kind = " ".join(_EVENT_VARYING.sub(" ", event.split(":", 1)[0]).split())
-    return kind or "event"
-
-
-def _record(status: FrameStatus, timestamp: float, state: RunState) -> None:
-    for event in status.events:
-        state.events[event_kind(event)] += 1
-        logger.debug("frame %d: %s", status.index, event)
-    if status.pose_source == "motion_model":
-        state.failure_frames.append(status.index)
-        n = len(state.failure_frames)
-        if n <= MAX_LOGGED_FAILURES:
-            logger.warning(
-                "frame %d: tracking failed (%d valid measurements), pose from the motion model%s",
-                status.index, status.num_valid,
-                "" if n < MAX_LOGGED_FAILURES else " (further failures: progress lines)",
-            )
-    if status.T_WC is None:
-        return
-    T_WC = np.asarray(status.T_WC, dtype=np.float64)
-    if T_WC.shape != (4, 4) or not np.all(np.isfinite(T_WC)):
-        state.nonfinite += 1
-        logger.warning("frame %d: the frontend returned a non-finite or malformed pose; dropped", status.index)
-        return
-    state.live_t.append(float(timestamp))
-    state.live_T.append(T_WC)
-    state.live_source.append(status.pose_source)
 
 
 # ----------------------------------------------------------------------------------------- threads

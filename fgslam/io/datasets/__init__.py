@@ -1,7 +1,7 @@
 """Dataset loaders: one lazy ``Dataset`` interface over TUM RGB-D, EuRoC, KITTI, TartanAir,
 7-Scenes, image folders, videos and ROS 1 / ROS 2 bags.  ``open_dataset`` picks the loader from the folder layout.
 
-Detection order (``fmt="auto"``): a ``.bag`` file or a folder with ``metadata.yaml`` -> ``rosbag``
+Detection order (``fmt="auto"``): ``camera:SPEC`` -> ``camera`` (a live OpenCV capture); a ``.bag`` file or a folder with ``metadata.yaml`` -> ``rosbag``
 (ROS 1 / ROS 2); a file with a video extension -> ``video``; ``dso/camchain.yaml`` with
 ``mav0/cam0`` -> ``tumvi``; ``mav0/cam0`` or
 ``cam0/data.csv`` -> ``euroc``; ``image_0/`` + ``calib.txt`` -> ``kitti``; ``image_left/`` ->
@@ -14,6 +14,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ...core.errors import DataError
+from .capture import PREFIX as CAPTURE_PREFIX
+from .capture import CaptureDataset, is_capture
 from .common import Dataset, DatasetConfig
 from .euroc import EurocDataset, mav0_dir
 from .folder import VIDEO_EXTENSIONS, FolderDataset, VideoDataset
@@ -34,6 +36,7 @@ LOADERS: dict[str, type[Dataset]] = {
     "folder": FolderDataset,
     "video": VideoDataset,
     "rosbag": RosbagDataset,
+    "camera": CaptureDataset,
 }
 FORMATS = tuple(LOADERS)
 
@@ -71,7 +74,12 @@ def detect_format(path: str | Path) -> str:
 
 
 def open_dataset(path: str | Path, fmt: str = "auto", config: DatasetConfig | None = None) -> Dataset:
-    """Open the sequence at ``path`` with the loader ``fmt`` (``auto``: detected from the layout)."""
+    """Open the sequence at ``path`` with the loader ``fmt`` (``auto``: detected from the layout; a path
+    ``camera:SPEC`` is a live capture, :mod:`fgslam.io.datasets.capture`)."""
+    if is_capture(path) and fmt in ("auto", "camera"):
+        return CaptureDataset(str(path), config if config is not None else DatasetConfig())
+    if fmt == "camera":
+        raise DataError(f"{path}: the camera format takes {CAPTURE_PREFIX}SPEC (a device number, a stream URL or a file)")
     path = Path(path)
     if fmt == "auto":
         fmt = detect_format(path)

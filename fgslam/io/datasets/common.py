@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, NamedTuple, Optional
+from typing import TYPE_CHECKING, Iterator, NamedTuple, Optional
 
 import numpy as np
 
@@ -38,6 +38,9 @@ from ..calibration import Calibration
 from ..frame import Frame, FrameReadError, FrameSizeError, ImuSamples
 from ..trajectory import Trajectory
 from .files import to_grey_and_rgb
+
+if TYPE_CHECKING:
+    from ..camera import Camera
 
 logger = logging.getLogger(__name__)
 
@@ -294,6 +297,14 @@ class Dataset:
     def timestamps(self) -> np.ndarray:
         """Timestamps (s) of the dataset's frames."""
         return self.raw_timestamps[self._indices]
+
+    @property
+    def camera(self) -> "Camera":
+        """The camera of the frames this dataset yields (undistorted, rectified, resized: ``prepared``), for
+        :class:`fgslam.Slam`."""
+        from ..camera import Camera
+
+        return Camera.of_frames(self.calibration)
 
     @property
     def rate(self) -> float:

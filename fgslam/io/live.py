@@ -1,0 +1,127 @@
+"""Live input: frames that come at their own pace, to a consumer that may be slower (:class:`LiveFrames`).
+
+A reader thread takes the frames of a source (a camera capture, a stream, or a recorded sequence
+replayed at its own rate: ``LiveConfig.speed`` times its timestamps) and hands them over through a
+queue of at most ``LiveConfig.queue`` frames; when the queue is full the **oldest** waiting frame is
+dropped and counted, so the consumer always gets the newest frames and never falls behind without
+bound. Each frame's arrival time (when the reader had it) is kept, so the consumer can report its
+latency (arrival to result). Closing the frames (or leaving a ``with`` block) stops the reader.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Iterable, Iterator, Optional
+
+from ..core.config import MAX_COUNT, MAX_SCALAR, ranged
+from .frame import Frame
+
+logger = logging.getLogger(__name__)
+
+_POLL_S = 0.05  # how often a waiting consumer or a pacing reader looks for a stop request
+
+
+@dataclass
+class LiveConfig:
+    """How a live run takes its frames (``fgslam run --live``)."""
+
+    speed: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # a recorded source replays at this many times its own rate (0 < speed)
+    queue: int = ranged(1, ge=1, le=MAX_COUNT)  # frames waiting at most; a newer frame drops the oldest
+    paced: bool = True  # replay a recorded source at its timestamps (false: as fast as it reads, a camera's own pace)
+
+
+class LiveFrames:
+    """The frames of ``source`` as a live feed (module docstring); iterate once.
+
+    Args:
+        source: any iterable of frames (a dataset, a capture).
+        config: speed, queue size, pacing.
+
+    Attributes:
+        dropped: frames dropped because the consumer was behind (the oldest waiting ones).
+        delivered: frames handed to the consumer.
+        arrival_s: ``perf_counter`` time each delivered frame arrived, by frame index.
+        error: the exception that stopped the reader early (None: it ran to the source's end, or was closed).
+    """
+
+    def __init__(self, source: Iterable[Frame], config: Optional[LiveConfig] = None) -> None:
+        self.source = source
+        self.config = config or LiveConfig()
+        self.dropped = 0
+        self.delivered = 0
+        self.arrival_s: dict[int, float] = {}
+        self.error: Optional[BaseException] = None
+        self._queue: deque[tuple[Frame, float]] = deque()
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._done = False
+        self._thread: Optional[threading.Thread] = None
+
+    # ------------------------------------------------------------------ reader
+    def _read(self) -> None:
+        cfg = self.config
+        t_wall0, t_src0 = 0.0, None  # the wall time and the source's time of the first frame
+        try:
+            for frame in self.source:
+                if self._stop.is_set():
+                    break
+                if cfg.paced:
+                    if t_src0 is None:
+                        t_wall0, t_src0 = time.perf_counter(), frame.timestamp
+                    due = t_wall0 + (frame.timestamp - t_src0) / cfg.speed
+                    while not self._stop.is_set() and time.perf_counter() < due:
+                        time.sleep(min(_POLL_S, max(due - time.perf_counter(), 0.0)))
+                self._put(frame, time.perf_counter())
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which raises it
+            self.error = exc
+        finally:
+            with self._cond:
+                self._done = True
+                self._cond.notify_all()
+
+    def _put(self, frame: Frame, arrival: float) -> None:
+        with self._cond:
+            while len(self._queue) >= self.config.queue:
+                old, _ = self._queue.popleft()
+                self.dropped += 1
+                logger.debug("live: frame %d dropped (the system is behind)", old.index)
+            self._queue.append((frame, arrival))
+            self._cond.notify_all()
+
+    # ------------------------------------------------------------------ consumer
+    def __iter__(self) -> Iterator[Frame]:
+        if self._thread is not None:
+            raise RuntimeError("live frames can be iterated once")
+        self._thread = threading.Thread(target=self._read, name="fgslam-live-reader", daemon=True)
+        self._thread.start()
+        try:
+            while True:
+                with self._cond:
+                    while not self._queue and not self._done:
+                        self._cond.wait(_POLL_S)
+                    if not self._queue:
+                        break
+                    frame, arrival = self._queue.popleft()
+                self.arrival_s[frame.index] = arrival
+                self.delivered += 1
+                yield frame
+        finally:
+            self.close()
+        if self.error is not None:
+            raise self.error
+
+    def close(self) -> None:
+        """Stop the reader (its frame in progress is read, then it ends)."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+
+    def __enter__(self) -> "LiveFrames":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,110 @@
+"""The public Python API (``import fgslam``): the same bytes as ``fgslam run`` on the shared clips in every
+sensor mode, its errors, and what it reports per frame."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import fgslam
+from fgslam.cli import main as cli_main
+from fgslam.core.errors import ConfigError, DataError
+from fgslam.io.trajectory import write_trajectory
+
+SEVEN_SCENES = "7scenes_redkitchen_0-599"
+KITTI = "kitti00_0-199"
+EUROC = "euroc_v101_micro"
+
+# (clip, preset, frames): one per sensor mode; enough frames that every run initialises and makes keyframes
+MODES = {
+    "rgbd": (SEVEN_SCENES, "handheld_rgbd", 40),
+    "mono": (KITTI, "driving_mono", 40),
+    "stereo": (EUROC, "patch_euroc_stereo", 30),
+    "inertial": (EUROC, "patch_euroc_stereo_inertial", 30),
+}
+
+
+def api_run(data, preset, frames):
+    """The clip through the API, frame by frame (its IMU samples through add_imu); the final trajectory."""
+    overrides = {"dataset.end": frames}
+    dataset = fgslam.open_dataset(data, preset, overrides=overrides)
+    results = []
+    with fgslam.Slam.from_preset(preset, dataset.camera, overrides=overrides, imu_noise=dataset.imu_noise,
+                                 has_imu=dataset.has_imu) as slam:
+        for frame in dataset:
+            if frame.imu is not None:
+                for t, gyro, accel in zip(frame.imu.timestamps, frame.imu.gyro, frame.imu.accel):
+                    slam.add_imu(t, accel, gyro)
+            results.append(slam.track(frame.image, frame.timestamp, depth=frame.depth, right=frame.image_right))
+    return slam, slam.finish(), results
+
+
+@pytest.mark.parametrize("mode", sorted(MODES))
+def test_the_api_gives_the_bytes_of_fgslam_run(mode, shared_data, tmp_path, capsys):
+    clip, preset, frames = MODES[mode]
+    data = shared_data / clip
+    assert cli_main(["run", preset, "--data", str(data), "--out", str(tmp_path / "cli"), "--no-progress",
+                     "-o", f"dataset.end={frames}"]) == 0
+    slam, trajectory, results = api_run(data, preset, frames)
+    write_trajectory(tmp_path / "api_tum.txt", trajectory, "tum")
+    cli_bytes = (tmp_path / "cli" / "trajectory_tum.txt").read_bytes()
+    assert (tmp_path / "api_tum.txt").read_bytes() == cli_bytes
+    # and the run did something: poses for most frames, keyframes, a trajectory that moved (not a stationary copy)
+    assert len(trajectory) >= frames // 2 and len(slam.keyframes()) >= 2
+    assert [r.index for r in results] == list(range(frames))
+    assert all(r.status in ("initializing", "tracked", "motion_model", "relocalized", "imu") for r in results)
+    assert all((r.T_WC is None) == (r.reason is not None and r.status == "initializing") for r in results
+               if r.status in ("initializing", "tracked"))
+    positions = trajectory.T_WC[:, :3, 3]
+    assert np.linalg.norm(positions - positions[0], axis=1).max() > 0
+
+
+def test_track_checks_its_input_and_the_camera(shared_data):
+    camera = fgslam.Camera(fx=585.0, fy=585.0, cx=320.0, cy=240.0, width=640, height=480)
+    slam = fgslam.Slam.from_preset("handheld_mono", camera, overrides={"loop_closure.mode": "off"})
+    grey = np.zeros((480, 640), np.uint8)
+    with pytest.raises(DataError, match="is 320x240, expected 640x480"):
+        slam.track(np.zeros((240, 320), np.uint8), 0.0)
+    with pytest.raises(DataError, match="uint8"):
+        slam.track(grey.astype(np.float32), 0.0)
+    first = slam.track(np.zeros((480, 640, 3), np.uint8), 0.0)  # colour (BGR) is taken too
+    assert first.T_WC is None and first.status == "initializing" and first.reason.startswith("initialising")
+    with pytest.raises(DataError, match="not after the previous frame"):
+        slam.track(grey, 0.0)
+    slam.abort()
+    with pytest.raises(ConfigError, match="finished"):
+        slam.track(grey, 1.0)
+    with pytest.raises(ConfigError, match="stereo camera"):
+        fgslam.Slam.from_preset("handheld_stereo", camera)
+    with pytest.raises(ConfigError, match="no_such_preset"):
+        fgslam.Slam.from_preset("no_such_preset", camera)
+    with pytest.raises(ConfigError, match="patch.no_such_key"):
+        fgslam.Slam.from_preset("handheld_mono", camera, overrides={"patch.no_such_key": 1})
+    with pytest.raises(DataError, match="principal point"):
+        fgslam.Slam.from_preset("handheld_mono", fgslam.Camera(500.0, 500.0, 900.0, 240.0, 640, 480))
+
+
+def test_a_distorted_camera_is_undistorted_as_a_loader_does():
+    # the camera's lens model goes through the loaders' undistortion: the system's camera has no distortion
+    camera = fgslam.Camera(500.0, 500.0, 320.0, 240.0, 640, 480, distortion=(-0.2, 0.05, 0.0, 0.0))
+    slam = fgslam.Slam.from_preset("handheld_mono", camera)
+    assert slam.calibration.distortion_model == "none" and slam.calibration.size == (640, 480)
+    assert not np.allclose(slam.calibration.K, [500.0, 500.0, 320.0, 240.0])  # the undistorted camera's own
+    stereo = fgslam.Camera(500.0, 500.0, 320.0, 240.0, 640, 480, baseline=0.1)
+    calib = stereo.calibration()
+    assert calib.right is not None and calib.baseline == pytest.approx(0.1)
+    slam.abort()
+
+
+def test_importing_fgslam_is_light_and_lists_its_public_names():
+    code = ("import sys, fgslam; assert 'torch' not in sys.modules and 'cv2' not in sys.modules; "
+            "print(sorted(fgslam.__all__))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    names = eval(out.stdout)  # noqa: S307 - our own printed list
+    assert {"Slam", "Camera", "TrackResult", "open_dataset", "LiveFrames"} <= set(names)
+    for name in names:
+        assert getattr(fgslam, name).__doc__, name
+    with pytest.raises(AttributeError, match="no attribute 'Nope'"):
+        fgslam.Nope  # noqa: B018
