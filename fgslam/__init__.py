@@ -31,9 +31,9 @@ __version__ = "0.1.0"
 #: public name -> the module that defines it (loaded on first use: ``import fgslam`` stays light)
 _PUBLIC = {
     "Slam": "fgslam.run.session",
-    "TrackResult": "fgslam.run.session",
-    "Keyframes": "fgslam.run.session",
-    "Localizer": "fgslam.run.session",
+    "TrackResult": "fgslam.core.tracking",
+    "Keyframes": "fgslam.core.tracking",
+    "Localizer": "fgslam.localize.localizer",
     "open_dataset": "fgslam.run.session",
     "Camera": "fgslam.io.camera",
     "Trajectory": "fgslam.io.trajectory",
@@ -47,7 +47,9 @@ if TYPE_CHECKING:  # the type checker sees the names; at run time they load on f
     from .io.camera import Camera
     from .io.live import LiveConfig, LiveFrames
     from .io.trajectory import Trajectory
-    from .run.session import Keyframes, Localizer, Slam, TrackResult, open_dataset
+    from .core.tracking import Keyframes, TrackResult
+    from .localize.localizer import Localizer
+    from .run.session import Slam, open_dataset
 
 
 def __getattr__(name: str) -> Any:

@@ -108,3 +108,22 @@ def test_importing_fgslam_is_light_and_lists_its_public_names():
         assert getattr(fgslam, name).__doc__, name
     with pytest.raises(AttributeError, match="no attribute 'Nope'"):
         fgslam.Nope  # noqa: B018
+
+
+def test_localising_with_the_api_gives_the_bytes_of_fgslam_localize(shared_data, tmp_path, capsys):
+    data = shared_data / SEVEN_SCENES
+    map_path = tmp_path / "kitchen.map"
+    assert cli_main(["run", "handheld_rgbd", "--data", str(data), "--out", str(tmp_path / "run"), "--no-progress",
+                     "-o", "dataset.end=60", "--save-map", str(map_path)]) == 0
+    assert cli_main(["localize", str(map_path), "--data", str(data), "--out", str(tmp_path / "loc"),
+                     "--start", "0", "--end", "60", "--stride", "5"]) == 0
+    localizer = fgslam.Slam.localize_in(map_path)
+    dataset = fgslam.open_dataset(data, "handheld_rgbd", overrides={"dataset.end": 60, "dataset.stride": 5})
+    results = [localizer.track(frame.image, frame.timestamp) for frame in dataset]
+    found = [r for r in results if r.T_WC is not None]
+    assert len(found) >= len(results) // 2 and len(localizer.keyframes()) >= 2
+    assert all(r.keyframe_id is not None and r.position_std is not None for r in found)
+    trajectory = fgslam.Trajectory(np.array([r.t for r in found]), np.stack([r.T_WC for r in found]))
+    write_trajectory(tmp_path / "api_tum.txt", trajectory, "tum")
+    cli_file = next((tmp_path / "loc").glob("*tum*.txt"))
+    assert (tmp_path / "api_tum.txt").read_bytes() == cli_file.read_bytes()

@@ -4,7 +4,8 @@ the public modules and on the examples, which use nothing but the public names."
 import subprocess
 import sys
 
-PUBLIC_MODULES = ["fgslam/__init__.py", "fgslam/run/session.py", "fgslam/io/camera.py", "fgslam/io/live.py"]
+PUBLIC_MODULES = ["fgslam/__init__.py", "fgslam/run/session.py", "fgslam/io/camera.py", "fgslam/io/live.py",
+                  "fgslam/core/tracking.py", "fgslam/localize/localizer.py"]
 
 
 def test_the_public_surface_and_the_examples_type_check(repo_root, tmp_path):

@@ -27,13 +27,16 @@ the map's settings, :mod:`fgslam.export.mapfile`):
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, from_dict, ranged
 from ..core.errors import ConfigError
+from ..core.tracking import Keyframes, TrackResult
 from ..export.mapfile import DESCRIPTOR_BYTES, MapMergeConfig, StoredMap, feature_image
 from ..io.datasets import DatasetConfig
 from ..loop.bow import BowDatabase
@@ -44,6 +47,7 @@ from ..loop.vocabulary import BowVector, load_vocabulary
 
 logger = logging.getLogger(__name__)
 
+_NOT_LOCALISED = "not localised: no map keyframe verified the frame"
 #: What :class:`FrameLocalization` says of a frame.
 STATUSES = ("tracked", "relocalised", "not_localised")
 
@@ -296,3 +300,43 @@ class MapLocalizer:
                     self.last = res[0]
                     return FrameLocalization("relocalised", *res)
         return FrameLocalization("not_localised")
+
+
+class Localizer:
+    """Frames localised one at a time in a stored map without growing it (``fgslam.Slam.localize_in``, and
+    ``fgslam localize`` frame by frame): :class:`MapLocalizer`'s result as a :class:`~fgslam.core.tracking.TrackResult`.
+
+    Attributes:
+        width, height: the image size the map was made at (the images given to :meth:`track`).
+    """
+
+    def __init__(self, stored: StoredMap, config: LocalizeConfig | None = None) -> None:
+        self.map_localizer = MapLocalizer(stored, config)
+        camera = stored.meta["camera"]
+        self.width, self.height = int(camera["width"]), int(camera["height"])
+        self._index = 0
+
+    @classmethod
+    def open(cls, map_path: str | Path, config: LocalizeConfig | None = None) -> "Localizer":
+        """The localizer of the stored map at ``map_path`` (DataError: a missing or damaged map)."""
+        from ..export.mapfile import load_stored_map
+
+        return cls(load_stored_map(map_path), config)
+
+    def keyframes(self) -> Keyframes:
+        """The stored map's keyframes and their poses (camera-to-world in the map's frame)."""
+        stored = self.map_localizer.map
+        return Keyframes(np.asarray(stored.kf_ids, np.int64), np.asarray(stored.kf_timestamps, np.float64),
+                         np.asarray(stored.T_WC, np.float64))
+
+    def track(self, image: np.ndarray, t: float) -> TrackResult:
+        """Localise one image (grey or colour uint8 of the map's camera and size): ``status`` is ``tracked``,
+        ``relocalised`` or ``not_localised``; ``T_WC`` is in the map's frame (None: not localised)."""
+        t0 = time.perf_counter()
+        res = self.map_localizer.localize(np.asarray(image))
+        index, self._index = self._index, self._index + 1
+        localised = res.T_WC is not None
+        return TrackResult(index, float(t), res.T_WC, res.status, False, int(res.inliers),
+                           None if localised else _NOT_LOCALISED, process_s=time.perf_counter() - t0,
+                           keyframe_id=int(res.kf_id) if localised else None,
+                           position_std=float(res.position_std) if localised else None)

@@ -28,7 +28,7 @@ from ..export.mapfile import check_map_camera, load_stored_map
 from ..io.datasets import DatasetConfig, open_dataset
 from ..io.run_files import LOCALIZATION_FILE, SUMMARY_FILE, TUM_FILE
 from ..io.trajectory import Trajectory, write_trajectory
-from .localizer import STATUSES, LocalizeConfig, MapLocalizer
+from .localizer import STATUSES, LocalizeConfig, Localizer
 
 logger = logging.getLogger(__name__)
 
@@ -74,14 +74,16 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     if prepare_out is not None:
         prepare_out(out)
     out.mkdir(parents=True, exist_ok=True)
-    localizer = MapLocalizer(stored, config)
+    localizer = Localizer(stored, config)  # the public API's (fgslam.Slam.localize_in): one path
     setup_cpu = time.process_time() - cpu0
     rows: list[tuple[int, float, str, int, int, float]] = []
     stamps, poses, gt_pos, has_gt = [], [], [], []
     loop_cpu0 = time.process_time()
     for frame in dataset:
-        res = localizer.localize(frame.image)
-        rows.append((int(frame.source_index), float(frame.timestamp), res.status, res.kf_id, res.inliers, res.position_std))
+        res = localizer.track(frame.image, frame.timestamp)
+        rows.append((int(frame.source_index), float(frame.timestamp), res.status,
+                     -1 if res.keyframe_id is None else res.keyframe_id, res.num_valid,
+                     float("nan") if res.position_std is None else res.position_std))
         if res.T_WC is not None:
             stamps.append(frame.timestamp)
             poses.append(res.T_WC)

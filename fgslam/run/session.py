@@ -28,6 +28,7 @@ from typing import Any, Mapping, Optional, Sequence
 import numpy as np
 
 from ..core.errors import ConfigError, DataError
+from ..core.tracking import Keyframes, TrackResult
 from ..frontends.base import FrameStatus, Frontend
 from ..io.calibration import Calibration
 from ..io.camera import Camera
@@ -35,6 +36,7 @@ from ..io.datasets import Dataset
 from ..io.datasets.files import to_grey_and_rgb
 from ..io.frame import Frame, ImuSamples
 from ..io.trajectory import Trajectory
+from ..localize.localizer import LocalizeConfig, Localizer
 from .config import SlamConfig, load_slam_config
 from .prepare import check_config, open_slam_dataset
 from .results import RunResults, RunState, final_trajectory
@@ -53,52 +55,6 @@ _REASONS = {
 #: frames whose images are kept for :meth:`Slam.save_map` besides the current keyframes' (the newest ones,
 #: which may still become keyframes); the memory is pruned to the keyframes every this many frames
 KEPT_RECENT_FRAMES = 64
-
-
-@dataclass(frozen=True)
-class TrackResult:
-    """What :meth:`Slam.track` says of one frame.
-
-    Attributes:
-        index: the frame's position in the run (0, 1, ...).
-        t: the frame's time, seconds.
-        T_WC: ``(4, 4)`` float64 camera-to-world pose, metres (monocular: the map's scale), or None
-            while the system initialises.
-        status: ``initializing``, ``tracked``, ``motion_model`` (tracking failed: a prediction),
-            ``relocalized`` or ``imu`` (visual tracking failed, the IMU's prediction).
-        keyframe: whether the frame is kept as a keyframe (now; a later frame may remove it).
-        num_valid: the valid measurements (patches, pixels, matches) the frame's pose used.
-        reason: why there is no pose, or why the pose is a prediction (None when tracked).
-        events: the frontend's notes on the frame (initialised, keyframe removed, ...).
-        process_s: wall seconds the system spent on the frame.
-    """
-
-    index: int
-    t: float
-    T_WC: Optional[np.ndarray]
-    status: str
-    keyframe: bool
-    num_valid: int
-    reason: Optional[str]
-    events: tuple[str, ...] = ()
-    process_s: float = 0.0
-
-    @property
-    def tracked(self) -> bool:
-        """A pose from the visual measurements (tracked or relocalised), not a prediction."""
-        return self.T_WC is not None and self.status in ("tracked", "relocalized")
-
-
-@dataclass(frozen=True)
-class Keyframes:
-    """The keyframes of a run: ``ids (K,)`` int64, ``t (K,)`` seconds, ``T_WC (K, 4, 4)`` camera-to-world."""
-
-    ids: np.ndarray
-    t: np.ndarray
-    T_WC: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.ids.shape[0])
 
 
 @dataclass
@@ -199,10 +155,13 @@ class Slam:
     from_config = from_preset  # a YAML file is a preset of its own
 
     @staticmethod
-    def localize_in(map_path: str | Path, overrides: Mapping[str, Any] | Sequence[str] | None = None) -> "Localizer":
-        """A :class:`Localizer` in the stored map ``map_path`` (``overrides``: keys of ``fgslam localize``'s
-        config, ``fgslam/configs/localize.yaml``). Raises DataError for a missing or damaged map."""
-        return Localizer(map_path, overrides)
+    def localize_in(map_path: str | Path, overrides: Mapping[str, Any] | Sequence[str] | None = None) -> Localizer:
+        """A :class:`~fgslam.localize.localizer.Localizer` in the stored map ``map_path`` (``overrides``: keys of
+        ``fgslam localize``'s config, ``fgslam/configs/localize.yaml``). Raises DataError for a missing or
+        damaged map, ConfigError for a bad key."""
+        from ..core.config import load_config
+
+        return Localizer.open(map_path, load_config(LocalizeConfig, None, _override_strings(overrides)))
 
     @staticmethod
     def _make_undistorter(raw: Calibration, config: SlamConfig) -> Any:
@@ -400,43 +359,6 @@ class Slam:
                                   verification=config.loop_closure.verification, frame_indices=self._kept.indices())
         save_stored_map(path, stored)
         return Path(path)
-
-
-class Localizer:
-    """Frames localised one at a time in a stored map (``fgslam run --save-map``, :meth:`Slam.save_map`)
-    without growing it: the per-frame step of ``fgslam localize``
-    (:class:`~fgslam.localize.localizer.MapLocalizer`). Build it with :meth:`Slam.localize_in`.
-
-    Attributes:
-        width, height: the image size the map was made at (the images given to :meth:`track`).
-    """
-
-    def __init__(self, map_path: str | Path, overrides: Mapping[str, Any] | Sequence[str] | None = None) -> None:
-        from ..core.config import load_config
-        from ..export.mapfile import load_stored_map  # deferred: the map's libraries
-        from ..localize.localizer import LocalizeConfig, MapLocalizer
-
-        self._localizer = MapLocalizer(load_stored_map(map_path),
-                                       load_config(LocalizeConfig, None, _override_strings(overrides)))
-        calib = self._localizer.map.meta["camera"]
-        self.width, self.height = int(calib["width"]), int(calib["height"])
-        self._index = 0
-
-    def keyframes(self) -> Keyframes:
-        """The stored map's keyframes and their poses (the map's frame)."""
-        stored = self._localizer.map
-        return Keyframes(np.asarray(stored.kf_ids, np.int64), np.asarray(stored.kf_timestamps, np.float64),
-                         np.asarray(stored.T_WC, np.float64))
-
-    def track(self, image: np.ndarray, t: float) -> TrackResult:
-        """Localise one image (grey or colour uint8, the map's camera and size): ``status`` is ``tracked``,
-        ``relocalised`` or ``not_localised``; ``T_WC`` is in the map's frame (None: not localised)."""
-        t0 = time.perf_counter()
-        res = self._localizer.localize(np.asarray(image))
-        index, self._index = self._index, self._index + 1
-        reason = None if res.T_WC is not None else "not localised: no map keyframe verified the frame"
-        return TrackResult(index, float(t), res.T_WC, res.status, False, int(res.inliers), reason,
-                           process_s=time.perf_counter() - t0)
 
 
 #: tracking failures logged one by one before the progress lines take over
