@@ -35,10 +35,8 @@ def main() -> None:
     trajectory = slam.finish()  # the final trajectory, after the last optimisation
     keyframes = slam.keyframes()
     print(f"{len(trajectory)} poses, {len(keyframes)} keyframes, path {trajectory.path_length():.2f} (map units)")
-    with open(args.out, "w", encoding="utf-8") as f:
-        for t, T_WC in zip(trajectory.timestamps, trajectory.T_WC):
-            f.write(f"{t:.6f} " + " ".join(f"{v:.6f}" for v in T_WC[:3].reshape(-1)) + "\n")
-    print(f"trajectory (t and the 3x4 camera-to-world rows): {args.out}")
+    trajectory.write(args.out, "tum")  # t tx ty tz qx qy qz qw, camera-to-world
+    print(f"trajectory: {args.out}")
 
 
 if __name__ == "__main__":

@@ -15,6 +15,8 @@ import time
 
 import fgslam
 
+MS_PER_S = 1000.0
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -32,22 +34,23 @@ def main() -> None:
     capture = fgslam.open_dataset(args.source, args.preset, overrides=overrides)
     slam = fgslam.Slam.from_preset(args.preset, capture.camera, overrides=overrides)
     live = fgslam.LiveFrames(capture, fgslam.LiveConfig(speed=args.speed))
+    stopped = False
     try:
         for frame in live:
             result = slam.track_frame(frame)
-            latency_ms = 1000.0 * (time.perf_counter() - live.arrival_s[frame.index])
+            latency_ms = MS_PER_S * (time.perf_counter() - live.arrival_s[frame.index])
             if result.index % 10 == 0:
                 pose = "no pose yet" if result.T_WC is None else " ".join(f"{v:+.2f}" for v in result.T_WC[:3, 3])
                 print(f"frame {result.index:5d}  {result.status:<12} {pose}  latency {latency_ms:4.0f} ms  "
                       f"dropped {live.dropped}")
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # a frame may have been cut short: no final optimisation, the per-frame poses
         print("stopping")
+        stopped = True
+        slam.abort()
     if not len(slam.trajectory()):
         raise SystemExit(f"no pose in {live.delivered} frames: nothing to write")
-    trajectory = slam.finish()
-    with open(args.out, "w", encoding="utf-8") as f:
-        for t, T_WC in zip(trajectory.timestamps, trajectory.T_WC):
-            f.write(f"{t:.6f} " + " ".join(f"{v:.6f}" for v in T_WC[:3].reshape(-1)) + "\n")
+    trajectory = slam.trajectory() if stopped else slam.finish()
+    trajectory.write(args.out, "tum")  # t tx ty tz qx qy qz qw, camera-to-world
     print(f"{len(trajectory)} poses ({live.delivered} frames tracked, {live.dropped} dropped): {args.out}")
 
 

@@ -72,9 +72,14 @@ def test_track_checks_its_input_and_the_camera(shared_data):
     assert first.T_WC is None and first.status == "initializing" and first.reason.startswith("initialising")
     with pytest.raises(DataError, match="not after the previous frame"):
         slam.track(grey, 0.0)
+    with pytest.raises(ConfigError, match="no IMU service"):
+        slam.add_imu(0.5, [0.0, 0.0, 9.81], [0.0, 0.0, 0.0])
     slam.abort()
     with pytest.raises(ConfigError, match="finished"):
         slam.track(grey, 1.0)
+    with pytest.raises(ConfigError, match="aborted"):
+        slam.finish()
+    assert len(slam.trajectory()) == 0  # the per-frame estimates: none while initialising
     with pytest.raises(ConfigError, match="stereo camera"):
         fgslam.Slam.from_preset("handheld_stereo", camera)
     with pytest.raises(ConfigError, match="no_such_preset"):
@@ -127,3 +132,22 @@ def test_localising_with_the_api_gives_the_bytes_of_fgslam_localize(shared_data,
     write_trajectory(tmp_path / "api_tum.txt", trajectory, "tum")
     cli_file = next((tmp_path / "loc").glob("*tum*.txt"))
     assert (tmp_path / "api_tum.txt").read_bytes() == cli_file.read_bytes()
+
+
+def test_the_kept_frames_of_a_stored_map_are_the_keyframes_and_the_newest(monkeypatch):
+    from fgslam.io.calibration import Calibration
+    from fgslam.io.frame import Frame
+    from fgslam.run.session import KEPT_RECENT_FRAMES, _KeptFrames
+
+    calib = Calibration(8, 8, [8.0, 8.0, 4.0, 4.0])
+    keyframe_times = {0.0, 5.0, 13.0}
+    kept = _KeptFrames(calib, lambda: keyframe_times)
+    image = np.zeros((8, 8), np.uint8)
+    n = 3 * KEPT_RECENT_FRAMES
+    for i in range(n):
+        image[:] = i % 256  # one buffer, reused by the caller: the kept frames hold copies
+        kept.add(Frame(i, i, float(i), image, calib))
+    times = kept.timestamps
+    newest = np.arange(n - KEPT_RECENT_FRAMES, n, dtype=float)
+    assert np.array_equal(times, np.concatenate([sorted(keyframe_times), newest]))
+    assert [int(kept[k].image[0, 0]) for k in kept.indices()] == [int(t) % 256 for t in times]

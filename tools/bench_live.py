@@ -36,9 +36,10 @@ def run(preset: str, data: Path, out: Path, end: Optional[int], live_speed: Opti
         cmd += ["-o", f"dataset.end={end}"]
     if live_speed is not None:
         cmd += ["--live", "--live-speed", str(live_speed)]
+    summary_path = out / "summary.json"
+    summary_path.unlink(missing_ok=True)  # a run that fails before writing one must not report a previous one
     load = os.getloadavg()
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
-    summary_path = out / "summary.json"
     if not summary_path.is_file():
         return {"exit_code": proc.returncode, "error": proc.stderr.strip().splitlines()[-1:] or None}
     s = json.loads(summary_path.read_text())

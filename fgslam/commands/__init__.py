@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 #: ``--format`` of the commands that open a dataset (fgslam.io.datasets' loaders; auto: detect)
-FORMAT_CHOICES = ("auto", "tum", "euroc", "tumvi", "kitti", "tartanair", "7scenes", "folder", "video", "rosbag")
+FORMAT_CHOICES = ("auto", "tum", "euroc", "tumvi", "kitti", "tartanair", "7scenes", "folder", "video", "rosbag", "camera")
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, config_name: str, example: str) -> None:

@@ -77,6 +77,8 @@ MAX_LAMBDA = 1e16
 #: any other real quantity: sigmas, thresholds, tolerances, ratios, weights, distances (px or m),
 #: durations (s), rates (Hz), densities
 MAX_SCALAR = 1e6
+#: milliseconds per second (figures reported in ms)
+MS_PER_S = 1000.0
 
 
 @dataclasses.dataclass(frozen=True)

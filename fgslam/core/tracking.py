@@ -19,7 +19,8 @@ class TrackResult:
     """What :meth:`Slam.track` says of one frame.
 
     Attributes:
-        index: the frame's position in the run (0, 1, ...).
+        index: the frame's index: ``Frame.index`` (its position in the dataset) for a loader's frame, the
+            number of frames tracked before it for ``Slam.track``.
         t: the frame's time, seconds.
         T_WC: ``(4, 4)`` float64 camera-to-world pose, metres (monocular: the map's scale), or None
             while the system initialises.

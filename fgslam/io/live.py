@@ -4,8 +4,11 @@ A reader thread takes the frames of a source (a camera capture, a stream, or a r
 replayed at its own rate: ``LiveConfig.speed`` times its timestamps) and hands them over through a
 queue of at most ``LiveConfig.queue`` frames; when the queue is full the **oldest** waiting frame is
 dropped and counted, so the consumer always gets the newest frames and never falls behind without
-bound. Each frame's arrival time (when the reader had it) is kept, so the consumer can report its
-latency (arrival to result). Closing the frames (or leaving a ``with`` block) stops the reader.
+bound. A dropped frame's IMU samples go with the next frame, so that the inertial stream has no gap.
+Each frame's arrival time is kept, so the consumer can report its latency (arrival to result): for a
+replayed recording, the time the frame was due (a reader slower than the recording counts as latency
+too); for a live source, the time the reader had it. Closing the frames (or leaving a ``with`` block)
+stops the reader.
 """
 
 from __future__ import annotations
@@ -17,12 +20,15 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Iterable, Iterator, Optional
 
-from ..core.config import MAX_COUNT, MAX_SCALAR, ranged
-from .frame import Frame
+import numpy as np
+
+from ..core.config import MAX_COUNT, MAX_SCALAR, check_ranges, ranged
+from .frame import Frame, ImuSamples
 
 logger = logging.getLogger(__name__)
 
 _POLL_S = 0.05  # how often a waiting consumer or a pacing reader looks for a stop request
+_JOIN_S = 2.0  # how long close() waits for the reader (a capture blocked in its read is left to end on its own)
 
 
 @dataclass
@@ -46,11 +52,15 @@ class LiveFrames:
         delivered: frames handed to the consumer.
         arrival_s: ``perf_counter`` time each delivered frame arrived, by frame index.
         error: the exception that stopped the reader early (None: it ran to the source's end, or was closed).
+
+    Raises:
+        ConfigError: a config value out of its range (naming ``live.<key>``).
     """
 
     def __init__(self, source: Iterable[Frame], config: Optional[LiveConfig] = None) -> None:
         self.source = source
         self.config = config or LiveConfig()
+        check_ranges(self.config, "live.", "the live options")
         self.dropped = 0
         self.delivered = 0
         self.arrival_s: dict[int, float] = {}
@@ -69,13 +79,14 @@ class LiveFrames:
             for frame in self.source:
                 if self._stop.is_set():
                     break
+                arrival = time.perf_counter()
                 if cfg.paced:
                     if t_src0 is None:
-                        t_wall0, t_src0 = time.perf_counter(), frame.timestamp
-                    due = t_wall0 + (frame.timestamp - t_src0) / cfg.speed
-                    while not self._stop.is_set() and time.perf_counter() < due:
-                        time.sleep(min(_POLL_S, max(due - time.perf_counter(), 0.0)))
-                self._put(frame, time.perf_counter())
+                        t_wall0, t_src0 = arrival, frame.timestamp
+                    arrival = t_wall0 + (frame.timestamp - t_src0) / cfg.speed  # when the frame was due
+                    while not self._stop.is_set() and time.perf_counter() < arrival:
+                        time.sleep(min(_POLL_S, max(arrival - time.perf_counter(), 0.0)))
+                self._put(frame, arrival)
         except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which raises it
             self.error = exc
         finally:
@@ -89,6 +100,8 @@ class LiveFrames:
                 old, _ = self._queue.popleft()
                 self.dropped += 1
                 logger.debug("live: frame %d dropped (the system is behind)", old.index)
+                after = self._queue[0][0] if self._queue else frame
+                after.imu = _joined(old.imu, after.imu)
             self._queue.append((frame, arrival))
             self._cond.notify_all()
 
@@ -115,13 +128,25 @@ class LiveFrames:
             raise self.error
 
     def close(self) -> None:
-        """Stop the reader (its frame in progress is read, then it ends)."""
+        """Stop the reader (its frame in progress is read, then it ends); again: nothing."""
+        if self._stop.is_set():
+            return
         self._stop.set()
         if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=2.0)
+            self._thread.join(timeout=_JOIN_S)
 
     def __enter__(self) -> "LiveFrames":
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _joined(first: Optional[ImuSamples], then: Optional[ImuSamples]) -> Optional[ImuSamples]:
+    """The IMU samples of a dropped frame put before those of the frame after it."""
+    if first is None or len(first) == 0:
+        return then
+    if then is None:
+        return first
+    return ImuSamples(np.concatenate([first.timestamps, then.timestamps]), np.concatenate([first.gyro, then.gyro]),
+                      np.concatenate([first.accel, then.accel]))

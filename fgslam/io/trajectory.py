@@ -140,6 +140,13 @@ class Trajectory:
         """Length of the polyline through the camera positions, metres."""
         return float(np.linalg.norm(np.diff(self.t_WC, axis=0), axis=1).sum())
 
+    def write(self, path: str | Path, fmt: str = "tum") -> None:
+        """Write the poses to ``path`` as ``tum`` (``t tx ty tz qx qy qz qw``), ``kitti`` (3x4 rows; the times
+        beside it in ``<stem>_times.txt``) or ``euroc`` (:func:`write_trajectory`)."""
+        path = Path(path)
+        times = path.with_name(f"{path.stem}_times.txt") if fmt == "kitti" else None
+        write_trajectory(path, self, fmt, times)
+
     def subset(self, indices: np.ndarray) -> Trajectory:
         """The poses at ``indices`` (must keep the timestamps sorted)."""
         return Trajectory(self.timestamps[indices], self.T_WC[indices])

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_SCALAR, check_ranges, from_dict, ranged
-from ..core.errors import ConfigError
+from ..core.errors import ConfigError, DataError
 from ..core.tracking import Keyframes, TrackResult
 from ..export.mapfile import DESCRIPTOR_BYTES, MapMergeConfig, StoredMap, feature_image
 from ..io.datasets import DatasetConfig
@@ -331,9 +331,14 @@ class Localizer:
 
     def track(self, image: np.ndarray, t: float) -> TrackResult:
         """Localise one image (grey or colour uint8 of the map's camera and size): ``status`` is ``tracked``,
-        ``relocalised`` or ``not_localised``; ``T_WC`` is in the map's frame (None: not localised)."""
+        ``relocalised`` or ``not_localised``; ``T_WC`` is in the map's frame (None: not localised). DataError: an
+        image of another size."""
+        image = np.asarray(image)
+        if image.shape[:2] != (self.height, self.width):
+            raise DataError(f"image is {image.shape[1] if image.ndim > 1 else '?'}x{image.shape[0]}, the map was made "
+                            f"at {self.width}x{self.height}")
         t0 = time.perf_counter()
-        res = self.map_localizer.localize(np.asarray(image))
+        res = self.map_localizer.localize(image)
         index, self._index = self._index, self._index + 1
         localised = res.T_WC is not None
         return TrackResult(index, float(t), res.T_WC, res.status, False, int(res.inliers),

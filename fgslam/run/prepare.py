@@ -28,7 +28,8 @@ from ..core.config import check_ranges
 from ..core.errors import ConfigError, DataError
 from ..export.mapfile import check_map_camera, check_map_file, load_stored_map
 from ..export.rerun import check_rerun_target
-from ..io.datasets import CaptureDataset, Dataset, open_dataset
+from ..io.calibration import Calibration
+from ..io.datasets import CaptureDataset, Dataset, DatasetConfig, is_capture, open_dataset
 from ..io.live import LiveConfig
 from ..services.imu_checks import check_imu_stream
 from .config import SlamConfig, dataset_config_for
@@ -64,13 +65,16 @@ def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fm
         DataError: the output folder cannot be created or written, or the data cannot be read.
     """
     check_config(config)
+    if live is not None:
+        check_ranges(live, "live.", "the live options (--live-speed, --live-queue)")
+    if is_capture(data) and (config.output.save_map or config.output.extend_map):
+        raise ConfigError(f"{data}: --save-map and --map need the run's frames again at the end, which a live "
+                          "capture cannot give: record it to a video file and run on that")
     if rerun:
         check_rerun_target(rerun)
     out = prepare_output(out_dir, data, overwrite)
     if config.output.extend_map:  # a missing or foreign map: refused before the dataset is opened
         check_map_file(config.output.extend_map)
-    if live is not None:
-        check_ranges(live, "live.", "the live options (--live-speed, --live-queue)")
     dataset = open_slam_dataset(data, config, fmt)
     check_extended_map(dataset, config, data)
     if isinstance(dataset, CaptureDataset):  # a capture is live: a device at its own pace, a file at its rate
@@ -132,11 +136,15 @@ def check_dataset(dataset: Dataset, config: SlamConfig) -> None:
 def check_image_size(dataset: Dataset) -> None:
     """Raise ConfigError when the dataset's output images (after resizing and cropping) are smaller
     than ``dataset.min_image_side`` on a side, naming the resize keys and both sizes."""
-    cfg = dataset.config
-    width, height = int(dataset.calibration.width), int(dataset.calibration.height)
+    check_output_size(dataset.config, dataset.calibration, dataset.raw_calibration)
+
+
+def check_output_size(cfg: DatasetConfig, calibration: Calibration, raw: Optional[Calibration]) -> None:
+    """:func:`check_image_size` of the output camera ``calibration`` made from ``raw`` with ``cfg`` (a
+    loader's, or ``fgslam.Slam``'s for a script's images)."""
+    width, height = int(calibration.width), int(calibration.height)
     if min(width, height) >= cfg.min_image_side:
         return
-    raw = dataset.raw_calibration
     source = f" from {raw.width}x{raw.height}" if raw is not None else ""
     raise ConfigError(
         f"{cfg.resize_text()} gives {width}x{height} images{source}"

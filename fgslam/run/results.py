@@ -15,7 +15,7 @@ from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from ..core.config import to_dict
+from ..core.config import MS_PER_S, to_dict
 from ..core.errors import DataError, EvaluationError
 from ..eval.trajectory import EvalResult, evaluate
 from ..frontends.base import Frontend
@@ -237,7 +237,7 @@ def summarize(run: PreparedRun, state: RunState, results: RunResults, written: d
         max_frame_s=state.max_frame_s,
         read_s=state.read_s,
         stage_s=stage_s,
-        stage_ms_per_frame={k: 1000.0 * v / n for k, v in stage_s.items()} if n else {},
+        stage_ms_per_frame={k: MS_PER_S * v / n for k, v in stage_s.items()} if n else {},
         peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * BYTES_PER_KIB / BYTES_PER_MIB,
         motion=_motion(traj),
         evaluation=results.evaluation,
@@ -256,7 +256,6 @@ def summarize(run: PreparedRun, state: RunState, results: RunResults, written: d
 
 #: the latency percentiles a live run reports
 LATENCY_PERCENTILES = (50, 99)
-MS_PER_S = 1000.0
 
 
 def live_summary(run: PreparedRun, state: RunState) -> Optional[dict[str, Any]]:

@@ -15,8 +15,8 @@ written (:mod:`fgslam.run.outputs`; the stored map: :mod:`fgslam.run.mapstore`),
   skipped frames, the estimate's motion extent, evaluation (ATE with the alignment used, RPE, % of
   path length) when the dataset has ground truth, loop closure counts (``loop``, when the frontend
   runs loop closure: ``SlamSystem.loop_summary()``), the full configuration used, the error when
-  the run failed (``interrupted``: the signal that stopped it) and the outputs that could not be
-  written (``output_errors``);
+  the run failed (``interrupted``: the signal that stopped it), the outputs that could not be
+  written (``output_errors``) and, for a live run, the frames dropped and the latency (``live``, else null);
 - ``trajectory.png``: top view of the (aligned) estimate against the ground truth;
 - ``points.ply`` when ``output.write_ply`` (the frontend's keyframe points, when it has any);
 - ``depth/<kf:06d>.png`` when ``output.write_depth`` (16-bit millimetres, from ``keyframe_depths()``).
@@ -66,6 +66,7 @@ from typing import Callable, Optional
 
 from tqdm import tqdm
 
+from ..core.config import MS_PER_S
 from ..core.errors import DataError, FGSlamError, Interrupted
 from ..frontends.base import Frontend
 from ..io.datasets import Dataset
@@ -84,7 +85,6 @@ from .outputs import (
 )
 from .prepare import PreparedRun, prepare_opened, remove_previous_outputs
 from .results import (
-    MS_PER_S,
     ErrorAt,
     RunSummary,
     collect_results,
@@ -308,7 +308,6 @@ def _loop(dataset: Dataset, slam: Slam, config: SlamConfig, progress: bool,
     live = None if live_config is None else LiveFrames(dataset, live_config)
     frames = iter(dataset if live is None else live)
     where = _WHERE_DATASET
-    t_frontend = None  # start of the current frontend call (its time is counted even when it raises: below)
     try:
         while True:
             where = _WHERE_DATASET
@@ -317,13 +316,11 @@ def _loop(dataset: Dataset, slam: Slam, config: SlamConfig, progress: bool,
                 frame = next(frames)
             except StopIteration:
                 break
-            t_frontend = time.perf_counter()
-            state.read_s += t_frontend - t0
+            state.read_s += time.perf_counter() - t0
             state.frames_read += 1
             state.frame_paths[frame.index] = "" if frame.path is None else str(frame.path)
             where = f"at frame {frame.index}" + (f" ({frame.path})" if frame.path is not None else "")
-            slam.track_frame(frame)  # counts its own time, the frame and its status into the state
-            t_frontend = None
+            slam.track_frame(frame)  # counts its time (also when it raises), the frame and its status
             where = f"after frame {frame.index}"
             if live is not None:
                 state.latency_s.append(time.perf_counter() - live.arrival_s[frame.index])
@@ -334,12 +331,10 @@ def _loop(dataset: Dataset, slam: Slam, config: SlamConfig, progress: bool,
         slam.finish_run()  # counts its own time
         meter.update(state.frames_processed, system.frontend.num_keyframes(), len(state.failure_frames), force=True)
     except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - reported with partial outputs
-        if t_frontend is not None:
-            state.frontend_s += time.perf_counter() - t_frontend
         return exc, where
     finally:
         if live is not None:
-            live.close()
+            live.close()  # the frames' iterator closed it already unless the loop stopped early
             state.live_dropped = live.dropped
     return None
 

@@ -23,7 +23,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any, Callable, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -33,19 +33,18 @@ from ..frontends.base import FrameStatus, Frontend
 from ..io.calibration import Calibration
 from ..io.camera import Camera
 from ..io.datasets import Dataset
+from ..io.datasets.common import clean_depth, make_undistorter
 from ..io.datasets.files import to_grey_and_rgb
 from ..io.frame import Frame, ImuSamples
 from ..io.trajectory import Trajectory
 from ..localize.localizer import LocalizeConfig, Localizer
 from .config import SlamConfig, load_slam_config
-from .prepare import check_config, open_slam_dataset
+from .prepare import check_config, check_output_size, open_slam_dataset
 from .results import RunResults, RunState, final_trajectory
 from .system import SlamSystem
 
 logger = logging.getLogger(__name__)
 
-#: what a :class:`TrackResult` says of a frame (the frontend's pose sources, ``FrameStatus.pose_source``)
-STATUSES = ("initializing", "tracked", "motion_model", "relocalized", "imu")
 #: the reason given with a frame that has no pose, or a pose that is a prediction
 _REASONS = {
     "initializing": "initialising: waiting for enough parallax or measurements to start the map",
@@ -59,35 +58,38 @@ KEPT_RECENT_FRAMES = 64
 
 @dataclass
 class _KeptFrames:
-    """The frames a stored map re-reads (``build_stored_map``): a dataset-like view of the keyframes'
-    frames and the newest ones (pruned every ``KEPT_RECENT_FRAMES`` frames)."""
+    """The frames a stored map re-reads (``build_stored_map``): a dataset-like view (positions 0..n-1) of
+    the keyframes' frames and the newest ones, pruned every ``KEPT_RECENT_FRAMES`` frames to the frames
+    whose times are keyframe times (``keyframe_times``: None keeps every frame)."""
 
     calibration: Calibration
-    frames: dict[int, Frame] = field(default_factory=dict)
-    times: list[float] = field(default_factory=list)
+    keyframe_times: Optional[Callable[[], set[float]]]
+    frames: list[Frame] = field(default_factory=list)
+    added: int = 0
 
     @property
     def timestamps(self) -> np.ndarray:
-        return np.asarray(self.times, dtype=np.float64)
+        return np.array([f.timestamp for f in self.frames], dtype=np.float64)
 
-    def __getitem__(self, index: int) -> Frame:
-        return self.frames[int(index)]
+    def __getitem__(self, position: int) -> Frame:
+        return self.frames[int(position)]
 
     def __len__(self) -> int:
-        return len(self.times)
+        return len(self.frames)
 
-    def add(self, frame: Frame, keyframe_times: Optional[set[float]]) -> None:
-        self.frames[frame.index] = Frame(frame.index, frame.source_index, frame.timestamp, frame.image,
-                                         frame.calibration, depth=frame.depth)
-        self.times.append(frame.timestamp)
-        if keyframe_times is None or len(self.times) % KEPT_RECENT_FRAMES:
+    def add(self, frame: Frame) -> None:
+        """Keep a copy of the frame's grey image and depth (a caller may reuse its buffers)."""
+        self.frames.append(Frame(frame.index, frame.source_index, frame.timestamp, frame.image.copy(),
+                                 frame.calibration, depth=None if frame.depth is None else frame.depth.copy()))
+        self.added += 1
+        if self.keyframe_times is None or self.added % KEPT_RECENT_FRAMES:
             return
-        newest = len(self.times) - KEPT_RECENT_FRAMES
-        for index in [i for i, f in self.frames.items() if i < newest and f.timestamp not in keyframe_times]:
-            del self.frames[index]
+        keep = self.keyframe_times()
+        newest = len(self.frames) - KEPT_RECENT_FRAMES
+        self.frames = [f for k, f in enumerate(self.frames) if k >= newest or f.timestamp in keep]
 
     def indices(self) -> np.ndarray:
-        return np.array(sorted(self.frames), dtype=np.int64)
+        return np.arange(len(self.frames), dtype=np.int64)
 
 
 def _override_strings(overrides: Mapping[str, Any] | Sequence[str] | None) -> list[str]:
@@ -111,10 +113,13 @@ class Slam:
         timestamps: the run's frame times when known ahead (factor plugins check them; None: unknown).
         frontend: a frontend built by hand instead of the config's family (tests, custom frontends).
         rerun: log the run to rerun (a ``.rrd`` file, or ``live``); needs ``fgslam[rerun]``.
-        keep_frames: keep the keyframes' images for :meth:`save_map` (the command line re-reads its dataset).
+        keep_frames: keep the keyframes' images (and the newest frames') for :meth:`save_map` (the command
+            line re-reads its dataset instead).
+        where: what the frames come from, named in errors.
 
     Raises:
-        ConfigError: a config value is out of range or the sensor needs what the camera lacks.
+        ConfigError: a config value is out of range, the images would be too small or too large, or the
+            sensor needs what the camera lacks.
         DataError: the camera's calibration is invalid.
     """
 
@@ -126,18 +131,23 @@ class Slam:
         self.config = config
         prepared = isinstance(camera, Calibration) or camera.prepared
         raw = camera if isinstance(camera, Calibration) else camera.calibration()
-        self._undistorter = None if prepared else self._make_undistorter(raw, config)
+        self._undistorter = None if prepared else make_undistorter(raw, config.dataset, where)
         self.calibration: Calibration = raw if self._undistorter is None else self._undistorter.calibration
+        if not prepared:
+            check_output_size(config.dataset, self.calibration, raw)
         if config.sensor == "stereo" and self.calibration.right is None:
             raise ConfigError("sensor 'stereo' needs a stereo camera: give the camera a baseline, or right and T_CLCR")
         self.system = SlamSystem.build(config, self.calibration, frontend=frontend, timestamps=timestamps,
                                        has_imu=config.imu.enabled if has_imu is None else has_imu,
                                        imu_noise=imu_noise, where=where, rerun=rerun)
         self.state = RunState(load_average=[round(v, 2) for v in os.getloadavg()])
-        self._kept = _KeptFrames(self.calibration) if keep_frames else None
+        backend = self.system.backend
+        kf_times = None if backend is None else lambda: {backend.timestamp(k) for k in backend.keyframe_ids}
+        self._kept = _KeptFrames(self.calibration, kf_times) if keep_frames else None
         self._imu: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._t_last: Optional[float] = None
-        self._finished = False
+        self._finished = False  # finish_run() ran to its end, or abort() stopped the run
+        self._aborted = False  # abort() stopped it, or finishing failed: only the live estimates are valid
         self._results: Optional[RunResults] = None
 
     # ------------------------------------------------------------------ building
@@ -163,19 +173,16 @@ class Slam:
 
         return Localizer.open(map_path, load_config(LocalizeConfig, None, _override_strings(overrides)))
 
-    @staticmethod
-    def _make_undistorter(raw: Calibration, config: SlamConfig) -> Any:
-        from ..io.undistort import Undistorter  # deferred: OpenCV
-
-        cfg = config.dataset
-        return Undistorter(raw, rectify=cfg.rectify_stereo, alpha=cfg.undistort_alpha,
-                           out_size=cfg.output_size(raw.width, raw.height), crop_multiple=cfg.crop_multiple,
-                           source="fgslam.Camera")
-
     # ------------------------------------------------------------------ frames in
     def add_imu(self, t: float, accel: Sequence[float], gyro: Sequence[float]) -> None:
         """One IMU sample at time ``t`` (seconds, the camera's clock): specific force ``accel`` (m/s^2) and
-        angular rate ``gyro`` (rad/s), in the IMU (body) frame; it goes with the next frame after it."""
+        angular rate ``gyro`` (rad/s), in the IMU (body) frame; it goes with the first frame at or after ``t``.
+
+        Raises:
+            ConfigError: the run has no IMU service (a config without ``imu.enabled``: use an inertial preset).
+        """
+        if self.system.imu is None:
+            raise ConfigError("add_imu: this run has no IMU service (imu.enabled is false): use an inertial preset")
         self._imu.append((float(t), np.asarray(accel, dtype=np.float64).reshape(3),
                           np.asarray(gyro, dtype=np.float64).reshape(3)))
 
@@ -203,10 +210,10 @@ class Slam:
         if right is not None:
             frame.image_right = self._image(right, calib.right or calib, "right")[0]
         if depth is not None:
-            depth = np.asarray(depth, dtype=np.float32)
+            depth = np.asarray(depth)
             if depth.shape != grey.shape:
                 raise DataError(f"depth is {depth.shape[1::-1]}, expected {calib.width}x{calib.height}")
-            depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0))
+            depth = clean_depth(depth)
         und = self._undistorter
         if und is not None:
             frame.image = und.left(frame.image)
@@ -233,19 +240,19 @@ class Slam:
             raise ConfigError("this Slam has finished: build a new one for another run")
         if frame.imu is None and self.system.imu is not None:
             frame.imu = self._imu_block(frame.timestamp)
-        t0 = time.perf_counter()
-        status = self.system.step(frame)
-        process_s = time.perf_counter() - t0
         state = self.state
-        state.frontend_s += process_s
-        state.max_frame_s = max(state.max_frame_s, process_s)
+        t0 = time.perf_counter()
+        try:
+            status = self.system.step(frame)
+        finally:  # counted also when the frame raises
+            process_s = time.perf_counter() - t0
+            state.frontend_s += process_s
+            state.max_frame_s = max(state.max_frame_s, process_s)
         state.frames_processed += 1
         self._t_last = frame.timestamp
         T_WC = _record(status, frame.timestamp, state)
         if self._kept is not None:
-            backend = self.system.backend
-            kf_times = None if backend is None else {backend.timestamp(k) for k in backend.keyframe_ids}
-            self._kept.add(frame, kf_times)
+            self._kept.add(frame)
         reason = _REASONS.get(status.pose_source) if T_WC is not None or status.pose_source != "tracked" else \
             "the frontend returned a non-finite pose"
         if T_WC is None and reason is None:
@@ -269,8 +276,13 @@ class Slam:
         ``fgslam run`` writes). Calling it again returns the same trajectory.
 
         Raises:
-            NoResultError: no frame got a pose.
+            DataError: no frame got a pose.
+            ConfigError: the run was aborted, or failed while finishing (:meth:`trajectory` has the live
+                estimates).
         """
+        if self._aborted:
+            raise ConfigError("this run was aborted or failed while finishing: no final trajectory "
+                              "(trajectory() has the per-frame estimates)")
         self.finish_run()
         traj = self.final_results().traj
         if traj is None:
@@ -285,9 +297,12 @@ class Slam:
         t0 = time.perf_counter()
         try:
             self.system.finish()
+        except BaseException:
+            self._aborted = True  # the caller aborts the background work (the runner, __exit__)
+            raise
         finally:
-            self._finished = True
             self.state.frontend_s += time.perf_counter() - t0
+        self._finished = True
 
     def final_results(self, error: Optional[tuple[BaseException, str]] = None,
                       gt: Optional[Trajectory] = None) -> RunResults:
@@ -297,8 +312,9 @@ class Slam:
         return self._results
 
     def abort(self) -> None:
-        """Stop the background work at once without applying it (a stopped or failed run)."""
-        self._finished = True
+        """Stop the background work at once without applying it (a stopped or failed run); the per-frame
+        estimates stay (:meth:`trajectory`)."""
+        self._finished = self._aborted = True
         self.system.abort()
 
     def __enter__(self) -> "Slam":
@@ -308,16 +324,14 @@ class Slam:
                  tb: Optional[TracebackType]) -> None:
         if exc_type is None:
             self.finish_run()
-        elif not self._finished:
+        elif not self._finished or self._aborted:
             self.abort()
 
     # ------------------------------------------------------------------ what it knows
     def trajectory(self) -> Trajectory:
-        """The poses so far: the final trajectory once finished, else every frame's live estimate
-        (``timestamps (N,)`` seconds, ``T_WC (N, 4, 4)`` camera-to-world)."""
-        if self._finished and self._results is not None and self._results.traj is not None:
-            return self._results.traj
-        if self._finished:
+        """The poses so far: the final trajectory once finished, else (also after :meth:`abort`) every frame's
+        live estimate (``timestamps (N,)`` seconds, ``T_WC (N, 4, 4)`` camera-to-world)."""
+        if self._finished and not self._aborted:
             return self.finish()
         s = self.state
         return Trajectory(np.asarray(s.live_t, dtype=np.float64), np.asarray(s.live_T, dtype=np.float64).reshape(-1, 4, 4))
@@ -425,6 +439,9 @@ def open_dataset(path: str | Path, config: str | Path | SlamConfig | None = None
         from ..io.datasets import open_dataset as open_loader
 
         return open_loader(path, fmt, load_slam_config(None, _override_strings(overrides)).dataset)
-    if not isinstance(config, SlamConfig):
+    if isinstance(config, SlamConfig):
+        if overrides:
+            raise ConfigError("open_dataset: give overrides with a preset name, or set them in the SlamConfig")
+    else:
         config = load_slam_config(config, _override_strings(overrides))
     return open_slam_dataset(path, config, fmt)

@@ -92,6 +92,6 @@ def open_dataset(path: str | Path, fmt: str = "auto", config: DatasetConfig | No
     return LOADERS[fmt](path, config)
 
 
-__all__ = ["Dataset", "DatasetConfig", "FORMATS", "LOADERS", "detect_format", "open_dataset"] + [
+__all__ = ["Dataset", "DatasetConfig", "FORMATS", "LOADERS", "detect_format", "is_capture", "open_dataset"] + [
     cls.__name__ for cls in LOADERS.values()
 ]

@@ -6,8 +6,10 @@ Frames are read in order as the source gives them (no seeking). A frame's timest
 position in the file (``CAP_PROP_POS_MSEC``), so that a live run replays it at its own rate through the
 same capture path; for a device or a stream, the time since the first frame was read, in seconds, on
 this machine's monotonic clock. A live source has no end known
-ahead: the run takes at most ``dataset.end`` frames (default :data:`DEFAULT_CAPTURE_FRAMES`) and ends
-earlier when the source ends or on Ctrl-C. A frame the source fails to deliver ends the capture.
+ahead: the run takes at most ``dataset.end`` frames (default :data:`DEFAULT_CAPTURE_FRAMES`, the number a
+run reports as its total) and ends earlier when the source ends or on Ctrl-C. A frame the source fails
+to deliver ends the capture. ``dataset.start`` and ``dataset.stride`` do not apply (a live source cannot
+skip ahead), nor does re-reading a frame (``--save-map`` of a capture: record a video file first).
 """
 
 from __future__ import annotations
@@ -18,8 +20,9 @@ from typing import Optional
 
 import numpy as np
 
+from ...core.config import MS_PER_S
 from ...core.errors import ConfigError, DataError
-from ..calibration import Calibration, read_yaml_file
+from ..calibration import Calibration
 from .common import Dataset, DatasetConfig, RawFrame
 from .files import require_file
 
@@ -27,7 +30,6 @@ PREFIX = "camera:"
 #: frames a capture takes when ``dataset.end`` is not set: ten minutes at 30 Hz (its memory is estimated for them)
 DEFAULT_CAPTURE_FRAMES = 18_000
 _NOMINAL_RATE_HZ = 30.0  # the frame rate assumed ahead (memory estimate) when the source reports none
-MS_PER_S = 1000.0
 _MIN_STEP_S = 1e-6  # consecutive capture times are at least this far apart (the frame times must increase)
 
 
@@ -48,15 +50,21 @@ class CaptureDataset(Dataset):
         super().__init__(Path(str(root)), config)
         config = self.config
         self.name = spec or "camera"
+        if config.start != 0 or config.stride != 1:
+            raise ConfigError(f"{root}: dataset.start and dataset.stride do not apply to a live capture "
+                              "(it cannot skip ahead); use dataset.end to stop after N frames")
         if not config.calibration_file:
             raise ConfigError(f"{root}: a live capture needs its calibration: -o dataset.calibration_file=PATH "
                               "(a calibration YAML: width, height, intrinsics, distortion)")
         path = require_file(Path(config.calibration_file), "calibration YAML")
-        calib = Calibration.from_dict(read_yaml_file(path), str(path))
+        calib = Calibration.from_yaml(path)
         if calib.right is not None:
             raise DataError(f"{path}: a capture is monocular; remove 'right' / 'T_CLCR'")
         self.raw_calibration, self.calibration_source = calib, str(path)
-        cap = cv2.VideoCapture(int(spec) if spec.isdigit() else spec)
+        try:
+            cap = cv2.VideoCapture(int(spec) if spec.isdecimal() and spec.isascii() else spec)
+        except (cv2.error, OverflowError, ValueError) as exc:
+            raise DataError(f"{root}: OpenCV cannot open this capture: {exc}") from exc
         if not cap.isOpened():
             raise DataError(f"{root}: OpenCV cannot open this capture (a device number, a stream URL or a video file)")
         self._cap = cap
@@ -65,33 +73,48 @@ class CaptureDataset(Dataset):
         fps = float(cap.get(cv2.CAP_PROP_FPS))
         rate = fps if np.isfinite(fps) and fps > 0 else _NOMINAL_RATE_HZ
         self.raw_timestamps = np.arange(n, dtype=np.float64) / rate  # replaced by the capture times as frames come
+        self._step_s = 1.0 / rate  # a file's frame interval when its position does not advance
         self._t0: Optional[float] = None
-        self._first: Optional[np.ndarray] = None  # the frame read at open (size check), delivered first
-        self._setup()
+        self._t_read: Optional[float] = None  # the time of the last frame read
+        self._first: Optional[tuple[np.ndarray, float]] = None  # a file's first frame and time, read at open
+        try:
+            self._setup()
+        except BaseException:
+            cap.release()
+            raise
+        # a device's frame read at open is stale by the time the run starts: its clock starts again
+        self._t0 = self._t0 if self.is_file else None
+        self._t_read = None
 
     def _read_raw(self, raw_index: int) -> RawFrame:
-        import cv2  # deferred: OpenCV
-
         from ..frame import FrameReadError
 
-        if self._first is not None:
-            img, self._first = self._first, None
+        if self._first is not None:  # a file's first frame, read at open: delivered now with its own time
+            (img, t), self._first = self._first, None
         else:
             ok, img = self._cap.read()
             if not ok or img is None:
                 raise StopCapture(f"{self.root}: the source delivered no frame {raw_index}")
-            if self._t0 is None:  # the frame read at open: kept for the first frame of the run
-                self._first = img
-        now = self._cap.get(cv2.CAP_PROP_POS_MSEC) / MS_PER_S if self.is_file else time.monotonic()
-        if self._t0 is None:
-            self._t0 = now
-        t = now - self._t0
-        if raw_index > 0:
-            t = max(t, float(self.raw_timestamps[raw_index - 1]) + _MIN_STEP_S)
+            t = self._time()
+            if self._t_read is None and self.is_file:  # at open (the size check): kept for the run's first frame
+                self._first = (img, t)
+        self._t_read = t
         self.raw_timestamps[raw_index] = t
         if img.ndim not in (2, 3):
             raise FrameReadError(f"{self.root}: frame {raw_index} is not an image")
         return RawFrame(img, None)
+
+    def _time(self) -> float:
+        """The time of the frame just read (module docstring), after the previous one's."""
+        import cv2  # deferred: OpenCV
+
+        now = self._cap.get(cv2.CAP_PROP_POS_MSEC) / MS_PER_S if self.is_file else time.monotonic()
+        if self._t0 is None:
+            self._t0 = now
+        t = now - self._t0
+        if self._t_read is not None and t <= self._t_read:  # a file whose position does not advance, a clock tie
+            t = self._t_read + (self._step_s if self.is_file else _MIN_STEP_S)
+        return t
 
     def __iter__(self):  # the capture's end is the run's end (no skipping, no seeking)
         try:

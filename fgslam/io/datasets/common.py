@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator, NamedTuple, Optional
+from typing import TYPE_CHECKING, Any, Iterator, NamedTuple, Optional
 
 import numpy as np
 
@@ -205,6 +205,29 @@ def nearest_rotation(R: np.ndarray) -> np.ndarray:
     return (U * D[..., None, :]) @ Vt
 
 
+def make_undistorter(calib: Calibration, cfg: DatasetConfig, source: str, rectification: Optional[tuple] = None) -> Any:
+    """The :class:`~fgslam.io.undistort.Undistorter` of raw images of ``calib`` (validated) with the dataset
+    keys of ``cfg`` (undistortion, stereo rectification, resizing, cropping): every loader's, and
+    ``fgslam.Slam``'s for a script's images. ConfigError when the output images would exceed
+    :data:`MAX_IMAGE_SIDE` pixels a side (checked before the remap tables, 8 bytes per output pixel, are built)."""
+    out_w, out_h = cfg.output_size(calib.width, calib.height)
+    if max(out_w, out_h) > MAX_IMAGE_SIDE:
+        raise ConfigError(
+            f"{cfg.resize_text()} gives {out_w}x{out_h} images from {calib.width}x{calib.height} "
+            f"({source}); at most {MAX_IMAGE_SIDE} pixels a side are supported: "
+            f"set dataset.resize_width or dataset.resize_scale to make them smaller")
+    from ..undistort import Undistorter  # deferred: OpenCV (importing the loaders' configs stays light)
+
+    return Undistorter(calib, rectify=cfg.rectify_stereo, alpha=cfg.undistort_alpha, out_size=(out_w, out_h),
+                       crop_multiple=cfg.crop_multiple, source=source, rectification=rectification)
+
+
+def clean_depth(depth: np.ndarray) -> np.ndarray:
+    """A depth map as float32 metres with every non-finite, zero or negative value set to 0 (no depth)."""
+    depth = np.asarray(depth, dtype=np.float32)
+    return np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0))
+
+
 # ---------------------------------------------------------------------------- base class
 class Dataset:
     """Lazy sequence of frames (``len``, ``[i]``, iteration); see the module docstring.
@@ -260,23 +283,7 @@ class Dataset:
         if self._indices.size == 0:
             raise DataError(f"{self.root}: empty selection: start={cfg.start}, end={cfg.end} of {n_raw} frames")
         calib = self.raw_calibration.validate(self.calibration_source)
-        out_w, out_h = cfg.output_size(calib.width, calib.height)
-        if max(out_w, out_h) > MAX_IMAGE_SIDE:  # before the remap tables (8 bytes per output pixel) are built
-            raise ConfigError(
-                f"{cfg.resize_text()} gives {out_w}x{out_h} images from {calib.width}x{calib.height} "
-                f"({self.calibration_source}); at most {MAX_IMAGE_SIDE} pixels a side are supported: "
-                f"set dataset.resize_width or dataset.resize_scale to make them smaller")
-        from ..undistort import Undistorter  # deferred: OpenCV (importing the loaders' configs stays light)
-
-        self._undistorter = Undistorter(
-            calib,
-            rectify=cfg.rectify_stereo,
-            alpha=cfg.undistort_alpha,
-            out_size=cfg.output_size(calib.width, calib.height),
-            crop_multiple=cfg.crop_multiple,
-            source=self.calibration_source,
-            rectification=self.stereo_rectification,
-        )
+        self._undistorter = make_undistorter(calib, cfg, self.calibration_source, self.stereo_rectification)
         self.calibration = self._undistorter.calibration
         try:
             first = self._read_raw(int(self._indices[0]))
@@ -450,9 +457,7 @@ class Dataset:
                 shape = "x".join(str(v) for v in raw.depth.shape[1::-1] + raw.depth.shape[2:])
                 raise FrameSizeError(f"{where}: the depth map of frame {index} is {shape}, expected "
                                      f"{calib.width}x{calib.height} (the calibration's size, one channel)")
-            depth = np.asarray(raw.depth, dtype=np.float32)
-            depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0))
-            frame.depth = und.depth(depth)
+            frame.depth = und.depth(clean_depth(raw.depth))
         if self.has_imu:
             frame.imu = self._imu_between(prev_t, frame.timestamp)
         gt = self._gt_out()
