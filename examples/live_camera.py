@@ -25,6 +25,7 @@ def main() -> None:
     parser.add_argument("--preset", default="handheld_mono", help="preset name (fgslam run --help lists them)")
     parser.add_argument("--frames", type=int, default=None, help="stop after this many frames (default: Ctrl-C)")
     parser.add_argument("--speed", type=float, default=1.0, help="a video file replays at this many times its rate")
+    parser.add_argument("--queue", type=int, default=1, help="frames waiting at most before the oldest is dropped")
     parser.add_argument("--out", default="live_trajectory.txt", help="where to write the trajectory")
     args = parser.parse_args()
 
@@ -32,8 +33,8 @@ def main() -> None:
     if args.frames is not None:
         overrides["dataset.end"] = args.frames
     capture = fgslam.open_dataset(args.source, args.preset, overrides=overrides)
-    slam = fgslam.Slam.from_preset(args.preset, capture.camera, overrides=overrides)
-    live = fgslam.LiveFrames(capture, fgslam.LiveConfig(speed=args.speed))
+    slam = fgslam.Slam.from_preset(args.preset, capture.camera, overrides=overrides, keep_frames=False)  # no save_map
+    live = fgslam.LiveFrames(capture, fgslam.LiveConfig(speed=args.speed, queue=args.queue))
     stopped = False
     try:
         for frame in live:

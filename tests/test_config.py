@@ -185,6 +185,7 @@ from fgslam.core.config import MAX_COUNT, MAX_SCALAR, Range, check_ranges, field
 
 #: Config dataclasses used in code but not reachable from a preset root (factor tunables, vocabulary training).
 EXTRA_CONFIG_CLASSES = (
+    "fgslam.io.live:LiveConfig",
     "fgslam.factors.pointmap:PointmapResidualConfig",
     "fgslam.factors.reprojection:ReprojectionConfig",
     "fgslam.factors.depth:DepthPriorConfig",

@@ -91,6 +91,7 @@ def test_an_error_of_the_source_reaches_the_consumer_and_close_stops_the_reader(
         if frame.index >= 2:
             break
     endless.close()
+    endless._thread.join(30)  # close() waited a while; a loaded machine may need longer
     assert not endless._thread.is_alive()
 
 
@@ -102,14 +103,15 @@ def live_summary(out):
 def test_a_video_replayed_at_its_rate_is_tracked_live(video_clip, tmp_path, capsys, data):
     # the file loader and the camera:SPEC capture path replay the clip at its own 10 Hz
     spec = str(video_clip) if data == "file" else f"camera:{video_clip}"
+    # room for every frame (the drops: the next test), so that the run gets poses however slow the machine
     args = ["run", "driving_mono", "--data", spec, "--out", str(tmp_path), "--no-progress", "--live",
-            "-o", f"dataset.calibration_file={video_clip.with_suffix('.yaml')}"]
+            "--live-queue", str(CLIP_FRAMES), "-o", f"dataset.calibration_file={video_clip.with_suffix('.yaml')}"]
     t0 = time.perf_counter()
     assert cli_main(args) == 0
     elapsed = time.perf_counter() - t0
     s = live_summary(tmp_path)
     live = s["live"]
-    assert live["delivered"] + live["dropped"] == CLIP_FRAMES == s["frames_processed"] + live["dropped"]
+    assert live["delivered"] == CLIP_FRAMES == s["frames_processed"] and live["dropped"] == 0
     assert elapsed >= (CLIP_FRAMES - 1) / CLIP_RATE_HZ * 0.95  # paced: not faster than the clip
     assert 0 < live["latency_ms_p50"] <= live["latency_ms_p99"] <= live["latency_ms_max"]
     assert s["frames_with_pose"] > 0 and s["motion"]["path_length"] > 0

@@ -334,9 +334,9 @@ class Localizer:
         ``relocalised`` or ``not_localised``; ``T_WC`` is in the map's frame (None: not localised). DataError: an
         image of another size."""
         image = np.asarray(image)
-        if image.shape[:2] != (self.height, self.width):
-            raise DataError(f"image is {image.shape[1] if image.ndim > 1 else '?'}x{image.shape[0]}, the map was made "
-                            f"at {self.width}x{self.height}")
+        if image.ndim not in (2, 3) or image.shape[:2] != (self.height, self.width):
+            raise DataError(f"image of shape {image.shape}: the map was made at {self.width}x{self.height} "
+                            "(grey (H, W) or colour (H, W, 3))")
         t0 = time.perf_counter()
         res = self.map_localizer.localize(image)
         index, self._index = self._index, self._index + 1

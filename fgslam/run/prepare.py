@@ -38,6 +38,10 @@ from .memory import check_run_memory
 
 logger = logging.getLogger(__name__)
 
+#: why a live capture cannot save or extend a stored map
+CAPTURE_MAP_REFUSAL = ("--save-map and --map need the run's frames again at the end, which a live capture "
+                       "cannot give: record it to a video file and run on that")
+
 
 @dataclass(frozen=True)
 class PreparedRun:
@@ -68,8 +72,7 @@ def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fm
     if live is not None:
         check_ranges(live, "live.", "the live options (--live-speed, --live-queue)")
     if is_capture(data) and (config.output.save_map or config.output.extend_map):
-        raise ConfigError(f"{data}: --save-map and --map need the run's frames again at the end, which a live "
-                          "capture cannot give: record it to a video file and run on that")
+        raise ConfigError(f"{data}: {CAPTURE_MAP_REFUSAL}")
     if rerun:
         check_rerun_target(rerun)
     out = prepare_output(out_dir, data, overwrite)
@@ -90,6 +93,8 @@ def prepare_opened(dataset: Dataset, config: SlamConfig, out_dir: str | Path, *,
     (:func:`check_dataset`), the output folder (:func:`prepare_output`), the rerun target, the stored
     map's camera (``output.extend_map``) and the IMU stream. Raises as :func:`prepare_run`."""
     check_config(config)
+    if isinstance(dataset, CaptureDataset) and (config.output.save_map or config.output.extend_map):
+        raise ConfigError(f"{dataset.root}: {CAPTURE_MAP_REFUSAL}")
     check_dataset(dataset, config)
     out = prepare_output(out_dir, dataset.root, overwrite)
     if rerun:

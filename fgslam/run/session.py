@@ -236,7 +236,7 @@ class Slam:
     def track_frame(self, frame: Frame) -> TrackResult:
         """Track a frame a loader made (:func:`open_dataset`; its ``imu`` as the loader gives it, else the
         samples of :meth:`add_imu` since the previous frame)."""
-        if self._finished:
+        if self._finished or self._aborted:
             raise ConfigError("this Slam has finished: build a new one for another run")
         if frame.imu is None and self.system.imu is not None:
             frame.imu = self._imu_block(frame.timestamp)
@@ -298,7 +298,11 @@ class Slam:
         try:
             self.system.finish()
         except BaseException:
-            self._aborted = True  # the caller aborts the background work (the runner, __exit__)
+            self._aborted = True
+            try:  # the background work stops now (a script may not call abort(); calling it again is harmless)
+                self.system.abort()
+            except Exception:  # noqa: BLE001 - the finishing error is the one raised
+                logger.exception("stopping the background work after a failed finish failed")
             raise
         finally:
             self.state.frontend_s += time.perf_counter() - t0
@@ -330,7 +334,8 @@ class Slam:
     # ------------------------------------------------------------------ what it knows
     def trajectory(self) -> Trajectory:
         """The poses so far: the final trajectory once finished, else (also after :meth:`abort`) every frame's
-        live estimate (``timestamps (N,)`` seconds, ``T_WC (N, 4, 4)`` camera-to-world)."""
+        live estimate (``timestamps (N,)`` seconds, ``T_WC (N, 4, 4)`` camera-to-world). DataError: finished
+        without a pose for any frame."""
         if self._finished and not self._aborted:
             return self.finish()
         s = self.state

@@ -62,13 +62,16 @@ class CaptureDataset(Dataset):
             raise DataError(f"{path}: a capture is monocular; remove 'right' / 'T_CLCR'")
         self.raw_calibration, self.calibration_source = calib, str(path)
         try:
-            cap = cv2.VideoCapture(int(spec) if spec.isdecimal() and spec.isascii() else spec)
+            cap = cv2.VideoCapture(int(spec) if spec.isdecimal() and spec.isascii() else spec)  # a device number
         except (cv2.error, OverflowError, ValueError) as exc:
             raise DataError(f"{root}: OpenCV cannot open this capture: {exc}") from exc
         if not cap.isOpened():
             raise DataError(f"{root}: OpenCV cannot open this capture (a device number, a stream URL or a video file)")
         self._cap = cap
-        self.is_file = Path(spec).is_file()  # a recording: its own times (module docstring)
+        device = spec.isdecimal() and spec.isascii()
+        self.is_file = not device and Path(spec).is_file()  # a recording: its own times (module docstring)
+        if not self.is_file:  # a device or stream: no backlog of old frames (where the backend supports it)
+            cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
         n = config.end if config.end is not None else DEFAULT_CAPTURE_FRAMES
         fps = float(cap.get(cv2.CAP_PROP_FPS))
         rate = fps if np.isfinite(fps) and fps > 0 else _NOMINAL_RATE_HZ
@@ -112,7 +115,7 @@ class CaptureDataset(Dataset):
         if self._t0 is None:
             self._t0 = now
         t = now - self._t0
-        if self._t_read is not None and t <= self._t_read:  # a file whose position does not advance, a clock tie
+        if self._t_read is not None and not t > self._t_read:  # a position that does not advance (or NaN), a tie
             t = self._t_read + (self._step_s if self.is_file else _MIN_STEP_S)
         return t
 
