@@ -38,9 +38,6 @@ from .memory import check_run_memory
 
 logger = logging.getLogger(__name__)
 
-#: why a live capture cannot save or extend a stored map
-CAPTURE_MAP_REFUSAL = ("--save-map and --map need the run's frames again at the end, which a live capture "
-                       "cannot give: record it to a video file and run on that")
 
 
 @dataclass(frozen=True)
@@ -71,8 +68,7 @@ def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fm
     check_config(config)
     if live is not None:
         check_ranges(live, "live.", "the live options (--live-speed, --live-queue)")
-    if is_capture(data) and (config.output.save_map or config.output.extend_map):
-        raise ConfigError(f"{data}: {CAPTURE_MAP_REFUSAL}")
+    check_capture_map(data, is_capture(data), config)
     if rerun:
         check_rerun_target(rerun)
     out = prepare_output(out_dir, data, overwrite)
@@ -93,8 +89,7 @@ def prepare_opened(dataset: Dataset, config: SlamConfig, out_dir: str | Path, *,
     (:func:`check_dataset`), the output folder (:func:`prepare_output`), the rerun target, the stored
     map's camera (``output.extend_map``) and the IMU stream. Raises as :func:`prepare_run`."""
     check_config(config)
-    if isinstance(dataset, CaptureDataset) and (config.output.save_map or config.output.extend_map):
-        raise ConfigError(f"{dataset.root}: {CAPTURE_MAP_REFUSAL}")
+    check_capture_map(dataset.root, isinstance(dataset, CaptureDataset), config)
     check_dataset(dataset, config)
     out = prepare_output(out_dir, dataset.root, overwrite)
     if rerun:
@@ -136,6 +131,14 @@ def check_dataset(dataset: Dataset, config: SlamConfig) -> None:
     check_sensor(dataset, config.sensor)
     check_image_size(dataset)
     check_run_memory(config, dataset)
+
+
+def check_capture_map(data: str | Path, capture: bool, config: SlamConfig) -> None:
+    """Raise ConfigError when a live capture (``capture``) would save or extend a stored map: both need the
+    run's frames again at the end, which a capture cannot give."""
+    if capture and (config.output.save_map or config.output.extend_map):
+        raise ConfigError(f"{data}: --save-map and --map need the run's frames again at the end, which a live "
+                          "capture cannot give: record it to a video file and run on that")
 
 
 def check_image_size(dataset: Dataset) -> None:

@@ -74,23 +74,10 @@ from ..io.live import LiveConfig, LiveFrames
 from ..io.trajectory import Trajectory
 from .config import SlamConfig
 from .mapstore import store_map
-from .outputs import (
-    OutputWriter,
-    write_keyframe_depths,
-    write_map,
-    write_plot,
-    write_points,
-    write_summary,
-    write_trajectories,
-)
+from .outputs import (OutputWriter, write_keyframe_depths, write_map, write_plot, write_points, write_summary,
+                      write_trajectories)
 from .prepare import PreparedRun, prepare_opened, remove_previous_outputs
-from .results import (
-    ErrorAt,
-    RunSummary,
-    collect_results,
-    outputs_text,
-    summarize,
-)
+from .results import ErrorAt, RunSummary, collect_results, outputs_text, summarize
 from .session import Slam
 from .signals import StopOnSignal
 
