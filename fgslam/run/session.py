@@ -211,8 +211,9 @@ class Slam:
             frame.image_right = self._image(right, calib.right or calib, "right")[0]
         if depth is not None:
             depth = np.asarray(depth)
-            if depth.shape != grey.shape:
-                raise DataError(f"depth is {depth.shape[1::-1]}, expected {calib.width}x{calib.height}")
+            if depth.ndim != 2:
+                raise DataError(f"depth: expected one channel (H, W), got shape {depth.shape}")
+            calib.check_image_size(depth.shape[1], depth.shape[0], "depth")
             depth = clean_depth(depth)
         und = self._undistorter
         if und is not None:
@@ -228,9 +229,7 @@ class Slam:
         image = np.asarray(image)
         if image.dtype != np.uint8 or image.ndim not in (2, 3):
             raise DataError(f"{what}: expected a uint8 (H, W) or (H, W, 3) image, got {image.dtype} {image.shape}")
-        if image.shape[:2] != (calib.height, calib.width):
-            raise DataError(f"{what} is {image.shape[1]}x{image.shape[0]}, expected {calib.width}x{calib.height} "
-                            "(the camera's size)")
+        calib.check_image_size(image.shape[1], image.shape[0], what)
         return to_grey_and_rgb(image, image.ndim == 3, None)
 
     def track_frame(self, frame: Frame) -> TrackResult:
