@@ -532,6 +532,47 @@ def test_sigint_mid_run_keeps_exit_code_130(synth_root, tmp_path):
     assert len(read_trajectory(tmp_path / "out" / TUM_FILE, "tum")) == 7
 
 
+class InitialisingFrontend(SignallingFrontend):
+    """A monocular-like frontend: no pose for the first ``init_frames`` frames when they are processed,
+    then, once it initialises, poses for them too in its trajectory (as the patch frontend poses the
+    frames its initialisation buffered)."""
+
+    def process(self, frame):
+        status = super().process(frame)
+        if frame.index < self.init_frames:
+            self.t.append(frame.timestamp)
+            self.T.append(self._map(frame.T_WC_gt))
+            self.src.append("tracked")
+        return status
+
+    def trajectory(self):
+        order = np.argsort(self.t)
+        return np.array(self.t)[order], np.array(self.T).reshape(-1, 4, 4)[order], [self.src[k] for k in order]
+
+
+@pytest.mark.parametrize("stop", ["SIGINT", "frontend error"])
+def test_a_stopped_mono_run_keeps_the_frames_posed_at_initialisation(stop, synth_root, tmp_path):
+    """An interrupted or failed monocular run: the frames posed once the map initialised (after they were
+    processed) are in the partial trajectory, and summary.json counts them as posed."""
+    import signal
+
+    from fgslam.core.errors import Interrupted
+
+    config = _config("sensor=mono")
+    stop_at = 7
+    kwargs = {"signal_at": stop_at, "signum": signal.SIGINT} if stop == "SIGINT" else {"raise_at": stop_at}
+    fe = InitialisingFrontend(np.eye(4), 0.0, np.random.default_rng(0), **kwargs)
+    with pytest.raises(Interrupted if stop == "SIGINT" else RunError):
+        run_slam(open_slam_dataset(synth_root, config), config, tmp_path / "out", frontend=fe, progress=False)
+    data = json.loads((tmp_path / "out" / SUMMARY_FILE).read_text())
+    traj = read_trajectory(tmp_path / "out" / TUM_FILE, "tum")
+    ds = open_slam_dataset(synth_root, config)
+    np.testing.assert_allclose(traj.timestamps, ds.timestamps[:stop_at], atol=1e-6)  # frames 0..6, 0 and 1 included
+    assert data["frames_processed"] == data["frames_with_pose"] == len(traj) == stop_at
+    assert data["failures"]["no_pose"] == 0
+    assert data["evaluation"]["n_matched"] == stop_at
+
+
 def test_importing_fgslam_installs_no_signal_handler():
     import subprocess
     import sys

@@ -106,6 +106,7 @@ class RunState:
     live_t: list[float] = field(default_factory=list)
     live_T: list[np.ndarray] = field(default_factory=list)
     live_source: list[str] = field(default_factory=list)
+    unposed_t: list[float] = field(default_factory=list)  # times of the frames the frontend gave no pose when processed
     failure_frames: list[int] = field(default_factory=list)
     nonfinite: int = 0
     events: Counter = field(default_factory=Counter)
@@ -295,6 +296,7 @@ def _final_trajectory(
         t = np.asarray(state.live_t, dtype=np.float64)
         T_WC = np.asarray(state.live_T, dtype=np.float64).reshape(-1, 4, 4)
         sources = list(state.live_source)
+        t, T_WC, sources = _with_later_poses(frontend, state, t, T_WC, sources, notes)
     if t.shape[0] == 0:
         return None, []
     ok = np.all(np.isfinite(T_WC), axis=(1, 2)) & np.isfinite(t)
@@ -312,6 +314,37 @@ def _final_trajectory(
         errors.append((exc, "in trajectory() (invalid poses)"))
         notes.append(f"the trajectory could not be written: {exc}")
         return None, []
+
+
+def _with_later_poses(frontend: Frontend, state: RunState, t: np.ndarray, T_WC: np.ndarray, sources: list[str],
+                      notes: list[str]) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """The live estimates ``t, T_WC, sources`` of a stopped run completed with the frontend's poses of the
+    processed frames that had none when they were processed but got one afterwards (a monocular
+    initialisation poses the frames it buffered), so that the partial trajectory holds every frame with a
+    pose; only those frames are taken from the frontend (a failure to ask it is a note, never raised)."""
+    waiting = set(state.unposed_t)
+    if not waiting:
+        return t, T_WC, sources
+    try:
+        f_t, f_T, f_sources = frontend.trajectory()
+        f_t = np.asarray(f_t, dtype=np.float64).reshape(-1)
+        f_T = np.asarray(f_T, dtype=np.float64).reshape(-1, 4, 4)
+        if not (f_t.shape[0] == f_T.shape[0] == len(f_sources)):
+            raise DataError(f"{f_t.shape[0]} timestamps, {f_T.shape[0]} poses, {len(f_sources)} pose sources")
+    except Exception as exc:  # noqa: BLE001 - the live estimates are written as they are
+        notes.append(f"the frames without a live pose could not be taken from the frontend's trajectory: "
+                     f"{type(exc).__name__}: {exc}")
+        return t, T_WC, sources
+    take = [k for k, stamp in enumerate(f_t) if float(stamp) in waiting and np.all(np.isfinite(f_T[k]))]
+    if not take:
+        return t, T_WC, sources
+    notes.append(f"{len(take)} frame(s) that got their pose after they were processed (initialisation) are "
+                 "taken from the frontend's trajectory")
+    t = np.concatenate([t, f_t[take]])
+    T_WC = np.concatenate([T_WC, f_T[take]])
+    sources = sources + [str(f_sources[k]) for k in take]
+    order = np.argsort(t, kind="stable")
+    return t[order], T_WC[order], [sources[k] for k in order]
 
 
 def _motion(traj: Optional[Trajectory]) -> dict[str, float]:

@@ -409,6 +409,7 @@ def _record(status: FrameStatus, timestamp: float, state: RunState) -> Optional[
                 "" if n < MAX_LOGGED_FAILURES else " (further failures: progress lines)",
             )
     if status.T_WC is None:
+        state.unposed_t.append(float(timestamp))
         return None
     T_WC = np.asarray(status.T_WC, dtype=np.float64)
     if T_WC.shape != (4, 4) or not np.all(np.isfinite(T_WC)):
