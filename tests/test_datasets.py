@@ -679,3 +679,33 @@ def test_synthetic_sequence_from_generator_loads(tmp_path):
     T_expected = T_expected @ ds._undistorter.T_C_Cout
     np.testing.assert_allclose(np.stack([f.T_WC_gt for f in frames]), T_expected, atol=1e-6)
     assert all(f.depth.dtype == np.float32 and f.depth.max() > 0 for f in frames)
+
+
+def test_info_on_a_folder_of_unreadable_images_says_so_and_fails(tmp_path, capsys):
+    """Images that all fail to decode: ``fgslam info`` says they cannot be read (one line, exit 2)
+    instead of describing the calibration's resolution."""
+    from fgslam.cli import main
+
+    write_folder(tmp_path / "f", n=7)
+    for path in (tmp_path / "f").glob("*.png"):
+        _corrupt(path)
+    assert main(["info", str(tmp_path / "f")]) == 2
+    captured = capsys.readouterr()
+    assert "resolution" not in captured.out
+    error = [line for line in captured.err.splitlines() if line.startswith("fgslam: error:")]
+    assert len(error) == 1 and "Traceback" not in captured.err
+    assert "the images cannot be read (none of the 5 frames tried (of 7, first to last)" in error[0]
+    assert "img_0000.png: unreadable or corrupt image" in error[0]
+    # one readable image among them is enough: described as before
+    cv2.imwrite(str(tmp_path / "f" / "img_0006.png"), _texture(48, 64, 6))
+    assert main(["info", str(tmp_path / "f")]) == 0
+    assert "resolution:   64x48" in capsys.readouterr().out
+
+
+def test_unknown_layout_lists_the_bag_layout_among_those_tried(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataError, match=r"unknown dataset layout \(looked for metadata.yaml \(ROS 2 bag\), "):
+        detect_format(tmp_path / "empty")
+    (tmp_path / "empty" / "rec_0.db3").write_bytes(b"")  # a ROS 2 bag's storage without its metadata.yaml
+    with pytest.raises(DataError, match=r"looks like a ROS 2 bag \(rec_0.db3\) but its metadata.yaml is missing"):
+        open_dataset(tmp_path / "empty")

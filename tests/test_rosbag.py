@@ -259,6 +259,26 @@ def test_truncated_bag(tmp_path, name):
         open_dataset(bag)
 
 
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_ros2_bag_without_its_metadata_yaml_is_named_so(tmp_path, storage, capsys):
+    """A ROS 2 bag folder that lost its metadata.yaml: said so (not "unknown dataset layout"), detected
+    or with --format rosbag, and one of its storage files given alone is named as such."""
+    bag = tmp_path / "bag2"
+    write_small_bag(bag, {"/cam/image": "mono8"}, {"/cam/camera_info": (64, 48)}, frames=4, storage=storage)
+    (bag / "metadata.yaml").unlink()
+    storage_file = next(p for p in bag.iterdir() if p.suffix in (".db3", ".mcap"))
+    expected = f"{bag}: looks like a ROS 2 bag ({storage_file.name}) but its metadata.yaml is missing"
+    for fmt in ("auto", "rosbag"):
+        with pytest.raises(DataError) as info:
+            open_dataset(bag, fmt)
+        assert str(info.value).startswith(expected), str(info.value)
+    assert main(["info", str(bag)]) == 2
+    err = capsys.readouterr().err
+    assert "metadata.yaml is missing" in err and "unknown dataset layout" not in err and "Traceback" not in err
+    with pytest.raises(DataError, match="a ROS 2 bag's storage file: give the bag's folder"):
+        detect_format(storage_file)
+
+
 def test_unsorted_stamps(tmp_path):
     bag = tmp_path / "unsorted.bag"
     stamps = [10**9 + k * 10**8 for k in (0, 1, 3, 2, 4)]

@@ -22,6 +22,7 @@ def run(args: argparse.Namespace) -> int:
 
     config = load_config(DatasetConfig, args.config, args.overrides)
     ds = open_dataset(args.path, args.format, config)
+    ds.check_readable()  # images that cannot be read are said so, not described from the calibration
     info = ds.summary()
     if args.json:
         print(json.dumps(info))

@@ -2,7 +2,7 @@
 7-Scenes, image folders, videos and ROS 1 / ROS 2 bags.  ``open_dataset`` picks the loader from the folder layout.
 
 Detection order (``fmt="auto"``): ``camera:SPEC`` -> ``camera`` (a live OpenCV capture); a ``.bag`` file or a folder with ``metadata.yaml`` -> ``rosbag``
-(ROS 1 / ROS 2); a file with a video extension -> ``video``; ``dso/camchain.yaml`` with
+(ROS 1 / ROS 2; a folder of ``*.db3`` / ``*.mcap`` files without ``metadata.yaml``: DataError naming it); a file with a video extension -> ``video``; ``dso/camchain.yaml`` with
 ``mav0/cam0`` -> ``tumvi``; ``mav0/cam0`` or
 ``cam0/data.csv`` -> ``euroc``; ``image_0/`` + ``calib.txt`` -> ``kitti``; ``image_left/`` ->
 ``tartanair``; ``rgb.txt`` -> ``tum``; ``seq-NN/frame-*.color.*`` (or such frames directly) ->
@@ -20,7 +20,7 @@ from .common import Dataset, DatasetConfig
 from .euroc import EurocDataset, mav0_dir
 from .folder import VIDEO_EXTENSIONS, FolderDataset, VideoDataset
 from .kitti import KittiDataset, list_images
-from .rosbag import RosbagDataset, is_bag
+from .rosbag import RosbagDataset, check_ros2_bag_parts, is_bag
 from .sevenscenes import SevenScenesDataset, is_sequence_dir
 from .tartanair import TartanAirDataset
 from .tum import TumDataset
@@ -48,6 +48,7 @@ def detect_format(path: str | Path) -> str:
         raise DataError(f"{path}: no such file or folder")
     if is_bag(path):
         return "rosbag"
+    check_ros2_bag_parts(path)  # a ROS 2 bag without its metadata.yaml is named as such
     if path.is_file():
         if path.suffix.lower() in VIDEO_EXTENSIONS:
             return "video"
@@ -68,7 +69,8 @@ def detect_format(path: str | Path) -> str:
     if list_images(path):
         return "folder"
     raise DataError(
-        f"{path}: unknown dataset layout (looked for dso/camchain.yaml + mav0/cam0 (TUM-VI), mav0/cam0 (EuRoC), image_0 + calib.txt (KITTI), "
+        f"{path}: unknown dataset layout (looked for metadata.yaml (ROS 2 bag), "
+        "dso/camchain.yaml + mav0/cam0 (TUM-VI), mav0/cam0 (EuRoC), image_0 + calib.txt (KITTI), "
         "image_left (TartanAir), rgb.txt (TUM), seq-NN/frame-*.color.* (7-Scenes), image files (folder))"
     )
 

@@ -45,6 +45,9 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 NS_PER_S = 1_000_000_000  # nanoseconds per second (EuRoC timestamps are integer nanoseconds)
+#: frames tried, spread over the selection, before a dataset whose first frame is unreadable is said to
+#: have no readable image (:meth:`Dataset.check_readable`)
+READABLE_PROBE_FRAMES = 5
 
 
 @dataclass
@@ -264,6 +267,7 @@ class Dataset:
         self._has_depth = False
         self.stereo_rectification: Optional[tuple] = None  # (R1, R2, P1, P2) as recorded (ROS camera_info)
         self._gt_cache: Optional[np.ndarray] = None
+        self.first_frame_error: Optional[str] = None  # why the first frame could not be read at open (None: it could)
 
     # ------------------------------------------------------------ subclass interface
     def _read_raw(self, raw_index: int) -> RawFrame:
@@ -288,6 +292,7 @@ class Dataset:
         try:
             first = self._read_raw(int(self._indices[0]))
         except FrameReadError as exc:
+            self.first_frame_error = str(exc)
             logger.warning("first frame of %s is unreadable (%s); image size not checked at open", self.root, exc)
         else:
             h, w = first.image.shape[:2]
@@ -298,6 +303,23 @@ class Dataset:
                 )
         if self.imu is not None and len(self.imu) == 0:
             self.imu = None
+
+    def check_readable(self) -> None:
+        """DataError when no image can be read: the first frame failed at open and so do up to
+        :data:`READABLE_PROBE_FRAMES` frames spread over the selection (nothing is read when the first
+        frame could be)."""
+        if self.first_frame_error is None:
+            return
+        n = len(self)
+        probes = np.unique(np.linspace(0, n - 1, min(n, READABLE_PROBE_FRAMES)).round().astype(np.int64))
+        for position in probes[1:]:
+            try:
+                self._read_raw(int(self._indices[position]))
+            except FrameReadError:
+                continue
+            return
+        tried = "its only frame" if n == 1 else f"none of the {probes.size} frames tried (of {n}, first to last)"
+        raise DataError(f"{self.root}: the images cannot be read ({tried}; the first: {self.first_frame_error})")
 
     # ------------------------------------------------------------ properties
     @property

@@ -61,6 +61,7 @@ logger = logging.getLogger(__name__)
 BAG_EXTRA = "bag"  # the pyproject optional extra that installs rosbags
 ROS1_SUFFIX = ".bag"
 ROS2_METADATA = "metadata.yaml"
+ROS2_STORAGE_SUFFIXES = (".db3", ".mcap")  # a ROS 2 bag's storage files (sqlite3, mcap), beside its metadata.yaml
 COMPRESSED_SUFFIX = "/compressed"  # image_transport: <image topic>/compressed
 RIGHT_NAME_HINTS = ("right", "cam1")
 DEPTH_NAME_HINT = "depth"
@@ -81,6 +82,19 @@ def import_rosbags() -> tuple[type[AnyReader], type[Stores], Callable[[Stores], 
 def is_bag(path: Path) -> bool:
     """A ROS 1 ``.bag`` file or a ROS 2 bag folder (holds ``metadata.yaml``)."""
     return (path.is_file() and path.suffix == ROS1_SUFFIX) or (path.is_dir() and (path / ROS2_METADATA).is_file())
+
+
+def check_ros2_bag_parts(path: Path) -> None:
+    """DataError for what looks like part of a ROS 2 bag but cannot be opened as one: a folder holding
+    storage files (``*.db3``, ``*.mcap``) without its ``metadata.yaml``, or one such storage file given
+    instead of its folder; nothing for anything else."""
+    if path.is_dir() and not (path / ROS2_METADATA).is_file():
+        storage = sorted(p.name for p in path.iterdir() if p.suffix.lower() in ROS2_STORAGE_SUFFIXES and p.is_file())
+        if storage:
+            raise DataError(f"{path}: looks like a ROS 2 bag ({', '.join(storage)}) but its {ROS2_METADATA} is "
+                            f"missing: a ROS 2 bag folder needs it (`ros2 bag reindex {path}` writes it again)")
+    elif path.is_file() and path.suffix.lower() in ROS2_STORAGE_SUFFIXES:
+        raise DataError(f"{path}: a ROS 2 bag's storage file: give the bag's folder (with its {ROS2_METADATA})")
 
 
 def _reader_errors() -> tuple[type[BaseException], ...]:
@@ -137,6 +151,7 @@ class RosbagDataset(Dataset):
     def __init__(self, root: Path, config: Optional[DatasetConfig] = None) -> None:
         super().__init__(root, config)
         config = self.config
+        check_ros2_bag_parts(self.root)
         self.name = self.root.stem if self.root.is_file() else self.root.name
         self._ros2 = not self.root.is_file()
         self._typestore = self._make_typestore()
