@@ -467,6 +467,32 @@ def test_cli_run_with_patch_frontend(small_root, tmp_path, capsys, cli_main):
     assert (out / PLOT_FILE).is_file()
 
 
+def test_cli_run_selects_frames_with_start_end_and_stride_as_localize_does(synth_root, tmp_path, capsys, cli_main,
+                                                                           monkeypatch):
+    """``fgslam run --start/--end/--stride``: the dataset.start/end/stride keys (over an -o of the same key),
+    defined once for run and localize (same help); a live capture still refuses --start."""
+    import fgslam.run.runner as runner
+    from fgslam.cli import build_parser
+
+    prepared = []
+    monkeypatch.setattr(runner, "run_prepared", lambda run, **kwargs: prepared.append(run))
+    base = ["run", "patch_mono", "--data", str(synth_root), "--no-progress"]
+    assert cli_main(base + ["--out", str(tmp_path / "a"), "--start", "2", "--end", "14", "--stride", "3",
+                            "-o", "dataset.end=5"]) == 0
+    ds = prepared[0].dataset
+    assert (ds.config.start, ds.config.end, ds.config.stride) == (2, 14, 3)
+    assert len(ds) == 4 and ds.timestamps[0] == ds.raw_timestamps[2]
+    assert cli_main(base + ["--out", str(tmp_path / "b"), "-o", "dataset.end=5"]) == 0
+    assert len(prepared[1].dataset) == 5  # without the options: the config's selection
+    helps = {}
+    for command in ("run", "localize"):
+        sub = next(a for a in build_parser()._actions if a.dest == "command").choices[command]
+        helps[command] = {a.dest: (a.help, a.metavar, a.default) for a in sub._actions if a.dest in ("start", "end", "stride")}
+    assert helps["run"] == helps["localize"] and len(helps["run"]) == 3
+    assert cli_main(["run", "patch_mono", "--data", "camera:0", "--out", str(tmp_path / "c"), "--start", "3"]) == 2
+    assert "dataset.start and dataset.stride do not apply to a live capture" in capsys.readouterr().err
+
+
 def test_run_error_is_fgslam_error():
     assert issubclass(RunError, FGSlamError)
     assert issubclass(DataError, FGSlamError)

@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from ..core.config import load_config
-from . import FORMAT_CHOICES, add_config_arguments
+from . import FORMAT_CHOICES, add_config_arguments, add_selection_arguments
 
 HELP = "localise a sequence in a stored map (pose per frame in the map's frame, or 'not localised')"
 
@@ -20,9 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the outputs of a previous run in --out (without it such a folder is an error)")
     parser.add_argument("--format", default="auto", choices=FORMAT_CHOICES, help="dataset loader (default: detect)")
-    parser.add_argument("--start", type=int, default=None, metavar="N", help="first raw frame index (default 0)")
-    parser.add_argument("--end", type=int, default=None, metavar="N", help="one past the last raw frame index")
-    parser.add_argument("--stride", type=int, default=1, metavar="N", help="every N-th frame (default 1)")
+    add_selection_arguments(parser)
     add_config_arguments(parser, "LocalizeConfig", "fgslam/configs/localize.yaml")
 
 

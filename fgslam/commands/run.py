@@ -13,7 +13,7 @@ import json
 from typing import TYPE_CHECKING
 
 from ..run.presets import run_presets
-from . import FORMAT_CHOICES
+from . import FORMAT_CHOICES, add_selection_arguments, selection_overrides
 
 if TYPE_CHECKING:  # the run's results pull torch: imported in run() only (fgslam --help stays fast)
     from ..io.live import LiveConfig
@@ -37,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replace the outputs of a previous run in --out (without it such a folder is an error) "
                              "and an existing --save-map file")
     parser.add_argument("--format", default="auto", choices=FORMAT_CHOICES, help="dataset loader (default: detect)")
+    add_selection_arguments(parser)  # dataset.start/end/stride, as fgslam localize's
     parser.add_argument("-o", "--override", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a SlamConfig field, e.g. -o sensor=rgbd -o dataset.end=100 (repeatable)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar or lines on stderr")
@@ -67,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     from ..run.config import load_slam_config  # deferred: fgslam --help stays fast
     from ..run.prepare import check_save_map_path, prepare_run  # deferred: as above
 
-    overrides = list(args.overrides)
+    overrides = list(args.overrides) + selection_overrides(args)  # --start/--end/--stride over -o dataset.*
     if args.save_map:
         check_save_map_path(args.save_map, args.out, args.map, args.overwrite)
         overrides.append(f"output.save_map={args.save_map}")

@@ -46,10 +46,10 @@ def _ate(positions: np.ndarray, gt: np.ndarray, A: np.ndarray) -> float:
 
 
 def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path, config: LocalizeConfig | None = None,
-                     fmt: str = "auto", start: int | None = None, end: int | None = None, stride: int = 1,
+                     fmt: str = "auto", start: int | None = None, end: int | None = None, stride: int | None = None,
                      prepare_out: Callable[[Path], object] | None = None) -> dict[str, Any]:
-    """Localise the sequence ``data`` (raw frames ``start`` .. ``end``, every ``stride``-th; the
-    other dataset settings, e.g. the image size, are the map run's, with ``config.dataset`` merged
+    """Localise the sequence ``data`` (raw frames ``start`` .. ``end``, every ``stride``-th; None: ``config.dataset``'s,
+    else the whole sequence; the other dataset settings, e.g. the image size, are the map run's, with ``config.dataset`` merged
     over them) in the map at ``map_path``; writes
     the outputs (module docstring) to ``out_dir`` and returns the summary. ``prepare_out(out_dir)``
     is called once the map, the sequence and their cameras are checked, before anything is written
@@ -61,12 +61,14 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     stored = load_stored_map(map_path)
     ds_dict = dict((stored.meta.get("config") or {}).get("dataset") or {})
     ds_dict.update(load_rgb=False, load_depth=False, load_right=False, load_imu=False, start=0, end=None,
-                   stride=int(stride))
+                   stride=1)
     ds_dict.update(config.dataset)  # the command's dataset section: e.g. a calibration or ground-truth file
     if start is not None:
         ds_dict["start"] = int(start)
     if end is not None:
         ds_dict["end"] = int(end)
+    if stride is not None:
+        ds_dict["stride"] = int(stride)
     dataset = open_dataset(data, fmt, from_dict(DatasetConfig, ds_dict, f"{map_path} (dataset settings)"))
     c = dataset.calibration
     check_map_camera(stored, c.K, c.width, c.height, map_path, data)
