@@ -869,6 +869,40 @@ def test_cli_refuses_a_run_whose_memory_estimate_exceeds_the_limit(synth_root, t
     assert len(open_slam_dataset(synth_root, _config(*sizes, "max_memory_gib=1024"))) == N_FRAMES
 
 
+def test_a_refused_run_leaves_no_output_folder_behind(synth_root, tmp_path, capsys, cli_main, monkeypatch):
+    """Missing data, an empty selection, a memory refusal, a frontend that cannot be built: the output folder
+    (and its missing parents) the refused run created is gone; a folder that existed stays, with its files."""
+    from fgslam.run.system import SlamSystem
+
+    new = tmp_path / "new" / "deeper" / "out"
+    refusals = {
+        "missing data": ((tmp_path / "nope",), "no such file or folder"),
+        "empty selection": ((synth_root, "--start", "100"), "empty selection"),
+        "memory": ((synth_root, "-o", "patch.graph.patches_per_frame=4096", "-o", "patch.graph.removal_window=200",
+                    "-o", "patch.graph.patch_lifetime=199"), "exceeds max_memory_gib"),
+    }
+    for why, ((data, *extra), message) in refusals.items():
+        assert _cli_run(cli_main, data, new, *extra) == 2, why
+        assert message in _one_error_line(capsys.readouterr().err), why
+        assert not (tmp_path / "new").exists(), why
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    assert _cli_run(cli_main, tmp_path / "nope", kept) == 2
+    assert kept.is_dir()  # the user's (empty) folder stays
+    (kept / "notes.txt").write_text("mine")
+    assert _cli_run(cli_main, synth_root, kept, "--start", "100") == 2
+    assert [p.name for p in kept.iterdir()] == ["notes.txt"]
+    capsys.readouterr()
+
+    def cannot_build(*args, **kwargs):
+        raise ConfigError("frontend 'patch' is not available (simulated)")
+
+    monkeypatch.setattr(SlamSystem, "build", cannot_build)
+    assert _cli_run(cli_main, synth_root, new) == 2
+    assert "not available (simulated)" in _one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "new").exists()
+
+
 def test_cli_rejects_a_border_larger_than_the_image(synth_root, tmp_path, capsys, cli_main, monkeypatch):
     from fgslam.frontends.patch.frontend import PatchFrontend
 

@@ -12,6 +12,10 @@ trusts:
   cannot write its outputs costs no loading;
 - :func:`prepare_opened`, for a dataset the caller has opened (:func:`fgslam.run.runner.run_slam`):
   it is checked against the config given here (the caller may have opened it for another).
+
+A refused run leaves no output folder behind: the folders its checks created (the output folder and
+any missing parent, :attr:`PreparedRun.created`) are removed again when a later check refuses the run,
+if they are still empty (``os.rmdir``: a folder that existed before, or holds anything, is never removed).
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 from ..core.config import check_ranges
 from ..core.errors import ConfigError, DataError
@@ -53,6 +57,8 @@ class PreparedRun:
     rerun: Optional[str] = None
     imu_warnings: list[str] = field(default_factory=list)
     live: Optional[LiveConfig] = None  # live mode: frames at their own pace, the oldest dropped when behind
+    created: tuple[Path, ...] = ()  # the folders the checks created for the outputs (deepest first): empty ones
+    # are removed again when the run is refused before it writes anything (remove_empty_folders)
 
 
 def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fmt: str = "auto",
@@ -71,16 +77,22 @@ def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fm
     check_capture_map(data, is_capture(data), config)
     if rerun:
         check_rerun_target(rerun)
-    out = prepare_output(out_dir, data, overwrite)
-    if config.output.extend_map:  # a missing or foreign map: refused before the dataset is opened
-        check_map_file(config.output.extend_map)
-    dataset = open_slam_dataset(data, config, fmt)
-    check_extended_map(dataset, config, data)
-    if isinstance(dataset, CaptureDataset):  # a capture is live: a device at its own pace, a file at its rate
-        live = live if live is not None else LiveConfig()
-        if not dataset.is_file:
-            live = LiveConfig(queue=live.queue, paced=False)
-    return PreparedRun(dataset, config, out, overwrite, rerun, check_imu_input(dataset, config), live)
+    created = missing_folders(out_dir)
+    try:
+        out = prepare_output(out_dir, data, overwrite)
+        if config.output.extend_map:  # a missing or foreign map: refused before the dataset is opened
+            check_map_file(config.output.extend_map)
+        dataset = open_slam_dataset(data, config, fmt)
+        check_extended_map(dataset, config, data)
+        if isinstance(dataset, CaptureDataset):  # a capture is live: a device at its own pace, a file at its rate
+            live = live if live is not None else LiveConfig()
+            if not dataset.is_file:
+                live = LiveConfig(queue=live.queue, paced=False)
+        return PreparedRun(dataset, config, out, overwrite, rerun, check_imu_input(dataset, config), live,
+                           tuple(created))
+    except BaseException:  # refused: no output folder left behind (only the empty ones created here)
+        remove_empty_folders(created)
+        raise
 
 
 def prepare_opened(dataset: Dataset, config: SlamConfig, out_dir: str | Path, *, overwrite: bool = False,
@@ -91,11 +103,17 @@ def prepare_opened(dataset: Dataset, config: SlamConfig, out_dir: str | Path, *,
     check_config(config)
     check_capture_map(dataset.root, isinstance(dataset, CaptureDataset), config)
     check_dataset(dataset, config)
-    out = prepare_output(out_dir, dataset.root, overwrite)
-    if rerun:
-        check_rerun_target(rerun)
-    check_extended_map(dataset, config, dataset.root)
-    return PreparedRun(dataset, config, out, overwrite, rerun, check_imu_input(dataset, config))
+    created = missing_folders(out_dir)
+    try:
+        out = prepare_output(out_dir, dataset.root, overwrite)
+        if rerun:
+            check_rerun_target(rerun)
+        check_extended_map(dataset, config, dataset.root)
+        return PreparedRun(dataset, config, out, overwrite, rerun, check_imu_input(dataset, config),
+                           created=tuple(created))
+    except BaseException:  # refused: no output folder left behind (only the empty ones created here)
+        remove_empty_folders(created)
+        raise
 
 
 def check_extended_map(dataset: Dataset, config: SlamConfig, data: str | Path) -> None:
@@ -228,6 +246,27 @@ def prepare_output_dir(out_dir: str | Path, data: str | Path | None = None) -> P
     except OSError as exc:
         raise DataError(f"{out}: the output folder is not writable: {exc.strerror or exc}") from exc
     return out
+
+
+def missing_folders(path: str | Path) -> list[Path]:
+    """``path`` and those of its parents that do not exist yet, deepest first: the folders that creating
+    ``path`` makes."""
+    folder, missing = Path(path).absolute(), []
+    while not folder.exists() and not folder.is_symlink() and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    return missing
+
+
+def remove_empty_folders(folders: Sequence[Path]) -> None:
+    """Remove ``folders`` (deepest first: those a refused run created, :func:`missing_folders`) that are
+    still empty; ``os.rmdir`` never removes a folder holding anything, which then stays."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty, or already gone: left as it is
+            continue
+        logger.debug("removed the output folder %s created by the refused run", folder)
 
 
 def check_save_map_path(save_map: str | Path, out_dir: str | Path, extend_map: str | Path | None,

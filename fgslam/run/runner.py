@@ -76,7 +76,7 @@ from .config import SlamConfig
 from .mapstore import store_map
 from .outputs import (OutputWriter, write_keyframe_depths, write_map, write_plot, write_points, write_summary,
                       write_trajectories)
-from .prepare import PreparedRun, prepare_opened, remove_previous_outputs
+from .prepare import PreparedRun, prepare_opened, remove_empty_folders, remove_previous_outputs
 from .results import ErrorAt, RunSummary, collect_results, outputs_text, summarize
 from .session import Slam
 from .signals import StopOnSignal
@@ -203,9 +203,13 @@ def run_prepared(run: PreparedRun, progress: bool = True, frontend: Optional[Fro
     if run.overwrite:
         remove_previous_outputs(out)  # a previous run's outputs go before the run starts
     # the per-frame path of a script (fgslam.Slam): the same object, fed the dataset's frames
-    slam = Slam(config, dataset.calibration, frontend=frontend, timestamps=dataset.timestamps,
-                has_imu=dataset.has_imu, imu_noise=dataset.imu_noise, where=str(dataset.root), rerun=run.rerun,
-                keep_frames=False)
+    try:
+        slam = Slam(config, dataset.calibration, frontend=frontend, timestamps=dataset.timestamps,
+                    has_imu=dataset.has_imu, imu_noise=dataset.imu_noise, where=str(dataset.root), rerun=run.rerun,
+                    keep_frames=False)
+    except BaseException:  # refused before any output (e.g. a frontend that cannot be built): no folder left behind
+        remove_empty_folders(run.created)
+        raise
     slam.system.imu_input_warnings = list(run.imu_warnings)
     state = slam.state
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop
