@@ -709,3 +709,26 @@ def test_unknown_layout_lists_the_bag_layout_among_those_tried(tmp_path):
     (tmp_path / "empty" / "rec_0.db3").write_bytes(b"")  # a ROS 2 bag's storage without its metadata.yaml
     with pytest.raises(DataError, match=r"looks like a ROS 2 bag \(rec_0.db3\) but its metadata.yaml is missing"):
         open_dataset(tmp_path / "empty")
+
+
+def test_calibration_messages_give_the_exact_override(tmp_path, capsys):
+    """A missing or unusable calibration names the override to give, -o dataset.calibration_file=PATH, which
+    fgslam info takes as fgslam run does."""
+    from types import SimpleNamespace
+
+    from fgslam.cli import main
+    from fgslam.io.datasets.ros_messages import calibration_from_camera_info
+
+    write_folder(tmp_path / "f", n=3)
+    calib = tmp_path / "cam.yaml"
+    (tmp_path / "f" / "calibration.yaml").rename(calib)
+    with pytest.raises(DataError, match=r"missing calibration YAML .*or give one with -o dataset\.calibration_file=PATH\)$"):
+        open_dataset(tmp_path / "f")
+    assert main(["info", str(tmp_path / "f"), "-o", f"dataset.calibration_file={calib}"]) == 0
+    assert "resolution:   64x48" in capsys.readouterr().out
+    info = SimpleNamespace(distortion_model="fisheye62", D=[0.1, 0.0, 0.0, 0.0], K=[40, 0, 32, 0, 40, 24, 0, 0, 1])
+    with pytest.raises(DataError, match=r"give a calibration YAML with -o dataset\.calibration_file=PATH$"):
+        calibration_from_camera_info(info, "/cam/camera_info")
+    info = SimpleNamespace(distortion_model="plumb_bob", D=[0.0] * 5, K=[0.0] * 9)
+    with pytest.raises(DataError, match=r"give a calibration YAML with -o dataset\.calibration_file=PATH$"):
+        calibration_from_camera_info(info, "/cam/camera_info")

@@ -9,6 +9,10 @@ from ..core.config import load_config
 from ..io.datasets import DatasetConfig, open_dataset
 from . import FORMAT_CHOICES, add_config_arguments
 
+#: ``-o dataset.KEY=VALUE``, the spelling of ``fgslam run`` and ``localize`` (and of the loaders' messages), is
+#: ``-o KEY=VALUE`` of this command's DatasetConfig too
+DATASET_PREFIX = "dataset."
+
 HELP = "describe a dataset folder, video or ROS bag: format, frames, resolution, rate, stereo/depth/IMU/ground truth"
 
 
@@ -20,7 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
 
-    config = load_config(DatasetConfig, args.config, args.overrides)
+    overrides = [o[len(DATASET_PREFIX):] if o.startswith(DATASET_PREFIX) else o for o in args.overrides]
+    config = load_config(DatasetConfig, args.config, overrides)
     ds = open_dataset(args.path, args.format, config)
     ds.check_readable()  # images that cannot be read are said so, not described from the calibration
     info = ds.summary()

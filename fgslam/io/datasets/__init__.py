@@ -2,8 +2,8 @@
 7-Scenes, image folders, videos and ROS 1 / ROS 2 bags.  ``open_dataset`` picks the loader from the folder layout.
 
 Detection order (``fmt="auto"``): ``camera:SPEC`` -> ``camera`` (a live OpenCV capture); a ``.bag`` file or a folder with ``metadata.yaml`` -> ``rosbag``
-(ROS 1 / ROS 2; a folder of ``*.db3`` / ``*.mcap`` files without ``metadata.yaml``: DataError naming it); a file with a video extension -> ``video``; ``dso/camchain.yaml`` with
-``mav0/cam0`` -> ``tumvi``; ``mav0/cam0`` or
+(ROS 1 / ROS 2; a folder of ``*.db3`` / ``*.mcap`` files without ``metadata.yaml``: DataError naming it);
+a file with a video extension -> ``video``; ``dso/camchain.yaml`` with ``mav0/cam0`` -> ``tumvi``; ``mav0/cam0`` or
 ``cam0/data.csv`` -> ``euroc``; ``image_0/`` + ``calib.txt`` -> ``kitti``; ``image_left/`` ->
 ``tartanair``; ``rgb.txt`` -> ``tum``; ``seq-NN/frame-*.color.*`` (or such frames directly) ->
 ``7scenes``; a folder with images -> ``folder``.

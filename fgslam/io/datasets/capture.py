@@ -23,7 +23,7 @@ import numpy as np
 from ...core.config import MS_PER_S
 from ...core.errors import ConfigError, DataError
 from ..calibration import Calibration
-from .common import Dataset, DatasetConfig, RawFrame
+from .common import CALIBRATION_OVERRIDE, Dataset, DatasetConfig, RawFrame
 from .files import require_file
 
 PREFIX = "camera:"
@@ -54,7 +54,7 @@ class CaptureDataset(Dataset):
             raise ConfigError(f"{root}: dataset.start and dataset.stride do not apply to a live capture "
                               "(it cannot skip ahead); use dataset.end to stop after N frames")
         if not config.calibration_file:
-            raise ConfigError(f"{root}: a live capture needs its calibration: -o dataset.calibration_file=PATH "
+            raise ConfigError(f"{root}: a live capture needs its calibration: {CALIBRATION_OVERRIDE} "
                               "(a calibration YAML: width, height, intrinsics, distortion)")
         path = require_file(Path(config.calibration_file), "calibration YAML")
         calib = Calibration.from_yaml(path)

@@ -48,6 +48,8 @@ NS_PER_S = 1_000_000_000  # nanoseconds per second (EuRoC timestamps are integer
 #: frames tried, spread over the selection, before a dataset whose first frame is unreadable is said to
 #: have no readable image (:meth:`Dataset.check_readable`)
 READABLE_PROBE_FRAMES = 5
+#: how a message tells the user to give a calibration YAML (the override of ``fgslam run``, ``localize`` and ``info``)
+CALIBRATION_OVERRIDE = "-o dataset.calibration_file=PATH"
 
 
 @dataclass

@@ -21,7 +21,7 @@ import numpy as np
 from ...core.errors import DataError
 from ..calibration import Calibration, read_yaml_file
 from ..frame import FrameReadError
-from .common import Dataset, DatasetConfig, RawFrame
+from .common import CALIBRATION_OVERRIDE, Dataset, DatasetConfig, RawFrame
 from .files import read_image, read_times, require_dir, require_file
 from .kitti import list_images
 
@@ -36,7 +36,7 @@ def _calibration(candidates: list[Path], config: DatasetConfig, where: Path) -> 
         path = next((c for c in candidates if c.is_file()), None)
         if path is None:
             raise DataError(f"{where}: missing calibration YAML (looked for {', '.join(c.name for c in candidates)}; "
-                            "or set calibration_file)")
+                            f"or give one with {CALIBRATION_OVERRIDE})")
     data = read_yaml_file(path)
     rate = data.get("rate_hz")
     if rate is not None and (not isinstance(rate, (int, float)) or rate <= 0):

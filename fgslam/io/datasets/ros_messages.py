@@ -17,6 +17,7 @@ import numpy as np
 from ...core.errors import DataError
 from ..calibration import Calibration
 from ..frame import FrameReadError
+from .common import CALIBRATION_OVERRIDE
 from .files import truncation_reason
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -130,16 +131,17 @@ def calibration_from_camera_info(msg: Any, topic: str) -> Calibration:
     K = np.asarray(msg.K if hasattr(msg, "K") else msg.k, dtype=np.float64).reshape(-1)
     if model is None and not (D.size == 0 or not np.any(D)):
         raise DataError(f"{topic}: CameraInfo distortion_model {msg.distortion_model!r} not supported "
-                        f"(plumb_bob, rational_polynomial, equidistant); give dataset.calibration_file")
+                        "(plumb_bob, rational_polynomial, equidistant); give a calibration YAML with "
+                        f"{CALIBRATION_OVERRIDE}")
     if K.size != 9 or K[0] <= 0 or K[4] <= 0:
         raise DataError(f"{topic}: CameraInfo K is not a calibrated camera matrix ({K.tolist()}); "
-                        "give dataset.calibration_file")
+                        f"give a calibration YAML with {CALIBRATION_OVERRIDE}")
     if not np.any(D):
         model, D = "none", np.zeros(0)
     elif model == "radtan":
         if D.size > RADTAN_BASE and np.any(D[RADTAN_BASE:]):
             raise DataError(f"{topic}: rational_polynomial with non-zero k4..k6 ({D.tolist()}) is not supported; "
-                            "give dataset.calibration_file")
+                            f"give a calibration YAML with {CALIBRATION_OVERRIDE}")
         D = D[:RADTAN_BASE]
         if D.size == RADTAN_BASE and D[4] == 0:  # plumb_bob with k3 = 0 is the 4-coefficient model
             D = D[:4]

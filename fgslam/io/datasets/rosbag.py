@@ -46,7 +46,7 @@ import numpy as np
 from ...core.errors import ConfigError, DataError
 from ..calibration import Calibration
 from ..frame import FrameReadError, FrameSizeError, ImuSamples
-from .common import Dataset, DatasetConfig, RawFrame, ns_to_seconds
+from .common import CALIBRATION_OVERRIDE, Dataset, DatasetConfig, RawFrame, ns_to_seconds
 from .ros_messages import (CAMERA_INFO, COMPRESSED, DEPTH_ENCODINGS, IMAGE, IMU, calibration_from_camera_info,
                            camera_info_rectification, header_stamp_ns, image_from_message, imu_from_raw)
 
@@ -389,8 +389,8 @@ class RosbagDataset(Dataset):
             info_topic = self._info_topic("left")
             if info_topic is None:
                 raise DataError(f"{self.root}: no CameraInfo topic for {self.roles['left']} (looked in its namespace "
-                                f"{PurePosixPath(self.roles['left']).parent}); set dataset.topics.left_info or give "
-                                "a calibration YAML with dataset.calibration_file")
+                                f"{PurePosixPath(self.roles['left']).parent}); choose it with -o dataset.topics.left_info=TOPIC "
+                                f"or give a calibration YAML with {CALIBRATION_OVERRIDE}")
             with self._guard("cannot read the CameraInfo", info_topic):
                 left_msg = self._first_message(self._open_reader(), info_topic)
             calib = calibration_from_camera_info(left_msg, info_topic)
@@ -398,15 +398,16 @@ class RosbagDataset(Dataset):
             if "right" in self.roles:
                 right_topic = self._info_topic("right")
                 if right_topic is None:
-                    raise DataError(f"{self.root}: no CameraInfo topic for the right images {self.roles['right']}; set "
-                                    "dataset.topics.right_info or give dataset.calibration_file")
+                    raise DataError(f"{self.root}: no CameraInfo topic for the right images {self.roles['right']}; choose "
+                                    "it with -o dataset.topics.right_info=TOPIC or give a calibration YAML with "
+                                    f"{CALIBRATION_OVERRIDE}")
                 with self._guard("cannot read the CameraInfo", right_topic):
                     right_msg = self._first_message(self._open_reader(), right_topic)
                 calib.right = calibration_from_camera_info(right_msg, right_topic)
                 (R1, P1), (R2, P2) = camera_info_rectification(left_msg), camera_info_rectification(right_msg)
                 if P2[0, 0] <= 0 or P2[0, 3] == 0:
                     raise DataError(f"{right_topic}: CameraInfo P has no baseline (P[0,3] = {P2[0, 3]}); a stereo pair "
-                                    "needs rectified camera_infos or dataset.calibration_file")
+                                    f"needs rectified camera_infos or a calibration YAML ({CALIBRATION_OVERRIDE})")
                 baseline = -P2[0, 3] / P2[0, 0]
                 T_CLCR = np.eye(4)  # X_CL = R1^T (R2 X_CR + [b, 0, 0])
                 T_CLCR[:3, :3] = R1.T @ R2
