@@ -732,3 +732,15 @@ def test_calibration_messages_give_the_exact_override(tmp_path, capsys):
     info = SimpleNamespace(distortion_model="plumb_bob", D=[0.0] * 5, K=[0.0] * 9)
     with pytest.raises(DataError, match=r"give a calibration YAML with -o dataset\.calibration_file=PATH$"):
         calibration_from_camera_info(info, "/cam/camera_info")
+
+
+def test_a_non_finite_imu_value_names_its_line_in_the_file(tmp_path):
+    """The line number counts the header and comment lines (the file's own line, not the data row)."""
+    write_euroc(tmp_path / "seq", n=3)
+    csv = tmp_path / "seq" / "mav0" / "imu0" / "data.csv"
+    lines = csv.read_text().splitlines()
+    lines.insert(3, "# a comment line")
+    lines[6] = lines[6].rsplit(",", 1)[0] + ",nan"  # line 7 of the file, data row 5 (0-based 4)
+    csv.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=re.escape(f"{csv}:7: non-finite IMU value (")):
+        open_dataset(tmp_path / "seq")

@@ -248,5 +248,7 @@ def _read_imu(csv: Path) -> ImuSamples:
     check_increasing(csv, ts, lines, "IMU timestamp")
     vals = np.asarray(values, dtype=np.float64).reshape(-1, 6)
     if not np.all(np.isfinite(vals)):
-        raise DataError(f"{csv}: non-finite IMU value at row {int(np.flatnonzero(~np.isfinite(vals).all(1))[0])}")
+        row = int(np.flatnonzero(~np.isfinite(vals).all(1))[0])
+        raise DataError(f"{csv}:{lines[row]}: non-finite IMU value ({', '.join(f'{v:g}' for v in vals[row])}); "
+                        "IMU values must be finite numbers")
     return ImuSamples(ns_to_seconds(ts), vals[:, :3].copy(), vals[:, 3:].copy())
