@@ -437,6 +437,17 @@ def test_cli_tum_vs_euroc_with_overrides(run_cli, tmp_path, capsys):
     assert out["config"]["max_time_diff"] == 0.001
 
 
+def test_cli_header_names_the_path_length_of_the_matched_ground_truth(run_cli, tmp_path, capsys):
+    """The estimate covers the first half of a 20 m straight line: the length printed (9 m between the
+    first and the tenth pose) is the ground truth's over the matched poses, and the header says so."""
+    gt = straight_line(20)
+    write_trajectory(tmp_path / "gt.txt", gt, "tum")
+    write_trajectory(tmp_path / "est.txt", gt.subset(np.arange(10)), "tum")
+    assert run_cli([str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--format", "tum"]) == 0
+    header = capsys.readouterr().out.splitlines()[0]
+    assert header == f"ground truth: {tmp_path / 'gt.txt'} (20 poses; path length over the 10 matched poses 9.00 m)"
+
+
 def test_cli_errors_exit_2(run_cli, tmp_path, capsys):
     gt = straight_line(10)
     write_trajectory(tmp_path / "gt.txt", gt, "kitti")

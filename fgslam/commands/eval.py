@@ -107,7 +107,8 @@ def _stats_line(label: str, stats) -> str:
 
 def _format_text(result, args: argparse.Namespace, plot_written: bool) -> str:
     lines = [
-        f"ground truth: {args.gt} ({result.n_gt} poses, path {result.gt_path_length_m:.2f} m)",
+        f"ground truth: {args.gt} ({result.n_gt} poses; path length over the {result.n_matched} matched poses "
+        f"{result.gt_path_length_m:.2f} m)",
         f"estimate:     {args.est} ({result.n_est} poses), matched {result.n_matched}",
         f"alignment:    {result.align}, scale {result.alignment.s:.4f}",
         _stats_line("ATE trans [m]", result.ate),

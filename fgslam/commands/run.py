@@ -152,7 +152,8 @@ def format_report(s: dict) -> str:
     ev = s["evaluation"]
     if ev is not None:
         pct = ev["ate_percent_of_path"]
-        pct_txt = f" = {pct:.2f}% of the {ev['gt_path_length_m']:.2f} m path" if pct is not None else ""
+        pct_txt = (f" = {pct:.2f}% of the {ev['gt_path_length_m']:.2f} m ground-truth path over the matched poses"
+                   if pct is not None else "")
         lines.append(f"  ATE:        {ev['ate_rmse_m']:.4f} m RMSE ({ev['align']} alignment, scale {ev['scale']:.4f}, "
                      f"{ev['n_matched']} poses){pct_txt}")
     else:
