@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -49,3 +50,44 @@ def test_console_script_entry_point_runs():
 
 def test_parser_builds():
     assert build_parser().prog == "fgslam"
+
+
+#: every command that reads a YAML config file the user names, and how it is named
+_CONFIG_COMMANDS = {
+    "run": lambda bad, d: ["run", bad, "--data", d, "--out", f"{d}/out"],
+    "localize": lambda bad, d: ["localize", f"{d}/map.fgmap", "--data", d, "--out", f"{d}/out", "--config", bad],
+    "batch": lambda bad, d: ["batch", bad, "--sequential"],
+    "eval": lambda bad, d: ["eval", f"{d}/gt.txt", f"{d}/est.txt", "--format", "tum", "--config", bad],
+    "info": lambda bad, d: ["info", d, "--config", bad],
+    "pgo": lambda bad, d: ["pgo", f"{d}/graph.g2o", "--config", bad],
+    "synth": lambda bad, d: ["synth", "--out", f"{d}/out", "--config", bad],
+    "demo": lambda bad, d: ["demo", "--out", f"{d}/out", "--config", bad],
+    "compare-colmap": lambda bad, d: ["compare-colmap", "--data", d, "--out", f"{d}/out", "--preset", bad],
+}
+
+
+def _image_folder(root: Path) -> Path:
+    """Three textured frames with their calibration.yaml (a dataset that opens)."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        cv2.imwrite(str(root / f"{i:04d}.png"), (rng.random((48, 64)) * 255).astype(np.uint8))
+    (root / "calibration.yaml").write_text("width: 64\nheight: 48\nintrinsics: [50, 50, 32, 24]\n")
+    return root
+
+
+@pytest.mark.parametrize("command", sorted(_CONFIG_COMMANDS))
+def test_a_binary_config_file_is_one_line_naming_it(command, tmp_path, capsys):
+    """A binary file given as the config (``fgslam run /bin/ls ...``): the config errors' exit status and
+    one line naming the file, not a UnicodeDecodeError traceback."""
+    bad = tmp_path / "config.bin"
+    bad.write_bytes(b"\x7fELF\x02\x01\x01\x00" + bytes(range(256)) * 4)
+    data = tmp_path / "data"
+    data.mkdir()
+    _image_folder(data)
+    assert main(_CONFIG_COMMANDS[command](str(bad), str(data))) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "UnicodeDecodeError" not in err
+    assert err.strip().splitlines()[-1].startswith(f"fgslam: error: {bad}: not a UTF-8 YAML text file"), err

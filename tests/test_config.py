@@ -118,6 +118,16 @@ def test_bad_yaml_names_file_and_line(tmp_path):
         load_config(RootConfig, path)
 
 
+def test_binary_file_is_named_not_a_yaml_text_file(tmp_path):
+    """A binary file (an executable, random bytes) given as a config: one ConfigError naming the file,
+    no UnicodeDecodeError."""
+    path = tmp_path / "ls"
+    path.write_bytes(b"\x7fELF\x02\x01\x01\x00" + bytes(range(256)) * 4)
+    with pytest.raises(ConfigError) as info:
+        load_config(RootConfig, path)
+    assert str(info.value).startswith(f"{path}: not a UTF-8 YAML text file") and "\n" not in str(info.value)
+
+
 def test_missing_file_and_non_mapping(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_config(RootConfig, tmp_path / "missing.yaml")
@@ -202,6 +212,7 @@ EXTRA_CONFIG_CLASSES = (
     "fgslam.services.plugins:PlanarMotionOptions",
     "fgslam.export.colmap:ColmapExportConfig",
     "fgslam.export.compare:CompareConfig",
+    "fgslam.export.ply:PlyExportConfig",
     "fgslam.run.batch:BatchMatrix",
     "fgslam.run.batch:BatchOptions",
     "fgslam.frontends.pointmap.mix:PointmapMixOptions",

@@ -355,12 +355,19 @@ def yaml_error_text(exc: Exception, source: str) -> str:
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping; errors name the file (and the line for syntax errors)."""
+    """Read a YAML mapping from a UTF-8 text file; errors name the file (and the line for syntax errors;
+    a binary or otherwise non-UTF-8 file is said to be one)."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text())
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:  # a binary file (an executable, an image, random bytes) given as a config
+        raise ConfigError(f"{path}: not a UTF-8 YAML text file (byte {exc.start}: {exc.reason})") from exc
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the config file: {exc.strerror or exc}") from exc
+    try:
+        data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(yaml_error_text(exc, str(path))) from exc
     if data is None:
