@@ -23,6 +23,7 @@ import numpy as np
 
 from ..core.errors import DataError
 from ..core.mapdata import MapExport
+from .mapfile import DAMAGED_ARCHIVE_ERRORS, check_map_file, damaged_map_error
 
 MAP_FILE = "map.npz"
 MAP_FORMAT_VERSION = 1
@@ -93,20 +94,23 @@ def load_run_map(path: str | Path) -> RunMap:
     """Read a ``map.npz`` written by :func:`save_run_map`.
 
     Raises:
-        DataError: missing, unreadable, of another format version, or lacking an array (named).
+        DataError: missing, not an npz archive, truncated or damaged (the checks and messages of a stored
+            map, :func:`fgslam.export.mapfile.check_map_file`), of another format version, or lacking an
+            array (named).
     """
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no saved map (runs save {MAP_FILE} since fgslam exports maps; "
                         "rerun the sequence with this version)")
+    check_map_file(path)
     try:
         with np.load(path, allow_pickle=False) as z:
             missing = [k for k in _KEYS if k not in z.files]
             if missing:
                 raise DataError(f"{path}: not a fgslam map (missing {', '.join(missing)})")
             d = {k: z[k] for k in _KEYS}
-    except (OSError, ValueError) as exc:
-        raise DataError(f"{path}: cannot read the map: {exc}") from exc
+    except DAMAGED_ARCHIVE_ERRORS as exc:
+        raise damaged_map_error(path, exc) from exc
     if int(d["version"]) != MAP_FORMAT_VERSION:
         raise DataError(f"{path}: map format version {int(d['version'])}, this fgslam reads {MAP_FORMAT_VERSION}")
     m = MapExport(d["kf_ids"], d["kf_timestamps"], d["T_WC"], d["X_W"], d["colour"],

@@ -261,6 +261,17 @@ def check_map_file(path: str | Path) -> Path:
     return path
 
 
+#: what numpy and zipfile raise reading a damaged npz archive whose zip directory is whole (a truncated
+#: or corrupted entry, a bad header)
+DAMAGED_ARCHIVE_ERRORS = (OSError, ValueError, EOFError, KeyError, UnicodeDecodeError, zipfile.BadZipFile)
+
+
+def damaged_map_error(path: str | Path, exc: BaseException) -> MapFileError:
+    """The error of a map file (a stored map, a run's ``map.npz``) that reading failed on with ``exc``,
+    one of :data:`DAMAGED_ARCHIVE_ERRORS`."""
+    return MapFileError(f"{path}: truncated or damaged map file ({type(exc).__name__}: {exc})")
+
+
 def load_stored_map(path: str | Path) -> StoredMap:
     """Read a map written by :func:`save_stored_map` (:class:`MapFileError` on bad input)."""
     path = check_map_file(path)
@@ -287,8 +298,8 @@ def load_stored_map(path: str | Path) -> StoredMap:
                 arrays[name] = arr
     except MapFileError:
         raise
-    except (OSError, ValueError, EOFError, KeyError, UnicodeDecodeError, zipfile.BadZipFile) as exc:
-        raise MapFileError(f"{path}: truncated or damaged map file ({type(exc).__name__}: {exc})") from exc
+    except DAMAGED_ARCHIVE_ERRORS as exc:
+        raise damaged_map_error(path, exc) from exc
     try:
         stored = StoredMap(meta, **arrays)
     except ValueError as exc:
