@@ -48,8 +48,11 @@ def _check_rows(rows):
 
 def test_sequential_batch_records_the_failing_cell_and_reruns_skip_finished(tmp_path, clip, capsys):
     path = _matrix(tmp_path, clip)
-    assert main(["-q", "batch", str(path), "--sequential", "--json"]) == 0
-    result = json.loads(capsys.readouterr().out)
+    # 2 of 4 cells fail: exit status 1 (documented: fgslam batch --help), every table and the cells that worked written
+    assert main(["-q", "batch", str(path), "--sequential", "--json"]) == 1
+    captured = capsys.readouterr()
+    assert "2 of 4 cells failed" in captured.err
+    result = json.loads(captured.out)
     _check_rows(result["cells"])
     assert result["facts"]["engine"] == "sequential" and result["facts"]["run"] == 4
     out = tmp_path / "matrix"

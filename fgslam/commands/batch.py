@@ -1,6 +1,10 @@
 """``fgslam batch MATRIX.yaml``: a matrix of configs x datasets, one run per cell (on Ray when it is
 installed: a local instance, or ``--address`` of a cluster), one table of ATE and frames/s
-(``batch.json``, ``batch.csv``, ``batch.md``; see :mod:`fgslam.run.batch`)."""
+(``batch.json``, ``batch.csv``, ``batch.md``; see :mod:`fgslam.run.batch`).
+
+Exit status: 0 when every cell gave a result, :data:`EXIT_CELLS_FAILED` (1) when some cell failed (the
+tables, with every cell that worked and each failed cell's error, are written all the same), 2 when the
+batch itself was refused (a bad matrix, an unreachable Ray cluster), 130/143 when interrupted."""
 
 from __future__ import annotations
 
@@ -14,15 +18,20 @@ from typing import Any
 
 from tqdm import tqdm
 
-from ..run.batch import BatchOptions, load_matrix, markdown_table, run_batch
+from ..run.batch import BATCH_MD, BatchOptions, load_matrix, markdown_table, run_batch
 from ..core.config import check_ranges
 
 HELP = "run a matrix of configs x datasets (on Ray when installed) and collect one summary table"
 
 logger = logging.getLogger("fgslam.run.batch")
 
+#: exit status of a batch that ran but in which some cell failed (scripts and CI can tell; the tables are written)
+EXIT_CELLS_FAILED = 1
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = (f"exit status: 0 every cell gave a result, {EXIT_CELLS_FAILED} some cell failed (the tables are "
+                     "written all the same), 2 the batch was refused")
     parser.add_argument("matrix", metavar="MATRIX.yaml", help="matrix file (configs, datasets, overrides, cpus, out)")
     parser.add_argument("--out", default=None, metavar="DIR", help="output folder (default: the matrix's `out`, "
                         "else beside the matrix file, named after it)")
@@ -70,4 +79,8 @@ def run(args: argparse.Namespace) -> int:
         print(markdown_table(rows))
         print(f"\n{len(rows)} cells ({facts['skipped']} finished before, {failed} failed) on {facts['engine']} "
               f"in {facts['wall_s']:.1f} s; tables in {out}/batch.md, batch.csv, batch.json")
+    if failed:
+        logger.error("%d of %d cells failed (errors in %s); exit status %d", failed, len(rows), out / BATCH_MD,
+                     EXIT_CELLS_FAILED)
+        return EXIT_CELLS_FAILED
     return 0
