@@ -10,9 +10,12 @@ import numpy as np
 import pytest
 
 from fgslam.cli import main
+from fgslam.core.mapdata import MapExport
 from fgslam.export.colmap import read_colmap_model, reprojection_errors
-from fgslam.export.map import load_run_map
+from fgslam.export.map import RunMap, load_run_map, save_run_map
+from fgslam.export.mapfile import check_map_file
 from fgslam.export.ply import read_ply
+from fgslam.core.errors import DataError
 
 FRAMES = 40
 
@@ -69,10 +72,17 @@ def test_export_all_frames_and_ply(run_dir, tmp_path, capsys):
     summary = json.loads((run_dir / "summary.json").read_text())
     assert len(model.names) == summary["frames_with_pose"]
     assert not (out / "images").exists()
+    from fgslam.core.mapdata import points_near_cameras
+    from fgslam.export.ply import PlyExportConfig
+
     capsys.readouterr()
+    m = load_run_map(run_dir / "map.npz").map
     assert main(["export", str(run_dir), "--ply", str(tmp_path / "map.ply")]) == 0
-    X, colour = read_ply(tmp_path / "map.ply")
-    np.testing.assert_allclose(X, load_run_map(run_dir / "map.npz").map.X_W.astype(np.float32))
+    X, colour = read_ply(tmp_path / "map.ply")  # without the far points (PlyExportConfig.max_point_range_factor)
+    near, _ = points_near_cameras(m.X_W, m.T_WC[:, :3, 3], PlyExportConfig().max_point_range_factor)
+    np.testing.assert_allclose(X, m.X_W[near].astype(np.float32))
+    assert main(["export", str(run_dir), "--ply", str(tmp_path / "all.ply"), "--max-point-range", "0"]) == 0
+    np.testing.assert_allclose(read_ply(tmp_path / "all.ply")[0], m.X_W.astype(np.float32))
 
 
 def test_existing_output_refused_unless_overwrite(run_dir, tmp_path, capsys):
@@ -94,3 +104,117 @@ def test_run_folder_without_map(run_dir, tmp_path, capsys):
     assert err.startswith("fgslam: error: ") and "has no map (map.npz)" in err and err.count("\n") == 1
     assert main(["export", str(tmp_path), "--ply", str(tmp_path / "x.ply")]) == 2
     assert "not a run folder" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ bad inputs on a synthetic run folder
+
+
+FAR_M = 1e6  # a point at near-zero inverse depth: this far from the cameras (a few metres apart)
+
+
+def _error_line(err: str) -> str:
+    """The one ``fgslam: error: ...`` line of a failed command (no traceback)."""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("fgslam: error: "), err
+    return lines[0]
+
+
+def _synthetic_run(root: Path, dataset: Path, far_point: bool = False) -> Path:
+    """A run folder (summary.json, map.npz) of the exact synthetic map of tests/test_colmap_export.py whose
+    dataset was at ``dataset``; with ``far_point`` one more point ``FAR_M`` in front of the cameras."""
+    from test_colmap_export import synthetic_run_map
+
+    run_map = synthetic_run_map()
+    if far_point:
+        m = run_map.map
+        m = MapExport(m.kf_ids, m.kf_timestamps, m.T_WC, np.vstack([m.X_W, [0.0, 0.0, FAR_M]]),
+                      np.vstack([m.colour, [255, 0, 0]]), m.track_point, m.track_kf, m.track_uv)
+        run_map = RunMap(m, run_map.intrinsics, run_map.width, run_map.height, run_map.frame_timestamps,
+                         run_map.frame_indices, run_map.frame_paths, run_map.sensor)
+    root.mkdir(parents=True)
+    save_run_map(root / "map.npz", run_map)
+    (root / "summary.json").write_text(json.dumps({
+        "frames_with_pose": int(run_map.frame_indices.size), "error": None, "notes": [], "output_errors": {},
+        "dataset": {"path": str(dataset), "format": "folder"}, "config": {"output": {"write_map": True}}}))
+    return root
+
+
+def test_truncated_map_is_the_stored_maps_one_line_error(tmp_path, capsys):
+    """A truncated map.npz: the error of a truncated stored map (fgslam localize's check), no BadZipFile."""
+    run = _synthetic_run(tmp_path / "run", tmp_path / "data")
+    data = (run / "map.npz").read_bytes()
+    (run / "map.npz").write_bytes(data[: len(data) // 2])
+    with pytest.raises(DataError) as info:
+        check_map_file(run / "map.npz")  # the one check, as `fgslam localize` and `fgslam run --map` make it
+    for target in (["--colmap", str(tmp_path / "colmap"), "--no-images"], ["--ply", str(tmp_path / "map.ply")]):
+        assert main(["export", str(run), *target]) == 2
+        line = _error_line(capsys.readouterr().err)
+        assert line == f"fgslam: error: {info.value}" and "truncated or damaged map file" in line
+    assert not (tmp_path / "colmap").exists() and not (tmp_path / "map.ply").exists()
+
+
+def test_failed_colmap_export_leaves_nothing_and_the_advised_retry_works(tmp_path, capsys):
+    """The dataset moved: the export with images fails and leaves no sparse/0 behind, so the retry with
+    --no-images that its error advises is not refused as an existing output; a failed --overwrite keeps
+    the model written before."""
+    run = _synthetic_run(tmp_path / "run", tmp_path / "moved_away")
+    out = tmp_path / "colmap"
+    assert main(["export", str(run), "--colmap", str(out)]) == 2
+    line = _error_line(capsys.readouterr().err)
+    assert "not there any more; export with --no-images" in line
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # no temporary folder left
+    assert main(["export", str(run), "--colmap", str(out), "--no-images"]) == 0
+    assert len(read_colmap_model(out).names) == 8 and not (out / "images").exists()
+    before = {p.name: p.read_bytes() for p in (out / "sparse" / "0").iterdir()}
+    assert main(["export", str(run), "--colmap", str(out), "--overwrite"]) == 2
+    assert "not there any more" in _error_line(capsys.readouterr().err)
+    assert {p.name: p.read_bytes() for p in (out / "sparse" / "0").iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["colmap", "run"]
+
+
+def test_export_of_a_run_without_pose_gives_the_runs_reason(tmp_path, capsys):
+    """A run that never initialised has no map because it has no pose: the export says so with the reason
+    of its summary.json, and does not advise output.write_map=true (which it had)."""
+    import cv2
+
+    data = tmp_path / "two"
+    data.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        cv2.imwrite(str(data / f"{i:04d}.png"), (rng.random((240, 320)) * 255).astype(np.uint8))
+    (data / "calibration.yaml").write_text("width: 320\nheight: 240\nintrinsics: [256, 256, 160, 120]\n")
+    run = tmp_path / "run"
+    assert main(["-q", "run", "patch_mono", "--data", str(data), "--out", str(run), "--no-progress"]) == 2
+    capsys.readouterr()
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["frames_with_pose"] == 0 and summary["error"].startswith("no frame got a pose")
+    assert main(["export", str(run), "--ply", str(tmp_path / "x.ply")]) == 2
+    line = _error_line(capsys.readouterr().err)
+    assert line == f"fgslam: error: {run}: the run produced no pose, so it has no map (map.npz): {summary['error']}"
+    assert "write_map" not in line
+    # a run with poses whose map was switched off: then (only) the advice
+    bare = _synthetic_run(tmp_path / "bare", data)
+    (bare / "map.npz").unlink()
+    summary = json.loads((bare / "summary.json").read_text())
+    summary["config"]["output"]["write_map"] = False
+    (bare / "summary.json").write_text(json.dumps(summary))
+    assert main(["export", str(bare), "--ply", str(tmp_path / "x.ply")]) == 2
+    assert "output.write_map=false; rerun the sequence with true" in _error_line(capsys.readouterr().err)
+
+
+def test_ply_leaves_out_far_points_unless_the_limit_is_raised_or_off(tmp_path, capsys):
+    run = _synthetic_run(tmp_path / "run", tmp_path / "data", far_point=True)
+    n = load_run_map(run / "map.npz").map.num_points
+    ply = tmp_path / "map.ply"
+    assert main(["export", str(run), "--ply", str(ply), "--json"]) == 0  # the default limit: on
+    result = json.loads(capsys.readouterr().out)
+    X, _ = read_ply(ply)
+    assert X.shape[0] == result["points"] == n - 1 and result["points_left_out"] == 1
+    assert np.abs(X).max() < 10 and 0 < result["range_limit"] < FAR_M
+    for factor in ("0", "1e6"):  # off, and raised past the far point (1e6 x a median distance of metres)
+        assert main(["export", str(run), "--ply", str(ply), "--overwrite", "--max-point-range", factor]) == 0
+        X, colour = read_ply(ply)
+        assert X.shape[0] == n and X[-1, 2] == FAR_M and colour[-1].tolist() == [255, 0, 0]
+    capsys.readouterr()
+    assert main(["export", str(run), "--ply", str(ply), "--overwrite", "--max-point-range", "-1"]) == 2
+    assert "--max-point-range: key 'max_point_range_factor': must be >= 0" in _error_line(capsys.readouterr().err)

@@ -6,8 +6,11 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 
+from ..core.config import check_ranges
 from ..export.bag import BagExportConfig, export_bag
+from ..export.ply import PlyExportConfig
 
 HELP = "export a run's map as a COLMAP model (binary or text, with images) or a PLY point cloud, or its trajectory as a ROS bag"
 
@@ -23,8 +26,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--all-frames", action="store_true", help="COLMAP: every posed frame as an image, not only keyframes")
     parser.add_argument("--colmap-format", choices=("bin", "txt"), default="bin", help="COLMAP: binary (default) or text files")
     parser.add_argument("--no-images", action="store_true", help="COLMAP: the model only (do not read the dataset again)")
+    parser.add_argument("--max-point-range", type=float, default=None, metavar="FACTOR",
+                        help="PLY: leave out points farther from every keyframe than FACTOR x the map's median such "
+                             f"distance (far points; default {PlyExportConfig().max_point_range_factor:g}; 0: keep every "
+                             "point; PlyExportConfig.max_point_range_factor)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
     parser.add_argument("--json", action="store_true", help="print what was written as one JSON object")
+
+
+def ply_config(args: argparse.Namespace) -> PlyExportConfig:
+    """The PLY export's settings: the defaults, ``--max-point-range`` (checked against its range)."""
+    config = PlyExportConfig()
+    if args.max_point_range is not None:
+        config = replace(config, max_point_range_factor=args.max_point_range)
+        check_ranges(config, source="--max-point-range")
+    return config
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,8 +54,9 @@ def run(args: argparse.Namespace) -> int:
 
     run_folder = open_run_folder(args.run_dir)
     if args.ply:
-        result = export_ply(run_folder, args.ply, overwrite=args.overwrite)
-        text = f"wrote {result['points']} points to {result['ply']}"
+        result = export_ply(run_folder, args.ply, overwrite=args.overwrite, config=ply_config(args))
+        text = (f"wrote {result['points']} points to {result['ply']}"
+                + (f" ({result['points_left_out']} far or non-finite points left out)" if result["points_left_out"] else ""))
     else:
         result = export_colmap(run_folder, args.colmap, all_frames=args.all_frames, fmt=args.colmap_format,
                                images=not args.no_images, overwrite=args.overwrite)

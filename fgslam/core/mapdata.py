@@ -28,6 +28,28 @@ def rigid_poses(T_WC: np.ndarray) -> np.ndarray:
     return T
 
 
+def points_near_cameras(X: np.ndarray, centres: np.ndarray, range_factor: float) -> tuple[np.ndarray, float | None]:
+    """Which points of a cloud are not far ones: ``(near (N,) bool, limit)``, a point near when its
+    distance to the nearest camera centre is at most ``range_factor`` times the median such distance of
+    the cloud's finite points (``limit``, in the cloud's units: a bound relative to the scene, right for
+    a monocular map's arbitrary scale too). Far points are near-zero inverse depths and sky, up to
+    thousands of times the scene's size away. A non-finite point is never near; without a finite point
+    or a camera no point is, and ``limit`` is None. The one rule of ``fgslam compare-colmap``'s cloud
+    metrics and the PLY export (``max_point_range_factor`` of each)."""
+    from scipy.spatial import cKDTree  # deferred: scipy
+
+    X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
+    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    finite = np.all(np.isfinite(X), axis=1)
+    near = np.zeros(X.shape[0], bool)
+    if not finite.any() or centres.shape[0] == 0:
+        return near, None
+    dist = cKDTree(centres).query(X[finite])[0]
+    limit = float(range_factor * np.median(dist))
+    near[finite] = dist <= limit
+    return near, limit
+
+
 @dataclass
 class MapExport:
     """A frontend's map for export (see the module docstring).

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..core.config import MAX_COUNT, MAX_SCALAR, ranged
 from ..core.errors import DataError
+from ..core.mapdata import points_near_cameras
 from .colmap import ColmapSfmConfig
 
 COMPARE_JSON = "compare.json"
@@ -85,18 +86,13 @@ def compare_clouds(fg_cloud: np.ndarray, cm_cloud: np.ndarray, fg_centres: np.nd
     """Accuracy and completion of fgslam's cloud against COLMAP's, both in one frame, each cloud
     without its points farther from every camera of its own run than ``max_point_range_factor``
     times the median such distance of the cloud (far points: near-zero inverse depths, sky),
-    counted in the report."""
-    from scipy.spatial import cKDTree  # deferred: scipy
-
+    counted in the report (:func:`fgslam.core.mapdata.points_near_cameras`, also the PLY export's rule)."""
     kept, limits = {}, {}
     for name, cloud, centres in (("fgslam", fg_cloud, fg_centres), ("colmap", cm_cloud, cm_centres)):
         cloud = cloud[np.all(np.isfinite(cloud), axis=1)]
-        if len(cloud) and len(centres):
-            dist = cKDTree(centres).query(cloud)[0]
-            limits[name] = float(config.max_point_range_factor * np.median(dist))
-            near = dist <= limits[name]
-        else:
-            near = np.zeros(len(cloud), bool)
+        near, limit = points_near_cameras(cloud, centres, config.max_point_range_factor)
+        if limit is not None:
+            limits[name] = limit
         kept[name] = (cloud[near], int((~near).sum()))
     d = cloud_distances(_subsample(kept["fgslam"][0], config.max_cloud_points),
                         _subsample(kept["colmap"][0], config.max_cloud_points))

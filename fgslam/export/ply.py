@@ -1,10 +1,21 @@
-"""PLY point clouds (binary little-endian, x y z as float32 and red green blue as uchar)."""
+"""PLY point clouds (binary little-endian, x y z as float32 and red green blue as uchar), and what
+``fgslam export RUN --ply FILE`` keeps of a map (:class:`PlyExportConfig`)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from ..core.config import MAX_SCALAR, ranged
+
+
+@dataclass
+class PlyExportConfig:
+    """What a PLY export keeps of a run's map (``fgslam export RUN --ply FILE``)."""
+
+    max_point_range_factor: float = ranged(10.0, ge=0, le=MAX_SCALAR)  # leave out points farther from every keyframe camera than this x the map's median such distance (far points: near-zero inverse depths; compare-colmap's rule, scale-free); 0: keep every point
 
 
 def write_ply(path: str | Path, X_W: np.ndarray, colour: np.ndarray) -> Path:

@@ -4,14 +4,19 @@ A run folder holds ``summary.json`` and, since maps are exported, ``map.npz``
 (:mod:`fgslam.export.map`). A COLMAP export lays out ``DIR/sparse/0/`` (the model) and
 ``DIR/images/`` (the frames as the frontend saw them: undistorted, resized; read again from the
 dataset recorded in ``summary.json``, unless ``images=False``), the layout COLMAP's MVS and
-Gaussian-splatting trainers expect.
+Gaussian-splatting trainers expect. A PLY export leaves out the map's far points (near-zero inverse
+depths: :class:`~fgslam.export.ply.PlyExportConfig`). Either is written into a temporary sibling and
+moved into place once complete: a failed export leaves nothing behind.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import os
 import shutil
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,12 +25,13 @@ import numpy as np
 
 from ..core.config import from_dict
 from ..core.errors import ConfigError, DataError
+from ..core.mapdata import points_near_cameras
 from ..io.datasets import DatasetConfig, open_dataset
 from ..io.run_files import SUMMARY_FILE, TUM_FILE
 from ..io.trajectory import read_trajectory
 from .colmap import IMAGES_SUBDIR, SPARSE_SUBDIR, ColmapExportConfig, build_reconstruction, write_model
 from .map import MAP_FILE, RunMap, load_run_map
-from .ply import write_ply
+from .ply import PlyExportConfig, write_ply
 
 logger = logging.getLogger(__name__)
 
@@ -53,33 +59,79 @@ def open_run_folder(run_dir: str | Path) -> RunFolder:
     except (OSError, ValueError) as exc:
         raise DataError(f"{run / SUMMARY_FILE}: cannot read: {exc}") from exc
     if not (run / MAP_FILE).is_file():
-        why = (summary.get("output_errors") or {}).get("map")
-        note = next((n for n in summary.get("notes", []) if MAP_FILE in n), None)
-        raise DataError(f"{run}: the run folder has no map ({MAP_FILE})"
-                        + (f": {why}" if why else f": {note}" if note else
-                           " (written by runs with output.write_map=true since fgslam exports maps; rerun the sequence)"))
+        raise DataError(f"{run}: " + missing_map_reason(summary))
     return RunFolder(run, summary, load_run_map(run / MAP_FILE))
 
 
+def missing_map_reason(summary: dict[str, Any]) -> str:
+    """Why a run folder has no map, from its ``summary.json``: the run's own reason when it gave no
+    frame a pose (it never initialised, it failed: then it writes no map), the map's write error or
+    note, and only for a run with poses that wrote no map at all the advice to rerun with
+    ``output.write_map=true``."""
+    if summary.get("frames_with_pose") == 0:
+        why = summary.get("error")
+        return f"the run produced no pose, so it has no map ({MAP_FILE})" + (f": {why}" if why else "")
+    why = (summary.get("output_errors") or {}).get("map")
+    note = next((n for n in summary.get("notes", []) if MAP_FILE in n), None)
+    if why or note:
+        return f"the run folder has no map ({MAP_FILE}): {why or note}"
+    if ((summary.get("config") or {}).get("output") or {}).get("write_map") is False:
+        return f"the run folder has no map ({MAP_FILE}): the run had output.write_map=false; rerun the sequence with true"
+    return (f"the run folder has no map ({MAP_FILE}) (written by runs with output.write_map=true since fgslam "
+            "exports maps; rerun the sequence)")
+
+
 def check_output(path: Path, overwrite: bool) -> None:
-    """Refuse an existing output unless ``overwrite`` (then it is removed first)."""
-    if path.exists() or path.is_symlink():
-        if not overwrite:
-            raise ConfigError(f"{path}: exists (use --overwrite to replace it)")
-        if path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path)
-        else:
-            path.unlink()
+    """Refuse an existing output unless ``overwrite`` (it is then replaced once the new one is written,
+    :func:`written_in_place`)."""
+    if (path.exists() or path.is_symlink()) and not overwrite:
+        raise ConfigError(f"{path}: exists (use --overwrite to replace it)")
 
 
-def export_ply(run: RunFolder, path: str | Path, overwrite: bool = False) -> dict[str, Any]:
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
+
+
+@contextlib.contextmanager
+def written_in_place(path: Path) -> Iterator[Path]:
+    """A fresh temporary sibling of ``path`` to write an output into: moved into place, replacing an
+    existing ``path``, when the block succeeds; removed with whatever it holds when the block fails
+    (or is interrupted). A failed export leaves nothing behind (its retry is not refused as an existing
+    output) and keeps a previous output."""
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    _remove(tmp)
+    try:
+        yield tmp
+        _remove(path)
+        os.replace(tmp, path)
+    finally:
+        _remove(tmp)
+
+
+def export_ply(run: RunFolder, path: str | Path, overwrite: bool = False,
+               config: PlyExportConfig | None = None) -> dict[str, Any]:
+    """Write the map's finite points (without the far ones, ``config.max_point_range_factor``) as a PLY
+    file; returns what was written."""
     path = Path(path)
+    config = config or PlyExportConfig()
     check_output(path, overwrite)
     if not path.parent.is_dir():
         raise DataError(f"{path}: folder {path.parent} does not exist")
     m = run.run_map.map
-    write_ply(path, m.X_W, m.colour)
-    return {"ply": str(path), "points": m.num_points}
+    keep = np.all(np.isfinite(m.X_W), axis=1)
+    limit = None
+    if config.max_point_range_factor > 0 and m.num_keyframes:
+        keep, limit = points_near_cameras(m.X_W, m.T_WC[:, :3, 3], config.max_point_range_factor)
+    with written_in_place(path) as tmp:
+        write_ply(tmp, m.X_W[keep], m.colour[keep])
+    left_out = m.num_points - int(keep.sum())
+    if left_out:
+        logger.info("PLY: %d of %d points left out (non-finite%s)", left_out, m.num_points,
+                    "" if limit is None else f", or farther than {limit:.4g} from every keyframe")
+    return {"ply": str(path), "points": int(keep.sum()), "points_left_out": left_out, "range_limit": limit}
 
 
 def _frame_names(run_map: RunMap) -> dict[int, str]:
@@ -120,12 +172,14 @@ def export_colmap(run: RunFolder, out_dir: str | Path, all_frames: bool = False,
         first_id = run_map.map.num_keyframes + 1
         extra = {first_id + n: others[i] for n, i in enumerate(sorted(others))}
     rec, stats = build_reconstruction(run_map, names, config, extra)
-    out.mkdir(parents=True)
-    write_model(rec, out / SPARSE_SUBDIR, fmt)
+    out.parent.mkdir(parents=True, exist_ok=True)
     result: dict[str, Any] = {"colmap": str(out), "model": str(out / SPARSE_SUBDIR), "format": fmt, **stats.to_dict()}
-    if images:
-        wanted = {int(i) for i in run_map.keyframe_frame_indices()} | {int(Path(n).stem) for n, _ in extra.values()}
-        result["images_written"] = write_frame_images(run, out / IMAGES_SUBDIR, sorted(wanted))
+    with written_in_place(out) as tmp:  # a failure (the dataset's images not there) leaves nothing behind
+        tmp.mkdir()
+        write_model(rec, tmp / SPARSE_SUBDIR, fmt)
+        if images:
+            wanted = {int(i) for i in run_map.keyframe_frame_indices()} | {int(Path(n).stem) for n, _ in extra.values()}
+            result["images_written"] = write_frame_images(run, tmp / IMAGES_SUBDIR, sorted(wanted))
     return result
 
 
