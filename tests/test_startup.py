@@ -5,7 +5,7 @@ how long it takes (each test runs a fresh interpreter)."""
 import subprocess
 import sys
 
-HEAVY = ("torch", "gtsam", "cv2", "scipy", "matplotlib", "kornia", "pycolmap", "numba")
+HEAVY = ("torch", "gtsam", "cv2", "scipy", "matplotlib", "pycolmap", "numba")
 # every family, and a factor plugin (the position-prior plugin of patch_mono_gps still checks its noise model
 # with gtsam: not listed)
 PRESETS = ("handheld_rgbd", "patch_7scenes_rgbd", "dense_7scenes_rgbd", "pointmap_7scenes_rgbd", "patch_mono_planar")

@@ -36,8 +36,8 @@ class OrbConfig:
     fast_threshold: int = ranged(20, ge=0, le=255)  # FAST corner intensity threshold (grey levels)
     edge_threshold: int = ranged(31, ge=0, le=MAX_IMAGE_SIDE)  # border (pixels) without keypoints; >= patch_size for descriptors
     patch_size: int = ranged(31, ge=2, le=MAX_IMAGE_SIDE)  # rBRIEF patch size (pixels at the keypoint's level)
-    grid_rows: int = ranged(4, ge=1, le=MAX_IMAGE_SIDE)  # spreading grid; 1 x 1 disables spreading
-    grid_cols: int = ranged(8, ge=1, le=MAX_IMAGE_SIDE)
+    grid_rows: int = ranged(4, ge=1, le=MAX_IMAGE_SIDE)  # rows of the spreading grid; 1 x 1 disables spreading
+    grid_cols: int = ranged(8, ge=1, le=MAX_IMAGE_SIDE)  # columns of the spreading grid
     oversample: float = ranged(3.0, ge=1, le=MAX_SCALAR)  # ORB detects this many times n_features before spreading
 
     def validate(self) -> None:

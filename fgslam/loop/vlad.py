@@ -66,7 +66,7 @@ class LoopFeaturesConfig:
     of words, ``loop_closure.bow``; the default) or ``xfeat`` (learned, optional extra
     ``fgslam[xfeat]``; VLAD retrieval and cosine matching, about 25x ORB's CPU per keyframe: README)."""
 
-    kind: Literal["orb", "xfeat"] = "orb"
+    kind: Literal["orb", "xfeat"] = "orb"  # orb: binary bag of words; xfeat: learned features (extra fgslam[xfeat])
     xfeat: XFeatConfig = field(default_factory=XFeatConfig)
     retrieval: VladRetrievalConfig = field(default_factory=VladRetrievalConfig)
 

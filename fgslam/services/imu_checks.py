@@ -51,7 +51,7 @@ _TIME_UNIT_TOLERANCE = 0.5  # |log10(ratio / unit ratio)| below this names the u
 class ImuCheckConfig:
     """Plausibility checks of the IMU stream before a run (YAML ``imu.checks``; module docstring)."""
 
-    enabled: bool = True
+    enabled: bool = True  # run the checks before the run (false: trust the IMU stream as it is)
     on_mistake: Literal["error", "warn"] = "error"  # a recognised mistake (units, swapped columns, clock): error or warning
     window_s: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # s: the first seconds of samples the magnitude checks read
     gravity_tolerance: float = ranged(0.25, gt=0, lt=1)  # relative: median |a| of the window within this of imu.gravity
@@ -62,8 +62,8 @@ class ImuCheckConfig:
     min_coverage: float = ranged(0.5, gt=0, le=1)  # share of the frames' time span the IMU samples must cover
     min_samples_per_frame: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # IMU samples per frame interval (median rates)
     max_up_angle_deg: float = ranged(60.0, gt=0, le=180)  # deg between the measured up direction (camera frame) and the image's up (a camera pitched further is warned about)
-    min_rate_hz: float = ranged(20.0, gt=0, le=MAX_SCALAR)  # plausible IMU rates
-    max_rate_hz: float = ranged(10000.0, gt=0, le=MAX_SCALAR)
+    min_rate_hz: float = ranged(20.0, gt=0, le=MAX_SCALAR)  # Hz: the lowest plausible IMU rate
+    max_rate_hz: float = ranged(10000.0, gt=0, le=MAX_SCALAR)  # Hz: the highest plausible IMU rate
 
     def validate(self) -> None:
         check_ranges(self)

@@ -25,7 +25,7 @@ STANDARD_GRAVITY = 9.81  # m/s^2, the value the generator uses for |g_W| (TEAM.m
 class ImuConfig:
     """IMU rate and noise (continuous-time densities as in EuRoC's imu0/sensor.yaml)."""
 
-    rate_hz: float = ranged(200.0, gt=0, le=MAX_SCALAR)
+    rate_hz: float = ranged(200.0, gt=0, le=MAX_SCALAR)  # IMU sample rate (Hz)
     gyroscope_noise_density: float = ranged(1.6968e-4, ge=0, le=MAX_SCALAR)  # rad / s / sqrt(Hz)
     gyroscope_random_walk: float = ranged(1.9393e-5, ge=0, le=MAX_SCALAR)  # rad / s^2 / sqrt(Hz)
     accelerometer_noise_density: float = ranged(2.0e-3, ge=0, le=MAX_SCALAR)  # m / s^2 / sqrt(Hz)

@@ -77,10 +77,10 @@ DISTORTION_MODELS = ("radtan", "equidistant")
 class CameraConfig:
     """Rectified stereo pair (same intrinsics) and its mounting on the body (IMU) frame."""
 
-    width: int = ranged(640, ge=8, le=MAX_IMAGE_SIDE)
-    height: int = ranged(480, ge=8, le=MAX_IMAGE_SIDE)
+    width: int = ranged(640, ge=8, le=MAX_IMAGE_SIDE)  # image width (px)
+    height: int = ranged(480, ge=8, le=MAX_IMAGE_SIDE)  # image height (px)
     hfov_deg: float = ranged(90.0, gt=0, lt=170)  # horizontal field of view; fx = fy = (width / 2) / tan(hfov / 2)
-    rate_hz: float = ranged(20.0, gt=0, le=MAX_SCALAR)
+    rate_hz: float = ranged(20.0, gt=0, le=MAX_SCALAR)  # camera frame rate (Hz)
     baseline: float = ranged(0.11, gt=0, le=MAX_SCALAR)  # metres; cam1 sits at +baseline along the x axis of cam0
     mount_rpy_deg: list[float] = ranged(default_factory=lambda: [0.8, -1.5, 1.2], ge=-180, le=180)  # small rotation
     # (roll, pitch, yaw about the camera x, y, z axes) applied after the nominal forward-looking mount
@@ -105,14 +105,14 @@ class RoomConfig:
     size: list[float] = ranged(default_factory=lambda: [8.0, 6.0, 3.0], gt=0, le=MAX_SCALAR)  # room x, y, z extents (m)
     n_boxes: int = ranged(10, ge=0, le=MAX_COUNT)  # furniture boxes
     box_size_range: list[float] = ranged(default_factory=lambda: [0.3, 1.4], gt=0, le=MAX_SCALAR)  # horizontal sizes
-    box_height_range: list[float] = ranged(default_factory=lambda: [0.3, 2.0], gt=0, le=MAX_SCALAR)
+    box_height_range: list[float] = ranged(default_factory=lambda: [0.3, 2.0], gt=0, le=MAX_SCALAR)  # box heights (m, min and max)
     path_radii: list[float] = ranged(default_factory=lambda: [1.3, 0.9], gt=0, le=MAX_SCALAR)  # ellipse of the path (m)
     path_clearance: float = ranged(0.9, ge=0, le=MAX_SCALAR)  # minimum gap between the path ellipse and furniture (m)
     height: float = ranged(1.4, gt=0, le=MAX_SCALAR)  # mean body height (m)
-    loop_duration_s: float = ranged(20.0, gt=0, le=MAX_SCALAR)
+    loop_duration_s: float = ranged(20.0, gt=0, le=MAX_SCALAR)  # period of the motion (s): the sequence repeats after it
     jitter: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # scale of the hand-held wobble (0: smooth ellipse + turn)
     wall_density: float = ranged(160.0, gt=0, le=MAX_SCALAR)  # texels per metre
-    box_density: float = ranged(200.0, gt=0, le=MAX_SCALAR)
+    box_density: float = ranged(200.0, gt=0, le=MAX_SCALAR)  # texels per metre of the boxes
 
 
 @dataclass
@@ -121,9 +121,9 @@ class LowTextureConfig(RoomConfig):
 
     n_boxes: int = ranged(3, ge=0, le=MAX_COUNT)  # plain cabinets
     box_size_range: list[float] = ranged(default_factory=lambda: [0.5, 1.2], gt=0, le=MAX_SCALAR)
-    box_height_range: list[float] = ranged(default_factory=lambda: [0.8, 1.8], gt=0, le=MAX_SCALAR)
+    box_height_range: list[float] = ranged(default_factory=lambda: [0.8, 1.8], gt=0, le=MAX_SCALAR)  # box heights (m, min and max)
     wall_density: float = ranged(100.0, gt=0, le=MAX_SCALAR)  # texels per metre (grout lines need ~1 texel)
-    box_density: float = ranged(60.0, gt=0, le=MAX_SCALAR)
+    box_density: float = ranged(60.0, gt=0, le=MAX_SCALAR)  # texels per metre of the boxes
     n_doors: int = ranged(5, ge=0, le=MAX_COUNT)  # doors on the walls
     door_size: list[float] = ranged(default_factory=lambda: [0.9, 2.05], gt=0, le=MAX_SCALAR)  # width, height (m)
     door_margin: float = ranged(0.4, ge=0, le=MAX_SCALAR)  # minimum distance of a door from a wall corner and from another door (m)
@@ -146,7 +146,7 @@ class PanelRoomConfig:
     mean_pitch_deg: float = ranged(14.0, ge=-90, le=90)  # nose down: the floor enters the bottom of the view near corners
     jitter: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # scale of the hand-held wobble (panel_room of data/motions.yaml)
     wall_density: float = ranged(200.0, gt=0, le=MAX_SCALAR)  # texels per metre (joints of 5 mm need ~1 texel)
-    floor_density: float = ranged(100.0, gt=0, le=MAX_SCALAR)
+    floor_density: float = ranged(100.0, gt=0, le=MAX_SCALAR)  # texels per metre of the floor
     door_at: list[float] = ranged(default_factory=lambda: [0.6], ge=0, le=1)  # one door (with a darker frame band)
     # on the wall that the mean view direction meets at each of these fractions of the walk (centred there)
     door_size: list[float] = ranged(default_factory=lambda: [0.9, 2.05], gt=0, le=MAX_SCALAR)  # width, height (m)
@@ -159,7 +159,7 @@ class RotationSweepConfig(RoomConfig):
     """rotation-sweep scene (the room-loop room fields, a smaller room) and its roll / pitch / yaw sweep."""
 
     size: list[float] = ranged(default_factory=lambda: [5.0, 4.0, 2.7], gt=0, le=MAX_SCALAR)
-    n_boxes: int = ranged(8, ge=0, le=MAX_COUNT)
+    n_boxes: int = ranged(8, ge=0, le=MAX_COUNT)  # boxes standing in the hall
     path_radii: list[float] = ranged(default_factory=lambda: [0.15, 0.15], gt=0, le=MAX_SCALAR)  # boxes keep clear of it
     path_clearance: float = ranged(0.6, ge=0, le=MAX_SCALAR)
     loop_duration_s: float = ranged(10.0, gt=0, le=MAX_SCALAR)  # period of the sweep (default frames: one period + 1)
@@ -176,45 +176,45 @@ class StreetConfig:
     """street-loop scene and motion."""
 
     half_size: list[float] = ranged(default_factory=lambda: [100.0, 60.0], gt=0, le=MAX_SCALAR)  # road centre-line box (m)
-    corner_radius: float = ranged(20.0, gt=0, le=MAX_SCALAR)
+    corner_radius: float = ranged(20.0, gt=0, le=MAX_SCALAR)  # radius of the road corners (m)
     harmonics: int = ranged(40, ge=1, le=MAX_COUNT)  # Fourier harmonics of the road centre line
-    loop_duration_s: float = ranged(100.0, gt=0, le=MAX_SCALAR)
+    loop_duration_s: float = ranged(100.0, gt=0, le=MAX_SCALAR)  # period of the motion (s): the sequence repeats after it
     jitter: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # scale of the body bounce / sway
     camera_height: float = ranged(1.6, gt=0, le=MAX_SCALAR)  # body height above ground (m)
     road_band: float = ranged(11.0, gt=0, le=MAX_SCALAR)  # half-width of the high-resolution ground band (m)
     ground_tile: float = ranged(10.0, gt=0, le=MAX_SCALAR)  # size of the ground texture tiles (m)
-    ground_density: float = ranged(24.0, gt=0, le=MAX_SCALAR)
-    far_ground_density: float = ranged(2.0, gt=0, le=MAX_SCALAR)
+    ground_density: float = ranged(24.0, gt=0, le=MAX_SCALAR)  # texels per metre of the road band
+    far_ground_density: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # texels per metre of the ground beyond the road band
     setback: float = ranged(9.0, gt=0, le=MAX_SCALAR)  # facade distance from the road centre line (m)
-    building_width_range: list[float] = ranged(default_factory=lambda: [10.0, 24.0], gt=0, le=MAX_SCALAR)
-    building_depth_range: list[float] = ranged(default_factory=lambda: [8.0, 14.0], gt=0, le=MAX_SCALAR)
-    building_height_range: list[float] = ranged(default_factory=lambda: [6.0, 24.0], gt=0, le=MAX_SCALAR)
-    building_gap_range: list[float] = ranged(default_factory=lambda: [0.0, 5.0], ge=0, le=MAX_SCALAR)
-    facade_density: float = ranged(28.0, gt=0, le=MAX_SCALAR)
+    building_width_range: list[float] = ranged(default_factory=lambda: [10.0, 24.0], gt=0, le=MAX_SCALAR)  # building widths along the road (m, min and max)
+    building_depth_range: list[float] = ranged(default_factory=lambda: [8.0, 14.0], gt=0, le=MAX_SCALAR)  # building depths away from the road (m, min and max)
+    building_height_range: list[float] = ranged(default_factory=lambda: [6.0, 24.0], gt=0, le=MAX_SCALAR)  # building heights (m, min and max)
+    building_gap_range: list[float] = ranged(default_factory=lambda: [0.0, 5.0], ge=0, le=MAX_SCALAR)  # gaps between neighbouring buildings (m, min and max)
+    facade_density: float = ranged(28.0, gt=0, le=MAX_SCALAR)  # texels per metre of the facades facing the road
     side_density: float = ranged(12.0, gt=0, le=MAX_SCALAR)  # building faces perpendicular to the road
     back_density: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # faces that never face the road
     parked_car_prob: float = ranged(0.35, ge=0, le=1)  # probability of a parked car per 8 m of kerb
     kerb_offset: float = ranged(4.8, ge=0, le=MAX_SCALAR)  # parked car centre distance from the centre line (m)
     pole_spacing: float = ranged(25.0, gt=0, le=MAX_SCALAR)  # mean distance between poles (m)
-    object_density: float = ranged(48.0, gt=0, le=MAX_SCALAR)
+    object_density: float = ranged(48.0, gt=0, le=MAX_SCALAR)  # texels per metre of the street objects (cars, poles)
 
 
 @dataclass
 class OrbitConfig:
     """orbit scene and motion."""
 
-    hall_size: list[float] = ranged(default_factory=lambda: [16.0, 16.0, 6.0], gt=0, le=MAX_SCALAR)
-    n_boxes: int = ranged(8, ge=0, le=MAX_COUNT)
+    hall_size: list[float] = ranged(default_factory=lambda: [16.0, 16.0, 6.0], gt=0, le=MAX_SCALAR)  # hall length, width and height (m)
+    n_boxes: int = ranged(8, ge=0, le=MAX_COUNT)  # boxes standing in the hall
     cluster_radius: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # box centres within this radius of the origin (m)
     box_size_range: list[float] = ranged(default_factory=lambda: [0.3, 0.9], gt=0, le=MAX_SCALAR)  # box sides (m)
     radius: float = ranged(3.5, gt=0, le=MAX_SCALAR)  # orbit radius (m)
     height: float = ranged(1.5, gt=0, le=MAX_SCALAR)  # mean camera height (m)
     target_height: float = ranged(0.5, ge=0, le=MAX_SCALAR)  # height of the looked-at point (m)
-    loop_duration_s: float = ranged(15.0, gt=0, le=MAX_SCALAR)
+    loop_duration_s: float = ranged(15.0, gt=0, le=MAX_SCALAR)  # period of the motion (s): the sequence repeats after it
     jitter: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # scale of the height / pitch oscillation
-    wall_density: float = ranged(40.0, gt=0, le=MAX_SCALAR)
-    floor_density: float = ranged(100.0, gt=0, le=MAX_SCALAR)
-    box_density: float = ranged(200.0, gt=0, le=MAX_SCALAR)
+    wall_density: float = ranged(40.0, gt=0, le=MAX_SCALAR)  # texels per metre of the walls
+    floor_density: float = ranged(100.0, gt=0, le=MAX_SCALAR)  # texels per metre of the floor
+    box_density: float = ranged(200.0, gt=0, le=MAX_SCALAR)  # texels per metre of the boxes
 
 
 @dataclass
@@ -247,14 +247,14 @@ class HighwayConfig:
     building_distance: list[float] = ranged(default_factory=lambda: [60.0, 220.0], gt=0, le=MAX_SCALAR)  # lateral range of building centres (m)
     building_spacing: float = ranged(100.0, gt=0, le=MAX_SCALAR)  # mean distance between buildings on each side (m)
     building_size_range: list[float] = ranged(default_factory=lambda: [12.0, 40.0], gt=0, le=MAX_SCALAR)  # horizontal sides (m)
-    building_height_range: list[float] = ranged(default_factory=lambda: [8.0, 35.0], gt=0, le=MAX_SCALAR)
+    building_height_range: list[float] = ranged(default_factory=lambda: [8.0, 35.0], gt=0, le=MAX_SCALAR)  # building heights (m, min and max)
     hill_distance: list[float] = ranged(default_factory=lambda: [350.0, 700.0], gt=0, le=MAX_SCALAR)  # lateral / ahead range of hill centres (m)
     hill_spacing: float = ranged(250.0, gt=0, le=MAX_SCALAR)  # mean distance between hills on each side (m)
     hill_size_range: list[float] = ranged(default_factory=lambda: [200.0, 500.0], gt=0, le=MAX_SCALAR)  # hill widths (m)
-    hill_height_range: list[float] = ranged(default_factory=lambda: [40.0, 140.0], gt=0, le=MAX_SCALAR)
+    hill_height_range: list[float] = ranged(default_factory=lambda: [40.0, 140.0], gt=0, le=MAX_SCALAR)  # hill heights (m, min and max)
     object_density: float = ranged(48.0, gt=0, le=MAX_SCALAR)  # texels per metre of rails, poles, signs
-    building_density: float = ranged(6.0, gt=0, le=MAX_SCALAR)
-    hill_density: float = ranged(2.0, gt=0, le=MAX_SCALAR)
+    building_density: float = ranged(6.0, gt=0, le=MAX_SCALAR)  # texels per metre of the buildings
+    hill_density: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # texels per metre of the hills
 
 
 @dataclass
@@ -272,16 +272,16 @@ class KittiDriveConfig:
     max_ground_slope: float = ranged(0.12, ge=0, le=MAX_SCALAR)  # tile slopes are clipped to this (KITTI 00: <= 0.07)
     ground_overlap: float = ranged(0.05, ge=0, le=MAX_SCALAR)  # tiles are grown by this much (m): no cracks where slopes differ
     ground_density: float = ranged(12.0, gt=0, le=MAX_SCALAR)  # texels per metre
-    far_ground_density: float = ranged(1.0, gt=0, le=MAX_SCALAR)
+    far_ground_density: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # texels per metre of the ground beyond the road band
     far_ground_drop: float = ranged(0.5, ge=0, le=MAX_SCALAR)  # the coarse ground lies this far below the lowest road (m)
     far_ground_margin: float = ranged(60.0, ge=0, le=MAX_SCALAR)  # ... and extends this far beyond the scene's path (m)
     setback: float = ranged(9.0, gt=0, le=MAX_SCALAR)  # facade distance from the road centre line (m)
     setback_jitter: float = ranged(2.0, ge=0, le=MAX_SCALAR)  # random extra setback of each building (m)
     clearance: float = ranged(7.5, ge=0, le=MAX_SCALAR)  # no building comes closer than this to any road of the path (m)
-    building_width_range: list[float] = ranged(default_factory=lambda: [8.0, 22.0], gt=0, le=MAX_SCALAR)
-    building_depth_range: list[float] = ranged(default_factory=lambda: [8.0, 14.0], gt=0, le=MAX_SCALAR)
-    building_height_range: list[float] = ranged(default_factory=lambda: [6.0, 20.0], gt=0, le=MAX_SCALAR)
-    building_gap_range: list[float] = ranged(default_factory=lambda: [0.0, 4.0], ge=0, le=MAX_SCALAR)
+    building_width_range: list[float] = ranged(default_factory=lambda: [8.0, 22.0], gt=0, le=MAX_SCALAR)  # building widths along the road (m, min and max)
+    building_depth_range: list[float] = ranged(default_factory=lambda: [8.0, 14.0], gt=0, le=MAX_SCALAR)  # building depths away from the road (m, min and max)
+    building_height_range: list[float] = ranged(default_factory=lambda: [6.0, 20.0], gt=0, le=MAX_SCALAR)  # building heights (m, min and max)
+    building_gap_range: list[float] = ranged(default_factory=lambda: [0.0, 4.0], ge=0, le=MAX_SCALAR)  # gaps between neighbouring buildings (m, min and max)
     building_sink: float = ranged(3.0, ge=0, le=MAX_SCALAR)  # buildings reach this far below the road (m): no gaps on slopes
     facade_density: float = ranged(16.0, gt=0, le=MAX_SCALAR)  # ~1 texel per pixel at 9 m for 320 px at 82 deg
     side_density: float = ranged(8.0, gt=0, le=MAX_SCALAR)  # building faces perpendicular to the road
@@ -295,9 +295,9 @@ class KittiDriveConfig:
 class SynthConfig:
     """Everything the generator needs; ``default_config(preset)`` gives the preset's defaults."""
 
-    preset: str = "room-loop"
+    preset: str = "room-loop"  # scene and motion: room-loop, street-loop, orbit, highway, low-texture, panel-room, rotation-sweep, kitti00-drive
     frames: int = ranged(401, ge=1, le=MAX_FRAMES)  # camera frames (default: one loop period + 1)
-    seed: int = ranged(0, ge=0, le=MAX_SEED)
+    seed: int = ranged(0, ge=0, le=MAX_SEED)  # random seed of the scene (textures, placements) and of the IMU noise
     start_time_ns: int = ranged(1_600_000_000_000_000_000, ge=0, le=MAX_TIME_NS)  # timestamp of frame 0
     camera: CameraConfig = field(default_factory=CameraConfig)
     imu: ImuConfig = field(default_factory=ImuConfig)

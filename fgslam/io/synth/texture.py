@@ -68,7 +68,7 @@ class PlainTextureConfig:
 class TextureConfig:
     """Tunables of the procedural textures (lengths in metres on the surface)."""
 
-    noise_cells_m: list[float] = ranged(default_factory=lambda: [1.6, 0.7, 0.3, 0.12, 0.05, 0.02], gt=0, le=MAX_SCALAR)
+    noise_cells_m: list[float] = ranged(default_factory=lambda: [1.6, 0.7, 0.3, 0.12, 0.05, 0.02], gt=0, le=MAX_SCALAR)  # noise cell sizes of the octaves (m)
     noise_persistence: float = ranged(0.75, gt=0, le=1)  # amplitude ratio between successive (finer) octaves
     blobs_per_m2: float = ranged(1.5, ge=0, le=MAX_SCALAR)  # random filled ellipses / rectangles per square metre
     blob_size_m: tuple[float, float] = ranged((0.04, 0.45), gt=0, le=MAX_SCALAR)  # range of blob half-axes
