@@ -1,5 +1,5 @@
 """A fourth frontend built only from the protocol runs end to end through the system, with loop
-closure and a plugin factor (docs/design.md, "Adding a fourth frontend", which this test keeps honest)."""
+closure and a plugin factor (docs/architecture.md, "Adding a fourth frontend", which this test keeps honest)."""
 
 from __future__ import annotations
 
@@ -21,9 +21,9 @@ from fgslam.run.runner import run_slam
 from plugin_support import write_positions
 from toy_frontend import ToyConfig, ToyFrontend
 
-DESIGN = Path(__file__).resolve().parents[1] / "docs" / "design.md"
+DESIGN = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"
 SECTION = "Adding a fourth frontend"
-SHAPE = "### The shape of a run"  # the diagram of docs/design.md section 2
+SHAPE = "### The shape of a run"  # the diagram of docs/architecture.md section 2
 RATE_HZ = 4.0
 EXTRA_FRAMES = 19  # frames past the first return to the start
 POSITION_SIGMA_M = 0.3  # coarse positions: their noise and the prior's sigma (m)

@@ -1,4 +1,4 @@
-"""The package's layering (docs/design.md, "Layers"): the import-linter contracts of pyproject.toml
+"""The package's layering (docs/architecture.md, "Layers"): the import-linter contracts of pyproject.toml
 hold, the checker does fail on an upward import (a function-local one), no import cycle exists
 between fgslam's modules, and every dataclass config name is unique across the package."""
 
@@ -91,25 +91,25 @@ def test_config_class_names_are_unique():
 
 
 def test_every_layer_has_its_line_in_the_design_notes():
-    """Each package of the top-level layers contract has a row in docs/design.md section 2 ("Layers"),
+    """Each package of the top-level layers contract has a row in docs/architecture.md section 2 ("Layers"),
     in the contract's order: a layer added without its one-line purpose fails here."""
     contract = next(c for c in tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
                     if c["id"] == "layers")
-    text = (ROOT / "docs" / "design.md").read_text()
+    text = (ROOT / "docs" / "architecture.md").read_text()
     table = text[text.index("| layer | purpose |"):]
     table = table[:table.index("\n\n")]
     rows = [set(re.findall(r"`(fgslam[\w.]*)`", line)) for line in table.splitlines()[2:]]
     documented = [name for row in rows for name in sorted(row)]
     for layer in contract["layers"]:
         for name in (part.strip() for part in layer.split("|")):
-            assert name in documented, f"{name}: no row in docs/design.md's layer table"
+            assert name in documented, f"{name}: no row in docs/architecture.md's layer table"
     order = [next(i for i, row in enumerate(rows) if name in row)
              for layer in contract["layers"] for name in (part.strip() for part in layer.split("|"))]
     assert order == sorted(order)
 
 
 def test_no_collaborator_imports_its_frontend():
-    """A family's collaborators receive its state object, never the frontend (docs/design.md section 2):
+    """A family's collaborators receive its state object, never the frontend (docs/architecture.md section 2):
     inside each family only the package itself imports ``frontend.py``, annotations included."""
     graph = grimp.build_graph(PACKAGE, cache_dir=None, exclude_type_checking_imports=False)
     families = sorted(m.rsplit(".", 1)[0] for m in graph.modules

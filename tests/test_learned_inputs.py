@@ -1,4 +1,4 @@
-"""What reaches the learned networks: the official pipelines' inputs (docs/design.md section 15).
+"""What reaches the learned networks: the official pipelines' inputs (docs/architecture.md section 15).
 
 Both official pipelines read frames with ``cv2.imread`` (colour, BGR). DROID-SLAM flips to RGB, divides
 by 255 and applies the ImageNet mean and std; DPVO feeds BGR as read, mapped to ``2 x / 255 - 0.5``. A

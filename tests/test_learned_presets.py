@@ -1,4 +1,4 @@
-"""The learned presets carry the official schedules (docs/design.md section 15), and the two schedule
+"""The learned presets carry the official schedules (docs/architecture.md section 15), and the two schedule
 settings added for them do what they say.
 
 The official values are written out here from the public sources, in their own units:

@@ -4,7 +4,7 @@ The patch graph's poses are Sim(3), and a stereo keyframe's patches have metric 
 its own camera, so its scale must stay 1. The constant-velocity prediction used to extrapolate the
 last frames' Sim(3) scale change into the new frame, where the BA's scale prior then held it: on
 the synthetic kitti00-drive (320x96, 0.54 m baseline) ``driving_stereo`` grew its scale by 4 % in
-100 frames and 2.4x in 500 with every stereo row fitting (docs/design.md section 4)."""
+100 frames and 2.4x in 500 with every stereo row fitting (docs/architecture.md section 4)."""
 
 from __future__ import annotations
 

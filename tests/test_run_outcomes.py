@@ -462,7 +462,7 @@ def test_run_help_lists_every_preset_with_what_data_it_is_for(capsys):
         assert re.search(rf"^  {name} +{re.escape(text)}$", help_text, re.M), name
 
 
-def test_readme_names_the_calibration_file_of_folders_and_videos(repo_root):
-    readme = (repo_root / "README.md").read_text()
-    assert "`DIR/calibration.yaml`" in readme and "`clip.yaml` next to it" in readme
-    assert "dataset.calibration_file" in readme
+def test_the_data_page_names_the_calibration_file_of_folders_and_videos(repo_root):
+    page = (repo_root / "docs" / "data.md").read_text()
+    assert "`DIR/calibration.yaml`" in page and "`<video stem>.yaml` or `calibration.yaml` next to it" in page
+    assert "-o dataset.calibration_file=PATH" in page

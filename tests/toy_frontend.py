@@ -1,4 +1,4 @@
-"""A fourth frontend family built only from the protocol (docs/design.md, "Adding a fourth frontend").
+"""A fourth frontend family built only from the protocol (docs/architecture.md, "Adding a fourth frontend").
 
 :class:`ToyFrontend` measures nothing real: its odometry is each frame's ground-truth motion
 (``frame.T_WC_gt``, which synthetic and most real datasets carry) with a constant yaw error per

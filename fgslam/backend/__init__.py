@@ -1,4 +1,4 @@
-"""The persistent GTSAM backend that every frontend feeds (docs/design.md section 8).
+"""The persistent GTSAM backend that every frontend feeds (docs/architecture.md section 8).
 
 Modules: :mod:`.keys` (gtsam keys of keyframe poses and other variables), :mod:`.solver` (the one
 Levenberg-Marquardt loop), :mod:`.config` (``BackendConfig``, the ``map`` section), :mod:`.graph`

@@ -16,7 +16,7 @@ SOLVER_ALIASES: dict[str, str] = {"lm": "lm", "python_lm": "lm", "isam2": "isam2
 
 @dataclass
 class GaugeConfig:
-    """Gauge freedom handling (docs/design.md section 4). Which keyframes carry the anchor prior and
+    """Gauge freedom handling (docs/architecture.md section 4). Which keyframes carry the anchor prior and
     the range is :meth:`fgslam.backend.Backend.set_gauge`'s choice (default: the oldest keyframe and
     the oldest two)."""
 

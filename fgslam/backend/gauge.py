@@ -1,4 +1,4 @@
-"""The backend's gauge factors (docs/design.md section 4, :class:`~fgslam.backend.config.GaugeConfig`).
+"""The backend's gauge factors (docs/architecture.md section 4, :class:`~fgslam.backend.config.GaugeConfig`).
 
 A 7-dof prior on the anchor keyframe and a range constraint between the scale pair (monocular world
 scale), both at the poses they had when :meth:`Gauge.set` chose them (default: the oldest keyframe

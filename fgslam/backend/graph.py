@@ -1,4 +1,4 @@
-"""The backend: one GTSAM graph per run that every frontend feeds (docs/design.md section 8).
+"""The backend: one GTSAM graph per run that every frontend feeds (docs/architecture.md section 8).
 
 :class:`Backend` is the run's :class:`~fgslam.backend.store.GraphStore` (keyframe poses with their
 timestamps, other variables, keys attached to keyframes, keyframe callbacks) with its parts:

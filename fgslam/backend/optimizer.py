@@ -1,4 +1,4 @@
-"""The backend's solves over its :class:`~fgslam.backend.store.GraphStore` (docs/design.md section 8),
+"""The backend's solves over its :class:`~fgslam.backend.store.GraphStore` (docs/architecture.md section 8),
 all through the one LM loop (:func:`fgslam.backend.solver.levenberg_marquardt`):
 
 - :meth:`Optimizer.optimize_window`: the given keyframes are free (LM settings of ``map.window``: a

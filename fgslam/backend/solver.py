@@ -1,4 +1,4 @@
-"""The one Levenberg-Marquardt loop of fgslam (docs/design.md section 6).
+"""The one Levenberg-Marquardt loop of fgslam (docs/architecture.md section 6).
 
 Every iterative least-squares solve in the project goes through :func:`levenberg_marquardt`: the
 backend's windowed and global optimisation (visual blocks Schur-reduced to pose systems), the

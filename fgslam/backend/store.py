@@ -1,4 +1,4 @@
-"""What the backend holds (docs/design.md section 8): keyframe poses, other variables, built-in
+"""What the backend holds (docs/architecture.md section 8): keyframe poses, other variables, built-in
 factors with owners and handles, and the contributors' blocks.
 
 Keyframe ``kf`` has the gtsam key :func:`~fgslam.backend.keys.pose_key` ``= gtsam.symbol('x', kf)``

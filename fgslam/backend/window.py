@@ -1,4 +1,4 @@
-"""The problem of one optimisation of the backend (docs/design.md section 8): an
+"""The problem of one optimisation of the backend (docs/architecture.md section 8): an
 :class:`~fgslam.backend.solver.LMProblem` over the free keys, its iSAM2 step provider, and the one
 elimination of keys out of the backend's linearised graph.
 

@@ -25,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "in a textured room, raw images and depth with radial distortion k1=-0.30, k2=0.09 "
                              "(written to sensor.yaml; the loaders undistort); kitti00-drive: KITTI 00's 4,541 camera "
                              "poses (kitti_drive.poses, default ../shared/data/kitti_gt/00.txt) at 10 Hz, 320x96, "
-                             "through a street built along the path; see docs/design.md section 17")
+                             "through a street built along the path; see docs/architecture.md section 17")
     parser.add_argument("--out", required=True, metavar="DIR", help="output sequence root (DIR/mav0/...)")
     parser.add_argument("--frames", type=int, default=None, help="number of frames (default: one loop + 1)")
     parser.add_argument("--seed", type=int, default=None, help="random seed of layout, textures and noise")

@@ -1,7 +1,7 @@
 """The contract of a measurement block that a frontend hands to the backend.
 
 A block owns its measurements (and, for inverse-depth frontends, their structure, eliminated by a
-Schur complement when linearised: docs/design.md section 5) and touches a set of pose keys. The
+Schur complement when linearised: docs/architecture.md section 5) and touches a set of pose keys. The
 backend adds the blocks' linear pieces to the linearised GTSAM graph, so two contributors may add
 blocks on the same keys. A pose-only block (the pointmap family's ray factors) has no structure.
 

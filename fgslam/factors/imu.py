@@ -1,12 +1,12 @@
-"""IMU preintegration on Sim(3) keyframe poses (docs/design.md section 13).
+"""IMU preintegration on Sim(3) keyframe poses (docs/architecture.md section 13).
 
 Keyframe poses are ``gtsam.Similarity3`` T_WC (camera to world, acting as ``X -> s R X + t`` with
-``t = s t_g``; docs/design.md section 3), while gtsam's ``CombinedImuFactor`` acts on the metric body
+``t = s t_g``; docs/architecture.md section 3), while gtsam's ``CombinedImuFactor`` acts on the metric body
 (IMU) pose ``T_WB`` (``gtsam.Pose3``). The adapter
 
     T_WB(S) = P(S) T_CB,    P(S) = Pose3(R, s t_g)   (the camera's rigid pose: its centre and rotation)
 
-ignores the keyframe's own scale (a gauge of the inverse-depth frontends, docs/design.md section 4):
+ignores the keyframe's own scale (a gauge of the inverse-depth frontends, docs/architecture.md section 4):
 only the camera centre and rotation are physical. With gtsam's right perturbation
 ``S Exp([w, u, lambda])`` the first-order change is ``R -> R Exp(w)`` and ``t -> t + s R u`` (lambda
 cancels: the centre ``s e^lambda (R u + e^-lambda t_g)`` does not move), so

@@ -1,4 +1,4 @@
-"""Schur elimination of scalar structure variables and its GTSAM factor (docs/design.md section 5).
+"""Schur elimination of scalar structure variables and its GTSAM factor (docs/architecture.md section 5).
 
 A *visual block* is a set of weighted measurement residuals that depend on a few keyframe poses
 (the block's *pose slots* ``0..k-1``) and on scalar *structure* variables (one inverse depth per
@@ -341,7 +341,7 @@ def to_gaussian_factor(keys: Sequence[int], H: np.ndarray, g: np.ndarray, c: flo
     from it (``A^T A`` in C++). ``c=None``: the constant is left out (no ``e`` row; the error is
     then right up to a constant, enough for solving). Keys have dimension ``dim``.
 
-    Measured (docs/design.md section 6): this is 3x faster than assembling the HessianFactor from
+    Measured (docs/architecture.md section 6): this is 3x faster than assembling the HessianFactor from
     unary and pairwise pieces with ``gtsam.HessianFactor(GaussianFactorGraph)``.
     """
     import gtsam  # deferred: gtsam

@@ -1,5 +1,5 @@
 """Visual blocks: measurements on a few keyframe poses with their own scalar structure, eliminated
-when linearised (:func:`fgslam.factors.schur.schur_reduce`; docs/design.md section 5).
+when linearised (:func:`fgslam.factors.schur.schur_reduce`; docs/architecture.md section 5).
 
 A :class:`VisualBlock` owns measurements and structure and offers ``linearize(values) ->
 [LinearPiece(keys, H, g, c)]`` (:class:`fgslam.factors.blocks.Block`), ``back_substitute(delta)``, ``cost(values)`` and ``refine_structure(values)``

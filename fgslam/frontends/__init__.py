@@ -108,7 +108,7 @@ class FrontendFamily:
         return parts(section, sizes)
 
 
-#: Every family a config may name, implemented or planned (docs/design.md section 1).
+#: Every family a config may name, implemented or planned (docs/architecture.md section 1).
 FAMILIES: tuple[FrontendFamily, ...] = (
     FrontendFamily("patch", "the DPVO / DPV-SLAM patch family",
                    config="fgslam.frontends.patch.config:PatchConfig",

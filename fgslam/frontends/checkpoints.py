@@ -1,7 +1,7 @@
 """The one check of a learned measurement source's checkpoint (patch: DPVO, dense: DROID-SLAM,
 pointmap: MASt3R). fgslam ships no weights and downloads nothing; a learned source whose
 checkpoint (or package) is missing fails at construction with an error that names the config key
-and the built-in alternative, never a silent fallback (docs/design.md section 7).
+and the built-in alternative, never a silent fallback (docs/architecture.md section 7).
 
 :func:`checkpoint_path` returns the checked path (DROID and DPVO run from it, :mod:`fgslam.nets`);
 :func:`require_checkpoint` is for a slot whose network is not part of this build (MASt3R)."""

@@ -108,7 +108,8 @@ class Slam:
         config: the run configuration (:meth:`from_preset`, :meth:`from_config`).
         camera: the camera of the images given to :meth:`track` (a :class:`~fgslam.io.camera.Camera`;
             ``camera.prepared`` for frames a loader made).
-        imu_noise: IMU noise densities (EuRoC ``sensor.yaml`` keys) overriding the config's ``imu.noise``.
+        imu_noise: IMU noise densities (EuRoC ``sensor.yaml`` keys), used where the config's
+            ``imu.*_noise_density`` and ``imu.*_random_walk`` keys are unset.
         has_imu: IMU samples will come (:meth:`add_imu`; default: ``imu.enabled`` of the config).
         timestamps: the run's frame times when known ahead (factor plugins check them; None: unknown).
         frontend: a frontend built by hand instead of the config's family (tests, custom frontends).

@@ -1,4 +1,4 @@
-"""Visual-inertial SLAM on the run's backend: the IMU service (docs/design.md section 13).
+"""Visual-inertial SLAM on the run's backend: the IMU service (docs/architecture.md section 13).
 
 :class:`ImuService` is attached to a :class:`~fgslam.backend.Backend` and works for any frontend that
 feeds it keyframes (``on_keyframe``):

@@ -1,4 +1,4 @@
-"""Plausibility checks of a dataset's IMU stream before a visual-inertial run (docs/design.md section 13).
+"""Plausibility checks of a dataset's IMU stream before a visual-inertial run (docs/architecture.md section 13).
 
 A stream in the wrong units, with swapped columns or on another clock does not fail loudly: the
 initialisation just never converges, or converges to a wrong scale. :func:`check_imu_stream` looks at

@@ -55,7 +55,7 @@ class MotionModel:
         # units, so a keyframe's Sim(3) scale is 1: the new frame enters the BA at scale 1, where the
         # scale prior holds it. Extrapolating the last frames' scale change (the velocity's) instead
         # fed every BA's small scale step into the next frame's prior: the stereo kitti00-drive grew
-        # its scale by 1.3x in 300 frames with every stereo row fitting (docs/design.md section 4).
+        # its scale by 1.3x in 300 frames with every stereo row fitting (docs/architecture.md section 4).
         return _rigid(T_WC) if self.state.sensor_mode in METRIC_SENSOR_MODES else T_WC
 
     def update(self, fid: int) -> None:

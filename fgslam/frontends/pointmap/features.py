@@ -4,7 +4,7 @@ RANSAC against the keyframe's canonical pointmap, so that the scale is the map's
 
 Why features and not the dense flow: the dense flow's confidence collapses on plain surfaces and over more
 than about 25 frames of 7-Scenes, so the flow-based two-view pose (the essential matrix) is missing on
-most frames there and projective matching only confirms the prediction (docs/design.md section 12).
+most frames there and projective matching only confirms the prediction (docs/architecture.md section 12).
 Corners are where the image has texture, and a track chained frame to frame never spans more than one
 frame of motion. A frame whose tracks or PnP fall short is *not* posed here: the frontend relocalises
 it or reports the failure (``motion_model``), never the silently confirmed prediction.

@@ -74,7 +74,7 @@ class PointmapState:
         scale = config.tracking.scale
         self.fixed_scale = (self.kind in ("rgbd", "stereo")) if scale == "auto" else scale == "fixed"
         if not self.fixed_scale and backend.config.gauge.hold_scale:
-            # the pointmaps' scale is real (docs/design.md section 4): no per-keyframe log-scale priors
+            # the pointmaps' scale is real (docs/architecture.md section 4): no per-keyframe log-scale priors
             logger.info("pointmap frontend: Sim(3) keyframes, map.gauge.hold_scale switched off")
             backend.config.gauge.hold_scale = False
         self.loops: LoopPort = NO_LOOPS
