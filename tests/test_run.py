@@ -115,7 +115,9 @@ class FakeFrontend(Frontend):
         if not self.points:
             return None
         X = self.rng.normal(size=(20, 3))
-        return X, np.full((20, 3), 200, dtype=np.uint8)
+        if self.points == "far":  # and one at a near-zero inverse depth, a million units away
+            X = np.vstack([X, [1e6, 0.0, 0.0]])
+        return X, np.full((len(X), 3), 200, dtype=np.uint8)
 
 
 def _config(*overrides: str) -> SlamConfig:
@@ -255,6 +257,16 @@ def test_ply_written_when_requested(synth_root, tmp_path):
     assert b"element vertex 20" in header
     assert len(body) == 20 * (3 * 4 + 3)
     assert summary.outputs["ply"].endswith(PLY_FILE)
+
+
+@pytest.mark.parametrize("factor, vertices", [(None, 20), ("0", 21)])
+def test_the_runs_ply_leaves_out_far_points_unless_told_not_to(synth_root, tmp_path, factor, vertices):
+    """points.ply drops a point a million units away by default (output.ply.max_point_range_factor, the
+    export's rule); 0 keeps every point."""
+    overrides = ("output.write_ply=true",) + (() if factor is None else (f"output.ply.max_point_range_factor={factor}",))
+    _run(synth_root, tmp_path, overrides=overrides, frontend_kwargs={"points": "far"})
+    header = (tmp_path / "out" / PLY_FILE).read_bytes().split(b"end_header\n", 1)[0]
+    assert f"element vertex {vertices}\n".encode() in header
 
 
 def test_never_initialised_writes_summary_without_trajectory_and_fails(synth_root, tmp_path):

@@ -16,7 +16,8 @@ import numpy as np
 
 from ..eval.trajectory import EvalResult
 from ..export.map import RunMap, save_run_map
-from ..export.ply import write_ply
+from ..core.mapdata import points_near_cameras
+from ..export.ply import PlyExportConfig, write_ply
 from ..frontends.base import Frontend
 from ..io.datasets import Dataset
 from ..io import plot  # called through the module: a test replaces plot.plot_trajectories
@@ -75,10 +76,16 @@ def write_trajectories(writer: OutputWriter, traj: Trajectory) -> None:
         writer.record("kitti_times", str(out / KITTI_TIMES_FILE))
 
 
-def write_points(writer: OutputWriter, points: tuple[np.ndarray, np.ndarray]) -> None:
-    """``points.ply``: binary little-endian PLY of the finite points ``(X_W (N, 3), colour (N, 3) uint8)``."""
+def write_points(writer: OutputWriter, points: tuple[np.ndarray, np.ndarray], traj: Optional[Trajectory],
+                 config: PlyExportConfig) -> None:
+    """``points.ply``: binary little-endian PLY of the finite points ``(X_W (N, 3), colour (N, 3) uint8)``,
+    without the far ones (``config.max_point_range_factor`` against the camera positions of ``traj``)."""
     path = writer.out / PLY_FILE
-    writer.write("ply", [path], lambda: write_ply(path, points[0], points[1]))
+    X_W, colour = points
+    if config.max_point_range_factor > 0 and traj is not None and len(traj.timestamps):
+        keep, _ = points_near_cameras(X_W, traj.T_WC[:, :3, 3], config.max_point_range_factor)
+        X_W, colour = X_W[keep], colour[keep]
+    writer.write("ply", [path], lambda: write_ply(path, X_W, colour))
 
 
 def write_keyframe_depths(writer: OutputWriter, frontend: Frontend, notes: list[str]) -> None:

@@ -265,7 +265,7 @@ def _write_outputs(run: PreparedRun, slam: Slam, gt: Optional[Trajectory],
         write_trajectories(writer, traj)
     collect_results(run, system, results)
     if results.points is not None:
-        write_points(writer, results.points)
+        write_points(writer, results.points, traj, config.output.ply)
     if config.output.write_depth:
         write_keyframe_depths(writer, frontend, results.notes)
     if config.output.write_map and traj is not None:  # no pose, no map (and no note that would blame the frontend)
