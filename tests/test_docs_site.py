@@ -198,6 +198,27 @@ def test_the_config_reference_covers_every_key_with_its_meaning():
             assert (f"### {key.key}\n" if top_section else f"| `{key.key}` |") in page, key.key
 
 
+def test_the_documented_defaults_are_those_a_run_gets():
+    """A section's defaults are what its parent builds (``SlamConfig()``), not the section class's own:
+    every documented default is the value of the default config, read through ``to_dict``."""
+    from fgslam.core.config import to_dict
+    from fgslam.core.config_doc import _yaml_text
+
+    tool = load_tool("docs_reference")
+    for target in [RUN_CONFIG_CLASS, PRESET_CLASSES["localize"], PRESET_CLASSES["demo"]]:
+        cls = tool.load_class(target)
+        values = to_dict(cls())
+        for key in config_keys(cls):
+            if key.section:
+                continue
+            value = values
+            for part in key.key.split("."):
+                value = value[part]
+            assert key.default_text == _yaml_text(value), (target, key.key, key.default_text, value)
+    keys = {k.key: k for k in config_keys(tool.load_class(RUN_CONFIG_CLASS))}
+    assert keys["pointmap.source.kind"].default_text == '"auto"'  # the family's default, not the source class's
+
+
 def test_the_cli_reference_lists_every_command_and_option():
     tool = load_tool("docs_reference")
     page = tool.cli_page()

@@ -62,9 +62,13 @@ def type_text(tp: object) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 
-def default_text(f: dataclasses.Field) -> str:
-    """The field's default as YAML would show it (``none``, ``true``, ``[]``, ``1.5``, ``"auto"``)."""
-    if f.default is not dataclasses.MISSING:
+def default_text(f: dataclasses.Field, owner: object = None) -> str:
+    """The field's default as YAML would show it (``none``, ``true``, ``[]``, ``1.5``, ``"auto"``): its
+    value in ``owner`` (the default instance of its section, which may set it apart from the field's own
+    default) when given, else the field's default."""
+    if owner is not None:
+        value = getattr(owner, f.name)
+    elif f.default is not dataclasses.MISSING:
         value = f.default
     elif f.default_factory is not dataclasses.MISSING:
         value = f.default_factory()
@@ -152,8 +156,19 @@ def _section_class(tp: object) -> type | None:
     return None
 
 
-def config_keys(cls: type, prefix: str = "") -> Iterator[KeyDoc]:
-    """Every key of the config dataclass ``cls`` and of its sections, in declaration order."""
+def _default_instance(cls: type) -> object | None:
+    """``cls()``, or None for a class with a required field."""
+    try:
+        return cls()
+    except TypeError:
+        return None
+
+
+def config_keys(cls: type, prefix: str = "", owner: object = None) -> Iterator[KeyDoc]:
+    """Every key of the config dataclass ``cls`` and of its sections, in declaration order, with the
+    defaults of ``owner`` (default: ``cls()``): a section's default is what its parent builds, which
+    may differ from the section class's own defaults."""
+    owner = _default_instance(cls) if owner is None else owner
     hints = typing.get_type_hints(cls)
     comments = field_comments(cls)
     for f in dataclasses.fields(cls):
@@ -161,12 +176,15 @@ def config_keys(cls: type, prefix: str = "") -> Iterator[KeyDoc]:
         tp = hints[f.name]
         section = _section_class(tp)
         meaning = comments.get(f.name, "")
-        if section is not None:
-            yield KeyDoc(key, "section", "", "", meaning or _first_doc_line(section), section=True)
-            yield from config_keys(section, f"{key}.")
+        value = None if owner is None else getattr(owner, f.name)
+        if section is not None and (value is None or dataclasses.is_dataclass(value)):
+            unset = owner is not None and value is None  # an optional section, off by default
+            yield KeyDoc(key, "section or none" if unset else "section", "none" if unset else "", "",
+                         meaning or _first_doc_line(section), section=True)
+            yield from config_keys(section, f"{key}.", value)
             continue
         rng = field_range(f)
-        yield KeyDoc(key, type_text(tp), default_text(f), "" if rng is None else rng.text(), meaning)
+        yield KeyDoc(key, type_text(tp), default_text(f, owner), "" if rng is None else rng.text(), meaning)
 
 
 def key_names(cls: type) -> set[str]:
