@@ -59,7 +59,7 @@ class Case(NamedTuple):
 
 KITCHEN, KITTI, EUROC = "7scenes_redkitchen_0-599", "kitti00_0-199", "euroc_v101_micro"
 CASES: dict[str, Case] = {
-    # the five recommended presets, on the sequences the README quotes
+    # the five recommended presets, on the sequences docs/benchmarks/presets.md quotes
     "handheld_rgbd": Case("handheld_rgbd", KITCHEN, RECOMMENDED_RATIO),
     "handheld_mono": Case("handheld_mono", KITCHEN, RECOMMENDED_RATIO),
     "handheld_stereo": Case("handheld_stereo", EUROC, RECOMMENDED_RATIO),

@@ -37,7 +37,7 @@ lines (``torch.cuda.utilization``, else ``nvidia-smi``) and the peak memory.
 starting point itself (``initial_state``: poses and depths before any update, what the network must
 beat); JSON lines to stdout, the summary last. CPU by default (threads ``--threads``); ``--device auto`` uses CUDA when present.
 
-Usage (the CPU smoke run of the README; then a GPU run, and tools/gpu_train_check.py for the whole recipe):
+Usage (a CPU smoke run, as in docs/benchmarks/learned.md; then a GPU run, and tools/gpu_train_check.py for the whole recipe):
   .venv/bin/python tools/train.py --steps 300 --out runs/train/droid.pth
   python3 tools/train.py --device cuda --batch 16 --pool-seeds 8 --workers 16 --time-limit-s 240 \
       --steps 1000000 --eval-every 200 --out runs/train/droid.pth

@@ -10,7 +10,7 @@ Options, and why:
 
 - ``cache=True``: the machine code is stored on disk beside the module (``__pycache__``, or numba's
   per-user cache folder where that is read-only) and reused by later processes: the first run after
-  an install pays the compilation (README, "Compiled kernels"), later runs load it.
+  an install pays the compilation (docs/benchmarks/startup.md), later runs load it.
 - ``fastmath=False`` and no ``parallel``: IEEE arithmetic in the order written, no reassociated or
   contracted (FMA) sums and no reductions split over threads, so a kernel gives the same bytes at any
   load and on any x86-64 CPU.

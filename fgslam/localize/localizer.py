@@ -20,7 +20,7 @@ the map's settings, :mod:`fgslam.export.mapfile`):
    of its position for 1 px of pixel noise, from its inliers' geometry
    (:func:`relative_position_std`), over their median depth is at most ``max_position_std`` (a
    quality gate; the default, 1.0, gates nothing in practice: on 7-Scenes it trades localised
-   frames for accuracy, README "Maps");
+   frames for accuracy, docs/benchmarks/maps.md);
 4. else the frame is "not localised": no pose is made up (no motion model).
 """
 

@@ -7,8 +7,8 @@ VLAD (Jegou et al., CVPR 2010): each local descriptor (unit norm) is assigned to
 summed per centre, each centre's sum is L2-normalised (intra-normalisation) and the concatenation
 (``k * 64`` values) is L2-normalised. The score of two keyframes is the cosine similarity of their
 VLAD vectors, clipped at 0 (so it stays in [0, 1] like the DBoW2 L1 score the detector expects).
-Chosen by measurement on the 7-Scenes kitchen revisit and the synthetic room loop (README, "XFeat
-for loop closure and relocalisation"): VLAD with 64 centres separates revisits from pairs without
+Chosen by measurement on the 7-Scenes kitchen revisit and the synthetic room loop
+(docs/benchmarks/loops.md): VLAD with 64 centres separates revisits from pairs without
 common view better than the mean descriptor and than ORB's bag of words.
 
 Centres: spherical k-means (dot-product assignment, mean then renormalise), seeded, on XFeat
@@ -47,7 +47,7 @@ _GROW = 1024                                          # database rows allocated 
 def _xfeat_detection() -> LoopDetectionConfig:
     # VLAD cosine scores: a keyframe's score against the previous keyframe is 0.6-0.95 and a
     # revisit's 0.4-0.7 of it (7-Scenes kitchen, synthetic room), unrelated views up to 0.75 of it
-    # in the kitchen: verification decides there (README, "XFeat for loop closure and relocalisation")
+    # in the kitchen: verification decides there (docs/benchmarks/loops.md)
     return LoopDetectionConfig(min_prior_score=0.05, min_normalized_score=0.5)
 
 
@@ -64,7 +64,7 @@ class VladRetrievalConfig:
 class LoopFeaturesConfig:
     """Which local features the classical loop closer and relocalisation use: ``orb`` (binary bag
     of words, ``loop_closure.bow``; the default) or ``xfeat`` (learned, optional extra
-    ``fgslam[xfeat]``; VLAD retrieval and cosine matching, about 25x ORB's CPU per keyframe: README)."""
+    ``fgslam[xfeat]``; VLAD retrieval and cosine matching, about 25x ORB's CPU per keyframe: docs/benchmarks/loops.md)."""
 
     kind: Literal["orb", "xfeat"] = "orb"  # orb: binary bag of words; xfeat: learned features (extra fgslam[xfeat])
     xfeat: XFeatConfig = field(default_factory=XFeatConfig)

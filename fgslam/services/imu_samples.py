@@ -61,7 +61,7 @@ class ImuInitConfig:
     inertial_only_log_scale_prior: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # weak prior on log(scale change) (monocular)
     inertial_only_max_log_scale_sigma: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # monocular: the scale is applied only when sigma(log scale) is below this
     # the one bias's prior (about the current estimate); measured on the room loop: 0.1 / 0.01 gave a
-    # 2.7 % scale error, ORB-SLAM3's 0.003 / 0.1 (with the whole map's keyframes and a 0.1 gate) 54 % (README)
+    # 2.7 % scale error, ORB-SLAM3's 0.003 / 0.1 (with the whole map's keyframes and a 0.1 gate) 54 % (docs/benchmarks/inertial.md)
     inertial_only_accel_bias_sigma: float = ranged(0.1, gt=0, le=MAX_SCALAR)  # m/s^2
     inertial_only_gyro_bias_sigma: float = ranged(0.01, gt=0, le=MAX_SCALAR)  # rad/s
     inertial_only_ba_iterations: int = ranged(2, ge=0, le=MAX_ITERATIONS)  # LM iterations of the visual-inertial optimisation after it (0: none)

@@ -205,7 +205,7 @@ class LocalBA:
         # RGB-D poses are written back rigid (scale exactly 1): its depth priors act on inverse depths
         # in the source camera and observe no Sim(3) scale, and the scale prior only holds each BA
         # near its starting scale, so kept scales drifted from BA to BA (7-Scenes: s fell to 0.87
-        # within 200 frames and the trajectory shrank; see README). Stereo observes the scale through
+        # within 200 frames and the trajectory shrank; see docs/benchmarks/presets.md). Stereo observes the scale through
         # the metric baseline (resetting it there moved the EuRoC static clip by 2.6 mm instead of 0.8 mm).
         rigid = st.sensor_mode == "rgbd"
         for f in var_order:

@@ -10,7 +10,7 @@ photometric check on redkitchen (depth back-projected with 585, warped by the gr
 into the colour images) favours a colour focal length near 525 (the Kinect v1 colour camera), yet
 monocular patch SLAM with 525 was not more accurate (600 frames: Sim(3) ATE 0.069 vs 0.060 m), and
 RGB-D patch SLAM with depth resampled into a 525 / 555 px colour camera reaches 0.044 / 0.029 m
-SE(3) vs 0.033 m at 585 (README, "Hand-held presets": a focal fitted on the evaluation clip is no
+SE(3) vs 0.033 m at 585 (docs/benchmarks/presets.md: a focal fitted on the evaluation clip is no
 calibration), so the file's values stay.
 ``SCENE`` may also be a ``seq-NN`` folder itself; with several sequences ``DatasetConfig.sequence``
 picks one (default: the first).  7-Scenes stores no timestamps: frame ``i`` gets ``i / RATE_HZ``.
