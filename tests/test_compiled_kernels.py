@@ -135,3 +135,32 @@ def test_track_checks_at_the_lk_resolution():
     assert uv[0].tolist() == [51.5, 41.5]
     assert fb[0] == pytest.approx(0.5)
     assert conf[0] == pytest.approx(0.5)
+
+
+# ------------------------------------------------------------------ loaded before the first frame
+
+_BUILD_AND_REPORT = """
+import sys
+import fgslam
+camera = fgslam.Camera(fx=300.0, fy=300.0, cx=159.5, cy=119.5, width=320, height=240)
+slam = fgslam.Slam.from_preset(sys.argv[1], camera, overrides=sys.argv[2:])
+print("numba" in sys.modules, slam.system.frontend.uses_compiled_kernels)
+slam.abort()
+"""
+
+
+@pytest.mark.parametrize("preset, overrides, loaded", [
+    ("patch_mono", [], True),                                     # Lucas-Kanade track checks
+    ("pointmap_rgbd", [], True),                                  # projective matching
+    ("dense_rgbd", ["dense.depth_align.enabled=true"], True),     # depth alignment
+    ("dense_rgbd", [], False),                                    # no kernel: numba stays unloaded
+])
+def test_a_run_loads_the_kernels_before_its_first_frame_only_when_its_family_calls_them(preset, overrides, loaded):
+    """numba's import and machine-code target (about 2 s the first time a process calls a kernel) are
+    paid when the run is built, not by a frame; a run whose family calls no kernel never imports numba."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _BUILD_AND_REPORT, preset, *overrides], capture_output=True,
+                         text=True, check=True).stdout.split()
+    assert out == [str(loaded), str(loaded)]

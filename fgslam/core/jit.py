@@ -23,6 +23,8 @@ needs them (``# deferred`` imports), never on the way to a command's first check
 
 from __future__ import annotations
 
+import functools
+import time
 from collections.abc import Callable
 
 KERNEL_OPTIONS = {"cache": True, "fastmath": False, "nogil": True, "error_model": "numpy"}
@@ -34,3 +36,21 @@ def kernel(func: Callable) -> Callable:
     import numba  # deferred: numba (only modules that define kernels need it)
 
     return numba.njit(**KERNEL_OPTIONS)(func)
+
+
+def _identity(x):
+    return x
+
+
+@functools.cache
+def warm_up() -> float:
+    """Import numba and load its machine-code target, once per process; returns the seconds the
+    first call took (later calls: the same figure, no work).
+
+    The first kernel a process calls pays both (about 2 s here: the import, then the target's
+    registries, initialised when the first compiled function loads from the cache). A run calls this
+    before its first frame (:attr:`fgslam.frontends.base.Frontend.uses_compiled_kernels`), so that no
+    frame pays it: the first frames' time and a live run's first latency stay those of the work."""
+    t0 = time.perf_counter()
+    kernel(_identity)(0)
+    return time.perf_counter() - t0

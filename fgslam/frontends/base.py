@@ -166,6 +166,12 @@ class Frontend(abc.ABC):
     backend: Optional["Backend"] = None
 
     @property
+    def uses_compiled_kernels(self) -> bool:
+        """The family calls compiled kernels (:mod:`fgslam.core.jit`) on its frames: the run loads
+        numba's machine-code target before the first frame (:func:`fgslam.core.jit.warm_up`)."""
+        return False
+
+    @property
     def contributor(self):
         """What the services talk to (:mod:`fgslam.contracts.contributor`: keyframe images and poses,
         corrections, long-range edges): a family's collaborator set as ``_contributor``, else the

@@ -141,6 +141,10 @@ class Slam:
         self.system = SlamSystem.build(config, self.calibration, frontend=frontend, timestamps=timestamps,
                                        has_imu=config.imu.enabled if has_imu is None else has_imu,
                                        imu_noise=imu_noise, where=where, rerun=rerun)
+        if self.system.frontend.uses_compiled_kernels:
+            from ..core.jit import warm_up  # deferred: numba
+
+            logger.debug("compiled kernels ready in %.2f s", warm_up())
         self.state = RunState(load_average=[round(v, 2) for v in os.getloadavg()])
         backend = self.system.backend
         kf_times = None if backend is None else lambda: {backend.timestamp(k) for k in backend.keyframe_ids}

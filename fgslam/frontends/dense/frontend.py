@@ -113,6 +113,11 @@ class DenseFrontend(BackendFrontend):
         self.state.set_calibration(calibration)
 
     # ------------------------------------------------------------------ Frontend API
+    @property
+    def uses_compiled_kernels(self) -> bool:
+        """Only RGB-D depth alignment calls compiled kernels in this family."""
+        return self.state.depth.enabled
+
     def num_keyframes(self) -> int:
         st = self.state
         return (0 if st.graph is None else len(st.graph.keyframes)) + len(st.final)

@@ -101,6 +101,11 @@ class PatchFrontend(BackendFrontend):
         self.state.set_calibration(calibration)
 
     @property
+    def uses_compiled_kernels(self) -> bool:
+        """The Lucas-Kanade source's track checks and RGB-D depth alignment are compiled kernels."""
+        return self.config.source == "lk" or self.state.depth.enabled
+
+    @property
     def source(self):
         """The measurement source (:mod:`.source`); assignable (tests swap it)."""
         return self.state.source

@@ -134,6 +134,11 @@ class PointmapFrontend(BackendFrontend):
     def _has_calibration(self) -> bool:
         return self.state.cam is not None
 
+    @property
+    def uses_compiled_kernels(self) -> bool:
+        """Projective matching (every source kind) is a compiled kernel."""
+        return True
+
     def connect(self, loops: LoopPort | None = None, motion_prior: MotionPrior | None = None) -> None:
         """Take the loop port and the motion prior (the IMU service's ``predict``): the prediction of a
         metric frame the image cannot measure, and the pose of a frame tracking loses (``imu``)."""
