@@ -18,7 +18,6 @@ import re
 import sys
 from collections.abc import Iterable
 
-import griffe
 
 from fgslam.cli import build_parser
 from fgslam.core.config_doc import KeyDoc, config_keys
@@ -131,7 +130,8 @@ def _option_row(action: argparse.Action) -> str | None:
     else:
         names = action.metavar or action.dest
     default = action.default
-    shown = "" if default in (None, False, [], argparse.SUPPRESS) or action.nargs == 0 else str(default)
+    unset = default is None or default is False or default == [] or default == argparse.SUPPRESS
+    shown = "" if unset or action.nargs == 0 else str(default)
     help_text = (action.help or "") % {"default": default, "prog": "fgslam"} if action.help else ""
     return f"| `{names}` | {cell(help_text)} | {cell(shown)} |"
 
@@ -143,14 +143,15 @@ def cli_page() -> str:
            "`fgslam COMMAND --help` prints the same.", "",
            "Every command takes the global options before the command name: "
            "`fgslam [-v | -q] COMMAND ...` (`-v` debug logging, `-q` warnings and errors only). "
-           "Exit codes: 0 done, 2 refused (a one-line error names the cause), 130 interrupted "
-           "(Ctrl-C; every output written so far is kept).", ""]
+           "Exit codes: 0 done; 1 `fgslam batch` with a failed cell; 2 refused (a one-line error names "
+           "the cause); 130 interrupted by Ctrl-C and 143 by SIGTERM (every output written so far is "
+           "kept).", ""]
     for name, sub in _subcommands(parser).items():
         sub.prog = f"fgslam {name}"
         out += [f"## fgslam {name}", "", cell(sub.description or ""), "", "```text",
                 sub.format_usage().strip(), "```", "", "| argument | meaning | default |", "|---|---|---|"]
         out += [row for row in map(_option_row, sub._actions) if row]
-        out += [""]
+        out += [""] + (["```text", sub.epilog.rstrip(), "```", ""] if sub.epilog else [])
     return "\n".join(out)
 
 
@@ -164,12 +165,21 @@ def cli_options() -> dict[str, set[str]]:
 SPHINX_ROLE = re.compile(r":(?:class|meth|func|attr|data|mod|exc|obj):`~?(?:[\w.]*\.)?([^`.]+)`")
 
 
-class SphinxRoles(griffe.Extension):
-    """Griffe extension (mkdocs.yml: mkdocstrings ``extensions``): the docstrings' Sphinx roles as code."""
+def __getattr__(name: str):
+    """``SphinxRoles``, the griffe extension (mkdocs.yml: mkdocstrings ``extensions``) that shows the
+    docstrings' Sphinx roles as code; built on first use, since griffe comes with the docs extra only
+    (the tests that read the generated pages run without it)."""
+    if name != "SphinxRoles":
+        raise AttributeError(name)
+    import griffe  # deferred: the docs extra
 
-    def on_instance(self, *, obj, **kwargs) -> None:
-        if obj.docstring is not None:
-            obj.docstring.value = SPHINX_ROLE.sub(r"`\1`", obj.docstring.value)
+    class SphinxRoles(griffe.Extension):
+        def on_instance(self, *, obj, **kwargs) -> None:
+            if obj.docstring is not None:
+                obj.docstring.value = SPHINX_ROLE.sub(r"`\1`", obj.docstring.value)
+
+    globals()["SphinxRoles"] = SphinxRoles
+    return SphinxRoles
 
 
 def on_files(files, config):  # MkDocs hook (mkdocs.yml: hooks)

@@ -50,7 +50,7 @@ def type_text(tp: object) -> str:
     if origin in (typing.Union, types.UnionType):
         named = [type_text(a) for a in args if a is not type(None)]
         text = " or ".join(named)
-        return f"{text} or none" if type(None) in args else text
+        return f"{text} or null" if type(None) in args else text
     if origin in (list, tuple, dict):
         if origin is dict:
             return f"mapping of {type_text(args[0])} to {type_text(args[1])}" if args else "mapping"
@@ -63,7 +63,7 @@ def type_text(tp: object) -> str:
 
 
 def default_text(f: dataclasses.Field, owner: object = None) -> str:
-    """The field's default as YAML would show it (``none``, ``true``, ``[]``, ``1.5``, ``"auto"``): its
+    """The field's default as YAML would show it (``null``, ``true``, ``[]``, ``1.5``, ``"auto"``): its
     value in ``owner`` (the default instance of its section, which may set it apart from the field's own
     default) when given, else the field's default."""
     if owner is not None:
@@ -81,7 +81,7 @@ def default_text(f: dataclasses.Field, owner: object = None) -> str:
 
 def _yaml_text(value: Any) -> str:
     if value is None:
-        return "none"
+        return "null"
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, str):
@@ -91,8 +91,16 @@ def _yaml_text(value: Any) -> str:
     if isinstance(value, dict):
         return "{" + ", ".join(f"{k}: {_yaml_text(v)}" for k, v in value.items()) + "}"
     if isinstance(value, float):
-        return f"{value:g}"
+        return _float_text(value)
     return str(value)
+
+
+def _float_text(value: float) -> str:
+    """A float exactly (``repr``), written so that YAML reads a float back: ``1e-06`` is a string to
+    YAML 1.1, ``1.0e-06`` a float."""
+    text = repr(value)
+    mantissa, e, exponent = text.partition("e")
+    return f"{mantissa}.0e{exponent}" if e and "." not in mantissa else text
 
 
 def _comments_by_line(source: str) -> dict[int, str]:
@@ -179,7 +187,7 @@ def config_keys(cls: type, prefix: str = "", owner: object = None) -> Iterator[K
         value = None if owner is None else getattr(owner, f.name)
         if section is not None and (value is None or dataclasses.is_dataclass(value)):
             unset = owner is not None and value is None  # an optional section, off by default
-            yield KeyDoc(key, "section or none" if unset else "section", "none" if unset else "", "",
+            yield KeyDoc(key, "section or none" if unset else "section", "null" if unset else "", "",
                          meaning or _first_doc_line(section), section=True)
             yield from config_keys(section, f"{key}.", value)
             continue

@@ -24,8 +24,11 @@ needs them (``# deferred`` imports), never on the way to a command's first check
 from __future__ import annotations
 
 import functools
+import logging
 import time
 from collections.abc import Callable
+
+logger = logging.getLogger(__name__)
 
 KERNEL_OPTIONS = {"cache": True, "fastmath": False, "nogil": True, "error_model": "numpy"}
 
@@ -53,4 +56,6 @@ def warm_up() -> float:
     frame pays it: the first frames' time and a live run's first latency stay those of the work."""
     t0 = time.perf_counter()
     kernel(_identity)(0)
-    return time.perf_counter() - t0
+    seconds = time.perf_counter() - t0
+    logger.debug("compiled kernels ready in %.2f s", seconds)
+    return seconds

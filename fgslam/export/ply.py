@@ -15,7 +15,7 @@ from ..core.config import MAX_SCALAR, ranged
 class PlyExportConfig:
     """What a PLY export keeps of a run's map (``fgslam export RUN --ply FILE``)."""
 
-    max_point_range_factor: float = ranged(10.0, ge=0, le=MAX_SCALAR)  # leave out points farther from every keyframe camera than this x the map's median such distance (far points: near-zero inverse depths; compare-colmap's rule, scale-free); 0: keep every point
+    max_point_range_factor: float = ranged(10.0, ge=0, le=MAX_SCALAR)  # leave out points farther from every camera (the map's keyframes; for a run's points.ply, its posed frames) than this x the median such distance (far points: near-zero inverse depths; compare-colmap's rule, scale-free); 0: keep every point
 
 
 def write_ply(path: str | Path, X_W: np.ndarray, colour: np.ndarray) -> Path:

@@ -33,7 +33,7 @@ class OutputConfig:
     # plot plane; auto: the two axes of largest ground-truth (else estimate) extent
     plot_plane: Literal["auto", "xy", "xz", "yz"] = "auto"
     write_ply: bool = False  # write points.ply from the frontend's keyframe points (when it provides them)
-    ply: PlyExportConfig = field(default_factory=PlyExportConfig)  # points.ply: far points left out as `fgslam export --ply` does (the run's camera positions as centres)
+    ply: PlyExportConfig = field(default_factory=PlyExportConfig)  # points.ply: far points left out by `fgslam export --ply`'s rule
     write_depth: bool = False  # write depth/<kf:06d>.png per keyframe (16-bit, millimetres; frontends with keyframe_depths(): dense)
     write_map: bool = True  # write map.npz (keyframes, points, tracks, calibration, frames) for `fgslam export`
     save_map: Optional[str] = None  # also write a stored map here (`fgslam run --save-map MAP`; fgslam/export/mapfile.py)

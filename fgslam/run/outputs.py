@@ -81,11 +81,15 @@ def write_points(writer: OutputWriter, points: tuple[np.ndarray, np.ndarray], tr
     """``points.ply``: binary little-endian PLY of the finite points ``(X_W (N, 3), colour (N, 3) uint8)``,
     without the far ones (``config.max_point_range_factor`` against the camera positions of ``traj``)."""
     path = writer.out / PLY_FILE
-    X_W, colour = points
-    if config.max_point_range_factor > 0 and traj is not None and len(traj.timestamps):
-        keep, _ = points_near_cameras(X_W, traj.T_WC[:, :3, 3], config.max_point_range_factor)
-        X_W, colour = X_W[keep], colour[keep]
-    writer.write("ply", [path], lambda: write_ply(path, X_W, colour))
+
+    def write() -> None:  # inside the writer: a failure is this output's, the others are still written
+        X_W, colour = points
+        if config.max_point_range_factor > 0 and traj is not None and len(traj.timestamps):
+            keep, _ = points_near_cameras(X_W, traj.T_WC[:, :3, 3], config.max_point_range_factor)
+            X_W, colour = X_W[keep], colour[keep]
+        write_ply(path, X_W, colour)
+
+    writer.write("ply", [path], write)
 
 
 def write_keyframe_depths(writer: OutputWriter, frontend: Frontend, notes: list[str]) -> None:

@@ -144,7 +144,11 @@ class Slam:
         if self.system.frontend.uses_compiled_kernels:
             from ..core.jit import warm_up  # deferred: numba
 
-            logger.debug("compiled kernels ready in %.2f s", warm_up())
+            try:
+                warm_up()
+            except BaseException:  # Ctrl-C (or a broken numba) while loading: the built system stops too
+                self.system.abort()
+                raise
         self.state = RunState(load_average=[round(v, 2) for v in os.getloadavg()])
         backend = self.system.backend
         kf_times = None if backend is None else lambda: {backend.timestamp(k) for k in backend.keyframe_ids}
