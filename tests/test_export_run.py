@@ -3,7 +3,12 @@ runner, COLMAP model (tracks from the patches) read back by pycolmap, PLY, and t
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import subprocess
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +16,7 @@ import pytest
 
 from fgslam.cli import main
 from fgslam.core.mapdata import MapExport
+from fgslam.export import inplace
 from fgslam.export.colmap import read_colmap_model, reprojection_errors
 from fgslam.export.map import RunMap, load_run_map, save_run_map
 from fgslam.export.mapfile import check_map_file
@@ -218,3 +224,156 @@ def test_ply_leaves_out_far_points_unless_the_limit_is_raised_or_off(tmp_path, c
     capsys.readouterr()
     assert main(["export", str(run), "--ply", str(ply), "--overwrite", "--max-point-range", "-1"]) == 2
     assert "--max-point-range: key 'max_point_range_factor': must be >= 0" in _error_line(capsys.readouterr().err)
+
+
+# ------------------------------------------------------------------ replacing an output (fgslam.export.inplace)
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` (relative path -> bytes)."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _replace_failing(monkeypatch, failing: Callable[[Path, Path], bool], error: BaseException) -> None:
+    """``os.replace`` of fgslam.export.inplace raising ``error`` for the renames ``failing(src, dst)`` picks."""
+    real = os.replace
+
+    def replace(src, dst):
+        if failing(Path(src), Path(dst)):
+            raise error
+        real(src, dst)
+
+    monkeypatch.setattr(inplace.os, "replace", replace)
+
+
+@pytest.mark.parametrize("error", [OSError(errno.EXDEV, "Invalid cross-device link"), KeyboardInterrupt()])
+def test_a_failed_swap_keeps_the_previous_output(tmp_path, capsys, monkeypatch, error):
+    """The new output's rename into place fails (an error, Ctrl-C): the previous COLMAP export, moved aside
+    first, is back in place, the previous PLY untouched (a file is replaced in one rename), nothing else left."""
+    run = _synthetic_run(tmp_path / "run", tmp_path / "data")
+    out, ply = tmp_path / "colmap", tmp_path / "map.ply"
+    assert main(["export", str(run), "--colmap", str(out), "--no-images", "--colmap-format", "txt"]) == 0
+    assert main(["export", str(run), "--ply", str(ply)]) == 0
+    before, ply_before = _tree(out), ply.read_bytes()
+    assert before and ply_before
+    capsys.readouterr()
+    _replace_failing(monkeypatch, lambda src, dst: ".tmp" in src.name, error)
+    for target in (["--colmap", str(out), "--no-images"], ["--ply", str(ply), "--max-point-range", "0"]):
+        if isinstance(error, OSError):
+            assert main(["export", str(run), *target, "--overwrite"]) == 2
+            line = _error_line(capsys.readouterr().err)
+            assert "cannot move the new output into place" in line and "Invalid cross-device link" in line
+        else:
+            assert main(["export", str(run), *target, "--overwrite"]) == 130  # the CLI's Ctrl-C status
+            assert capsys.readouterr().err == "fgslam: interrupted\n"
+    assert _tree(out) == before and ply.read_bytes() == ply_before  # the text model kept, not the binary one
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["colmap", "map.ply", "run"]
+
+
+def test_moving_the_previous_output_aside_fails_in_one_line(tmp_path, capsys, monkeypatch):
+    """An OSError of the export's own file operations is a one-line error, and the previous output stays."""
+    run = _synthetic_run(tmp_path / "run", tmp_path / "data")
+    out = tmp_path / "colmap"
+    assert main(["export", str(run), "--colmap", str(out), "--no-images"]) == 0
+    before = _tree(out)
+    capsys.readouterr()
+    _replace_failing(monkeypatch, lambda src, dst: src == out, PermissionError(errno.EACCES, "Permission denied", str(out)))
+    assert main(["export", str(run), "--colmap", str(out), "--no-images", "--overwrite"]) == 2
+    line = _error_line(capsys.readouterr().err)
+    assert f"{out}: cannot move the previous output aside: Permission denied ({out})" in line
+    assert _tree(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["colmap", "run"]
+
+
+def test_an_output_created_meanwhile_is_not_replaced(tmp_path, capsys, monkeypatch):
+    """Without --overwrite, an output that appears at the path while the export writes (another export to
+    the same path) is refused at the swap, not deleted; the new output is not left behind."""
+    import fgslam.export.run_export as run_export
+
+    run = _synthetic_run(tmp_path / "run", tmp_path / "data")
+    out, ply = tmp_path / "colmap", tmp_path / "map.ply"
+    real_model, real_ply = run_export.write_model, run_export.write_ply
+
+    def model_and_another(*args, **kwargs):
+        real_model(*args, **kwargs)
+        (out / "sparse").mkdir(parents=True)
+        (out / "sparse" / "theirs.txt").write_text("the other export")
+
+    def ply_and_another(*args, **kwargs):
+        real_ply(*args, **kwargs)
+        ply.write_text("the other export")
+
+    monkeypatch.setattr(run_export, "write_model", model_and_another)
+    monkeypatch.setattr(run_export, "write_ply", ply_and_another)
+    for target in (["--colmap", str(out), "--no-images"], ["--ply", str(ply)]):
+        assert main(["export", str(run), *target]) == 2
+        assert "exists (use --overwrite" in _error_line(capsys.readouterr().err)
+    assert _tree(out) == {"sparse/theirs.txt": b"the other export"} and ply.read_text() == "the other export"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["colmap", "map.ply", "run"]
+
+
+def test_overwrite_never_deletes_another_folder(tmp_path, capsys):
+    """--overwrite replaces a PLY file or a previous COLMAP export (or an empty folder): a folder given to
+    --ply, a --colmap folder that is not an export, or a file there, are refused and kept."""
+    run = _synthetic_run(tmp_path / "run", tmp_path / "data")
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "keep.txt").write_text("mine")
+    for overwrite in ([], ["--overwrite"]):
+        assert main(["export", str(run), "--ply", str(results), *overwrite]) == 2
+        assert f"{results}: is a folder (--ply takes a file name" in _error_line(capsys.readouterr().err)
+        assert main(["export", str(run), "--colmap", str(results), "--no-images", *overwrite]) == 2
+        assert f"{results}: not a previous COLMAP export (no sparse/ in it" in _error_line(capsys.readouterr().err)
+    (tmp_path / "file").write_text("mine too")
+    assert main(["export", str(run), "--colmap", str(tmp_path / "file"), "--no-images", "--overwrite"]) == 2
+    assert "exists and is not a folder" in _error_line(capsys.readouterr().err)
+    assert _tree(results) == {"keep.txt": b"mine"} and (tmp_path / "file").read_text() == "mine too"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["export", str(run), "--colmap", str(empty), "--no-images"]) == 2  # refused without --overwrite
+    assert "exists (use --overwrite" in _error_line(capsys.readouterr().err)
+    assert main(["export", str(run), "--colmap", str(empty), "--no-images", "--overwrite"]) == 0
+    assert len(read_colmap_model(empty).names) == 8
+
+
+def test_missing_parent_folder_is_refused_for_colmap_as_for_ply(tmp_path, capsys):
+    run = _synthetic_run(tmp_path / "run", tmp_path / "data")
+    for flag, name in (("--colmap", "colmap"), ("--ply", "map.ply")):
+        target = tmp_path / "missing" / name
+        assert main(["export", str(run), flag, str(target), "--no-images"]) == 2
+        assert _error_line(capsys.readouterr().err) == f"fgslam: error: {target}: folder {target.parent} does not exist"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+
+
+def _dead_pid() -> int:
+    """The id of a process that has ended (and been reaped)."""
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    return child.pid
+
+
+def test_stale_siblings_of_ended_exports_are_swept(tmp_path, capsys):
+    """The temporary output of an export killed outright (its process gone) is removed by the next export
+    of that path, and a previous output it had moved aside is put back; the siblings of a running process,
+    of another path, or of another name pattern are left alone."""
+    run = _synthetic_run(tmp_path / "run", tmp_path / "data")
+    dead, alive = _dead_pid(), os.getppid()
+    out = tmp_path / "colmap"
+    stale = tmp_path / f".colmap.tmp{dead}"
+    (stale / "images").mkdir(parents=True)
+    (stale / "images" / "000000.png").write_bytes(b"partial")
+    (tmp_path / f".colmap.old{dead}" / "sparse").mkdir(parents=True)  # the previous export, moved aside
+    (tmp_path / f".colmap.old{dead}" / "sparse" / "earlier.txt").write_text("earlier")
+    kept = [tmp_path / f".colmap.tmp{alive}", tmp_path / f".colmap2.tmp{dead}", tmp_path / ".colmap.tmpx",
+            tmp_path / f"colmap.tmp{dead}"]
+    for path in kept:
+        path.mkdir()
+    assert main(["-q", "export", str(run), "--colmap", str(out), "--no-images"]) == 2  # the put-back export exists
+    put_back, error = capsys.readouterr().err.splitlines()  # -q: the warning and the error, no traceback
+    assert put_back.endswith(f"{out}: put back the previous output that an interrupted write had moved aside")
+    assert "exists (use --overwrite" in _error_line(error)
+    assert _tree(out) == {"sparse/earlier.txt": b"earlier"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["colmap", "run", *(p.name for p in kept)])
+    ply = tmp_path / "map.ply"
+    (tmp_path / f".map.ply.tmp{dead}").write_bytes(b"partial")
+    assert main(["export", str(run), "--ply", str(ply)]) == 0
+    assert not (tmp_path / f".map.ply.tmp{dead}").exists() and ply.is_file()

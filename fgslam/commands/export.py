@@ -30,7 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="PLY: leave out points farther from every keyframe than FACTOR x the map's median such "
                              f"distance (far points; default {PlyExportConfig().max_point_range_factor:g}; 0: keep every "
                              "point; PlyExportConfig.max_point_range_factor)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output: a PLY file, a ROS bag, a "
+                        "previous COLMAP export (a folder holding sparse/) or an empty folder; never another folder")
     parser.add_argument("--json", action="store_true", help="print what was written as one JSON object")
 
 

@@ -41,7 +41,6 @@ from __future__ import annotations
 import io
 import json
 import logging
-import os
 import threading
 import zipfile
 from dataclasses import dataclass, field
@@ -56,6 +55,7 @@ from ..loop.bow import BowConfig, KeyframeFeatures, PlaceRecognizer
 from ..loop.features import OrbConfig, to_grey_uint8
 from ..loop.records import VerificationConfig
 from ..core.mapdata import MapExport
+from .inplace import written_in_place
 
 logger = logging.getLogger(__name__)
 
@@ -229,8 +229,7 @@ def save_stored_map(path: str | Path, stored: StoredMap) -> Path:
     stored.check(str(path))
     meta = dict(stored.meta, format=MAP_FORMAT, version=MAP_FORMAT_VERSION)
     items = [("meta", _meta_bytes(meta))] + [(name, getattr(stored, name)) for name in ARRAYS]
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
+    with written_in_place(path, overwrite=True) as tmp:  # replaced: the callers check an existing path
         with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
             for name, arr in items:
                 info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_DATE)
@@ -239,10 +238,6 @@ def save_stored_map(path: str | Path, stored: StoredMap) -> Path:
                 buf = io.BytesIO()
                 np.lib.format.write_array(buf, np.ascontiguousarray(arr), allow_pickle=False)
                 zf.writestr(info, buf.getvalue())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return path
 
 

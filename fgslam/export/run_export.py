@@ -6,17 +6,15 @@ A run folder holds ``summary.json`` and, since maps are exported, ``map.npz``
 dataset recorded in ``summary.json``, unless ``images=False``), the layout COLMAP's MVS and
 Gaussian-splatting trainers expect. A PLY export leaves out the map's far points (near-zero inverse
 depths: :class:`~fgslam.export.ply.PlyExportConfig`). Either is written into a temporary sibling and
-moved into place once complete: a failed export leaves nothing behind.
+moved into place once complete (:mod:`fgslam.export.inplace`): a failed or interrupted export leaves
+nothing behind and keeps a previous output. ``--overwrite`` replaces a PLY file, or a folder that is a
+previous COLMAP export (holds ``sparse/``) or empty: never another folder.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import os
-import shutil
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,12 +28,15 @@ from ..io.datasets import DatasetConfig, open_dataset
 from ..io.run_files import SUMMARY_FILE, TUM_FILE
 from ..io.trajectory import read_trajectory
 from .colmap import IMAGES_SUBDIR, SPARSE_SUBDIR, ColmapExportConfig, build_reconstruction, write_model
+from .inplace import check_target, refuse_existing, written_in_place
 from .map import MAP_FILE, RunMap, load_run_map
 from .ply import PlyExportConfig, write_ply
 
 logger = logging.getLogger(__name__)
 
 IMAGE_NAME = "{index:06d}.png"
+#: the folder of a COLMAP export's models (``sparse/0``...): what marks a folder as one (``--overwrite``)
+COLMAP_MODELS_SUBDIR = SPARSE_SUBDIR.parent
 
 
 @dataclass
@@ -81,34 +82,30 @@ def missing_map_reason(summary: dict[str, Any]) -> str:
             "exports maps; rerun the sequence)")
 
 
-def check_output(path: Path, overwrite: bool) -> None:
-    """Refuse an existing output unless ``overwrite`` (it is then replaced once the new one is written,
-    :func:`written_in_place`)."""
-    if (path.exists() or path.is_symlink()) and not overwrite:
-        raise ConfigError(f"{path}: exists (use --overwrite to replace it)")
+def check_ply_output(path: Path, overwrite: bool) -> None:
+    """A PLY target: a file name; an existing file is refused unless ``overwrite`` (then replaced once the
+    new one is written, :func:`~fgslam.export.inplace.written_in_place`), a folder always."""
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a folder (--ply takes a file name, e.g. {path / 'map.ply'})")
+    refuse_existing(path, overwrite)
 
 
-def _remove(path: Path) -> None:
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path)
-    elif path.exists() or path.is_symlink():
-        path.unlink()
-
-
-@contextlib.contextmanager
-def written_in_place(path: Path) -> Iterator[Path]:
-    """A fresh temporary sibling of ``path`` to write an output into: moved into place, replacing an
-    existing ``path``, when the block succeeds; removed with whatever it holds when the block fails
-    (or is interrupted). A failed export leaves nothing behind (its retry is not refused as an existing
-    output) and keeps a previous output."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    _remove(tmp)
+def check_colmap_output(path: Path, overwrite: bool) -> None:
+    """A COLMAP target: an existing one that is not a previous COLMAP export (a folder holding ``sparse/``)
+    or an empty folder is refused, --overwrite never deletes another folder; one that is, unless
+    ``overwrite``."""
+    if not (path.exists() or path.is_symlink()):
+        return
+    if not path.is_dir():
+        raise ConfigError(f"{path}: exists and is not a folder; --overwrite replaces only a previous COLMAP export")
     try:
-        yield tmp
-        _remove(path)
-        os.replace(tmp, path)
-    finally:
-        _remove(tmp)
+        replaceable = (path / COLMAP_MODELS_SUBDIR).is_dir() or not any(path.iterdir())
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read the folder: {exc.strerror or exc}") from exc
+    if not replaceable:
+        raise ConfigError(f"{path}: not a previous COLMAP export (no {COLMAP_MODELS_SUBDIR}/ in it, not empty); "
+                          "--overwrite replaces only those: choose another folder")
+    refuse_existing(path, overwrite)
 
 
 def export_ply(run: RunFolder, path: str | Path, overwrite: bool = False,
@@ -117,15 +114,13 @@ def export_ply(run: RunFolder, path: str | Path, overwrite: bool = False,
     file; returns what was written."""
     path = Path(path)
     config = config or PlyExportConfig()
-    check_output(path, overwrite)
-    if not path.parent.is_dir():
-        raise DataError(f"{path}: folder {path.parent} does not exist")
+    check_target(path, overwrite, check_ply_output)
     m = run.run_map.map
     keep = np.all(np.isfinite(m.X_W), axis=1)
     limit = None
     if config.max_point_range_factor > 0 and m.num_keyframes:
         keep, limit = points_near_cameras(m.X_W, m.T_WC[:, :3, 3], config.max_point_range_factor)
-    with written_in_place(path) as tmp:
+    with written_in_place(path, overwrite=overwrite, check=check_ply_output) as tmp:
         write_ply(tmp, m.X_W[keep], m.colour[keep])
     left_out = m.num_points - int(keep.sum())
     if left_out:
@@ -161,7 +156,7 @@ def export_colmap(run: RunFolder, out_dir: str | Path, all_frames: bool = False,
                   images: bool = True, overwrite: bool = False, config: ColmapExportConfig | None = None) -> dict[str, Any]:
     """Write the run's COLMAP model (and frame images) into ``out_dir``; returns what was written."""
     out = Path(out_dir)
-    check_output(out, overwrite)
+    check_target(out, overwrite, check_colmap_output)  # a missing parent folder is refused, as for --ply
     run_map = run.run_map
     if run_map.map.num_keyframes == 0:
         raise DataError(f"{run.path / MAP_FILE}: the map has no keyframes: nothing to export to COLMAP")
@@ -172,10 +167,9 @@ def export_colmap(run: RunFolder, out_dir: str | Path, all_frames: bool = False,
         first_id = run_map.map.num_keyframes + 1
         extra = {first_id + n: others[i] for n, i in enumerate(sorted(others))}
     rec, stats = build_reconstruction(run_map, names, config, extra)
-    out.parent.mkdir(parents=True, exist_ok=True)
     result: dict[str, Any] = {"colmap": str(out), "model": str(out / SPARSE_SUBDIR), "format": fmt, **stats.to_dict()}
-    with written_in_place(out) as tmp:  # a failure (the dataset's images not there) leaves nothing behind
-        tmp.mkdir()
+    # a failure (the dataset's images not there) leaves nothing behind, and a previous export as it was
+    with written_in_place(out, overwrite=overwrite, folder=True, check=check_colmap_output) as tmp:
         write_model(rec, tmp / SPARSE_SUBDIR, fmt)
         if images:
             wanted = {int(i) for i in run_map.keyframe_frame_indices()} | {int(Path(n).stem) for n, _ in extra.values()}
