@@ -213,6 +213,33 @@ def test_calibration_yaml_roundtrip_and_errors(tmp_path):
         Calibration(10, 10, [1, 1, 5, 5]).check_image_size(12, 10, "img.png")
 
 
+def test_calibration_files_are_read_as_utf8_with_the_config_files_messages(tmp_path):
+    """A calibration is read by the one UTF-8 YAML reader (fgslam.core.config.read_yaml): a binary file is one
+    line saying so (a DataError: the file is the dataset's), and a UTF-8 file reads the same under a C locale."""
+    import os
+    import subprocess
+    import sys
+
+    binary = tmp_path / "calibration.yaml"
+    binary.write_bytes(bytes(range(256)))
+    with pytest.raises(DataError) as info:
+        Calibration.from_yaml(binary)
+    assert str(info.value).startswith(f"{binary}: not a UTF-8 YAML text file (byte 128") and "\n" not in str(info.value)
+    with pytest.raises(DataError, match=r"^YAML file not found: "):
+        Calibration.from_yaml(tmp_path / "missing.yaml")
+    text = tmp_path / "calib_utf8.yaml"  # OpenCV's header line and a non-ASCII comment
+    text.write_text("%YAML:1.0\n# Kalibrierung für Kamera Ø 3 mm\nwidth: 64\nheight: 48\nintrinsics: [50, 50, 32, 24]\n",
+                    encoding="utf-8")
+    assert Calibration.from_yaml(text).width == 64
+    env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0"}
+    code = ("import sys, locale; from fgslam.io.calibration import Calibration; "
+            "print(locale.getpreferredencoding(False), Calibration.from_yaml(sys.argv[1]).width)")
+    done = subprocess.run([sys.executable, "-c", code, str(text)], capture_output=True, text=True, env=env, timeout=120)
+    assert done.returncode == 0, done.stderr
+    encoding, width = done.stdout.split()
+    assert width == "64" and encoding.upper().replace("-", "") != "UTF8"  # the locale's encoding was not UTF-8
+
+
 # ------------------------------------------------------------------ calibrations that cannot be right
 def _folder_with_calibration(root, calib: dict, n=2):
     root.mkdir(parents=True)

@@ -693,13 +693,15 @@ def test_info_on_a_folder_of_unreadable_images_says_so_and_fails(tmp_path, capsy
     captured = capsys.readouterr()
     assert "resolution" not in captured.out
     error = [line for line in captured.err.splitlines() if line.startswith("fgslam: error:")]
-    assert len(error) == 1 and "Traceback" not in captured.err
+    assert captured.err.strip().splitlines() == error and len(error) == 1  # the one line, no warning before it
     assert "the images cannot be read (none of the 5 frames tried (of 7, first to last)" in error[0]
     assert "img_0000.png: unreadable or corrupt image" in error[0]
-    # one readable image among them is enough: described as before
+    # one readable image among them is enough: described as before, the first frame's failure a warning
     cv2.imwrite(str(tmp_path / "f" / "img_0006.png"), _texture(48, 64, 6))
     assert main(["info", str(tmp_path / "f")]) == 0
-    assert "resolution:   64x48" in capsys.readouterr().out
+    captured = capsys.readouterr()
+    assert "resolution:   64x48" in captured.out
+    assert "first frame of" in captured.err and "image size not checked at open" in captured.err
 
 
 def test_unknown_layout_lists_the_bag_layout_among_those_tried(tmp_path):
@@ -709,6 +711,27 @@ def test_unknown_layout_lists_the_bag_layout_among_those_tried(tmp_path):
     (tmp_path / "empty" / "rec_0.db3").write_bytes(b"")  # a ROS 2 bag's storage without its metadata.yaml
     with pytest.raises(DataError, match=r"looks like a ROS 2 bag \(rec_0.db3\) but its metadata.yaml is missing"):
         open_dataset(tmp_path / "empty")
+
+
+def test_a_stray_ros2_storage_file_never_hides_another_layout(tmp_path):
+    """A *.db3 / *.mcap beside an image folder's or a EuRoC sequence's files (a recording kept next to them)
+    leaves the folder its layout; only a folder of no other layout is named a ROS 2 bag without metadata.yaml."""
+    write_folder(tmp_path / "images", n=3)
+    write_euroc(tmp_path / "euroc", n=4, stereo=False, imu=False)
+    for root, fmt in ((tmp_path / "images", "folder"), (tmp_path / "euroc", "euroc")):
+        (root / "recording_0.db3").write_bytes(b"")
+        (root / "recording_1.mcap").write_bytes(b"")
+        assert detect_format(root) == fmt
+        assert open_dataset(root).format == fmt
+    (tmp_path / "images" / "recording_0.db3").unlink()
+    (tmp_path / "images" / "recording_1.mcap").unlink()
+    for image in (tmp_path / "images").glob("*.png"):  # no layout left: the storage file is named
+        image.unlink()
+    (tmp_path / "images" / "recording_0.db3").write_bytes(b"")
+    with pytest.raises(DataError, match=r"looks like a ROS 2 bag \(recording_0.db3\) but its metadata.yaml"):
+        detect_format(tmp_path / "images")
+    with pytest.raises(DataError, match=r"a ROS 2 bag's storage file: give the bag's folder"):
+        detect_format(tmp_path / "images" / "recording_0.db3")
 
 
 def test_calibration_messages_give_the_exact_override(tmp_path, capsys):

@@ -611,6 +611,56 @@ def test_a_stopped_mono_run_keeps_the_frames_posed_at_initialisation(stop, synth
     assert data["evaluation"]["n_matched"] == stop_at
 
 
+class ReroundingFrontend(InitialisingFrontend):
+    """An InitialisingFrontend whose trajectory hands the frames posed at initialisation back with their
+    timestamps a little off (``shift`` s: a frontend's own rounding of the time it was given)."""
+
+    shift = 3e-7
+
+    def trajectory(self):
+        t, T, src = super().trajectory()
+        return t + np.where(np.arange(len(t)) < self.init_frames, self.shift, 0.0), T, src
+
+
+def test_a_stopped_run_matches_the_frames_posed_later_by_nearby_timestamps(synth_root, tmp_path):
+    """The frames posed at initialisation are matched by timestamp within a fraction of a microsecond,
+    on epoch-time stamps: taken once each (none missed as unequal, no other frame taken twice)."""
+    config = _config("sensor=mono")
+    stop_at = 7
+    fe = ReroundingFrontend(np.eye(4), 0.0, np.random.default_rng(0), raise_at=stop_at)
+    ds = open_slam_dataset(synth_root, config)
+    assert ds.timestamps[0] > 1e6  # epoch-like times: a tolerance relative to the stamp would span minutes
+    with pytest.raises(RunError):
+        run_slam(ds, config, tmp_path / "out", frontend=fe, progress=False)
+    traj = read_trajectory(tmp_path / "out" / TUM_FILE, "tum")
+    np.testing.assert_allclose(traj.timestamps, ds.timestamps[:stop_at], rtol=0, atol=1e-6)
+    assert json.loads((tmp_path / "out" / SUMMARY_FILE).read_text())["frames_with_pose"] == len(traj) == stop_at
+
+
+class BrokenTrajectoryFrontend(FakeFrontend):
+    """A FakeFrontend whose final ``trajectory()`` raises; counts the calls."""
+
+    calls = 0
+
+    def trajectory(self):
+        self.calls += 1
+        raise RuntimeError("simulated trajectory failure")
+
+
+def test_a_failing_final_trajectory_is_asked_once_and_the_live_estimates_are_written(synth_root, tmp_path):
+    """A run that ends but whose frontend cannot give its final trajectory: the live estimates are written,
+    and the frontend is not asked again (for the frames without a live pose) for what just failed."""
+    config = _config("sensor=mono")
+    fe = BrokenTrajectoryFrontend(np.eye(4), 0.0, np.random.default_rng(0), init_frames=2)
+    with pytest.raises(RunError, match=r"in trajectory\(\): RuntimeError: simulated trajectory failure"):
+        run_slam(open_slam_dataset(synth_root, config), config, tmp_path / "out", frontend=fe, progress=False)
+    assert fe.calls == 1
+    data = json.loads((tmp_path / "out" / SUMMARY_FILE).read_text())
+    assert data["frames_with_pose"] == N_FRAMES - 2 == len(read_trajectory(tmp_path / "out" / TUM_FILE, "tum"))
+    assert any("live per-frame estimates" in note for note in data["notes"])
+    assert not any("could not be taken from the frontend" in note for note in data["notes"])
+
+
 def test_importing_fgslam_installs_no_signal_handler():
     import subprocess
     import sys
@@ -883,10 +933,13 @@ def test_cli_refuses_a_run_whose_memory_estimate_exceeds_the_limit(synth_root, t
 
 def test_a_refused_run_leaves_no_output_folder_behind(synth_root, tmp_path, capsys, cli_main, monkeypatch):
     """Missing data, an empty selection, a memory refusal, a frontend that cannot be built: the output folder
-    (and its missing parents) the refused run created is gone; a folder that existed stays, with its files."""
+    the refused run created is gone; a folder that existed stays, with its files. The parents it created stay
+    too: parallel runs (a batch's cells of one config) share them, and removing one could pull it from under
+    a run that is creating its own folder there."""
     from fgslam.run.system import SlamSystem
 
     new = tmp_path / "new" / "deeper" / "out"
+    parent = new.parent
     refusals = {
         "missing data": ((tmp_path / "nope",), "no such file or folder"),
         "empty selection": ((synth_root, "--start", "100"), "empty selection"),
@@ -896,7 +949,7 @@ def test_a_refused_run_leaves_no_output_folder_behind(synth_root, tmp_path, caps
     for why, ((data, *extra), message) in refusals.items():
         assert _cli_run(cli_main, data, new, *extra) == 2, why
         assert message in _one_error_line(capsys.readouterr().err), why
-        assert not (tmp_path / "new").exists(), why
+        assert not new.exists() and parent.is_dir() and not any(parent.iterdir()), why
     kept = tmp_path / "kept"
     kept.mkdir()
     assert _cli_run(cli_main, tmp_path / "nope", kept) == 2
@@ -912,7 +965,7 @@ def test_a_refused_run_leaves_no_output_folder_behind(synth_root, tmp_path, caps
     monkeypatch.setattr(SlamSystem, "build", cannot_build)
     assert _cli_run(cli_main, synth_root, new) == 2
     assert "not available (simulated)" in _one_error_line(capsys.readouterr().err)
-    assert not (tmp_path / "new").exists()
+    assert not new.exists() and parent.is_dir()
 
 
 def test_cli_rejects_a_border_larger_than_the_image(synth_root, tmp_path, capsys, cli_main, monkeypatch):

@@ -128,7 +128,8 @@ def test_batch_records_a_cell_without_any_pose_as_failed(tmp_path):
 # --------------------------------------------------------------------------------------- reruns into an --out
 
 
-def test_a_rerun_into_a_previous_out_is_refused_and_overwrite_removes_the_old_outputs(tmp_path, room, capsys):
+def test_a_rerun_into_a_previous_out_is_refused_and_overwrite_removes_the_old_outputs(tmp_path, room, capsys,
+                                                                                       monkeypatch):
     out = tmp_path / "out"
     args = ["run", "patch_mono", "--data", str(room), "--out", str(out), "--no-progress"]
     assert main(args) == 0
@@ -145,6 +146,17 @@ def test_a_rerun_into_a_previous_out_is_refused_and_overwrite_removes_the_old_ou
     assert "dataset.resize_width" in _error_line(capsys.readouterr().err)
     assert main(["run", "patch_mono", "--data", str(tmp_path / "missing"), "--out", str(out), "--overwrite"]) == 2
     assert "missing" in _error_line(capsys.readouterr().err)
+    assert old <= {p.name for p in out.iterdir()}
+    # ... nor a run refused when its system is built (a frontend that cannot be built), after every other check
+    from fgslam.run.system import SlamSystem
+
+    def cannot_build(*args, **kwargs):
+        raise ConfigError("cannot build (simulated)")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(SlamSystem, "build", cannot_build)
+        assert main(args + ["--overwrite"]) == 2
+    assert "cannot build (simulated)" in _error_line(capsys.readouterr().err)
     assert old <= {p.name for p in out.iterdir()}
     # --overwrite with a run that gives no pose: none of the previous run's outputs is left beside its summary
     assert main(args + ["--overwrite", "-o", "dataset.end=1"]) == 2

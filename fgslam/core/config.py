@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import yaml
 
-from .errors import ConfigError
+from .errors import ConfigError, FGSlamError
 
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
@@ -354,26 +354,36 @@ def yaml_error_text(exc: Exception, source: str) -> str:
     return f"{source}{where}: invalid YAML: {problem}" + (f" ({context})" if context else "")
 
 
-def read_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping from a UTF-8 text file; errors name the file (and the line for syntax errors;
-    a binary or otherwise non-UTF-8 file is said to be one)."""
+#: how a YAML directive line starts (``%YAML 1.1``, or OpenCV's ``%YAML:1.0`` of EuRoC's ``sensor.yaml``, which
+#: PyYAML refuses): such a line is read as blank
+YAML_DIRECTIVE = "%YAML"
+
+
+def read_yaml(path: str | Path, error: type[FGSlamError] = ConfigError, what: str = "config file") -> dict[str, Any]:
+    """Read a YAML mapping from a UTF-8 text file (the one reader of fgslam's YAML files: configs,
+    calibrations, dataset sensor files); an empty file is an empty mapping, a ``%YAML`` directive line
+    is read as blank (:data:`YAML_DIRECTIVE`). Errors are one ``error`` line naming the file (``what``
+    when it is missing or unreadable; the line for syntax errors; a binary or otherwise non-UTF-8 file
+    is said to be one)."""
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"config file not found: {path}")
+        raise error(f"{what} not found: {path}")
     try:
         text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:  # a binary file (an executable, an image, random bytes) given as a config
-        raise ConfigError(f"{path}: not a UTF-8 YAML text file (byte {exc.start}: {exc.reason})") from exc
+    except UnicodeDecodeError as exc:  # a binary file (an executable, an image, random bytes) given as YAML
+        raise error(f"{path}: not a UTF-8 YAML text file (byte {exc.start}: {exc.reason})") from exc
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the config file: {exc.strerror or exc}") from exc
+        raise error(f"{path}: cannot read the {what}: {exc.strerror or exc}") from exc
+    text = "".join("\n" if line.startswith(YAML_DIRECTIVE) else line  # blank: line numbers kept
+                   for line in text.splitlines(keepends=True))
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(yaml_error_text(exc, str(path))) from exc
+        raise error(yaml_error_text(exc, str(path))) from exc
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: the top level must be a mapping of keys to values")
+        raise error(f"{path}: the top level must be a mapping of keys to values")
     return data
 
 

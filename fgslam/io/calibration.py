@@ -36,10 +36,9 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-import yaml
 from numpy.typing import ArrayLike
 
-from ..core.config import yaml_error_text
+from ..core.config import read_yaml
 from ..core.errors import DataError
 
 DISTORTION_MODELS = ("none", "radtan", "equidistant")
@@ -223,17 +222,7 @@ class Calibration:
 
 
 def read_yaml_file(path: str | Path) -> dict:
-    """Read a YAML mapping; tolerates OpenCV's ``%YAML:1.0`` header line (EuRoC ``sensor.yaml``)."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(f"{path}: cannot read file: {exc}") from exc
-    lines = ["" if ln.startswith("%YAML") else ln for ln in text.splitlines()]  # blank: line numbers kept
-    try:
-        data = yaml.safe_load("\n".join(lines))
-    except yaml.YAMLError as exc:
-        raise DataError(yaml_error_text(exc, str(path))) from exc
-    if not isinstance(data, dict):
-        raise DataError(f"{path}: expected a YAML mapping at the top level")
-    return data
+    """Read a calibration or dataset YAML file (:func:`fgslam.core.config.read_yaml`, the one UTF-8 YAML
+    reader, which tolerates OpenCV's ``%YAML:1.0`` header line of EuRoC's ``sensor.yaml``); its errors
+    are DataErrors: the file is the dataset's."""
+    return read_yaml(path, DataError, "YAML file")

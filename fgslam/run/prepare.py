@@ -13,9 +13,11 @@ trusts:
 - :func:`prepare_opened`, for a dataset the caller has opened (:func:`fgslam.run.runner.run_slam`):
   it is checked against the config given here (the caller may have opened it for another).
 
-A refused run leaves no output folder behind: the folders its checks created (the output folder and
-any missing parent, :attr:`PreparedRun.created`) are removed again when a later check refuses the run,
-if they are still empty (``os.rmdir``: a folder that existed before, or holds anything, is never removed).
+A refused run leaves no output folder behind: the output folder, when its checks created it
+(:attr:`PreparedRun.created`), is removed again when a later check refuses the run, if it is still
+empty (``os.rmdir``: a folder that existed before, or holds anything, is never removed). Its parents
+stay, also those created with it: runs in parallel (a batch's cells of one config) share them, and
+one refused run removing a parent would pull it from under a run creating its own folder there.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Optional
 
 from ..core.config import check_ranges
 from ..core.errors import ConfigError, DataError
@@ -57,8 +59,8 @@ class PreparedRun:
     rerun: Optional[str] = None
     imu_warnings: list[str] = field(default_factory=list)
     live: Optional[LiveConfig] = None  # live mode: frames at their own pace, the oldest dropped when behind
-    created: tuple[Path, ...] = ()  # the folders the checks created for the outputs (deepest first): empty ones
-    # are removed again when the run is refused before it writes anything (remove_empty_folders)
+    created: Optional[Path] = None  # the output folder, when the checks created it: removed again (if empty)
+    # when the run is refused before it writes anything (remove_created_folder)
 
 
 def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fmt: str = "auto",
@@ -77,7 +79,7 @@ def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fm
     check_capture_map(data, is_capture(data), config)
     if rerun:
         check_rerun_target(rerun)
-    created = missing_folders(out_dir)
+    created = new_folder(out_dir)
     try:
         out = prepare_output(out_dir, data, overwrite)
         if config.output.extend_map:  # a missing or foreign map: refused before the dataset is opened
@@ -88,10 +90,9 @@ def prepare_run(data: str | Path, config: SlamConfig, out_dir: str | Path, *, fm
             live = live if live is not None else LiveConfig()
             if not dataset.is_file:
                 live = LiveConfig(queue=live.queue, paced=False)
-        return PreparedRun(dataset, config, out, overwrite, rerun, check_imu_input(dataset, config), live,
-                           tuple(created))
-    except BaseException:  # refused: no output folder left behind (only the empty ones created here)
-        remove_empty_folders(created)
+        return PreparedRun(dataset, config, out, overwrite, rerun, check_imu_input(dataset, config), live, created)
+    except BaseException:  # refused: no output folder left behind (only an empty one created here)
+        remove_created_folder(created)
         raise
 
 
@@ -103,16 +104,16 @@ def prepare_opened(dataset: Dataset, config: SlamConfig, out_dir: str | Path, *,
     check_config(config)
     check_capture_map(dataset.root, isinstance(dataset, CaptureDataset), config)
     check_dataset(dataset, config)
-    created = missing_folders(out_dir)
+    created = new_folder(out_dir)
     try:
         out = prepare_output(out_dir, dataset.root, overwrite)
         if rerun:
             check_rerun_target(rerun)
         check_extended_map(dataset, config, dataset.root)
         return PreparedRun(dataset, config, out, overwrite, rerun, check_imu_input(dataset, config),
-                           created=tuple(created))
-    except BaseException:  # refused: no output folder left behind (only the empty ones created here)
-        remove_empty_folders(created)
+                           created=created)
+    except BaseException:  # refused: no output folder left behind (only an empty one created here)
+        remove_created_folder(created)
         raise
 
 
@@ -248,25 +249,24 @@ def prepare_output_dir(out_dir: str | Path, data: str | Path | None = None) -> P
     return out
 
 
-def missing_folders(path: str | Path) -> list[Path]:
-    """``path`` and those of its parents that do not exist yet, deepest first: the folders that creating
-    ``path`` makes."""
-    folder, missing = Path(path).absolute(), []
-    while not folder.exists() and not folder.is_symlink() and folder != folder.parent:
-        missing.append(folder)
-        folder = folder.parent
-    return missing
+def new_folder(path: str | Path) -> Optional[Path]:
+    """``path`` (absolute) when it does not exist yet, the folder that the output checks then create;
+    None for one that exists (or a link, even a broken one: never the run's to remove)."""
+    folder = Path(path).absolute()
+    return None if folder.exists() or folder.is_symlink() else folder
 
 
-def remove_empty_folders(folders: Sequence[Path]) -> None:
-    """Remove ``folders`` (deepest first: those a refused run created, :func:`missing_folders`) that are
-    still empty; ``os.rmdir`` never removes a folder holding anything, which then stays."""
-    for folder in folders:
-        try:
-            folder.rmdir()
-        except OSError:  # not empty, or already gone: left as it is
-            continue
-        logger.debug("removed the output folder %s created by the refused run", folder)
+def remove_created_folder(folder: Optional[Path]) -> None:
+    """Remove ``folder``, the output folder a refused run created (:func:`new_folder`; None: none), if
+    it is still empty; ``os.rmdir`` never removes a folder holding anything, which then stays. Its
+    parents stay (module docstring)."""
+    if folder is None:
+        return
+    try:
+        folder.rmdir()
+    except OSError:  # not empty, or already gone: left as it is
+        return
+    logger.debug("removed the output folder %s created by the refused run", folder)
 
 
 def check_save_map_path(save_map: str | Path, out_dir: str | Path, extend_map: str | Path | None,

@@ -20,6 +20,7 @@ from ..core.errors import DataError, EvaluationError
 from ..eval.trajectory import EvalResult, evaluate
 from ..frontends.base import Frontend
 from ..io.datasets import Dataset
+from ..io.datasets.common import same_frame_stamps
 from ..io.run_files import SUMMARY_FILE
 from ..io.trajectory import Trajectory
 from .config import SlamConfig
@@ -277,26 +278,16 @@ def _final_trajectory(
     frontend: Frontend, state: RunState, notes: list[str], errors: list[ErrorAt]
 ) -> tuple[Optional[Trajectory], list[str]]:
     """The frontend's final trajectory (non-finite poses dropped). After an error, or when the
-    frontend cannot give a valid one (then recorded in ``errors``), the live per-frame estimates."""
-    t = T_WC = None
-    sources: list[str] = []
-    if not errors:
+    frontend cannot give a valid one (then recorded in ``errors``), the live per-frame estimates
+    (after the loop's error completed with the frames posed later, :func:`_with_later_poses`)."""
+    if errors:  # the loop stopped: the live estimates, and the frontend's poses of the frames still without one
+        t, T_WC, sources = _with_later_poses(frontend, state, *_live_estimates(state, notes), notes)
+    else:
         try:
-            t, T_WC, sources = frontend.trajectory()
-            t = np.asarray(t, dtype=np.float64).reshape(-1)
-            T_WC = np.asarray(T_WC, dtype=np.float64).reshape(-1, 4, 4)
-            sources = [str(s) for s in sources]
-            if not (t.shape[0] == T_WC.shape[0] == len(sources)):
-                raise DataError(f"{t.shape[0]} timestamps, {T_WC.shape[0]} poses, {len(sources)} pose sources")
-        except Exception as exc:  # noqa: BLE001 - recorded; the live estimates are written instead
-            errors.append((exc, "in trajectory()"))
-            t = None
-    if t is None:  # after an error: the live per-frame estimates
-        notes.append("the trajectory holds the live per-frame estimates (the run stopped before the final one)")
-        t = np.asarray(state.live_t, dtype=np.float64)
-        T_WC = np.asarray(state.live_T, dtype=np.float64).reshape(-1, 4, 4)
-        sources = list(state.live_source)
-        t, T_WC, sources = _with_later_poses(frontend, state, t, T_WC, sources, notes)
+            t, T_WC, sources = _frontend_trajectory(frontend)
+        except Exception as exc:  # noqa: BLE001 - recorded; the live estimates are written instead (as they are:
+            errors.append((exc, "in trajectory()"))  # the frontend is not asked again for what just failed)
+            t, T_WC, sources = _live_estimates(state, notes)
     if t.shape[0] == 0:
         return None, []
     ok = np.all(np.isfinite(T_WC), axis=(1, 2)) & np.isfinite(t)
@@ -316,33 +307,49 @@ def _final_trajectory(
         return None, []
 
 
+def _frontend_trajectory(frontend: Frontend) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """``frontend.trajectory()`` as float arrays ``(N,)``, ``(N, 4, 4)`` and N pose sources; DataError when
+    the three lengths differ (anything the frontend raises is passed on)."""
+    t, T_WC, sources = frontend.trajectory()
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    T_WC = np.asarray(T_WC, dtype=np.float64).reshape(-1, 4, 4)
+    sources = [str(s) for s in sources]
+    if not (t.shape[0] == T_WC.shape[0] == len(sources)):
+        raise DataError(f"{t.shape[0]} timestamps, {T_WC.shape[0]} poses, {len(sources)} pose sources")
+    return t, T_WC, sources
+
+
+def _live_estimates(state: RunState, notes: list[str]) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """The live per-frame estimates of a run without its final trajectory (said in ``notes``)."""
+    notes.append("the trajectory holds the live per-frame estimates (the run stopped before the final one)")
+    return (np.asarray(state.live_t, dtype=np.float64), np.asarray(state.live_T, dtype=np.float64).reshape(-1, 4, 4),
+            list(state.live_source))
+
+
 def _with_later_poses(frontend: Frontend, state: RunState, t: np.ndarray, T_WC: np.ndarray, sources: list[str],
                       notes: list[str]) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """The live estimates ``t, T_WC, sources`` of a stopped run completed with the frontend's poses of the
     processed frames that had none when they were processed but got one afterwards (a monocular
     initialisation poses the frames it buffered), so that the partial trajectory holds every frame with a
-    pose; only those frames are taken from the frontend (a failure to ask it is a note, never raised)."""
-    waiting = set(state.unposed_t)
-    if not waiting:
+    pose; only those frames are taken from the frontend, matched by timestamp
+    (:func:`~fgslam.io.datasets.common.same_frame_stamps`;
+    a failure to ask it is a note, never raised)."""
+    if not state.unposed_t:
         return t, T_WC, sources
     try:
-        f_t, f_T, f_sources = frontend.trajectory()
-        f_t = np.asarray(f_t, dtype=np.float64).reshape(-1)
-        f_T = np.asarray(f_T, dtype=np.float64).reshape(-1, 4, 4)
-        if not (f_t.shape[0] == f_T.shape[0] == len(f_sources)):
-            raise DataError(f"{f_t.shape[0]} timestamps, {f_T.shape[0]} poses, {len(f_sources)} pose sources")
+        f_t, f_T, f_sources = _frontend_trajectory(frontend)
     except Exception as exc:  # noqa: BLE001 - the live estimates are written as they are
         notes.append(f"the frames without a live pose could not be taken from the frontend's trajectory: "
                      f"{type(exc).__name__}: {exc}")
         return t, T_WC, sources
-    take = [k for k, stamp in enumerate(f_t) if float(stamp) in waiting and np.all(np.isfinite(f_T[k]))]
-    if not take:
+    take = np.flatnonzero(same_frame_stamps(f_t, state.unposed_t) & np.all(np.isfinite(f_T), axis=(1, 2)))
+    if take.size == 0:
         return t, T_WC, sources
-    notes.append(f"{len(take)} frame(s) that got their pose after they were processed (initialisation) are "
+    notes.append(f"{take.size} frame(s) that got their pose after they were processed (initialisation) are "
                  "taken from the frontend's trajectory")
     t = np.concatenate([t, f_t[take]])
     T_WC = np.concatenate([T_WC, f_T[take]])
-    sources = sources + [str(f_sources[k]) for k in take]
+    sources = sources + [f_sources[k] for k in take]
     order = np.argsort(t, kind="stable")
     return t[order], T_WC[order], [sources[k] for k in order]
 

@@ -40,7 +40,7 @@ No result: a run that ends without a pose for any frame writes its summary with 
 
 Previous outputs: an ``out_dir`` that holds a previous run's outputs
 (:data:`fgslam.run.files.RUN_OUTPUT_FILES`, ``depth/``) is refused unless ``overwrite``, which
-removes them before the run starts.
+removes them when the run starts (its system built: a run refused before that leaves them).
 
 Outputs are never lost to one failure: the output folder is checked (created, writable, not the
 dataset folder nor inside it) before any work, and every output (each trajectory format, plot, PLY,
@@ -76,7 +76,7 @@ from .config import SlamConfig
 from .mapstore import store_map
 from .outputs import (OutputWriter, write_keyframe_depths, write_map, write_plot, write_points, write_summary,
                       write_trajectories)
-from .prepare import PreparedRun, prepare_opened, remove_empty_folders, remove_previous_outputs
+from .prepare import PreparedRun, prepare_opened, remove_created_folder, remove_previous_outputs
 from .results import ErrorAt, RunSummary, collect_results, outputs_text, summarize
 from .session import Slam
 from .signals import StopOnSignal
@@ -174,8 +174,9 @@ def run_slam(
             raises (the command line prints its report there).
         rerun: log the run to rerun: a ``.rrd`` file, or ``live`` for a running viewer
             (:mod:`fgslam.export.rerun`; the rerun SDK is an optional extra).
-        overwrite: replace the outputs of a previous run in ``out_dir`` (removed before the run
-            starts); without it such a folder is a ConfigError (:func:`fgslam.run.prepare.check_previous_outputs`).
+        overwrite: replace the outputs of a previous run in ``out_dir`` (removed once the run's system
+            is built, as the run starts: a refused run leaves them); without it such a folder is a
+            ConfigError (:func:`fgslam.run.prepare.check_previous_outputs`).
 
     Returns:
         The :class:`RunSummary` also written to ``summary.json``.
@@ -200,16 +201,20 @@ def run_prepared(run: PreparedRun, progress: bool = True, frontend: Optional[Fro
     """Run SLAM on a prepared run (:mod:`fgslam.run.prepare`: its inputs are trusted) and write the
     outputs into ``run.out``; the arguments, the result and the errors raised are :func:`run_slam`'s."""
     dataset, config, out = run.dataset, run.config, run.out
-    if run.overwrite:
-        remove_previous_outputs(out)  # a previous run's outputs go before the run starts
     # the per-frame path of a script (fgslam.Slam): the same object, fed the dataset's frames
     try:
         slam = Slam(config, dataset.calibration, frontend=frontend, timestamps=dataset.timestamps,
                     has_imu=dataset.has_imu, imu_noise=dataset.imu_noise, where=str(dataset.root), rerun=run.rerun,
                     keep_frames=False)
-    except BaseException:  # refused before any output (e.g. a frontend that cannot be built): no folder left behind
-        remove_empty_folders(run.created)
+    except BaseException:  # refused before any output (e.g. a frontend that cannot be built): the previous run's
+        remove_created_folder(run.created)  # outputs are still there, and no folder is left behind
         raise
+    if run.overwrite:  # the run can start: a previous run's outputs go now, never for a refused run
+        try:
+            remove_previous_outputs(out)
+        except BaseException:
+            _abort(slam)
+            raise
     slam.system.imu_input_warnings = list(run.imu_warnings)
     state = slam.state
     gt = dataset.groundtruth  # loaded (and cached by the dataset) before the timed loop

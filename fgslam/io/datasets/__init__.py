@@ -2,11 +2,12 @@
 7-Scenes, image folders, videos and ROS 1 / ROS 2 bags.  ``open_dataset`` picks the loader from the folder layout.
 
 Detection order (``fmt="auto"``): ``camera:SPEC`` -> ``camera`` (a live OpenCV capture); a ``.bag`` file or a folder with ``metadata.yaml`` -> ``rosbag``
-(ROS 1 / ROS 2; a folder of ``*.db3`` / ``*.mcap`` files without ``metadata.yaml``: DataError naming it);
+(ROS 1 / ROS 2);
 a file with a video extension -> ``video``; ``dso/camchain.yaml`` with ``mav0/cam0`` -> ``tumvi``; ``mav0/cam0`` or
 ``cam0/data.csv`` -> ``euroc``; ``image_0/`` + ``calib.txt`` -> ``kitti``; ``image_left/`` ->
 ``tartanair``; ``rgb.txt`` -> ``tum``; ``seq-NN/frame-*.color.*`` (or such frames directly) ->
-``7scenes``; a folder with images -> ``folder``.
+``7scenes``; a folder with images -> ``folder``. A folder that matches none of them but holds ``*.db3`` /
+``*.mcap`` files (a ROS 2 bag without its ``metadata.yaml``), or such a file given alone: DataError naming it.
 """
 
 from __future__ import annotations
@@ -48,10 +49,10 @@ def detect_format(path: str | Path) -> str:
         raise DataError(f"{path}: no such file or folder")
     if is_bag(path):
         return "rosbag"
-    check_ros2_bag_parts(path)  # a ROS 2 bag without its metadata.yaml is named as such
     if path.is_file():
         if path.suffix.lower() in VIDEO_EXTENSIONS:
             return "video"
+        check_ros2_bag_parts(path)  # a ROS 2 bag's storage file given instead of its folder is named as such
         raise DataError(f"{path}: a file that is neither a video ({', '.join(VIDEO_EXTENSIONS)}) nor a ROS 1 .bag; "
                         "give a dataset folder")
     if tumvi_root(path) is not None:
@@ -68,6 +69,8 @@ def detect_format(path: str | Path) -> str:
         return "7scenes"
     if list_images(path):
         return "folder"
+    # last: a stray *.db3 / *.mcap beside another layout's files never hides that layout
+    check_ros2_bag_parts(path)  # a ROS 2 bag without its metadata.yaml is named as such
     raise DataError(
         f"{path}: unknown dataset layout (looked for metadata.yaml (ROS 2 bag), "
         "dso/camchain.yaml + mav0/cam0 (TUM-VI), mav0/cam0 (EuRoC), image_0 + calib.txt (KITTI), "

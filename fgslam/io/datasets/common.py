@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, NamedTuple, Optional
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ...core.config import MAX_FRAMES, MAX_IMAGE_SIDE, MAX_SCALAR, check_ranges, ranged
 from ...core.errors import ConfigError, DataError
@@ -45,6 +46,10 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 NS_PER_S = 1_000_000_000  # nanoseconds per second (EuRoC timestamps are integer nanoseconds)
+#: the most (s) two timestamps of one frame differ once handed through a frontend or a trajectory file: float64
+#: holds an epoch time (~1.7e9 s) to 2.4e-7 s, and a camera's frames are milliseconds apart (an absolute bound:
+#: one relative to the stamp would span minutes of an epoch-time sequence)
+SAME_FRAME_DT = 1e-6
 #: frames tried, spread over the selection, before a dataset whose first frame is unreadable is said to
 #: have no readable image (:meth:`Dataset.check_readable`)
 READABLE_PROBE_FRAMES = 5
@@ -158,6 +163,20 @@ def ns_to_seconds(ns: np.ndarray) -> np.ndarray:
     """Integer nanoseconds ``(N,)`` int64 -> float64 seconds without losing the sub-second part."""
     ns = np.asarray(ns, dtype=np.int64)
     return (ns // NS_PER_S).astype(np.float64) + (ns % NS_PER_S) / NS_PER_S
+
+
+def same_frame_stamps(stamps: ArrayLike, wanted: ArrayLike) -> np.ndarray:
+    """For each of ``stamps`` (seconds): whether one of ``wanted`` is the same frame's timestamp, within
+    :data:`SAME_FRAME_DT` (a frame's time handed back by a frontend, or read from a trajectory file); a
+    boolean array."""
+    stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
+    targets = np.sort(np.asarray(wanted, dtype=np.float64).reshape(-1))
+    if targets.size == 0 or stamps.size == 0:
+        return np.zeros(stamps.shape[0], dtype=bool)
+    above = np.clip(np.searchsorted(targets, stamps), 0, targets.size - 1)
+    below = np.clip(above - 1, 0, targets.size - 1)
+    nearest = np.minimum(np.abs(targets[below] - stamps), np.abs(targets[above] - stamps))
+    return nearest <= SAME_FRAME_DT
 
 
 def interpolate_poses(
@@ -293,9 +312,9 @@ class Dataset:
         self.calibration = self._undistorter.calibration
         try:
             first = self._read_raw(int(self._indices[0]))
-        except FrameReadError as exc:
+        except FrameReadError as exc:  # said when read (a skipped frame), or by check_readable (fgslam info)
             self.first_frame_error = str(exc)
-            logger.warning("first frame of %s is unreadable (%s); image size not checked at open", self.root, exc)
+            logger.debug("first frame of %s is unreadable (%s); image size not checked at open", self.root, exc)
         else:
             h, w = first.image.shape[:2]
             if (w, h) != (calib.width, calib.height):
@@ -309,7 +328,7 @@ class Dataset:
     def check_readable(self) -> None:
         """DataError when no image can be read: the first frame failed at open and so do up to
         :data:`READABLE_PROBE_FRAMES` frames spread over the selection (nothing is read when the first
-        frame could be)."""
+        frame could be); a warning when only the first frame failed (its size was not checked at open)."""
         if self.first_frame_error is None:
             return
         n = len(self)
@@ -319,6 +338,8 @@ class Dataset:
                 self._read_raw(int(self._indices[position]))
             except FrameReadError:
                 continue
+            logger.warning("first frame of %s is unreadable (%s); image size not checked at open", self.root,
+                           self.first_frame_error)
             return
         tried = "its only frame" if n == 1 else f"none of the {probes.size} frames tried (of {n}, first to last)"
         raise DataError(f"{self.root}: the images cannot be read ({tried}; the first: {self.first_frame_error})")
