@@ -99,3 +99,24 @@ def test_compare_colmap_on_a_synthetic_clip(clip, tmp_path, capsys):
     # an existing output is refused
     assert main(["compare-colmap", "--data", str(clip), "--frames", "5", "--out", str(out)]) == 2
     assert "exists and is not empty" in capsys.readouterr().err
+
+
+def test_refused_compare_leaves_no_output_folder(tmp_path, capsys):
+    """A compare refused by the run's checks (here: a missing --map to extend) leaves no --out behind; an
+    --out that existed before stays, even empty."""
+    import cv2
+
+    data = tmp_path / "data"
+    data.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(4):
+        cv2.imwrite(str(data / f"{i:04d}.png"), (rng.random((240, 320)) * 255).astype(np.uint8))
+    (data / "calibration.yaml").write_text("width: 320\nheight: 240\nintrinsics: [256, 256, 160, 120]\n")
+    missing_map = tmp_path / "none.fgmap"
+    out = tmp_path / "cmp"
+    for existed in (False, True):
+        argv = ["compare-colmap", "--data", str(data), "--out", str(out), "-o", f"output.extend_map={missing_map}"]
+        assert main(argv) == 2
+        assert capsys.readouterr().err == f"fgslam: error: {missing_map}: no such map file\n"
+        assert out.is_dir() == existed and (not existed or not any(out.iterdir()))
+        out.mkdir(exist_ok=True)

@@ -54,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..export.compare import CompareConfig, preset_for  # deferred: torch (fgslam --help stays fast)
     from ..run.config import load_slam_config  # deferred: the run package pulls torch
-    from ..run.prepare import prepare_output_dir, prepare_run  # deferred: as above
+    from ..run.prepare import new_folder, prepare_output_dir, prepare_run, remove_created_folder  # deferred: as above
 
     if args.frames is not None and args.frames < 3:
         raise ConfigError(f"--frames must be at least 3 (got {args.frames})")
@@ -67,11 +67,16 @@ def run(args: argparse.Namespace) -> int:
         overrides.append(f"dataset.end={probe.config.start + args.frames * probe.config.stride}")
     config = load_slam_config(preset, overrides)
     out = Path(args.out or f"compare-colmap-{probe.name}")
-    if out.exists() and any(out.iterdir()) and not args.overwrite:
+    if out.is_dir() and any(out.iterdir()) and not args.overwrite:
         raise ConfigError(f"{out}: output folder exists and is not empty (use --overwrite or another --out)")
-    prepare_output_dir(out, args.data)
-    # the compare folder is the command's (refused when not empty unless --overwrite): a previous run in it is replaced
-    prepared = prepare_run(args.data, config, out / "fgslam", fmt=args.format, overwrite=True)
+    created = new_folder(out)
+    try:
+        prepare_output_dir(out, args.data)
+        # the compare folder is the command's (refused when not empty unless --overwrite): a previous run in it is replaced
+        prepared = prepare_run(args.data, config, out / "fgslam", fmt=args.format, overwrite=True)
+    except BaseException:  # refused: no output folder left behind (only an empty one created here)
+        remove_created_folder(created)
+        raise
     cfg = CompareConfig()
     if args.features is not None:
         cfg = replace(cfg, colmap=replace(cfg.colmap, max_num_features=args.features))
