@@ -12,8 +12,6 @@ in the dataset's time base: a bag's header stamps for a bag input). Written with
 from __future__ import annotations
 
 import logging
-import os
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
@@ -21,6 +19,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from ..core.errors import DataError
+from .inplace import written_in_place
 from ..io.datasets.rosbag import ROS1_SUFFIX, import_rosbags, is_bag
 from ..io.run_files import TUM_FILE
 from ..io.trajectory import Trajectory, read_trajectory, rotation_to_quaternion_xyzw
@@ -140,6 +139,16 @@ def write_trajectory_bag(traj: Trajectory, out: str | Path, config: BagExportCon
             "topics": [cfg.pose_topic, cfg.tf_topic, cfg.path_topic]}
 
 
+def _check_bag_target(out: Path, overwrite: bool) -> None:
+    """An existing ``out`` is replaced only with ``overwrite``, and only when it is a ROS bag."""
+    if out.exists() or out.is_symlink():
+        if not overwrite:
+            raise DataError(f"{out} exists (use --overwrite to replace it)")
+        if out.is_symlink() or not is_bag(out):
+            raise DataError(f"{out} exists and is not a ROS bag (a .bag file or a folder with metadata.yaml): "
+                            "not replaced, even with --overwrite; choose another path")
+
+
 def export_bag(run_dir: str | Path, out: str | Path, overwrite: bool = False,
                config: BagExportConfig | None = None) -> dict:
     """``fgslam export RUN_DIR --bag OUT``: the run's ``trajectory_tum.txt`` as a ROS bag."""
@@ -150,27 +159,10 @@ def export_bag(run_dir: str | Path, out: str | Path, overwrite: bool = False,
     traj = read_trajectory(src, "tum")
     if len(traj) == 0:
         raise DataError(f"{src}: empty trajectory")
-    if out.exists() or out.is_symlink():
-        if not overwrite:
-            raise DataError(f"{out} exists (use --overwrite to replace it)")
-        if out.is_symlink() or not is_bag(out):
-            raise DataError(f"{out} exists and is not a ROS bag (a .bag file or a folder with metadata.yaml): "
-                            "not replaced, even with --overwrite; choose another path")
-    # written into a temporary sibling folder and renamed into place: a failure leaves OUT as it was
-    staging = out.parent / f".{out.name}.tmp{os.getpid()}"
-    old = out.parent / f".{out.name}.old{os.getpid()}"
-    try:
-        staging.mkdir()
-        result = write_trajectory_bag(traj, staging / out.name, config)
-        if out.exists():
-            os.replace(out, old)
-        os.replace(staging / out.name, out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-        if old.is_dir():
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            old.unlink(missing_ok=True)
+    # written beside OUT under its own name (the writer reads ROS 1 or 2 from it) and moved into place: a
+    # failure leaves OUT as it was (fgslam.export.inplace, as every export)
+    with written_in_place(out, overwrite=overwrite, same_name=True, check=_check_bag_target) as tmp:
+        result = write_trajectory_bag(traj, tmp, config)
     result["bag"] = str(out)
     logger.info("wrote %d poses to %s", len(traj), out)
     return result

@@ -113,12 +113,15 @@ def check_target(path: Path, overwrite: bool, check: Callable[[Path, bool], None
 
 
 @contextlib.contextmanager
-def written_in_place(path: Path, *, overwrite: bool, folder: bool = False,
+def written_in_place(path: Path, *, overwrite: bool, folder: bool = False, same_name: bool = False,
                      check: Callable[[Path, bool], None] = refuse_existing) -> Iterator[Path]:
     """A fresh temporary sibling of ``path`` (an empty folder when ``folder``) to write an output into,
     moved into place when the block succeeds (module docstring), removed with whatever it holds when the
     block fails or is interrupted. ``check(path, overwrite)`` runs before the block (:func:`check_target`)
     and again just before the swap: an output that appeared meanwhile is not replaced unless ``overwrite``.
+    ``same_name``: the path given to the block has ``path``'s own name, inside the temporary folder (for a
+    writer that reads the kind of output from its name, e.g. a ``.bag`` suffix), and what the block
+    writes there is moved into place.
 
     Raises:
         DataError: the folder of ``path`` is missing, or creating, renaming or removing failed (one line).
@@ -128,14 +131,15 @@ def written_in_place(path: Path, *, overwrite: bool, folder: bool = False,
     tmp = sibling(path, TMP_TAG)
     try:
         remove(tmp)
-        if folder:
+        if folder or same_name:
             tmp.mkdir()
     except OSError as exc:
         raise _os_error(f"{tmp}: cannot create the temporary output", exc) from exc
+    written = tmp / path.name if same_name else tmp
     try:
-        yield tmp
+        yield written
         check(path, overwrite)
-        _swap(tmp, path)
+        _swap(written, path)
     finally:
         try:
             remove(tmp)

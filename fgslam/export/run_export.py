@@ -25,6 +25,7 @@ from ..core.config import from_dict
 from ..core.errors import ConfigError, DataError
 from ..core.mapdata import points_near_cameras
 from ..io.datasets import DatasetConfig, open_dataset
+from ..io.datasets.common import SAME_FRAME_DT
 from ..io.run_files import SUMMARY_FILE, TUM_FILE
 from ..io.trajectory import read_trajectory
 from .colmap import IMAGES_SUBDIR, SPARSE_SUBDIR, ColmapExportConfig, build_reconstruction, write_model
@@ -144,7 +145,7 @@ def _all_frame_poses(run: RunFolder, keyframe_indices: set[int]) -> dict[int, tu
     out: dict[int, tuple[str, np.ndarray]] = {}
     for stamp, T in zip(traj.timestamps, traj.T_WC):
         j = int(np.argmin(np.abs(t - stamp))) if t.size else -1
-        if j < 0 or abs(t[j] - stamp) > 1e-6 * max(1.0, abs(stamp)):
+        if j < 0 or abs(t[j] - stamp) > SAME_FRAME_DT:  # the same frame's time, not a relative tolerance (epoch times)
             continue
         index = int(idx[j])
         if index not in keyframe_indices:
