@@ -127,3 +127,21 @@ def video_clip(shared_data, tmp_path_factory):
     fx, fy, cx, cy = _KITTI_K
     (folder / "drive.yaml").write_text(f"width: {width}\nheight: {height}\nintrinsics: [{fx}, {fy}, {cx}, {cy}]\n")
     return path
+
+
+@pytest.fixture
+def noise_images():
+    """``make(folder, n)``: an image folder of ``n`` 320x240 grey noise images (seeded) with its
+    ``calibration.yaml``: a sequence that loads but on which no SLAM run initialises."""
+    def make(folder: Path, n: int) -> Path:
+        import cv2
+        import numpy as np
+
+        folder.mkdir(parents=True)
+        rng = np.random.default_rng(0)
+        for i in range(n):
+            cv2.imwrite(str(folder / f"{i:04d}.png"), (rng.random((240, 320)) * 255).astype(np.uint8))
+        (folder / "calibration.yaml").write_text("width: 320\nheight: 240\nintrinsics: [256, 256, 160, 120]\n")
+        return folder
+
+    return make

@@ -101,17 +101,10 @@ def test_compare_colmap_on_a_synthetic_clip(clip, tmp_path, capsys):
     assert "exists and is not empty" in capsys.readouterr().err
 
 
-def test_refused_compare_leaves_no_output_folder(tmp_path, capsys):
+def test_refused_compare_leaves_no_output_folder(tmp_path, capsys, noise_images):
     """A compare refused by the run's checks (here: a missing --map to extend) leaves no --out behind; an
     --out that existed before stays, even empty."""
-    import cv2
-
-    data = tmp_path / "data"
-    data.mkdir()
-    rng = np.random.default_rng(0)
-    for i in range(4):
-        cv2.imwrite(str(data / f"{i:04d}.png"), (rng.random((240, 320)) * 255).astype(np.uint8))
-    (data / "calibration.yaml").write_text("width: 320\nheight: 240\nintrinsics: [256, 256, 160, 120]\n")
+    data = noise_images(tmp_path / "data", 4)
     missing_map = tmp_path / "none.fgmap"
     out = tmp_path / "cmp"
     for existed in (False, True):

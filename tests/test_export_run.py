@@ -178,17 +178,10 @@ def test_failed_colmap_export_leaves_nothing_and_the_advised_retry_works(tmp_pat
     assert sorted(p.name for p in tmp_path.iterdir()) == ["colmap", "run"]
 
 
-def test_export_of_a_run_without_pose_gives_the_runs_reason(tmp_path, capsys):
+def test_export_of_a_run_without_pose_gives_the_runs_reason(tmp_path, capsys, noise_images):
     """A run that never initialised has no map because it has no pose: the export says so with the reason
     of its summary.json, and does not advise output.write_map=true (which it had)."""
-    import cv2
-
-    data = tmp_path / "two"
-    data.mkdir()
-    rng = np.random.default_rng(0)
-    for i in range(2):
-        cv2.imwrite(str(data / f"{i:04d}.png"), (rng.random((240, 320)) * 255).astype(np.uint8))
-    (data / "calibration.yaml").write_text("width: 320\nheight: 240\nintrinsics: [256, 256, 160, 120]\n")
+    data = noise_images(tmp_path / "two", 2)
     run = tmp_path / "run"
     assert main(["-q", "run", "patch_mono", "--data", str(data), "--out", str(run), "--no-progress"]) == 2
     capsys.readouterr()
