@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from fgslam.cli import COMMANDS
+from fgslam.core.config import import_object
 from fgslam.core.config_doc import config_keys, key_names
 from fgslam.run.presets import PRESET_CLASSES, RUN_CONFIG_CLASS
 
@@ -80,7 +81,7 @@ def documentation_problems(text: str, where: str) -> list[str]:
     ``-o KEY=VALUE``, a dotted key of ``fgslam run``'s config in a code span, a ``tools/`` script."""
     tool = load_tool("docs_reference")
     options = tool.cli_options()
-    keys = {cmd: key_names(tool.load_class(target)) for cmd, target in COMMAND_CONFIG.items()}
+    keys = {cmd: key_names(import_object(target)) for cmd, target in COMMAND_CONFIG.items()}
     run_keys = keys["run"]
     sections = {k for k in run_keys if "." not in k}
     problems = []
@@ -191,7 +192,7 @@ def test_the_config_reference_covers_every_key_with_its_meaning():
     page = tool.config_page()
     targets = [RUN_CONFIG_CLASS] + [target for _, target, _ in tool.OTHER_CONFIGS]
     for target in targets:
-        cls = tool.load_class(target)
+        cls = import_object(target)
         for key in config_keys(cls):
             assert key.meaning, f"{target}: key '{key.key}' has no comment saying what it means"
             top_section = key.section and "." not in key.key and target == RUN_CONFIG_CLASS
@@ -204,9 +205,8 @@ def test_the_documented_defaults_are_those_a_run_gets():
     default config (``to_dict``), exactly."""
     from fgslam.core.config import to_dict
 
-    tool = load_tool("docs_reference")
     for target in [RUN_CONFIG_CLASS, PRESET_CLASSES["localize"], PRESET_CLASSES["demo"]]:
-        cls = tool.load_class(target)
+        cls = import_object(target)
         values = to_dict(cls())
         for key in config_keys(cls):
             if key.section:
@@ -217,7 +217,7 @@ def test_the_documented_defaults_are_those_a_run_gets():
             shown = yaml.safe_load(key.default_text)
             expected = list(value) if isinstance(value, tuple) else value
             assert shown == expected and type(shown) is type(expected), (target, key.key, key.default_text, value)
-    keys = {k.key: k for k in config_keys(tool.load_class(RUN_CONFIG_CLASS))}
+    keys = {k.key: k for k in config_keys(import_object(RUN_CONFIG_CLASS))}
     assert keys["pointmap.source.kind"].default_text == '"auto"'  # the family's default, not the source class's
 
 

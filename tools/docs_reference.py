@@ -13,14 +13,13 @@ Run it alone to print a page: ``python tools/docs_reference.py config`` (or ``cl
 from __future__ import annotations
 
 import argparse
-import importlib
-import re
 import sys
 from collections.abc import Iterable
 
 
 from fgslam.cli import build_parser
-from fgslam.core.config_doc import KeyDoc, config_keys
+from fgslam.core.config import import_object
+from fgslam.core.config_doc import SPHINX_ROLE, KeyDoc, config_keys
 from fgslam.run.presets import PRESET_CLASSES, RUN_CONFIG_CLASS, run_presets
 
 #: site paths of the generated pages
@@ -48,12 +47,6 @@ OTHER_CONFIGS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-def load_class(target: str) -> type:
-    """The class named by ``"package.module:Name"``."""
-    module, name = target.split(":")
-    return getattr(importlib.import_module(module), name)
-
-
 def cell(text: str) -> str:
     """Text safe in one cell of a Markdown table (no column break, no HTML, no emphasis)."""
     return (text.replace("\\", "\\\\").replace("|", "\\|").replace("<", "&lt;").replace("*", "\\*")
@@ -79,7 +72,7 @@ def config_sections(cls: type) -> list[tuple[str, list[KeyDoc]]]:
 
 
 def config_page() -> str:
-    run_cls = load_class(RUN_CONFIG_CLASS)
+    run_cls = import_object(RUN_CONFIG_CLASS)
     out = [
         "# Configuration reference",
         "",
@@ -108,7 +101,7 @@ def config_page() -> str:
             out += [cell(section.meaning), ""]
         out += key_table(k for k in keys if k is not section) + [""]
     for heading, target, how in OTHER_CONFIGS:
-        cls = load_class(target)
+        cls = import_object(target)
         out += [f"## {heading}", "", f"Set by {how}.", ""] + key_table(config_keys(cls)) + [""]
     return "\n".join(out)
 
@@ -161,8 +154,6 @@ def cli_options() -> dict[str, set[str]]:
             for name, sub in _subcommands(build_parser()).items()}
 
 
-#: a Sphinx role in a docstring (``:class:`~fgslam.io.camera.Camera` ``), shown as plain code
-SPHINX_ROLE = re.compile(r":(?:class|meth|func|attr|data|mod|exc|obj):`~?(?:[\w.]*\.)?([^`.]+)`")
 
 
 def __getattr__(name: str):

@@ -22,8 +22,10 @@ import typing
 from collections.abc import Iterator
 from typing import Any
 
-from .config import field_range
+from .config import _type_name, field_range
 
+#: a Sphinx role in a docstring (``:class:`~fgslam.io.camera.Camera` ``); group 1: the name it shows
+SPHINX_ROLE = re.compile(r":(?:class|meth|func|attr|data|mod|exc|obj):`~?(?:[\w.]*\.)?([^`.]+)`")
 #: Shown as the default of a field without one (never the case for a loadable config).
 NO_DEFAULT = "(required)"
 
@@ -59,7 +61,7 @@ def type_text(tp: object) -> str:
         return f"list of {type_text(args[0])}" if args else "list"
     if tp is Any:
         return "any"
-    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+    return _type_name(tp)
 
 
 def default_text(f: dataclasses.Field, owner: object = None) -> str:
@@ -153,7 +155,7 @@ def _first_doc_line(cls: type) -> str:
     """The first paragraph of the class docstring, on one line, reST markup dropped."""
     doc = inspect.getdoc(cls) or ""
     text = " ".join(doc.split("\n\n")[0].split())
-    return re.sub(r":\w+:`~?([^`]+)`", r"\1", text).replace("``", "`")
+    return SPHINX_ROLE.sub(r"\1", text).replace("``", "`")
 
 
 def _section_class(tp: object) -> type | None:

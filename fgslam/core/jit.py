@@ -46,9 +46,9 @@ def _identity(x):
 
 
 @functools.cache
-def warm_up() -> float:
-    """Import numba and load its machine-code target, once per process; returns the seconds the
-    first call took (later calls: the same figure, no work).
+def warm_up() -> None:
+    """Import numba and load its machine-code target, once per process (later calls: no work; the
+    seconds it took are logged at debug level).
 
     The first kernel a process calls pays both (about 2 s here: the import, then the target's
     registries, initialised when the first compiled function loads from the cache). A run calls this
@@ -56,6 +56,4 @@ def warm_up() -> float:
     frame pays it: the first frames' time and a live run's first latency stay those of the work."""
     t0 = time.perf_counter()
     kernel(_identity)(0)
-    seconds = time.perf_counter() - t0
-    logger.debug("compiled kernels ready in %.2f s", seconds)
-    return seconds
+    logger.debug("compiled kernels ready in %.2f s", time.perf_counter() - t0)

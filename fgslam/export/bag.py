@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from ..core.errors import DataError
-from .inplace import written_in_place
+from .inplace import refuse_existing, written_in_place
 from ..io.datasets.rosbag import ROS1_SUFFIX, import_rosbags, is_bag
 from ..io.run_files import TUM_FILE
 from ..io.trajectory import Trajectory, read_trajectory, rotation_to_quaternion_xyzw
@@ -141,9 +141,8 @@ def write_trajectory_bag(traj: Trajectory, out: str | Path, config: BagExportCon
 
 def _check_bag_target(out: Path, overwrite: bool) -> None:
     """An existing ``out`` is replaced only with ``overwrite``, and only when it is a ROS bag."""
+    refuse_existing(out, overwrite)
     if out.exists() or out.is_symlink():
-        if not overwrite:
-            raise DataError(f"{out} exists (use --overwrite to replace it)")
         if out.is_symlink() or not is_bag(out):
             raise DataError(f"{out} exists and is not a ROS bag (a .bag file or a folder with metadata.yaml): "
                             "not replaced, even with --overwrite; choose another path")

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.config import MAX_SCALAR, ranged
+from ..core.mapdata import points_near_cameras
 
 
 @dataclass
@@ -16,6 +17,15 @@ class PlyExportConfig:
     """What a PLY export keeps of a run's map (``fgslam export RUN --ply FILE``)."""
 
     max_point_range_factor: float = ranged(10.0, ge=0, le=MAX_SCALAR)  # leave out points farther from every camera (the map's keyframes; for a run's points.ply, its posed frames) than this x the median such distance (far points: near-zero inverse depths; compare-colmap's rule, scale-free); 0: keep every point
+
+
+def kept_points(X_W: np.ndarray, centres: np.ndarray, config: PlyExportConfig) -> tuple[np.ndarray, float | None]:
+    """Which points a PLY keeps: ``(keep (N,) bool, limit)``, the finite points nearer to the camera
+    ``centres`` than ``config.max_point_range_factor`` times their median such distance
+    (:func:`fgslam.core.mapdata.points_near_cameras`; ``limit`` None: no range limit, every finite point)."""
+    if config.max_point_range_factor > 0 and len(centres):
+        return points_near_cameras(X_W, centres, config.max_point_range_factor)
+    return np.all(np.isfinite(np.asarray(X_W).reshape(-1, 3)), axis=1), None
 
 
 def write_ply(path: str | Path, X_W: np.ndarray, colour: np.ndarray) -> Path:

@@ -23,7 +23,6 @@ import numpy as np
 
 from ..core.config import from_dict
 from ..core.errors import ConfigError, DataError
-from ..core.mapdata import points_near_cameras
 from ..io.datasets import DatasetConfig, open_dataset
 from ..io.datasets.common import SAME_FRAME_DT
 from ..io.run_files import SUMMARY_FILE, TUM_FILE
@@ -31,7 +30,7 @@ from ..io.trajectory import read_trajectory
 from .colmap import IMAGES_SUBDIR, SPARSE_SUBDIR, ColmapExportConfig, build_reconstruction, write_model
 from .inplace import check_target, refuse_existing, written_in_place
 from .map import MAP_FILE, RunMap, load_run_map
-from .ply import PlyExportConfig, write_ply
+from .ply import PlyExportConfig, kept_points, write_ply
 
 logger = logging.getLogger(__name__)
 
@@ -115,12 +114,8 @@ def export_ply(run: RunFolder, path: str | Path, overwrite: bool = False,
     file; returns what was written."""
     path = Path(path)
     config = config or PlyExportConfig()
-    check_target(path, overwrite, check_ply_output)
     m = run.run_map.map
-    keep = np.all(np.isfinite(m.X_W), axis=1)
-    limit = None
-    if config.max_point_range_factor > 0 and m.num_keyframes:
-        keep, limit = points_near_cameras(m.X_W, m.T_WC[:, :3, 3], config.max_point_range_factor)
+    keep, limit = kept_points(m.X_W, m.T_WC[:, :3, 3], config)
     with written_in_place(path, overwrite=overwrite, check=check_ply_output) as tmp:
         write_ply(tmp, m.X_W[keep], m.colour[keep])
     left_out = m.num_points - int(keep.sum())

@@ -16,8 +16,7 @@ import numpy as np
 
 from ..eval.trajectory import EvalResult
 from ..export.map import RunMap, save_run_map
-from ..core.mapdata import points_near_cameras
-from ..export.ply import PlyExportConfig, write_ply
+from ..export.ply import PlyExportConfig, kept_points, write_ply
 from ..frontends.base import Frontend
 from ..io.datasets import Dataset
 from ..io import plot  # called through the module: a test replaces plot.plot_trajectories
@@ -84,10 +83,8 @@ def write_points(writer: OutputWriter, points: tuple[np.ndarray, np.ndarray], tr
 
     def write() -> None:  # inside the writer: a failure is this output's, the others are still written
         X_W, colour = points
-        if config.max_point_range_factor > 0 and traj is not None and len(traj.timestamps):
-            keep, _ = points_near_cameras(X_W, traj.T_WC[:, :3, 3], config.max_point_range_factor)
-            X_W, colour = X_W[keep], colour[keep]
-        write_ply(path, X_W, colour)
+        keep, _ = kept_points(X_W, np.zeros((0, 3)) if traj is None else traj.T_WC[:, :3, 3], config)
+        write_ply(path, X_W[keep], colour[keep])
 
     writer.write("ply", [path], write)
 
