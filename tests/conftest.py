@@ -18,12 +18,25 @@ NUMERICAL_MODULES = frozenset({"test_determinism", "test_dense_loop", "test_patc
                                "test_imu_loops", "test_nets_reference"})
 
 
+# The files whose tests take longest (pytest's --durations on CI, longest first: their module fixtures run
+# whole loop clips). The suite runs on two worker processes, a file on one of them (pyproject.toml,
+# addopts); these start first, so that none of them is what the other worker waits for at the end.
+LONGEST_FIRST = ("test_dense_loop", "test_patch_loop", "test_determinism", "test_imu_families",
+                 "test_dense_global_bg", "test_imu_runs", "test_loop_closure", "test_colmap_compare")
+
+
+def _module_name(item) -> str:
+    return getattr(getattr(item, "module", None), "__name__", "").rsplit(".", 1)[-1]
+
+
 def pytest_collection_modifyitems(config, items):
-    """Mark the numerical tests (above) ``numerical``."""
+    """Mark the numerical tests (above) ``numerical``; put the files of ``LONGEST_FIRST`` first, in that
+    order (the others keep theirs)."""
     for item in items:
-        module = getattr(getattr(item, "module", None), "__name__", "").rsplit(".", 1)[-1]
-        if NUMERICAL_FIXTURES.intersection(getattr(item, "fixturenames", ())) or module in NUMERICAL_MODULES:
+        if NUMERICAL_FIXTURES.intersection(getattr(item, "fixturenames", ())) or _module_name(item) in NUMERICAL_MODULES:
             item.add_marker(pytest.mark.numerical)
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(_module_name(item), len(rank)))  # stable: the rest keep their order
 
 
 @pytest.fixture(scope="session")
