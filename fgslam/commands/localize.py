@@ -6,9 +6,13 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Optional
 
 from ..core.config import load_config
 from . import FORMAT_CHOICES, add_config_arguments, add_selection_arguments
+
+if TYPE_CHECKING:
+    import numpy as np
 
 HELP = "localise a sequence in a stored map (pose per frame in the map's frame, or 'not localised')"
 
@@ -37,16 +41,37 @@ def run(args: argparse.Namespace) -> int:
             remove_previous_outputs(out)
 
     s = run_localization(args.map, args.data, args.out, config, fmt=args.format, start=args.start, end=args.end,
-                         stride=args.stride, prepare_out=prepare_out)
+                         stride=args.stride, prepare_out=prepare_out, odometry=MapRunOdometry)
     if args.json:
         print(json.dumps(s))
         return 0
     print(f"localised {s['localised']} of {s['frames']} frames ({100 * s['localised_fraction']:.1f} %: "
-          f"{s['tracked']} tracked, {s['relocalised']} relocalised) in {s['map']} ({s['map_keyframes']} keyframes); "
-          f"{s['cpu_ms_per_frame']:.1f} ms CPU per frame")
+          f"{s['tracked']} tracked, {s['relocalised']} relocalised, {s['odometry']} by the anchored odometry) in "
+          f"{s['map']} ({s['map_keyframes']} keyframes); {s['cpu_ms_per_frame']:.1f} ms CPU per frame")
     ev = s["evaluation"]
     if ev is not None:
         print(f"ATE of the localised poses: {ev['ate_rmse_m']:.4f} m ({ev['align']}; holding the first pose: "
               f"{ev['stationary_ate_rmse_m']:.4f} m)")
     print(f"outputs: {args.out} ({', '.join(s['outputs'])})")
     return 0
+
+
+class MapRunOdometry:
+    """The sequence's odometry for :func:`fgslam.localize.sequence.run_localization`: the map run's own SLAM
+    config (its outputs section left at the defaults: this run writes nothing) run on the sequence's frames,
+    their per-frame poses (:class:`fgslam.localize.anchor.Odometry`)."""
+
+    def __init__(self, map_config: dict, calibration: Any) -> None:
+        from ..core.config import from_dict
+        from ..run.config import SlamConfig
+        from ..run.session import Slam  # deferred: torch, gtsam
+
+        settings = {key: value for key, value in map_config.items() if key != "output"}
+        config = from_dict(SlamConfig, settings, "the map run's config (stored in the map)")
+        self.slam = Slam(config, calibration, keep_frames=False, where="fgslam localize (odometry)")
+
+    def track(self, frame: Any) -> Optional[np.ndarray]:
+        return self.slam.track_frame(frame).T_WC
+
+    def close(self) -> None:
+        self.slam.abort()

@@ -22,6 +22,10 @@ the map's settings, :mod:`fgslam.export.mapfile`):
    quality gate; the default, 1.0, gates nothing in practice: on 7-Scenes it trades localised
    frames for accuracy, docs/benchmarks/maps.md);
 4. else the frame is "not localised": no pose is made up (no motion model).
+
+Over a sequence, ``fgslam localize`` also runs the map's own SLAM configuration on it and anchors that
+odometry to these poses (:mod:`fgslam.localize.anchor`, ``odometry``): every frame the odometry poses
+gets a pose in the map's frame, between localisations too (status ``odometry``).
 """
 
 from __future__ import annotations
@@ -44,12 +48,16 @@ from ..loop.features import OrbConfig, OrbExtractor
 from ..loop.records import RelocalizationConfig
 from ..loop.verification import match_descriptors, solve_pnp
 from ..loop.vocabulary import BowVector, load_vocabulary
+from .anchor import OdometryConfig
 
 logger = logging.getLogger(__name__)
 
 _NOT_LOCALISED = "not localised: no map keyframe verified the frame"
 #: What :class:`FrameLocalization` says of a frame.
 STATUSES = ("tracked", "relocalised", "not_localised")
+#: What ``fgslam localize`` says of a frame: the localiser's statuses, and ``odometry`` for a frame posed by
+#: the anchored odometry alone (:mod:`fgslam.localize.anchor`)
+SEQUENCE_STATUSES = ("tracked", "relocalised", "odometry", "not_localised")
 
 
 def relative_position_std(T_WC: np.ndarray, X_W: np.ndarray, K: np.ndarray) -> float:
@@ -110,6 +118,7 @@ class LocalizeConfig:
     confirm_inliers: int = ranged(100, ge=4, le=MAX_COUNT)  # a relocalised pose needs this many local-map inliers at it
     max_position_std: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # quality gate: largest position std of a pose (1 px noise, its inliers) / their median depth (1.0: none in practice)
     merge: MapMergeConfig = field(default_factory=MapMergeConfig)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)  # fgslam localize: the sequence's own odometry, anchored to the map
     #: dataset settings (:class:`fgslam.io.datasets.DatasetConfig` keys) merged over the map run's,
     #: e.g. ``-o dataset.calibration_file=cam.yaml -o dataset.groundtruth_file=gt.txt`` (a map keeps no paths)
     dataset: dict[str, Any] = field(default_factory=dict)

@@ -1,8 +1,12 @@
 """``fgslam localize MAP --data SEQ --out DIR``: every frame of a new sequence localised in a stored
 map (:class:`fgslam.localize.localizer.MapLocalizer`), a pose in the map's frame or "not localised".
 
-Outputs (``DIR``): ``trajectory_tum.txt`` (localised frames only, map frame), ``localization.csv``
-(every frame: raw (source) frame index, as ``--start`` counts, timestamp, status ``tracked`` / ``relocalised`` / ``not_localised``, keyframe id,
+With an odometry (``odometry.enabled``; :mod:`fgslam.localize.anchor`: the map run's own SLAM config on the
+sequence, built by the caller), every frame it poses gets its anchored pose in the map's frame.
+
+Outputs (``DIR``): ``trajectory_tum.txt`` (posed frames only, map frame), ``localization.csv``
+(every frame: raw (source) frame index, as ``--start`` counts, timestamp, status ``tracked`` / ``relocalised`` /
+``odometry`` (posed by the anchored odometry alone) / ``not_localised``, keyframe id,
 inliers, ``position_std``: :func:`~fgslam.localize.localizer.relative_position_std` of the pose, empty without one) and ``summary.json`` (counts, CPU time per frame, the map, and, when the sequence has ground
 truth and the map its run's alignment to ground truth, the ATE of the localised poses with that
 alignment applied unchanged, beside the ATE of holding the first localised pose: doing nothing).
@@ -28,7 +32,8 @@ from ..export.mapfile import check_map_camera, load_stored_map
 from ..io.datasets import DatasetConfig, open_dataset
 from ..io.run_files import LOCALIZATION_FILE, SUMMARY_FILE, TUM_FILE
 from ..io.trajectory import Trajectory, write_trajectory
-from .localizer import STATUSES, LocalizeConfig, Localizer
+from .anchor import Odometry, OdometryAnchor
+from .localizer import SEQUENCE_STATUSES, LocalizeConfig, Localizer
 
 logger = logging.getLogger(__name__)
 
@@ -45,23 +50,50 @@ def _ate(positions: np.ndarray, gt: np.ndarray, A: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((aligned - gt) ** 2, axis=1))))
 
 
+def _start_odometry(odometry: Callable[[dict, Any], Odometry], map_config: dict, calibration) -> Odometry | None:
+    """The sequence's odometry, or None (logged) when the map run's config cannot build one (e.g. a map
+    of an older version whose keys no longer exist): the localisation goes on without it."""
+    try:
+        return odometry(map_config, calibration)
+    except FGSlamError as exc:
+        logger.warning("localising without odometry: the map run's config does not build one here (%s)", exc)
+        return None
+
+
+def _odometry_pose(odo: Odometry, frame) -> tuple[np.ndarray | None, Odometry | None]:
+    """The odometry's pose of ``frame``, and the odometry to use next (None once it failed: logged, the
+    localisation goes on without it; the poses it gave stay)."""
+    try:
+        return odo.track(frame), odo
+    except FGSlamError as exc:
+        logger.warning("frame %d: the odometry failed (%s); localising the rest without it", frame.source_index, exc)
+        odo.close()
+        return None, None
+
+
 def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path, config: LocalizeConfig | None = None,
                      fmt: str = "auto", start: int | None = None, end: int | None = None, stride: int | None = None,
-                     prepare_out: Callable[[Path], object] | None = None) -> dict[str, Any]:
+                     prepare_out: Callable[[Path], object] | None = None,
+                     odometry: Callable[[dict, Any], Odometry] | None = None) -> dict[str, Any]:
     """Localise the sequence ``data`` (raw frames ``start`` .. ``end``, every ``stride``-th; None: ``config.dataset``'s,
     else the whole sequence; the other dataset settings, e.g. the image size, are the map run's, with ``config.dataset`` merged
     over them) in the map at ``map_path``; writes
     the outputs (module docstring) to ``out_dir`` and returns the summary. ``prepare_out(out_dir)``
     is called once the map, the sequence and their cameras are checked, before anything is written
     (the CLI: ``fgslam run``'s rule for a previous run's outputs, :func:`fgslam.run.prepare.prepare_output`).
+    ``odometry(map_config, calibration)`` builds the sequence's odometry from the map run's config (a dict)
+    and the sequence's calibration; used when ``config.odometry.enabled`` (None: no odometry).
     Raises :class:`NotLocalisedError` (after writing) when no frame localised."""
     config = config or LocalizeConfig()
     config.validate()
     cpu0, wall0 = time.process_time(), time.perf_counter()
     stored = load_stored_map(map_path)
-    ds_dict = dict((stored.meta.get("config") or {}).get("dataset") or {})
-    ds_dict.update(load_rgb=False, load_depth=False, load_right=False, load_imu=False, start=0, end=None,
-                   stride=1)
+    map_config = dict(stored.meta.get("config") or {})
+    with_odometry = odometry is not None and config.odometry.enabled and bool(map_config)
+    ds_dict = dict(map_config.get("dataset") or {})
+    if not with_odometry:  # the localiser reads the grey image alone; the odometry what the map run read
+        ds_dict.update(load_rgb=False, load_depth=False, load_right=False, load_imu=False)
+    ds_dict.update(start=0, end=None, stride=1)
     ds_dict.update(config.dataset)  # the command's dataset section: e.g. a calibration or ground-truth file
     if start is not None:
         ds_dict["start"] = int(start)
@@ -77,22 +109,33 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
         prepare_out(out)
     out.mkdir(parents=True, exist_ok=True)
     localizer = Localizer(stored, config)  # the public API's (fgslam.Slam.localize_in): one path
+    odo = _start_odometry(odometry, map_config, dataset.calibration) if with_odometry else None
+    anchor = OdometryAnchor(config.odometry, with_scale=stored.meta.get("sensor") == "mono")
     setup_cpu = time.process_time() - cpu0
     rows: list[tuple[int, float, str, int, int, float]] = []
     stamps, poses, gt_pos, has_gt = [], [], [], []
     loop_cpu0 = time.process_time()
-    for frame in dataset:
-        res = localizer.track(frame.image, frame.timestamp)
-        rows.append((int(frame.source_index), float(frame.timestamp), res.status,
-                     -1 if res.keyframe_id is None else res.keyframe_id, res.num_valid,
-                     float("nan") if res.position_std is None else res.position_std))
-        if res.T_WC is not None:
-            stamps.append(frame.timestamp)
-            poses.append(res.T_WC)
-            has_gt.append(frame.T_WC_gt is not None)
-            gt_pos.append(frame.T_WC_gt[:3, 3] if frame.T_WC_gt is not None else np.full(3, np.nan))
+    try:
+        for frame in dataset:
+            res = localizer.track(frame.image, frame.timestamp)
+            T_VC = None
+            if odo is not None:
+                T_VC, odo = _odometry_pose(odo, frame)
+            T_WC = anchor.add(frame.timestamp, T_VC, res.T_WC)
+            status = res.status if res.T_WC is not None or T_WC is None else "odometry"
+            rows.append((int(frame.source_index), float(frame.timestamp), status,
+                         -1 if res.keyframe_id is None else res.keyframe_id, res.num_valid,
+                         float("nan") if res.position_std is None else res.position_std))
+            if T_WC is not None:
+                stamps.append(frame.timestamp)
+                poses.append(T_WC)
+                has_gt.append(frame.T_WC_gt is not None)
+                gt_pos.append(frame.T_WC_gt[:3, 3] if frame.T_WC_gt is not None else np.full(3, np.nan))
+    finally:
+        if odo is not None:
+            odo.close()
     loop_cpu = time.process_time() - loop_cpu0
-    counts = {s: sum(1 for r in rows if r[2] == s) for s in STATUSES}
+    counts = {s: sum(1 for r in rows if r[2] == s) for s in SEQUENCE_STATUSES}
     n = len(rows)
     with open(out / STATUS_FILE, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
@@ -103,6 +146,7 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     summary: dict[str, Any] = {
         "map": str(map_path), "data": str(data), "frames": n, "localised": localised,
         "not_localised": counts["not_localised"], "tracked": counts["tracked"], "relocalised": counts["relocalised"],
+        "odometry": counts["odometry"], "odometry_used": with_odometry, "anchor_pairs": anchor.pairs,
         "localised_fraction": localised / n if n else 0.0, "map_keyframes": stored.num_keyframes,
         "map_family": stored.meta.get("family"), "map_sensor": stored.meta.get("sensor"),
         "cpu_s": time.process_time() - cpu0, "setup_cpu_s": setup_cpu, "wall_s": time.perf_counter() - wall0,

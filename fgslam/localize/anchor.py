@@ -1,0 +1,138 @@
+"""Localisation that keeps its pose between relocalisations: the sequence's own odometry anchored to
+the map.
+
+A localiser (:mod:`fgslam.localize.localizer`) poses only the frames whose features verify against
+the map; between them it has nothing, and each relocalisation carries its own error (a bias of a few
+centimetres that the next one does not share). The odometry of the map's own SLAM configuration run on
+the sequence (``fgslam localize``: :mod:`fgslam.commands.localize`) poses every frame, smoothly, in a
+frame ``V`` of its own. :class:`OdometryAnchor` keeps the transform ``T_MV`` from that frame to the
+map's ``M``, fitted causally to every frame that both posed:
+
+- rotation: the chordal mean of the pairs' ``R_MC R_VC^T``;
+- translation (and, for a monocular map, scale ``s``): least squares of the camera positions
+  ``p_M = s R p_V + t`` given that rotation;
+- robust: pairs farther than ``trim`` times the median distance from the fit are left out and the fit
+  is repeated (``TRIM_ROUNDS`` times); a wrong relocalisation then moves nothing.
+
+Every frame with an odometry pose then gets ``T_MV T_VC`` once ``min_pairs`` pairs exist: the frames
+between localisations (up to ``max_gap_s`` after the last localised one, when set), and the localised
+ones too (the fit averages the localisations' errors, where a single localisation keeps its own).
+Before that, a localised frame keeps its localiser pose.
+Pure numpy: the odometry is given from outside (the localisation package runs no SLAM).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Protocol
+
+import numpy as np
+
+from ..core.config import MAX_COUNT, MAX_SCALAR, ranged
+
+#: fit, trim, fit again: rounds of trimming (the second sees the inliers of the first)
+TRIM_ROUNDS = 2
+
+
+@dataclass
+class OdometryConfig:
+    """The sequence's own odometry, anchored to the map's localisations (module docstring)."""
+
+    enabled: bool = True  # run the map's SLAM config on the sequence beside the localiser: every frame it poses gets a pose in the map's frame
+    min_pairs: int = ranged(3, ge=1, le=MAX_COUNT)  # localised frames with an odometry pose before the anchored poses are given
+    trim: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # pairs farther from the fit than this times the median distance are left out
+    window: int = ranged(0, ge=0, le=MAX_COUNT)  # the most recent pairs fitted (0: all of them)
+    max_gap_s: float = ranged(0.0, ge=0, le=MAX_SCALAR)  # odometry poses at most this long (s) after the last localised frame (0: no limit; a monocular odometry's scale drifts)
+
+
+class Odometry(Protocol):
+    """The sequence's odometry as :func:`fgslam.localize.sequence.run_localization` drives it."""
+
+    def track(self, frame) -> Optional[np.ndarray]:
+        """The pose ``T_VC`` ``(4, 4)`` of a loader's frame in the odometry's own frame (None: none yet)."""
+
+    def close(self) -> None:
+        """Stop its background work (no final optimisation: the poses given are the ones used)."""
+
+
+def _mean_rotation(R: np.ndarray) -> np.ndarray:
+    """Chordal mean of rotations ``(n, 3, 3)``: the rotation nearest their sum (SVD)."""
+    U, _, Vt = np.linalg.svd(R.sum(axis=0))
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))])
+    return U @ D @ Vt
+
+
+def fit_anchor(T_VC: np.ndarray, T_MC: np.ndarray, with_scale: bool, trim: float) -> np.ndarray:
+    """``T_MV`` ``(4, 4)`` (``[[s R, t], [0, 1]]``) from pairs of poses of the same frames, odometry
+    ``T_VC`` and map ``T_MC`` ``(n, 4, 4)`` (rigid), robustly (module docstring); ``with_scale``: fit the
+    scale too (a monocular odometry), else ``s = 1``."""
+    R_pairs = T_MC[:, :3, :3] @ np.transpose(T_VC[:, :3, :3], (0, 2, 1))
+    p_V, p_M = T_VC[:, :3, 3], T_MC[:, :3, 3]
+    keep = np.ones(len(T_VC), dtype=bool)
+    for round_ in range(TRIM_ROUNDS + 1):
+        R = _mean_rotation(R_pairs[keep])
+        q = p_V[keep] @ R.T
+        q_mean, m_mean = q.mean(axis=0), p_M[keep].mean(axis=0)
+        s = 1.0
+        if with_scale:
+            den = float(((q - q_mean) ** 2).sum())
+            s = float(((q - q_mean) * (p_M[keep] - m_mean)).sum()) / den if den > 0 else 1.0
+            if not s > 0:
+                s = 1.0
+        t = m_mean - s * q_mean
+        if round_ == TRIM_ROUNDS:
+            break
+        r = np.linalg.norm(p_M - (s * p_V @ R.T + t), axis=1)
+        keep = r <= max(trim * float(np.median(r)), np.finfo(float).tiny)
+    T = np.eye(4)
+    T[:3, :3] = s * R
+    T[:3, 3] = t
+    return T
+
+
+def anchored_pose(T_MV: np.ndarray, T_VC: np.ndarray) -> np.ndarray:
+    """The rigid pose ``T_MC`` of an odometry pose ``T_VC`` under ``T_MV`` (its scale applied to the
+    position only)."""
+    s = float(np.cbrt(np.linalg.det(T_MV[:3, :3])))
+    R = T_MV[:3, :3] / s
+    T = np.eye(4)
+    T[:3, :3] = R @ T_VC[:3, :3]
+    T[:3, 3] = s * R @ T_VC[:3, 3] + T_MV[:3, 3]
+    return T
+
+
+class OdometryAnchor:
+    """Frame by frame: the odometry pose and the localiser's pose of a frame in, the frame's pose in the
+    map's frame out (module docstring). ``with_scale``: the odometry is monocular (its scale is its own)."""
+
+    def __init__(self, config: OdometryConfig, with_scale: bool):
+        self.config = config
+        self.with_scale = with_scale
+        self._T_VC: list[np.ndarray] = []
+        self._T_MC: list[np.ndarray] = []
+        self.T_MV: Optional[np.ndarray] = None  # the latest fit (None: fewer than min_pairs pairs so far)
+        self._t_localised: Optional[float] = None  # time of the last localised frame
+
+    @property
+    def pairs(self) -> int:
+        """Frames posed by both so far."""
+        return len(self._T_VC)
+
+    def add(self, t: float, T_VC: Optional[np.ndarray], T_MC: Optional[np.ndarray]) -> Optional[np.ndarray]:
+        """The pose in the map's frame of the frame at time ``t`` (seconds) with odometry pose ``T_VC`` and
+        localiser pose ``T_MC`` (either None when it has none): ``T_MV T_VC`` once anchored (and within
+        ``max_gap_s`` of the last localised frame), else ``T_MC``."""
+        if T_MC is not None:
+            self._t_localised = float(t)
+        if T_VC is not None and T_MC is not None:
+            self._T_VC.append(np.asarray(T_VC, dtype=np.float64))
+            self._T_MC.append(np.asarray(T_MC, dtype=np.float64))
+            if self.pairs >= self.config.min_pairs:
+                n = self.config.window or self.pairs
+                self.T_MV = fit_anchor(np.stack(self._T_VC[-n:]), np.stack(self._T_MC[-n:]), self.with_scale,
+                                       self.config.trim)
+        gap = self.config.max_gap_s
+        in_reach = T_MC is not None or not gap or (self._t_localised is not None and t - self._t_localised <= gap)
+        if T_VC is not None and self.T_MV is not None and in_reach:
+            return anchored_pose(self.T_MV, T_VC)
+        return None if T_MC is None else np.asarray(T_MC, dtype=np.float64)

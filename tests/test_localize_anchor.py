@@ -1,0 +1,104 @@
+"""The sequence's odometry anchored to a map's localisations (fgslam/localize/anchor.py): the robust
+fit of the map-from-odometry transform, the poses it gives, and when it gives none."""
+
+import numpy as np
+import pytest
+
+from fgslam.localize.anchor import OdometryAnchor, OdometryConfig, anchored_pose, fit_anchor
+
+
+def _rotation(rng) -> np.ndarray:
+    Q, R = np.linalg.qr(rng.normal(size=(3, 3)))
+    Q = Q @ np.diag(np.sign(np.diag(R)))
+    return Q if np.linalg.det(Q) > 0 else -Q
+
+
+def _poses(rng, n: int) -> np.ndarray:
+    """``n`` rigid camera poses along a wavy path."""
+    T = np.tile(np.eye(4), (n, 1, 1))
+    for i in range(n):
+        T[i, :3, :3] = _rotation(rng)
+        T[i, :3, 3] = [np.sin(0.3 * i), 0.1 * i, np.cos(0.2 * i)]
+    return T
+
+
+def _sim3(rng, s: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = s * _rotation(rng)
+    T[:3, 3] = rng.normal(size=3)
+    return T
+
+
+def _map_poses(T_MV: np.ndarray, T_VC: np.ndarray) -> np.ndarray:
+    return np.stack([anchored_pose(T_MV, T) for T in T_VC])
+
+
+@pytest.mark.parametrize("with_scale, s", [(False, 1.0), (True, 2.5)])
+def test_the_fit_recovers_the_transform_of_exact_pairs(with_scale, s):
+    rng = np.random.default_rng(1)
+    T_VC = _poses(rng, 12)
+    T_MV = _sim3(rng, s)
+    T_MC = _map_poses(T_MV, T_VC)
+    np.testing.assert_allclose(fit_anchor(T_VC, T_MC, with_scale, trim=2.0), T_MV, atol=1e-9)
+    for a, b in zip(T_MC, T_VC):  # the map poses are rigid, and the transform takes each pair onto the other
+        np.testing.assert_allclose(a[:3, :3] @ a[:3, :3].T, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(anchored_pose(T_MV, b), a, atol=1e-12)
+
+
+def test_a_rigid_fit_keeps_scale_one_and_a_scaled_fit_finds_it():
+    rng = np.random.default_rng(2)
+    T_VC = _poses(rng, 10)
+    T_MC = _map_poses(_sim3(rng, 3.0), T_VC)
+    assert np.cbrt(np.linalg.det(fit_anchor(T_VC, T_MC, False, 2.0)[:3, :3])) == pytest.approx(1.0)
+    assert np.cbrt(np.linalg.det(fit_anchor(T_VC, T_MC, True, 2.0)[:3, :3])) == pytest.approx(3.0)
+
+
+def test_wrong_localisations_move_the_fit_little():
+    """A fifth of the pairs 1 m off (wrong relocalisations), the rest with 1 cm of noise: the robust fit
+    stays within centimetres; a plain least-squares fit would be tens of centimetres off."""
+    rng = np.random.default_rng(3)
+    n = 40
+    T_VC = _poses(rng, n)
+    T_MV = _sim3(rng, 1.0)
+    T_MC = _map_poses(T_MV, T_VC)
+    T_MC[:, :3, 3] += 0.01 * rng.normal(size=(n, 3))
+    bad = rng.choice(n, n // 5, replace=False)
+    T_MC[bad, :3, 3] += rng.normal(size=(len(bad), 3)) * (1.0 / np.sqrt(3))
+    robust = fit_anchor(T_VC, T_MC, False, trim=2.0)
+    plain = fit_anchor(T_VC, T_MC, False, trim=1e9)  # trims nothing
+    err = lambda T: np.abs(_map_poses(T, T_VC)[:, :3, 3] - _map_poses(T_MV, T_VC)[:, :3, 3]).max()  # noqa: E731
+    assert err(robust) < 0.03 and err(plain) > 3 * err(robust)
+
+
+def test_the_anchor_gives_poses_once_it_has_its_pairs_and_within_the_gap():
+    rng = np.random.default_rng(4)
+    T_VC = _poses(rng, 8)
+    T_MV = _sim3(rng, 1.0)
+    T_MC = _map_poses(T_MV, T_VC)
+    anchor = OdometryAnchor(OdometryConfig(min_pairs=2, max_gap_s=1.5), with_scale=False)
+    assert anchor.add(0.0, T_VC[0], None) is None  # nothing anchors the odometry yet
+    np.testing.assert_array_equal(anchor.add(1.0, T_VC[1], T_MC[1]), T_MC[1])  # one pair: the localiser's pose
+    assert anchor.add(2.0, T_VC[2], None) is None
+    np.testing.assert_allclose(anchor.add(3.0, T_VC[3], T_MC[3]), T_MC[3], atol=1e-12)  # two pairs: anchored
+    np.testing.assert_allclose(anchor.add(4.0, T_VC[4], None), T_MC[4], atol=1e-12)  # between localisations
+    np.testing.assert_allclose(anchor.add(4.5, T_VC[5], None), T_MC[5], atol=1e-12)
+    assert anchor.add(4.6, T_VC[6], None) is None  # 1.6 s after the last localised frame: past max_gap_s
+    assert anchor.add(5.0, None, None) is None  # no odometry pose, no localisation
+    np.testing.assert_array_equal(anchor.add(6.0, None, T_MC[7]), T_MC[7])  # localised without odometry
+    assert anchor.pairs == 2
+
+
+def test_the_window_fits_the_latest_pairs_only():
+    """The odometry's frame jumps half-way (a new map): with a window of the latest 3 pairs the fit
+    follows it; with all pairs it cannot."""
+    rng = np.random.default_rng(5)
+    T_VC = _poses(rng, 12)
+    first, second = _sim3(rng, 1.0), _sim3(rng, 1.0)
+    T_MC = np.concatenate([_map_poses(first, T_VC[:6]), _map_poses(second, T_VC[6:])])
+    windowed = OdometryAnchor(OdometryConfig(window=3), with_scale=False)
+    whole = OdometryAnchor(OdometryConfig(), with_scale=False)
+    for i in range(12):
+        windowed.add(float(i), T_VC[i], T_MC[i])
+        whole.add(float(i), T_VC[i], T_MC[i])
+    np.testing.assert_allclose(windowed.T_MV, second, atol=1e-9)
+    assert np.abs(whole.T_MV - second).max() > 0.1
