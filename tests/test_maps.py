@@ -247,6 +247,39 @@ def test_localize_the_same_room_on_another_path(room_map, tmp_path, capsys):
         assert (again / name).read_bytes() == (out / name).read_bytes()
 
 
+@pytest.mark.parametrize("stop", ["signal", "damaged frame"])
+def test_a_stopped_localisation_writes_the_frames_before_the_stop(room_map, tmp_path, capsys, monkeypatch, stop):
+    """Ctrl-C (a stop signal) or a frame that cannot be read at the 6th frame: the 5 frames before it are in
+    localization.csv, the trajectory and summary.json (which says why it stopped); the exit status is the
+    signal's (130) or an error's (2), and the odometry's background work is stopped."""
+    from fgslam.commands.localize import MapRunOdometry
+    from fgslam.core.errors import DataError, Interrupted
+    from fgslam.localize.localizer import Localizer
+
+    stored, roots, _ = room_map
+    real_track, calls, closed = Localizer.track, [], []
+    error = Interrupted("SIGINT", 2) if stop == "signal" else DataError("frame 5: the image cannot be read")
+
+    def track(self, image, t):
+        calls.append(t)
+        if len(calls) == 6:
+            raise error
+        return real_track(self, image, t)
+
+    real_close = MapRunOdometry.close
+    monkeypatch.setattr(Localizer, "track", track)
+    monkeypatch.setattr(MapRunOdometry, "close", lambda self: (closed.append(True), real_close(self)))
+    out = tmp_path / "loc"
+    rc = main(["localize", str(stored), "--data", str(roots["other_path"]), "--out", str(out)])
+    assert rc == (130 if stop == "signal" else 2) and closed == [True]
+    assert len(capsys.readouterr().err.strip().splitlines()) >= 1
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 5 and summary["stopped"] == str(error)
+    rows = list(csv.DictReader(open(out / "localization.csv")))
+    assert len(rows) == 5 and sum(r["status"] != "not_localised" for r in rows) == summary["localised"] >= 1
+    assert len(np.loadtxt(out / "trajectory_tum.txt", ndmin=2)) == summary["localised"]
+
+
 def test_the_quality_gate_rejects_poorly_conditioned_poses(room_map, tmp_path, capsys):
     """Every localised frame's ``position_std`` is in localization.csv; ``max_position_std`` below
     them all leaves no frame localised (a gated pose is never reported), above them all changes nothing."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Optional
 
@@ -32,6 +33,7 @@ def run(args: argparse.Namespace) -> int:
     from ..localize.localizer import LocalizeConfig  # deferred: localisation pulls torch (fgslam --help stays fast)
     from ..localize.sequence import run_localization  # deferred: as above
     from ..run.prepare import prepare_output, remove_previous_outputs  # deferred: as above
+    from ..run.signals import StopOnSignal  # deferred: as above
 
     config = load_config(LocalizeConfig, args.config, args.overrides)
 
@@ -40,8 +42,9 @@ def run(args: argparse.Namespace) -> int:
         if args.overwrite:  # unless --overwrite: then removed
             remove_previous_outputs(out)
 
-    s = run_localization(args.map, args.data, args.out, config, fmt=args.format, start=args.start, end=args.end,
-                         stride=args.stride, prepare_out=prepare_out, odometry=MapRunOdometry)
+    with StopOnSignal((signal.SIGINT, signal.SIGTERM)):  # a stop writes the frames so far (then exit 130 / 143)
+        s = run_localization(args.map, args.data, args.out, config, fmt=args.format, start=args.start, end=args.end,
+                             stride=args.stride, prepare_out=prepare_out, odometry=MapRunOdometry)
     if args.json:
         print(json.dumps(s))
         return 0

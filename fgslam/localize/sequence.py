@@ -11,6 +11,8 @@ inliers, ``position_std``: :func:`~fgslam.localize.localizer.relative_position_s
 truth and the map its run's alignment to ground truth, the ATE of the localised poses with that
 alignment applied unchanged, beside the ATE of holding the first localised pose: doing nothing).
 A sequence where no frame localises writes the CSV and summary and raises :class:`NotLocalisedError`.
+A stop (Ctrl-C, a stop signal: ``KeyboardInterrupt``) or an error reading a frame ends the loop: the frames
+before it are written (``summary.json`` ``stopped`` says why) and the exception is raised again.
 """
 
 from __future__ import annotations
@@ -115,6 +117,7 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     rows: list[tuple[int, float, str, int, int, float]] = []
     stamps, poses, gt_pos, has_gt = [], [], [], []
     loop_cpu0 = time.process_time()
+    stopped: BaseException | None = None  # a stop (Ctrl-C, a stop signal) or a damaged frame: the frames before it are written
     try:
         for frame in dataset:
             res = localizer.track(frame.image, frame.timestamp)
@@ -131,6 +134,10 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
                 poses.append(T_WC)
                 has_gt.append(frame.T_WC_gt is not None)
                 gt_pos.append(frame.T_WC_gt[:3, 3] if frame.T_WC_gt is not None else np.full(3, np.nan))
+    except (KeyboardInterrupt, FGSlamError) as exc:
+        stopped = exc
+        logger.warning("localisation stopped after %d frames (%s): writing their outputs", len(rows),
+                       str(exc) or type(exc).__name__)
     finally:
         if odo is not None:
             odo.close()
@@ -154,6 +161,7 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
         "frames_per_cpu_s": n / loop_cpu if loop_cpu > 0 else None,
         "load_average": list(os.getloadavg()), "max_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "evaluation": None, "config": to_dict(config), "outputs": [STATUS_FILE, SUMMARY_FILE],
+        "stopped": None if stopped is None else (str(stopped) or type(stopped).__name__),
     }
     alignment = stored.meta.get("groundtruth_alignment")
     if poses and alignment and any(has_gt):
@@ -175,6 +183,8 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     tmp = out / f".{SUMMARY_FILE}.tmp"
     tmp.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     os.replace(tmp, out / SUMMARY_FILE)
+    if stopped is not None:
+        raise stopped
     if not poses:
         raise NotLocalisedError(f"{data}: none of the {n} frames localised in the map {map_path} "
                                 f"(every frame 'not localised' in {out / STATUS_FILE}; no trajectory written)")
