@@ -55,31 +55,39 @@ class Odometry(Protocol):
         """Stop its background work (no final optimisation: the poses given are the ones used)."""
 
 
-def _mean_rotation(R: np.ndarray) -> np.ndarray:
+def mean_rotation(R: np.ndarray) -> np.ndarray:
     """Chordal mean of rotations ``(n, 3, 3)``: the rotation nearest their sum (SVD)."""
     U, _, Vt = np.linalg.svd(R.sum(axis=0))
     D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))])
     return U @ D @ Vt
 
 
+def scale_translation(R: np.ndarray, p_V: np.ndarray, p_M: np.ndarray, with_scale: bool) -> tuple[float, np.ndarray]:
+    """Least squares ``s``, ``t`` of ``p_M = s R p_V + t`` for positions ``(n, 3)`` and the rotation ``R``;
+    ``s = 1`` without ``with_scale`` or when the positions do not spread (``s`` may come out <= 0: the
+    caller decides)."""
+    q = p_V @ R.T
+    q_mean, m_mean = q.mean(axis=0), p_M.mean(axis=0)
+    s = 1.0
+    if with_scale:
+        den = float(((q - q_mean) ** 2).sum())
+        if den > 0:
+            s = float(((q - q_mean) * (p_M - m_mean)).sum()) / den
+    return s, m_mean - s * q_mean
+
+
 def fit_anchor(T_VC: np.ndarray, T_MC: np.ndarray, with_scale: bool, trim: float) -> np.ndarray:
     """``T_MV`` ``(4, 4)`` (``[[s R, t], [0, 1]]``) from pairs of poses of the same frames, odometry
     ``T_VC`` and map ``T_MC`` ``(n, 4, 4)`` (rigid), robustly (module docstring); ``with_scale``: fit the
-    scale too (a monocular odometry), else ``s = 1``."""
+    scale too (a monocular odometry; a fit that finds none > 0 keeps 1), else ``s = 1``."""
     R_pairs = T_MC[:, :3, :3] @ np.transpose(T_VC[:, :3, :3], (0, 2, 1))
     p_V, p_M = T_VC[:, :3, 3], T_MC[:, :3, 3]
     keep = np.ones(len(T_VC), dtype=bool)
     for round_ in range(TRIM_ROUNDS + 1):
-        R = _mean_rotation(R_pairs[keep])
-        q = p_V[keep] @ R.T
-        q_mean, m_mean = q.mean(axis=0), p_M[keep].mean(axis=0)
-        s = 1.0
-        if with_scale:
-            den = float(((q - q_mean) ** 2).sum())
-            s = float(((q - q_mean) * (p_M[keep] - m_mean)).sum()) / den if den > 0 else 1.0
-            if not s > 0:
-                s = 1.0
-        t = m_mean - s * q_mean
+        R = mean_rotation(R_pairs[keep])
+        s, t = scale_translation(R, p_V[keep], p_M[keep], with_scale)
+        if not s > 0:
+            s, t = scale_translation(R, p_V[keep], p_M[keep], False)
         if round_ == TRIM_ROUNDS:
             break
         r = np.linalg.norm(p_M - (s * p_V @ R.T + t), axis=1)
@@ -90,15 +98,16 @@ def fit_anchor(T_VC: np.ndarray, T_MC: np.ndarray, with_scale: bool, trim: float
     return T
 
 
-def anchored_pose(T_MV: np.ndarray, T_VC: np.ndarray) -> np.ndarray:
-    """The rigid pose ``T_MC`` of an odometry pose ``T_VC`` under ``T_MV`` (its scale applied to the
-    position only)."""
-    s = float(np.cbrt(np.linalg.det(T_MV[:3, :3])))
-    R = T_MV[:3, :3] / s
-    T = np.eye(4)
-    T[:3, :3] = R @ T_VC[:3, :3]
-    T[:3, 3] = s * R @ T_VC[:3, 3] + T_MV[:3, 3]
-    return T
+def rigid_in_map(S_MR: np.ndarray, T_RC: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) rigid camera poses ``T_RC`` (N, 4, 4) of another frame (a recording, an odometry) in the
+    map's frame: rotation ``R R_RC``, position ``s R t_RC + t`` (``S_MR = [[s R, t], [0, 1]]``: its scale
+    applies to positions only)."""
+    s = float(np.cbrt(np.linalg.det(S_MR[:3, :3])))
+    R = S_MR[:3, :3] / s
+    out = np.array(T_RC, dtype=np.float64, copy=True).reshape(-1, 4, 4)
+    out[:, :3, :3] = R[None] @ out[:, :3, :3]
+    out[:, :3, 3] = s * out[:, :3, 3] @ R.T + S_MR[:3, 3]
+    return out
 
 
 class OdometryAnchor:
@@ -134,5 +143,5 @@ class OdometryAnchor:
         gap = self.config.max_gap_s
         in_reach = T_MC is not None or not gap or (self._t_localised is not None and t - self._t_localised <= gap)
         if T_VC is not None and self.T_MV is not None and in_reach:
-            return anchored_pose(self.T_MV, T_VC)
+            return rigid_in_map(self.T_MV, T_VC)[0]
         return None if T_MC is None else np.asarray(T_MC, dtype=np.float64)

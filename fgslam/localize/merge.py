@@ -1,7 +1,8 @@
 """Extending a stored map with a recording (``fgslam run ... --map MAP``, :mod:`fgslam.run.mapstore`):
 the recording's keyframes localised in the map (:class:`fgslam.localize.localizer.MapLocalizer`), the
 transform between the two frames estimated from them (:func:`merge_recording`), and the merged map
-(:func:`combine_maps`) with the recording's poses in the map's frame (:func:`rigid_in_map`)."""
+(:func:`combine_maps`) with the recording's poses in the map's frame
+(:func:`fgslam.localize.anchor.rigid_in_map`)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..export.mapfile import StoredMap
+from .anchor import mean_rotation, scale_translation
 from .localizer import LocalizeConfig, MapLocalizer
 
 logger = logging.getLogger(__name__)
@@ -35,12 +37,6 @@ class MapMerge:
         return {"S_MR": self.S_MR.tolist(), "merge_keyframe": self.merge_kf_id, "merge_time": self.merge_time,
                 "verified_keyframes": self.verified, "consistent_keyframes": self.consistent,
                 "keyframes_tried": self.tried}
-
-
-def _project_rotation(M: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
 
 
 def merge_recording(stored: StoredMap, recording: StoredMap, config: LocalizeConfig | None = None,
@@ -77,13 +73,10 @@ def merge_recording(stored: StoredMap, recording: StoredMap, config: LocalizeCon
     agree = (np.einsum("aij,bij->ab", R_MR, R_MR) - 1.0) / 2.0 >= cos_max   # cos of the angle between each two
     best = int(agree.sum(axis=1).argmax())
     inl = np.flatnonzero(agree[best])
-    R = _project_rotation(R_MR[inl].sum(axis=0))
+    R = mean_rotation(R_MR[inl])
     p_M = np.stack([pairs[i][1][:3, 3] for i in inl])
     p_R = np.stack([pairs[i][2][:3, 3] for i in inl])
-    mM, mR = p_M.mean(axis=0), p_R.mean(axis=0)
-    q = (p_R - mR) @ R.T
-    scale = 1.0 if metric or not np.sum(q * q) > 0 else float(np.sum((p_M - mM) * q) / np.sum(q * q))
-    t = mM - scale * R @ mR
+    scale, t = scale_translation(R, p_R, p_M, with_scale=not metric)
     resid = np.linalg.norm(p_M - (scale * p_R @ R.T + t), axis=1)
     extent = max(float(np.linalg.norm(p_M.max(axis=0) - p_M.min(axis=0))), float(np.finfo(float).eps))
     consistent = inl[resid <= mc.max_position_error * extent] if len(inl) > 2 else inl
@@ -127,14 +120,3 @@ def combine_maps(stored: StoredMap, recording: StoredMap, S_MR: np.ndarray) -> S
         np.concatenate([stored.track_point, recording.track_point + len(stored.points_X_W)]),
         np.concatenate([stored.track_kf, recording.track_kf + offset]),
         np.concatenate([stored.track_uv, recording.track_uv]))
-
-
-def rigid_in_map(S_MR: np.ndarray, T_RC: np.ndarray) -> np.ndarray:
-    """(N, 4, 4) rigid camera poses of a recording, ``T_RC`` (N, 4, 4) rigid, in the map's frame:
-    rotation ``R R_RC``, position ``s R t_RC + t`` (``S_MR = [[s R, t], [0, 1]]``)."""
-    s = float(np.cbrt(np.linalg.det(S_MR[:3, :3])))
-    R = S_MR[:3, :3] / s
-    out = np.array(T_RC, dtype=np.float64, copy=True).reshape(-1, 4, 4)
-    out[:, :3, :3] = R[None] @ out[:, :3, :3]
-    out[:, :3, 3] = s * out[:, :3, 3] @ R.T + S_MR[:3, 3]
-    return out

@@ -20,8 +20,9 @@ from ..core.config import to_dict
 from ..export.mapfile import build_stored_map, load_stored_map, save_stored_map
 from ..frontends.base import Frontend
 from ..io.trajectory import Trajectory, write_trajectory
+from ..localize.anchor import rigid_in_map
 from ..localize.localizer import LocalizeConfig
-from ..localize.merge import combine_maps, merge_recording, rigid_in_map
+from ..localize.merge import combine_maps, merge_recording
 from .files import MERGE_FILE, MERGED_TUM_FILE
 from .outputs import OutputWriter
 from .prepare import PreparedRun
