@@ -21,7 +21,7 @@ NUMERICAL_MODULES = frozenset({"test_determinism", "test_dense_loop", "test_patc
 # The files whose tests take longest (pytest's --durations on CI, longest first: their module fixtures run
 # whole loop clips). The suite runs on two worker processes, a file on one of them (pyproject.toml,
 # addopts); these start first, so that none of them is what the other worker waits for at the end.
-LONGEST_FIRST = ("test_dense_loop", "test_patch_loop", "test_determinism", "test_imu_families",
+LONGEST_FIRST = ("test_dense_loop", "test_patch_loop", "test_maps", "test_determinism", "test_imu_families",
                  "test_dense_global_bg", "test_imu_runs", "test_loop_closure", "test_colmap_compare")
 
 

@@ -247,6 +247,94 @@ def test_localize_the_same_room_on_another_path(room_map, tmp_path, capsys):
         assert (again / name).read_bytes() == (out / name).read_bytes()
 
 
+class _GroundTruthOdometry:
+    """A stand-in odometry (fgslam.localize.anchor.OdometryFactory): each frame's ground-truth pose seen
+    from a frame of its own (``T_VW``), from frame ``first`` on; it raises at frame ``fail_at`` (None:
+    never) or when built (``fail_build``)."""
+
+    T_VW = np.array([[0.0, -1.0, 0.0, 2.0], [1.0, 0.0, 0.0, -1.0], [0.0, 0.0, 1.0, 0.5], [0.0, 0.0, 0.0, 1.0]])
+
+    def __init__(self, first: int = 0, fail_at: int | None = None, fail_build: bool = False):
+        self.first, self.fail_at, self.fail_build = first, fail_at, fail_build
+        self.closed = 0
+
+    def dataset_streams(self, map_config):
+        return {"load_rgb": False, "load_depth": False, "load_right": False, "load_imu": False}
+
+    def __call__(self, map_config, calibration):
+        if self.fail_build:
+            raise RuntimeError("no odometry here")
+        return self
+
+    def track(self, frame):
+        if frame.source_index == self.fail_at:
+            raise np.linalg.LinAlgError("singular matrix")
+        return None if frame.source_index < self.first else self.T_VW @ frame.T_WC_gt
+
+    def close(self):
+        self.closed += 1
+
+
+def _localise(stored, data, out, odometry, **overrides):
+    from fgslam.core.config import from_dict
+    from fgslam.localize.localizer import LocalizeConfig
+    from fgslam.localize.sequence import run_localization
+
+    config = from_dict(LocalizeConfig, {"odometry": overrides})
+    summary = run_localization(stored, data, out, config, odometry=odometry)
+    rows = list(csv.DictReader(open(out / "localization.csv")))
+    return summary, rows
+
+
+def test_the_anchor_poses_the_frames_the_localiser_misses(room_map, tmp_path):
+    """The localiser's poses of every 3rd frame only (the others made unverifiable), an odometry exact up
+    to its own frame: once three frames are localised every frame is posed (status ``odometry`` between),
+    on the ground truth."""
+    import dataclasses
+
+    from fgslam.localize.localizer import Localizer
+
+    stored, roots, _ = room_map
+    real_track = Localizer.track
+    calls = []
+
+    def every_third(self, image, t):
+        calls.append(t)
+        result = real_track(self, image, t)
+        if len(calls) % 3:
+            return dataclasses.replace(result, T_WC=None, status="not_localised", keyframe_id=None, position_std=None)
+        return result
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Localizer, "track", every_third)
+        s, rows = _localise(stored, roots["other_path"], tmp_path / "a", _GroundTruthOdometry())
+        calls.clear()
+        alone, _ = _localise(stored, roots["other_path"], tmp_path / "b", None)
+    statuses = [r["status"] for r in rows]
+    # the localiser keeps frames 2, 5, 8, ...: from the third of them (min_pairs) on, every frame is posed
+    assert s["frames"] == 32 and statuses[:8].count("not_localised") == 6 and "not_localised" not in statuses[8:]
+    assert s["localised"] == 26 and s["odometry"] == statuses.count("odometry") == 26 - 10
+    assert alone["localised"] == 10 and alone["odometry_run"] == {"ran": False, "note": "off: none given"}
+    assert s["evaluation"]["ate_rmse_m"] < 0.05 and s["evaluation"]["ate_rmse_m"] < 0.1 * s["evaluation"]["stationary_ate_rmse_m"]
+
+
+@pytest.mark.parametrize("fail", ["at frame 20", "when built"])
+def test_a_failing_odometry_leaves_the_localiser_working(room_map, tmp_path, fail):
+    """An odometry that raises (an unexpected error, not fgslam's) is logged and stopped; the localisation
+    goes on with the localiser alone, the poses already given stay, and the summary says what happened."""
+    stored, roots, _ = room_map
+    odometry = _GroundTruthOdometry(fail_at=20) if fail == "at frame 20" else _GroundTruthOdometry(fail_build=True)
+    s, rows = _localise(stored, roots["other_path"], tmp_path / "loc", odometry)
+    assert s["frames"] == 32 and s["localised"] >= 0.9 * 32
+    if fail == "at frame 20":
+        assert s["odometry_run"]["ran"] and s["odometry_run"]["note"].startswith("stopped at frame 20 (LinAlgError")
+        assert odometry.closed == 1
+    else:
+        assert s["odometry_run"] == {"ran": False, "note": "off: the map run's config does not build one here (no "
+                                                           "odometry here)"}
+        assert s["odometry"] == 0
+
+
 @pytest.mark.parametrize("stop", ["signal", "damaged frame"])
 def test_a_stopped_localisation_writes_the_frames_before_the_stop(room_map, tmp_path, capsys, monkeypatch, stop):
     """Ctrl-C (a stop signal) or a frame that cannot be read at the 6th frame: the 5 frames before it are in
@@ -287,7 +375,7 @@ def test_the_quality_gate_rejects_poorly_conditioned_poses(room_map, tmp_path, c
     base = ["localize", str(stored), "--data", str(roots["other_path"])]
     assert main(base + ["--out", str(tmp_path / "a")]) == 0
     rows = list(csv.DictReader(open(tmp_path / "a" / "localization.csv")))
-    std = np.array([float(r["position_std"]) for r in rows if r["status"] != "not_localised"])
+    std = np.array([float(r["position_std"]) for r in rows if r["status"] in ("tracked", "relocalised")])
     assert len(std) >= 0.95 * 32 and np.all((std > 0) & np.isfinite(std))
     capsys.readouterr()
     assert main(base + ["--out", str(tmp_path / "b"), "-o", f"max_position_std={0.5 * std.min():.9f}"]) == 2
@@ -385,7 +473,8 @@ def test_the_anchored_odometry_keeps_the_pose_where_the_map_does_not_verify(kitc
                      "--end", "480", "--json", "-o", f"odometry.enabled={enabled}"]) == 0
         summaries[enabled] = json.loads(capsys.readouterr().out)
     on, off = summaries["true"], summaries["false"]
-    assert on["odometry_used"] and not off["odometry_used"] and off["odometry"] == 0
+    assert on["odometry_run"] == {"ran": True, "note": None} and off["odometry"] == 0
+    assert off["odometry_run"] == {"ran": False, "note": "off (odometry.enabled is false)"}
     assert on["frames"] == off["frames"] == 180
     assert on["localised"] >= 0.95 * on["frames"] and on["localised"] >= 2 * off["localised"]
     assert on["odometry"] == on["localised"] - on["tracked"] - on["relocalised"] > 0

@@ -15,6 +15,8 @@ from . import FORMAT_CHOICES, add_config_arguments, add_selection_arguments
 if TYPE_CHECKING:
     import numpy as np
 
+    from ..run.config import SlamConfig
+
 HELP = "localise a sequence in a stored map (pose per frame in the map's frame, or 'not localised')"
 
 
@@ -48,9 +50,13 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(s))
         return 0
+    odo = s["odometry_run"]
+    by_odometry = f", {s['odometry']} by the anchored odometry" if odo["ran"] else ""
     print(f"localised {s['localised']} of {s['frames']} frames ({100 * s['localised_fraction']:.1f} %: "
-          f"{s['tracked']} tracked, {s['relocalised']} relocalised, {s['odometry']} by the anchored odometry) in "
+          f"{s['tracked']} tracked, {s['relocalised']} relocalised{by_odometry}) in "
           f"{s['map']} ({s['map_keyframes']} keyframes); {s['cpu_ms_per_frame']:.1f} ms CPU per frame")
+    if odo["note"]:
+        print(f"odometry: {odo['note']}")
     ev = s["evaluation"]
     if ev is not None:
         print(f"ATE of the localised poses: {ev['ate_rmse_m']:.4f} m ({ev['align']}; holding the first pose: "
@@ -60,21 +66,44 @@ def run(args: argparse.Namespace) -> int:
 
 
 class MapRunOdometry:
-    """The sequence's odometry for :func:`fgslam.localize.sequence.run_localization`: the map run's own SLAM
-    config (its outputs section left at the defaults: this run writes nothing) run on the sequence's frames,
-    their per-frame poses (:class:`fgslam.localize.anchor.Odometry`)."""
+    """The sequence's odometry for :func:`fgslam.localize.sequence.run_localization`
+    (:class:`fgslam.localize.anchor.OdometryFactory`): the map run's own SLAM config as visual odometry
+    (:meth:`odometry_config`) on the sequence's frames; a frame's pose only where it was tracked (a motion
+    model's prediction is no pose)."""
 
-    def __init__(self, map_config: dict, calibration: Any) -> None:
+    POSED = ("tracked", "relocalized")  # TrackResult statuses that are measured poses
+
+    @staticmethod
+    def odometry_config(map_config: dict) -> "SlamConfig":
+        """The map run's config without what does not belong to an odometry of another sequence: its
+        outputs (defaults: this run writes nothing), loop closure (a correction would move the odometry's
+        frame under the anchor's fit), factor plugins (their files are the map run's) and the IMU."""
         from ..core.config import from_dict
         from ..run.config import SlamConfig
+
+        settings = {key: value for key, value in map_config.items() if key not in ("output", "factors")}
+        config = from_dict(SlamConfig, settings, "the map run's config (stored in the map)")
+        config.loop_closure.mode = "off"
+        config.imu.enabled = False
+        return config
+
+    @classmethod
+    def dataset_streams(cls, map_config: dict) -> dict[str, bool]:
+        """The streams the odometry reads (``fgslam run``'s rule, :func:`fgslam.run.config.dataset_config_for`)."""
+        from ..run.config import dataset_config_for
+
+        ds = dataset_config_for(cls.odometry_config(map_config))
+        return {"load_rgb": ds.load_rgb, "load_depth": ds.load_depth, "load_right": ds.load_right, "load_imu": False}
+
+    def __init__(self, map_config: dict, calibration: Any) -> None:
         from ..run.session import Slam  # deferred: torch, gtsam
 
-        settings = {key: value for key, value in map_config.items() if key != "output"}
-        config = from_dict(SlamConfig, settings, "the map run's config (stored in the map)")
-        self.slam = Slam(config, calibration, keep_frames=False, where="fgslam localize (odometry)")
+        self.slam = Slam(self.odometry_config(map_config), calibration, keep_frames=False,
+                         where="fgslam localize (odometry)")
 
     def track(self, frame: Any) -> Optional[np.ndarray]:
-        return self.slam.track_frame(frame).T_WC
+        result = self.slam.track_frame(frame)
+        return result.T_WC if result.status in self.POSED else None
 
     def close(self) -> None:
         self.slam.abort()

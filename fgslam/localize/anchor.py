@@ -12,7 +12,12 @@ map's ``M``, fitted causally to every frame that both posed:
 - translation (and, for a monocular map, scale ``s``): least squares of the camera positions
   ``p_M = s R p_V + t`` given that rotation;
 - robust: pairs farther than ``trim`` times the median distance from the fit are left out and the fit
-  is repeated (``TRIM_ROUNDS`` times); a wrong relocalisation then moves nothing.
+  is repeated (``TRIM_ROUNDS`` times); a wrong relocalisation then moves nothing;
+- a monocular odometry's scale is trusted only once the localised positions spread at least
+  ``min_spread_ratio`` times their median distance from the fit (a few frames a centimetre apart
+  with centimetres of error each determine no scale);
+- refitted at every new pair while there are few, then once the pairs have grown by ``REFIT_GROWTH``
+  (the cost stays linear in the sequence's length).
 
 Every frame with an odometry pose then gets ``T_MV T_VC`` once ``min_pairs`` pairs exist: the frames
 between localisations (up to ``max_gap_s`` after the last localised one, when set), and the localised
@@ -32,6 +37,12 @@ from ..core.config import MAX_COUNT, MAX_SCALAR, ranged
 
 #: fit, trim, fit again: rounds of trimming (the second sees the inliers of the first)
 TRIM_ROUNDS = 2
+#: a trimming round that would leave fewer pairs than this keeps the previous round's
+MIN_KEPT_PAIRS = 3
+#: positions that spread less than this relative to their distance from the origin do not spread (rounding)
+MIN_RELATIVE_SPREAD = 1e-9
+#: refit once the pairs have grown by this share since the last fit (at every pair below 1 / REFIT_GROWTH)
+REFIT_GROWTH = 0.02
 
 
 @dataclass
@@ -40,7 +51,8 @@ class OdometryConfig:
 
     enabled: bool = True  # run the map's SLAM config on the sequence beside the localiser: every frame it poses gets a pose in the map's frame
     min_pairs: int = ranged(3, ge=1, le=MAX_COUNT)  # localised frames with an odometry pose before the anchored poses are given
-    trim: float = ranged(2.0, gt=0, le=MAX_SCALAR)  # pairs farther from the fit than this times the median distance are left out
+    trim: float = ranged(2.0, ge=1, le=MAX_SCALAR)  # pairs farther from the fit than this times the median distance are left out
+    min_spread_ratio: float = ranged(5.0, ge=0, le=MAX_SCALAR)  # monocular: the localised positions must spread this many times their median distance from the fit before the odometry's scale is used
     window: int = ranged(0, ge=0, le=MAX_COUNT)  # the most recent pairs fitted (0: all of them)
     max_gap_s: float = ranged(0.0, ge=0, le=MAX_SCALAR)  # odometry poses at most this long (s) after the last localised frame (0: no limit; a monocular odometry's scale drifts)
 
@@ -53,6 +65,16 @@ class Odometry(Protocol):
 
     def close(self) -> None:
         """Stop its background work (no final optimisation: the poses given are the ones used)."""
+
+
+class OdometryFactory(Protocol):
+    """What builds the sequence's odometry from the map run's config (a dict, as stored in the map)."""
+
+    def dataset_streams(self, map_config: dict) -> dict[str, bool]:
+        """The ``DatasetConfig`` stream switches (``load_rgb``, ``load_depth``, ...) the odometry needs."""
+
+    def __call__(self, map_config: dict, calibration) -> Odometry:
+        """The odometry of a sequence seen with ``calibration``."""
 
 
 def mean_rotation(R: np.ndarray) -> np.ndarray:
@@ -71,15 +93,25 @@ def scale_translation(R: np.ndarray, p_V: np.ndarray, p_M: np.ndarray, with_scal
     s = 1.0
     if with_scale:
         den = float(((q - q_mean) ** 2).sum())
-        if den > 0:
+        if den > len(q) * (MIN_RELATIVE_SPREAD * (1.0 + float(np.abs(q_mean).max()))) ** 2:
             s = float(((q - q_mean) * (p_M - m_mean)).sum()) / den
     return s, m_mean - s * q_mean
 
 
-def fit_anchor(T_VC: np.ndarray, T_MC: np.ndarray, with_scale: bool, trim: float) -> np.ndarray:
-    """``T_MV`` ``(4, 4)`` (``[[s R, t], [0, 1]]``) from pairs of poses of the same frames, odometry
-    ``T_VC`` and map ``T_MC`` ``(n, 4, 4)`` (rigid), robustly (module docstring); ``with_scale``: fit the
-    scale too (a monocular odometry; a fit that finds none > 0 keeps 1), else ``s = 1``."""
+@dataclass(frozen=True)
+class AnchorFit:
+    """:func:`fit_anchor`'s result: ``T_MV`` ``(4, 4)`` ``[[s R, t], [0, 1]]``, the RMS spread of the kept
+    map positions about their mean and their median distance from the fit (metres of the map)."""
+
+    T_MV: np.ndarray
+    spread: float
+    residual: float
+
+
+def fit_anchor(T_VC: np.ndarray, T_MC: np.ndarray, with_scale: bool, trim: float) -> AnchorFit:
+    """The transform ``T_MV`` from pairs of poses of the same frames, odometry ``T_VC`` and map ``T_MC``
+    ``(n, 4, 4)`` (rigid), robustly (module docstring); ``with_scale``: fit the scale too (a monocular
+    odometry; a fit that finds none > 0 keeps 1), else ``s = 1``."""
     R_pairs = T_MC[:, :3, :3] @ np.transpose(T_VC[:, :3, :3], (0, 2, 1))
     p_V, p_M = T_VC[:, :3, 3], T_MC[:, :3, 3]
     keep = np.ones(len(T_VC), dtype=bool)
@@ -88,14 +120,19 @@ def fit_anchor(T_VC: np.ndarray, T_MC: np.ndarray, with_scale: bool, trim: float
         s, t = scale_translation(R, p_V[keep], p_M[keep], with_scale)
         if not s > 0:
             s, t = scale_translation(R, p_V[keep], p_M[keep], False)
+        r = np.linalg.norm(p_M - (s * p_V @ R.T + t), axis=1)
         if round_ == TRIM_ROUNDS:
             break
-        r = np.linalg.norm(p_M - (s * p_V @ R.T + t), axis=1)
-        keep = r <= max(trim * float(np.median(r)), np.finfo(float).tiny)
+        inliers = r <= trim * float(np.median(r))
+        if inliers.sum() < min(MIN_KEPT_PAIRS, len(r)):
+            break
+        keep = inliers
     T = np.eye(4)
     T[:3, :3] = s * R
     T[:3, 3] = t
-    return T
+    kept = p_M[keep]
+    spread = float(np.sqrt(((kept - kept.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    return AnchorFit(T, spread, float(np.median(r[keep])))
 
 
 def rigid_in_map(S_MR: np.ndarray, T_RC: np.ndarray) -> np.ndarray:
@@ -117,15 +154,18 @@ class OdometryAnchor:
     def __init__(self, config: OdometryConfig, with_scale: bool):
         self.config = config
         self.with_scale = with_scale
-        self._T_VC: list[np.ndarray] = []
+        self._T_VC: list[np.ndarray] = []  # the pairs a fit uses (the latest ``window`` when set)
         self._T_MC: list[np.ndarray] = []
-        self.T_MV: Optional[np.ndarray] = None  # the latest fit (None: fewer than min_pairs pairs so far)
+        self.pairs = 0  # frames posed by both so far
+        self._next_fit = config.min_pairs  # pairs at which to fit next
+        self.T_MV: Optional[np.ndarray] = None  # the latest usable fit (None: none yet)
         self._t_localised: Optional[float] = None  # time of the last localised frame
 
-    @property
-    def pairs(self) -> int:
-        """Frames posed by both so far."""
-        return len(self._T_VC)
+    def _fit(self) -> None:
+        fit = fit_anchor(np.stack(self._T_VC), np.stack(self._T_MC), self.with_scale, self.config.trim)
+        if not self.with_scale or fit.spread >= self.config.min_spread_ratio * fit.residual:
+            self.T_MV = fit.T_MV
+        self._next_fit = self.pairs + max(1, int(self.pairs * REFIT_GROWTH))
 
     def add(self, t: float, T_VC: Optional[np.ndarray], T_MC: Optional[np.ndarray]) -> Optional[np.ndarray]:
         """The pose in the map's frame of the frame at time ``t`` (seconds) with odometry pose ``T_VC`` and
@@ -136,10 +176,11 @@ class OdometryAnchor:
         if T_VC is not None and T_MC is not None:
             self._T_VC.append(np.asarray(T_VC, dtype=np.float64))
             self._T_MC.append(np.asarray(T_MC, dtype=np.float64))
-            if self.pairs >= self.config.min_pairs:
-                n = self.config.window or self.pairs
-                self.T_MV = fit_anchor(np.stack(self._T_VC[-n:]), np.stack(self._T_MC[-n:]), self.with_scale,
-                                       self.config.trim)
+            self.pairs += 1
+            if self.config.window and len(self._T_VC) > self.config.window:
+                del self._T_VC[0], self._T_MC[0]
+            if self.pairs >= self._next_fit:
+                self._fit()
         gap = self.config.max_gap_s
         in_reach = T_MC is not None or not gap or (self._t_localised is not None and t - self._t_localised <= gap)
         if T_VC is not None and self.T_MV is not None and in_reach:

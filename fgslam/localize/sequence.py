@@ -34,7 +34,7 @@ from ..export.mapfile import check_map_camera, load_stored_map
 from ..io.datasets import DatasetConfig, open_dataset
 from ..io.run_files import LOCALIZATION_FILE, SUMMARY_FILE, TUM_FILE
 from ..io.trajectory import Trajectory, write_trajectory
-from .anchor import Odometry, OdometryAnchor
+from .anchor import Odometry, OdometryAnchor, OdometryFactory
 from .localizer import SEQUENCE_STATUSES, LocalizeConfig, Localizer
 
 logger = logging.getLogger(__name__)
@@ -52,49 +52,92 @@ def _ate(positions: np.ndarray, gt: np.ndarray, A: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((aligned - gt) ** 2, axis=1))))
 
 
-def _start_odometry(odometry: Callable[[dict, Any], Odometry], map_config: dict, calibration) -> Odometry | None:
-    """The sequence's odometry, or None (logged) when the map run's config cannot build one (e.g. a map
-    of an older version whose keys no longer exist): the localisation goes on without it."""
-    try:
-        return odometry(map_config, calibration)
-    except FGSlamError as exc:
-        logger.warning("localising without odometry: the map run's config does not build one here (%s)", exc)
-        return None
+class _OdometryRun:
+    """The sequence's odometry while the localisation runs. Any error building or running it is logged with
+    its traceback and the localisation goes on without it (the poses it gave stay); ``note`` says why it is
+    off or when it stopped (None: it ran to the end)."""
 
+    def __init__(self, factory: OdometryFactory | None, map_config: dict, enabled: bool):
+        self.factory = factory if enabled and factory is not None and map_config else None
+        self.map_config = map_config
+        self.odo: Odometry | None = None
+        self.ran = False
+        self.note: str | None = None
+        if factory is None:
+            self.note = "off: none given"
+        elif not enabled:
+            self.note = "off (odometry.enabled is false)"
+        elif not map_config:
+            self.note = "off: the map keeps no run config"
 
-def _odometry_pose(odo: Odometry, frame) -> tuple[np.ndarray | None, Odometry | None]:
-    """The odometry's pose of ``frame``, and the odometry to use next (None once it failed: logged, the
-    localisation goes on without it; the poses it gave stay)."""
-    try:
-        return odo.track(frame), odo
-    except FGSlamError as exc:
-        logger.warning("frame %d: the odometry failed (%s); localising the rest without it", frame.source_index, exc)
-        odo.close()
-        return None, None
+    def streams(self) -> dict[str, bool] | None:
+        """The dataset streams it reads; None: no odometry (``note`` says why)."""
+        if self.factory is None:
+            return None
+        try:
+            return dict(self.factory.dataset_streams(self.map_config))
+        except Exception as exc:  # noqa: BLE001 - an old or foreign map's config: localise without the odometry
+            self._off(f"off: the map run's config does not build one here ({exc})", exc)
+            return None
+
+    def start(self, calibration) -> None:
+        if self.factory is None:
+            return
+        try:
+            self.odo = self.factory(self.map_config, calibration)
+            self.ran = True
+        except Exception as exc:  # noqa: BLE001 - as in streams()
+            self._off(f"off: the map run's config does not build one here ({exc})", exc)
+
+    def pose(self, frame) -> np.ndarray | None:
+        """The odometry's pose ``T_VC`` of ``frame`` (None: none, or no odometry)."""
+        if self.odo is None:
+            return None
+        try:
+            return self.odo.track(frame)
+        except Exception as exc:  # noqa: BLE001 - a failing odometry must not end the localisation
+            self._off(f"stopped at frame {frame.source_index} ({type(exc).__name__}: {exc})", exc)
+            self.close()
+            return None
+
+    def close(self) -> None:
+        odo, self.odo = self.odo, None
+        if odo is not None:
+            try:
+                odo.close()
+            except Exception:  # noqa: BLE001 - logged; its poses are already used
+                logger.exception("stopping the odometry failed")
+
+    def _off(self, note: str, exc: Exception) -> None:
+        self.factory = None
+        self.note = note
+        logger.warning("localisation: odometry %s; the localiser's poses alone from here on", note,
+                       exc_info=not isinstance(exc, FGSlamError))  # an unexpected error's traceback: in the log
 
 
 def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path, config: LocalizeConfig | None = None,
                      fmt: str = "auto", start: int | None = None, end: int | None = None, stride: int | None = None,
                      prepare_out: Callable[[Path], object] | None = None,
-                     odometry: Callable[[dict, Any], Odometry] | None = None) -> dict[str, Any]:
+                     odometry: OdometryFactory | None = None) -> dict[str, Any]:
     """Localise the sequence ``data`` (raw frames ``start`` .. ``end``, every ``stride``-th; None: ``config.dataset``'s,
     else the whole sequence; the other dataset settings, e.g. the image size, are the map run's, with ``config.dataset`` merged
     over them) in the map at ``map_path``; writes
     the outputs (module docstring) to ``out_dir`` and returns the summary. ``prepare_out(out_dir)``
     is called once the map, the sequence and their cameras are checked, before anything is written
     (the CLI: ``fgslam run``'s rule for a previous run's outputs, :func:`fgslam.run.prepare.prepare_output`).
-    ``odometry(map_config, calibration)`` builds the sequence's odometry from the map run's config (a dict)
-    and the sequence's calibration; used when ``config.odometry.enabled`` (None: no odometry).
+    ``odometry`` builds the sequence's odometry from the map run's config (a dict) and the sequence's
+    calibration (:class:`~fgslam.localize.anchor.OdometryFactory`); used when ``config.odometry.enabled``
+    (None: no odometry).
     Raises :class:`NotLocalisedError` (after writing) when no frame localised."""
     config = config or LocalizeConfig()
     config.validate()
     cpu0, wall0 = time.process_time(), time.perf_counter()
     stored = load_stored_map(map_path)
     map_config = dict(stored.meta.get("config") or {})
-    with_odometry = odometry is not None and config.odometry.enabled and bool(map_config)
+    odometry_run = _OdometryRun(odometry, map_config, config.odometry.enabled)
     ds_dict = dict(map_config.get("dataset") or {})
-    if not with_odometry:  # the localiser reads the grey image alone; the odometry what the map run read
-        ds_dict.update(load_rgb=False, load_depth=False, load_right=False, load_imu=False)
+    # the localiser reads the grey image alone; the odometry the streams its sensor needs
+    ds_dict.update(odometry_run.streams() or dict(load_rgb=False, load_depth=False, load_right=False, load_imu=False))
     ds_dict.update(start=0, end=None, stride=1)
     ds_dict.update(config.dataset)  # the command's dataset section: e.g. a calibration or ground-truth file
     if start is not None:
@@ -111,7 +154,7 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
         prepare_out(out)
     out.mkdir(parents=True, exist_ok=True)
     localizer = Localizer(stored, config)  # the public API's (fgslam.Slam.localize_in): one path
-    odo = _start_odometry(odometry, map_config, dataset.calibration) if with_odometry else None
+    odometry_run.start(dataset.calibration)
     anchor = OdometryAnchor(config.odometry, with_scale=stored.meta.get("sensor") == "mono")
     setup_cpu = time.process_time() - cpu0
     rows: list[tuple[int, float, str, int, int, float]] = []
@@ -121,9 +164,7 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     try:
         for frame in dataset:
             res = localizer.track(frame.image, frame.timestamp)
-            T_VC = None
-            if odo is not None:
-                T_VC, odo = _odometry_pose(odo, frame)
+            T_VC = odometry_run.pose(frame)
             T_WC = anchor.add(frame.timestamp, T_VC, res.T_WC)
             status = res.status if res.T_WC is not None or T_WC is None else "odometry"
             rows.append((int(frame.source_index), float(frame.timestamp), status,
@@ -139,8 +180,7 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
         logger.warning("localisation stopped after %d frames (%s): writing their outputs", len(rows),
                        str(exc) or type(exc).__name__)
     finally:
-        if odo is not None:
-            odo.close()
+        odometry_run.close()
     loop_cpu = time.process_time() - loop_cpu0
     counts = {s: sum(1 for r in rows if r[2] == s) for s in SEQUENCE_STATUSES}
     n = len(rows)
@@ -153,7 +193,8 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     summary: dict[str, Any] = {
         "map": str(map_path), "data": str(data), "frames": n, "localised": localised,
         "not_localised": counts["not_localised"], "tracked": counts["tracked"], "relocalised": counts["relocalised"],
-        "odometry": counts["odometry"], "odometry_used": with_odometry, "anchor_pairs": anchor.pairs,
+        "odometry": counts["odometry"], "odometry_run": {"ran": odometry_run.ran, "note": odometry_run.note},
+        "anchor_pairs": anchor.pairs,
         "localised_fraction": localised / n if n else 0.0, "map_keyframes": stored.num_keyframes,
         "map_family": stored.meta.get("family"), "map_sensor": stored.meta.get("sensor"),
         "cpu_s": time.process_time() - cpu0, "setup_cpu_s": setup_cpu, "wall_s": time.perf_counter() - wall0,
