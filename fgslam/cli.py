@@ -1,7 +1,8 @@
 """The ``fgslam`` command line: a thin dispatcher over ``fgslam.commands.<name>`` modules.
 
-Each command module exposes ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int`` and keeps
-heavy imports (torch, gtsam, OpenCV) inside ``run`` so that ``fgslam --help`` stays fast.
+Each command module exposes ``add_arguments(parser)`` and ``run(args) -> int`` (its one-line help is
+in :data:`COMMANDS`) and keeps heavy imports (torch, gtsam, OpenCV) inside ``run``; only the command
+given is imported, so that ``fgslam --help`` and a refused command answer at once.
 """
 
 from __future__ import annotations
@@ -16,13 +17,27 @@ from collections.abc import Sequence
 from . import __version__
 from .core.errors import FGSlamError
 
-#: Subcommands in the order ``fgslam --help`` lists them.
-COMMANDS: tuple[str, ...] = ("run", "localize", "demo", "synth", "info", "eval", "pgo", "export", "compare-colmap", "batch")
+#: Subcommands in the order ``fgslam --help`` lists them, with their one-line help.
+COMMANDS: dict[str, str] = {
+    "run": "run SLAM on a dataset (trajectory in TUM/KITTI formats, summary.json, trajectory.png)",
+    "localize": "localise a sequence in a stored map (pose per frame in the map's frame, or 'not localised')",
+    "demo": "render a synthetic room sequence, run SLAM on it and report accuracy and speed (< 2 min)",
+    "synth": "generate a synthetic EuRoC-layout sequence (stereo, depth, IMU, exact ground truth)",
+    "info": "describe a dataset folder, video or ROS bag: format, frames, resolution, rate, stereo/depth/IMU/ground truth",
+    "eval": "evaluate an estimated trajectory against ground truth (ATE, RPE, KITTI t_rel/r_rel)",
+    "pgo": "optimise a g2o pose graph (SE2 / SE3:QUAT) and report initial/final cost, iterations and time",
+    "export": "export a run's map as a COLMAP model (binary or text, with images) or a PLY point cloud, or its trajectory as a ROS bag",
+    "compare-colmap": "run pycolmap's SfM and fgslam (monocular) on the same frames and compare time, ATE and point clouds",
+    "batch": "run a matrix of configs x datasets (on Ray when installed) and collect one summary table",
+}
 
 _LOG_FORMAT = "%(asctime)s %(levelname).1s %(name)s: %(message)s"
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``fgslam`` parser. ``command``: only that subcommand's options are built (only its module is
+    imported, so that a command, or its refusal, does not wait for the others' imports; "": none); every
+    command is listed with its help. None: every command's options (the CLI reference)."""
     parser = argparse.ArgumentParser(
         prog="fgslam",
         description="Modular factor-graph visual SLAM on GTSAM (dense, patch and pointmap frontends).",
@@ -33,12 +48,20 @@ def build_parser() -> argparse.ArgumentParser:
     verbosity.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for name in COMMANDS:
-        module = importlib.import_module(f".commands.{name.replace('-', '_')}", __package__)
-        cmd = sub.add_parser(name, help=module.HELP, description=module.HELP)
-        module.add_arguments(cmd)
-        cmd.set_defaults(_run=module.run)
+    for name, text in COMMANDS.items():
+        cmd = sub.add_parser(name, help=text, description=text)
+        if command is None or name == command:
+            module = importlib.import_module(f".commands.{name.replace('-', '_')}", __package__)
+            module.add_arguments(cmd)
+            cmd.set_defaults(_run=module.run)
     return parser
+
+
+def command_of(argv: Sequence[str]) -> str:
+    """The subcommand ``argv`` names: its first word that is not an option ("" when that is no command;
+    the global options take no value)."""
+    word = next((a for a in argv if not a.startswith("-")), "")
+    return word if word in COMMANDS else ""
 
 
 @contextlib.contextmanager
@@ -61,8 +84,8 @@ def _console_logging(verbose: bool, quiet: bool):
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(command_of(argv)).parse_args(argv)
     with _console_logging(args.verbose, args.quiet):
         try:
             return int(args._run(args) or 0)

@@ -1,4 +1,5 @@
-"""CLI subcommands: one module per command with ``HELP``, ``add_arguments`` and ``run``."""
+"""CLI subcommands: one module per command with ``add_arguments`` and ``run`` (its help line:
+:data:`fgslam.cli.COMMANDS`)."""
 
 from __future__ import annotations
 

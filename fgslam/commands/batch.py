@@ -21,7 +21,6 @@ from tqdm import tqdm
 from ..run.batch import BATCH_MD, BatchOptions, load_matrix, markdown_table, run_batch
 from ..core.config import check_ranges
 
-HELP = "run a matrix of configs x datasets (on Ray when installed) and collect one summary table"
 
 logger = logging.getLogger("fgslam.run.batch")
 

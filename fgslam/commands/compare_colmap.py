@@ -31,8 +31,6 @@ if TYPE_CHECKING:  # the run package and the exports pull torch: imported in run
 
 logger = logging.getLogger(__name__)
 
-HELP = "run pycolmap's SfM and fgslam (monocular) on the same frames and compare time, ATE and point clouds"
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, metavar="PATH", help="dataset folder")

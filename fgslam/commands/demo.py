@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 
-HELP = "render a synthetic room sequence, run SLAM on it and report accuracy and speed (< 2 min)"
 
 DEFAULT_OUT = "fgslam_demo"
 

@@ -21,7 +21,6 @@ from ..io import plot  # called through the module: a test replaces plot.plot_tr
 from ..io.trajectory import read_trajectory
 from . import add_config_arguments
 
-HELP = "evaluate an estimated trajectory against ground truth (ATE, RPE, KITTI t_rel/r_rel)"
 
 _FORMATS = ("tum", "kitti", "euroc")
 _ALIGN = ("se3", "sim3", "none", "first-pose")

@@ -12,8 +12,6 @@ from ..core.config import check_ranges
 from ..export.bag import BagExportConfig, export_bag
 from ..export.ply import PlyExportConfig
 
-HELP = "export a run's map as a COLMAP model (binary or text, with images) or a PLY point cloud, or its trajectory as a ROS bag"
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_dir", metavar="RUN_DIR", help="output folder of `fgslam run` (holds map.npz)")

@@ -13,8 +13,6 @@ from . import FORMAT_CHOICES, add_config_arguments
 #: ``-o KEY=VALUE`` of this command's DatasetConfig too
 DATASET_PREFIX = "dataset."
 
-HELP = "describe a dataset folder, video or ROS bag: format, frames, resolution, rate, stereo/depth/IMU/ground truth"
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("path", help="dataset folder (or video file, ROS 1 .bag, ROS 2 bag folder)")

@@ -17,8 +17,6 @@ if TYPE_CHECKING:
 
     from ..run.config import SlamConfig
 
-HELP = "localise a sequence in a stored map (pose per frame in the map's frame, or 'not localised')"
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("map", metavar="MAP", help="stored map (fgslam run ... --save-map MAP)")

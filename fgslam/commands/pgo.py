@@ -9,8 +9,6 @@ from ..core.config import load_config
 from ..run.pgo import PGOConfig, run_pgo
 from . import add_config_arguments
 
-HELP = "optimise a g2o pose graph (SE2 / SE3:QUAT) and report initial/final cost, iterations and time"
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE.g2o", help="input pose graph (VERTEX/EDGE_SE2 or SE3:QUAT)")

@@ -19,8 +19,6 @@ if TYPE_CHECKING:  # the run's results pull torch: imported in run() only (fgsla
     from ..io.live import LiveConfig
     from ..run.results import RunSummary
 
-HELP = "run SLAM on a dataset (trajectory in TUM/KITTI formats, summary.json, trajectory.png)"
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     presets = run_presets()  # each preset's own "# description:" line

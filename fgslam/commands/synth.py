@@ -8,8 +8,6 @@ import time
 
 from . import add_config_arguments
 
-HELP = "generate a synthetic EuRoC-layout sequence (stereo, depth, IMU, exact ground truth)"
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     # no choices= here: the preset names live with the scenarios, whose import pulls in OpenCV, and
