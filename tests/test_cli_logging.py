@@ -36,7 +36,7 @@ def test_log_lines_of_the_command_reach_its_stderr(tmp_path, monkeypatch):
         return 0
 
     parser = cli.build_parser
-    monkeypatch.setattr(cli, "build_parser", lambda: _with_run(parser(), fake_run))
+    monkeypatch.setattr(cli, "build_parser", lambda command=None: _with_run(parser(command), fake_run))
     assert cli.main(["info", str(tmp_path)]) == 0 and seen
     assert "inside the command" in stream.getvalue()
 

@@ -15,12 +15,10 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture
-def cli_main(monkeypatch):
-    """``fgslam.cli.main`` with ``run`` and ``demo`` registered (whether or not the lead did yet)."""
+def cli_main():
+    """``fgslam.cli.main``."""
     from fgslam import cli
 
-    missing = tuple(name for name in ("run", "demo") if name not in cli.COMMANDS)
-    monkeypatch.setattr(cli, "COMMANDS", cli.COMMANDS + missing)
     return cli.main
 
 

@@ -150,3 +150,31 @@ def test_a_monocular_scale_waits_for_positions_that_spread():
         anchor.add(float(i), T_VC[i], T_MC[i])
     assert anchor.T_MV is not None
     assert np.cbrt(np.linalg.det(anchor.T_MV[:3, :3])) == pytest.approx(2.0, rel=0.02)
+
+
+def test_a_window_refits_at_every_pair_however_many_came_before():
+    """With a window of 3, the fit follows a jump of the odometry's frame within 3 pairs also after 2,000
+    pairs (the refit schedule counts the pairs fitted, not all pairs seen)."""
+    rng = np.random.default_rng(8)
+    n = 2000
+    T_VC = _poses(rng, n)
+    first, second = _sim3(rng, 1.0), _sim3(rng, 1.0)
+    T_MC = np.concatenate([_map_poses(first, T_VC[:n - 10]), _map_poses(second, T_VC[n - 10:])])
+    anchor = OdometryAnchor(OdometryConfig(window=3), with_scale=False)
+    for i in range(n - 7):
+        anchor.add(float(i), T_VC[i], T_MC[i])
+    np.testing.assert_allclose(anchor.T_MV, second, atol=1e-9)
+
+
+def test_a_monocular_anchor_needs_a_fitted_scale():
+    """One pair, or pairs whose odometry positions coincide, fit no scale: no anchored pose from them."""
+    rng = np.random.default_rng(9)
+    T_VC = _poses(rng, 4)
+    T_MC = _map_poses(_sim3(rng, 2.0), T_VC)
+    single = OdometryAnchor(OdometryConfig(min_pairs=1), with_scale=True)
+    np.testing.assert_array_equal(single.add(0.0, T_VC[0], T_MC[0]), T_MC[0])
+    assert single.T_MV is None and single.add(1.0, T_VC[1], None) is None
+    still = OdometryAnchor(OdometryConfig(min_pairs=2), with_scale=True)
+    for i in range(4):
+        still.add(float(i), T_VC[0], T_MC[i])  # the odometry has not moved
+    assert still.T_MV is None

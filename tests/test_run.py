@@ -434,12 +434,10 @@ def test_overrides_on_preset():
 
 
 @pytest.fixture
-def cli_main(monkeypatch):
-    """``fgslam.cli.main`` with ``run`` and ``demo`` registered (whether or not the lead did yet)."""
+def cli_main():
+    """``fgslam.cli.main``."""
     from fgslam import cli
 
-    missing = tuple(name for name in ("run", "demo") if name not in cli.COMMANDS)
-    monkeypatch.setattr(cli, "COMMANDS", cli.COMMANDS + missing)
     return cli.main
 
 

@@ -69,8 +69,6 @@ class MapRunOdometry:
     (:meth:`odometry_config`) on the sequence's frames; a frame's pose only where it was tracked (a motion
     model's prediction is no pose)."""
 
-    POSED = ("tracked", "relocalized")  # TrackResult statuses that are measured poses
-
     @staticmethod
     def odometry_config(map_config: dict) -> "SlamConfig":
         """The map run's config without what does not belong to an odometry of another sequence: its
@@ -101,7 +99,7 @@ class MapRunOdometry:
 
     def track(self, frame: Any) -> Optional[np.ndarray]:
         result = self.slam.track_frame(frame)
-        return result.T_WC if result.status in self.POSED else None
+        return result.T_WC if result.tracked else None
 
     def close(self) -> None:
         self.slam.abort()

@@ -41,7 +41,7 @@ TRIM_ROUNDS = 2
 MIN_KEPT_PAIRS = 3
 #: positions that spread less than this relative to their distance from the origin do not spread (rounding)
 MIN_RELATIVE_SPREAD = 1e-9
-#: refit once the pairs have grown by this share since the last fit (at every pair below 1 / REFIT_GROWTH)
+#: refit once the pairs have grown by this share of those fitted (at every pair while fewer than 2 / REFIT_GROWTH)
 REFIT_GROWTH = 0.02
 
 
@@ -86,8 +86,8 @@ def mean_rotation(R: np.ndarray) -> np.ndarray:
 
 def scale_translation(R: np.ndarray, p_V: np.ndarray, p_M: np.ndarray, with_scale: bool) -> tuple[float, np.ndarray]:
     """Least squares ``s``, ``t`` of ``p_M = s R p_V + t`` for positions ``(n, 3)`` and the rotation ``R``;
-    ``s = 1`` without ``with_scale`` or when the positions do not spread (``s`` may come out <= 0: the
-    caller decides)."""
+    ``s = 1.0`` exactly without ``with_scale`` or when the positions do not spread (``s`` may come out
+    <= 0: the caller decides)."""
     q = p_V @ R.T
     q_mean, m_mean = q.mean(axis=0), p_M.mean(axis=0)
     s = 1.0
@@ -106,6 +106,7 @@ class AnchorFit:
     T_MV: np.ndarray
     spread: float
     residual: float
+    scaled: bool  # the scale was fitted (with_scale, and the positions determined one > 0)
 
 
 def fit_anchor(T_VC: np.ndarray, T_MC: np.ndarray, with_scale: bool, trim: float) -> AnchorFit:
@@ -118,6 +119,7 @@ def fit_anchor(T_VC: np.ndarray, T_MC: np.ndarray, with_scale: bool, trim: float
     for round_ in range(TRIM_ROUNDS + 1):
         R = mean_rotation(R_pairs[keep])
         s, t = scale_translation(R, p_V[keep], p_M[keep], with_scale)
+        scaled = with_scale and s > 0 and s != 1.0
         if not s > 0:
             s, t = scale_translation(R, p_V[keep], p_M[keep], False)
         r = np.linalg.norm(p_M - (s * p_V @ R.T + t), axis=1)
@@ -132,7 +134,7 @@ def fit_anchor(T_VC: np.ndarray, T_MC: np.ndarray, with_scale: bool, trim: float
     T[:3, 3] = t
     kept = p_M[keep]
     spread = float(np.sqrt(((kept - kept.mean(axis=0)) ** 2).sum(axis=1).mean()))
-    return AnchorFit(T, spread, float(np.median(r[keep])))
+    return AnchorFit(T, spread, float(np.median(r[keep])), scaled)
 
 
 def rigid_in_map(S_MR: np.ndarray, T_RC: np.ndarray) -> np.ndarray:
@@ -163,9 +165,10 @@ class OdometryAnchor:
 
     def _fit(self) -> None:
         fit = fit_anchor(np.stack(self._T_VC), np.stack(self._T_MC), self.with_scale, self.config.trim)
-        if not self.with_scale or fit.spread >= self.config.min_spread_ratio * fit.residual:
+        if not self.with_scale or (fit.scaled and fit.spread > 0
+                                   and fit.spread >= self.config.min_spread_ratio * fit.residual):
             self.T_MV = fit.T_MV
-        self._next_fit = self.pairs + max(1, int(self.pairs * REFIT_GROWTH))
+        self._next_fit = self.pairs + max(1, int(len(self._T_VC) * REFIT_GROWTH))  # the pairs fitted: the window's
 
     def add(self, t: float, T_VC: Optional[np.ndarray], T_MC: Optional[np.ndarray]) -> Optional[np.ndarray]:
         """The pose in the map's frame of the frame at time ``t`` (seconds) with odometry pose ``T_VC`` and

@@ -87,7 +87,7 @@ class _OdometryRun:
             self.odo = self.factory(self.map_config, calibration)
             self.ran = True
         except Exception as exc:  # noqa: BLE001 - as in streams()
-            self._off(f"off: the map run's config does not build one here ({exc})", exc)
+            self._off(f"off: it failed to start ({type(exc).__name__}: {exc})", exc)
 
     def pose(self, frame) -> np.ndarray | None:
         """The odometry's pose ``T_VC`` of ``frame`` (None: none, or no odometry)."""
