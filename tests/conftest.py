@@ -25,6 +25,27 @@ LONGEST_FIRST = ("test_dense_loop", "test_patch_loop", "test_maps", "test_determ
                  "test_dense_global_bg", "test_imu_runs", "test_loop_closure", "test_colmap_compare")
 
 
+# Files whose tests share a session fixture that takes long to build: each group runs on one worker, so the
+# fixture is built once (xdist's loadfile unit is otherwise one file). test_determinism compares its runs
+# against room_loop_rgbd_both, which test_patch_loop also checks (about 35 s a build).
+SAME_WORKER = {"tests/test_determinism.py": "tests/test_patch_loop.py"}
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """Under ``--dist loadfile`` (pyproject.toml, addopts): xdist's file scheduling with the files of
+    ``SAME_WORKER`` joined to one unit. Other modes keep xdist's own scheduler."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class _JoinedFileScheduling(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            scope = super()._split_scope(nodeid)
+            return SAME_WORKER.get(scope, scope)
+
+    return _JoinedFileScheduling(config, log)
+
+
 def _module_name(item) -> str:
     return getattr(getattr(item, "module", None), "__name__", "").rsplit(".", 1)[-1]
 
