@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from fgslam.cli import main
+from fgslam.io.trajectory import read_trajectory
 from fgslam.export.mapfile import (
     ARRAYS, MAP_FORMAT, MAP_FORMAT_VERSION, MapFileError, StoredMap, check_map_camera, load_stored_map,
     save_stored_map)
@@ -109,6 +110,9 @@ def test_every_bad_map_file_is_one_clear_error(tmp_path):
     version = tmp_path / "v2.fgmap"
     _rewrite_meta(good, version, version=MAP_FORMAT_VERSION + 1)
     cases["version"] = (version, f"format version {MAP_FORMAT_VERSION + 1}, this fgslam reads version")
+    old = tmp_path / "v1.fgmap"  # a map saved before sessions and frames were stored
+    _rewrite_meta(good, old, version=1)
+    cases["old version"] = (old, "format version 1, this fgslam reads version 2 .*--save-map")
     foreign_meta = tmp_path / "fm.fgmap"
     _rewrite_meta(good, foreign_meta, format="something-else")
     cases["foreign meta"] = (foreign_meta, "not a fgslam map")
@@ -121,6 +125,14 @@ def test_every_bad_map_file_is_one_clear_error(tmp_path):
     with pytest.raises(MapFileError, match="feat_ptr"):
         save_stored_map(tmp_path / "bad.fgmap", bad)
     assert not (tmp_path / "bad.fgmap").exists()
+    frames = toy_map(4)
+    frames.frame_timestamps, frames.frame_kf, frames.frame_T_KC = np.zeros(2), np.array([0, 4]), np.tile(np.eye(4), (2, 1, 1))
+    with pytest.raises(MapFileError, match="frame_kf names a keyframe position"):
+        save_stored_map(tmp_path / "bad.fgmap", frames)
+    sessions = toy_map(4)
+    sessions.kf_session = np.zeros(3, np.int64)
+    with pytest.raises(MapFileError, match="kf_session has 3 entries for 4 keyframes"):
+        save_stored_map(tmp_path / "bad.fgmap", sessions)
 
 
 def test_a_camera_that_differs_is_named():
@@ -205,6 +217,12 @@ def test_run_saves_a_map_that_reloads_identically(room_map, tmp_path):
     assert with_point.sum() > 0.5 * len(with_point)  # RGB-D: most features have a sensor depth
     save_stored_map(tmp_path / "again.fgmap", stored)
     assert (tmp_path / "again.fgmap").read_bytes() == stored_path.read_bytes()
+    # the frames are stored relative to their keyframes: the map gives the run's trajectory back
+    run_traj = read_trajectory(stored_path.parent / "run" / "trajectory_tum.txt", "tum")
+    t, T_WC = stored.frame_poses()
+    assert stored.sessions == 1 and len(t) == len(run_traj) == 32
+    np.testing.assert_allclose(t, run_traj.timestamps, atol=1e-9)
+    np.testing.assert_allclose(T_WC, run_traj.T_WC, atol=1e-6)  # the TUM file's digits
 
 
 def test_the_same_run_saved_to_two_paths_gives_the_same_bytes(room_map, tmp_path):
@@ -498,26 +516,67 @@ def _ate_with(A: np.ndarray, traj_file: Path, gt_root: Path) -> float:
     return float(np.sqrt(np.mean(np.sum((P - G) ** 2, axis=1))))
 
 
-def test_run_with_map_merges_the_recording(room_map, tmp_path):
-    """``fgslam run --map``: the second path's recording is merged into the stored room; its frames in
-    the map's frame, with the map run's alignment unchanged, lie on the ground truth (unmerged, in the
-    recording's own frame, they do not), and the merged map saves and reloads identically."""
+def _session_ate(A: np.ndarray, joined, session: int, gt_root: Path) -> float:
+    """:func:`_ate_with` of one session's frames of a joined map."""
+    from fgslam.io.trajectory import Trajectory, write_trajectory
+
+    t, T_WC = joined.frame_poses()
+    keep = joined.kf_session[joined.frame_kf] == session
+    path = gt_root.parent / f"session{session}_{id(joined)}.txt"
+    write_trajectory(path, Trajectory(t[keep], T_WC[keep]), "tum")
+    return _ate_with(A, path, gt_root)
+
+
+def test_run_with_map_joins_the_sessions_in_one_graph(room_map, tmp_path):
+    """``fgslam run --map``: the second path's recording is merged into the stored room and both
+    sessions are optimised in one pose graph; the recording's frames in the map's frame, with the map
+    run's alignment unchanged, lie on the ground truth (unmerged, in the recording's own frame, they do
+    not), the stored session stays where it was, and the joined map saves and reloads identically. A
+    third session joins the joined map the same way."""
     stored_path, roots, _ = room_map
     out, merged_path = tmp_path / "ext", tmp_path / "merged.fgmap"
     assert main(["run", "patch_rgbd", "--data", str(roots["other_path"]), "--out", str(out), "--no-progress",
                  "--map", str(stored_path), "--save-map", str(merged_path)]) == 0
     merge = json.loads((out / "merge.json").read_text())
     assert merge["merged"] and merge["consistent_keyframes"] >= 3
+    assert merge["joint"]["sessions"] == 2 and merge["joint"]["accepted_loops"] >= 3
     stored, merged = load_stored_map(stored_path), load_stored_map(merged_path)
-    recording_kf = json.loads((out / "summary.json").read_text())["keyframes"]
-    assert merged.num_keyframes == stored.num_keyframes + recording_kf and merged.meta["recordings"] == 2
-    np.testing.assert_array_equal(merged.T_WC[:stored.num_keyframes], stored.T_WC)  # the stored map is kept
+    summary = json.loads((out / "summary.json").read_text())
+    assert merged.num_keyframes == stored.num_keyframes + summary["keyframes"] and merged.meta["recordings"] == 2
+    assert merged.sessions == 2 and len(merged.frame_timestamps) == len(stored.frame_timestamps) + summary["frames_with_pose"]
     A = np.asarray(stored.meta["groundtruth_alignment"]["matrix"])
     in_map = _ate_with(A, out / "merged_trajectory_tum.txt", roots["other_path"])
     unmerged = _ate_with(A, out / "trajectory_tum.txt", roots["other_path"])
     assert in_map < 0.05 and in_map < 0.2 * unmerged
+    before = _session_ate(A, stored, 0, roots["map"])
+    assert _session_ate(A, merged, 0, roots["map"]) < max(1.2 * before, 0.02)  # the map session stays as good
+    assert _session_ate(A, merged, 1, roots["other_path"]) == pytest.approx(in_map, rel=0.05)
+    assert len(read_trajectory(out / "joint_trajectory_tum.txt", "tum")) == len(merged.frame_timestamps)
     save_stored_map(tmp_path / "again.fgmap", merged)
     assert (tmp_path / "again.fgmap").read_bytes() == merged_path.read_bytes()
+    # a third session (the first path again) joins the joined map
+    out3, third_path = tmp_path / "third", tmp_path / "third.fgmap"
+    assert main(["run", "patch_rgbd", "--data", str(roots["map"]), "--out", str(out3), "--no-progress",
+                 "--map", str(merged_path), "--save-map", str(third_path)]) == 0
+    third = load_stored_map(third_path)
+    assert json.loads((out3 / "merge.json").read_text())["joint"]["sessions"] == third.sessions == 3
+    assert _ate_with(A, out3 / "merged_trajectory_tum.txt", roots["map"]) < 0.05
+    assert _session_ate(A, third, 1, roots["other_path"]) < max(1.2 * in_map, 0.02)
+
+
+def test_without_the_joint_optimisation_the_stored_map_is_kept(room_map, tmp_path):
+    """``-o output.map_join.enabled=false``: the recording is moved by the one merge transform and the
+    stored keyframes are saved unchanged."""
+    stored_path, roots, _ = room_map
+    out, merged_path = tmp_path / "ext", tmp_path / "merged.fgmap"
+    assert main(["run", "patch_rgbd", "--data", str(roots["other_path"]), "--out", str(out), "--no-progress",
+                 "--map", str(stored_path), "--save-map", str(merged_path), "-o", "output.map_join.enabled=false"]) == 0
+    merge = json.loads((out / "merge.json").read_text())
+    assert merge["merged"] and "joint" not in merge and not (out / "joint_trajectory_tum.txt").exists()
+    stored, merged = load_stored_map(stored_path), load_stored_map(merged_path)
+    np.testing.assert_array_equal(merged.T_WC[:stored.num_keyframes], stored.T_WC)
+    A = np.asarray(stored.meta["groundtruth_alignment"]["matrix"])
+    assert _ate_with(A, out / "merged_trajectory_tum.txt", roots["other_path"]) < 0.05
 
 
 def test_a_recording_that_does_not_localise_is_not_merged(room_map):

@@ -31,6 +31,14 @@ triangulation). Retrieval database, with offsets ``bow_ptr`` (K+1,) int64: ``bow
 ``track_point`` / ``track_kf`` (T,) int64 and ``track_uv`` (T, 2) float64 (keyframe pixel of each
 observation).
 
+Sessions and frames (version 2): ``kf_session`` (K,) int64, the recording each keyframe came from
+(0: the map's first; a map extended with ``fgslam run --map`` holds several, joined in one pose graph,
+:func:`fgslam.localize.merge.join_sessions`). Every frame the recordings posed, in time order per
+session: ``frame_timestamps`` (F,) float64 s, ``frame_kf`` (F,) int64 the position of its anchor
+keyframe (the last keyframe at or before it) and ``frame_T_KC`` (F, 4, 4) float64 its pose relative
+to that keyframe (``T_WC = T_WC[frame_kf] frame_T_KC``, :meth:`StoredMap.frame_poses`), so the frames
+move with their keyframes when a join corrects them.
+
 Errors: a missing, truncated or foreign file, another format version, or inconsistent arrays raise
 :class:`MapFileError` naming the file and what is wrong; :func:`check_map_camera` names what differs
 between the map's camera and a sequence's.
@@ -53,14 +61,14 @@ from ..core.config import MAX_KEYFRAMES, MAX_SCALAR, check_ranges, ranged
 from ..core.errors import DataError
 from ..loop.bow import BowConfig, KeyframeFeatures, PlaceRecognizer
 from ..loop.features import OrbConfig, to_grey_uint8
-from ..loop.records import VerificationConfig
+from ..loop.records import PoseGraphConfig, VerificationConfig
 from ..core.mapdata import MapExport
 from .inplace import written_in_place
 
 logger = logging.getLogger(__name__)
 
 MAP_FORMAT = "fgslam-map"
-MAP_FORMAT_VERSION = 1
+MAP_FORMAT_VERSION = 2  # 2: sessions and frames
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)        # fixed entry date: identical maps give identical bytes
 _ZIP_MAGIC = b"PK\x03\x04"
 _CAMERA_RTOL = 1e-6                      # intrinsics equal up to float round-off
@@ -88,6 +96,10 @@ ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
     "track_point": ("int64", ()),
     "track_kf": ("int64", ()),
     "track_uv": ("float64", (2,)),
+    "kf_session": ("int64", ()),
+    "frame_timestamps": ("float64", ()),
+    "frame_kf": ("int64", ()),
+    "frame_T_KC": ("float64", (4, 4)),
 }
 
 
@@ -121,6 +133,26 @@ class MapMergeConfig:
 
 
 @dataclass
+class MapJoinConfig:
+    """The sessions of a merged map optimised together (``fgslam run ... --map MAP``, ``output.map_join``;
+    :func:`fgslam.localize.merge.join_sessions`)."""
+
+    enabled: bool = True  # optimise the sessions in one pose graph; False: the recording is moved by the merge's one transform
+    # The joint pose graph: the consistent localisations are its loops. A localisation measures the
+    # camera's pose in the map, not the recording's scale there: its log-scale sigma says nothing (1.0).
+    # The plausibility gate measures a correction against the keyframe path between the two ends, which
+    # across sessions runs through the boundary; the merge's consistency check has vetted the links, so
+    # the gate (1.0: a correction up to that path) only drops gross ones.
+    pose_graph: PoseGraphConfig = field(default_factory=lambda: PoseGraphConfig(
+        loop_sigmas=(0.01, 0.01, 0.01, 0.1, 0.1, 0.1, 1.0), max_correction_translation_fraction=1.0))
+    session_link_sigma_multiple: float = ranged(1000.0, ge=1, le=MAX_SCALAR)  # smoothness sigmas x this across a session boundary (a weak link)
+    # The translation sigmas of pose_graph (loops and smoothness) hold for a scene this deep, in metres:
+    # they are scaled by the stored map's median feature depth over it, so that a monocular map (units
+    # of its own) is held to the same share of its scene as a metric one.
+    reference_depth: float = ranged(2.0, gt=0, le=MAX_SCALAR)
+
+
+@dataclass
 class StoredMap:
     """A stored map in memory (the module docstring describes every array)."""
 
@@ -141,10 +173,29 @@ class StoredMap:
     track_point: np.ndarray
     track_kf: np.ndarray
     track_uv: np.ndarray
+    kf_session: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # empty: all session 0
+    frame_timestamps: np.ndarray = field(default_factory=lambda: np.zeros(0))  # empty: no frames stored
+    frame_kf: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    frame_T_KC: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
 
     def __post_init__(self) -> None:
         for name, (dtype, tail) in ARRAYS.items():
             setattr(self, name, np.ascontiguousarray(getattr(self, name), dtype=dtype).reshape((-1, *tail)))
+        if self.kf_session.size == 0:
+            self.kf_session = np.zeros(self.num_keyframes, np.int64)
+
+    @property
+    def sessions(self) -> int:
+        """The recordings joined in this map (1 for a map of one run)."""
+        return int(self.kf_session.max()) + 1 if self.kf_session.size else 1
+
+    def frame_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(timestamps (F,), T_WC (F, 4, 4))`` of the stored frames in the map's frame: each frame's
+        keyframe pose times its relative pose, the rotation block made a rotation (a Sim(3) keyframe
+        pose carries its scale into the position only)."""
+        T = self.T_WC[self.frame_kf] @ self.frame_T_KC
+        T[:, :3, :3] /= np.cbrt(np.linalg.det(T[:, :3, :3]))[:, None, None]
+        return self.frame_timestamps.copy(), T
 
     @property
     def num_keyframes(self) -> int:
@@ -189,6 +240,15 @@ class StoredMap:
             raise bad("a track names a point that does not exist")
         if not np.isfinite(self.T_WC).all():
             raise bad("a keyframe pose is not finite")
+        if self.kf_session.shape[0] != k or (k and self.kf_session.min() < 0):
+            raise bad(f"kf_session has {self.kf_session.shape[0]} entries for {k} keyframes, or a negative one")
+        f = self.frame_timestamps.shape[0]
+        if self.frame_kf.shape[0] != f or self.frame_T_KC.shape[0] != f:
+            raise bad("frame_timestamps, frame_kf and frame_T_KC of unequal length")
+        if f and (self.frame_kf.min() < 0 or self.frame_kf.max() >= k):
+            raise bad("frame_kf names a keyframe position that does not exist")
+        if not (np.isfinite(self.frame_T_KC).all() and np.isfinite(self.frame_timestamps).all()):
+            raise bad("a frame pose or time is not finite")
         if len(np.unique(self.kf_ids)) != k:
             raise bad("kf_ids are not unique")
         if t and not np.isin(self.track_kf, self.kf_ids).all():
@@ -281,7 +341,8 @@ def load_stored_map(path: str | Path) -> StoredMap:
                                    f"{path}: not a fgslam map (meta is not a JSON object)")
             if meta.get("version") != MAP_FORMAT_VERSION:
                 raise MapFileError(f"{path}: map format version {meta.get('version')}, this fgslam reads version "
-                                   f"{MAP_FORMAT_VERSION} (save the map again with this fgslam)")
+                                   f"{MAP_FORMAT_VERSION} (version 2 stores each recording's frames: run the map's "
+                                   "recording again with --save-map)")
             missing = [name for name in ARRAYS if name not in z.files]
             if missing:
                 raise MapFileError(f"{path}: not a complete fgslam map (missing {', '.join(missing)})")
@@ -382,14 +443,30 @@ def _frame_range(dataset) -> dict[str, Any]:
     return {"start": int(cfg.start), "end": None if cfg.end is None else int(cfg.end), "stride": int(cfg.stride)}
 
 
+def anchor_frames(kf_timestamps: np.ndarray, T_WK: np.ndarray,
+                  trajectory: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(frame_timestamps, frame_kf, frame_T_KC)`` of a run's frames ``trajectory = (timestamps, T_WC)``:
+    each frame's anchor is the last keyframe at or before it (the first keyframe for frames before
+    it), its pose kept relative to that keyframe. No trajectory or no keyframe: no frames."""
+    if trajectory is None or len(kf_timestamps) == 0:
+        return np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 4, 4))
+    t, T_WC = np.asarray(trajectory[0], np.float64), np.asarray(trajectory[1], np.float64)
+    by_time = np.argsort(kf_timestamps, kind="stable")
+    before = np.searchsorted(np.asarray(kf_timestamps)[by_time], t, side="right") - 1
+    anchor = by_time[np.clip(before, 0, len(kf_timestamps) - 1)]
+    return t, anchor.astype(np.int64), np.linalg.inv(T_WK[anchor]) @ T_WC
+
+
 def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, config: dict,
                      features: MapFeaturesConfig, verification: VerificationConfig | None = None, groundtruth_alignment: dict | None = None,
-                     frame_indices: np.ndarray | None = None) -> StoredMap:
+                     frame_indices: np.ndarray | None = None,
+                     trajectory: tuple[np.ndarray, np.ndarray] | None = None) -> StoredMap:
     """The stored map of a run: the frontend's keyframes and structure (``exported``), the keyframe
     images re-read from ``dataset`` (the frame nearest to each keyframe's time among
     ``frame_indices``, default all) for their features, 3-D points from the sensor depth (``rgbd``)
     or triangulated between neighbouring keyframes (``verification``:
-    :class:`fgslam.loop.records.VerificationConfig`), and their BoW vectors."""
+    :class:`fgslam.loop.records.VerificationConfig`), and their BoW vectors; ``trajectory``
+    (``(timestamps, T_WC)`` of the run's frames, in the keyframes' frame) gives the stored frames."""
     features.validate()
     calib = dataset.calibration
     K_feat, w_feat, h_feat = feature_camera(calib.K, calib.width, calib.height, features.image_scale)
@@ -452,7 +529,8 @@ def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, 
         cat([f.descriptors for f in feats], (0, DESCRIPTOR_BYTES), np.uint8), cat(X_list, (0, 3), np.float32),
         np.concatenate([[0], np.cumsum(bow_counts)]), cat([f.bow.words for f in feats], (0,), np.int32),
         cat([f.bow.weights for f in feats], (0,), np.float64),
-        exported.X_W, exported.colour, exported.track_point, exported.track_kf, exported.track_uv)
+        exported.X_W, exported.colour, exported.track_point, exported.track_kf, exported.track_uv,
+        np.zeros(len(kf_ids), np.int64), *anchor_frames(stamps, T_WC, trajectory))
     n_3d = int(np.isfinite(stored.feat_X_C[:, 0]).sum())
     logger.info("stored map: %d keyframes, %d features (%d with a 3-D point), %d points", stored.num_keyframes,
                 len(stored.feat_uv), n_3d, len(stored.points_X_W))

@@ -1,18 +1,19 @@
 """Extending a stored map with a recording (``fgslam run ... --map MAP``, :mod:`fgslam.run.mapstore`):
 the recording's keyframes localised in the map (:class:`fgslam.localize.localizer.MapLocalizer`), the
-transform between the two frames estimated from them (:func:`merge_recording`), and the merged map
-(:func:`combine_maps`) with the recording's poses in the map's frame
-(:func:`fgslam.localize.anchor.rigid_in_map`)."""
+transform between the two frames estimated from them (:func:`merge_recording`), the merged map
+(:func:`combine_maps`) with the recording's poses in the map's frame, and the joint optimisation of
+the sessions (:func:`join_sessions`): one Sim(3) pose graph of every session's keyframes, whose loops
+are the recording's localisations in the map, so that both sessions are corrected."""
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from ..export.mapfile import StoredMap
+from ..export.mapfile import MapJoinConfig, StoredMap
 from .anchor import mean_rotation, scale_translation
 from .localizer import LocalizeConfig, MapLocalizer
 
@@ -32,6 +33,9 @@ class MapMerge:
     verified: int
     consistent: int
     tried: int
+    #: the consistent localisations: (recording keyframe position, stored keyframe position it was
+    #: verified against, the recording keyframe's pose in the map's frame 4x4)
+    links: list[tuple[int, int, np.ndarray]] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {"S_MR": self.S_MR.tolist(), "merge_keyframe": self.merge_kf_id, "merge_time": self.merge_time,
@@ -58,11 +62,14 @@ def merge_recording(stored: StoredMap, recording: StoredMap, config: LocalizeCon
         return None
     localizer = MapLocalizer(stored, config)
     pairs: list[tuple[int, np.ndarray, np.ndarray]] = []
+    verified_on: list[int] = []
+    position = {int(kf): i for i, kf in enumerate(stored.kf_ids)}
     for k in range(recording.num_keyframes):
         uv, desc, _ = recording.features(k)
         res = localizer.localize_features(uv, desc)
         if res.T_WC is not None:
             pairs.append((k, res.T_WC, recording.T_WC[k]))
+            verified_on.append(position[res.kf_id])
     if len(pairs) < mc.min_keyframes:
         logger.info("map merge: %d of %d recording keyframes localised in the map (< %d): not merged",
                     len(pairs), recording.num_keyframes, mc.min_keyframes)
@@ -90,8 +97,9 @@ def merge_recording(stored: StoredMap, recording: StoredMap, config: LocalizeCon
     logger.info("map merge: %d of %d recording keyframes localised, %d consistent; merged from keyframe %d "
                 "(scale %.4f)", len(pairs), recording.num_keyframes, len(consistent),
                 int(recording.kf_ids[first]), scale)
+    links = [(pairs[i][0], verified_on[i], pairs[i][1]) for i in consistent]
     return MapMerge(S, int(recording.kf_ids[first]), float(recording.kf_timestamps[first]), len(pairs),
-                    len(consistent), recording.num_keyframes)
+                    len(consistent), recording.num_keyframes, links)
 
 
 def combine_maps(stored: StoredMap, recording: StoredMap, S_MR: np.ndarray) -> StoredMap:
@@ -102,6 +110,7 @@ def combine_maps(stored: StoredMap, recording: StoredMap, S_MR: np.ndarray) -> S
     meta = dict(stored.meta)
     meta["recordings"] = int(stored.meta.get("recordings", 1)) + 1
     X_new = recording.points_X_W @ S_MR[:3, :3].T + S_MR[:3, 3]
+    K1 = stored.num_keyframes
     return StoredMap(
         meta,
         np.concatenate([stored.kf_ids, recording.kf_ids + offset]),
@@ -119,4 +128,105 @@ def combine_maps(stored: StoredMap, recording: StoredMap, S_MR: np.ndarray) -> S
         np.concatenate([stored.points_colour, recording.points_colour]),
         np.concatenate([stored.track_point, recording.track_point + len(stored.points_X_W)]),
         np.concatenate([stored.track_kf, recording.track_kf + offset]),
-        np.concatenate([stored.track_uv, recording.track_uv]))
+        np.concatenate([stored.track_uv, recording.track_uv]),
+        np.concatenate([stored.kf_session, recording.kf_session + stored.sessions]),
+        np.concatenate([stored.frame_timestamps, recording.frame_timestamps]),
+        np.concatenate([stored.frame_kf, recording.frame_kf + K1]),
+        np.concatenate([stored.frame_T_KC, recording.frame_T_KC]))
+
+
+@dataclass
+class JointResult:
+    """:func:`join_sessions`: the joined map and what the joint pose graph did."""
+
+    joined: StoredMap
+    loops: int
+    accepted: int
+    stored_moved_max: float  # largest position change of a stored keyframe (map units)
+    recording_moved_max: float  # ... of a recording keyframe against the one-transform merge
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"loops": self.loops, "accepted_loops": self.accepted, "sessions": self.joined.sessions,
+                "stored_keyframes_moved_max": self.stored_moved_max,
+                "recording_keyframes_moved_max": self.recording_moved_max}
+
+
+def _similarity(T: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Poses ``T`` (N, 4, 4) with their rotation blocks scaled by ``scale`` (N,): Sim(3) of that scale."""
+    S = T.copy()
+    S[:, :3, :3] = T[:, :3, :3] / np.cbrt(np.linalg.det(T[:, :3, :3]))[:, None, None] * scale[:, None, None]
+    return S
+
+
+def join_sessions(stored: StoredMap, recording: StoredMap, merge: MapMerge,
+                  config: MapJoinConfig | None = None) -> JointResult:
+    """The recording joined to ``stored`` in one graph: :func:`combine_maps` by ``merge.S_MR``, then
+    one Sim(3) pose graph (:func:`fgslam.loop.pose_graph.optimize_sim3_pose_graph`) of every keyframe of
+    every session, smooth along each session, weakly linked across session boundaries
+    (``session_link_sigma_multiple``), with the recording's localisations in the map as loops
+    (``merge.links``: the pose of the recording keyframe relative to the stored keyframe it was verified
+    against, the scale being the recording's, which a localisation does not measure). Metric maps keep
+    every keyframe's scale (SE(3)); monocular ones are Sim(3). Keyframes, points (with their first
+    observing keyframe) and frames (with their anchor keyframe) move with the correction."""
+    from ..core.lie import Sim3  # deferred: torch
+    from ..loop.pose_graph import optimize_sim3_pose_graph  # deferred: torch, gtsam
+
+    import torch  # deferred: torch
+
+    config = config or MapJoinConfig()
+    pose_graph = _in_map_units(config, stored)
+    joined = combine_maps(stored, recording, merge.S_MR)
+    K1, K = stored.num_keyframes, joined.num_keyframes
+    T_old = joined.T_WC
+    scale = np.cbrt(np.linalg.det(T_old[:, :3, :3]))
+    rec = np.array([K1 + k for k, _, _ in merge.links], np.int64)
+    ref = np.array([i for _, i, _ in merge.links], np.int64)
+    T_loc = _similarity(np.stack([T for _, _, T in merge.links]), scale[rec]) if merge.links else np.zeros((0, 4, 4))
+    Z = np.linalg.inv(T_old[ref]) @ T_loc if len(rec) else np.zeros((0, 4, 4))
+    boundary = np.diff(joined.kf_session) != 0
+    smooth_scale = np.where(boundary, config.session_link_sigma_multiple, 1.0)
+    result = optimize_sim3_pose_graph(
+        Sim3.from_matrix(torch.from_numpy(T_old)), ref, rec, Sim3.from_matrix(torch.from_numpy(Z)),
+        pose_graph, hold_scale=stored.metric and recording.metric, smooth_scale=smooth_scale)
+    T_new = result.T_WC.matrix().numpy()
+    correction = T_new @ np.linalg.inv(T_old)  # X_W' = C_k X_W for what keyframe k carries
+    points_kf = _first_observer(joined, K)
+    X = joined.points_X_W
+    has = points_kf >= 0
+    C = correction[points_kf[has]]
+    X_new = X.copy()
+    X_new[has] = np.einsum("nij,nj->ni", C[:, :3, :3], X[has]) + C[:, :3, 3]
+    joined.T_WC, joined.points_X_W = T_new, X_new
+    moved = np.linalg.norm(T_new[:, :3, 3] - T_old[:, :3, 3], axis=1)
+    logger.info("joint optimisation of %d sessions: %d keyframes, %d of %d loops accepted; stored keyframes moved "
+                "up to %.4g, recording keyframes up to %.4g", joined.sessions, K, int(result.accepted.sum()),
+                len(rec), float(moved[:K1].max(initial=0.0)), float(moved[K1:].max(initial=0.0)))
+    return JointResult(joined, len(rec), int(result.accepted.sum()), float(moved[:K1].max(initial=0.0)),
+                       float(moved[K1:].max(initial=0.0)))
+
+
+def _in_map_units(config: MapJoinConfig, stored: StoredMap):
+    """``config.pose_graph`` with its translation sigmas scaled by the stored map's median feature depth
+    over ``config.reference_depth`` (unchanged for a map without 3-D features)."""
+    z = stored.feat_X_C[:, 2]
+    z = z[np.isfinite(z) & (z > 0)]
+    if z.size == 0:
+        return config.pose_graph
+    units = float(np.median(z)) / config.reference_depth
+    pg = config.pose_graph
+
+    def scaled(sigmas: tuple[float, ...]) -> tuple[float, ...]:
+        return (*sigmas[:3], *(units * np.asarray(sigmas[3:6])).tolist(), *sigmas[6:])
+
+    return replace(pg, loop_sigmas=scaled(pg.loop_sigmas), smooth_sigmas=scaled(pg.smooth_sigmas))
+
+
+def _first_observer(stored: StoredMap, K: int) -> np.ndarray:
+    """(M,) the position of the keyframe of each point's first track (-1: no track)."""
+    position = np.full(int(stored.kf_ids.max()) + 1 if K else 0, -1, np.int64)
+    position[stored.kf_ids] = np.arange(K)
+    first = np.full(len(stored.points_X_W), -1, np.int64)
+    if len(stored.track_point):
+        order = np.argsort(stored.track_point, kind="stable")[::-1]  # the first track of a point is written last
+        first[stored.track_point[order]] = position[stored.track_kf[order]]
+    return first

@@ -243,9 +243,13 @@ class _LoopGraph:
     """The backend's loop-closure graph (:class:`fgslam.backend.pose_graph.LoopPoseGraph`) with this
     module's settings: LM settings of :class:`PoseGraphConfig`, chi-square of every candidate loop."""
 
-    def __init__(self, T_WC: Sim3, loop_i, loop_j, T_CiCj: Sim3, cfg: PoseGraphConfig, hold_scale: bool):
+    def __init__(self, T_WC: Sim3, loop_i, loop_j, T_CiCj: Sim3, cfg: PoseGraphConfig, hold_scale: bool,
+                 smooth_scale: np.ndarray | None = None):
         self.cfg = cfg
-        self.graph = LoopPoseGraph(T_WC, loop_i, loop_j, T_CiCj, smooth_sigmas(T_WC, cfg), cfg.loop_sigmas,
+        sigmas = smooth_sigmas(T_WC, cfg)
+        if smooth_scale is not None:
+            sigmas = sigmas * np.asarray(smooth_scale, dtype=np.float64).reshape(-1, 1)
+        self.graph = LoopPoseGraph(T_WC, loop_i, loop_j, T_CiCj, sigmas, cfg.loop_sigmas,
                                    cfg.prior_sigma, cfg.hold_scale_sigma if hold_scale else None,
                                    cfg.robust_kernel, cfg.robust_param)
         self.loop_i, self.loop_j, self.T_CiCj = loop_i, loop_j, T_CiCj
@@ -330,6 +334,7 @@ def optimize_sim3_pose_graph(
     T_CiCj: Sim3,
     config: PoseGraphConfig | None = None,
     hold_scale: bool = False,
+    smooth_scale: np.ndarray | None = None,
 ) -> PoseGraphResult:
     """Correct keyframe poses ``T_WC`` (K,) with loops ``(loop_i[l], loop_j[l], T_CiCj[l])``.
 
@@ -339,7 +344,9 @@ def optimize_sim3_pose_graph(
     measurements are rejected as ``invalid``; the other checks are in the module docstring. With no
     accepted loop the poses come back unchanged. ``hold_scale`` (metric maps): every keyframe keeps
     its scale and each loop's measured scale is replaced by ``s_j / s_i`` (module docstring);
-    ``scale_correction`` is then 1. Raises ``OptimizationError`` if gtsam fails or returns non-finite
+    ``scale_correction`` is then 1. ``smooth_scale`` (K-1,) multiplies the smoothness sigmas between
+    consecutive keyframes (a joined map's session boundaries: a weak link that only fixes the gauge of a
+    session no loop ties; None: 1). Raises ``OptimizationError`` if gtsam fails or returns non-finite
     poses, ValueError for inconsistent input shapes, ConfigError for an invalid config.
     """
     from scipy.special import chdtri  # deferred: scipy
@@ -375,7 +382,9 @@ def optimize_sim3_pose_graph(
                 ok[l] = False
                 logger.warning("loop %d (%d, %d) rejected: %s", l, loop_i[l], loop_j[l], reasons[l])
     cand = np.flatnonzero(ok)
-    lg = _LoopGraph(T_WC, loop_i[cand], loop_j[cand], T_CiCj[torch.from_numpy(cand)], cfg, hold_scale)
+    if smooth_scale is not None and np.asarray(smooth_scale).shape != (K - 1,):
+        raise ValueError(f"optimize_sim3_pose_graph: smooth_scale must have shape ({K - 1},)")
+    lg = _LoopGraph(T_WC, loop_i[cand], loop_j[cand], T_CiCj[torch.from_numpy(cand)], cfg, hold_scale, smooth_scale)
 
     # 3. robust solves with chi-square rejection (worst first) and re-admission
     chi2_thr = float(chdtri(SIM3_DOF, 1.0 - cfg.consistency_probability))  # chi2(7) quantile

@@ -11,7 +11,7 @@ from typing import Any, Literal, Optional
 from ..backend.config import BackendConfig
 from ..core.config import MAX_FRAMES, MAX_MEMORY_MIB, MAX_SCALAR, MAX_THREADS, load_config, ranged, with_sections
 from ..eval.trajectory import EvalConfig
-from ..export.mapfile import MapFeaturesConfig, MapMergeConfig
+from ..export.mapfile import MapFeaturesConfig, MapJoinConfig, MapMergeConfig
 from ..export.ply import PlyExportConfig
 from ..export.rerun import RerunConfig
 from ..frontends import FRONTEND_NAMES, family_config_classes
@@ -40,6 +40,7 @@ class OutputConfig:
     extend_map: Optional[str] = None  # the stored map this recording continues (`fgslam run --map MAP`; merged when localised in it)
     map_features: MapFeaturesConfig = field(default_factory=MapFeaturesConfig)  # keyframe features of a stored map
     map_merge: MapMergeConfig = field(default_factory=MapMergeConfig)  # `--map`: when the recording is merged into the stored map
+    map_join: MapJoinConfig = field(default_factory=MapJoinConfig)  # `--map`: the merged sessions optimised in one pose graph
     rerun: RerunConfig = field(default_factory=RerunConfig)  # what `fgslam run --rerun out.rrd` logs (fgslam/export/rerun.py)
 
 

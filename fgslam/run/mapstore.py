@@ -4,8 +4,11 @@ results are in (:func:`store_map`).
 ``--save-map``: the stored map of :mod:`fgslam.export.mapfile` (keyframes, structure, features,
 retrieval database, calibration, config and the run's alignment to its ground truth), written
 atomically. ``--map``: the recording is merged into that stored map when its keyframes localise in it
-(:func:`fgslam.localize.merge.merge_recording`): ``merge.json`` and ``merged_trajectory_tum.txt`` (the
-frames from the merge on, in the map's frame), and ``--save-map`` saves the merged map. A failure is
+(:func:`fgslam.localize.merge.merge_recording`) and the sessions are optimised together
+(:func:`fgslam.localize.merge.join_sessions`; ``output.map_join``): ``merge.json``,
+``merged_trajectory_tum.txt`` (the recording's frames from the merge on, in the map's frame) and
+``joint_trajectory_tum.txt`` (every session's frames, in the map's frame, after the joint
+optimisation), and ``--save-map`` saves the joined map. A failure is
 recorded among the run's output errors, never raised: the other outputs are written regardless."""
 
 from __future__ import annotations
@@ -22,8 +25,8 @@ from ..frontends.base import Frontend
 from ..io.trajectory import Trajectory, write_trajectory
 from ..localize.anchor import rigid_in_map
 from ..localize.localizer import LocalizeConfig
-from ..localize.merge import combine_maps, merge_recording
-from .files import MERGE_FILE, MERGED_TUM_FILE
+from ..localize.merge import combine_maps, join_sessions, merge_recording
+from .files import JOINT_TUM_FILE, MERGE_FILE, MERGED_TUM_FILE
 from .outputs import OutputWriter
 from .prepare import PreparedRun
 from .results import RunResults, RunState
@@ -51,7 +54,8 @@ def store_map(writer: OutputWriter, run: PreparedRun, frontend: Frontend, state:
         recording = build_stored_map(
             exported, dataset, sensor=config.sensor, family=frontend.name, config=to_dict(config),
             features=config.output.map_features, verification=config.loop_closure.verification,
-            groundtruth_alignment=alignment, frame_indices=np.array(sorted(state.frame_paths), dtype=np.int64))
+            groundtruth_alignment=alignment, frame_indices=np.array(sorted(state.frame_paths), dtype=np.int64),
+            trajectory=(traj.timestamps, traj.T_WC))
     except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
         writer.fail("stored_map", f"building the stored map failed: {type(exc).__name__}: {exc}")
         logger.error("could not build the stored map: %s: %s", type(exc).__name__, exc)
@@ -61,21 +65,37 @@ def store_map(writer: OutputWriter, run: PreparedRun, frontend: Frontend, state:
         try:
             stored = load_stored_map(config.output.extend_map)
             merge = merge_recording(stored, recording, LocalizeConfig(merge=config.output.map_merge))  # Sim(3) unless both metric
+            joint = None
+            if merge is not None and config.output.map_join.enabled:
+                joint = join_sessions(stored, recording, merge, config.output.map_join)
         except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
             writer.fail("merge", f"--map {config.output.extend_map}: {type(exc).__name__}: {exc}")
             logger.error("could not merge the recording into %s: %s", config.output.extend_map, exc)
             return
         info = {"map": config.output.extend_map, "merged": merge is not None,
-                **({} if merge is None else merge.to_dict())}
+                **({} if merge is None else merge.to_dict()),
+                **({} if joint is None else {"joint": joint.to_dict()})}
         if merge is None:
             notes.append(f"--map {config.output.extend_map}: no keyframe of the recording localised in it "
                          "consistently: not merged (the recording stays its own map)")
-        else:
+        elif joint is None:
             keep = traj.timestamps >= merge.merge_time
             merged = Trajectory(traj.timestamps[keep], rigid_in_map(merge.S_MR, traj.T_WC[keep]))
             path = out / MERGED_TUM_FILE
             writer.write("merged_trajectory", [path], lambda: write_trajectory(path, merged, "tum"))
             to_save = combine_maps(stored, recording, merge.S_MR)
+        else:
+            to_save = joint.joined
+            t_all, T_all = to_save.frame_poses()
+            ours = np.arange(len(t_all)) >= len(stored.frame_timestamps)  # the recording's frames come last
+            keep = ours & (t_all >= merge.merge_time)
+            merged = Trajectory(t_all[keep], T_all[keep])
+            path = out / MERGED_TUM_FILE
+            writer.write("merged_trajectory", [path], lambda: write_trajectory(path, merged, "tum"))
+            by_time = np.argsort(t_all, kind="stable")  # sessions of one clock (a dataset's parts) follow each other
+            joint_path = out / JOINT_TUM_FILE
+            writer.write("joint_trajectory", [joint_path],
+                         lambda: write_trajectory(joint_path, Trajectory(t_all[by_time], T_all[by_time]), "tum"))
         merge_path = out / MERGE_FILE
         writer.write("merge", [merge_path],
                      lambda: merge_path.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8"))

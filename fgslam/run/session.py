@@ -381,9 +381,11 @@ class Slam:
         if exported is None or exported.num_keyframes == 0:
             raise ConfigError(f"frontend '{self.system.frontend.name}' has no keyframes to save")
         config = self.config
+        traj = None if self._results is None else self._results.traj  # the frames: once finished
         stored = build_stored_map(exported, self._kept, sensor=config.sensor, family=self.system.frontend.name,
                                   config=to_dict(config), features=config.output.map_features,
-                                  verification=config.loop_closure.verification, frame_indices=self._kept.indices())
+                                  verification=config.loop_closure.verification, frame_indices=self._kept.indices(),
+                                  trajectory=None if traj is None else (traj.timestamps, traj.T_WC))
         save_stored_map(path, stored)
         return Path(path)
 
