@@ -42,31 +42,38 @@ def _drifted(T_true: np.ndarray, rate_rad: float, scale_rate: float = 0.0) -> np
     return T
 
 
-def _map(T_WC: np.ndarray, t0: float, frames_per_kf: int = 3, metric: bool = True) -> StoredMap:
-    """A stored map of keyframes ``T_WC`` (no features), one point per keyframe 1 m ahead of it, and
-    ``frames_per_kf`` frames per keyframe (the keyframe, then small steps ahead)."""
+def _map(T_WC: np.ndarray, t0: float, frames_per_kf: int = 3, metric: bool = True, depth: float | None = None,
+         units: float = 1.0) -> StoredMap:
+    """A stored map of keyframes ``T_WC`` (positions in ``units`` per metre), one point per keyframe
+    1 m ahead of it (a track from it), ``frames_per_kf`` frames per keyframe (the keyframe, then small
+    steps ahead), and with ``depth`` one feature per keyframe that deep (camera units), else none."""
+    T_WC = T_WC.copy()
+    T_WC[:, :3, 3] *= units
     K = len(T_WC)
     kf_t = t0 + np.arange(K) * 1.0
     t = (kf_t[:, None] + np.arange(frames_per_kf)[None] * 0.3).reshape(-1)
     step = np.eye(4)
-    step[2, 3] = 0.02
+    step[2, 3] = 0.02 * units
     T_frames = np.stack([T_WC[k] @ np.linalg.matrix_power(step, i) for k in range(K) for i in range(frames_per_kf)])
-    X = T_WC[:, :3, :3] @ np.array([0.0, 0.0, 1.0]) + T_WC[:, :3, 3]
+    X = T_WC[:, :3, :3] @ np.array([0.0, 0.0, units]) + T_WC[:, :3, 3]
     meta = dict(META, metric=metric, sensor="rgbd" if metric else "mono")
-    return StoredMap(meta, np.arange(K), kf_t, np.arange(K), T_WC, np.zeros(K + 1), np.zeros((0, 2)),
-                     np.zeros((0, 32)), np.zeros((0, 3)), np.zeros(K + 1), np.zeros(0), np.zeros(0),
+    n = 0 if depth is None else 1
+    X_C = np.tile([0.0, 0.0, depth if n else 0.0], (n * K, 1))
+    return StoredMap(meta, np.arange(K), kf_t, np.arange(K), T_WC, np.arange(K + 1) * n, np.zeros((n * K, 2)),
+                     np.zeros((n * K, 32)), X_C, np.zeros(K + 1), np.zeros(0), np.zeros(0),
                      X, np.zeros((K, 3)), np.arange(K), np.arange(K), np.zeros((K, 2)),
                      np.zeros(K, np.int64), *anchor_frames(kf_t, T_WC, (t, T_frames)))
 
 
-def _merge(T_rec_true: np.ndarray, stored_true: np.ndarray, rng, noise_m: float, every: int = 1) -> MapMerge:
+def _merge(T_rec_true: np.ndarray, stored_true: np.ndarray, rng, noise_m: float, every: int = 1,
+           units: float = 1.0) -> MapMerge:
     """Localisations of the recording's keyframes in the map (their true poses, ``noise_m`` of position
-    noise), each verified against the nearest stored keyframe; the merge transform is the identity
-    (the recording starts where the map has it)."""
+    noise, in ``units`` per metre), each verified against the nearest stored keyframe; the merge
+    transform is the identity (the recording starts where the map has it)."""
     links = []
     for k in range(0, len(T_rec_true), every):
         T = T_rec_true[k].copy()
-        T[:3, 3] += rng.normal(scale=noise_m, size=3)
+        T[:3, 3] = units * (T[:3, 3] + rng.normal(scale=noise_m, size=3))
         near = int(np.argmin(np.linalg.norm(stored_true[:, :3, 3] - T[:3, 3], axis=1)))
         links.append((k, near, T))
     return MapMerge(np.eye(4), 0, 0.0, len(links), len(links), len(T_rec_true), links)
@@ -107,6 +114,43 @@ def test_a_drifting_recording_is_corrected_and_the_map_kept(sessions):
     X_C = np.einsum("kij,kj->ki", np.linalg.inv(joined.T_WC[K1:])[:, :3, :3],
                     joined.points_X_W[K1:] - joined.T_WC[K1:, :3, 3])
     np.testing.assert_allclose(X_C, np.tile([0.0, 0.0, 1.0], (K2, 1)), atol=1e-9)  # still 1 m ahead
+
+
+def test_the_join_does_not_depend_on_the_map_units(sessions):
+    """A monocular map is in units of its own: the same scenes and localisations at 50 units per metre
+    (its features 50 times as deep) are joined as at 1 (the translation sigmas follow the depth)."""
+    stored_true, rec_true, _ = sessions
+    errors = []
+    for units in (1.0, 50.0):
+        rng = np.random.default_rng(7)
+        stored = _map(stored_true, 0.0, metric=False, depth=2.0 * units, units=units)
+        recording = _map(_drifted(rec_true, np.deg2rad(0.2)), 100.0, metric=False, depth=2.0 * units, units=units)
+        joint = join_sessions(stored, recording, _merge(rec_true, stored_true, rng, 0.01, units=units))
+        assert joint.accepted == joint.loops
+        errors.append(_position_error(joint.joined.T_WC[30:], rec_true * [1, 1, 1, units]) / units)
+    before = _position_error(_drifted(rec_true, np.deg2rad(0.2)), rec_true)
+    assert errors[0] < 0.5 * before and errors[1] == pytest.approx(errors[0], rel=0.02)
+
+
+def test_points_without_tracks_move_with_the_nearest_keyframe(sessions):
+    stored_true, rec_true, rng = sessions
+    stored = _map(stored_true, 0.0)
+    recording = _map(_drifted(rec_true, np.deg2rad(0.2)), 100.0)
+    recording.track_point, recording.track_kf, recording.track_uv = np.zeros(0), np.zeros(0), np.zeros((0, 2))
+    joined = join_sessions(stored, recording, _merge(rec_true, stored_true, rng, 0.01)).joined
+    K1 = stored.num_keyframes
+    T_before = np.concatenate([stored.T_WC, recording.T_WC])
+    X_before = recording.points_X_W
+    distance = np.linalg.norm(X_before[:, None] - T_before[None, :, :3, 3], axis=2)
+    owner = np.argmin(distance, axis=1)
+    unique = np.diff(np.sort(distance, axis=1)[:, :2], axis=1)[:, 0] > 1e-6  # the first keyframes coincide with stored ones
+    assert unique.sum() > 30
+    owner = owner[unique]
+    X_K = np.einsum("nij,nj->ni", np.linalg.inv(T_before[owner])[:, :3, :3], X_before[unique] - T_before[owner, :3, 3])
+    X_K_after = np.einsum("nij,nj->ni", np.linalg.inv(joined.T_WC[owner])[:, :3, :3],
+                          joined.points_X_W[K1:][unique] - joined.T_WC[owner, :3, 3])
+    np.testing.assert_allclose(X_K_after, X_K, atol=1e-9)  # each moved rigidly with its nearest keyframe
+    assert np.abs(joined.points_X_W[K1:] - X_before).max() > 0.01  # and they did move
 
 
 def test_a_metric_join_keeps_every_keyframe_scale_a_monocular_one_corrects_scale(sessions):

@@ -85,7 +85,7 @@ def main() -> None:
         one = evaluate(gt, both, cfg)
         report["extend"].update(joint=merge.get("joint"), joint_ate_m=joint.ate.rmse, joint_matched=joint.n_matched,
                                 ratio_to_single=joint.ate.rmse / single_ate, one_transform_ate_m=one.ate.rmse,
-                                one_transform_ratio_to_single=one.ate.rmse / single_ate)
+                                one_transform_matched=one.n_matched, one_transform_ratio_to_single=one.ate.rmse / single_ate)
     print(json.dumps(report))
 
 

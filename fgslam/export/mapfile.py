@@ -339,10 +339,13 @@ def load_stored_map(path: str | Path) -> StoredMap:
                 raise MapFileError(f"{path}: not a fgslam map (meta format {meta.get('format')!r}, "
                                    f"expected {MAP_FORMAT!r})" if isinstance(meta, dict) else
                                    f"{path}: not a fgslam map (meta is not a JSON object)")
-            if meta.get("version") != MAP_FORMAT_VERSION:
-                raise MapFileError(f"{path}: map format version {meta.get('version')}, this fgslam reads version "
-                                   f"{MAP_FORMAT_VERSION} (version 2 stores each recording's frames: run the map's "
-                                   "recording again with --save-map)")
+            version = meta.get("version")
+            if version != MAP_FORMAT_VERSION:
+                newer = isinstance(version, int) and version > MAP_FORMAT_VERSION
+                raise MapFileError(f"{path}: map format version {version}, this fgslam reads version "
+                                   f"{MAP_FORMAT_VERSION} " + ("(written by a newer fgslam: update fgslam)" if newer else
+                                                               "(version 2 stores each recording's frames: run the "
+                                                               "map's recording again with --save-map)"))
             missing = [name for name in ARRAYS if name not in z.files]
             if missing:
                 raise MapFileError(f"{path}: not a complete fgslam map (missing {', '.join(missing)})")

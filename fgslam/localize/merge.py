@@ -165,9 +165,10 @@ def join_sessions(stored: StoredMap, recording: StoredMap, merge: MapMerge,
     every session, smooth along each session, weakly linked across session boundaries
     (``session_link_sigma_multiple``), with the recording's localisations in the map as loops
     (``merge.links``: the pose of the recording keyframe relative to the stored keyframe it was verified
-    against, the scale being the recording's, which a localisation does not measure). Metric maps keep
-    every keyframe's scale (SE(3)); monocular ones are Sim(3). Keyframes, points (with their first
-    observing keyframe) and frames (with their anchor keyframe) move with the correction."""
+    against, the scale being the recording's, which a localisation does not measure). When both sides
+    are metric every keyframe keeps its scale (SE(3)); with a monocular side the graph is Sim(3).
+    Keyframes, points (with the keyframe of their first track; a point without tracks with the nearest
+    keyframe) and frames (with their anchor keyframe) move with the correction."""
     from ..core.lie import Sim3  # deferred: torch
     from ..loop.pose_graph import optimize_sim3_pose_graph  # deferred: torch, gtsam
 
@@ -190,13 +191,9 @@ def join_sessions(stored: StoredMap, recording: StoredMap, merge: MapMerge,
         pose_graph, hold_scale=stored.metric and recording.metric, smooth_scale=smooth_scale)
     T_new = result.T_WC.matrix().numpy()
     correction = T_new @ np.linalg.inv(T_old)  # X_W' = C_k X_W for what keyframe k carries
-    points_kf = _first_observer(joined, K)
-    X = joined.points_X_W
-    has = points_kf >= 0
-    C = correction[points_kf[has]]
-    X_new = X.copy()
-    X_new[has] = np.einsum("nij,nj->ni", C[:, :3, :3], X[has]) + C[:, :3, 3]
-    joined.T_WC, joined.points_X_W = T_new, X_new
+    C = correction[_point_owners(joined)]
+    joined.points_X_W = np.einsum("nij,nj->ni", C[:, :3, :3], joined.points_X_W) + C[:, :3, 3]
+    joined.T_WC = T_new
     moved = np.linalg.norm(T_new[:, :3, 3] - T_old[:, :3, 3], axis=1)
     logger.info("joint optimisation of %d sessions: %d keyframes, %d of %d loops accepted; stored keyframes moved "
                 "up to %.4g, recording keyframes up to %.4g", joined.sessions, K, int(result.accepted.sum()),
@@ -208,7 +205,8 @@ def join_sessions(stored: StoredMap, recording: StoredMap, merge: MapMerge,
 def _in_map_units(config: MapJoinConfig, stored: StoredMap):
     """``config.pose_graph`` with its translation sigmas scaled by the stored map's median feature depth
     over ``config.reference_depth`` (unchanged for a map without 3-D features)."""
-    z = stored.feat_X_C[:, 2]
+    kf_scale = np.cbrt(np.linalg.det(stored.T_WC[:, :3, :3]))  # camera units -> map units per keyframe
+    z = stored.feat_X_C[:, 2] * np.repeat(kf_scale, np.diff(stored.feat_ptr))
     z = z[np.isfinite(z) & (z > 0)]
     if z.size == 0:
         return config.pose_graph
@@ -221,12 +219,19 @@ def _in_map_units(config: MapJoinConfig, stored: StoredMap):
     return replace(pg, loop_sigmas=scaled(pg.loop_sigmas), smooth_sigmas=scaled(pg.smooth_sigmas))
 
 
-def _first_observer(stored: StoredMap, K: int) -> np.ndarray:
-    """(M,) the position of the keyframe of each point's first track (-1: no track)."""
-    position = np.full(int(stored.kf_ids.max()) + 1 if K else 0, -1, np.int64)
-    position[stored.kf_ids] = np.arange(K)
-    first = np.full(len(stored.points_X_W), -1, np.int64)
+def _point_owners(stored: StoredMap) -> np.ndarray:
+    """(M,) the keyframe position each point moves with: the keyframe of its first track, else (a
+    family that exports points without tracks) the keyframe whose camera is nearest."""
+    from scipy.spatial import cKDTree  # deferred: scipy
+
+    K, M = stored.num_keyframes, len(stored.points_X_W)
+    owner = np.full(M, -1, np.int64)
     if len(stored.track_point):
-        order = np.argsort(stored.track_point, kind="stable")[::-1]  # the first track of a point is written last
-        first[stored.track_point[order]] = position[stored.track_kf[order]]
-    return first
+        position = np.full(int(stored.kf_ids.max()) + 1, -1, np.int64)
+        position[stored.kf_ids] = np.arange(K)
+        points, first = np.unique(stored.track_point, return_index=True)
+        owner[points] = position[stored.track_kf[first]]
+    lone = np.flatnonzero(owner < 0)
+    if lone.size and K:
+        owner[lone] = cKDTree(stored.T_WC[:, :3, 3]).query(stored.points_X_W[lone])[1]
+    return owner

@@ -65,13 +65,18 @@ def store_map(writer: OutputWriter, run: PreparedRun, frontend: Frontend, state:
         try:
             stored = load_stored_map(config.output.extend_map)
             merge = merge_recording(stored, recording, LocalizeConfig(merge=config.output.map_merge))  # Sim(3) unless both metric
-            joint = None
-            if merge is not None and config.output.map_join.enabled:
-                joint = join_sessions(stored, recording, merge, config.output.map_join)
         except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
             writer.fail("merge", f"--map {config.output.extend_map}: {type(exc).__name__}: {exc}")
             logger.error("could not merge the recording into %s: %s", config.output.extend_map, exc)
             return
+        joint = None
+        if merge is not None and config.output.map_join.enabled:
+            try:
+                joint = join_sessions(stored, recording, merge, config.output.map_join)
+            except Exception as exc:  # noqa: BLE001 - a logged recovery: the merge by one transform is written
+                why = f"the joint optimisation failed ({type(exc).__name__}: {exc}): merged by one transform"
+                notes.append(f"--map {config.output.extend_map}: {why}")
+                logger.warning("%s", why)
         info = {"map": config.output.extend_map, "merged": merge is not None,
                 **({} if merge is None else merge.to_dict()),
                 **({} if joint is None else {"joint": joint.to_dict()})}
@@ -80,20 +85,19 @@ def store_map(writer: OutputWriter, run: PreparedRun, frontend: Frontend, state:
                          "consistently: not merged (the recording stays its own map)")
         elif joint is None:
             keep = traj.timestamps >= merge.merge_time
-            merged = Trajectory(traj.timestamps[keep], rigid_in_map(merge.S_MR, traj.T_WC[keep]))
             path = out / MERGED_TUM_FILE
-            writer.write("merged_trajectory", [path], lambda: write_trajectory(path, merged, "tum"))
+            writer.write("merged_trajectory", [path], lambda: write_trajectory(
+                path, Trajectory(traj.timestamps[keep], rigid_in_map(merge.S_MR, traj.T_WC[keep])), "tum"))
             to_save = combine_maps(stored, recording, merge.S_MR)
         else:
             to_save = joint.joined
             t_all, T_all = to_save.frame_poses()
             ours = np.arange(len(t_all)) >= len(stored.frame_timestamps)  # the recording's frames come last
             keep = ours & (t_all >= merge.merge_time)
-            merged = Trajectory(t_all[keep], T_all[keep])
-            path = out / MERGED_TUM_FILE
-            writer.write("merged_trajectory", [path], lambda: write_trajectory(path, merged, "tum"))
             by_time = np.argsort(t_all, kind="stable")  # sessions of one clock (a dataset's parts) follow each other
-            joint_path = out / JOINT_TUM_FILE
+            path, joint_path = out / MERGED_TUM_FILE, out / JOINT_TUM_FILE
+            writer.write("merged_trajectory", [path],
+                         lambda: write_trajectory(path, Trajectory(t_all[keep], T_all[keep]), "tum"))
             writer.write("joint_trajectory", [joint_path],
                          lambda: write_trajectory(joint_path, Trajectory(t_all[by_time], T_all[by_time]), "tum"))
         merge_path = out / MERGE_FILE

@@ -368,6 +368,7 @@ class Slam:
 
     def save_map(self, path: str | Path) -> Path:
         """Save the stored map (``fgslam run --save-map``) for :meth:`localize_in` and ``fgslam localize``.
+        After :meth:`finish` it holds every frame's pose too (before it, the keyframes alone).
 
         Raises:
             ConfigError: the frames were not kept (``keep_frames=False``) or there are no keyframes.
