@@ -62,7 +62,7 @@ from ..core.errors import DataError
 from ..loop.bow import BowConfig, KeyframeFeatures, PlaceRecognizer
 from ..loop.features import OrbConfig, to_grey_uint8
 from ..loop.records import PoseGraphConfig, VerificationConfig
-from ..core.mapdata import MapExport
+from ..core.mapdata import MapExport, rigid_poses
 from .inplace import written_in_place
 
 logger = logging.getLogger(__name__)
@@ -191,11 +191,9 @@ class StoredMap:
 
     def frame_poses(self) -> tuple[np.ndarray, np.ndarray]:
         """``(timestamps (F,), T_WC (F, 4, 4))`` of the stored frames in the map's frame: each frame's
-        keyframe pose times its relative pose, the rotation block made a rotation (a Sim(3) keyframe
-        pose carries its scale into the position only)."""
-        T = self.T_WC[self.frame_kf] @ self.frame_T_KC
-        T[:, :3, :3] /= np.cbrt(np.linalg.det(T[:, :3, :3]))[:, None, None]
-        return self.frame_timestamps.copy(), T
+        keyframe pose times its relative pose, made rigid (:func:`fgslam.core.mapdata.rigid_poses`: a
+        Sim(3) keyframe pose carries its scale into the position only)."""
+        return self.frame_timestamps.copy(), rigid_poses(self.T_WC[self.frame_kf] @ self.frame_T_KC)
 
     @property
     def num_keyframes(self) -> int:

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from ..core.mapdata import rigid_poses
 from ..export.mapfile import MapJoinConfig, StoredMap
 from .anchor import mean_rotation, scale_translation
 from .localizer import LocalizeConfig, MapLocalizer
@@ -153,8 +154,8 @@ class JointResult:
 
 def _similarity(T: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """Poses ``T`` (N, 4, 4) with their rotation blocks scaled by ``scale`` (N,): Sim(3) of that scale."""
-    S = T.copy()
-    S[:, :3, :3] = T[:, :3, :3] / np.cbrt(np.linalg.det(T[:, :3, :3]))[:, None, None] * scale[:, None, None]
+    S = rigid_poses(T)
+    S[:, :3, :3] *= scale[:, None, None]
     return S
 
 

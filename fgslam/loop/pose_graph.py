@@ -364,6 +364,8 @@ def optimize_sim3_pose_graph(
     L = loop_i.size
     if loop_j.size != L or tuple(T_CiCj.shape) != (L,):
         raise ValueError(f"optimize_sim3_pose_graph: {L} loop_i, {loop_j.size} loop_j, T_CiCj {tuple(T_CiCj.shape)}")
+    if smooth_scale is not None and np.asarray(smooth_scale).shape != (K - 1,):
+        raise ValueError(f"optimize_sim3_pose_graph: smooth_scale must have shape ({K - 1},)")
     t_start = time.perf_counter()
     T_CiCj = T_CiCj.to(torch.float64)
     if hold_scale and L:
@@ -382,8 +384,6 @@ def optimize_sim3_pose_graph(
                 ok[l] = False
                 logger.warning("loop %d (%d, %d) rejected: %s", l, loop_i[l], loop_j[l], reasons[l])
     cand = np.flatnonzero(ok)
-    if smooth_scale is not None and np.asarray(smooth_scale).shape != (K - 1,):
-        raise ValueError(f"optimize_sim3_pose_graph: smooth_scale must have shape ({K - 1},)")
     lg = _LoopGraph(T_WC, loop_i[cand], loop_j[cand], T_CiCj[torch.from_numpy(cand)], cfg, hold_scale, smooth_scale)
 
     # 3. robust solves with chi-square rejection (worst first) and re-admission
