@@ -128,6 +128,19 @@ def test_blank_frames_and_depth_holes_are_counted_and_recovered(room, caplog):
     assert res.ate.rmse < 0.02
 
 
+def test_a_long_loss_restarts_the_map_and_the_status_says_so(room):
+    """``tracking.max_lost`` failed frames in a row: the map restarts, and that frame's status says a
+    new map starts there (a stored map keeps the maps as sessions of their own)."""
+    frames = list(load(room, "rgbd"))
+    for f in frames[20:24]:
+        f.image = np.full_like(f.image, 128)
+    config = DenseConfig()
+    config.tracking.max_lost = 2
+    fe, statuses = run(frames, "rgbd", config)
+    restarts = [s.index for s in statuses if any(e.startswith("map restarted") for e in s.events)]
+    assert restarts[:1] == [21] and [s.index for s in statuses if s.new_map] == restarts
+
+
 def test_registry_presets_swap_and_runner_outputs(room, tmp_path):
     """``frontend: dense`` from the registry, ``-o frontend=dense`` on a patch preset, and a run writing
     depth/<kf>.png (16-bit millimetres) and points.ply."""

@@ -82,6 +82,7 @@ def test_long_loss_reinitialises_without_crash(room):
     fe = PatchFrontend(cfg, sensor_mode="rgbd", backend=Backend(BackendConfig()))
     statuses = [fe.process(f) for f in fed]
     assert any("re-initialising" in e for s in statuses for e in s.events)
+    assert [s.index for s in statuses if s.new_map] == [s.index for s in statuses if "re-initialising" in s.events]
     assert fe.num_failures >= 3
     assert all(s.pose_source == "tracked" for s in statuses[22:])  # a new map continues the trajectory
     stamps, poses, _ = fe.trajectory()

@@ -10,8 +10,15 @@ both sessions in the map's frame; evaluated with the run's alignment: SE(3), Sim
 presets) with a single run over 0-599, and with the recording moved by the one merge transform alone
 (``-o output.map_join.enabled=false``: the map run's frames, then the recording's from the merge on). Each step is a plain ``fgslam`` command in its own process, as a user would run it.
 
+``--lost A:B``: the recording again with its frames A up to B (counted from its first; B not included) black, colour and
+depth, a covered camera: the run loses its track and starts a new map; reported under ``extend_lost``
+are that run's parts (``merge.json`` ``parts``) and the joint trajectory's ATE over the recording's
+frames, with the join and with one transform. ``--baseline DIR`` runs the same ``--map`` steps with the
+fgslam source tree DIR (``git worktree add DIR main``) for comparison.
+
 Usage:
-  nice -n 5 .venv/bin/python tools/bench_maps.py --work /tmp/bench_maps [--preset patch_7scenes_mono]
+  nice -n 5 .venv/bin/python tools/bench_maps.py --work /tmp/bench_maps [--preset patch_7scenes_mono] \
+      [--lost 100:140 [--baseline DIR]]
 """
 
 from __future__ import annotations
@@ -32,8 +39,10 @@ LOCALIZE_KEYS = ("frames", "localised", "tracked", "relocalised", "odometry", "l
                  "frames_per_cpu_s", "setup_cpu_s", "evaluation")
 
 
-def fgslam(*args: str) -> dict:
-    proc = subprocess.run([sys.executable, "-m", "fgslam", *args, "--json"], capture_output=True, text=True)
+def fgslam(*args: str, tree: Path | None = None) -> dict:
+    env = dict(os.environ, **({} if tree is None else {"PYTHONPATH": str(tree.resolve())}))
+    proc = subprocess.run([sys.executable, "-m", "fgslam", *args, "--json"], capture_output=True, text=True, env=env,
+                          cwd=tree)
     if proc.returncode != 0:
         raise SystemExit(f"fgslam {' '.join(args)} failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -44,12 +53,14 @@ def main() -> None:
     ap.add_argument("--work", required=True, type=Path)
     ap.add_argument("--preset", default="patch_7scenes_rgbd")
     ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--lost", default=None, metavar="A:B", help="black frames A up to B (not included) of the recording (extend_lost)")
+    ap.add_argument("--baseline", type=Path, default=None, metavar="DIR", help="fgslam source tree to compare --lost with")
     args = ap.parse_args()
     from fgslam.eval.trajectory import EvalConfig, evaluate
     from fgslam.io.datasets import open_dataset
     from fgslam.io.trajectory import Trajectory, read_trajectory
 
-    w, d, p = args.work, str(args.data), args.preset
+    w, d, p = args.work.resolve(), str(args.data.resolve()), args.preset
     w.mkdir(parents=True, exist_ok=True)
     stored, merged_map = w / "map.fgmap", w / "merged.fgmap"
     common = ["--no-progress", "--overwrite"]
@@ -86,7 +97,67 @@ def main() -> None:
         report["extend"].update(joint=merge.get("joint"), joint_ate_m=joint.ate.rmse, joint_matched=joint.n_matched,
                                 ratio_to_single=joint.ate.rmse / single_ate, one_transform_ate_m=one.ate.rmse,
                                 one_transform_matched=one.n_matched, one_transform_ratio_to_single=one.ate.rmse / single_ate)
+    if args.lost is not None:
+        a, b = (int(v) for v in args.lost.split(":"))
+        report["extend_lost"] = {"frames": [SPLIT + a, SPLIT + b]}
+        lost_data = covered_copy(args.data.resolve(), w / "lost_data", range(SPLIT + a, SPLIT + b))
+        from fgslam.export.mapfile import load_stored_map
+
+        map_meta = json.dumps(load_stored_map(stored).meta)
+        gt = open_dataset(args.data).groundtruth
+        for name, tree in (("new", None), ("baseline", args.baseline)):
+            if name == "baseline" and tree is None:
+                continue
+            for how, extra in (("joint", []), ("one_transform", ["-o", "output.map_join.enabled=false"])):
+                out = w / f"ext_lost_{name}_{how}"
+                summary = fgslam("run", p, "--data", str(lost_data), "--out", str(out), *common, "-o",
+                                 f"dataset.start={SPLIT}", "--map", str(stored), *extra, tree=tree)
+                merge_lost = json.loads((out / "merge.json").read_text())
+                row = {"events": summary.get("events"), "merged": merge_lost["merged"],
+                       "parts": merge_lost.get("parts"), "consistent_keyframes": merge_lost.get("consistent_keyframes")}
+                if merge_lost["merged"]:
+                    rec = read_trajectory(out / "merged_trajectory_tum.txt", "tum")
+                    A = np.asarray(json.loads(map_meta)["groundtruth_alignment"]["matrix"])
+                    row.update(recording_ate_in_map_m=ate_in_map(gt, rec, A), recording_frames_in_map=len(rec),
+                               recording_frames_posed=summary["frames_with_pose"])
+                report["extend_lost"][f"{name}_{how}"] = row
     print(json.dumps(report))
+
+
+def ate_in_map(gt, est, A: np.ndarray) -> float:
+    """RMSE of ``est``'s positions (the map's frame) moved by the map run's alignment ``A`` (4x4) against
+    the ground truth at the same times (the localisation benchmark's measure: no alignment of its own)."""
+    from fgslam.io.datasets.common import same_frame_stamps
+
+    keep = np.flatnonzero(same_frame_stamps(est.timestamps, gt.timestamps))
+    if keep.size == 0:
+        return float("nan")
+    at = np.clip(np.searchsorted(gt.timestamps, est.timestamps[keep]), 1, len(gt) - 1)
+    at -= np.abs(gt.timestamps[at - 1] - est.timestamps[keep]) < np.abs(gt.timestamps[at] - est.timestamps[keep])
+    P = est.T_WC[keep, :3, 3] @ A[:3, :3].T + A[:3, 3]
+    return float(np.sqrt(np.mean(np.sum((P - gt.T_WC[at, :3, 3]) ** 2, axis=1))))
+
+
+def covered_copy(data: Path, dst: Path, lost: range) -> Path:
+    """``data`` (7-Scenes layout) with the colour and depth images of frames ``lost`` black: links to
+    every other file."""
+    import cv2
+
+    for seq in sorted(q for q in data.iterdir() if q.is_dir()):
+        (dst / seq.name).mkdir(parents=True, exist_ok=True)
+        for f in sorted(seq.iterdir()):
+            target = dst / seq.name / f.name
+            if target.exists() or target.is_symlink():
+                target.unlink()
+            index = int(f.name.split(".")[0].split("-")[1])
+            if index in lost and (f.name.endswith(".color.jpg") or f.name.endswith(".depth.png")):
+                cv2.imwrite(str(target), np.zeros_like(cv2.imread(str(f), cv2.IMREAD_UNCHANGED)))
+            else:
+                target.symlink_to(f.resolve())
+    for f in data.iterdir():
+        if f.is_file() and not (dst / f.name).exists():
+            (dst / f.name).symlink_to(f.resolve())
+    return dst
 
 
 if __name__ == "__main__":

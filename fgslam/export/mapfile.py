@@ -31,11 +31,12 @@ triangulation). Retrieval database, with offsets ``bow_ptr`` (K+1,) int64: ``bow
 ``track_point`` / ``track_kf`` (T,) int64 and ``track_uv`` (T, 2) float64 (keyframe pixel of each
 observation).
 
-Sessions and frames (version 2): ``kf_session`` (K,) int64, the recording each keyframe came from
-(0: the map's first; a map extended with ``fgslam run --map`` holds several, joined in one pose graph,
+Sessions and frames (version 2): ``kf_session`` (K,) int64, the session each keyframe came from: a
+recording, or a part of one whose run started a new map after a lost track (0: the map's first; a map
+extended with ``fgslam run --map`` holds several, joined in one pose graph,
 :func:`fgslam.localize.merge.join_sessions`). Every frame the recordings posed, in time order per
 session: ``frame_timestamps`` (F,) float64 s, ``frame_kf`` (F,) int64 the position of its anchor
-keyframe (the last keyframe at or before it) and ``frame_T_KC`` (F, 4, 4) float64 its pose relative
+keyframe (the last keyframe of its own map at or before it, :func:`anchor_frames`) and ``frame_T_KC`` (F, 4, 4) float64 its pose relative
 to that keyframe (``T_WC = T_WC[frame_kf] frame_T_KC``, :meth:`StoredMap.frame_poses`), so the frames
 move with their keyframes when a join corrects them.
 
@@ -186,7 +187,8 @@ class StoredMap:
 
     @property
     def sessions(self) -> int:
-        """The recordings joined in this map (1 for a map of one run)."""
+        """The sessions joined in this map: its recordings, and the parts of a recording whose run started
+        a new map after a lost track (1 for a map of one run that kept its track)."""
         return int(self.kf_session.max()) + 1 if self.kf_session.size else 1
 
     def frame_poses(self) -> tuple[np.ndarray, np.ndarray]:
@@ -444,30 +446,53 @@ def _frame_range(dataset) -> dict[str, Any]:
     return {"start": int(cfg.start), "end": None if cfg.end is None else int(cfg.end), "stride": int(cfg.stride)}
 
 
-def anchor_frames(kf_timestamps: np.ndarray, T_WK: np.ndarray,
-                  trajectory: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def anchor_frames(kf_timestamps: np.ndarray, T_WK: np.ndarray, trajectory: tuple[np.ndarray, np.ndarray] | None,
+                  map_starts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(frame_timestamps, frame_kf, frame_T_KC)`` of a run's frames ``trajectory = (timestamps, T_WC)``:
     each frame's anchor is the last keyframe at or before it (the first keyframe for frames before
-    it), its pose kept relative to that keyframe. No trajectory or no keyframe: no frames."""
+    it), its pose kept relative to that keyframe. With ``map_starts`` (the times the run started a new
+    map, :func:`map_segments`) the anchor is one of the frame's own map when that map has a keyframe. No
+    trajectory or no keyframe: no frames."""
     if trajectory is None or len(kf_timestamps) == 0:
         return np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 4, 4))
     t, T_WC = np.asarray(trajectory[0], np.float64), np.asarray(trajectory[1], np.float64)
-    by_time = np.argsort(kf_timestamps, kind="stable")
-    before = np.searchsorted(np.asarray(kf_timestamps)[by_time], t, side="right") - 1
-    anchor = by_time[np.clip(before, 0, len(kf_timestamps) - 1)]
+    kf_t = np.asarray(kf_timestamps, np.float64)
+    by_time = np.argsort(kf_t, kind="stable")
+    before = np.searchsorted(kf_t[by_time], t, side="right") - 1
+    anchor = by_time[np.clip(before, 0, len(kf_t) - 1)]
+    if map_starts is not None and len(map_starts):
+        kf_seg, frame_seg = map_segments(kf_t, map_starts), map_segments(t, map_starts)
+        for s in np.unique(frame_seg):
+            own = by_time[kf_seg[by_time] == s]  # the segment's keyframes by time
+            if own.size == 0:
+                continue
+            rows = np.flatnonzero(frame_seg == s)
+            at = np.searchsorted(kf_t[own], t[rows], side="right") - 1
+            anchor[rows] = own[np.clip(at, 0, own.size - 1)]
     return t, anchor.astype(np.int64), np.linalg.inv(T_WK[anchor]) @ T_WC
+
+
+def map_segments(timestamps: np.ndarray, map_starts: np.ndarray | None) -> np.ndarray:
+    """(N,) int64: the part of a recording each time belongs to, 0 before the first of ``map_starts``
+    (the times a run started a new map after a lost track), k from the k-th on."""
+    starts = np.sort(np.asarray([] if map_starts is None else map_starts, np.float64))
+    return np.searchsorted(starts, np.asarray(timestamps, np.float64), side="right").astype(np.int64)
 
 
 def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, config: dict,
                      features: MapFeaturesConfig, verification: VerificationConfig | None = None, groundtruth_alignment: dict | None = None,
                      frame_indices: np.ndarray | None = None,
-                     trajectory: tuple[np.ndarray, np.ndarray] | None = None) -> StoredMap:
+                     trajectory: tuple[np.ndarray, np.ndarray] | None = None,
+                     map_starts: np.ndarray | None = None) -> StoredMap:
     """The stored map of a run: the frontend's keyframes and structure (``exported``), the keyframe
     images re-read from ``dataset`` (the frame nearest to each keyframe's time among
     ``frame_indices``, default all) for their features, 3-D points from the sensor depth (``rgbd``)
     or triangulated between neighbouring keyframes (``verification``:
     :class:`fgslam.loop.records.VerificationConfig`), and their BoW vectors; ``trajectory``
-    (``(timestamps, T_WC)`` of the run's frames, in the keyframes' frame) gives the stored frames."""
+    (``(timestamps, T_WC)`` of the run's frames, in the keyframes' frame) gives the stored frames;
+    ``map_starts`` (the times the run started a new map after a lost track) makes each of its maps a
+    session of its own (``kf_session``; its points triangulated within it), which a later ``--map`` run
+    places in the map by its own localisations."""
     features.validate()
     calib = dataset.calibration
     K_feat, w_feat, h_feat = feature_camera(calib.K, calib.width, calib.height, features.image_scale)
@@ -478,6 +503,7 @@ def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, 
     kf_ids = exported.kf_ids[order]
     stamps = exported.kf_timestamps[order]
     T_WC = exported.T_WC[order]
+    kf_session = np.unique(map_segments(stamps, map_starts), return_inverse=True)[1].astype(np.int64)  # maps with keyframes
     t_sel = t[indices]
     kf_frame = indices[np.argmin(np.abs(t_sel[None, :] - stamps[:, None]), axis=1)] if len(indices) else \
         np.full(len(kf_ids), -1, np.int64)
@@ -497,10 +523,10 @@ def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, 
         table = {int(i): LoopKeyframe(int(i), float(s), None, K_feat, (), f) for i, s, f in zip(kf_ids, stamps, feats)}
         verifier = Verifier(verification or VerificationConfig(), table, threading.RLock(), metric=sensor != "mono")
         poses = {int(i): T for i, T in zip(kf_ids, T_WC)}
-        id_order = [int(i) for i in kf_ids]
+        id_order = {int(s): [int(i) for i in kf_ids[kf_session == s]] for s in np.unique(kf_session)}  # per map
         for k, X in enumerate(X_list):
-            if X is None:
-                X_tri, ok = verifier.triangulate(table[int(kf_ids[k])], id_order, poses)
+            if X is None:  # the neighbours of its own map
+                X_tri, ok = verifier.triangulate(table[int(kf_ids[k])], id_order[int(kf_session[k])], poses)
                 X_tri = X_tri.astype(np.float32)
                 X_tri[~ok] = np.nan
                 X_list[k] = X_tri
@@ -531,7 +557,7 @@ def build_stored_map(exported: MapExport, dataset, *, sensor: str, family: str, 
         np.concatenate([[0], np.cumsum(bow_counts)]), cat([f.bow.words for f in feats], (0,), np.int32),
         cat([f.bow.weights for f in feats], (0,), np.float64),
         exported.X_W, exported.colour, exported.track_point, exported.track_kf, exported.track_uv,
-        np.zeros(len(kf_ids), np.int64), *anchor_frames(stamps, T_WC, trajectory))
+        kf_session, *anchor_frames(stamps, T_WC, trajectory, map_starts))
     n_3d = int(np.isfinite(stored.feat_X_C[:, 0]).sum())
     logger.info("stored map: %d keyframes, %d features (%d with a 3-D point), %d points", stored.num_keyframes,
                 len(stored.feat_uv), n_3d, len(stored.points_X_W))

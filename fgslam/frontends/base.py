@@ -49,6 +49,8 @@ class FrameStatus:
         is_keyframe: whether the frame is currently kept as a keyframe.
         num_valid: number of valid measurements (patches / pixels / matches) used for this frame.
         events: human-readable notes (initialised, tracking lost, keyframe removed, ...).
+        new_map: the frontend started a new map at this frame (after a lost track): its keyframes from
+            here on are not tied to the earlier ones (a stored map keeps them as a session of their own).
     """
 
     index: int
@@ -58,6 +60,7 @@ class FrameStatus:
     is_keyframe: bool = False
     num_valid: int = 0
     events: list[str] = field(default_factory=list)
+    new_map: bool = False
 
 
 class LoopPort(Protocol):

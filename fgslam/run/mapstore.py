@@ -23,9 +23,8 @@ from ..core.config import to_dict
 from ..export.mapfile import build_stored_map, load_stored_map, save_stored_map
 from ..frontends.base import Frontend
 from ..io.trajectory import Trajectory, write_trajectory
-from ..localize.anchor import rigid_in_map
 from ..localize.localizer import LocalizeConfig
-from ..localize.merge import combine_maps, join_sessions, merge_recording
+from ..localize.merge import combine_maps, join_sessions, merge_recording, placed_parts
 from .files import JOINT_TUM_FILE, MERGE_FILE, MERGED_TUM_FILE
 from .outputs import OutputWriter
 from .prepare import PreparedRun
@@ -55,7 +54,7 @@ def store_map(writer: OutputWriter, run: PreparedRun, frontend: Frontend, state:
             exported, dataset, sensor=config.sensor, family=frontend.name, config=to_dict(config),
             features=config.output.map_features, verification=config.loop_closure.verification,
             groundtruth_alignment=alignment, frame_indices=np.array(sorted(state.frame_paths), dtype=np.int64),
-            trajectory=(traj.timestamps, traj.T_WC))
+            trajectory=(traj.timestamps, traj.T_WC), map_starts=np.asarray(state.map_starts))
     except Exception as exc:  # noqa: BLE001 - recorded; the other outputs are still written
         writer.fail("stored_map", f"building the stored map failed: {type(exc).__name__}: {exc}")
         logger.error("could not build the stored map: %s: %s", type(exc).__name__, exc)
@@ -83,23 +82,23 @@ def store_map(writer: OutputWriter, run: PreparedRun, frontend: Frontend, state:
         if merge is None:
             notes.append(f"--map {config.output.extend_map}: no keyframe of the recording localised in it "
                          "consistently: not merged (the recording stays its own map)")
-        elif joint is None:
-            keep = traj.timestamps >= merge.merge_time
-            path = out / MERGED_TUM_FILE
-            writer.write("merged_trajectory", [path], lambda: write_trajectory(
-                path, Trajectory(traj.timestamps[keep], rigid_in_map(merge.S_MR, traj.T_WC[keep])), "tum"))
-            to_save = combine_maps(stored, recording, merge.S_MR)
-        else:
-            to_save = joint.joined
+        else:  # the recording's frames in the map's frame: with their keyframes, moved by the join or the merge
+            if joint is None:
+                placed, _, S_MR_by_part = placed_parts(recording, merge)
+                to_save = combine_maps(stored, placed, S_MR_by_part)
+            else:
+                to_save = joint.joined
             t_all, T_all = to_save.frame_poses()
             ours = np.arange(len(t_all)) >= len(stored.frame_timestamps)  # the recording's frames come last
             keep = ours & (t_all >= merge.merge_time)
-            by_time = np.argsort(t_all, kind="stable")  # sessions of one clock (a dataset's parts) follow each other
-            path, joint_path = out / MERGED_TUM_FILE, out / JOINT_TUM_FILE
+            path = out / MERGED_TUM_FILE
             writer.write("merged_trajectory", [path],
                          lambda: write_trajectory(path, Trajectory(t_all[keep], T_all[keep]), "tum"))
-            writer.write("joint_trajectory", [joint_path],
-                         lambda: write_trajectory(joint_path, Trajectory(t_all[by_time], T_all[by_time]), "tum"))
+            if joint is not None:
+                by_time = np.argsort(t_all, kind="stable")  # sessions of one clock (a dataset's parts) follow each other
+                joint_path = out / JOINT_TUM_FILE
+                writer.write("joint_trajectory", [joint_path],
+                             lambda: write_trajectory(joint_path, Trajectory(t_all[by_time], T_all[by_time]), "tum"))
         merge_path = out / MERGE_FILE
         writer.write("merge", [merge_path],
                      lambda: merge_path.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8"))

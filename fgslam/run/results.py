@@ -120,6 +120,7 @@ class RunState:
     load_average: list[float] = field(default_factory=list)  # os.getloadavg() at the start (shared machines)
     latency_s: list[float] = field(default_factory=list)  # live runs: each frame's arrival to its result, seconds
     live_dropped: int = 0  # live runs: frames dropped because the system was behind
+    map_starts: list[float] = field(default_factory=list)  # times of the frames where the frontend started a new map
 
 
 @dataclass

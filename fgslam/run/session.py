@@ -386,7 +386,8 @@ class Slam:
         stored = build_stored_map(exported, self._kept, sensor=config.sensor, family=self.system.frontend.name,
                                   config=to_dict(config), features=config.output.map_features,
                                   verification=config.loop_closure.verification, frame_indices=self._kept.indices(),
-                                  trajectory=None if traj is None else (traj.timestamps, traj.T_WC))
+                                  trajectory=None if traj is None else (traj.timestamps, traj.T_WC),
+                                  map_starts=np.asarray(self.state.map_starts))
         save_stored_map(path, stored)
         return Path(path)
 
@@ -411,6 +412,8 @@ def _record(status: FrameStatus, timestamp: float, state: RunState) -> Optional[
     for event in status.events:
         state.events[event_kind(event)] += 1
         logger.debug("frame %d: %s", status.index, event)
+    if status.new_map:
+        state.map_starts.append(float(timestamp))
     if status.pose_source == "motion_model":
         state.failure_frames.append(status.index)
         n = len(state.failure_frames)

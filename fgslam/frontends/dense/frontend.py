@@ -299,6 +299,7 @@ class DenseFrontend(BackendFrontend):
             st.records[fid] = RelativePose(ref, np.linalg.inv(st.keyframe_T_WC(ref)) @ T_WC_pred)
             st.last_fid = fid
         logger.info("frame %d: %s", frame.index, reason)
-        if st.lost >= self.config.tracking.max_lost and g is not None and g.keyframes:
+        restart = st.lost >= self.config.tracking.max_lost and g is not None and bool(g.keyframes)
+        if restart:
             events.append(self.starts.restart(fid, frame))
-        return st.status(fid, frame, "motion_model", events=events)
+        return st.status(fid, frame, "motion_model", events=events, new_map=restart)

@@ -136,13 +136,13 @@ class DenseState:
         """The current ``T_WC`` of input frame ``fid`` from its record, or None."""
         return resolve_pose(fid, self.records, self.keyframe_T_WC, {})
 
-    def status(self, fid, frame, source, is_keyframe=False, num_valid=0, events=None) -> FrameStatus:
+    def status(self, fid, frame, source, is_keyframe=False, num_valid=0, events=None, new_map=False) -> FrameStatus:
         """The :class:`FrameStatus` of frame ``fid`` with its current pose (rigid; None before the map
         is initialised)."""
         T = self.pose_of(fid) if self.initialized else None
         return FrameStatus(index=int(frame.index), timestamp=float(frame.timestamp),
                            T_WC=None if T is None else rigid(T), pose_source=source, is_keyframe=is_keyframe,
-                           num_valid=int(num_valid), events=list(events or []))
+                           num_valid=int(num_valid), events=list(events or []), new_map=bool(new_map))
 
     # ------------------------------------------------------------------ motion
     def prior_pose(self, timestamp: float | None) -> np.ndarray | None:

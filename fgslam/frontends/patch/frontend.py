@@ -206,14 +206,15 @@ class PatchFrontend(BackendFrontend):
         # keep the velocity; the next prediction continues from this frame
         motion.last_fid = fid
         source = "motion_model"
-        if st.lost > self.config.tracking.max_motion_model_frames:
+        restart = st.lost > self.config.tracking.max_motion_model_frames
+        if restart:
             if self.contributor.relocalize(fid, frame) is not None:  # anchor of the re-initialisation
                 events.append("relocalised")
                 source = "relocalized"
             events.append("re-initialising")
             self._reset()
         logger.info("frame %d: %s", frame.index, reason)
-        return st.status(fid, frame, source, events=events)
+        return st.status(fid, frame, source, events=events, new_map=restart)
 
     def _reset(self) -> None:
         """Finalise the graph and start a new initialisation anchored at the last predicted pose."""

@@ -185,9 +185,9 @@ class PatchState:
                 return stamp
         raise KeyError(fid)
 
-    def status(self, fid, frame, source, is_keyframe=False, num_valid=0, events=None) -> FrameStatus:
+    def status(self, fid, frame, source, is_keyframe=False, num_valid=0, events=None, new_map=False) -> FrameStatus:
         """The :class:`FrameStatus` of frame ``fid`` with its current pose (rigid)."""
         T_WC = self.pose_of(fid)
         return FrameStatus(index=int(frame.index), timestamp=float(frame.timestamp),
                            T_WC=None if T_WC is None else _rigid(T_WC), pose_source=source,
-                           is_keyframe=is_keyframe, num_valid=int(num_valid), events=list(events or []))
+                           is_keyframe=is_keyframe, num_valid=int(num_valid), events=list(events or []), new_map=bool(new_map))
