@@ -223,6 +223,15 @@ def test_each_part_of_a_restarted_recording_is_placed_by_its_own_transform(sessi
     assert len(kept.frame_timestamps) == 3 * (K1 + 20) and len(kept.feat_ptr) == K1 + 20 + 1
     np.testing.assert_array_equal(kept.track_point, np.arange(K1 + 20))
     assert _position_error(kept.T_WC[K1:], rec_true[:20]) < 0.02
+    # ... the first part as well: the second part's keyframes, frames and loops move up to its place
+    second_only = MapMerge(np.eye(4), 20, 20.0, 20, 20, len(T_rec), links[20:], merge.S_MR_by_part,
+                           [{"merged": False}, {"merged": True}])
+    kept = join_sessions(stored, recording, second_only)
+    assert kept.accepted == kept.loops == 20 and kept.joined.sessions == 2 and kept.joined.num_keyframes == K1 + 20
+    np.testing.assert_array_equal(kept.joined.kf_timestamps[K1:], recording.kf_timestamps[20:])
+    _, frames = kept.joined.frame_poses()
+    np.testing.assert_allclose(frames[3 * K1::3], kept.joined.T_WC[K1:], atol=1e-9)  # each keyframe's own frame
+    assert _position_error(kept.joined.T_WC[K1:], rec_true[20:]) < 0.02
 
 
 def test_the_session_link_multiple_is_a_ranged_config_key():

@@ -42,7 +42,7 @@ class MapMerge:
     #: verified against, the recording keyframe's pose in the map's frame 4x4)
     links: list[tuple[int, int, np.ndarray]] = field(default_factory=list)
     S_MR_by_part: np.ndarray | None = None  # None: one part, S_MR
-    parts: list[dict[str, Any]] = field(default_factory=list)  # per part: keyframes, localised, consistent, merged
+    parts: list[dict[str, Any]] = field(default_factory=list)  # per part: keyframes, localised, consistent, merged, S_MR
 
     def to_dict(self) -> dict[str, Any]:
         return {"S_MR": self.S_MR.tolist(), "merge_keyframe": self.merge_kf_id, "merge_time": self.merge_time,
@@ -88,7 +88,8 @@ def merge_recording(stored: StoredMap, recording: StoredMap, config: LocalizeCon
         fit = _fit_transform(own, mc, metric)
         fits.append(fit)
         parts.append({"keyframes": int(np.sum(recording.kf_session == part)), "localised": len(own),
-                      "consistent": 0 if fit is None else len(fit[1]), "merged": fit is not None})
+                      "consistent": 0 if fit is None else len(fit[1]), "merged": fit is not None,
+                      **({} if fit is None else {"S_MR": fit[0].tolist()})})
     merged = [part for part, fit in enumerate(fits) if fit is not None]
     several = len(parts) > 1
     if not merged:
@@ -236,7 +237,7 @@ class JointResult:
     loops: int
     accepted: int
     stored_moved_max: float  # largest position change of a stored keyframe (map units)
-    recording_moved_max: float  # ... of a recording keyframe against the one-transform merge
+    recording_moved_max: float  # ... of a recording keyframe against the merge's transforms
 
     def to_dict(self) -> dict[str, Any]:
         return {"loops": self.loops, "accepted_loops": self.accepted, "sessions": self.joined.sessions,
