@@ -123,11 +123,10 @@ def placed_parts(recording: StoredMap, merge: MapMerge) -> tuple[StoredMap, MapM
     keep = placed[recording.kf_session]
     kept = _keyframes_of(recording, keep)
     new_position = np.cumsum(keep) - 1
-    links = [(int(new_position[k]), i, T_MC) for k, i, T_MC in merge.links]
-    first = links[0][0]
+    links = [(int(new_position[k]), i, T_MC) for k, i, T_MC in merge.links]  # all of placed parts
     parts = [part for part in merge.parts if part["merged"]]
-    return kept, replace(merge, links=links, merge_kf_id=int(kept.kf_ids[first]), S_MR_by_part=merge.S_MR_by_part[placed],
-                         parts=parts), merge.S_MR_by_part[placed]
+    return kept, replace(merge, links=links, S_MR_by_part=merge.S_MR_by_part[placed], parts=parts), \
+        merge.S_MR_by_part[placed]
 
 
 def _keyframes_of(stored: StoredMap, keep: np.ndarray) -> StoredMap:

@@ -73,7 +73,7 @@ def store_map(writer: OutputWriter, run: PreparedRun, frontend: Frontend, state:
             try:
                 joint = join_sessions(stored, recording, merge, config.output.map_join)
             except Exception as exc:  # noqa: BLE001 - a logged recovery: the merge by its transforms is written
-                why = f"the joint optimisation failed ({type(exc).__name__}: {exc}): merged by the transform of each part, without it"
+                why = f"the joint optimisation failed ({type(exc).__name__}: {exc}): merged by the transform of each part alone"
                 notes.append(f"--map {config.output.extend_map}: {why}")
                 logger.warning("%s", why)
         info = {"map": config.output.extend_map, "merged": merge is not None,
