@@ -151,3 +151,21 @@ def test_the_kept_frames_of_a_stored_map_are_the_keyframes_and_the_newest(monkey
     newest = np.arange(n - KEPT_RECENT_FRAMES, n, dtype=float)
     assert np.array_equal(times, np.concatenate([sorted(keyframe_times), newest]))
     assert [int(kept[k].image[0, 0]) for k in kept.indices()] == [int(t) % 256 for t in times]
+
+
+def test_the_frame_where_a_lost_run_starts_a_new_map_says_so(shared_data):
+    """Frames 20-23 black (image and depth): the run loses its track and, after
+    ``max_motion_model_frames`` (2 here) failures, starts a new map; that frame's result says so
+    (``new_map``), and no other frame's does."""
+    preset, frames = "handheld_rgbd", 40
+    overrides = {"dataset.end": frames, "patch.tracking.max_motion_model_frames": 2}
+    dataset = fgslam.open_dataset(shared_data / SEVEN_SCENES, preset, overrides={"dataset.end": frames})
+    results = []
+    with fgslam.Slam.from_preset(preset, dataset.camera, overrides=overrides) as slam:
+        for frame in dataset:
+            black = 20 <= frame.index < 24
+            results.append(slam.track(np.zeros_like(frame.image) if black else frame.image, frame.timestamp,
+                                      depth=np.zeros_like(frame.depth) if black else frame.depth))
+    restarts = [r.index for r in results if r.new_map]
+    assert len(restarts) == 1 and 20 <= restarts[0] < 24
+    assert restarts == [r.index for r in results if "re-initialising" in r.events]

@@ -35,6 +35,8 @@ class TrackResult:
         keyframe_id: localisation: the map keyframe the pose was verified against (None: none).
         position_std: localisation: the standard deviation of the camera position for 1 px of pixel noise,
             over the median depth of the points it used (scale-free conditioning; None: no pose).
+        new_map: the run lost its track and started a new map at this frame: later poses are not tied to
+            the earlier ones (``Slam.save_map`` keeps each map as a session of its own).
     """
 
     index: int
@@ -48,6 +50,7 @@ class TrackResult:
     process_s: float = 0.0
     keyframe_id: Optional[int] = None
     position_std: Optional[float] = None
+    new_map: bool = False
 
     @property
     def tracked(self) -> bool:

@@ -266,7 +266,7 @@ class Slam:
         if T_WC is None and reason is None:
             reason = "no pose"
         return TrackResult(frame.index, frame.timestamp, T_WC, status.pose_source, bool(status.is_keyframe),
-                           int(status.num_valid), reason, tuple(status.events), process_s)
+                           int(status.num_valid), reason, tuple(status.events), process_s, new_map=bool(status.new_map))
 
     def _imu_block(self, t: float) -> ImuSamples:
         """The samples of :meth:`add_imu` with ``t_prev < t_i <= t`` (the first frame: none, as a loader's)."""
