@@ -127,15 +127,11 @@ def main() -> None:
 def ate_in_map(gt, est, A: np.ndarray) -> float:
     """RMSE of ``est``'s positions (the map's frame) moved by the map run's alignment ``A`` (4x4) against
     the ground truth at the same times (the localisation benchmark's measure: no alignment of its own)."""
-    from fgslam.io.datasets.common import same_frame_stamps
+    from fgslam.eval.trajectory import EvalConfig, evaluate
+    from fgslam.io.trajectory import Trajectory
+    from fgslam.localize.anchor import rigid_in_map
 
-    keep = np.flatnonzero(same_frame_stamps(est.timestamps, gt.timestamps))
-    if keep.size == 0:
-        return float("nan")
-    at = np.clip(np.searchsorted(gt.timestamps, est.timestamps[keep]), 1, len(gt) - 1)
-    at -= np.abs(gt.timestamps[at - 1] - est.timestamps[keep]) < np.abs(gt.timestamps[at] - est.timestamps[keep])
-    P = est.T_WC[keep, :3, 3] @ A[:3, :3].T + A[:3, 3]
-    return float(np.sqrt(np.mean(np.sum((P - gt.T_WC[at, :3, 3]) ** 2, axis=1))))
+    return evaluate(gt, Trajectory(est.timestamps, rigid_in_map(A, est.T_WC)), EvalConfig(align="none")).ate.rmse
 
 
 def covered_copy(data: Path, dst: Path, lost: range) -> Path:
