@@ -757,6 +757,28 @@ def test_calibration_messages_give_the_exact_override(tmp_path, capsys):
         calibration_from_camera_info(info, "/cam/camera_info")
 
 
+def test_a_calibration_file_for_a_loader_that_does_not_read_it_is_refused(tmp_path, capsys):
+    """KITTI, EuRoC, 7-Scenes ... take the calibration of their own files: a calibration YAML given for
+    them would be ignored, so it is an error naming the loaders that read it (not a run with the wrong one)."""
+    from fgslam.cli import main
+    from fgslam.io.datasets import CALIBRATION_FILE_FORMATS
+
+    write_kitti(tmp_path / "k")
+    write_7scenes(tmp_path / "s")
+    calib = tmp_path / "cam.yaml"
+    calib.write_text("width: 70\nheight: 40\nintrinsics: [50, 50, 35, 20]\n")
+    for root, fmt in ((tmp_path / "k", "kitti"), (tmp_path / "s", "7scenes")):
+        assert fmt not in CALIBRATION_FILE_FORMATS
+        with pytest.raises(DataError, match=rf"dataset\.calibration_file is read by the tum, .* loaders; the {fmt} loader"):
+            open_dataset(root, config=DatasetConfig(calibration_file=str(calib)))
+        open_dataset(root)  # without the key: its own calibration
+    assert main(["run", "patch_mono", "--data", str(tmp_path / "k"), "--out", str(tmp_path / "out"),
+                 "-o", f"dataset.calibration_file={calib}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "kitti loader takes the calibration of its own files" in err[-1] and "Traceback" not in "\n".join(err)
+    assert not (tmp_path / "out" / "summary.json").exists()
+
+
 def test_a_non_finite_imu_value_names_its_line_in_the_file(tmp_path):
     """The line number counts the header and comment lines (the file's own line, not the data row)."""
     write_euroc(tmp_path / "seq", n=3)

@@ -16,7 +16,7 @@ from fgslam.cli import main as cli_main
 from fgslam.core.errors import ConfigError
 from fgslam.io.calibration import Calibration
 from fgslam.io.frame import Frame, ImuSamples
-from fgslam.io.live import LiveConfig, LiveFrames
+from fgslam.io.live import LiveConfig, LiveFrames, ReadAhead
 
 from conftest import CLIP_FRAMES, CLIP_RATE_HZ
 
@@ -93,6 +93,48 @@ def test_an_error_of_the_source_reaches_the_consumer_and_close_stops_the_reader(
     endless.close()
     endless._thread.join(30)  # close() waited a while; a loaded machine may need longer
     assert not endless._thread.is_alive()
+
+
+def test_read_ahead_gives_every_frame_in_order_and_reads_while_the_consumer_works():
+    reads = []
+
+    def source():
+        for frame in frames(12, 100.0):
+            reads.append((frame.index, time.perf_counter()))
+            yield frame
+
+    got, taken, lead = [], [], []
+    for frame in ReadAhead(source()):
+        taken.append(time.perf_counter())
+        lead.append(len(reads) - 1 - frame.index)
+        got.append(frame.index)
+        time.sleep(0.02)  # the consumer's work on the frame
+    assert got == list(range(12))  # none dropped, in order
+    # frame k + 1 was read while the consumer still worked on frame k (before it took frame k + 1)
+    assert all(reads[k + 1][1] < taken[k + 1] - 0.01 for k in range(11))
+    # ... and at most one frame waits (plus the one the reader holds until there is room)
+    assert max(lead) <= 2
+
+
+def test_read_ahead_raises_the_source_error_after_the_frames_before_it_and_stops_on_close():
+    def broken():
+        yield from frames(3, 100.0)
+        raise ValueError("decoder broke")
+
+    got = []
+    with pytest.raises(ValueError, match="decoder broke"):
+        for frame in ReadAhead(broken()):
+            got.append(frame.index)
+    assert got == [0, 1, 2]
+    endless = ReadAhead(frames(10**6, 1000.0))
+    for frame in endless:
+        if frame.index >= 2:
+            break
+    endless.close()
+    endless._thread.join(30)
+    assert not endless._thread.is_alive()
+    with pytest.raises(ValueError, match="ahead"):
+        ReadAhead(frames(1, 1.0), ahead=0)
 
 
 def live_summary(out):

@@ -17,6 +17,7 @@ from typing import Literal
 
 import numpy as np
 
+from ..core.arrays import finite_rows, norm2_rows
 from ..core.config import MAX_IMAGE_SIDE, MAX_SCALAR, ranged
 from ..core.errors import DataError
 from .photometric import BrightnessModel, PhotometricModel
@@ -189,7 +190,7 @@ class DenseFlowSource(DenseSource):
         init = np.zeros((Hw, Ww, 2), np.float32)
         if cfg.warm_start:
             flow8 = uv_induced - grid
-            ok = np.isfinite(flow8).all(-1)
+            ok = finite_rows(flow8)
             if ok.any():
                 flow8 = np.where(ok[..., None], flow8, np.median(flow8[ok], axis=0))
                 init = cv2.resize((flow8 * (s * k)).astype(np.float32), (Ww, Hw), interpolation=cv2.INTER_LINEAR)
@@ -202,7 +203,7 @@ class DenseFlowSource(DenseSource):
         fwd = res_f + cv2.remap(init, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         # per working pixel: forward-backward error and photometric error of the warped target
         back = cv2.remap(res_b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        fb = np.linalg.norm(res_f + back, axis=-1) / k  # image pixels
+        fb = norm2_rows(res_f + back) / k  # image pixels
         warped = cv2.remap(Wj, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         photo = np.abs(warped.astype(np.float32) - Ii.astype(np.float32))
 

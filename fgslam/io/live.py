@@ -9,6 +9,9 @@ Each frame's arrival time is kept, so the consumer can report its latency (arriv
 replayed recording, the time the frame was due (a reader slower than the recording counts as latency
 too); for a live source, the time the reader had it. Closing the frames (or leaving a ``with`` block)
 stops the reader.
+
+A recorded run that is not live reads ahead instead (:class:`ReadAhead`): a reader thread decodes the next
+frame while the consumer works on this one, and no frame is dropped.
 """
 
 from __future__ import annotations
@@ -136,6 +139,79 @@ class LiveFrames:
             self._thread.join(timeout=_JOIN_S)
 
     def __enter__(self) -> "LiveFrames":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class ReadAhead:
+    """The frames of ``source`` read ``ahead`` frames ahead by a background thread; none is dropped (the
+    reader waits for the consumer). Decoding the next frame (OpenCV and numpy release the GIL) overlaps the
+    consumer's work on this one; the frames, their order, and an exception that stops the source (raised
+    after the frames read before it) are those of iterating ``source`` directly. Iterate once; closing
+    (or leaving a ``with`` block, or the loop) stops the reader."""
+
+    def __init__(self, source: Iterable[Frame], ahead: int = 1) -> None:
+        if ahead < 1:
+            raise ValueError(f"ReadAhead: ahead must be >= 1, got {ahead}")
+        self.source = source
+        self.ahead = ahead
+        self.error: Optional[BaseException] = None
+        self._queue: deque[Frame] = deque()
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._done = False
+        self._thread: Optional[threading.Thread] = None
+
+    def _read(self) -> None:
+        try:
+            for frame in self.source:
+                with self._cond:
+                    while len(self._queue) >= self.ahead and not self._stop.is_set():
+                        self._cond.wait(_POLL_S)
+                    if self._stop.is_set():
+                        break
+                    self._queue.append(frame)
+                    self._cond.notify_all()
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which raises it
+            self.error = exc
+        finally:
+            with self._cond:
+                self._done = True
+                self._cond.notify_all()
+
+    def __iter__(self) -> Iterator[Frame]:
+        if self._thread is not None:
+            raise RuntimeError("read-ahead frames can be iterated once")
+        self._thread = threading.Thread(target=self._read, name="fgslam-read-ahead", daemon=True)
+        self._thread.start()
+        try:
+            while True:
+                with self._cond:
+                    while not self._queue and not self._done:
+                        self._cond.wait(_POLL_S)
+                    if not self._queue:
+                        break
+                    frame = self._queue.popleft()
+                    self._cond.notify_all()
+                yield frame
+        finally:
+            self.close()
+        if self.error is not None:
+            raise self.error
+
+    def close(self) -> None:
+        """Stop the reader (its frame in progress is read, then it ends); again: nothing."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=_JOIN_S)
+
+    def __enter__(self) -> "ReadAhead":
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -70,7 +70,7 @@ from ..core.config import MS_PER_S
 from ..core.errors import DataError, FGSlamError, Interrupted
 from ..frontends.base import Frontend
 from ..io.datasets import Dataset
-from ..io.live import LiveConfig, LiveFrames
+from ..io.live import LiveConfig, LiveFrames, ReadAhead
 from ..io.trajectory import Trajectory
 from .config import SlamConfig
 from .mapstore import store_map
@@ -298,11 +298,13 @@ def _loop(dataset: Dataset, slam: Slam, config: SlamConfig, progress: bool,
     """Iterate the dataset through the run's :class:`~fgslam.run.session.Slam` (the system's frame skeleton);
     returns ``(exception, where)`` instead of raising (an exception anywhere, an interrupt included, stops
     the loop and is returned with its place). Live (``live_config``): the frames come through
-    :class:`~fgslam.io.live.LiveFrames` at their own pace; each result's latency and the drops are recorded."""
+    :class:`~fgslam.io.live.LiveFrames` at their own pace; each result's latency and the drops are recorded.
+    Otherwise a reader thread decodes the next frame while this one is tracked (:class:`~fgslam.io.live.ReadAhead`)."""
     state, system = slam.state, slam.system
     meter = _Progress(len(dataset), config.log_interval_frames, config.log_interval_s, progress)
     live = None if live_config is None else LiveFrames(dataset, live_config)
-    frames = iter(dataset if live is None else live)
+    reader = ReadAhead(dataset) if live is None else live
+    frames = iter(reader)
     where = _WHERE_DATASET
     try:
         while True:
@@ -329,8 +331,8 @@ def _loop(dataset: Dataset, slam: Slam, config: SlamConfig, progress: bool,
     except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - reported with partial outputs
         return exc, where
     finally:
+        reader.close()  # the frames' iterator closed it already unless the loop stopped early
         if live is not None:
-            live.close()  # the frames' iterator closed it already unless the loop stopped early
             state.live_dropped = live.dropped
     return None
 

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ...core.arrays import min_rows
 from ...core.errors import ConfigError, DataError
 from ..checkpoints import LearnedSlot, require_checkpoint
 from ..flow import DenseFlowSource
@@ -180,7 +181,7 @@ class _GeometricSource(PointmapSource):
         smaller of the two axes' confidences)."""
         H, W = self._shape
         nan = np.full((len(edges), H, W, 2), np.nan)
-        return [(rev.target, rev.weight.min(-1)) for rev in self._flow.revise(edges, nan)]
+        return [(rev.target, min_rows(rev.weight)) for rev in self._flow.revise(edges, nan)]
 
     def _overlap(self, i: int, j: int, *confs: np.ndarray) -> bool:
         """Enough pixels with a confident flow in every given direction (else: logged, no overlap)."""

@@ -40,6 +40,8 @@ LOADERS: dict[str, type[Dataset]] = {
     "camera": CaptureDataset,
 }
 FORMATS = tuple(LOADERS)
+#: the loaders that read ``dataset.calibration_file``; the others take the calibration of their own files
+CALIBRATION_FILE_FORMATS = ("tum", "folder", "video", "rosbag", "camera")
 
 
 def detect_format(path: str | Path) -> str:
@@ -93,10 +95,13 @@ def open_dataset(path: str | Path, fmt: str = "auto", config: DatasetConfig | No
     elif not path.exists():
         raise DataError(f"{path}: no such file or folder")
     config = config if config is not None else DatasetConfig()
+    if config.calibration_file and fmt not in CALIBRATION_FILE_FORMATS:
+        raise DataError(f"{path}: dataset.calibration_file is read by the {', '.join(CALIBRATION_FILE_FORMATS)} "
+                        f"loaders; the {fmt} loader takes the calibration of its own files (leave the key out)")
     config.warn_unused_bag_keys(fmt)
     return LOADERS[fmt](path, config)
 
 
-__all__ = ["Dataset", "DatasetConfig", "FORMATS", "LOADERS", "detect_format", "is_capture", "open_dataset"] + [
+__all__ = ["CALIBRATION_FILE_FORMATS", "Dataset", "DatasetConfig", "FORMATS", "LOADERS", "detect_format", "is_capture", "open_dataset"] + [
     cls.__name__ for cls in LOADERS.values()
 ]

@@ -88,7 +88,7 @@ class DatasetConfig:
     load_right: bool = True  # read the right image of stereo sources
     load_depth: bool = True  # read depth of RGB-D sources
     load_imu: bool = True  # attach IMU samples
-    calibration_file: Optional[str] = None  # calibration YAML overriding the source's (folder/video/TUM)
+    calibration_file: Optional[str] = None  # calibration YAML overriding the source's (folder, video, TUM, ROS bag, camera; the other loaders refuse it)
     groundtruth_file: Optional[str] = None  # ground-truth file overriding the default location
     tum_camera: Optional[str] = None  # fr1|fr2|fr3 for TUM RGB-D (None: from the folder name, else fr1)
     sequence: Optional[str] = None  # 7-Scenes sequence folder (None: the first seq-NN)
