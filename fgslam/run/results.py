@@ -69,7 +69,7 @@ class RunSummary:
     fps: float  # frames processed per second of wall time (reading included)
     fps_frontend: float  # frames per second of frontend time (process + finish)
     max_frame_s: float  # longest frontend.process() of one frame (a stall of tracking)
-    read_s: float  # time spent reading frames from the dataset
+    read_s: float  # time the loop waited for the next frame (a recorded run reads ahead in a thread: mostly 0)
     stage_s: dict[str, float]  # frontend.stage_times()
     stage_ms_per_frame: dict[str, float]
     peak_rss_mb: float

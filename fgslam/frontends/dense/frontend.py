@@ -245,7 +245,8 @@ class DenseFrontend(BackendFrontend):
         if events:
             st.counts["depth_tracked"] += 1
         st.lost = 0
-        if flow <= self.config.graph.motion_filter_flow:
+        fading = not events and n_conf < self.config.graph.keyframe_min_confident * g.shape[0] * g.shape[1]
+        if flow <= self.config.graph.motion_filter_flow and not fading:
             if added:
                 st.source.remove_frame(fid)
             st.records[fid] = RelativePose(kf_fid, np.linalg.inv(st.keyframe_T_WC(kf_fid)) @ T_WC)
