@@ -32,6 +32,7 @@ from ..core.config import from_dict, to_dict
 from ..core.errors import FGSlamError
 from ..export.mapfile import check_map_camera, load_stored_map
 from ..io.datasets import DatasetConfig, open_dataset
+from ..io.live import ReadAhead
 from ..io.run_files import LOCALIZATION_FILE, SUMMARY_FILE, TUM_FILE
 from ..io.trajectory import Trajectory, write_trajectory
 from .anchor import Odometry, OdometryAnchor, OdometryFactory
@@ -161,8 +162,9 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
     stamps, poses, gt_pos, has_gt = [], [], [], []
     loop_cpu0 = time.process_time()
     stopped: BaseException | None = None  # a stop (Ctrl-C, a stop signal) or a damaged frame: the frames before it are written
+    reader = ReadAhead(dataset)  # the next frame decodes while this one is localised
     try:
-        for frame in dataset:
+        for frame in reader:
             res = localizer.track(frame.image, frame.timestamp)
             T_VC = odometry_run.pose(frame)
             T_WC = anchor.add(frame.timestamp, T_VC, res.T_WC)
@@ -180,6 +182,7 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
         logger.warning("localisation stopped after %d frames (%s): writing their outputs", len(rows),
                        str(exc) or type(exc).__name__)
     finally:
+        reader.close()
         odometry_run.close()
     loop_cpu = time.process_time() - loop_cpu0
     counts = {s: sum(1 for r in rows if r[2] == s) for s in SEQUENCE_STATUSES}
