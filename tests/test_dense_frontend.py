@@ -169,7 +169,7 @@ def test_a_frame_whose_confident_share_fades_becomes_a_keyframe_whatever_its_flo
         return statuses[k]
 
     faded = fading(0.25)
-    assert faded.is_keyframe and faded.pose_source == "tracked"
+    assert faded.is_keyframe and faded.pose_source == "tracked" and "keyframe: the confident share faded" in faded.events
     assert not fading(0.0).is_keyframe
 
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..core.config import from_dict
 from ..core.errors import ConfigError, DataError
-from ..io.datasets import DatasetConfig, open_dataset
+from ..io.datasets import CALIBRATION_FILE_FORMATS, DatasetConfig, open_dataset
 from ..io.datasets.common import SAME_FRAME_DT
 from ..io.run_files import SUMMARY_FILE, TUM_FILE
 from ..io.trajectory import read_trajectory
@@ -185,6 +185,8 @@ def write_frame_images(run: RunFolder, image_dir: Path, indices: list[int]) -> i
                         "(the model alone), or from the folder where the dataset is")
     ds_cfg = from_dict(DatasetConfig, cfg.get("dataset", {}), source=str(run.path / SUMMARY_FILE), prefix="dataset")
     ds_cfg.load_right, ds_cfg.load_depth, ds_cfg.load_imu, ds_cfg.load_rgb = False, False, False, True
+    if ds_info.get("format", "auto") not in (*CALIBRATION_FILE_FORMATS, "auto"):  # an older run's key, never read
+        ds_cfg.calibration_file = None
     dataset = open_dataset(path, ds_info.get("format", "auto"), ds_cfg)
     c = dataset.calibration
     if (int(c.width), int(c.height)) != (run.run_map.width, run.run_map.height) or not np.allclose(c.K, run.run_map.intrinsics):

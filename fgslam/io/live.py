@@ -43,7 +43,79 @@ class LiveConfig:
     paced: bool = True  # replay a recorded source at its timestamps (false: as fast as it reads, a camera's own pace)
 
 
-class LiveFrames:
+class _ThreadedReader:
+    """A source read by a background thread into a queue that the consumer takes from; iterate once.
+    Subclasses say how a frame is put in (:meth:`_put`) and what taking one records (:meth:`_taken`).
+    An exception that stops the source reaches the consumer after the frames queued before it."""
+
+    _thread_name = "fgslam-reader"
+
+    def __init__(self, source: Iterable[Frame]) -> None:
+        self.source = source
+        self.error: Optional[BaseException] = None
+        self._queue: deque = deque()
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._done = False
+        self._thread: Optional[threading.Thread] = None
+
+    def _read(self) -> None:
+        try:
+            for frame in self.source:
+                if self._stop.is_set():
+                    break
+                self._put(frame)
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which raises it
+            self.error = exc
+        finally:
+            with self._cond:
+                self._done = True
+                self._cond.notify_all()
+
+    def _put(self, frame: Frame) -> None:  # pragma: no cover - every reader defines it
+        raise NotImplementedError
+
+    def _taken(self, item) -> Frame:
+        """The frame of a queued item, as the consumer takes it."""
+        return item
+
+    def __iter__(self) -> Iterator[Frame]:
+        if self._thread is not None:
+            raise RuntimeError(f"{type(self).__name__} can be iterated once")
+        self._thread = threading.Thread(target=self._read, name=self._thread_name, daemon=True)
+        self._thread.start()
+        try:
+            while True:
+                with self._cond:
+                    while not self._queue and not self._done:
+                        self._cond.wait(_POLL_S)
+                    if not self._queue:
+                        break
+                    item = self._queue.popleft()
+                    self._cond.notify_all()
+                yield self._taken(item)
+        finally:
+            self.close()
+        if self.error is not None:
+            raise self.error
+
+    def close(self) -> None:
+        """Stop the reader: its frame in progress is read, then it ends (waited for up to ``_JOIN_S``, again
+        on a second call, so that nothing reads the source after the consumer's last close)."""
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._thread is not None and self._thread is not threading.current_thread() and self._thread.is_alive():
+            self._thread.join(timeout=_JOIN_S)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class LiveFrames(_ThreadedReader):
     """The frames of ``source`` as a live feed (module docstring); iterate once.
 
     Args:
@@ -60,46 +132,28 @@ class LiveFrames:
         ConfigError: a config value out of its range (naming ``live.<key>``).
     """
 
+    _thread_name = "fgslam-live-reader"
+
     def __init__(self, source: Iterable[Frame], config: Optional[LiveConfig] = None) -> None:
-        self.source = source
+        super().__init__(source)
         self.config = config or LiveConfig()
         check_ranges(self.config, "live.", "the live options")
         self.dropped = 0
         self.delivered = 0
         self.arrival_s: dict[int, float] = {}
-        self.error: Optional[BaseException] = None
-        self._queue: deque[tuple[Frame, float]] = deque()
-        self._cond = threading.Condition()
-        self._stop = threading.Event()
-        self._done = False
-        self._thread: Optional[threading.Thread] = None
+        self._t_wall0, self._t_src0 = 0.0, None  # the wall time and the source's time of the first frame
 
-    # ------------------------------------------------------------------ reader
-    def _read(self) -> None:
+    def _put(self, frame: Frame) -> None:
         cfg = self.config
-        t_wall0, t_src0 = 0.0, None  # the wall time and the source's time of the first frame
-        try:
-            for frame in self.source:
-                if self._stop.is_set():
-                    break
-                arrival = time.perf_counter()
-                if cfg.paced:
-                    if t_src0 is None:
-                        t_wall0, t_src0 = arrival, frame.timestamp
-                    arrival = t_wall0 + (frame.timestamp - t_src0) / cfg.speed  # when the frame was due
-                    while not self._stop.is_set() and time.perf_counter() < arrival:
-                        time.sleep(min(_POLL_S, max(arrival - time.perf_counter(), 0.0)))
-                self._put(frame, arrival)
-        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which raises it
-            self.error = exc
-        finally:
-            with self._cond:
-                self._done = True
-                self._cond.notify_all()
-
-    def _put(self, frame: Frame, arrival: float) -> None:
+        arrival = time.perf_counter()
+        if cfg.paced:
+            if self._t_src0 is None:
+                self._t_wall0, self._t_src0 = arrival, frame.timestamp
+            arrival = self._t_wall0 + (frame.timestamp - self._t_src0) / cfg.speed  # when the frame was due
+            while not self._stop.is_set() and time.perf_counter() < arrival:
+                time.sleep(min(_POLL_S, max(arrival - time.perf_counter(), 0.0)))
         with self._cond:
-            while len(self._queue) >= self.config.queue:
+            while len(self._queue) >= cfg.queue:
                 old, _ = self._queue.popleft()
                 self.dropped += 1
                 logger.debug("live: frame %d dropped (the system is behind)", old.index)
@@ -108,114 +162,35 @@ class LiveFrames:
             self._queue.append((frame, arrival))
             self._cond.notify_all()
 
-    # ------------------------------------------------------------------ consumer
-    def __iter__(self) -> Iterator[Frame]:
-        if self._thread is not None:
-            raise RuntimeError("live frames can be iterated once")
-        self._thread = threading.Thread(target=self._read, name="fgslam-live-reader", daemon=True)
-        self._thread.start()
-        try:
-            while True:
-                with self._cond:
-                    while not self._queue and not self._done:
-                        self._cond.wait(_POLL_S)
-                    if not self._queue:
-                        break
-                    frame, arrival = self._queue.popleft()
-                self.arrival_s[frame.index] = arrival
-                self.delivered += 1
-                yield frame
-        finally:
-            self.close()
-        if self.error is not None:
-            raise self.error
-
-    def close(self) -> None:
-        """Stop the reader (its frame in progress is read, then it ends); again: nothing."""
-        if self._stop.is_set():
-            return
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=_JOIN_S)
-
-    def __enter__(self) -> "LiveFrames":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def _taken(self, item: tuple[Frame, float]) -> Frame:
+        frame, arrival = item
+        self.arrival_s[frame.index] = arrival
+        self.delivered += 1
+        return frame
 
 
-class ReadAhead:
-    """The frames of ``source`` read ``ahead`` frames ahead by a background thread; none is dropped (the
-    reader waits for the consumer). Decoding the next frame (OpenCV and numpy release the GIL) overlaps the
+class ReadAhead(_ThreadedReader):
+    """The frames of ``source`` read ahead by a background thread: ``ahead`` frames wait in the queue and
+    the reader holds one more until there is room; none is dropped (the reader waits for the consumer). Decoding the next frame (OpenCV and numpy release the GIL) overlaps the
     consumer's work on this one; the frames, their order, and an exception that stops the source (raised
     after the frames read before it) are those of iterating ``source`` directly. Iterate once; closing
     (or leaving a ``with`` block, or the loop) stops the reader."""
 
+    _thread_name = "fgslam-read-ahead"
+
     def __init__(self, source: Iterable[Frame], ahead: int = 1) -> None:
         if ahead < 1:
             raise ValueError(f"ReadAhead: ahead must be >= 1, got {ahead}")
-        self.source = source
+        super().__init__(source)
         self.ahead = ahead
-        self.error: Optional[BaseException] = None
-        self._queue: deque[Frame] = deque()
-        self._cond = threading.Condition()
-        self._stop = threading.Event()
-        self._done = False
-        self._thread: Optional[threading.Thread] = None
 
-    def _read(self) -> None:
-        try:
-            for frame in self.source:
-                with self._cond:
-                    while len(self._queue) >= self.ahead and not self._stop.is_set():
-                        self._cond.wait(_POLL_S)
-                    if self._stop.is_set():
-                        break
-                    self._queue.append(frame)
-                    self._cond.notify_all()
-        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which raises it
-            self.error = exc
-        finally:
-            with self._cond:
-                self._done = True
-                self._cond.notify_all()
-
-    def __iter__(self) -> Iterator[Frame]:
-        if self._thread is not None:
-            raise RuntimeError("read-ahead frames can be iterated once")
-        self._thread = threading.Thread(target=self._read, name="fgslam-read-ahead", daemon=True)
-        self._thread.start()
-        try:
-            while True:
-                with self._cond:
-                    while not self._queue and not self._done:
-                        self._cond.wait(_POLL_S)
-                    if not self._queue:
-                        break
-                    frame = self._queue.popleft()
-                    self._cond.notify_all()
-                yield frame
-        finally:
-            self.close()
-        if self.error is not None:
-            raise self.error
-
-    def close(self) -> None:
-        """Stop the reader (its frame in progress is read, then it ends); again: nothing."""
-        if self._stop.is_set():
-            return
-        self._stop.set()
+    def _put(self, frame: Frame) -> None:
         with self._cond:
-            self._cond.notify_all()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=_JOIN_S)
-
-    def __enter__(self) -> "ReadAhead":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+            while len(self._queue) >= self.ahead and not self._stop.is_set():
+                self._cond.wait(_POLL_S)
+            if not self._stop.is_set():
+                self._queue.append(frame)
+                self._cond.notify_all()
 
 
 def _joined(first: Optional[ImuSamples], then: Optional[ImuSamples]) -> Optional[ImuSamples]:

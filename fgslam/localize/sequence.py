@@ -182,7 +182,10 @@ def run_localization(map_path: str | Path, data: str | Path, out_dir: str | Path
         logger.warning("localisation stopped after %d frames (%s): writing their outputs", len(rows),
                        str(exc) or type(exc).__name__)
     finally:
-        reader.close()
+        try:
+            reader.close()
+        except KeyboardInterrupt as exc:  # a stop signal while the reader ends: the frames before it are written
+            stopped = stopped or exc
         odometry_run.close()
     loop_cpu = time.process_time() - loop_cpu0
     counts = {s: sum(1 for r in rows if r[2] == s) for s in SEQUENCE_STATUSES}

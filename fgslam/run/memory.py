@@ -33,8 +33,8 @@ RUNTIME_BYTES = 1 * GIB
 #: B per output pixel and camera: the two float32 remap tables of the undistortion (map x, map y)
 REMAP_BYTES_PER_PIXEL = 8
 #: images of one frame alive at once: the raw image, its remapped output, the runner's frame and a
-#: frontend's working copy
-FRAMES_IN_FLIGHT = 4
+#: frontend's working copy, and the two frames the reader holds ahead (fgslam.io.live.ReadAhead)
+FRAMES_IN_FLIGHT = 6
 #: B per raw pixel as read (colour, 8 bit)
 RAW_BYTES_PER_PIXEL = 3
 #: B per output pixel of a frame's colour image and of its right grey image (grey and depth:

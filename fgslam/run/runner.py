@@ -306,6 +306,7 @@ def _loop(dataset: Dataset, slam: Slam, config: SlamConfig, progress: bool,
     reader = ReadAhead(dataset) if live is None else live
     frames = iter(reader)
     where = _WHERE_DATASET
+    stop: Optional[ErrorAt] = None
     try:
         while True:
             where = _WHERE_DATASET
@@ -329,12 +330,15 @@ def _loop(dataset: Dataset, slam: Slam, config: SlamConfig, progress: bool,
         slam.finish_run()  # counts its own time
         meter.update(state.frames_processed, system.frontend.num_keyframes(), len(state.failure_frames), force=True)
     except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - reported with partial outputs
-        return exc, where
+        stop = (exc, where)
     finally:
-        reader.close()  # the frames' iterator closed it already unless the loop stopped early
+        try:
+            reader.close()  # the frames' iterator closed it already unless the loop stopped early
+        except KeyboardInterrupt as exc:  # a stop signal while the reader ends: reported as one in the loop
+            stop = stop or (exc, where)
         if live is not None:
             state.live_dropped = live.dropped
-    return None
+    return stop
 
 
 # ----------------------------------------------------------------------------------------- threads

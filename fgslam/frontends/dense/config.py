@@ -33,7 +33,7 @@ class DenseGraphConfig:
     """Frame graph: keyframe selection, edges, removal (DROID-SLAM section 3.4)."""
 
     motion_filter_flow: float = ranged(12.0, ge=0, le=MAX_SCALAR)  # image px: a frame becomes a keyframe when the mean flow from the newest keyframe exceeds this
-    keyframe_min_confident: float = ranged(0.25, ge=0, le=1)  # a frame tracked by its image becomes a keyframe when its share of confident grid pixels falls below this, whatever its flow (0: off): on a forward drive the pixels of large flow lose confidence first, so the confident ones' mean flow stays under motion_filter_flow while the tracking's support fades and its pose stalls
+    keyframe_min_confident: float = ranged(0.25, ge=0, le=1)  # a frame tracked by its image becomes a keyframe when its confident grid pixels are fewer than this share of its textured ones (tracking.texture_gradient), whatever its flow (0: off): on a forward drive the pixels of large flow lose confidence first, so the confident ones' mean flow stays under motion_filter_flow while the tracking's support fades and its pose stalls
     neighbours: int = ranged(3, ge=1, le=MAX_KEYFRAMES)  # a new keyframe is connected (both ways) to this many nearest keyframes by flow distance
     temporal_radius: int = ranged(2, ge=1, le=MAX_KEYFRAMES)  # ... and always to this many previous keyframes
     max_edge_distance: float = ranged(80.0, gt=0, le=MAX_SCALAR)  # image px: no edge between keyframes whose flow distance exceeds this

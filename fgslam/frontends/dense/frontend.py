@@ -9,7 +9,8 @@ Per frame (DROID-SLAM section 3.4, with the built-in DIS flow source of :mod:`.s
    started at the prediction; a frame whose share of confident grid pixels is below
    ``tracking.min_confident`` is a tracking failure (predicted pose, counted, never raised; after
    ``tracking.max_lost`` in a row the map restarts, relocalised through the loop service when it can);
-2. when the mean measured flow exceeds ``graph.motion_filter_flow`` the frame becomes a keyframe:
+2. when the mean measured flow exceeds ``graph.motion_filter_flow``, or its confident grid pixels are
+   fewer than ``graph.keyframe_min_confident`` of its textured ones, the frame becomes a keyframe:
    backend keyframe at the tracked pose, inverse depths splatted from the previous keyframe
    (RGB-D: the sensor's; stereo: from the left-right flow), edges both ways to the
    ``graph.temporal_radius`` previous keyframes and the ``graph.neighbours`` nearest ones by flow
@@ -245,7 +246,8 @@ class DenseFrontend(BackendFrontend):
         if events:
             st.counts["depth_tracked"] += 1
         st.lost = 0
-        fading = not events and n_conf < self.config.graph.keyframe_min_confident * g.shape[0] * g.shape[1]
+        # the tracking's support fades: few of the textured grid blocks confidently tracked
+        fading = not events and n_conf < self.config.graph.keyframe_min_confident * textured * g.shape[0] * g.shape[1]
         if flow <= self.config.graph.motion_filter_flow and not fading:
             if added:
                 st.source.remove_frame(fid)
@@ -255,6 +257,9 @@ class DenseFrontend(BackendFrontend):
             st.update_velocity(fid)
             source = "tracked" if st.initialized else "initializing"
             return st.status(fid, frame, source, num_valid=n_conf, events=events)
+        if flow <= self.config.graph.motion_filter_flow:  # a keyframe because its support faded
+            st.counts["fading_keyframes"] += 1
+            events.append("keyframe: the confident share faded")
         self.keyframes.add(fid, frame, T_WC, source_added=added, surface=surface)
         if not st.initialized:
             if len(g.keyframes) >= self.config.graph.init_keyframes:

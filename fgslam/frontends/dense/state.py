@@ -74,7 +74,7 @@ class DenseState:
         self.failures = 0  # frames whose pose came from the motion model
         self.counts = {"keyframes_added": 0, "keyframes_removed": 0, "tracking_failures": 0, "map_restarts": 0,
                        "global_runs": 0, "low_confidence_frames": 0, "low_texture_frames": 0,
-                       "edges_kept": 0}
+                       "edges_kept": 0, "fading_keyframes": 0}
         self.new_since_global = 0  # keyframes since the last global optimisation
         self.loop_edges: set[tuple[int, int]] = set()  # proximity loop edges kept by a global optimisation (re-measured in every later one)
         self.times = {"flow": 0.0, "tracking": 0.0, "ba": 0.0, "global": 0.0, "bookkeeping": 0.0}
