@@ -141,7 +141,8 @@ class LiveFrames(_ThreadedReader):
         self.dropped = 0
         self.delivered = 0
         self.arrival_s: dict[int, float] = {}
-        self._t_wall0, self._t_src0 = 0.0, None  # the wall time and the source's time of the first frame
+        self._t_wall0 = 0.0  # the wall time of the first frame
+        self._t_src0: Optional[float] = None  # ... and its source time
 
     def _put(self, frame: Frame) -> None:
         cfg = self.config
