@@ -207,8 +207,8 @@ class DenseFlowSource(DenseSource):
         warped = cv2.remap(Wj, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         photo = np.abs(warped.astype(np.float32) - Ii.astype(np.float32))
 
-        def pool(x: np.ndarray) -> np.ndarray:  # block means on the grid
-            return cv2.resize(x, (w, h), interpolation=cv2.INTER_AREA)
+        def pool(x: np.ndarray) -> np.ndarray:  # block means on the grid (at the grid's own size: x itself)
+            return x if x.shape[:2] == (h, w) else cv2.resize(x, (w, h), interpolation=cv2.INTER_AREA)
 
         flow_grid = pool(fwd).astype(np.float64) / (s * k)
         target = grid + flow_grid
@@ -219,9 +219,13 @@ class DenseFlowSource(DenseSource):
         inside = ((target[..., 0] >= cfg.border - 0.5) & (target[..., 0] <= w - 0.5 - cfg.border)
                   & (target[..., 1] >= cfg.border - 0.5) & (target[..., 1] <= h - 0.5 - cfg.border))
         conf = np.where(inside, conf, 0.0)
-        weight = np.repeat(conf[..., None], 2, axis=-1)
-        if cfg.aperture_gradient > 0:
+        if cfg.aperture_gradient > 0:  # per axis: conf G / (G + a^2)
             a2 = cfg.aperture_gradient ** 2
-            G = np.stack((pool(gxx), pool(gyy)), -1).astype(np.float64)
-            weight = weight * G / (G + a2)
+            axes = []
+            for energy in (gxx, gyy):
+                G = pool(energy).astype(np.float64)
+                axes.append(conf * G / (G + a2))
+            weight = np.stack(axes, -1)
+        else:
+            weight = np.repeat(conf[..., None], 2, axis=-1)
         return FlowRevision(target=target, weight=weight, damping=None, fb_error=fb_grid)
