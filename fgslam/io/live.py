@@ -172,10 +172,11 @@ class LiveFrames(_ThreadedReader):
 
 class ReadAhead(_ThreadedReader):
     """The frames of ``source`` read ahead by a background thread: ``ahead`` frames wait in the queue and
-    the reader holds one more until there is room; none is dropped (the reader waits for the consumer). Decoding the next frame (OpenCV and numpy release the GIL) overlaps the
-    consumer's work on this one; the frames, their order, and an exception that stops the source (raised
-    after the frames read before it) are those of iterating ``source`` directly. Iterate once; closing
-    (or leaving a ``with`` block, or the loop) stops the reader."""
+    the reader holds one more until there is room; none is dropped (the reader waits for the consumer).
+    Decoding the next frame (OpenCV and numpy release the GIL) overlaps the consumer's work on this one;
+    the frames, their order, and an exception that stops the source (raised after the frames read before
+    it) are those of iterating ``source`` directly. Iterate once; closing (or leaving a ``with`` block, or
+    the loop) stops the reader."""
 
     _thread_name = "fgslam-read-ahead"
 

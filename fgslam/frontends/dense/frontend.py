@@ -246,9 +246,10 @@ class DenseFrontend(BackendFrontend):
         if events:
             st.counts["depth_tracked"] += 1
         st.lost = 0
+        moved = flow > self.config.graph.motion_filter_flow
         # the tracking's support fades: few of the textured grid blocks confidently tracked
         fading = not events and n_conf < self.config.graph.keyframe_min_confident * textured * g.shape[0] * g.shape[1]
-        if flow <= self.config.graph.motion_filter_flow and not fading:
+        if not moved and not fading:
             if added:
                 st.source.remove_frame(fid)
             st.records[fid] = RelativePose(kf_fid, np.linalg.inv(st.keyframe_T_WC(kf_fid)) @ T_WC)
@@ -257,7 +258,7 @@ class DenseFrontend(BackendFrontend):
             st.update_velocity(fid)
             source = "tracked" if st.initialized else "initializing"
             return st.status(fid, frame, source, num_valid=n_conf, events=events)
-        if flow <= self.config.graph.motion_filter_flow:  # a keyframe because its support faded
+        if not moved:  # a keyframe because its support faded
             st.counts["fading_keyframes"] += 1
             events.append("keyframe: the confident share faded")
         self.keyframes.add(fid, frame, T_WC, source_added=added, surface=surface)
