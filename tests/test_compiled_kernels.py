@@ -1,6 +1,6 @@
-"""The compiled kernels (fgslam/core/jit.py): the depth-alignment association and residual rows, and
-the Lucas-Kanade track checks. Their rules on constructed cases, the same bytes call to call, and the
-options that keep them deterministic. (The point-to-plane Jacobians are checked against finite
+"""The compiled kernels (fgslam/core/jit.py): the depth-alignment association and residual rows, the
+Lucas-Kanade track checks, and the pointmap family's patch descriptors and ray residual rows. Their
+rules on constructed cases, the same bytes call to call, and the options that keep them deterministic. (The point-to-plane Jacobians are checked against finite
 differences in tests/test_depth_align.py, through the same kernel.)"""
 
 from __future__ import annotations
@@ -135,6 +135,67 @@ def test_track_checks_at_the_lk_resolution():
     assert uv[0].tolist() == [51.5, 41.5]
     assert fb[0] == pytest.approx(0.5)
     assert conf[0] == pytest.approx(0.5)
+
+
+# ------------------------------------------------------------------ pointmap descriptors and ray residual
+
+def _patch_reference(smooth, offsets, texture_sq):
+    """The patch descriptor by its definition, channel-first in numpy (float32, running sums from the
+    first sample, as the kernel promises)."""
+    H, W = smooth.shape
+    v, u = np.mgrid[0:H, 0:W]
+    samples = [smooth[np.clip(v + dy, 0, H - 1), np.clip(u + dx, 0, W - 1)] for dy in offsets for dx in offsets]
+    D = np.stack(samples).astype(np.float32)
+    D -= D.sum(0) / np.float32(16)
+    sq = (D * D).sum(0)
+    norm = np.sqrt(sq)
+    D *= np.where(norm > np.float32(1e-6), np.float32(1) / np.maximum(norm, np.float32(1e-6)), np.float32(0))
+    G = sq / np.float32(16)
+    return np.ascontiguousarray(D.transpose(1, 2, 0)), G / (G + texture_sq)
+
+
+def test_patch_descriptor_rows_are_the_definition_bytewise():
+    from fgslam.frontends.pointmap.descriptors_jit import patch_rows
+
+    rng = np.random.default_rng(3)
+    smooth = (rng.uniform(0, 255, (23, 31)).astype(np.float32))
+    smooth[:, :8] = 40.0  # a flat strip: zero descriptors, zero confidence
+    offsets = np.array([-3, -1, 1, 3], np.int64)
+    D, Q = patch_rows(smooth, offsets, np.float32(1e-6), np.float32(16.0))
+    D_ref, Q_ref = _patch_reference(smooth, offsets, np.float32(16.0))
+    assert D.dtype == np.float32 and D.shape == (23, 31, 16) and D.flags["C_CONTIGUOUS"]
+    assert D.tobytes() == D_ref.tobytes() and Q.tobytes() == Q_ref.astype(np.float32).tobytes()
+    assert not D[:, :4].any() and not Q[:, :4].any()
+    norms = np.linalg.norm(D[:, 12:].astype(np.float64), axis=-1)
+    np.testing.assert_allclose(norms, 1.0, atol=1e-6)
+    again = patch_rows(smooth, offsets, np.float32(1e-6), np.float32(16.0))
+    assert again[0].tobytes() == D.tobytes() and again[1].tobytes() == Q.tobytes()
+
+
+def test_ray_rows_broadcast_the_pose_batch_and_repeat_bytewise():
+    """One pose per edge against its own matches, or one pose shared by a batch: the same rows as one call
+    per pose, and the same bytes call to call."""
+    import torch
+
+    from fgslam.core.lie import Sim3
+    from fgslam.factors.pointmap import prepare_matches, ray_dist_prepared
+
+    g = torch.Generator().manual_seed(5)
+    X_k = torch.rand(3, 40, 3, generator=g, dtype=torch.float64) + torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)
+    X_f = X_k + 0.05 * torch.randn(3, 40, 3, generator=g, dtype=torch.float64)
+    X_f[1, 7] = 0.0  # a zero-norm point: masked
+    T = Sim3.exp(0.05 * torch.randn(3, 7, generator=g, dtype=torch.float64))
+    prep = prepare_matches(X_f, X_k)
+    batched = ray_dist_prepared(T, prep)
+    for b in range(3):
+        one = ray_dist_prepared(T[b], prepare_matches(X_f[b], X_k[b]))
+        for name in ("r", "J", "sqrt_info", "valid"):
+            assert torch.equal(getattr(batched, name)[b], getattr(one, name)), name
+    assert not bool(batched.valid[1, 7]) and int(batched.valid.sum()) == 119
+    shared = ray_dist_prepared(T[0], prep)  # one pose over the (3, 40) matches
+    assert shared.r.shape == (3, 40, 4) and torch.equal(shared.r[0], batched.r[0])
+    again = ray_dist_prepared(T, prep)
+    assert all(torch.equal(getattr(again, n), getattr(batched, n)) for n in ("r", "J", "sqrt_info", "valid"))
 
 
 # ------------------------------------------------------------------ loaded before the first frame

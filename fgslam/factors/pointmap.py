@@ -173,6 +173,12 @@ def _chain(dr_dY: Tensor, T: Sim3) -> Tensor:
     return (dr_dY.flatten(-3, -2) @ sR).unflatten(-2, dr_dY.shape[-3:-1])
 
 
+def _log_masked(valid: Tensor) -> None:
+    num_masked = int((~valid).sum())
+    if num_masked:
+        logger.debug("pointmap residual: masked %d of %d matches", num_masked, valid.numel())
+
+
 def _finish(
     r: Tensor,
     A: Tensor | None,
@@ -196,9 +202,7 @@ def _finish(
     r = torch.where(valid[..., None], r, zero)
     sqrt_info = torch.where(valid, sqrt_w, zero)[..., None] / sigmas
     if logger.isEnabledFor(logging.DEBUG):
-        num_masked = int((~valid).sum())
-        if num_masked:
-            logger.debug("pointmap residual: masked %d of %d matches", num_masked, valid.numel())
+        _log_masked(valid)
     return MatchResiduals(r=r, J=J, sqrt_info=sqrt_info, valid=valid)
 
 
@@ -255,25 +259,32 @@ def ray_dist_residuals(
 
 def ray_dist_prepared(T_CkCf, prep: PreparedMatches, config: PointmapResidualConfig | None = None,
                       jacobians: bool = True) -> MatchResiduals:
-    """:func:`ray_dist_residuals` of :func:`prepare_matches`' output (the one implementation; blocks
-    prepare each edge once). ``A = dr/dY s R`` in closed form: ray rows ``(sR - psi (psi^T sR)) / ||Y||``,
-    distance row ``psi^T sR``."""
+    """:func:`ray_dist_residuals` of :func:`prepare_matches`' output (blocks prepare each edge once): the
+    compiled kernel :func:`fgslam.factors.pointmap_jit.ray_dist_rows` is the one implementation, in
+    float64 (the results are cast back to the points' dtype). ``A = dr/dY s R`` in closed form: ray rows
+    ``(sR - psi (psi^T sR)) / ||Y||``, distance row ``psi^T sR``."""
+    from .pointmap_jit import ray_dist_rows  # deferred: numba (compiled kernel, core/jit.py)
+
     cfg = config or PointmapResidualConfig()
-    T, Y = _posed(T_CkCf, prep)
-    norm_Y = torch.linalg.vector_norm(Y, dim=-1)
-    valid_Y = norm_Y > prep.min_norm
-    valid = prep.valid & valid_Y
-    inv_n = 1.0 / torch.where(valid_Y, norm_Y, torch.ones((), dtype=Y.dtype, device=Y.device))
-    psi_Y = Y * inv_n[..., None]
-    r = torch.cat((psi_Y - prep.psi_k, (norm_Y - prep.norm_k)[..., None]), dim=-1)
-    A = None
-    if jacobians:
-        sR = T.s[..., None, None] * T.R
-        pB = psi_Y @ sR  # rows psi^T s R
-        A_ray = (sR[..., None, :, :] - psi_Y[..., :, None] * pB[..., None, :]) * inv_n[..., None, None]
-        A = torch.cat((A_ray, pB[..., None, :]), dim=-2)
-    sigmas = Y.new_tensor([cfg.sigma_ray] * 3 + [cfg.sigma_dist])
-    return _finish(r, A, prep.X_f, sigmas, prep.sqrt_w, valid)
+    T = as_sim3(T_CkCf)
+    dtype = prep.X_f.dtype
+    batch = torch.broadcast_shapes(tuple(T.s.shape), tuple(prep.X_f.shape[:-2]))
+    n = int(prep.X_f.shape[-2])
+
+    def flat(x: Tensor, tail: tuple[int, ...]):
+        return x.expand(tuple(batch) + tail).reshape((-1,) + tail).to(torch.float64).contiguous().numpy()
+
+    r, J, sqrt_info, valid = ray_dist_rows(
+        flat(T.R, (3, 3)), flat(T.t, (3,)), flat(T.s, ()), flat(prep.X_f, (n, 3)), flat(prep.psi_k, (n, 3)),
+        flat(prep.norm_k, (n,)), flat(prep.sqrt_w, (n,)), prep.valid.expand(tuple(batch) + (n,)).reshape(-1, n).contiguous().numpy(),
+        float(prep.min_norm), float(cfg.sigma_ray), float(cfg.sigma_dist), bool(jacobians))
+    valid_t = torch.from_numpy(valid).reshape(*batch, n)
+    if logger.isEnabledFor(logging.DEBUG):
+        _log_masked(valid_t)
+    return MatchResiduals(
+        r=torch.from_numpy(r).reshape(*batch, n, 4).to(dtype),
+        J=torch.from_numpy(J).reshape(*batch, n, 4, 7).to(dtype) if jacobians else None,
+        sqrt_info=torch.from_numpy(sqrt_info).reshape(*batch, n, 4).to(dtype), valid=valid_t)
 
 
 def calibrated_residuals(

@@ -32,6 +32,7 @@ from .config import DescriptorConfig  # the config: in .config, torch- and OpenC
 __all__ = ["DescriptorConfig", "dense_descriptors"]
 
 DESCRIPTOR_DIM = 16
+NORM_FLOOR = 1e-6  # a descriptor whose norm is at most this (a flat image) is zero
 
 
 def _stack_shifted(channels: list[np.ndarray], offsets: list[tuple[int, int]]) -> np.ndarray:
@@ -58,24 +59,23 @@ def dense_descriptors(image: np.ndarray, config: DescriptorConfig | None = None)
         raise DataError(f"dense descriptors need a grey image (H, W), got shape {image.shape}")
     grey = image.astype(np.float32)
     s = cfg.step
-    # channel-first (C, H, W): the per-pixel reductions below are then sums of whole images
     if cfg.kind == "patch":
+        from .descriptors_jit import patch_rows  # deferred: numba (compiled kernel, core/jit.py)
+
+        offsets = np.array([(-3 * s + 2 * s * a) // 2 for a in range(4)], np.int64)  # 4 samples spacing s, centred
         smooth = cv2.GaussianBlur(grey, (0, 0), cfg.sigma)
-        offsets = [(-3 * s + 2 * s * a) // 2 for a in range(4)]  # 4 samples spacing s, centred
-        D = _stack_shifted([smooth], [(dx, dy) for dy in offsets for dx in offsets])
-        D -= D.mean(0)
-        G = (D * D).mean(0)
-    elif cfg.kind == "gradient":
-        gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
-        gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
-        channels = [cv2.GaussianBlur(np.maximum(c, 0), (0, 0), cfg.sigma) for c in (gx, gy, -gx, -gy)]
-        half = max(s // 2, 1)
-        D = _stack_shifted(channels, [(dx, dy) for dy in (-half, half) for dx in (-half, half)])
-        G = cv2.GaussianBlur(gx * gx + gy * gy, (0, 0), cfg.sigma)
-    else:
+        return patch_rows(smooth, offsets, np.float32(NORM_FLOOR), np.float32(cfg.texture ** 2))
+    if cfg.kind != "gradient":
         raise DataError(f"unknown descriptor kind {cfg.kind!r} (expected patch or gradient)")
+    # channel-first (C, H, W): the per-pixel reductions below are then sums of whole images
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
+    channels = [cv2.GaussianBlur(np.maximum(c, 0), (0, 0), cfg.sigma) for c in (gx, gy, -gx, -gy)]
+    half = max(s // 2, 1)
+    D = _stack_shifted(channels, [(dx, dy) for dy in (-half, half) for dx in (-half, half)])
+    G = cv2.GaussianBlur(gx * gx + gy * gy, (0, 0), cfg.sigma)
     norm = np.sqrt((D * D).sum(0))
-    D *= np.where(norm > 1e-6, 1.0 / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
+    D *= np.where(norm > NORM_FLOOR, 1.0 / np.maximum(norm, NORM_FLOOR), 0.0).astype(np.float32)
     Q = (G / (G + cfg.texture ** 2)).astype(np.float32)
     D = D.transpose(1, 2, 0)
     return np.ascontiguousarray(D), Q
