@@ -1,5 +1,8 @@
 """tools/bench_stability.py: the perturbed copies of a sequence change the focal lengths of every
-calibration format by the factor and nothing else; the old-CPU variables parse; the summary's ratio."""
+calibration format by the factor and nothing else; the old-CPU variables parse; the summary's ratio;
+synthetic sequences of a chosen size and seed."""
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -77,3 +80,25 @@ def test_summary_ratio_and_target(bench):
     s = bench.summarise("c", case, runs + [{"perturbation": "threads1", "ate_rmse_m": 0.2}])
     assert s["ratio"] == pytest.approx(2.0) and not s["ok"]
     assert not bench.summarise("c", case, runs + [{"perturbation": "x", "error": "failed"}])["ok"]
+
+
+def test_synthetic_sequences_take_a_size_and_a_seed(bench, tmp_path, monkeypatch):
+    """``synth:PRESET:FRAMES[:WxH[:SEED]]``: the render command carries the size and the seed, each spec has
+    a folder of its own, and a finished render is reused."""
+    calls = []
+
+    def fake_run(cmd, **kwargs):
+        calls.append(cmd)
+        Path(cmd[cmd.index("--out") + 1]).mkdir()
+
+    monkeypatch.setattr(bench.subprocess, "run", fake_run)
+    plain = bench.synth_sequence("synth:street-loop:200", tmp_path, "stability")
+    sized = bench.synth_sequence("synth:kitti00-drive:101:1241x376:7", tmp_path, "size")
+    assert plain != sized and len(calls) == 2
+    assert "--width" not in calls[0] and "--seed" not in calls[0]
+    cmd = calls[1]
+    assert cmd[cmd.index("--width") + 1] == "1241" and cmd[cmd.index("--height") + 1] == "376"
+    assert cmd[cmd.index("--seed") + 1] == "7" and cmd[cmd.index("--frames") + 1] == "101"
+    assert cmd[cmd.index("--out") + 1] == str(sized)
+    bench.synth_sequence("synth:kitti00-drive:101:1241x376:7", tmp_path, "size")
+    assert len(calls) == 2  # reused

@@ -48,7 +48,7 @@ CALIBRATION_NAMES = ("camera-intrinsics.txt", "calib.txt", "sensor.yaml")
 
 
 class Case(NamedTuple):
-    """A preset on a sequence: ``data`` is a folder under --data or ``synth:PRESET:FRAMES``;
+    """A preset on a sequence: ``data`` is a folder under --data or ``synth:PRESET:FRAMES[:WxH[:SEED]]``;
     ``target`` the largest allowed max/min ATE ratio."""
 
     preset: str
@@ -72,6 +72,7 @@ CASES: dict[str, Case] = {
     "patch_kitti_mono": Case("patch_kitti_mono", KITTI, FAMILY_RATIO),
     "dense_kitti_mono": Case("dense_kitti_mono", KITTI, FAMILY_RATIO),
     "dense_7scenes_rgbd": Case("dense_7scenes_rgbd", KITCHEN, FAMILY_RATIO),
+    "dense_kitti_stereo": Case("dense_kitti_stereo", "synth:kitti00-drive:101:1241x376", FAMILY_RATIO),
     "pointmap_7scenes_mono": Case("pointmap_7scenes_mono", KITCHEN, FAMILY_RATIO),
     "pointmap_7scenes_rgbd": Case("pointmap_7scenes_rgbd", KITCHEN, FAMILY_RATIO),
 }
@@ -106,12 +107,23 @@ def sequence_root(case: Case, args: argparse.Namespace) -> Path:
     """The case's sequence: a shared folder, or a synthetic render (made once, then reused)."""
     if not case.data.startswith("synth:"):
         return args.data / case.data
-    _, preset, frames = case.data.split(":")
-    root = args.synth_dir / f"stability_{preset}_{frames}"
+    return synth_sequence(case.data, args.synth_dir, "stability")
+
+
+def synth_sequence(spec: str, synth_dir: Path, prefix: str) -> Path:
+    """The render of ``synth:PRESET:FRAMES[:WxH[:SEED]]`` under ``synth_dir`` (made once, then reused;
+    without a size the preset's own)."""
+    _, preset, frames, *rest = spec.split(":")
+    cmd = fgslam_command() + ["-q", "synth", "--preset", preset, "--frames", frames]
+    if rest:
+        width, height = rest[0].lower().split("x")
+        cmd += ["--width", width, "--height", height]
+    if len(rest) > 1:
+        cmd += ["--seed", rest[1]]
+    root = synth_dir / "_".join([prefix, preset, frames, *rest])
     if not (root / ".complete").exists():
         shutil.rmtree(root, ignore_errors=True)
-        subprocess.run(fgslam_command() + ["-q", "synth", "--preset", preset, "--frames", frames, "--out", str(root)],
-                       check=True, stdout=sys.stderr)  # stdout carries the report alone
+        subprocess.run(cmd + ["--out", str(root)], check=True, stdout=sys.stderr)  # stdout carries the report alone
         (root / ".complete").write_text("")
     return root
 

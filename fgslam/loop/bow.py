@@ -106,9 +106,8 @@ class KeyframeDatabase:
             t = np.asarray(self._timestamps)
             eligible &= ~(t > max_timestamp)
         idx = np.flatnonzero(eligible)
-        if len(idx) > max_results:
-            idx = idx[np.argpartition(-s[idx], max_results - 1)[:max_results]]
-        idx = idx[np.lexsort((idx, -s[idx]))]
+        # one total order (score, then index): a partial selection's ties at the cut depend on the CPU's SIMD kernel
+        idx = idx[np.lexsort((idx, -s[idx]))][:max_results]
         return [QueryResult(int(i), self._kf_ids[i], float(s[i])) for i in idx]
 
 

@@ -65,10 +65,11 @@ def select_patches(image: np.ndarray, count: int, border: int, grid: list[int], 
     rank = np.arange(order.size) - first
     quota = max(1, count // (gx * gy))
     chosen = order[rank < quota]
-    chosen = chosen[np.argsort(-best[chosen])][:count]
+    # stable sorts: equal scores keep the index order (numpy's default sort orders ties by the CPU's SIMD kernel)
+    chosen = chosen[np.argsort(-best[chosen], kind="stable")][:count]
     if chosen.size < count:
-        rest = np.setdiff1d(np.argsort(-best), chosen, assume_unique=False)
-        rest = rest[np.argsort(-best[rest])][: count - chosen.size]
+        rest = np.setdiff1d(np.arange(best.size), chosen, assume_unique=False)
+        rest = rest[np.argsort(-best[rest], kind="stable")][: count - chosen.size]
         chosen = np.concatenate([chosen, rest])
     uv = np.stack([u[chosen], v[chosen]], 1).astype(np.float64)
     if uv.shape[0] < count:  # tiny image: pad with random centres
