@@ -115,6 +115,26 @@ def test_read_ahead_gives_every_frame_in_order_and_reads_while_the_consumer_work
     assert max(lead) <= 2  # one frame waits, and the reader holds one more until there is room
 
 
+def test_read_ahead_counts_the_cpu_of_its_own_thread_only():
+    """``cpu_s``: the reader thread's CPU (decoding), not the consumer's; a run reports it as ``read_cpu_s``."""
+    import time
+
+    def busy(seconds):
+        end = time.thread_time() + seconds
+        while time.thread_time() < end:
+            pass
+
+    def source():
+        for frame in frames(4, 100.0):
+            busy(0.05)  # "decoding": CPU in the reader thread
+            yield frame
+
+    reader = ReadAhead(source())
+    for _ in reader:
+        busy(0.1)  # the consumer's work, in its own thread
+    assert 0.2 <= reader.cpu_s < 0.35
+
+
 def test_read_ahead_raises_the_source_error_after_the_frames_before_it_and_stops_on_close():
     def broken():
         yield from frames(3, 100.0)

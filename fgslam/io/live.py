@@ -58,8 +58,10 @@ class _ThreadedReader:
         self._stop = threading.Event()
         self._done = False
         self._thread: Optional[threading.Thread] = None
+        self.cpu_s = 0.0  # CPU time of the reader thread (decoding the frames), set when it ends
 
     def _read(self) -> None:
+        start = time.thread_time()
         try:
             for frame in self.source:
                 if self._stop.is_set():
@@ -68,6 +70,7 @@ class _ThreadedReader:
         except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which raises it
             self.error = exc
         finally:
+            self.cpu_s = time.thread_time() - start
             with self._cond:
                 self._done = True
                 self._cond.notify_all()

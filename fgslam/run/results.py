@@ -70,6 +70,7 @@ class RunSummary:
     fps_frontend: float  # frames per second of frontend time (process + finish)
     max_frame_s: float  # longest frontend.process() of one frame (a stall of tracking)
     read_s: float  # time the loop waited for the next frame (a recorded run reads ahead in a thread: mostly 0)
+    read_cpu_s: float  # CPU time of the reader thread (decoding the frames): part of cpu_s
     stage_s: dict[str, float]  # frontend.stage_times()
     stage_ms_per_frame: dict[str, float]
     peak_rss_mb: float
@@ -112,6 +113,7 @@ class RunState:
     nonfinite: int = 0
     events: Counter = field(default_factory=Counter)
     read_s: float = 0.0
+    read_cpu_s: float = 0.0  # the reader thread's CPU time (decoding), part of cpu_s
     frontend_s: float = 0.0
     max_frame_s: float = 0.0  # longest frontend.process() call
     wall_s: float = 0.0
@@ -239,6 +241,7 @@ def summarize(run: PreparedRun, state: RunState, results: RunResults, written: d
         fps_frontend=n / state.frontend_s if state.frontend_s > 0 else 0.0,
         max_frame_s=state.max_frame_s,
         read_s=state.read_s,
+        read_cpu_s=state.read_cpu_s,
         stage_s=stage_s,
         stage_ms_per_frame={k: MS_PER_S * v / n for k, v in stage_s.items()} if n else {},
         peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * BYTES_PER_KIB / BYTES_PER_MIB,

@@ -336,6 +336,7 @@ def _loop(dataset: Dataset, slam: Slam, config: SlamConfig, progress: bool,
             reader.close()  # the frames' iterator closed it already unless the loop stopped early
         except KeyboardInterrupt as exc:  # a stop signal while the reader ends: reported as one in the loop
             stop = stop or (exc, where)
+        state.read_cpu_s = reader.cpu_s
         if live is not None:
             state.live_dropped = live.dropped
     return stop
