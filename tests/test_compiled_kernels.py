@@ -1,7 +1,8 @@
-"""The compiled kernels (fgslam/core/jit.py): the depth-alignment association and residual rows, the
-Lucas-Kanade track checks, and the pointmap family's patch descriptors and ray residual rows. Their
-rules on constructed cases, the same bytes call to call, and the options that keep them deterministic. (The point-to-plane Jacobians are checked against finite
-differences in tests/test_depth_align.py, through the same kernel.)"""
+"""The compiled kernels (fgslam/core/jit.py): the depth-alignment surface, association and residual
+rows, the Lucas-Kanade track checks, and the pointmap family's patch descriptors and ray residual
+rows. Their rules on constructed cases, the same bytes call to call, and the options that keep them
+deterministic. (The point-to-plane Jacobians are checked against finite differences in
+tests/test_depth_align.py, through the same kernel.)"""
 
 from __future__ import annotations
 
@@ -34,6 +35,29 @@ def _plane_reference(h=20, w=30, z=2.0, f=25.0):
 def _associate(A, b, X_f, n_f, ref, min_depth=0.1, max_distance=0.1, min_agree=0.8, jacobians=True):
     V, N, valid, K, shape = ref
     return associate_rows(A, b, X_f, n_f, V, N, valid, K, shape, min_depth, max_distance, min_agree, jacobians)
+
+
+def test_surface_rows_of_a_wall_with_a_step_and_a_hole():
+    """Vertices at the grid pixels' depth, unit normals towards the camera on a wall, none at the step
+    (a neighbour's depth differs by more than the limit), around a missing reading or on the border."""
+    from fgslam.factors.depth_align_jit import surface_rows
+
+    depth = np.full((40, 60), 2.0, np.float32)
+    depth[:, 40:] = 3.0         # a step between grid columns 9 and 10 (stride 4, offset 2)
+    depth[22, 22] = np.nan      # grid pixel (5, 5): no reading
+    K = np.array([25.0, 25.0, 7.5, 4.5])
+    V, N, good = surface_rows(depth, 2, 4, K, 0.1, 10.0, 0.05)
+    assert V.shape == (10, 15, 3) and good.shape == (10, 15)
+    assert V[3, 4].tolist() == [(4 - 7.5) / 25.0 * 2.0, (3 - 4.5) / 25.0 * 2.0, 2.0]
+    assert not V[5, 5].any()
+    assert good[2, 2] and N[2, 2].tolist() == [0.0, 0.0, -1.0]
+    assert not good[:, 9].any() and not good[:, 10].any() and good[2:8, 12].all()
+    assert not good[5, 4:7].any() and not good[4:7, 5].any() and good[5, 3]
+    assert not good[0].any() and not good[:, 0].any() and not good[-1].any() and not good[:, -1].any()
+    assert not N[~good].any()
+    np.testing.assert_allclose(np.linalg.norm(N[good], axis=-1), 1.0, atol=1e-12)
+    again = surface_rows(depth, 2, 4, K, 0.1, 10.0, 0.05)
+    assert all(a.tobytes() == b.tobytes() for a, b in zip(again, (V, N, good)))
 
 
 def test_association_rules_on_a_wall():

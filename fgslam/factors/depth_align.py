@@ -89,50 +89,19 @@ class DepthSurface:
         depth = np.asarray(depth)
         if depth.ndim != 2:
             raise DataError(f"depth alignment: a depth image must be 2-D, got shape {depth.shape}")
+        from .depth_align_jit import surface_rows  # deferred: numba (compiled kernel, core/jit.py)
+
         fx, fy, cx, cy = (float(k) for k in K)
         levels = []
         strides = config.strides(depth.shape[1])
         for stride in strides:
             off = stride // 2
-            z = depth[off::stride, off::stride].astype(np.float64)
-            h, w = z.shape
-            ok = np.isfinite(z) & (z >= config.min_depth) & (z <= config.max_depth)
-            z = np.where(ok, z, 0.0)
             # grid pixel (a, b) is image pixel (off + stride b, off + stride a)
             Kl = (fx / stride, fy / stride, (cx - off) / stride, (cy - off) / stride)
-            u = (np.arange(w) - Kl[2]) / Kl[0]
-            v = (np.arange(h) - Kl[3]) / Kl[1]
-            V = np.stack(np.broadcast_arrays(u[None, :] * z, v[:, None] * z, z), axis=-1)
-            N, n_ok = _normals(V, z, ok, config.max_discontinuity * stride)
-            levels.append(SurfaceLevel((h, w), np.ascontiguousarray(V.reshape(-1, 3)),
-                                       np.ascontiguousarray(N.reshape(-1, 3)), n_ok.reshape(-1), Kl))
+            V, N, n_ok = surface_rows(depth, off, stride, np.array(Kl), float(config.min_depth),
+                                      float(config.max_depth), float(config.max_discontinuity * stride))
+            levels.append(SurfaceLevel(V.shape[:2], V.reshape(-1, 3), N.reshape(-1, 3), n_ok.reshape(-1), Kl))
         return DepthSurface(tuple(levels), strides)
-
-
-def _normals(V: np.ndarray, z: np.ndarray, ok: np.ndarray, max_discontinuity: float) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals of the vertex grid ``V`` ``(h, w, 3)`` by central differences (pointing to the
-    camera) and where they exist: the pixel and its four neighbours have depth, and no neighbour's
-    depth differs by more than ``max_discontinuity`` of the pixel's."""
-    N = np.zeros_like(V)
-    good = np.zeros_like(ok)
-    if V.shape[0] < 3 or V.shape[1] < 3:
-        return N, good
-    c = z[1:-1, 1:-1]
-    nb = (z[1:-1, 2:], z[1:-1, :-2], z[2:, 1:-1], z[:-2, 1:-1])
-    g = ok[1:-1, 1:-1] & ok[1:-1, 2:] & ok[1:-1, :-2] & ok[2:, 1:-1] & ok[:-2, 1:-1]
-    for zn in nb:
-        g &= np.abs(zn - c) <= max_discontinuity * c
-    du = V[1:-1, 2:] - V[1:-1, :-2]
-    dv = V[2:, 1:-1] - V[:-2, 1:-1]
-    n = np.cross(du, dv)
-    norm = np.linalg.norm(n, axis=-1)
-    g &= norm > 0
-    n = n / np.where(norm > 0, norm, 1.0)[..., None]
-    flip = (n * V[1:-1, 1:-1]).sum(-1) > 0  # towards the camera: n . X < 0
-    n = np.where(flip[..., None], -n, n)
-    N[1:-1, 1:-1] = np.where(g[..., None], n, 0.0)
-    good[1:-1, 1:-1] = g
-    return N, good
 
 
 @dataclass(frozen=True)

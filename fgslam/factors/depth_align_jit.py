@@ -94,3 +94,62 @@ def associate_rows(A, b, X_f, n_f, ref_V, ref_N, ref_valid, K, shape, min_depth,
         paired[i] = True
         r[i] = _p2p_row(A, X_f[i], Y, ref_V[idx], ref_N[idx], J, i, jacobians)
     return seen, paired, r, J
+
+
+@kernel
+def surface_rows(depth, off, stride, K, min_depth, max_depth, max_discontinuity):
+    """One surface level of a depth image (:meth:`fgslam.factors.depth_align.DepthSurface.from_depth`):
+    grid pixel ``(a, b)`` is image pixel ``(off + stride b, off + stride a)`` with grid intrinsics
+    ``K = [fx, fy, cx, cy]``. Returns the vertices ``V (h, w, 3)`` (zero without depth in
+    ``[min_depth, max_depth]``), the unit normals ``N (h, w, 3)`` by central differences, pointing to the
+    camera, and where they exist, ``good (h, w)``: the pixel and its four neighbours have depth, no
+    neighbour's depth differs by more than ``max_discontinuity`` of the pixel's, and the normal is not
+    degenerate. Sums in numpy's order (the bits of the former array code)."""
+    H, W = depth.shape
+    h = (H - off + stride - 1) // stride
+    w = (W - off + stride - 1) // stride
+    z = np.zeros((h, w))
+    ok = np.zeros((h, w), np.bool_)
+    V = np.zeros((h, w, 3))
+    N = np.zeros((h, w, 3))
+    good = np.zeros((h, w), np.bool_)
+    for a in range(h):
+        y = (a - K[3]) / K[1]
+        for b in range(w):
+            d = np.float64(depth[off + stride * a, off + stride * b])
+            if np.isfinite(d) and d >= min_depth and d <= max_depth:
+                ok[a, b] = True
+                z[a, b] = d
+            x = (b - K[2]) / K[0]
+            V[a, b, 0] = x * z[a, b]
+            V[a, b, 1] = y * z[a, b]
+            V[a, b, 2] = z[a, b]
+    if h < 3 or w < 3:
+        return V, N, good
+    for a in range(1, h - 1):
+        for b in range(1, w - 1):
+            if not (ok[a, b] and ok[a, b + 1] and ok[a, b - 1] and ok[a + 1, b] and ok[a - 1, b]):
+                continue
+            c = z[a, b]
+            limit = max_discontinuity * c
+            if (abs(z[a, b + 1] - c) > limit or abs(z[a, b - 1] - c) > limit or abs(z[a + 1, b] - c) > limit
+                    or abs(z[a - 1, b] - c) > limit):
+                continue
+            du0 = V[a, b + 1, 0] - V[a, b - 1, 0]
+            du1 = V[a, b + 1, 1] - V[a, b - 1, 1]
+            du2 = V[a, b + 1, 2] - V[a, b - 1, 2]
+            dv0 = V[a + 1, b, 0] - V[a - 1, b, 0]
+            dv1 = V[a + 1, b, 1] - V[a - 1, b, 1]
+            dv2 = V[a + 1, b, 2] - V[a - 1, b, 2]
+            n0 = du1 * dv2 - du2 * dv1
+            n1 = du2 * dv0 - du0 * dv2
+            n2 = du0 * dv1 - du1 * dv0
+            norm = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            if not norm > 0:
+                continue
+            n0, n1, n2 = n0 / norm, n1 / norm, n2 / norm
+            if n0 * V[a, b, 0] + n1 * V[a, b, 1] + n2 * V[a, b, 2] > 0:  # towards the camera: n . X < 0
+                n0, n1, n2 = -n0, -n1, -n2
+            N[a, b, 0], N[a, b, 1], N[a, b, 2] = n0, n1, n2
+            good[a, b] = True
+    return V, N, good
