@@ -139,6 +139,16 @@ def test_ate_only_over_frames_both_posed(bench):
     assert none["common_frames"] == 0 and none["ate_a_m"] is None and none["error"]
 
 
+def test_frames_per_cpu_second_without_the_reader(bench):
+    """Like for like beside ORB-SLAM3's runner (it decodes before timing): the reader thread's CPU is left
+    out; runs without the figure (an older fgslam) are skipped, not counted as zero."""
+    runs = [{"frames": 600, "cpu_s": 20.0, "read_cpu_s": 4.0}, {"frames": 600, "cpu_s": 22.0, "read_cpu_s": 2.0},
+            {"frames": 600, "cpu_s": 21.0, "read_cpu_s": None}]
+    assert bench._per_cpu(runs) == pytest.approx(600 / 21.0)
+    assert bench._per_cpu_without_reading(runs) == pytest.approx((600 / 16.0 + 600 / 20.0) / 2)  # median of two
+    assert bench._per_cpu_without_reading(runs[2:]) is None
+
+
 # ------------------------------------------------------------------------------ whole run, fakes
 
 FAKE_PEER = textwrap.dedent('''\

@@ -37,6 +37,47 @@ def _associate(A, b, X_f, n_f, ref, min_depth=0.1, max_distance=0.1, min_agree=0
     return associate_rows(A, b, X_f, n_f, V, N, valid, K, shape, min_depth, max_distance, min_agree, jacobians)
 
 
+def _surface_reference(depth, off, stride, K, min_depth, max_depth, max_discontinuity):
+    """One surface level by its definition, in numpy arrays (vertices, central-difference normals towards
+    the camera, the depth and discontinuity gates), summed in numpy's order."""
+    z = depth[off::stride, off::stride].astype(np.float64)
+    h, w = z.shape
+    ok = np.isfinite(z) & (z >= min_depth) & (z <= max_depth)
+    z = np.where(ok, z, 0.0)
+    V = np.stack(np.broadcast_arrays(((np.arange(w) - K[2]) / K[0])[None, :] * z,
+                                     ((np.arange(h) - K[3]) / K[1])[:, None] * z, z), axis=-1)
+    N, good = np.zeros_like(V), np.zeros_like(ok)
+    c = z[1:-1, 1:-1]
+    g = ok[1:-1, 1:-1] & ok[1:-1, 2:] & ok[1:-1, :-2] & ok[2:, 1:-1] & ok[:-2, 1:-1]
+    for zn in (z[1:-1, 2:], z[1:-1, :-2], z[2:, 1:-1], z[:-2, 1:-1]):
+        g &= np.abs(zn - c) <= max_discontinuity * c
+    n = np.cross(V[1:-1, 2:] - V[1:-1, :-2], V[2:, 1:-1] - V[:-2, 1:-1])
+    norm = np.linalg.norm(n, axis=-1)
+    g &= norm > 0
+    n = n / np.where(norm > 0, norm, 1.0)[..., None]
+    n = np.where(((n * V[1:-1, 1:-1]).sum(-1) > 0)[..., None], -n, n)
+    N[1:-1, 1:-1] = np.where(g[..., None], n, 0.0)
+    good[1:-1, 1:-1] = g
+    return V, N, good
+
+
+def test_surface_rows_are_the_definition_bytewise():
+    from fgslam.factors.depth_align_jit import surface_rows
+
+    rng = np.random.default_rng(8)
+    v, u = np.mgrid[0:90, 0:130]
+    depth = (1.5 + 0.004 * u + 0.002 * v + 0.01 * rng.standard_normal((90, 130))).astype(np.float32)
+    depth[30:50, 60:90] += 0.8            # a box: depth discontinuities
+    depth[rng.random((90, 130)) < 0.05] = 0.0  # missing readings
+    depth[5, 7] = np.nan
+    for off, stride in ((0, 1), (1, 2), (4, 8)):
+        K = np.array([100.0 / stride, 100.0 / stride, (64.5 - off) / stride, (44.5 - off) / stride])
+        got = surface_rows(depth, off, stride, K, 0.3, 8.0, 0.05 * stride)
+        ref = _surface_reference(depth, off, stride, K, 0.3, 8.0, 0.05 * stride)
+        assert all(a.tobytes() == b.tobytes() for a, b in zip(got, ref)), stride
+        assert got[2].any() and not got[2].all()
+
+
 def test_surface_rows_of_a_wall_with_a_step_and_a_hole():
     """Vertices at the grid pixels' depth, unit normals towards the camera on a wall, none at the step
     (a neighbour's depth differs by more than the limit), around a missing reading or on the border."""
@@ -201,6 +242,7 @@ def test_ray_rows_broadcast_the_pose_batch_and_repeat_bytewise():
     per pose, and the same bytes call to call."""
     import torch
 
+    from fgslam.core.errors import DataError
     from fgslam.core.lie import Sim3
     from fgslam.factors.pointmap import prepare_matches, ray_dist_prepared
 
@@ -220,6 +262,18 @@ def test_ray_rows_broadcast_the_pose_batch_and_repeat_bytewise():
     assert shared.r.shape == (3, 40, 4) and torch.equal(shared.r[0], batched.r[0])
     again = ray_dist_prepared(T, prep)
     assert all(torch.equal(getattr(again, n), getattr(batched, n)) for n in ("r", "J", "sqrt_info", "valid"))
+    # rotations batched, one scale for all (Sim3 broadcasts its parts), against one set of matches
+    mixed = Sim3(T.R, T.t, torch.tensor(1.0, dtype=torch.float64))
+    one_set = prepare_matches(X_f[0], X_k[0])
+    out = ray_dist_prepared(mixed, one_set)
+    assert out.r.shape == (3, 40, 4)
+    assert torch.equal(out.r[2], ray_dist_prepared(Sim3(T.R[2], T.t[2], torch.tensor(1.0, dtype=torch.float64)), one_set).r)
+    # no matches: empty results of the right shapes
+    empty = ray_dist_prepared(T, prepare_matches(X_f[:, :0], X_k[:, :0]))
+    assert empty.r.shape == (3, 0, 4) and empty.J.shape == (3, 0, 4, 7) and empty.valid.shape == (3, 0)
+    # the kernel takes CPU tensors without gradients
+    with pytest.raises(DataError, match="CPU tensors without gradients"):
+        ray_dist_prepared(Sim3(T.R, T.t.clone().requires_grad_(True), T.s), prep)
 
 
 # ------------------------------------------------------------------ loaded before the first frame

@@ -52,18 +52,22 @@ def main(argv: list[str] | None = None) -> dict:
                        "--no-progress", "-o", "output.plot=false"]
                 for o in [*args.overrides, *overrides]:
                     cmd += ["-o", o]
-                proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
-                row = {"data": spec, "overrides": overrides, "returncode": proc.returncode,
+                try:
+                    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
+                    returncode, stderr = proc.returncode, proc.stderr
+                except subprocess.TimeoutExpired:
+                    returncode, stderr = None, f"stopped after {args.timeout:.0f} s"
+                row = {"data": spec, "overrides": overrides, "returncode": returncode,
                        "load_average": [list(load), list(os.getloadavg())]}
                 summary_path = Path(out) / "summary.json"
                 if summary_path.exists():
                     s = json.loads(summary_path.read_text())
                     ev = s.get("evaluation") or {}
-                    row.update(fps=s["fps"], frames_per_cpu_s=s["frames_processed"] / max(s["cpu_s"], 1e-9),
+                    row.update(fps=s["fps"], frames_per_cpu_s=s["frames_processed"] / s["cpu_s"] if s["cpu_s"] > 0 else None,
                                keyframes=s["keyframes"], tracking_failures=s["failures"]["tracking"],
                                max_frame_s=s["max_frame_s"], ate_rmse_m=ev.get("ate_rmse_m"))
                 else:
-                    row["error"] = proc.stderr.strip().splitlines()[-1:] or ["no summary"]
+                    row["error"] = stderr.strip().splitlines()[-1:] or ["no summary"]
                 rows.append(row)
                 print(json.dumps(row), file=sys.stderr)
     report = {"preset": args.preset, "data": args.data, "grid": args.grid, "overrides": args.overrides, "runs": rows}

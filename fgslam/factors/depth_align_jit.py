@@ -1,7 +1,9 @@
 """Compiled row kernels of the point-to-plane depth alignment (:mod:`fgslam.factors.depth_align`):
-the residual, its Jacobians and the projective association, one pass over the frame's vertices
-(:mod:`fgslam.core.jit`). :func:`fgslam.factors.depth_align.point_to_plane` and
-:class:`~fgslam.factors.depth_align.DepthAlignBlock` call these; they are the implementation.
+the depth surface of each pyramid level (vertices, normals, discontinuity gates: :func:`surface_rows`),
+and the residual, its Jacobians and the projective association, one pass over the frame's vertices
+(:mod:`fgslam.core.jit`). :meth:`fgslam.factors.depth_align.DepthSurface.from_depth`,
+:func:`fgslam.factors.depth_align.point_to_plane` and :class:`~fgslam.factors.depth_align.DepthAlignBlock`
+call these; they are the implementation.
 
 Jacobian columns: ``[J_k (7), J_f (7)]`` w.r.t. right perturbations ``[w, u, lambda]`` of ``T_WCk`` and
 ``T_WCf`` (the derivation is in :func:`~fgslam.factors.depth_align.point_to_plane`).

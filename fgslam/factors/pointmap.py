@@ -44,6 +44,7 @@ does for the pixel rows. The authors' released configuration likewise uses log d
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import torch
@@ -52,7 +53,7 @@ from torch import Tensor
 from ..core.camera import project
 from ..core.errors import DataError
 from ..core.lie import Sim3
-from .configs import PointmapResidualConfig  # the config: torch-free (a run's config loads without torch)
+from .configs import RAY_DIST_ROWS, SIM3_DOF, PointmapResidualConfig  # torch-free (a run's config loads without torch)
 
 logger = logging.getLogger(__name__)
 
@@ -261,30 +262,35 @@ def ray_dist_prepared(T_CkCf, prep: PreparedMatches, config: PointmapResidualCon
                       jacobians: bool = True) -> MatchResiduals:
     """:func:`ray_dist_residuals` of :func:`prepare_matches`' output (blocks prepare each edge once): the
     compiled kernel :func:`fgslam.factors.pointmap_jit.ray_dist_rows` is the one implementation, in
-    float64 (the results are cast back to the points' dtype). ``A = dr/dY s R`` in closed form: ray rows
-    ``(sR - psi (psi^T sR)) / ||Y||``, distance row ``psi^T sR``."""
+    float64 on the CPU (the results are cast back to the points' dtype; no autograd: tensors that
+    require gradients or live on another device are refused). ``A = dr/dY s R`` in closed form: ray
+    rows ``(sR - psi (psi^T sR)) / ||Y||``, distance row ``psi^T sR``."""
     from .pointmap_jit import ray_dist_rows  # deferred: numba (compiled kernel, core/jit.py)
 
     cfg = config or PointmapResidualConfig()
     T = as_sim3(T_CkCf)
+    inputs = (T.R, T.t, T.s, prep.X_f, prep.psi_k)
+    if any(x.requires_grad or x.device.type != "cpu" for x in inputs):
+        raise DataError("ray residual: the compiled kernel takes CPU tensors without gradients")
     dtype = prep.X_f.dtype
-    batch = torch.broadcast_shapes(tuple(T.s.shape), tuple(prep.X_f.shape[:-2]))
+    batch = tuple(torch.broadcast_shapes(T.shape, prep.X_f.shape[:-2]))
     n = int(prep.X_f.shape[-2])
+    rows = math.prod(batch)
 
     def flat(x: Tensor, tail: tuple[int, ...]):
-        return x.expand(tuple(batch) + tail).reshape((-1,) + tail).to(torch.float64).contiguous().numpy()
+        return x.expand(batch + tail).reshape((rows,) + tail).to(torch.float64).contiguous().numpy()
 
     r, J, sqrt_info, valid = ray_dist_rows(
         flat(T.R, (3, 3)), flat(T.t, (3,)), flat(T.s, ()), flat(prep.X_f, (n, 3)), flat(prep.psi_k, (n, 3)),
-        flat(prep.norm_k, (n,)), flat(prep.sqrt_w, (n,)), prep.valid.expand(tuple(batch) + (n,)).reshape(-1, n).contiguous().numpy(),
+        flat(prep.norm_k, (n,)), flat(prep.sqrt_w, (n,)), prep.valid.expand(batch + (n,)).reshape(rows, n).contiguous().numpy(),
         float(prep.min_norm), float(cfg.sigma_ray), float(cfg.sigma_dist), bool(jacobians))
-    valid_t = torch.from_numpy(valid).reshape(*batch, n)
+    valid_t = torch.from_numpy(valid).reshape(batch + (n,))
     if logger.isEnabledFor(logging.DEBUG):
         _log_masked(valid_t)
     return MatchResiduals(
-        r=torch.from_numpy(r).reshape(*batch, n, 4).to(dtype),
-        J=torch.from_numpy(J).reshape(*batch, n, 4, 7).to(dtype) if jacobians else None,
-        sqrt_info=torch.from_numpy(sqrt_info).reshape(*batch, n, 4).to(dtype), valid=valid_t)
+        r=torch.from_numpy(r).reshape(batch + (n, RAY_DIST_ROWS)).to(dtype),
+        J=torch.from_numpy(J).reshape(batch + (n, RAY_DIST_ROWS, SIM3_DOF)).to(dtype) if jacobians else None,
+        sqrt_info=torch.from_numpy(sqrt_info).reshape(batch + (n, RAY_DIST_ROWS)).to(dtype), valid=valid_t)
 
 
 def calibrated_residuals(

@@ -11,9 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.jit import kernel
-
-RAY_ROWS = 4  # three unit-ray rows and the distance row
-POSE_TANGENT = 7  # [w, u, lambda] of Sim(3)
+from .configs import RAY_DIST_ROWS as RAY_ROWS, SIM3_DOF as POSE_TANGENT
 
 
 @kernel

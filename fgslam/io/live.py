@@ -46,7 +46,9 @@ class LiveConfig:
 class _ThreadedReader:
     """A source read by a background thread into a queue that the consumer takes from; iterate once.
     Subclasses say how a frame is put in (:meth:`_put`) and what taking one records (:meth:`_taken`).
-    An exception that stops the source reaches the consumer after the frames queued before it."""
+    An exception that stops the source reaches the consumer after the frames queued before it.
+    ``cpu_s``: the reader thread's own CPU time (work OpenCV hands to its pool threads is not in it),
+    set when the thread ends; 0 before that (a reader that did not end when closed)."""
 
     _thread_name = "fgslam-reader"
 
@@ -58,7 +60,7 @@ class _ThreadedReader:
         self._stop = threading.Event()
         self._done = False
         self._thread: Optional[threading.Thread] = None
-        self.cpu_s = 0.0  # CPU time of the reader thread (decoding the frames), set when it ends
+        self.cpu_s = 0.0  # CPU time of the reader thread alone (decoding the frames), set when it ends (0 until then)
 
     def _read(self) -> None:
         start = time.thread_time()

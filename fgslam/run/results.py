@@ -70,7 +70,7 @@ class RunSummary:
     fps_frontend: float  # frames per second of frontend time (process + finish)
     max_frame_s: float  # longest frontend.process() of one frame (a stall of tracking)
     read_s: float  # time the loop waited for the next frame (a recorded run reads ahead in a thread: mostly 0)
-    read_cpu_s: float  # CPU time of the reader thread (decoding the frames): part of cpu_s
+    read_cpu_s: float  # CPU time of the reader thread alone (decoding; not OpenCV's pool threads): part of cpu_s; 0 when the reader had not ended
     stage_s: dict[str, float]  # frontend.stage_times()
     stage_ms_per_frame: dict[str, float]
     peak_rss_mb: float
