@@ -32,6 +32,7 @@ from .config import DescriptorConfig  # the config: in .config, torch- and OpenC
 __all__ = ["DescriptorConfig", "dense_descriptors"]
 
 DESCRIPTOR_DIM = 16
+PATCH_SIDE = 4  # patch descriptor: samples per side of its grid (PATCH_SIDE ** 2 = DESCRIPTOR_DIM)
 NORM_FLOOR = 1e-6  # a descriptor whose norm is at most this (a flat image) is zero
 
 
@@ -62,7 +63,8 @@ def dense_descriptors(image: np.ndarray, config: DescriptorConfig | None = None)
     if cfg.kind == "patch":
         from .descriptors_jit import patch_rows  # deferred: numba (compiled kernel, core/jit.py)
 
-        offsets = np.array([(-3 * s + 2 * s * a) // 2 for a in range(4)], np.int64)  # 4 samples spacing s, centred
+        # PATCH_SIDE samples spacing s, centred
+        offsets = np.array([(-(PATCH_SIDE - 1) * s + 2 * s * a) // 2 for a in range(PATCH_SIDE)], np.int64)
         smooth = cv2.GaussianBlur(grey, (0, 0), cfg.sigma)
         return patch_rows(smooth, offsets, np.float32(NORM_FLOOR), np.float32(cfg.texture ** 2))
     if cfg.kind != "gradient":

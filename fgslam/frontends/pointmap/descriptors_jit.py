@@ -11,14 +11,14 @@ from __future__ import annotations
 import numpy as np
 
 from ...core.jit import kernel
+from .descriptors import PATCH_SIDE
 
-PATCH_SIDE = 4  # samples per side of the patch grid
 PATCH_SAMPLES = PATCH_SIDE * PATCH_SIDE
 
 
 @kernel
 def patch_rows(smooth, offsets, norm_floor, texture_sq):
-    """``(D (H, W, 16), G (H, W), Q (H, W))`` float32 of the smoothed grey image ``smooth (H, W)`` float32:
+    """``(D (H, W, 16), Q (H, W))`` float32 of the smoothed grey image ``smooth (H, W)`` float32:
     sample ``n = 4 iy + ix`` of pixel ``(v, u)`` is ``smooth[v + offsets[iy], u + offsets[ix]]`` (borders
     replicated), mean removed; ``G`` the mean of the squared samples; ``D`` scaled to unit norm (zero where
     the norm is at most ``norm_floor``); ``Q = G / (G + texture_sq)``."""
