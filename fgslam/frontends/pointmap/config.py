@@ -22,6 +22,9 @@ from ..flow import DenseFlowConfig
 # OpenCV, so that a run's config loads without them)
 
 
+PATCH_SIDE = 4  # the patch descriptor: samples per side of its grid (PATCH_SIDE ** 2 dimensions)
+
+
 @dataclass
 class DescriptorConfig:
     """Which dense descriptor, and its scales (:mod:`fgslam.frontends.pointmap.descriptors`)."""

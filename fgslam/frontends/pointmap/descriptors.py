@@ -27,12 +27,11 @@ import cv2
 import numpy as np
 
 from ...core.errors import DataError
-from .config import DescriptorConfig  # the config: in .config, torch- and OpenCV-free (a run's config loads without them)
+from .config import PATCH_SIDE, DescriptorConfig  # the config: in .config, torch- and OpenCV-free (a run's config loads without them)
 
 __all__ = ["DescriptorConfig", "dense_descriptors"]
 
 DESCRIPTOR_DIM = 16
-PATCH_SIDE = 4  # patch descriptor: samples per side of its grid (PATCH_SIDE ** 2 = DESCRIPTOR_DIM)
 NORM_FLOOR = 1e-6  # a descriptor whose norm is at most this (a flat image) is zero
 
 

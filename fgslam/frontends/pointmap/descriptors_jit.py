@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...core.jit import kernel
-from .descriptors import PATCH_SIDE
+from .config import PATCH_SIDE
 
 PATCH_SAMPLES = PATCH_SIDE * PATCH_SIDE
 
