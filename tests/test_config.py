@@ -71,6 +71,19 @@ def test_overrides_parse_yaml_values(tmp_path):
     assert load_config(RootConfig, None, ["solver.robust_delta=2.5"]).solver.robust_delta == 2.5
 
 
+@pytest.mark.parametrize("text, number", [("1e-4", 1e-4), ("2E3", 2000.0), ("-5e-1", -0.5), ("+3e+2", 300.0)])
+def test_exponent_without_a_point_is_a_number(tmp_path, text, number):
+    """YAML 1.1 (PyYAML) reads 1e-4 as a string; a float field takes it as the number it means, in a
+    file and in an override, and a string that is no number is still refused naming the key."""
+    assert load_config(RootConfig, None, [f"solver.robust_delta={text}"]).solver.robust_delta == number
+    path = write(tmp_path, f"solver:\n  robust_delta: {text}\n")
+    assert load_config(RootConfig, path).solver.robust_delta == number
+    with pytest.raises(ConfigError, match=r"'solver.robust_delta'.*expected a number"):
+        load_config(RootConfig, None, ["solver.robust_delta=1e"])
+    with pytest.raises(ConfigError, match=r"'solver.iterations'.*expected an integer"):
+        load_config(RootConfig, None, ["solver.iterations=1e3"])  # an integer field takes integers only
+
+
 def test_unknown_key_in_file_names_key_and_file(tmp_path):
     path = write(tmp_path, "solver:\n  iteratons: 3\n")
     with pytest.raises(ConfigError) as info:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import math
+import re
 import types
 import typing
 from collections.abc import Callable, Mapping, Sequence
@@ -36,6 +37,10 @@ if TYPE_CHECKING:
     from _typeshed import DataclassInstance
 
 T = TypeVar("T")
+
+#: a number in exponent notation without a decimal point (``1e-4``): YAML 1.1, which PyYAML reads,
+#: takes it for a string, YAML 1.2 and Python for a float; a float field accepts it
+EXPONENT_NUMBER = re.compile(r"[-+]?[0-9]+[eE][-+]?[0-9]+")
 
 #: Metadata key under which :func:`ranged` stores a field's :class:`Range`.
 RANGE_KEY = "fgslam_range"
@@ -274,6 +279,8 @@ def _convert(value: Any, tp: object, key: str, source: str) -> Any:
             raise fail("expected an integer")
         return value
     if tp is float:
+        if isinstance(value, str) and EXPONENT_NUMBER.fullmatch(value.strip()):
+            value = float(value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise fail("expected a number")
         try:
