@@ -71,7 +71,8 @@ def test_overrides_parse_yaml_values(tmp_path):
     assert load_config(RootConfig, None, ["solver.robust_delta=2.5"]).solver.robust_delta == 2.5
 
 
-@pytest.mark.parametrize("text, number", [("1e-4", 1e-4), ("2E3", 2000.0), ("-5e-1", -0.5), ("+3e+2", 300.0)])
+@pytest.mark.parametrize("text, number", [("1e-4", 1e-4), ("2E3", 2000.0), ("-5e-1", -0.5), ("+3e+2", 300.0),
+                                          ("1.5e3", 1500.0), ("1.e5", 1e5), (".5e3", 500.0)])
 def test_exponent_without_a_point_is_a_number(tmp_path, text, number):
     """YAML 1.1 (PyYAML) reads 1e-4 as a string; a float field takes it as the number it means, in a
     file and in an override, and a string that is no number is still refused naming the key."""
@@ -80,6 +81,8 @@ def test_exponent_without_a_point_is_a_number(tmp_path, text, number):
     assert load_config(RootConfig, path).solver.robust_delta == number
     with pytest.raises(ConfigError, match=r"'solver.robust_delta'.*expected a number"):
         load_config(RootConfig, None, ["solver.robust_delta=1e"])
+    with pytest.raises(ConfigError, match=r"'solver.robust_delta'.*finite number \(got '1e999'\)"):
+        load_config(RootConfig, None, ["solver.robust_delta=1e999"])  # the error shows what was written
     with pytest.raises(ConfigError, match=r"'solver.iterations'.*expected an integer"):
         load_config(RootConfig, None, ["solver.iterations=1e3"])  # an integer field takes integers only
 

@@ -3,7 +3,8 @@
 Every tunable of fgslam lives in a dataclass field (defaults plus a one-line comment). A YAML file
 in ``fgslam/configs/`` (the presets) sets some of them; ``-o section.key=value`` overrides set more. Anything that does
 not fit the dataclass (an unknown key, a string where a float belongs, a value outside a ``Literal``)
-is a :class:`~fgslam.core.errors.ConfigError` naming the key and where it came from.
+is a :class:`~fgslam.core.errors.ConfigError` naming the key and where it came from. A number in
+exponent notation that YAML 1.1 reads as a string (``1e-4``, ``1.5e3``) is a number for a float field.
 
 Numeric fields declare their allowed range with :func:`ranged` (``x: float = ranged(1.0, gt=0, le=MAX_SCALAR)``);
 loading rejects a value outside it, naming the key, before any work starts. A range on a list or
@@ -37,10 +38,6 @@ if TYPE_CHECKING:
     from _typeshed import DataclassInstance
 
 T = TypeVar("T")
-
-#: a number in exponent notation without a decimal point (``1e-4``): YAML 1.1, which PyYAML reads,
-#: takes it for a string, YAML 1.2 and Python for a float; a float field accepts it
-EXPONENT_NUMBER = re.compile(r"[-+]?[0-9]+[eE][-+]?[0-9]+")
 
 #: Metadata key under which :func:`ranged` stores a field's :class:`Range`.
 RANGE_KEY = "fgslam_range"
@@ -203,6 +200,9 @@ def with_sections(sections: Callable[[], Mapping[str, type]], after: str) -> Cal
 
 #: Words YAML 1.1 turns into booleans, tried in this order when a Literal field gets a boolean.
 _BOOL_WORDS = {False: ("off", "no", "false"), True: ("on", "yes", "true")}
+# a number in exponent notation that YAML 1.1 (PyYAML) reads as a string and YAML 1.2 and Python as a
+# float: ``1e-4`` (no point), ``1.5e3`` (a point, no exponent sign); a float field takes it
+_EXPONENT_NUMBER = re.compile(r"[-+]?([0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+")
 
 
 def _type_name(tp: object) -> str:
@@ -279,9 +279,8 @@ def _convert(value: Any, tp: object, key: str, source: str) -> Any:
             raise fail("expected an integer")
         return value
     if tp is float:
-        if isinstance(value, str) and EXPONENT_NUMBER.fullmatch(value.strip()):
-            value = float(value)
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
+        exponent = isinstance(value, str) and _EXPONENT_NUMBER.fullmatch(value.strip()) is not None
+        if not exponent and (isinstance(value, bool) or not isinstance(value, (int, float))):
             raise fail("expected a number")
         try:
             number = float(value)
