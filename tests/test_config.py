@@ -73,8 +73,8 @@ def test_overrides_parse_yaml_values(tmp_path):
 
 @pytest.mark.parametrize("text, number", [("1e-4", 1e-4), ("2E3", 2000.0), ("-5e-1", -0.5), ("+3e+2", 300.0),
                                           ("1.5e3", 1500.0), ("1.e5", 1e5), (".5e3", 500.0)])
-def test_exponent_without_a_point_is_a_number(tmp_path, text, number):
-    """YAML 1.1 (PyYAML) reads 1e-4 as a string; a float field takes it as the number it means, in a
+def test_exponent_forms_yaml_reads_as_strings_are_numbers(tmp_path, text, number):
+    """YAML 1.1 (PyYAML) reads 1e-4 and 1.5e3 as strings; a float field takes them as the numbers they mean, in a
     file and in an override, and a string that is no number is still refused naming the key."""
     assert load_config(RootConfig, None, [f"solver.robust_delta={text}"]).solver.robust_delta == number
     path = write(tmp_path, f"solver:\n  robust_delta: {text}\n")
