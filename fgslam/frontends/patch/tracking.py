@@ -194,8 +194,7 @@ class Tracker:
         The ratio is 0 when the prediction held, about 1 for a start from rest, a stop or a turn at a
         right angle, about 2 when the motion reversed (a stream jumping back and forth); (0, 0) when
         neither motion moves the patches or none reprojects through both."""
-        uv_pred, ok_pred = self.state.reproject_to(kf, kf.T_WC @ T_CkCpred)
-        uv_new, ok_new = self.state.reproject_to(kf, kf.T_WC @ T_CkCnew)
+        (uv_pred, uv_new), (ok_pred, ok_new) = self.state.reproject_to(kf, kf.T_WC @ np.stack([T_CkCpred, T_CkCnew]))
         ok = ok_pred & ok_new
         if not ok.any():
             return 0.0, 0.0
