@@ -73,3 +73,23 @@ def test_room_loop_accuracy(room, mode, align, bound):
     assert set(times) >= {"flow", "ba", "bookkeeping"} and all(v >= 0 for v in times.values())
     pts = fe.keyframe_points()
     assert pts is not None and pts[0].shape[1] == 3 and np.isfinite(pts[0]).all()
+
+
+def test_reprojection_through_a_stack_of_poses_equals_one_pose_at_a_time(room):
+    """``PatchState.reproject_to`` with a stack of poses (the implausible-motion check's one call for the
+    predicted and the tracked pose) gives the same bits as one call per pose."""
+    import itertools
+
+    ds = load(room, "rgbd")
+    fe, _ = run(ds, "rgbd", frames=list(itertools.islice(ds, 12)))
+    st = fe.state
+    a, b = st.graph.frames[0], st.graph.frames[-1]
+    shifted = b.T_WC.copy()
+    shifted[:3, 3] += 0.05
+    stack = np.stack([b.T_WC, shifted, a.T_WC])
+    uv, ok = st.reproject_to(a, stack)
+    assert uv.shape == (3, len(a.uv), 2) and ok.shape == (3, len(a.uv)) and ok.any()
+    for T, uv_one, ok_one in zip(stack, uv, ok):
+        uv_single, ok_single = st.reproject_to(a, T)
+        np.testing.assert_array_equal(uv_one, uv_single)
+        np.testing.assert_array_equal(ok_one, ok_single)
