@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.jit import kernel
-from .configs import RAY_DIST_ROWS as RAY_ROWS, SIM3_DOF as POSE_TANGENT
+from .configs import RAY_DIST_ROWS, SIM3_DOF
 
 
 @kernel
@@ -24,14 +24,14 @@ def ray_dist_rows(R, t, s, X_f, psi_k, norm_k, sqrt_w, valid_in, min_norm, sigma
     at most ``min_norm`` gets zeros everywhere and ``valid`` False. Returns ``(r (B, N, 4), J (B, N, 4, 7)``
     (``(0, 0, 4, 7)`` without ``jacobians``), ``sqrt_info (B, N, 4), valid (B, N))``."""
     B, N = X_f.shape[0], X_f.shape[1]
-    r = np.zeros((B, N, RAY_ROWS))
-    J = np.zeros((B, N, RAY_ROWS, POSE_TANGENT)) if jacobians else np.zeros((0, 0, RAY_ROWS, POSE_TANGENT))
-    sqrt_info = np.zeros((B, N, RAY_ROWS))
+    r = np.zeros((B, N, RAY_DIST_ROWS))
+    J = np.zeros((B, N, RAY_DIST_ROWS, SIM3_DOF)) if jacobians else np.zeros((0, 0, RAY_DIST_ROWS, SIM3_DOF))
+    sqrt_info = np.zeros((B, N, RAY_DIST_ROWS))
     valid = np.zeros((B, N), np.bool_)
     Y = np.empty(3)
     psi = np.empty(3)
     sR = np.empty((3, 3))
-    A = np.empty((RAY_ROWS, 3))
+    A = np.empty((RAY_DIST_ROWS, 3))
     for b in range(B):
         for i in range(3):
             for j in range(3):
@@ -58,7 +58,7 @@ def ray_dist_rows(R, t, s, X_f, psi_k, norm_k, sqrt_w, valid_in, min_norm, sigma
             for i in range(3):
                 for j in range(3):
                     A[i, j] = (sR[i, j] - psi[i] * A[3, j]) * inv_n
-            for m in range(RAY_ROWS):
+            for m in range(RAY_DIST_ROWS):
                 a0, a1, a2 = A[m, 0], A[m, 1], A[m, 2]
                 row = J[b, n, m]
                 row[0] = x1 * a2 - x2 * a1

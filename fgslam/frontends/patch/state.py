@@ -132,21 +132,19 @@ class PatchState:
         """Frame a's patch centres reprojected into a left image at pose ``T_WCb`` at the current
         depths: (K, 2) pixels and validity (in front of that camera). A stack of poses (B, 4, 4) gives
         (B, K, 2) and (B, K) in one call."""
-        Ra, ta, sa = sim3_matrix_components(a.T_WC[None])
-        stacked = T_WCb.ndim == 3
-        Rb, tb, sb = sim3_matrix_components(T_WCb if stacked else T_WCb[None])
-        target = (Rb[:, None], tb[:, None], sb[:, None]) if stacked else (Rb[0], tb[0], sb[0])
-        uv, ok = reproject(torch.as_tensor(a.uv), torch.as_tensor(a.inv_depth), (Ra[0], ta[0], sa[0]), target, self.K,
-                           config=self.reproj)
-        return uv.numpy(), ok.numpy()
+        return self._reproject(a, torch.as_tensor(a.inv_depth), T_WCb)
 
     def reproject_rotation(self, a: GraphFrame, T_WCb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Frame a's patch centres reprojected into a left image at pose ``T_WCb`` at infinite depth
         (the rotation alone): (K, 2) pixels and validity."""
+        return self._reproject(a, torch.zeros(len(a.uv), dtype=torch.as_tensor(a.inv_depth).dtype), T_WCb)
+
+    def _reproject(self, a: GraphFrame, inv_depth: torch.Tensor, T_WCb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         Ra, ta, sa = sim3_matrix_components(a.T_WC[None])
-        Rb, tb, sb = sim3_matrix_components(T_WCb[None])
-        uv, ok = reproject(torch.as_tensor(a.uv), torch.zeros(len(a.uv), dtype=torch.as_tensor(a.inv_depth).dtype),
-                           (Ra[0], ta[0], sa[0]), (Rb[0], tb[0], sb[0]), self.K, config=self.reproj)
+        stacked = T_WCb.ndim == 3
+        Rb, tb, sb = sim3_matrix_components(T_WCb if stacked else T_WCb[None])
+        target = (Rb[:, None], tb[:, None], sb[:, None]) if stacked else (Rb[0], tb[0], sb[0])
+        uv, ok = reproject(torch.as_tensor(a.uv), inv_depth, (Ra[0], ta[0], sa[0]), target, self.K, config=self.reproj)
         return uv.numpy(), ok.numpy()
 
     def reproject_patches(self, a: GraphFrame, b: GraphFrame) -> tuple[np.ndarray, np.ndarray]:
