@@ -437,3 +437,77 @@ def test_reproject_edges_needs_the_right_camera_for_right_edges():
         reproject_edges(uv, d, to_parts(Mi), to_parts(Mj), K_REF, target, right=right)
     # all-left batches need neither
     reproject_edges(uv, d, to_parts(Mi), to_parts(Mj), K_REF, target, right=torch.zeros(4, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("extrinsic", [False, True])
+def test_compiled_rows_and_element_wise_rows_give_the_same_bytes(extrinsic):
+    """The row arithmetic runs compiled (float64 CPU tensors without gradients: every frontend) or
+    element-wise on the tensors (autograd, another dtype or device: the learned networks' training).
+    Both are the same functions (``fgslam.factors.reprojection_jit``), so on every configuration kind,
+    invalid rows (NaN, negative and zero depths, a non-finite target), shared and per-row poses and
+    per-row intrinsics they must agree to the bit."""
+    rng = np.random.default_rng(21)
+    Mi, Mj, uv, d, kinds = make_configurations(rng)
+    n = len(d)
+    d = d.clone()
+    d[:3] = torch.tensor([float("nan"), -0.1, 0.0], dtype=F64)
+    target = uv + torch.from_numpy(rng.normal(size=uv.shape))
+    target[5] = float("inf")
+    K_rows = K_REF + torch.from_numpy(rng.normal(size=(n, 4)))  # per-row target intrinsics
+    ext = dict(T_CtCj=_rig_extrinsic()) if extrinsic else {}
+    Ti, Tj = to_parts(Mi), to_parts(Mj)
+    shared_i, shared_j = tuple(x[0] for x in Ti), tuple(x[0] for x in Tj)
+    for poses in ((Ti, Tj), (shared_i, shared_j)):
+        compiled = reproject_inv_depth(uv, d, *poses, K_REF, target, K_rows, config=CONFIG, **ext)
+        with torch.enable_grad():  # a tensor that requires gradients takes the element-wise rows
+            d_grad = d.clone().requires_grad_(True)
+            element_wise = reproject_inv_depth(uv, d_grad, *poses, K_REF, target, K_rows, config=CONFIG, **ext)
+        assert 0 < int(compiled.valid.sum()) < n
+        for name in ("residual", "J_Ti", "J_Tj", "J_d", "valid"):
+            a, b = getattr(compiled, name), getattr(element_wise, name).detach()
+            assert a.shape == b.shape and a.numpy().tobytes() == b.numpy().tobytes(), name
+        uv_c, ok_c = reproject(uv, d, *poses, K_REF, K_rows, config=CONFIG, **ext)
+        with torch.enable_grad():
+            uv_e, ok_e = reproject(uv, d_grad, *poses, K_REF, K_rows, config=CONFIG, **ext)
+        assert uv_c.numpy().tobytes() == uv_e.detach().numpy().tobytes() and torch.equal(ok_c, ok_e)
+
+
+def test_element_wise_rows_are_differentiable():
+    """The training graph back-propagates through the residual (``fgslam.nets.dba``): the element-wise
+    rows' gradient of the cost in the inverse depths matches ``J_d`` of the compiled rows."""
+    rng = np.random.default_rng(22)
+    Mi, Mj, uv, d, target = _edges(rng, 30)
+    Ti, Tj = to_parts(Mi), to_parts(Mj)
+    res = reproject_inv_depth(uv, d, Ti, Tj, K_REF, target, config=CONFIG)
+    d_grad = d.clone().requires_grad_(True)
+    cost = 0.5 * (reproject_inv_depth(uv, d_grad, Ti, Tj, K_REF, target, config=CONFIG).residual ** 2).sum()
+    cost.backward()
+    expected = (res.J_d * res.residual).sum(-1)
+    assert res.valid.all() and torch.allclose(d_grad.grad, expected, rtol=1e-10, atol=1e-12)
+
+
+def test_pair_index_points_rows_at_their_pose_pair():
+    """A block's edges in one call (``pair_index``: row ``r`` uses pose pair ``pair_index[r]``) give the
+    bytes of one call per edge with its pose pair broadcast over its rows, compiled and element-wise."""
+    rng = np.random.default_rng(23)
+    G, per_edge = 4, 25
+    Mi, Mj, uv, d, target = _edges(rng, G * per_edge)
+    Mi, Mj = Mi[::per_edge], Mj[::per_edge]
+    Ti, Tj = to_parts(Mi), to_parts(Mj)
+    pair_index = torch.arange(G).repeat_interleave(per_edge)
+    joined = reproject_inv_depth(uv, d, Ti, Tj, K_REF, target, config=CONFIG, pair_index=pair_index)
+    with torch.enable_grad():
+        element_wise = reproject_inv_depth(uv, d.clone().requires_grad_(True), Ti, Tj, K_REF, target, config=CONFIG,
+                                           pair_index=pair_index)
+    uv_joined, ok_joined = reproject(uv, d, Ti, Tj, K_REF, config=CONFIG, pair_index=pair_index)
+    assert int(joined.valid.sum()) > G * per_edge // 2
+    for e in range(G):
+        rows = slice(e * per_edge, (e + 1) * per_edge)
+        pose_i, pose_j = tuple(x[e] for x in Ti), tuple(x[e] for x in Tj)
+        alone = reproject_inv_depth(uv[rows], d[rows], pose_i, pose_j, K_REF, target[rows], config=CONFIG)
+        for name in ("residual", "J_Ti", "J_Tj", "J_d", "valid"):
+            expected = getattr(alone, name).numpy().tobytes()
+            assert getattr(joined, name)[rows].numpy().tobytes() == expected, name
+            assert getattr(element_wise, name)[rows].detach().numpy().tobytes() == expected, name
+        uv_alone, ok_alone = reproject(uv[rows], d[rows], pose_i, pose_j, K_REF, config=CONFIG)
+        assert torch.equal(uv_joined[rows], uv_alone) and torch.equal(ok_joined[rows], ok_alone)

@@ -124,9 +124,10 @@ class Backend(GraphStore):
         """:meth:`Optimizer.on_window <fgslam.backend.optimizer.Optimizer.on_window>`."""
         self.optimizer.on_window(hook)
 
-    def optimize_pose(self, blocks, values, key: int, iterations: int | None = None, hold=None):
+    def optimize_pose(self, blocks, values, key: int, iterations: int | None = None, hold=None,
+                      step_tolerance: float | None = None):
         """:meth:`Optimizer.optimize_pose <fgslam.backend.optimizer.Optimizer.optimize_pose>`."""
-        return self.optimizer.optimize_pose(blocks, values, key, iterations, hold)
+        return self.optimizer.optimize_pose(blocks, values, key, iterations, hold, step_tolerance)
 
     def optimize_window(self, free_kf_ids: Iterable[int], iterations: int | None = None,
                         extra_free_keys: Iterable[int] = ()) -> OptimizeReport:

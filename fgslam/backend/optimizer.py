@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import time
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
@@ -179,11 +180,16 @@ class Optimizer:
             max_backtracks=cfg.max_backtracks,
         )
 
-    def optimize_pose(self, blocks, values, key: int, iterations: int | None = None, hold=None):
+    def optimize_pose(self, blocks, values, key: int, iterations: int | None = None, hold=None,
+                      step_tolerance: float | None = None):
         """Motion-only optimisation of ``key`` against ``blocks`` whose other keys are held at ``values``
         (a frame tracked against its keyframe; :mod:`fgslam.backend.motion_only`), with the map's LM
-        settings. The backend's own graph is not touched; returns a ``MotionOnlyResult``."""
-        return optimize_pose(blocks, values, key, self.settings(iterations), hold)
+        settings (``step_tolerance``: the caller's own instead of ``map.step_tolerance``). The backend's
+        own graph is not touched; returns a ``MotionOnlyResult``."""
+        settings = self.settings(iterations)
+        if step_tolerance is not None:
+            settings = dataclasses.replace(settings, step_tolerance=float(step_tolerance))
+        return optimize_pose(blocks, values, key, settings, hold)
 
     def optimize_window(self, free_kf_ids: Iterable[int], iterations: int | None = None,
                         extra_free_keys: Iterable[int] = ()) -> OptimizeReport:

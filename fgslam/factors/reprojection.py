@@ -1,4 +1,5 @@
-"""Inverse-depth reprojection between two Sim(3) keyframes, with analytic Jacobians (batched torch).
+"""Inverse-depth reprojection between two Sim(3) keyframes, with analytic Jacobians (batched torch in, torch
+out; the rows run compiled, :mod:`fgslam.factors.reprojection_jit`).
 
 The residual of DROID-SLAM eq. 4 (Jacobians: appendix C, eqs. 6-14) and of DPV-SLAM eqs. 2-3
 (patches), in the conventions of fgslam:
@@ -46,6 +47,7 @@ residual and every Jacobian (never NaN or inf); ``n_invalid`` counts them.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol, Union
 
@@ -54,6 +56,7 @@ import torch
 
 from ..core.config import MAX_SCALAR, ranged
 from ..core.errors import DataError
+from .configs import SIM3_DOF
 
 __all__ = [
     "PoseLike",
@@ -147,14 +150,24 @@ def _transfer(
     min_depth: float,
     jacobians: bool,
     rows_ok: torch.Tensor | None = None,
+    pair_index: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None]:
     """Shared kernel: predicted target pixels, validity, and (optionally) Jacobians.
 
     ``rows_ok`` (optional bool mask) marks further invalid rows (e.g. a non-finite target).
+    ``pair_index`` (optional, ``(n,)`` integers): the rows are ``(n,)`` and row ``r`` uses the pose pair
+    ``pair_index[r]`` of poses with one batch dimension (``(G,)``: a block's edges, each pose pair formed
+    once) instead of broadcasting poses against the rows.
     Returns ``uv (..., 2)`` (not zeroed), ``valid (...)`` and ``(J_Ti, J_Tj, J_d)`` or None. The
     Jacobians are already zero on invalid rows: every entry carries a factor ``fx / Q_z`` or
     ``fy / Q_z``, which is set to 0 there (and every other factor is made finite).
+
+    The pose pair's ``M`` and ``b`` are formed here (once per pose pair when poses are shared); the rows
+    go through the row arithmetic of :mod:`fgslam.factors.reprojection_jit`: its compiled loop for
+    float64 CPU tensors without gradients, else the same functions element-wise on the tensors.
     """
+    from . import reprojection_jit as rows  # deferred: numba (compiled kernel, core/jit.py)
+
     R_i, t_i, s_i = pose_components(T_WCi)
     R_j, t_j, s_j = pose_components(T_WCj)
     d = inv_depth
@@ -163,18 +176,25 @@ def _transfer(
     R_jT = R_j.transpose(-1, -2)
     M = s_i[..., None, None] * (R_jT @ R_i)  # source unit-depth ray -> target direction
     b = (R_jT @ (t_i - t_j)[..., None])[..., 0]  # d(Q)/dd: source centre seen from the target
+    R_tj = b_lam = None
     if T_CtCj is not None:
         R_tj, t_tj = _as_rigid(T_CtCj, t_i)
         M = R_tj @ M
         b_lam = s_j[..., None] * t_tj  # metric extrinsic translation in units of frame j
         b = (R_tj @ b[..., None])[..., 0] + b_lam
+    if _compiled(uv_i, d, M, b, s_j, K_i, K_t, rows_ok, R_tj, b_lam):
+        return _transfer_compiled(rows.transfer_rows, uv_i, d, K_i, K_t, M, b, s_j, R_tj, b_lam, min_depth,
+                                  jacobians, rows_ok, pair_index)
+    if pair_index is not None:  # each pair's quantities gathered to its rows: the same values as the loop's
+        pairs = _broadcast(M.shape[:-2], b.shape[:-1], s_j.shape, () if b_lam is None else b_lam.shape[:-1])
+        M, b, s_j = (x.expand(pairs + x.shape[len(x.shape) - tail:])[pair_index]
+                     for x, tail in ((M, 2), (b, 1), (s_j, 0)))
+        b_lam = None if b_lam is None else b_lam.expand(pairs + (3,))[pair_index]
 
-    # Row-level: Q = M p + d b with p = [px, py, 1] (homogeneous target-camera point).
+    # Row-level, element-wise: Q = M p + d b with p = [px, py, 1] (homogeneous target-camera point).
     px, py = _rays(uv_i, K_i)
     m0, m1, m2 = M.unbind(-2)  # rows of M
-    Qx = m0[..., 0] * px + m0[..., 1] * py + m0[..., 2] + d * b[..., 0]
-    Qy = m1[..., 0] * px + m1[..., 1] * py + m1[..., 2] + d * b[..., 1]
-    Qz = m2[..., 0] * px + m2[..., 1] * py + m2[..., 2] + d * b[..., 2]
+    Qx, Qy, Qz = rows.target_point.py_func(*m0.unbind(-1), *m1.unbind(-1), *m2.unbind(-1), *b.unbind(-1), px, py, d)
     fx, fy, cx, cy = K_t.unbind(-1)
     in_front = (Qz > 0) & (Qz > min_depth * d * s_j)  # target depth Q_z / (d s_j) above min_depth
     valid = torch.isfinite(d) & (d >= 0) & in_front & torch.isfinite(Qx) & torch.isfinite(Qy)
@@ -204,41 +224,94 @@ def _transfer(
     B0 = fx_iz[..., None] * (m0 - xn[..., None] * m2)
     B1 = fy_iz[..., None] * (m1 - yn[..., None] * m2)
     J_d = torch.stack((fx_iz * (b[..., 0] - xn * b[..., 2]), fy_iz * (b[..., 1] - yn * b[..., 2])), dim=-1)
+    J_Ti = torch.stack(rows.source_row.py_func(*B0.unbind(-1), px, py, d)
+                       + rows.source_row.py_func(*B1.unbind(-1), px, py, d), dim=-1).unflatten(-1, (2, 7))
 
-    # Source pose: dQ/dxi_i = M [-[p]x, d I, p]  ->  row r = [p x B_r, d B_r, B_r . p].
-    def source_row(Br: torch.Tensor) -> list[torch.Tensor]:
-        bx, by, bz = Br.unbind(-1)
-        return [py * bz - by, bx - px * bz, px * by - py * bx, d * bx, d * by, d * bz, bx * px + by * py + bz]
-
-    J_Ti = torch.stack(source_row(B0) + source_row(B1), dim=-1).unflatten(-1, (2, 7))
-
-    # Target pose (frame j): dQ_j/dxi_j = [[Q_j]x, -d s_j I, 0].
     ds_j = d * s_j
+    z = torch.zeros_like(fx_iz)
     if T_CtCj is None:
-        # a0 x Q = fx [xn yn, -(1 + xn^2), yn], a1 x Q = fy [1 + yn^2, -xn yn, -xn] (Q = Q_z [xn, yn, 1]).
-        fxm = torch.where(valid, fx, zero)
-        fym = torch.where(valid, fy, zero)
-        xy = xn * yn
-        z = torch.zeros_like(fx_iz)
-        J_Tj = torch.stack(
-            (
-                fxm * xy, -fxm * (1 + xn * xn), fxm * yn, -ds_j * fx_iz, z, ds_j * fx_iz * xn, z,
-                fym * (1 + yn * yn), -fym * xy, -fym * xn, z, -ds_j * fy_iz, ds_j * fy_iz * yn, z,
-            ),
-            dim=-1,
-        ).unflatten(-1, (2, 7))
+        e = rows.target_rows.py_func(torch.where(valid, fx, zero), torch.where(valid, fy, zero), fx_iz, fy_iz, xn, yn,
+                                     ds_j)
+        entries = [z] * (2 * SIM3_DOF)
+        n = rows.TARGET_ROW_ENTRIES
+        for c in range(n):
+            entries[rows.TARGET_U_COLUMNS[c]] = e[c]
+            entries[SIM3_DOF + rows.TARGET_V_COLUMNS[c]] = e[n + c]
     else:
-        # With Q = R_tj Q_j + d b_lam: R_tj [Q_j]x = [Q - d b_lam]x R_tj, lambda column A d b_lam.
-        z = torch.zeros_like(fx_iz)
-        A = torch.stack(
-            (torch.stack((fx_iz, z, -fx_iz * xn), dim=-1), torch.stack((z, fy_iz, -fy_iz * yn), dim=-1)), dim=-2
-        )
-        Q_rot = torch.stack((Qx, Qy, Qz), dim=-1).where(valid[..., None], zero) - d[..., None] * b_lam
-        J_w = torch.linalg.cross(A, Q_rot[..., None, :].expand_as(A), dim=-1) @ R_tj
-        J_u = -ds_j[..., None, None] * (A @ R_tj)
-        J_lam = (A * (d[..., None] * b_lam)[..., None, :]).sum(-1, keepdim=True)
-        J_Tj = torch.cat((J_w, J_u, J_lam), dim=-1)
+        # q = Q - d b_lam (Q zero on invalid rows); the extrinsic's rotation and translation per row
+        q = [torch.where(valid, Qc, zero) - d * b_lam[..., c] for c, Qc in enumerate((Qx, Qy, Qz))]
+        ext = (*R_tj.reshape(R_tj.shape[:-2] + (9,)).unbind(-1), *b_lam.unbind(-1), d, ds_j)
+        entries = list(rows.extrinsic_row.py_func(fx_iz, z, -fx_iz * xn, *q, *ext)
+                       + rows.extrinsic_row.py_func(z, fy_iz, -fy_iz * yn, *q, *ext))
+    J_Tj = torch.stack(torch.broadcast_tensors(*entries), dim=-1).unflatten(-1, (2, 7))
     return uv, valid, (J_Ti, J_Tj, J_d)
+
+
+def _compiled(*tensors: torch.Tensor | None) -> bool:
+    """Whether the rows take the compiled loop: every tensor float64 (bool for masks) on the CPU, and no
+    gradient to follow; one fixed extrinsic at most (the last two arguments: ``R_tj``, ``b_lam``)."""
+    present = [x for x in tensors if x is not None]
+    if any(x.device.type != "cpu" or (x.dtype != torch.float64 and x.dtype != torch.bool) for x in present):
+        return False
+    if torch.is_grad_enabled() and any(x.requires_grad for x in present):
+        return False
+    R_tj = tensors[-2]
+    return R_tj is None or R_tj.dim() == 2
+
+
+def _broadcast(*shapes: tuple[int, ...]) -> tuple[int, ...]:
+    """The broadcast of batch shapes; the common cases (equal shapes, or scalars) without numpy's
+    general rule, which costs more than a small edge's rows."""
+    out: tuple[int, ...] = ()
+    for shape in shapes:
+        shape = tuple(shape)
+        if shape == out or not shape:
+            continue
+        out = shape if not out else tuple(np.broadcast_shapes(out, shape))
+    return out
+
+
+def _transfer_compiled(transfer_rows, uv_i, d, K_i, K_t, M, b, s_j, R_tj, b_lam, min_depth, jacobians, rows_ok,
+                       pair_index=None):
+    """:func:`_transfer` through the compiled loop: every operand broadcast to the rows' batch shape (pose
+    and intrinsics operands by an index per row, not copied per row) and the outputs shaped back."""
+    pose_batch = _broadcast(M.shape[:-2], b.shape[:-1], s_j.shape, () if b_lam is None else b_lam.shape[:-1])
+    k_batch = _broadcast(K_i.shape[:-1], K_t.shape[:-1])
+    batch = _broadcast(uv_i.shape[:-1], d.shape, () if pair_index is not None else pose_batch, k_batch,
+                       () if rows_ok is None else rows_ok.shape)
+    n = math.prod(batch)
+
+    def rows_of(x: torch.Tensor, tail: tuple[int, ...], shape: tuple[int, ...]) -> np.ndarray:
+        if x.shape != shape + tail:
+            x = x.expand(shape + tail)
+        return x.reshape((math.prod(shape),) + tail).contiguous().numpy()
+
+    def index_of(shape: tuple[int, ...]) -> np.ndarray:
+        if not shape:
+            return np.zeros(n, np.intp)
+        if shape == batch:
+            return np.arange(n)
+        return np.ascontiguousarray(np.broadcast_to(np.arange(math.prod(shape)).reshape(shape), batch).reshape(n))
+
+    k_index = index_of(k_batch)
+    ok = np.ones(n, np.bool_) if rows_ok is None else rows_of(rows_ok, (), batch)
+    uv, valid, J_Ti, J_Tj, J_d = transfer_rows(
+        rows_of(uv_i, (2,), batch), rows_of(d, (), batch), ok, rows_of(K_i, (4,), k_batch), k_index,
+        rows_of(K_t, (4,), k_batch), k_index, rows_of(M, (3, 3), pose_batch), rows_of(b, (3,), pose_batch),
+        rows_of(s_j, (), pose_batch),
+        index_of(pose_batch) if pair_index is None else pair_index.to(torch.int64).contiguous().numpy(), _EYE3 if R_tj is None else R_tj.contiguous().numpy(),
+        _NO_B_LAM if b_lam is None else rows_of(b_lam, (3,), pose_batch), R_tj is not None, float(min_depth),
+        bool(jacobians))
+    uv_t, valid_t = torch.from_numpy(uv).reshape(batch + (2,)), torch.from_numpy(valid).reshape(batch)
+    if not jacobians:
+        return uv_t, valid_t, None
+    return uv_t, valid_t, (torch.from_numpy(J_Ti).reshape(batch + (2, 7)),
+                           torch.from_numpy(J_Tj).reshape(batch + (2, 7)), torch.from_numpy(J_d).reshape(batch + (2,)))
+
+
+#: the compiled loop's extrinsic operands when there is none (it reads them only with an extrinsic)
+_EYE3 = np.eye(3)
+_NO_B_LAM = np.zeros((1, 3))
 
 
 def _rays(uv: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -263,6 +336,7 @@ def reproject(
     *,
     T_CtCj: Transform | None = None,
     config: ReprojectionConfig | None = None,
+    pair_index: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Predicted pixel coordinates of source pixels in keyframe ``j`` (what a frontend tracks from).
 
@@ -273,13 +347,16 @@ def reproject(
         K_i: ``(..., 4)`` source intrinsics ``[fx, fy, cx, cy]``; ``K_j`` target intrinsics (default ``K_i``).
         T_CtCj: optional fixed metric 4x4 transform from keyframe ``j``'s camera to the observing
             camera (stereo: ``StereoRig.T_CRCL``).
+        pair_index: optional ``(n,)``: rows ``(n, ...)`` where row ``r`` uses the pose pair ``pair_index[r]``
+            of ``(G,)`` poses (a block's edges in one call), instead of broadcasting.
 
     Returns:
         ``uv_j (..., 2)`` (zero where invalid) and ``valid (...)``.
     """
     config = config or ReprojectionConfig()
     K_t = K_i if K_j is None else K_j
-    uv, valid, _ = _transfer(uv_i, inv_depth, T_WCi, T_WCj, K_i, K_t, T_CtCj, config.min_depth, jacobians=False)
+    uv, valid, _ = _transfer(uv_i, inv_depth, T_WCi, T_WCj, K_i, K_t, T_CtCj, config.min_depth, jacobians=False,
+                             pair_index=pair_index)
     return _zero(uv, valid, 1), valid
 
 
@@ -294,6 +371,7 @@ def reproject_inv_depth(
     *,
     T_CtCj: Transform | None = None,
     config: ReprojectionConfig | None = None,
+    pair_index: torch.Tensor | None = None,
 ) -> ReprojectionResult:
     """Inverse-depth reprojection residuals and Jacobians (DROID-SLAM eq. 4, DPV-SLAM eq. 3).
 
@@ -308,7 +386,7 @@ def reproject_inv_depth(
     K_t = K_i if K_j is None else K_j
     uv, valid, jac = _transfer(
         uv_i, inv_depth, T_WCi, T_WCj, K_i, K_t, T_CtCj, config.min_depth, jacobians=True,
-        rows_ok=torch.isfinite(uv_target).all(-1),
+        rows_ok=torch.isfinite(uv_target).all(-1), pair_index=pair_index,
     )
     J_Ti, J_Tj, J_d = jac
     residual = _zero(uv - uv_target, valid, 1)

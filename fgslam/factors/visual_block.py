@@ -225,6 +225,7 @@ class InverseDepthBlock(VisualBlock):
         self._structure = torch.zeros(0, dtype=dtype)
         self.set_structure(torch.as_tensor(inverse_depth, dtype=dtype))
         self.num_invalid = 0
+        self._pairs: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
 
     @staticmethod
     def _checked_weights(weights: torch.Tensor) -> torch.Tensor:
@@ -260,37 +261,37 @@ class InverseDepthBlock(VisualBlock):
         R, t, s = poses.R.to(dtype), poses.t.to(dtype), poses.s.to(dtype)
         n = int(self.uv_source.shape[0])
         if n >= self.config.per_edge_min_rows * max(len(self.groups.slots), 1):
-            # few large edges: one call per edge with the pose pair broadcast over its rows
-            parts = [
-                (lo, hi, (R[si], t[si], s[si]), (R[sj], t[sj], s[sj]))
-                for (lo, hi), (si, sj) in zip(zip(self.groups.bounds[:-1], self.groups.bounds[1:]), self.groups.slots)
-            ]
+            # few large edges: each edge's pose pair formed once, its rows pointed at it
+            gi, gj, pair_index = self._pair_rows()
+            T_i, T_j = (R[gi], t[gi], s[gi]), (R[gj], t[gj], s[gj])
         else:
-            # many small edges: one call with per-row poses
+            # many small edges: per-row poses
             si, sj = self.slots[:, 0], self.slots[:, 1]
-            parts = [(0, n, (R[si], t[si], s[si]), (R[sj], t[sj], s[sj]))]
-        rs, valids, Es, Jis, Jjs = [], [], [], [], []
-        for lo, hi, T_i, T_j in parts:
-            uv_s, d_s, uv_t = self.uv_source[lo:hi], d_rows[lo:hi], self.uv_target[lo:hi]
-            if jacobians:
-                res = reproject_inv_depth(uv_s, d_s, T_i, T_j, self.K, uv_t, config=self.reprojection)
-                rs.append(res.residual)
-                valids.append(res.valid)
-                Es.append(res.J_d)
-                Jis.append(res.J_Ti)
-                Jjs.append(res.J_Tj)
-            else:
-                uv, ok = reproject(uv_s, d_s, T_i, T_j, self.K, config=self.reprojection)
-                res_g = uv - uv_t
-                ok = ok & torch.isfinite(res_g).all(-1)
-                rs.append(torch.where(ok[:, None], res_g, torch.zeros((), dtype=dtype)))
-                valids.append(ok)
-        cat = (lambda xs: xs[0]) if len(parts) == 1 else (lambda xs: torch.cat(xs))
-        r, valid = cat(rs), cat(valids)
+            T_i, T_j, pair_index = (R[si], t[si], s[si]), (R[sj], t[sj], s[sj]), None
+        if jacobians:
+            res = reproject_inv_depth(self.uv_source, d_rows, T_i, T_j, self.K, self.uv_target, config=self.reprojection,
+                                      pair_index=pair_index)
+            r, valid = res.residual, res.valid
+        else:
+            uv, valid = reproject(self.uv_source, d_rows, T_i, T_j, self.K, config=self.reprojection,
+                                  pair_index=pair_index)
+            res_g = uv - self.uv_target
+            valid = valid & torch.isfinite(res_g).all(-1)
+            r = torch.where(valid[:, None], res_g, torch.zeros((), dtype=dtype))
         self.num_invalid = int(valid.numel() - int(valid.sum()))
         if self.num_invalid:
             logger.debug("inverse-depth block: %d of %d measurements invalid (zero weight)", self.num_invalid, n)
         weights = torch.where(valid[:, None], self.weights, torch.zeros((), dtype=dtype))
         if not jacobians:
             return BlockResiduals(r=r, weights=weights, num_invalid=self.num_invalid)
-        return BlockResiduals(r=r, weights=weights, E=cat(Es), J=[cat(Jis), cat(Jjs)], num_invalid=self.num_invalid)
+        return BlockResiduals(r=r, weights=weights, E=res.J_d, J=[res.J_Ti, res.J_Tj], num_invalid=self.num_invalid)
+
+    def _pair_rows(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Each edge's source and target slot ``(G,)`` and each row's edge ``(N,)`` (rows are grouped
+        by edge; formed once per block)."""
+        if self._pairs is None:
+            bounds = torch.as_tensor(self.groups.bounds)
+            slots = torch.as_tensor(self.groups.slots, dtype=torch.long).reshape(-1, 2)
+            edge_of_row = torch.repeat_interleave(torch.arange(len(self.groups.slots)), bounds[1:] - bounds[:-1])
+            self._pairs = (slots[:, 0], slots[:, 1], edge_of_row)
+        return self._pairs

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Optional
 
 from ...core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_ITERATIONS, MAX_KEYFRAMES, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, MAX_WINDOW, ranged
 from ...core.errors import ConfigError
@@ -72,6 +73,7 @@ class DenseTrackingConfig:
     """Per-frame motion-only tracking against the newest keyframe (motion filter, non-keyframe poses)."""
 
     iterations: int = ranged(6, ge=1, le=MAX_ITERATIONS)  # LM iterations of the motion-only optimisation
+    step_tolerance: Optional[float] = ranged(None, ge=0, le=MAX_SCALAR)  # the motion-only LM stops when the largest tangent step component (rad, world units) falls below this (null: map.step_tolerance)
     rounds: int = ranged(1, ge=1, le=MAX_ITERATIONS)  # flow measurement rounds (each re-started from the pose just found)
     motion_damping: float = ranged(0.8, ge=0, le=1)  # constant-velocity prediction damping (1: undamped)
     min_confident: float = ranged(0.03, ge=0, le=1)  # a frame whose share of confident grid pixels is below this is a tracking failure

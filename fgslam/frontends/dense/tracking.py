@@ -78,7 +78,8 @@ class DenseTracker:
             values.insert(key_kf, gtsam_sim3(T_WCk))
             values.insert(key_f, gtsam_sim3(T_WC))
             blocks = [block] if depth_block is None else [block, depth_block]
-            result = st.backend.optimize_pose(blocks, values, key_f, cfg.iterations, hold=_HOLD_SCALE_ONLY)
+            result = st.backend.optimize_pose(blocks, values, key_f, cfg.iterations, hold=_HOLD_SCALE_ONLY,
+                                              step_tolerance=cfg.step_tolerance)
             T_WC = gtsam_matrix(result.values.atSimilarity3(key_f))
             self.last_solve = (block, key_kf, key_f, T_WCk)
         flow = float(np.linalg.norm(rev.target - g.grid, axis=-1)[conf].mean() * st.stride)

@@ -102,8 +102,9 @@ class PatchFrontend(BackendFrontend):
 
     @property
     def uses_compiled_kernels(self) -> bool:
-        """The Lucas-Kanade source's track checks and RGB-D depth alignment are compiled kernels."""
-        return self.config.source == "lk" or self.state.depth.enabled
+        """The reprojection residual of the window and of the tracking is a compiled kernel (as are the
+        Lucas-Kanade source's track checks and the RGB-D depth alignment)."""
+        return True
 
     @property
     def source(self):
