@@ -187,8 +187,10 @@ def schur_reduce(
     F = F.reshape(num_structs, k * d)
 
     # J^T W J, J^T W r and r^T W r from one product per group: A = sqrt(W) [J_1 .. J_S | r].
-    H = torch.zeros(k * d, k * d, dtype=dtype)
-    g = torch.zeros(k * d, dtype=dtype)
+    # the small block sums in numpy (the same additions in the same order; a numpy slice costs a fraction
+    # of a torch one, and a block has a few of them per edge)
+    H = np.zeros((k * d, k * d))
+    g = np.zeros(k * d)
     c = 0.0
     sqrt_w = weights.sqrt()[:, :, None]
     for gi, group_slots in enumerate(groups.slots):
@@ -199,14 +201,14 @@ def schur_reduce(
             torch.mul(Js[lo:hi], sw, out=A[:, :, col * d:(col + 1) * d])
         torch.mul(r[lo:hi, :, None], sw, out=A[:, :, s * d:])
         A = A.reshape(-1, s * d + 1)
-        AtA = A.T @ A
+        AtA = (A.T @ A).numpy()
         c += float(AtA[-1, -1])
         for ca, sa in enumerate(group_slots):
             g[sa * d:(sa + 1) * d] += AtA[ca * d:(ca + 1) * d, -1]
             for cb, sb in enumerate(group_slots):
                 H[sa * d:(sa + 1) * d, sb * d:(sb + 1) * d] += AtA[ca * d:(ca + 1) * d, cb * d:(cb + 1) * d]
 
-    return eliminate_structure(H, g, c, F, b, C, min_information)
+    return eliminate_structure(torch.from_numpy(H), torch.from_numpy(g), c, F, b, C, min_information)
 
 
 def information_inverse(C: torch.Tensor, min_information: float) -> torch.Tensor:
