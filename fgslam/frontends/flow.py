@@ -121,6 +121,7 @@ class DenseFlowSource(DenseSource):
         self._shape: tuple[int, int] | None = None
         self._dis = cv2.DISOpticalFlow_create(getattr(cv2, _DIS_PRESETS[self.config.preset]))
         self._brightness = BrightnessModel(self.config.photometric, self.config.photometric_floor)
+        self._grid_cache: dict = {}
 
     # ------------------------------------------------------------------ frames
     def add_frame(self, frame_id: int, image: np.ndarray) -> None:
@@ -158,6 +159,17 @@ class DenseFlowSource(DenseSource):
         a = self.config.image_scale
         return max(1, int(round(H * a))), max(1, int(round(W * a)))
 
+    def _grids(self, h: int, w: int, Hw: int, Ww: int) -> tuple[np.ndarray, np.ndarray]:
+        """The grid's pixel coordinates ``(h, w, 2)`` and the working image's ``(y, x)`` maps (float32), made
+        once per size (read-only: every edge of a run shares them)."""
+        key = (h, w, Hw, Ww)
+        if self._grid_cache.get("key") != key:
+            grid = _grid(h, w)
+            yx = np.mgrid[0:Hw, 0:Ww].astype(np.float32)
+            grid.flags.writeable = yx.flags.writeable = False
+            self._grid_cache = {"key": key, "grids": (grid, yx)}
+        return self._grid_cache["grids"]
+
     def _frame(self, frame_id: int):
         try:
             return self._frames[int(frame_id)]
@@ -183,10 +195,9 @@ class DenseFlowSource(DenseSource):
         Ij = self._frame(j)[0]
         Hw, Ww = Ii.shape
         h, w = uv_induced.shape[:2]
-        grid = _grid(h, w)
+        grid, (yy, xx) = self._grids(h, w, Hw, Ww)
         # working-scale pixel u_w = k (u + 1/2) - 1/2 with k = Ww / W: flows scale by k * stride per grid px
         k = Ww / self._shape[1]
-        yy, xx = np.mgrid[0:Hw, 0:Ww].astype(np.float32)
         init = np.zeros((Hw, Ww, 2), np.float32)
         if cfg.warm_start:
             flow8 = uv_induced - grid
