@@ -473,14 +473,25 @@ def test_compiled_rows_and_element_wise_rows_give_the_same_bytes(extrinsic):
 
 
 def test_element_wise_rows_are_differentiable():
-    """The training graph back-propagates through the residual (``fgslam.nets.dba``): the element-wise
-    rows' gradient of the cost in the inverse depths matches ``J_d`` of the compiled rows."""
+    """The training graph back-propagates through the residual in every input (``fgslam.nets.dba``): the
+    element-wise rows' gradients match finite differences (torch's gradcheck) in the inverse depths, both
+    poses' rotations, translations and scales, the intrinsics and the target, with and without an
+    extrinsic; and the cost's gradient in the inverse depths is ``J_d`` of the compiled rows."""
     rng = np.random.default_rng(22)
-    Mi, Mj, uv, d, target = _edges(rng, 30)
-    Ti, Tj = to_parts(Mi), to_parts(Mj)
-    res = reproject_inv_depth(uv, d, Ti, Tj, K_REF, target, config=CONFIG)
+    Mi, Mj, uv, d, target = _edges(rng, 12)
+    (Ri, ti, si), (Rj, tj, sj) = to_parts(Mi), to_parts(Mj)
+
+    for ext in ({}, {"T_CtCj": _rig_extrinsic()}):
+        def residual(d_, Ri_, ti_, si_, Rj_, tj_, sj_, K_, target_):
+            res = reproject_inv_depth(uv, d_, (Ri_, ti_, si_), (Rj_, tj_, sj_), K_, target_, config=CONFIG, **ext)
+            return res.residual, res.J_d, res.J_Ti, res.J_Tj
+
+        inputs = tuple(x.clone().requires_grad_(True) for x in (d, Ri, ti, si, Rj, tj, sj, K_REF, target))
+        assert torch.autograd.gradcheck(residual, inputs, eps=1e-7, atol=1e-5, rtol=1e-4)
+    res = reproject_inv_depth(uv, d, (Ri, ti, si), (Rj, tj, sj), K_REF, target, config=CONFIG)
     d_grad = d.clone().requires_grad_(True)
-    cost = 0.5 * (reproject_inv_depth(uv, d_grad, Ti, Tj, K_REF, target, config=CONFIG).residual ** 2).sum()
+    cost = 0.5 * (reproject_inv_depth(uv, d_grad, (Ri, ti, si), (Rj, tj, sj), K_REF, target,
+                                      config=CONFIG).residual ** 2).sum()
     cost.backward()
     expected = (res.J_d * res.residual).sum(-1)
     assert res.valid.all() and torch.allclose(d_grad.grad, expected, rtol=1e-10, atol=1e-12)
@@ -511,3 +522,23 @@ def test_pair_index_points_rows_at_their_pose_pair():
             assert getattr(element_wise, name)[rows].detach().numpy().tobytes() == expected, name
         uv_alone, ok_alone = reproject(uv[rows], d[rows], pose_i, pose_j, K_REF, config=CONFIG)
         assert torch.equal(uv_joined[rows], uv_alone) and torch.equal(ok_joined[rows], ok_alone)
+
+
+def test_pair_index_is_checked():
+    """A malformed ``pair_index`` is refused in one line, and an index past the pose pairs raises (the
+    compiled loop checks every row's index before it reads)."""
+    rng = np.random.default_rng(24)
+    Mi, Mj, uv, d, target = _edges(rng, 6)
+    Ti, Tj = to_parts(Mi[:2]), to_parts(Mj[:2])
+    good = torch.tensor([0, 0, 0, 1, 1, 1])
+    assert reproject_inv_depth(uv, d, Ti, Tj, K_REF, target, config=CONFIG, pair_index=good).valid.shape == (6,)
+    for bad, match in ((good[:4], "one per row"), (good.bool(), "1-D integer"), (good.double(), "1-D integer"),
+                       (good[None], "1-D integer")):
+        with pytest.raises(DataError, match=match):
+            reproject_inv_depth(uv, d, Ti, Tj, K_REF, target, config=CONFIG, pair_index=bad)
+    with pytest.raises(DataError, match="one batch dimension"):
+        reproject_inv_depth(uv, d, tuple(x[0] for x in Ti), tuple(x[0] for x in Tj), K_REF, target, config=CONFIG,
+                            pair_index=good)
+    for past in (torch.tensor([0, 0, 0, 1, 1, 2]), torch.tensor([0, 0, 0, 1, 1, 10**9]), torch.tensor([-1, 0, 0, 1, 1, 1])):
+        with pytest.raises(IndexError, match="out of range"):
+            reproject_inv_depth(uv, d, Ti, Tj, K_REF, target, config=CONFIG, pair_index=past)

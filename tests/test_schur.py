@@ -259,15 +259,23 @@ def test_block_zero_weights_and_invalid_rows_are_counted_not_nan():
     assert np.isfinite(block.cost(values))
 
 
-def test_block_per_edge_and_per_row_evaluation_agree():
+def test_block_evaluation_matches_one_reprojection_per_edge():
+    """The block evaluates all its edges in one call (each row pointed at its edge's pose pair): the bytes
+    of one call per edge with that edge's pose pair."""
+    from fgslam.factors.reprojection import reproject_inv_depth
+
     block, values = small_block(3, patch=True)
-    block.config.per_edge_min_rows = 0  # one reprojection call per edge
-    keys, H_edge, g_edge, c_edge = block.linearize(values)[0]
-    block.config.per_edge_min_rows = 10**9  # one call with per-row poses
-    _, H_row, g_row, c_row = block.linearize(values)[0]
-    np.testing.assert_allclose(H_edge, H_row, rtol=1e-10, atol=1e-10 * np.abs(H_row).max())
-    np.testing.assert_allclose(g_edge, g_row, rtol=1e-10, atol=1e-10 * np.abs(g_row).max())
-    assert c_edge == pytest.approx(c_row, rel=1e-12)
+    poses = Sim3.from_gtsam([values.atSimilarity3(k) for k in block.keys])
+    out = block.evaluate(poses, block.structure, jacobians=True)
+    d_rows = block.structure[block.struct_idx]
+    bounds = block.groups.bounds
+    assert len(block.groups.slots) == 2
+    for e, (si, sj) in enumerate(block.groups.slots):
+        rows = slice(bounds[e], bounds[e + 1])
+        ref = reproject_inv_depth(block.uv_source[rows], d_rows[rows], poses[si], poses[sj], block.K,
+                                  block.uv_target[rows], config=block.reprojection)
+        for got, want in ((out.r, ref.residual), (out.E, ref.J_d), (out.J[0], ref.J_Ti), (out.J[1], ref.J_Tj)):
+            assert got[rows].numpy().tobytes() == want.numpy().tobytes()
 
 
 def test_set_observations_takes_input_order():

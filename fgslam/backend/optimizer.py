@@ -24,8 +24,7 @@ from __future__ import annotations
 
 import logging
 import time
-import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Iterable
 
 import numpy as np
@@ -188,7 +187,7 @@ class Optimizer:
         own graph is not touched; returns a ``MotionOnlyResult``."""
         settings = self.settings(iterations)
         if step_tolerance is not None:
-            settings = dataclasses.replace(settings, step_tolerance=float(step_tolerance))
+            settings = replace(settings, step_tolerance=float(step_tolerance))
         return optimize_pose(blocks, values, key, settings, hold)
 
     def optimize_window(self, free_kf_ids: Iterable[int], iterations: int | None = None,

@@ -27,13 +27,23 @@ import functools
 import logging
 import time
 from collections.abc import Callable
+from typing import Any, Protocol
 
 logger = logging.getLogger(__name__)
 
 KERNEL_OPTIONS = {"cache": True, "fastmath": False, "nogil": True, "error_model": "numpy"}
 
 
-def kernel(func: Callable) -> Callable:
+class Kernel(Protocol):
+    """A compiled function (numba's dispatcher): called like the Python function, which stays available as
+    ``py_func`` (plain arithmetic kernels also run on torch tensors through it)."""
+
+    py_func: Callable[..., Any]
+
+    def __call__(self, *args: Any) -> Any: ...
+
+
+def kernel(func: Callable) -> Kernel:
     """``func`` compiled with :data:`KERNEL_OPTIONS` (numba's dispatcher: compiled per argument types at
     the first call, or loaded from the on-disk cache)."""
     import numba  # deferred: numba (only modules that define kernels need it)

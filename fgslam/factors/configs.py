@@ -16,11 +16,13 @@ from typing import Literal
 from ..core.config import MAX_COUNT, MAX_IMAGE_SIDE, MAX_SCALAR, MAX_THREADS, ranged
 from ..core.errors import ConfigError
 
-__all__ = ["MAX_LEVELS", "RAY_DIST_ROWS", "SIM3_DOF", "DepthAlignConfig", "DepthPriorConfig", "KernelKind", "PointmapBlockConfig", "PointmapResidualConfig", "RobustConfig"]
+__all__ = ["INTRINSICS", "MAX_LEVELS", "PIXEL_DIM", "RAY_DIST_ROWS", "SIM3_DOF", "DepthAlignConfig", "DepthPriorConfig", "KernelKind", "PointmapBlockConfig", "PointmapResidualConfig", "RobustConfig"]
 
 MAX_LEVELS = 8  # pyramid levels of a depth surface (the coarsest steps 2^7 times the finest)
 SIM3_DOF = 7  # dimension of the Sim(3) tangent [w(3), u(3), log s]
 RAY_DIST_ROWS = 4  # rows of a pointmap ray-and-distance residual: the unit ray (3) and the distance (1)
+PIXEL_DIM = 2  # entries of a pixel (u, v): the rows of a reprojection residual
+INTRINSICS = 4  # pinhole intrinsics [fx, fy, cx, cy]
 
 KernelKind = Literal["none", "huber", "cauchy", "tukey"]
 

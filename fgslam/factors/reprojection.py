@@ -48,6 +48,7 @@ residual and every Jacobian (never NaN or inf); ``n_invalid`` counts them.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol, Union
 
@@ -56,7 +57,10 @@ import torch
 
 from ..core.config import MAX_SCALAR, ranged
 from ..core.errors import DataError
-from .configs import SIM3_DOF
+from .configs import INTRINSICS, PIXEL_DIM, SIM3_DOF
+
+#: a camera-frame point (x, y, z)
+POINT_DIM = 3
 
 __all__ = [
     "PoseLike",
@@ -182,14 +186,18 @@ def _transfer(
         M = R_tj @ M
         b_lam = s_j[..., None] * t_tj  # metric extrinsic translation in units of frame j
         b = (R_tj @ b[..., None])[..., 0] + b_lam
-    if _compiled(uv_i, d, M, b, s_j, K_i, K_t, rows_ok, R_tj, b_lam):
+    if pair_index is not None:
+        _check_pairs(pair_index, uv_i, M, b, s_j)
+    if _compiled(uv_i, d, M, b, s_j, K_i, K_t, rows_ok, b_lam, R_tj=R_tj):
         return _transfer_compiled(rows.transfer_rows, uv_i, d, K_i, K_t, M, b, s_j, R_tj, b_lam, min_depth,
                                   jacobians, rows_ok, pair_index)
     if pair_index is not None:  # each pair's quantities gathered to its rows: the same values as the loop's
-        pairs = _broadcast(M.shape[:-2], b.shape[:-1], s_j.shape, () if b_lam is None else b_lam.shape[:-1])
+        pairs = (int(M.shape[0]),)
+        if len(pair_index) and not (0 <= int(pair_index.min()) and int(pair_index.max()) < pairs[0]):
+            raise IndexError("reprojection: a row's pose pair or intrinsics index is out of range")
         M, b, s_j = (x.expand(pairs + x.shape[len(x.shape) - tail:])[pair_index]
                      for x, tail in ((M, 2), (b, 1), (s_j, 0)))
-        b_lam = None if b_lam is None else b_lam.expand(pairs + (3,))[pair_index]
+        b_lam = None if b_lam is None else b_lam.expand(pairs + (POINT_DIM,))[pair_index]
 
     # Row-level, element-wise: Q = M p + d b with p = [px, py, 1] (homogeneous target-camera point).
     px, py = _rays(uv_i, K_i)
@@ -225,37 +233,51 @@ def _transfer(
     B1 = fy_iz[..., None] * (m1 - yn[..., None] * m2)
     J_d = torch.stack((fx_iz * (b[..., 0] - xn * b[..., 2]), fy_iz * (b[..., 1] - yn * b[..., 2])), dim=-1)
     J_Ti = torch.stack(rows.source_row.py_func(*B0.unbind(-1), px, py, d)
-                       + rows.source_row.py_func(*B1.unbind(-1), px, py, d), dim=-1).unflatten(-1, (2, 7))
+                       + rows.source_row.py_func(*B1.unbind(-1), px, py, d), dim=-1).unflatten(-1, (PIXEL_DIM, SIM3_DOF))
 
     ds_j = d * s_j
     z = torch.zeros_like(fx_iz)
     if T_CtCj is None:
         e = rows.target_rows.py_func(torch.where(valid, fx, zero), torch.where(valid, fy, zero), fx_iz, fy_iz, xn, yn,
                                      ds_j)
-        entries = [z] * (2 * SIM3_DOF)
+        entries = [z] * (PIXEL_DIM * SIM3_DOF)
         n = rows.TARGET_ROW_ENTRIES
         for c in range(n):
             entries[rows.TARGET_U_COLUMNS[c]] = e[c]
             entries[SIM3_DOF + rows.TARGET_V_COLUMNS[c]] = e[n + c]
     else:
         # q = Q - d b_lam (Q zero on invalid rows); the extrinsic's rotation and translation per row
+        assert R_tj is not None and b_lam is not None  # set above with T_CtCj
         q = [torch.where(valid, Qc, zero) - d * b_lam[..., c] for c, Qc in enumerate((Qx, Qy, Qz))]
-        ext = (*R_tj.reshape(R_tj.shape[:-2] + (9,)).unbind(-1), *b_lam.unbind(-1), d, ds_j)
+        ext = (*R_tj.reshape(R_tj.shape[:-2] + (POINT_DIM * POINT_DIM,)).unbind(-1), *b_lam.unbind(-1), d, ds_j)
         entries = list(rows.extrinsic_row.py_func(fx_iz, z, -fx_iz * xn, *q, *ext)
                        + rows.extrinsic_row.py_func(z, fy_iz, -fy_iz * yn, *q, *ext))
-    J_Tj = torch.stack(torch.broadcast_tensors(*entries), dim=-1).unflatten(-1, (2, 7))
+    J_Tj = torch.stack(torch.broadcast_tensors(*entries), dim=-1).unflatten(-1, (PIXEL_DIM, SIM3_DOF))
     return uv, valid, (J_Ti, J_Tj, J_d)
 
 
-def _compiled(*tensors: torch.Tensor | None) -> bool:
+def _check_pairs(pair_index: torch.Tensor, uv_i: torch.Tensor, M: torch.Tensor, b: torch.Tensor,
+                 s_j: torch.Tensor) -> None:
+    """``pair_index``'s contract: one integer per row of ``(n, 2)`` source pixels, into ``G`` pose pairs
+    (``M (G, 3, 3)``, ``b (G, 3)``, ``s_j`` ``(G,)`` or one scale); the range is checked where it is read."""
+    if pair_index.dim() != 1 or pair_index.dtype == torch.bool or pair_index.is_floating_point():
+        raise DataError(f"reproject: pair_index must be a 1-D integer tensor, got {pair_index.dtype} "
+                        f"{tuple(pair_index.shape)}")
+    if uv_i.dim() != 2 or uv_i.shape[0] != pair_index.shape[0]:
+        raise DataError(f"reproject: pair_index has {pair_index.shape[0]} entries for source pixels of shape "
+                        f"{tuple(uv_i.shape)} (one per row of (n, 2) pixels)")
+    if M.dim() != 3 or b.shape[:-1] != M.shape[:1] or s_j.dim() > 1 or (s_j.dim() == 1 and s_j.shape != M.shape[:1]):
+        raise DataError(f"reproject: pair_index needs one batch dimension of pose pairs, got {tuple(M.shape[:-2])}")
+
+
+def _compiled(*tensors: torch.Tensor | None, R_tj: torch.Tensor | None) -> bool:
     """Whether the rows take the compiled loop: every tensor float64 (bool for masks) on the CPU, and no
-    gradient to follow; one fixed extrinsic at most (the last two arguments: ``R_tj``, ``b_lam``)."""
-    present = [x for x in tensors if x is not None]
+    gradient to follow; one fixed extrinsic rotation ``R_tj`` at most."""
+    present = [x for x in (*tensors, R_tj) if x is not None]
     if any(x.device.type != "cpu" or (x.dtype != torch.float64 and x.dtype != torch.bool) for x in present):
         return False
     if torch.is_grad_enabled() and any(x.requires_grad for x in present):
         return False
-    R_tj = tensors[-2]
     return R_tj is None or R_tj.dim() == 2
 
 
@@ -271,8 +293,11 @@ def _broadcast(*shapes: tuple[int, ...]) -> tuple[int, ...]:
     return out
 
 
-def _transfer_compiled(transfer_rows, uv_i, d, K_i, K_t, M, b, s_j, R_tj, b_lam, min_depth, jacobians, rows_ok,
-                       pair_index=None):
+def _transfer_compiled(
+    transfer_rows: Callable[..., tuple], uv_i: torch.Tensor, d: torch.Tensor, K_i: torch.Tensor, K_t: torch.Tensor,
+    M: torch.Tensor, b: torch.Tensor, s_j: torch.Tensor, R_tj: torch.Tensor | None, b_lam: torch.Tensor | None,
+    min_depth: float, jacobians: bool, rows_ok: torch.Tensor | None, pair_index: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None]:
     """:func:`_transfer` through the compiled loop: every operand broadcast to the rows' batch shape (pose
     and intrinsics operands by an index per row, not copied per row) and the outputs shaped back."""
     pose_batch = _broadcast(M.shape[:-2], b.shape[:-1], s_j.shape, () if b_lam is None else b_lam.shape[:-1])
@@ -291,27 +316,29 @@ def _transfer_compiled(transfer_rows, uv_i, d, K_i, K_t, M, b, s_j, R_tj, b_lam,
             return np.zeros(n, np.intp)
         if shape == batch:
             return np.arange(n)
-        return np.ascontiguousarray(np.broadcast_to(np.arange(math.prod(shape)).reshape(shape), batch).reshape(n))
+        # a writeable copy: numba compiles a read-only array (a broadcast view) as another type
+        return np.broadcast_to(np.arange(math.prod(shape)).reshape(shape), batch).reshape(n).copy()
 
     k_index = index_of(k_batch)
+    pose_index = index_of(pose_batch) if pair_index is None else pair_index.to(torch.int64).contiguous().numpy()
     ok = np.ones(n, np.bool_) if rows_ok is None else rows_of(rows_ok, (), batch)
-    uv, valid, J_Ti, J_Tj, J_d = transfer_rows(
-        rows_of(uv_i, (2,), batch), rows_of(d, (), batch), ok, rows_of(K_i, (4,), k_batch), k_index,
-        rows_of(K_t, (4,), k_batch), k_index, rows_of(M, (3, 3), pose_batch), rows_of(b, (3,), pose_batch),
-        rows_of(s_j, (), pose_batch),
-        index_of(pose_batch) if pair_index is None else pair_index.to(torch.int64).contiguous().numpy(), _EYE3 if R_tj is None else R_tj.contiguous().numpy(),
-        _NO_B_LAM if b_lam is None else rows_of(b_lam, (3,), pose_batch), R_tj is not None, float(min_depth),
-        bool(jacobians))
-    uv_t, valid_t = torch.from_numpy(uv).reshape(batch + (2,)), torch.from_numpy(valid).reshape(batch)
+    intrinsics = (rows_of(K_i, (INTRINSICS,), k_batch), k_index, rows_of(K_t, (INTRINSICS,), k_batch), k_index)
+    pose_pairs = (rows_of(M, (POINT_DIM, POINT_DIM), pose_batch), rows_of(b, (POINT_DIM,), pose_batch),
+                  rows_of(s_j, (), pose_batch), pose_index)
+    extrinsic = (_EYE3 if R_tj is None else R_tj.contiguous().numpy(),
+                 _NO_B_LAM if b_lam is None else rows_of(b_lam, (POINT_DIM,), pose_batch), R_tj is not None)
+    uv, valid, J_Ti, J_Tj, J_d = transfer_rows(rows_of(uv_i, (PIXEL_DIM,), batch), rows_of(d, (), batch), ok,
+                                               *intrinsics, *pose_pairs, *extrinsic, float(min_depth), bool(jacobians))
+    uv_t, valid_t = torch.from_numpy(uv).reshape(batch + (PIXEL_DIM,)), torch.from_numpy(valid).reshape(batch)
     if not jacobians:
         return uv_t, valid_t, None
-    return uv_t, valid_t, (torch.from_numpy(J_Ti).reshape(batch + (2, 7)),
-                           torch.from_numpy(J_Tj).reshape(batch + (2, 7)), torch.from_numpy(J_d).reshape(batch + (2,)))
+    return uv_t, valid_t, (torch.from_numpy(J_Ti).reshape(batch + (PIXEL_DIM, SIM3_DOF)),
+                           torch.from_numpy(J_Tj).reshape(batch + (PIXEL_DIM, SIM3_DOF)), torch.from_numpy(J_d).reshape(batch + (PIXEL_DIM,)))
 
 
 #: the compiled loop's extrinsic operands when there is none (it reads them only with an extrinsic)
-_EYE3 = np.eye(3)
-_NO_B_LAM = np.zeros((1, 3))
+_EYE3 = np.eye(POINT_DIM)
+_NO_B_LAM = np.zeros((1, POINT_DIM))
 
 
 def _rays(uv: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -25,14 +25,12 @@ import math
 import numpy as np
 
 from ..core.jit import kernel
-from .configs import SIM3_DOF
+from .configs import PIXEL_DIM, SIM3_DOF
 
-#: a reprojection row's residual has two entries (u, v)
-UV = 2
 #: :func:`target_rows` gives per image axis the entries of these columns of ``J_Tj`` (the rest are zero)
 TARGET_U_COLUMNS = (0, 1, 2, 3, 5)
 TARGET_V_COLUMNS = (0, 1, 2, 4, 5)
-TARGET_ROW_ENTRIES = 5
+TARGET_ROW_ENTRIES = len(TARGET_U_COLUMNS)
 
 
 @kernel
@@ -85,17 +83,20 @@ def transfer_rows(uv_i, inv_depth, rows_ok, K_i, k_src, K_t, k_tgt, M, b, s_j, p
     ``valid (n,)`` and, with ``jacobians``, ``J_Ti``, ``J_Tj`` ``(n, 2, 7)`` and ``J_d (n, 2)``, zero on
     invalid rows (else ``(0, 2, 7)`` and ``(0, 2)``)."""
     n = uv_i.shape[0]
-    uv = np.empty((n, UV))
+    uv = np.empty((n, PIXEL_DIM))
     valid = np.zeros(n, np.bool_)
     m = n if jacobians else 0
-    J_Ti = np.zeros((m, UV, SIM3_DOF))
-    J_Tj = np.zeros((m, UV, SIM3_DOF))
-    J_d = np.zeros((m, UV))
+    J_Ti = np.zeros((m, PIXEL_DIM, SIM3_DOF))
+    J_Tj = np.zeros((m, PIXEL_DIM, SIM3_DOF))
+    J_d = np.zeros((m, PIXEL_DIM))
+    n_pose, n_src, n_tgt = M.shape[0], K_i.shape[0], K_t.shape[0]
     r00, r01, r02 = R_tj[0, 0], R_tj[0, 1], R_tj[0, 2]
     r10, r11, r12 = R_tj[1, 0], R_tj[1, 1], R_tj[1, 2]
     r20, r21, r22 = R_tj[2, 0], R_tj[2, 1], R_tj[2, 2]
     for r in range(n):
         ks, kt, p = k_src[r], k_tgt[r], pose[r]
+        if not (0 <= p < n_pose and 0 <= ks < n_src and 0 <= kt < n_tgt):
+            raise IndexError("reprojection: a row's pose pair or intrinsics index is out of range")
         px = (uv_i[r, 0] - K_i[ks, 2]) / K_i[ks, 0]
         py = (uv_i[r, 1] - K_i[ks, 3]) / K_i[ks, 1]
         d = inv_depth[r]

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..core.config import MAX_COUNT, MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, ranged
+from ..core.config import MAX_ITERATIONS, MAX_LAMBDA, MAX_SCALAR, MAX_THREADS, ranged
 from ..core.errors import OptimizationError
 from ..core.lie import Sim3
 from .blocks import LinearPiece
@@ -58,7 +58,6 @@ class BlockConfig:
     refine_steps: int = ranged(2, ge=0, le=MAX_ITERATIONS)  # per-structure Gauss-Newton steps of refine_structure() at fixed poses
     min_structure: float = ranged(1e-6, gt=0, le=MAX_SCALAR)  # lower clamp of the structure (inverse depth stays positive)
     threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads inside linearize/cost/refine (small dense work: 1 is fastest)
-    per_edge_min_rows: int = ranged(2048, ge=1, le=MAX_COUNT)  # evaluate edge by edge (pose pair broadcast) when edges average this many rows
 
 
 class VisualBlock(abc.ABC):
@@ -260,14 +259,9 @@ class InverseDepthBlock(VisualBlock):
         d_rows = structure.to(dtype)[self.struct_idx]
         R, t, s = poses.R.to(dtype), poses.t.to(dtype), poses.s.to(dtype)
         n = int(self.uv_source.shape[0])
-        if n >= self.config.per_edge_min_rows * max(len(self.groups.slots), 1):
-            # few large edges: each edge's pose pair formed once, its rows pointed at it
-            gi, gj, pair_index = self._pair_rows()
-            T_i, T_j = (R[gi], t[gi], s[gi]), (R[gj], t[gj], s[gj])
-        else:
-            # many small edges: per-row poses
-            si, sj = self.slots[:, 0], self.slots[:, 1]
-            T_i, T_j, pair_index = (R[si], t[si], s[si]), (R[sj], t[sj], s[sj]), None
+        # one call for every edge: each edge's pose pair formed once, its rows pointed at it
+        gi, gj, pair_index = self._pair_rows()
+        T_i, T_j = (R[gi], t[gi], s[gi]), (R[gj], t[gj], s[gj])
         if jacobians:
             res = reproject_inv_depth(self.uv_source, d_rows, T_i, T_j, self.K, self.uv_target, config=self.reprojection,
                                       pair_index=pair_index)

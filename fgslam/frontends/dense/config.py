@@ -55,7 +55,6 @@ class DenseBAConfig:
     remeasure: int = ranged(2, ge=1, le=MAX_ITERATIONS)  # edges touching the newest this many keyframes are re-measured each round (the others keep their last measurement)
     kept_rounds: int = ranged(0, ge=0, le=MAX_ITERATIONS)  # more rounds after the keyframe-removal decision when the second newest keyframe is kept (DROID-SLAM: 2, its iters2; 0: none)
     remeasure_min_change: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # image px: an edge to re-measure whose induced field moved less than this (mean) since its last measurement keeps it (0: always re-measure; 7-Scenes RGB-D: 1.0 keeps about 40 % of them; 0-199 ATE 0.0224 -> 0.0225 m, 0-599 0.0334 -> 0.0331 m)
-    per_edge_min_rows: int = ranged(256, ge=1, le=MAX_COUNT)  # block evaluation edge by edge (pose pair broadcast) above this many rows per edge
     init_rounds: int = ranged(5, ge=1, le=MAX_ITERATIONS)  # rounds of the initialisation
     init_iterations: int = ranged(4, ge=1, le=MAX_ITERATIONS)  # LM iterations per initialisation round
     init_neighbour_rounds: int = ranged(0, ge=0, le=MAX_ITERATIONS)  # monocular initialisation: rounds on the neighbourhood edges (graph.init_radius) before every pair within reach is connected for the init_rounds (DROID-SLAM: 8, then 8; 0: all pairs from the start)

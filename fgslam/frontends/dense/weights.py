@@ -44,6 +44,5 @@ def information(config: DenseConfig, stride: int) -> float:
 
 def block_config(config: DenseConfig, reprojection: ReprojectionConfig) -> DenseBlockConfig:
     """The dense block's settings from the ``ba`` section."""
-    return DenseBlockConfig(block=BlockConfig(structure_damping=config.ba.damping, threads=config.threads,
-                                              per_edge_min_rows=config.ba.per_edge_min_rows),
+    return DenseBlockConfig(block=BlockConfig(structure_damping=config.ba.damping, threads=config.threads),
                             reprojection=reprojection, depth_prior=config.ba.depth_prior)
