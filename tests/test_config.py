@@ -498,3 +498,49 @@ def test_bag_only_dataset_keys_warn_for_other_loaders(tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         assert cfg.warn_unused_bag_keys("euroc") == ["dataset.T_BC", "dataset.topics"]
     assert "only apply to ROS bags: ignored for the euroc loader" in caplog.text
+
+
+@pytest.mark.parametrize("override, section, kept", [
+    # the dense family's own default of the shared flow source: aperture confidence 1.5 (the source's: 3.0)
+    ("dense.source.flow.preset=medium", lambda c: c.dense.source.flow, {"aperture_gradient": 1.5}),
+    ("dense.source.kind=flow", lambda c: c.dense.source.flow, {"aperture_gradient": 1.5}),
+    # the pointmap family's pose flow: no warm start, full resolution (the source's: true, 0.5)
+    ("pointmap.source.pose.flow.preset=fast", lambda c: c.pointmap.source.pose.flow,
+     {"warm_start": False, "image_scale": 1.0}),
+    ("dense.depth_align.enabled=true", lambda c: c.dense.depth_align, {"window_pairs": 4}),
+])
+def test_a_key_set_in_a_section_keeps_the_sections_own_defaults(override, section, kept):
+    """A section whose parent sets its own defaults (a family's settings of a shared source) keeps them
+    when a user sets another key of it: an override changes only what it names. Before, setting any key
+    rebuilt the section from the class defaults, so a no-op override changed a run's result."""
+    from fgslam.run.config import load_slam_config
+
+    plain = section(load_slam_config("dense_rgbd"))
+    changed = section(load_slam_config("dense_rgbd", overrides=[override]))
+    for key, value in kept.items():
+        assert getattr(plain, key) == value and getattr(changed, key) == value, key
+    noop = load_slam_config("dense_rgbd", overrides=["dense.source.flow.preset=medium"])
+    assert to_dict(noop) == to_dict(load_slam_config("dense_rgbd"))
+
+
+def test_from_dict_starts_a_section_from_its_parents_default():
+    @dataclass
+    class Inner:
+        a: int = 1
+        b: int = 2
+
+    @dataclass
+    class Middle:
+        inner: Inner = field(default_factory=lambda: Inner(b=20))
+        c: int = 3
+
+    @dataclass
+    class Outer:
+        middle: Middle = field(default_factory=lambda: Middle(inner=Inner(a=10, b=30), c=4))
+
+    built = from_dict(Outer, {"middle": {"inner": {"a": 5}}})
+    assert built.middle == Middle(inner=Inner(a=5, b=30), c=4)  # the parent's defaults, at every depth
+    assert from_dict(Outer, {}).middle == Middle(inner=Inner(a=10, b=30), c=4)
+    assert from_dict(Middle, {"inner": {"a": 7}}) == Middle(inner=Inner(a=7, b=20), c=3)
+    with pytest.raises(ConfigError, match="unknown key 'middle.inner.z'"):
+        from_dict(Outer, {"middle": {"inner": {"z": 1}}})

@@ -20,6 +20,7 @@ and nested dataclasses.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import importlib
 import math
@@ -209,9 +210,10 @@ def _type_name(tp: object) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 
-def _convert(value: Any, tp: object, key: str, source: str) -> Any:
+def _convert(value: Any, tp: object, key: str, source: str, base: Any = None) -> Any:
     """Check/convert ``value`` (parsed YAML, or a value given in code) to the field type ``tp`` (a
-    class or a typing form); raise ConfigError naming ``key`` and ``source``."""
+    class or a typing form); raise ConfigError naming ``key`` and ``source``. ``base``: the field's
+    default when it is a section (a mapping then changes only the keys it names)."""
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
 
@@ -225,7 +227,7 @@ def _convert(value: Any, tp: object, key: str, source: str) -> Any:
             return value
         if not isinstance(value, Mapping):
             raise fail(f"expected a mapping for section {_type_name(tp)}")
-        return _build(tp, value, source, prefix=key + ".")
+        return _build(tp, value, source, prefix=key + ".", base=base if isinstance(base, tp) else None)
     if origin is typing.Union or origin is types.UnionType:
         if value is None:
             if type(None) in args:
@@ -233,7 +235,7 @@ def _convert(value: Any, tp: object, key: str, source: str) -> Any:
             raise fail("null is not allowed")
         options = [a for a in args if a is not type(None)]
         if len(options) == 1:  # Optional[T]: T's own error (say, "must be a finite number")
-            return _convert(value, options[0], key, source)
+            return _convert(value, options[0], key, source, base)
         errors = []
         for option in args:
             if option is type(None):
@@ -300,7 +302,22 @@ def _convert(value: Any, tp: object, key: str, source: str) -> Any:
     raise ConfigError(f"{source}: key '{key}': unsupported field type {_type_name(tp)}")
 
 
-def _build(cls: type[T], data: Mapping[str, Any], source: str, prefix: str = "") -> T:
+def _section_default(f: dataclasses.Field, base: Any) -> Any:
+    """The default a mapping given for field ``f`` starts from: ``base``'s value of it (a section inside a
+    section with its own defaults), else the field's default factory's section (a family that sets its own
+    defaults of a shared section, say ``dense.source.flow``); None where neither is a section."""
+    if base is not None:
+        value = getattr(base, f.name)
+    elif f.default_factory is not dataclasses.MISSING:
+        value = f.default_factory()
+    else:
+        return None
+    return value if dataclasses.is_dataclass(value) else None
+
+
+def _build(cls: type[T], data: Mapping[str, Any], source: str, prefix: str = "", base: Any = None) -> T:
+    """``cls`` from ``data``; keys it does not name keep ``base``'s values (a section's own defaults, as its
+    parent sets them) or else the class defaults."""
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - set(fields))
@@ -308,7 +325,11 @@ def _build(cls: type[T], data: Mapping[str, Any], source: str, prefix: str = "")
         raise ConfigError(
             f"{source}: unknown key '{prefix}{unknown[0]}' (valid keys of {cls.__name__}: {', '.join(sorted(fields))})"
         )
-    kwargs = {name: _convert(value, hints[name], prefix + name, source) for name, value in data.items()}
+    kwargs = {name: _convert(value, hints[name], prefix + name, source,
+                             _section_default(fields[name], base) if isinstance(value, Mapping) else None)
+              for name, value in data.items()}
+    if base is not None:  # the keys not given keep the section's own defaults
+        kwargs = {**{name: copy.deepcopy(getattr(base, name)) for name in fields if name not in data}, **kwargs}
     for name, value in kwargs.items():
         rng = field_range(fields[name])
         if rng is not None:
