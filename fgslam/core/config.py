@@ -13,6 +13,11 @@ constants below or a tighter one of its own): a value no real use needs to excee
 such as ``patches_per_frame=100000000`` is refused at load time instead of exhausting memory. Infinity
 and NaN are never valid values of a numeric field.
 
+A mapping changes only the keys it names, at every depth: the other keys of a section keep the
+defaults its parent gives it (a field's ``default_factory`` may set them differently from the section
+class, as a family does for a shared source), not the section class's own. A field that a section's
+``__post_init__`` derives from another is carried over from that default, not derived again.
+
 Supported field types: ``bool``, ``int``, ``float``, ``str``, ``pathlib.Path``, ``Literal[...]``,
 ``Optional[T]`` / ``T | None``, ``list[T]``, ``tuple[T, ...]``, ``tuple[T1, T2]``, ``dict[str, T]``
 and nested dataclasses.
@@ -241,7 +246,7 @@ def _convert(value: Any, tp: object, key: str, source: str, base: Any = None) ->
             if option is type(None):
                 continue
             try:
-                return _convert(value, option, key, source)
+                return _convert(value, option, key, source, base)
             except ConfigError as exc:
                 errors.append(str(exc))
         raise fail(f"expected {' or '.join(_type_name(a) for a in args if a is not type(None))}")
@@ -348,7 +353,8 @@ def _build(cls: type[T], data: Mapping[str, Any], source: str, prefix: str = "",
 
 
 def from_dict(cls: type[T], data: Mapping[str, Any] | None, source: str = "<dict>", prefix: str = "") -> T:
-    """Build dataclass ``cls`` from a (nested) mapping; missing keys keep their defaults. ``prefix``
+    """Build dataclass ``cls`` from a (nested) mapping; missing keys keep their defaults (in a nested section,
+    the defaults its parent gives it). ``prefix``
     is put before every key named in errors (``"factors[0].options."`` for a section nested elsewhere)."""
     if data is None:
         data = {}
