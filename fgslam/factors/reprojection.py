@@ -209,9 +209,8 @@ def _transfer(
     one = torch.ones((), dtype=Qz.dtype, device=Qz.device)
     zero = torch.zeros((), dtype=Qz.dtype, device=Qz.device)
     inv_z = 1.0 / torch.where(valid, Qz, one)
-    xn = Qx * inv_z
-    yn = Qy * inv_z
-    uv = torch.stack((fx * xn + cx, fy * yn + cy), dim=-1)
+    xn, yn, u, v = rows.projection.py_func(Qx, Qy, inv_z, fx, fy, cx, cy)
+    uv = torch.stack((u, v), dim=-1)
     valid = valid & torch.isfinite(uv).all(-1) & torch.isfinite(xn * inv_z) & torch.isfinite(yn * inv_z)
     if rows_ok is not None:
         valid = valid & rows_ok
@@ -229,11 +228,11 @@ def _transfer(
     d = torch.where(valid, d, zero)
 
     # B = A M = d uv / d(source ray); J_d = A b.
-    B0 = fx_iz[..., None] * (m0 - xn[..., None] * m2)
-    B1 = fy_iz[..., None] * (m1 - yn[..., None] * m2)
-    J_d = torch.stack((fx_iz * (b[..., 0] - xn * b[..., 2]), fy_iz * (b[..., 1] - yn * b[..., 2])), dim=-1)
-    J_Ti = torch.stack(rows.source_row.py_func(*B0.unbind(-1), px, py, d)
-                       + rows.source_row.py_func(*B1.unbind(-1), px, py, d), dim=-1).unflatten(-1, (PIXEL_DIM, SIM3_DOF))
+    *B, J_d0, J_d1 = rows.projection_rows.py_func(fx_iz, fy_iz, xn, yn, *m0.unbind(-1), *m1.unbind(-1),
+                                                  *m2.unbind(-1), *b.unbind(-1))
+    J_d = torch.stack((J_d0, J_d1), dim=-1)
+    J_Ti = torch.stack(rows.source_row.py_func(*B[:POINT_DIM], px, py, d)
+                       + rows.source_row.py_func(*B[POINT_DIM:], px, py, d), dim=-1).unflatten(-1, (PIXEL_DIM, SIM3_DOF))
 
     ds_j = d * s_j
     z = torch.zeros_like(fx_iz)

@@ -43,6 +43,23 @@ def target_point(m00, m01, m02, m10, m11, m12, m20, m21, m22, b0, b1, b2, px, py
 
 
 @kernel
+def projection(Qx, Qy, inv_z, fx, fy, cx, cy):
+    """The normalised coordinates ``xn = Q_x / Q_z``, ``yn = Q_y / Q_z`` and the pixel ``(u, v)``."""
+    xn = Qx * inv_z
+    yn = Qy * inv_z
+    return xn, yn, fx * xn + cx, fy * yn + cy
+
+
+@kernel
+def projection_rows(fx_iz, fy_iz, xn, yn, m00, m01, m02, m10, m11, m12, m20, m21, m22, b0, b1, b2):
+    """``B = A M`` (``A = d(uv)/dQ``, rows ``fx / Q_z [1, 0, -xn]`` and ``fy / Q_z [0, 1, -yn]``; ``B`` is
+    d(uv)/d(source ray)) and ``J_d = A b``: ``(B00, B01, B02, B10, B11, B12, J_d0, J_d1)``."""
+    return (fx_iz * (m00 - xn * m20), fx_iz * (m01 - xn * m21), fx_iz * (m02 - xn * m22),
+            fy_iz * (m10 - yn * m20), fy_iz * (m11 - yn * m21), fy_iz * (m12 - yn * m22),
+            fx_iz * (b0 - xn * b2), fy_iz * (b1 - yn * b2))
+
+
+@kernel
 def source_row(bx, by, bz, px, py, d):
     """One row of ``J_Ti`` from the row ``B_r`` of ``B = A M`` (``A = d(uv)/dQ``):
     ``dQ/dxi_i = M [-[p]x, d I, p]``, so the row is ``[p x B_r, d B_r, B_r . p]``."""
@@ -110,10 +127,7 @@ def transfer_rows(uv_i, inv_depth, rows_ok, K_i, k_src, K_t, k_tgt, M, b, s_j, p
         ok = (Qz > 0 and Qz > min_depth * d * sj and math.isfinite(d) and d >= 0 and math.isfinite(Qx)
               and math.isfinite(Qy))
         inv_z = 1.0 / (Qz if ok else 1.0)
-        xn = Qx * inv_z
-        yn = Qy * inv_z
-        u = fx * xn + cx
-        v = fy * yn + cy
+        xn, yn, u, v = projection(Qx, Qy, inv_z, fx, fy, cx, cy)
         uv[r, 0] = u
         uv[r, 1] = v
         ok = (ok and math.isfinite(u) and math.isfinite(v) and math.isfinite(xn * inv_z)
@@ -126,14 +140,10 @@ def transfer_rows(uv_i, inv_depth, rows_ok, K_i, k_src, K_t, k_tgt, M, b, s_j, p
         fy_iz = fy * inv_z if ok else 0.0
         if not ok:
             xn = yn = px = py = d = 0.0
-        B00 = fx_iz * (m00 - xn * m20)
-        B01 = fx_iz * (m01 - xn * m21)
-        B02 = fx_iz * (m02 - xn * m22)
-        B10 = fy_iz * (m10 - yn * m20)
-        B11 = fy_iz * (m11 - yn * m21)
-        B12 = fy_iz * (m12 - yn * m22)
-        J_d[r, 0] = fx_iz * (b0 - xn * b2)
-        J_d[r, 1] = fy_iz * (b1 - yn * b2)
+        B00, B01, B02, B10, B11, B12, J_d0, J_d1 = projection_rows(
+            fx_iz, fy_iz, xn, yn, m00, m01, m02, m10, m11, m12, m20, m21, m22, b0, b1, b2)
+        J_d[r, 0] = J_d0
+        J_d[r, 1] = J_d1
         row = source_row(B00, B01, B02, px, py, d)
         for c in range(SIM3_DOF):
             J_Ti[r, 0, c] = row[c]
