@@ -180,6 +180,29 @@ def test_schur_reduced_system_equals_explicit_elimination_with_per_pixel_damping
     assert np.abs(flat.linearize(values)[0].H - piece.H).max() > 1e-6 * scale
 
 
+def test_dense_block_damped_linearisation_damps_every_source_and_its_back_substitution():
+    """``DenseBlock.linearize_damped(lam)`` (the backend's LM damping of the depths): each source's system
+    eliminated again with ``lam`` on every pixel's information, merged as ``linearize`` merges; the
+    back-substitution then follows the damped system, whose depth steps shrink as ``lam`` grows."""
+    poses, depths = scene()
+    keys = [pose_key(k) for k in (4, 7, 9)]
+    edges = exact_edges(poses, depths, ALL_PAIRS, keys, weight_seed=6)
+    kfs = [DenseKeyframe(keys[k], depths[k] * 1.05) for k in range(3)]
+    merged = DenseBlock(kfs, edges, K8, DenseBlockConfig(pieces="merged"))
+    values = values_of(poses, keys)
+    (plain,) = merged.linearize(values)
+    delta = np.random.default_rng(6).standard_normal(3 * D) * 1e-3
+    step0 = merged.back_substitute(delta).abs().max()
+    (tiny,) = merged.linearize_damped(1e-12)
+    np.testing.assert_allclose(tiny.H, plain.H, rtol=1e-9, atol=1e-9 * np.abs(plain.H).max())
+    sizes = []
+    for lam in (1.0, 1e3, 1e6):
+        (damped,) = merged.linearize_damped(lam)
+        assert np.abs(damped.H - plain.H).max() > 1e-9 * np.abs(plain.H).max()
+        sizes.append(float(merged.back_substitute(delta).abs().max()))
+    assert step0 > sizes[0] > sizes[1] > sizes[2]
+
+
 def test_dense_block_pieces_per_source_sum_to_merged_and_structure_round_trips():
     poses, depths = scene()
     keys = [pose_key(k) for k in (4, 7, 9)]

@@ -77,6 +77,28 @@ def test_reduced_quadratic_equals_joint_minimised_over_structure(seed, damping):
     assert np.linalg.eigvalsh(H).min() > -1e-9 * np.abs(H).max()
 
 
+@pytest.mark.parametrize("base_damping", [0.0, 0.3])
+def test_damped_system_equals_the_elimination_with_the_damping_added(base_damping):
+    """``SchurSystem.damped(lam)`` (the backend's LM damping of the structure) is the same linearisation
+    eliminated with ``lam`` more on every structure's information: ``schur_reduce`` given that damping
+    (its bytes when the block has no damping of its own), always relative to the undamped system (no accumulation), and its back-substituted
+    structure step shrinks as ``lam`` grows."""
+    p = random_problem(4)
+    args = (p["r"], p["J"], p["slots"], p["E"], p["idx"], p["w"], p["k"], p["P"])
+    sys_ = schur_reduce(*args, base_damping, min_information=1e-12)
+    dx = torch.as_tensor(np.random.default_rng(4).standard_normal(p["k"] * D))
+    steps = []
+    for lam in (1e-3, 1.0, 1e3):
+        direct = schur_reduce(*args, base_damping + lam, min_information=1e-12)
+        for damped in (sys_.damped(lam), sys_.damped(2.0 * lam).damped(lam)):
+            for name in ("H", "g", "inv_C"):  # (C + base) + lam against C + (base + lam): rounding apart
+                a, b = getattr(damped, name).numpy(), getattr(direct, name).numpy()
+                assert a.tobytes() == b.tobytes() if base_damping == 0.0 else np.allclose(a, b, rtol=1e-12, atol=0), name
+            assert damped.c == pytest.approx(direct.c, rel=1e-12)
+        steps.append(float(sys_.damped(lam).back_substitute(dx).abs().max()))
+    assert steps[0] > steps[1] > steps[2] > 0.0
+
+
 def test_precomputed_groups_match_internal_sort():
     p = random_problem(3, zero_info_struct=False)
     order, groups = SlotGroups.sort_rows(p["slots"])

@@ -115,7 +115,7 @@ class Optimizer:
             needed.update(int(k) for k in block.keys)
         steps = self.config.refine_steps if refine_steps is None else refine_steps
         return WindowProblem(self.store.values_of(needed), sorted(free), inner, cross, blocks, steps,
-                             self.config.refine_each_iteration)
+                             self.config.refine_each_iteration, self.config.structure_damping)
 
     def _marginal_prior(self, free: set) -> list:
         """``window.leaving: marginalize``: the persistent built-in factors (and the anchor prior and

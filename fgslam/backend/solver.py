@@ -17,6 +17,11 @@ the same linearisation. Damping (``damping``):
 - ``marquardt``: Marquardt's scaled damping ``lambda diag(H)`` with a floor for zero entries
   (:func:`damping_diagonal`).
 
+Both damp the variables of the linearisation, the poses. A problem whose structure was eliminated
+can damp that too (``damps_structure``, the backend's ``map.structure_damping``): each damped solve
+then re-eliminates the structure with ``lambda`` added to its information, so a rejected step shrinks
+the back-substituted structure step as well, not the pose step alone.
+
 With a ``propose`` step provider (iSAM2) the step comes from the provider once per iteration and a
 step that raises the cost is halved up to ``max_backtracks`` times instead.
 
@@ -74,6 +79,9 @@ class LMProblem(Protocol):
 
     # Marquardt damping only: ``hessian_diagonal() -> dict[key, np.ndarray]``, the diagonal of H at
     # the last linearisation (GTSAM's Python wrapper does not expose the graph's own).
+    # Structure damping: with ``damps_structure`` true, ``structure_damped(lam)`` gives the last
+    # linearisation with ``lam`` added to the eliminated structure's information (the damping of the
+    # whole joint system, not only of the poses), and ``trial`` back-substitutes through it.
 
 
 @dataclass
@@ -189,6 +197,7 @@ def levenberg_marquardt(problem: LMProblem, settings: LMSettings, propose: Calla
     timings = report.timings
     lam = settings.lambda_initial
     damper = _Damper(settings.damping, problem) if propose is None else None
+    damps_structure = bool(getattr(problem, "damps_structure", False))
     for it in range(1, settings.max_iterations + 1):
         report.iterations = it
         gfg = None  # the previous linearisation is freed before the next one is built (peak memory)
@@ -214,8 +223,9 @@ def levenberg_marquardt(problem: LMProblem, settings: LMSettings, propose: Calla
             while lam <= settings.lambda_max:
                 report.solves += 1
                 t0 = time.perf_counter()
+                system = problem.structure_damped(lam) if damps_structure else gfg
                 try:
-                    delta = _solve(damper.damped(gfg, lam), settings, ordering_cache)
+                    delta = _solve(damper.damped(system, lam), settings, ordering_cache)
                 except RuntimeError:  # indeterminate system: more damping
                     delta = None
                 timings["solve"] += time.perf_counter() - t0

@@ -115,13 +115,22 @@ class Isam2Stepper:
         return free_values.localCoordinates(self.isam.calculateEstimate())
 
 
+def _copy(gfg):
+    """A new ``gtsam.GaussianFactorGraph`` sharing ``gfg``'s factors (pushing onto it leaves ``gfg`` as it is)."""
+    import gtsam  # deferred: gtsam
+
+    out = gtsam.GaussianFactorGraph()
+    out.push_back(gfg)
+    return out
+
+
 class WindowProblem:
     """An :class:`~fgslam.backend.solver.LMProblem` over the free keys of one optimisation: built-in
     and gauge factors that touch a free key (``inner``: only free keys; ``cross``: conditioned on
     their fixed keys) and the blocks that touch one (pieces restricted to the free keys)."""
 
     def __init__(self, values, free: list[int], inner, cross: list, blocks: list, refine_steps: int,
-                 refine_each_iteration: bool):
+                 refine_each_iteration: bool, structure_damping: bool = False):
         self.values = values  # gtsam.Values of every key the problem reads (free and fixed)
         self.free = list(free)
         self.free_set = set(free)
@@ -135,6 +144,9 @@ class WindowProblem:
         self.dims = {int(k): int(d) for k, d in values.dims().items()}
         self.fixed_of_blocks = sorted({k for b in self.structured for k in b.keys if k not in self.free_set})
         self.last_extras: list = []
+        # the LM damping covers the blocks' structure too (structure_damped); map.structure_damping
+        self.damps_structure = bool(structure_damping) and any(hasattr(b, "linearize_damped") for b in self.structured)
+        self._linear: tuple | None = None  # the last linearisation: (graph part, {id(block): pieces})
 
     def free_values(self):
         import gtsam  # deferred: gtsam
@@ -171,15 +183,33 @@ class WindowProblem:
                                             self.free_set, self.dims)
             if restricted is not None:
                 extras.append(restricted)
-        extras.extend(self._block_pieces())
+        pieces = {id(block): block.linearize(self.values) for block in self.blocks}
+        if self.damps_structure:
+            self._linear = (_copy(gfg), list(extras), pieces)
+        extras.extend(self._block_pieces(pieces))
         for factor in extras:
             gfg.push_back(factor)
         self.last_extras = extras
         return gfg
 
-    def _block_pieces(self) -> list:
-        """Every block linearised and restricted to the free keys, summed per key (diagonal blocks) and
-        per key pair (off-diagonal blocks) into ``HessianFactor`` pieces."""
+    def structure_damped(self, lam: float):
+        """The last linearisation with ``lam`` added to the information of every structure variable of the
+        structured blocks (their ``linearize_damped``), the other factors as they were: with the LM's
+        damping of the poses, the damping of the joint system of poses and structure, whose
+        back-substitution (:meth:`trial`) then shrinks the structure's step as the damping rises."""
+        graph, extras, pieces = self._linear
+        pieces = dict(pieces)
+        for block in self.structured:
+            if hasattr(block, "linearize_damped"):
+                pieces[id(block)] = block.linearize_damped(lam)
+        gfg = _copy(graph)
+        for factor in extras + self._block_pieces(pieces):
+            gfg.push_back(factor)
+        return gfg
+
+    def _block_pieces(self, pieces_of: dict) -> list:
+        """Every block's linear pieces (``pieces_of``: by ``id(block)``) restricted to the free keys, summed
+        per key (diagonal blocks) and per key pair (off-diagonal blocks) into ``HessianFactor`` pieces."""
         import gtsam  # deferred: gtsam
 
         diag: dict[int, np.ndarray] = {}
@@ -189,7 +219,7 @@ class WindowProblem:
         d = POSE_DIM
         free = self.free_set
         for block in self.blocks:
-            for piece in block.linearize(self.values):
+            for piece in pieces_of[id(block)]:
                 keys, H, g = piece.keys, piece.H, piece.g
                 constant += float(piece.c)
                 for a, ka in enumerate(keys):

@@ -309,8 +309,7 @@ class DenseSourceBlock(VisualBlock):
                 res.r, res.J, self.slots, res.E, self.struct_idx, res.weights, len(self.keys), self.num_structs,
                 self.damping, self.groups, self.config.min_information,
             )
-        sys_ = self._system
-        return [LinearPiece(self.keys, sys_.H.numpy(), sys_.g.numpy(), float(sys_.c))]
+        return self._pieces()
 
 
 class DenseBlock:
@@ -363,7 +362,15 @@ class DenseBlock:
         return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.float64)
 
     def linearize(self, values) -> list[LinearPiece]:
-        pieces = [piece for block in self.sources for piece in block.linearize(values)]
+        return self._combined([piece for block in self.sources for piece in block.linearize(values)])
+
+    def linearize_damped(self, structure_damping: float) -> list[LinearPiece]:
+        """The last linearisation with ``structure_damping`` added to every pixel's information (the
+        backend's LM damping of the depths; :meth:`DenseSourceBlock.linearize_damped`)."""
+        return self._combined([piece for block in self.sources for piece in block.linearize_damped(structure_damping)])
+
+    def _combined(self, pieces: list[LinearPiece]) -> list[LinearPiece]:
+        """The sources' pieces, summed into one over ``self.keys`` unless ``config.pieces`` is per source."""
         if self.config.pieces == "per_source" or not pieces:
             return pieces
         index = {key: n for n, key in enumerate(self.keys)}

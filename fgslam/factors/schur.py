@@ -117,6 +117,20 @@ class SchurSystem:
     F: torch.Tensor
     b: torch.Tensor
     inv_C: torch.Tensor
+    # what the elimination started from: (H, g, c) of the pose part, C and min_information (damped())
+    unreduced: tuple | None = None
+
+    def damped(self, structure_damping: float) -> "SchurSystem":
+        """The same linearisation eliminated again with ``structure_damping`` added to every structure's
+        information ``C_p``: the minimiser of the joint quadratic plus ``lambda |dd|^2``, the structure's
+        share of a Levenberg-Marquardt damping that covers every variable. Always relative to the
+        undamped system (damping a damped system does not accumulate)."""
+        if self.unreduced is None:
+            raise OptimizationError("damped() needs the system's unreduced parts (eliminate_structure)")
+        H, g, c, C, min_information = self.unreduced
+        system = eliminate_structure(H, g, c, self.F, self.b, C + structure_damping, min_information)
+        system.unreduced = self.unreduced
+        return system
 
     def back_substitute(self, dx: torch.Tensor) -> torch.Tensor:
         """Structure update (P,) minimising the joint quadratic for the pose update ``dx`` (7k,) (batched:
@@ -232,6 +246,7 @@ def eliminate_structure(
     eliminated on its own (the global BA: one per source keyframe, structures padded with ``C = 0``);
     ``c`` is then returned as a ``(B,)`` tensor.
     """
+    unreduced = (H, g, c, C, min_information)
     inv_C = information_inverse(C, min_information)
     Ft = F.transpose(-1, -2)
     H = H - Ft @ (F * inv_C[..., None])
@@ -244,7 +259,7 @@ def eliminate_structure(
     c_finite = bool(torch.isfinite(c).all()) if isinstance(c, torch.Tensor) else bool(np.isfinite(c))
     if not (finite and c_finite):
         raise OptimizationError("Schur elimination produced non-finite values (NaN/inf in residuals or Jacobians)")
-    return SchurSystem(H=H, g=g, c=c, F=F, b=b, inv_C=inv_C)
+    return SchurSystem(H=H, g=g, c=c, F=F, b=b, inv_C=inv_C, unreduced=unreduced)
 
 
 def structure_gauss_newton_step(

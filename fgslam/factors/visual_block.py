@@ -115,8 +115,21 @@ class VisualBlock(abc.ABC):
                 res.r, res.J, self.slots, res.E, self.struct_idx, res.weights, len(self.keys),
                 self.num_structs, self.config.structure_damping, self.groups, self.config.min_information,
             )
+        return self._pieces()
+
+    def _pieces(self) -> list[LinearPiece]:
         sys_ = self._system
-        return [LinearPiece(self.keys, sys_.H.numpy(), sys_.g.numpy(), sys_.c)]
+        return [LinearPiece(self.keys, sys_.H.numpy(), sys_.g.numpy(), float(sys_.c))]
+
+    def linearize_damped(self, structure_damping: float) -> list[LinearPiece]:
+        """The last linearisation's pieces with ``structure_damping`` added to every structure's information
+        (:meth:`fgslam.factors.schur.SchurSystem.damped`: the backend's LM damping of the structure);
+        :meth:`back_substitute` then follows the damped system."""
+        if self._system is None:
+            raise OptimizationError("linearize_damped() called before linearize()")
+        with torch_threads(self.config.threads):
+            self._system = self._system.damped(structure_damping)
+        return self._pieces()
 
     def back_substitute(self, delta) -> torch.Tensor:
         """Structure update (P,) for the pose update ``delta`` (gtsam.VectorValues or (7k,) array)

@@ -208,6 +208,11 @@ class DenseFlowSource(DenseSource):
         # warm start: the target image warped by the induced flow, so DIS measures only the residual
         # flow (DROID's correlation lookup around the current reprojection)
         Wj = cv2.remap(Ij, xx + init[..., 0], yy + init[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        # OpenCV's DIS keeps the initial flow of the last call given one (the backward check below), and a
+        # call given none starts from it: this forward flow starts from the negated residual of the edge
+        # measured before, not from zero (measured, docs/benchmarks/stability.md). Deterministic for the
+        # same calls in the same order; the presets were chosen with it, and removing it changes every
+        # dense and pointmap figure (none of the variants measured is better on every case).
         res_f = self._dis.calc(Ii, Wj, None)
         res_b = self._dis.calc(Wj, Ii, np.ascontiguousarray(-res_f))
         map_x, map_y = xx + res_f[..., 0], yy + res_f[..., 1]
