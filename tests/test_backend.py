@@ -2,6 +2,8 @@
 solver, windowed (fixed and marginalised) and global; two contributors on the same keys; gauge
 handling, marginals, bookkeeping, pose-graph correction against gtsam's own LM."""
 
+import dataclasses
+
 import gtsam
 import numpy as np
 import pytest
@@ -110,8 +112,9 @@ def toy_block(scene, seed: int, sigma: float = 0.05) -> RelativePoseBlock:
     return RelativePoseBlock([(pose_key(i), pose_key(j)) for i, j in ids], meas, sigma)
 
 
-def explicit_joint_lm(backend: Backend, free_kfs=None, iterations: int = 60):
-    """Reference: dense LM on the explicit joint problem, free poses AND inverse depths as variables.
+def explicit_joint_lm(backend: Backend, free_kfs=None, iterations: int = 60, lam: float = 1e-6):
+    """Reference: dense LM on the explicit joint problem, free poses AND inverse depths as variables,
+    ``lam`` (the initial damping, x10 on rejection, /10 on acceptance) on every one of them.
 
     One dense Jacobian over [free pose tangents | all inverse depths] per iteration (no Schur
     complement anywhere); the built-in and gauge factors are the backend's own (linearised by gtsam,
@@ -145,7 +148,6 @@ def explicit_joint_lm(backend: Backend, free_kfs=None, iterations: int = 60):
     values = backend.values
     depths = [b.structure.clone() for b in blocks]
     current = cost(values, depths)
-    lam = 1e-6
     for _ in range(iterations):
         n = offsets[-1]
         H = np.zeros((n, n))
@@ -188,6 +190,28 @@ def explicit_joint_lm(backend: Backend, free_kfs=None, iterations: int = 60):
     return values, depths, current
 
 
+@pytest.mark.parametrize("lam", [1.0, 1e3])
+def test_damped_structure_takes_the_damped_joint_step(lam):
+    """``map.damp_structure``: one LM iteration at the damping ``lam`` is the step of the explicit joint
+    problem with ``lam`` on every pose tangent and every inverse depth (the depths re-eliminated with the
+    damping, back-substituted through it); without the option the depths' step is not damped, another step."""
+    scene = make_scene(seed=5, noise_px=0.5)
+    config = BackendConfig(max_iterations=1, lambda_initial=lam, lambda_factor=10.0, refine_steps=0, damp_structure=True)
+    ref_values, ref_depths, ref_cost = explicit_joint_lm(build_backend(scene, config), iterations=1, lam=lam)
+    backend = build_backend(scene, config)
+    initial = backend.cost()
+    report = backend.optimize_global()
+    assert report.final_cost < initial and report.final_cost == pytest.approx(ref_cost, rel=1e-9)
+    check_optimum(backend, ref_values, ref_depths)
+    plain = build_backend(scene, dataclasses.replace(config, damp_structure=False))
+    plain.optimize_global()
+    # the tolerance check_optimum holds the damped step to would reject the undamped one
+    assert not all(np.allclose(b.structure.numpy(), d.numpy(), rtol=1e-6, atol=0)
+                   for b, d in zip(plain.blocks(), ref_depths))
+    for block in backend.blocks():  # the optimisation has ended: back to the last linearisation's system
+        assert block._damped is None
+
+
 def check_optimum(backend: Backend, ref_values, ref_depths, kfs=range(NUM_KF)):
     for kf in kfs:
         ref = ref_values.atSimilarity3(pose_key(kf))
@@ -210,14 +234,14 @@ def scene_and_reference(request):
     return scene, ref_values, ref_depths, ref_cost, request.param
 
 
-@pytest.mark.parametrize("solver,reverse_keys,structure_damping", [
+@pytest.mark.parametrize("solver,reverse_keys,damp_structure", [
     ("lm", False, False), ("lm", True, False), ("python_lm", False, False), ("isam2", False, False),
     ("lm", False, True)])
-def test_compressed_blocks_reach_explicit_joint_optimum(scene_and_reference, solver, reverse_keys, structure_damping):
-    """Every solver reaches the explicit joint optimum; with ``structure_damping`` the LM damps the depths too
+def test_compressed_blocks_reach_explicit_joint_optimum(scene_and_reference, solver, reverse_keys, damp_structure):
+    """Every solver reaches the explicit joint optimum; with ``damp_structure`` the LM damps the depths too
     (another path, the same minimum)."""
     scene, ref_values, ref_depths, ref_cost, noise = scene_and_reference
-    config = BackendConfig(solver=solver, max_iterations=60, structure_damping=structure_damping)
+    config = BackendConfig(solver=solver, max_iterations=60, damp_structure=damp_structure)
     backend = build_backend(scene, config, reverse_keys)
     report = backend.optimize_global()
     assert report.converged
@@ -238,15 +262,15 @@ def window_reference():
     return scene, reference, global_backend.pose(4)
 
 
-@pytest.mark.parametrize("solver,structure_damping", [("lm", False), ("isam2", False), ("lm", True)])
+@pytest.mark.parametrize("solver,damp_structure", [("lm", False), ("isam2", False), ("lm", True)])
 @pytest.mark.parametrize("leaving", ["fixed", "marginalize"])
-def test_window_reaches_explicit_optimum_with_outside_poses_fixed(window_reference, solver, structure_damping, leaving):
+def test_window_reaches_explicit_optimum_with_outside_poses_fixed(window_reference, solver, damp_structure, leaving):
     """Keyframes 0, 1 outside the window: the blocks' Schur systems restricted to the free poses equal
     the explicit joint problem over the free poses and every depth with 0, 1 held (no persistent
     built-in factor reaches outside here, so marginalize must give the same)."""
     scene, (ref_values, ref_depths, ref_cost), global_pose4 = window_reference
     config = BackendConfig(solver=solver, max_iterations=60, window=WindowConfig(leaving=leaving),
-                           structure_damping=structure_damping)
+                           damp_structure=damp_structure)
     backend = build_backend(scene, config)
     before = {kf: backend.pose(kf) for kf in (0, 1)}
     report = backend.optimize_window([2, 3, 4])

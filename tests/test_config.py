@@ -486,6 +486,20 @@ def test_localize_yaml_shows_every_key_with_its_default():
     assert shown == to_dict(LocalizeConfig())
 
 
+def test_map_yaml_shows_every_key_with_its_default():
+    """fgslam/configs/map.yaml says "every key is optional; defaults are shown": it lists exactly the
+    fields of BackendConfig, each with its default."""
+    from importlib.resources import files
+
+    import yaml
+
+    from fgslam.backend.config import BackendConfig
+    from fgslam.core.config import to_dict
+
+    shown = yaml.safe_load(files("fgslam").joinpath("configs", "map.yaml").read_text())
+    assert shown == to_dict(BackendConfig())
+
+
 def test_bag_only_dataset_keys_warn_for_other_loaders(tmp_path, caplog):
     """``dataset.T_BC`` / ``dataset.topics`` do nothing outside ROS bags: a warning names them."""
     import logging

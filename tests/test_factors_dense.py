@@ -199,6 +199,11 @@ def test_dense_block_damped_linearisation_damps_every_source_and_its_back_substi
     for lam in (1.0, 1e3, 1e6):
         (damped,) = merged.linearize_damped(lam)
         assert np.abs(damped.H - plain.H).max() > 1e-9 * np.abs(plain.H).max()
+        # the same as a block whose own damping is lam on every pixel
+        (direct,) = DenseBlock(kfs, edges, K8, DenseBlockConfig(pieces="merged", block=BlockConfig(structure_damping=lam))
+                               ).linearize(values)
+        np.testing.assert_allclose(damped.H, direct.H, rtol=1e-10, atol=1e-12 * np.abs(direct.H).max())
+        np.testing.assert_allclose(damped.g, direct.g, rtol=1e-10, atol=1e-12 * np.abs(direct.g).max())
         sizes.append(float(merged.back_substitute(delta).abs().max()))
     assert step0 > sizes[0] > sizes[1] > sizes[2]
 

@@ -2,10 +2,10 @@
 graph runs the residual's row functions (``fgslam.factors.reprojection_jit``) element-wise on CUDA
 tensors, while every frontend runs them compiled on the CPU. JSON to stdout.
 
-a. **parity**: ``ROWS`` random rows (generic motion, a quarter of them with a stereo extrinsic) through
-   ``reproject_inv_depth``: compiled on the CPU in float64 against element-wise on the device in float64
-   and float32. Reports the valid masks' agreement and the largest difference of each output, scaled
-   by the output's largest magnitude.
+a. **parity**: ``ROWS`` random rows (generic motion, targets about 2 px from the prediction) through
+   ``reproject_inv_depth``, once without and once with a stereo extrinsic: compiled on the CPU in float64
+   against element-wise on the device in float64 and float32. Reports the valid masks' agreement and the
+   largest difference of each output divided by ``1 +`` the output's largest magnitude.
 b. **gradient**: on the device, float64, the cost ``0.5 |r|^2`` back-propagated to the inverse depths
    against ``J_d^T r`` of the compiled rows.
 c. **timing**: one call with Jacobians on the device at ``TIMED_ROWS`` rows (float32, the training's
@@ -21,8 +21,7 @@ Usage, on the GPU machine from the repository root::
   python3 tools/gpu_kernel_check.py > kernel.json
   DEVICE=cpu python3 tools/gpu_kernel_check.py   # the script's own check, without a GPU
 
-Environment: ``DEVICE`` (cuda), ``ROWS`` (20000), ``TIMED_ROWS`` (262144: 16 clips of a 128x96 grid
-at 1/8 over 8 edges), ``REPEATS`` (20).
+Environment: ``DEVICE`` (cuda), ``ROWS`` (20000), ``TIMED_ROWS`` (262144, 2^18 rows), ``REPEATS`` (20).
 """
 
 from __future__ import annotations
@@ -38,13 +37,22 @@ import torch
 
 from fgslam.factors.reprojection import ReprojectionConfig, reproject_inv_depth
 
-log = logging.getLogger("gpu_kernel_check")
+logger = logging.getLogger("gpu_kernel_check")
 OUTPUTS = ("residual", "J_Ti", "J_Tj", "J_d")
 INTRINSICS = (420.0, 410.0, 319.5, 239.5)  # fx, fy, cx, cy of a 640x480 camera
 IMAGE_SIZE = (640.0, 480.0)
 STEREO_BASELINE_M = 0.11
 MIN_DEPTH = 1e-3
 WARMUP_CALLS = 3
+DEFAULT_ROWS = 20000
+DEFAULT_TIMED_ROWS = 2 ** 18
+DEFAULT_REPEATS = 20
+SEED_PARITY, SEED_GRADIENT, SEED_TIMING = 39, 40, 41
+# the random rows: rotation angles (rad), translations, log-scales, inverse depths, target noise (px)
+SOURCE_ANGLE, RELATIVE_ANGLE = 1.0, 0.1
+RELATIVE_TRANSLATION, LOG_SCALE = 0.2, 0.3
+INVERSE_DEPTH_RANGE = (0.05, 1.0)
+TARGET_NOISE_PX = 2.0
 
 
 def random_rotations(rng: np.random.Generator, n: int, angle: float) -> np.ndarray:
@@ -59,17 +67,18 @@ def random_rotations(rng: np.random.Generator, n: int, angle: float) -> np.ndarr
 
 
 def rows(rng: np.random.Generator, n: int):
-    """Source pixels, inverse depths, both poses as ``(R, t, s)`` and noisy targets, float64 CPU tensors."""
-    R_i = random_rotations(rng, n, 1.0)
-    R_j = R_i @ random_rotations(rng, n, 0.1)
-    t_i = rng.normal(size=(n, 3))
-    t_j = t_i + rng.normal(size=(n, 3)) * 0.2
-    s_i, s_j = np.exp(rng.normal(size=n) * 0.3), np.exp(rng.normal(size=n) * 0.3)
+    """Source pixels, inverse depths, both poses ``T_WCi``, ``T_WCj`` as ``(R, t, s)`` and noisy targets,
+    float64 CPU tensors."""
+    R_WCi = random_rotations(rng, n, SOURCE_ANGLE)
+    R_WCj = R_WCi @ random_rotations(rng, n, RELATIVE_ANGLE)
+    t_WCi = rng.normal(size=(n, 3))
+    t_WCj = t_WCi + rng.normal(size=(n, 3)) * RELATIVE_TRANSLATION
+    s_i, s_j = np.exp(rng.normal(size=n) * LOG_SCALE), np.exp(rng.normal(size=n) * LOG_SCALE)
     uv = rng.uniform((0.0, 0.0), IMAGE_SIZE, size=(n, 2))
-    d = rng.uniform(0.05, 1.0, n)
-    target = uv + rng.normal(size=(n, 2)) * 2.0
+    d = rng.uniform(*INVERSE_DEPTH_RANGE, n)
+    target = uv + rng.normal(size=(n, 2)) * TARGET_NOISE_PX
     t = lambda x: torch.from_numpy(np.ascontiguousarray(x))  # noqa: E731
-    return t(uv), t(d), (t(R_i), t(t_i), t(s_i)), (t(R_j), t(t_j), t(s_j)), t(target)
+    return t(uv), t(d), (t(R_WCi), t(t_WCi), t(s_i)), (t(R_WCj), t(t_WCj), t(s_j)), t(target)
 
 
 def move(x, device, dtype):
@@ -78,11 +87,11 @@ def move(x, device, dtype):
     return x.to(device=device, dtype=dtype)
 
 
-def call(inputs, extrinsic):
-    uv, d, T_i, T_j, target = inputs
+def call(inputs, T_CRCL):
+    uv, d, T_WCi, T_WCj, target = inputs
     K = torch.tensor(INTRINSICS, dtype=uv.dtype, device=uv.device)
-    ext = {} if extrinsic is None else {"T_CtCj": extrinsic}
-    return reproject_inv_depth(uv, d, T_i, T_j, K, target, config=ReprojectionConfig(min_depth=MIN_DEPTH), **ext)
+    ext = {} if T_CRCL is None else {"T_CtCj": T_CRCL}
+    return reproject_inv_depth(uv, d, T_WCi, T_WCj, K, target, config=ReprojectionConfig(min_depth=MIN_DEPTH), **ext)
 
 
 def scaled_difference(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor) -> float:
@@ -91,12 +100,11 @@ def scaled_difference(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor) -> 
 
 
 def parity(device: torch.device, n: int) -> dict:
-    rng = np.random.default_rng(39)
-    inputs = rows(rng, n)
-    rig = np.eye(4)
-    rig[0, 3] = -STEREO_BASELINE_M
+    inputs = rows(np.random.default_rng(SEED_PARITY), n)
+    T_CRCL = np.eye(4)
+    T_CRCL[0, 3] = -STEREO_BASELINE_M
     out = {}
-    for name, extrinsic in (("mono", None), ("stereo", rig)):
+    for name, extrinsic in (("mono", None), ("stereo", T_CRCL)):
         with torch.no_grad():
             cpu = call(inputs, extrinsic)
             for dtype in (torch.float64, torch.float32):
@@ -109,11 +117,11 @@ def parity(device: torch.device, n: int) -> dict:
 
 
 def gradient(device: torch.device, n: int) -> dict:
-    inputs = rows(np.random.default_rng(40), n)
+    inputs = rows(np.random.default_rng(SEED_GRADIENT), n)
     ref = call(inputs, None)
-    uv, d, T_i, T_j, target = move(inputs, device, torch.float64)
+    uv, d, T_WCi, T_WCj, target = move(inputs, device, torch.float64)
     d = d.clone().requires_grad_(True)
-    res = call((uv, d, T_i, T_j, target), None)
+    res = call((uv, d, T_WCi, T_WCj, target), None)
     (0.5 * (res.residual ** 2).sum()).backward()
     expected = (ref.J_d * ref.residual).sum(-1)
     got = d.grad.cpu()
@@ -134,14 +142,14 @@ def timed(fn, device: torch.device, repeats: int) -> dict:
 
 
 def timing(device: torch.device, n: int, repeats: int) -> dict:
-    uv, d, T_i, T_j, target = move(rows(np.random.default_rng(41), n), device, torch.float32)
+    uv, d, T_WCi, T_WCj, target = move(rows(np.random.default_rng(SEED_TIMING), n), device, torch.float32)
 
     def forward():
         with torch.no_grad():
-            call((uv, d, T_i, T_j, target), None)
+            call((uv, d, T_WCi, T_WCj, target), None)
 
     def forward_backward():
-        leaves = [x.clone().requires_grad_(True) for x in (d, *T_i, *T_j)]
+        leaves = [x.clone().requires_grad_(True) for x in (d, *T_WCi, *T_WCj)]
         res = call((uv, leaves[0], tuple(leaves[1:4]), tuple(leaves[4:7]), target), None)
         loss = sum((getattr(res, k) ** 2).sum() for k in OUTPUTS)
         loss.backward()
@@ -153,16 +161,17 @@ def timing(device: torch.device, n: int, repeats: int) -> dict:
 def main() -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     device = torch.device(os.environ.get("DEVICE", "cuda"))
-    n, n_timed = int(os.environ.get("ROWS", 20000)), int(os.environ.get("TIMED_ROWS", 262144))
-    repeats = int(os.environ.get("REPEATS", 20))
-    import fgslam
+    n = int(os.environ.get("ROWS", DEFAULT_ROWS))
+    n_timed = int(os.environ.get("TIMED_ROWS", DEFAULT_TIMED_ROWS))
+    repeats = int(os.environ.get("REPEATS", DEFAULT_REPEATS))
+    import fgslam  # here: which tree's package was imported (PYTHONPATH), for the report
     result = {"device": str(device), "fgslam": str(fgslam.__file__), "torch": torch.__version__,
               "gpu": torch.cuda.get_device_name() if device.type == "cuda" else None}
     for stage, run in (("parity", lambda: parity(device, n)), ("gradient", lambda: gradient(device, n)),
                        ("timing", lambda: timing(device, n_timed, repeats))):
         t0 = time.perf_counter()
         result[stage] = run()
-        log.info("%s: %.1f s", stage, time.perf_counter() - t0)
+        logger.info("%s: %.1f s", stage, time.perf_counter() - t0)
     print(json.dumps(result, indent=1))
     return 0
 

@@ -73,7 +73,7 @@ class BackendConfig:
     lambda_max: float = ranged(1e8, gt=0, le=MAX_LAMBDA)  # LM gives up (converged) when rejected steps push lambda above this
     refine_steps: int = ranged(2, ge=0, le=MAX_ITERATIONS)  # structure Gauss-Newton steps at fixed poses before and after a global optimisation (windows: window.refine_steps)
     refine_each_iteration: bool = False  # also refine after every accepted step (else: joint updates only)
-    structure_damping: bool = False  # the LM damping also covers the blocks' eliminated structure (inverse depths): each damped solve re-eliminates it with lambda added to its information, so a rejected step shrinks the depth step too
+    damp_structure: bool = False  # solver lm (isam2 ignores it): the LM damping also covers the blocks' eliminated structure (inverse depths): each damped solve re-eliminates it with lambda added to its information, so a rejected step shrinks the depth step too
     max_backtracks: int = ranged(6, ge=0, le=MAX_ITERATIONS)  # step halvings when an isam2 step raises the true cost
     threads: int = ranged(1, ge=0, le=MAX_THREADS)  # torch threads during optimisation (small dense solves: 1 is fastest)
     gauge: GaugeConfig = field(default_factory=GaugeConfig)

@@ -115,7 +115,8 @@ class Optimizer:
             needed.update(int(k) for k in block.keys)
         steps = self.config.refine_steps if refine_steps is None else refine_steps
         return WindowProblem(self.store.values_of(needed), sorted(free), inner, cross, blocks, steps,
-                             self.config.refine_each_iteration, self.config.structure_damping)
+                             self.config.refine_each_iteration,
+                             self.config.damp_structure and self.config.solver_kind != "isam2")
 
     def _marginal_prior(self, free: set) -> list:
         """``window.leaving: marginalize``: the persistent built-in factors (and the anchor prior and
@@ -222,8 +223,11 @@ class Optimizer:
             problem = self._problem(free, refine_steps)
             initial = problem.refine(refine_steps)
             propose = Isam2Stepper(problem) if kind == "isam2" else None
-            lm = levenberg_marquardt(problem, self.settings(iterations, window), propose=propose,
-                                     initial_cost=initial)  # the cost refine() just evaluated
+            try:
+                lm = levenberg_marquardt(problem, self.settings(iterations, window), propose=propose,
+                                         initial_cost=initial)  # the cost refine() just evaluated
+            finally:
+                problem.end_damping()
             final = problem.refine(refine_steps) if refine_steps > 0 else lm.final_cost
         self.store.update(problem.free_values(), problem.free)
         report = OptimizeReport(kind, initial, final, lm.iterations, lm.converged, time.perf_counter() - start,

@@ -18,7 +18,7 @@ the same linearisation. Damping (``damping``):
   (:func:`damping_diagonal`).
 
 Both damp the variables of the linearisation, the poses. A problem whose structure was eliminated
-can damp that too (``damps_structure``, the backend's ``map.structure_damping``): each damped solve
+can damp that too (``damps_structure``, the backend's ``map.damp_structure``): each damped solve
 then re-eliminates the structure with ``lambda`` added to its information, so a rejected step shrinks
 the back-substituted structure step as well, not the pose step alone.
 

@@ -144,9 +144,9 @@ class WindowProblem:
         self.dims = {int(k): int(d) for k, d in values.dims().items()}
         self.fixed_of_blocks = sorted({k for b in self.structured for k in b.keys if k not in self.free_set})
         self.last_extras: list = []
-        # the LM damping covers the blocks' structure too (structure_damped); map.structure_damping
+        # the LM damping covers the blocks' structure too (structure_damped); map.damp_structure
         self.damps_structure = bool(structure_damping) and any(hasattr(b, "linearize_damped") for b in self.structured)
-        self._linear: tuple | None = None  # the last linearisation: (graph part, {id(block): pieces})
+        self._linear: tuple | None = None  # the last linearisation: (its factor graph, the cross factors, {id(block): pieces})
 
     def free_values(self):
         import gtsam  # deferred: gtsam
@@ -197,6 +197,8 @@ class WindowProblem:
         structured blocks (their ``linearize_damped``), the other factors as they were: with the LM's
         damping of the poses, the damping of the joint system of poses and structure, whose
         back-substitution (:meth:`trial`) then shrinks the structure's step as the damping rises."""
+        if self._linear is None:
+            raise OptimizationError("structure_damped() called before linearize() (or without damps_structure)")
         graph, extras, pieces = self._linear
         pieces = dict(pieces)
         for block in self.structured:
@@ -206,6 +208,15 @@ class WindowProblem:
         for factor in extras + self._block_pieces(pieces):
             gfg.push_back(factor)
         return gfg
+
+    def end_damping(self) -> None:
+        """The optimisation has ended: the blocks back-substitute through their own last linearisation
+        again, not through the damped one of the last solve."""
+        if self.damps_structure:
+            for block in self.structured:
+                if hasattr(block, "clear_damping"):
+                    block.clear_damping()
+            self._linear = None
 
     def _block_pieces(self, pieces_of: dict) -> list:
         """Every block's linear pieces (``pieces_of``: by ``id(block)``) restricted to the free keys, summed

@@ -236,6 +236,7 @@ class DenseSourceBlock(VisualBlock):
         self._flow = self._flow_rows(edges, self._structure)
         self._stack_rows()
         self._system = None
+        self._damped = None
 
     def set_damping(self, damping: torch.Tensor | np.ndarray) -> None:
         """DROID's per-pixel damping ``eta`` ``(h, w)`` (e.g. the update operator's latest prediction)."""
@@ -309,6 +310,7 @@ class DenseSourceBlock(VisualBlock):
                 res.r, res.J, self.slots, res.E, self.struct_idx, res.weights, len(self.keys), self.num_structs,
                 self.damping, self.groups, self.config.min_information,
             )
+            self._damped = None
         return self._pieces()
 
 
@@ -364,10 +366,14 @@ class DenseBlock:
     def linearize(self, values) -> list[LinearPiece]:
         return self._combined([piece for block in self.sources for piece in block.linearize(values)])
 
-    def linearize_damped(self, structure_damping: float) -> list[LinearPiece]:
-        """The last linearisation with ``structure_damping`` added to every pixel's information (the
-        backend's LM damping of the depths; :meth:`DenseSourceBlock.linearize_damped`)."""
-        return self._combined([piece for block in self.sources for piece in block.linearize_damped(structure_damping)])
+    def linearize_damped(self, lam: float) -> list[LinearPiece]:
+        """The last linearisation with ``lam`` added to every pixel's information (the backend's LM damping
+        of the depths; :meth:`DenseSourceBlock.linearize_damped`)."""
+        return self._combined([piece for block in self.sources for piece in block.linearize_damped(lam)])
+
+    def clear_damping(self) -> None:
+        for block in self.sources:
+            block.clear_damping()
 
     def _combined(self, pieces: list[LinearPiece]) -> list[LinearPiece]:
         """The sources' pieces, summed into one over ``self.keys`` unless ``config.pieces`` is per source."""

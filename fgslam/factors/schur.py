@@ -120,15 +120,17 @@ class SchurSystem:
     # what the elimination started from: (H, g, c) of the pose part, C and min_information (damped())
     unreduced: tuple | None = None
 
-    def damped(self, structure_damping: float) -> "SchurSystem":
-        """The same linearisation eliminated again with ``structure_damping`` added to every structure's
-        information ``C_p``: the minimiser of the joint quadratic plus ``lambda |dd|^2``, the structure's
-        share of a Levenberg-Marquardt damping that covers every variable. Always relative to the
-        undamped system (damping a damped system does not accumulate)."""
+    def damped(self, lam: float) -> "SchurSystem":
+        """The same linearisation eliminated again with ``lam`` added to the information ``C_p`` of every
+        structure that carries information (those without stay left out): the minimiser of the joint
+        quadratic plus ``lam |dd|^2``, the structure's share of a Levenberg-Marquardt damping that covers
+        every variable. Always relative to the undamped system (damping a damped system does not
+        accumulate)."""
         if self.unreduced is None:
             raise OptimizationError("damped() needs the system's unreduced parts (eliminate_structure)")
         H, g, c, C, min_information = self.unreduced
-        system = eliminate_structure(H, g, c, self.F, self.b, C + structure_damping, min_information)
+        C_damped = torch.where(C > min_information, C + lam, C)
+        system = eliminate_structure(H, g, c, self.F, self.b, C_damped, min_information)
         system.unreduced = self.unreduced
         return system
 

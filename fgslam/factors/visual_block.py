@@ -77,6 +77,7 @@ class VisualBlock(abc.ABC):
 
     def __init__(self) -> None:
         self._system: SchurSystem | None = None
+        self._damped: SchurSystem | None = None  # the last linearisation with the backend's structure damping
 
     # --- to implement
     @abc.abstractmethod
@@ -115,30 +116,37 @@ class VisualBlock(abc.ABC):
                 res.r, res.J, self.slots, res.E, self.struct_idx, res.weights, len(self.keys),
                 self.num_structs, self.config.structure_damping, self.groups, self.config.min_information,
             )
+            self._damped = None
         return self._pieces()
 
-    def _pieces(self) -> list[LinearPiece]:
-        sys_ = self._system
+    def _pieces(self, sys_: SchurSystem | None = None) -> list[LinearPiece]:
+        sys_ = self._system if sys_ is None else sys_
         return [LinearPiece(self.keys, sys_.H.numpy(), sys_.g.numpy(), float(sys_.c))]
 
-    def linearize_damped(self, structure_damping: float) -> list[LinearPiece]:
-        """The last linearisation's pieces with ``structure_damping`` added to every structure's information
+    def linearize_damped(self, lam: float) -> list[LinearPiece]:
+        """The last linearisation's pieces with ``lam`` added to every structure's information
         (:meth:`fgslam.factors.schur.SchurSystem.damped`: the backend's LM damping of the structure);
-        :meth:`back_substitute` then follows the damped system."""
+        :meth:`back_substitute` follows the damped system until :meth:`clear_damping` or the next
+        :meth:`linearize`."""
         if self._system is None:
             raise OptimizationError("linearize_damped() called before linearize()")
         with torch_threads(self.config.threads):
-            self._system = self._system.damped(structure_damping)
-        return self._pieces()
+            self._damped = self._system.damped(lam)
+        return self._pieces(self._damped)
+
+    def clear_damping(self) -> None:
+        """Back to the last linearisation's own system (the optimisation that damped it has ended)."""
+        self._damped = None
 
     def back_substitute(self, delta) -> torch.Tensor:
         """Structure update (P,) for the pose update ``delta`` (gtsam.VectorValues or (7k,) array)
-        at the last linearisation point."""
+        at the last linearisation point (through its damped system while the backend damps it)."""
         if self._system is None:
             raise OptimizationError("back_substitute() called before linearize()")
         if not isinstance(delta, (np.ndarray, torch.Tensor)):
             delta = np.concatenate([delta.at(key) for key in self.keys])
-        return self._system.back_substitute(torch.as_tensor(np.asarray(delta), dtype=torch.float64))
+        system = self._system if self._damped is None else self._damped
+        return system.back_substitute(torch.as_tensor(np.asarray(delta), dtype=torch.float64))
 
     def cost(self, values, structure: torch.Tensor | None = None) -> float:
         """GTSAM-convention cost ``0.5 sum w r^2`` at ``values`` and ``structure`` (default: current)."""
