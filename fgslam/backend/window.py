@@ -130,7 +130,7 @@ class WindowProblem:
     their fixed keys) and the blocks that touch one (pieces restricted to the free keys)."""
 
     def __init__(self, values, free: list[int], inner, cross: list, blocks: list, refine_steps: int,
-                 refine_each_iteration: bool, structure_damping: bool = False):
+                 refine_each_iteration: bool, damp_structure: bool = False):
         self.values = values  # gtsam.Values of every key the problem reads (free and fixed)
         self.free = list(free)
         self.free_set = set(free)
@@ -145,7 +145,7 @@ class WindowProblem:
         self.fixed_of_blocks = sorted({k for b in self.structured for k in b.keys if k not in self.free_set})
         self.last_extras: list = []
         # the LM damping covers the blocks' structure too (structure_damped); map.damp_structure
-        self.damps_structure = bool(structure_damping) and any(hasattr(b, "linearize_damped") for b in self.structured)
+        self.damps_structure = bool(damp_structure) and any(hasattr(b, "linearize_damped") for b in self.structured)
         self._linear: tuple | None = None  # the last linearisation: (its factor graph, the cross factors, {id(block): pieces})
 
     def free_values(self):
