@@ -44,7 +44,7 @@ from .blocks import LinearPiece
 from ..core.lie import Sim3
 from .depth import DepthPriorConfig, depth_prior, depth_priors
 from .reprojection import ReprojectionConfig, reproject_inv_depth
-from .schur import POSE_DIM, SlotGroups, schur_reduce, torch_threads
+from .schur import POSE_DIM, SlotGroups
 from .visual_block import BlockConfig, BlockResiduals, InverseDepthBlock, VisualBlock
 
 logger = logging.getLogger(__name__)
@@ -301,17 +301,9 @@ class DenseSourceBlock(VisualBlock):
             delta = np.concatenate([np.asarray(delta.at(key)) if delta.exists(key) else zero for key in self.keys])
         return super().back_substitute(delta)
 
-    def linearize(self, values) -> list[LinearPiece]:
-        """One :class:`LinearPiece` over ``self.keys``: the Schur-reduced system with the per-pixel
-        damping ``eta`` in the depth block (DROID eq. 5)."""
-        with torch_threads(self.config.threads):
-            res = self.evaluate(self.poses_from_values(values), self.structure, jacobians=True)
-            self._system = schur_reduce(
-                res.r, res.J, self.slots, res.E, self.struct_idx, res.weights, len(self.keys), self.num_structs,
-                self.damping, self.groups, self.config.min_information,
-            )
-            self._damped = None
-        return self._pieces()
+    def linearize_damping(self) -> torch.Tensor:
+        """The per-pixel damping ``eta`` in the depth block of the linearisation (DROID eq. 5)."""
+        return self.damping
 
 
 class DenseBlock:

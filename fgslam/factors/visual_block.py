@@ -114,10 +114,15 @@ class VisualBlock(abc.ABC):
             res = self.evaluate(self.poses_from_values(values), self.structure, jacobians=True)
             self._system = schur_reduce(
                 res.r, res.J, self.slots, res.E, self.struct_idx, res.weights, len(self.keys),
-                self.num_structs, self.config.structure_damping, self.groups, self.config.min_information,
+                self.num_structs, self.linearize_damping(), self.groups, self.config.min_information,
             )
             self._damped = None
         return self._pieces()
+
+    def linearize_damping(self) -> float | torch.Tensor:
+        """What :meth:`linearize` adds to every structure's information: ``config.structure_damping``
+        (a subclass may give one value per structure)."""
+        return self.config.structure_damping
 
     def _pieces(self, sys_: SchurSystem | None = None) -> list[LinearPiece]:
         sys_ = self._system if sys_ is None else sys_
