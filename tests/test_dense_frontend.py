@@ -195,3 +195,33 @@ def test_registry_presets_swap_and_runner_outputs(room, tmp_path):
     valid = depth > 0
     assert valid.mean() > 0.3 and 300 < np.median(depth[valid]) < 10000  # millimetres of a room
     assert (tmp_path / "out" / "points.ply").stat().st_size > 1000
+
+
+def test_a_failure_after_a_keyframe_is_added_keeps_its_pose_and_the_run_going(room, monkeypatch):
+    """Numerical trouble in the local BA of a new keyframe fails that frame (counted) but the frame keeps
+    the keyframe's pose, and the frames after it resolve their poses (the failure once wrote the frame's
+    pose relative to itself, and every later pose lookup recursed without end)."""
+    from fgslam.core.errors import OptimizationError
+
+    frames = list(load(room, "rgbd"))
+    fe = DenseFrontend(DenseConfig(), sensor_mode="rgbd", backend=Backend(BackendConfig()))
+    local = fe.ba.local
+    failed = []
+
+    def failing_local(fid, *args, **kwargs):
+        if not failed and len(fe.state.graph.keyframes) >= 3:
+            failed.append(fid)
+            raise OptimizationError("injected")
+        return local(fid, *args, **kwargs)
+
+    monkeypatch.setattr(fe.ba, "local", failing_local)
+    statuses = [fe.process(f) for f in frames]
+    fe.finish()
+    assert failed and fe.num_failures == 1
+    bad = next(i for i, s in enumerate(statuses) if s.pose_source == "motion_model")
+    assert statuses[bad].T_WC is not None and np.isfinite(statuses[bad].T_WC).all()
+    assert all(s.pose_source == "tracked" for s in statuses[bad + 1:])
+    stamps, poses, _ = fe.trajectory()
+    assert len(stamps) == FRAMES and np.isfinite(poses).all()
+    res = evaluate(load(room, "rgbd").groundtruth, Trajectory(stamps, poses), EvalConfig(align="se3"))
+    assert res.ate.rmse < 0.02

@@ -153,3 +153,30 @@ def test_sensor_and_source_mismatch_is_a_config_error():
     cfg.keyframe.new_fraction = 0.01
     with pytest.raises(ConfigError, match="new_fraction"):
         PointmapFrontend(cfg, sensor_mode="rgbd", backend=Backend(BackendConfig()))
+
+
+def test_a_failure_after_a_keyframe_is_made_keeps_its_pose_and_the_run_going(room, monkeypatch):
+    """Numerical trouble in the window optimisation after a new keyframe fails that frame (counted) but the
+    frame keeps the keyframe's pose and the frames after it track (the failure once wrote the frame's pose
+    relative to itself, and every later pose lookup recursed without end)."""
+    from fgslam.core.errors import OptimizationError
+
+    frames = open_clip(room, "rgbd")
+    fe = PointmapFrontend(_keyframe_config(), sensor_mode="rgbd", backend=Backend(BackendConfig()))
+    optimize = fe.graph.optimize
+    failed = []
+
+    def failing_optimize():
+        if not failed:
+            failed.append(fe.state.kf.fid)
+            raise OptimizationError("injected")
+        return optimize()
+
+    monkeypatch.setattr(fe.graph, "optimize", failing_optimize)
+    statuses = [fe.process(f) for f in frames]
+    fe.finish()
+    assert failed and fe.num_failures == 1
+    assert [i for i, s in enumerate(statuses) if s.pose_source != "tracked"] == [failed[0]]
+    assert statuses[failed[0]].T_WC is not None and np.isfinite(statuses[failed[0]].T_WC).all()
+    ate, pct = ate_percent(fe, frames, "se3")
+    assert pct <= 0.5, (ate, pct)

@@ -289,7 +289,7 @@ class DenseFrontend(BackendFrontend):
         st = self.state
         g = st.graph
         T_WC_imu = st.prior_pose(frame.timestamp)
-        if T_WC_imu is not None and g is not None and g.active and st.last_fid is not None:
+        if T_WC_imu is not None and g is not None and g.active and st.last_fid is not None and g.active[-1] != fid:
             ref = g.active[-1]
             st.records[fid] = RelativePose(ref, np.linalg.inv(st.keyframe_T_WC(ref)) @ T_WC_imu)
             st.last_fid = fid
@@ -299,7 +299,9 @@ class DenseFrontend(BackendFrontend):
         st.counts["tracking_failures"] += 1
         st.lost += 1
         events = [reason]
-        if g is not None and g.active and st.last_fid is not None:
+        if g is not None and g.active and g.active[-1] == fid:  # failed after it became a keyframe: its pose is the keyframe's
+            st.last_fid = fid
+        elif g is not None and g.active and st.last_fid is not None:
             if T_WC_pred is None:
                 T_WC_pred = st.predict()
             ref = g.active[-1]
