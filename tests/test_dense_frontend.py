@@ -225,3 +225,70 @@ def test_a_failure_after_a_keyframe_is_added_keeps_its_pose_and_the_run_going(ro
     assert len(stamps) == FRAMES and np.isfinite(poses).all()
     res = evaluate(load(room, "rgbd").groundtruth, Trajectory(stamps, poses), EvalConfig(align="se3"))
     assert res.ate.rmse < 0.02
+
+
+def test_the_monocular_initialisation_spread_over_frames(room):
+    """``ba.init_rounds_per_frame`` 1: the initialisation's rounds run one per frame from the frame that
+    collects the last initial keyframe (at most one edge measurement per frame during it), keyframes
+    collected meanwhile join its later rounds; ``tracking.retrack_per_frame`` 2: the frames tracked before
+    it are re-tracked at most two per frame, newest first, and all of them by the end. The run stays as
+    accurate as with everything on one frame (the mono bound of the accuracy test)."""
+    ds = load(room, "mono")
+    frames = list(ds)
+    cfg = DenseConfig()
+    cfg.ba.init_rounds, cfg.ba.init_rounds_per_frame, cfg.tracking.retrack_per_frame = 4, 1, 2
+    fe = DenseFrontend(cfg, sensor_mode="mono", backend=Backend(BackendConfig()))
+    measures, retracked = [], []
+    measure, retrack = fe.ba.measure, fe.tracker.retrack
+
+    def counting_measure(edges, *args):
+        measures[-1] += 0 if fe.state.initialized else 1
+        return measure(edges, *args)
+
+    def counting_retrack(pending):
+        retracked[-1] += list(pending)
+        return retrack(pending)
+
+    fe.ba.measure, fe.tracker.retrack = counting_measure, counting_retrack
+    statuses = []
+    for f in frames:
+        measures.append(0)
+        retracked.append([])
+        statuses.append(fe.process(f))
+    waiting = list(fe.state.init_frames)
+    fe.finish()
+    first = next(i for i, s in enumerate(statuses) if "initialised" in s.events)
+    begun = next(i for i, m in enumerate(measures) if m)
+    assert max(measures) == 1 and sum(measures) == cfg.ba.init_rounds and first == begun + cfg.ba.init_rounds - 1
+    assert all(s.pose_source == "initializing" and s.T_WC is None for s in statuses[:first])
+    assert statuses[first].T_WC is not None and statuses[first].pose_source == "tracked"
+    keyframes = [i for i, s in enumerate(statuses) if s.is_keyframe]
+    assert any(begun < k <= first for k in keyframes)  # a keyframe collected during the initialisation
+    assert max(len(r) for r in retracked) <= 2 and fe.state.init_frames == {}
+    done = [fid for r in retracked for fid in r]
+    assert len(done) == len(set(done)) >= 2 and all(a > b for a, b in zip(retracked[first], retracked[first][1:]))
+    assert set(waiting) <= set(done)  # left at the end: re-tracked by finish()
+    stamps, poses, _ = fe.trajectory()
+    assert len(stamps) == FRAMES and np.isfinite(poses).all()
+    res = evaluate(ds.groundtruth, Trajectory(stamps, poses), EvalConfig(align="sim3"))
+    assert res.ate.rmse <= 0.01 * res.gt_path_length_m + FLOOR_M
+    assert_beats_doing_nothing(res.ate.rmse, ds.groundtruth, stamps, "sim3")
+
+
+def test_a_clip_that_ends_during_the_initialisation_finishes_it(room):
+    """The sequence ends while the spread initialisation still has rounds: ``finish()`` runs them and
+    re-tracks every frame, so the run has its poses."""
+    frames = list(load(room, "mono"))
+    cfg = DenseConfig()
+    cfg.ba.init_rounds_per_frame, cfg.tracking.retrack_per_frame = 1, 1
+    fe = DenseFrontend(cfg, sensor_mode="mono", backend=Backend(BackendConfig()))
+    statuses = []
+    for f in frames:
+        statuses.append(fe.process(f))
+        if fe.starts.pending:
+            break
+    assert not fe.state.initialized and fe.state.init_frames
+    fe.finish()
+    assert fe.state.initialized and not fe.starts.pending and fe.state.init_frames == {}
+    stamps, poses, _ = fe.trajectory()
+    assert len(stamps) == len(statuses) and np.isfinite(poses).all()

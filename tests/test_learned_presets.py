@@ -172,9 +172,9 @@ def test_dense_initialisation_starts_on_the_neighbourhood_edges(room_rgbd):
     fe = DenseFrontend(cfg, sensor_mode="mono", backend=Backend(BackendConfig()))
     calls, measure = [], fe.ba.measure
 
-    def recording(edges):
+    def recording(edges, *args):
         calls.append((fe.state.initialized, list(edges)))
-        return measure(edges)
+        return measure(edges, *args)
     fe.ba.measure = recording
     for frame in room_rgbd:
         fe.process(frame)

@@ -58,6 +58,7 @@ class DenseBAConfig:
     init_rounds: int = ranged(5, ge=1, le=MAX_ITERATIONS)  # rounds of the initialisation
     init_iterations: int = ranged(4, ge=1, le=MAX_ITERATIONS)  # LM iterations per initialisation round
     init_neighbour_rounds: int = ranged(0, ge=0, le=MAX_ITERATIONS)  # monocular initialisation: rounds on the neighbourhood edges (graph.init_radius) before every pair within reach is connected for the init_rounds (DROID-SLAM: 8, then 8; 0: all pairs from the start)
+    init_rounds_per_frame: int = ranged(0, ge=0, le=MAX_ITERATIONS)  # monocular initialisation: rounds run per frame from the frame that collects the last initial keyframe, so that no frame pays for all of them (0: all on that frame; KITTI 00 at 616x184: 1.0 s on that frame, 0.17 s a frame at 1); frames meanwhile are tracked as before it, and keyframes collected meanwhile join its next rounds
     pixel_sigma: float = ranged(1.0, gt=0, le=MAX_SCALAR)  # image px: standard deviation of a fully confident flow measurement
     damping: float = ranged(1e-4, ge=0, le=MAX_LAMBDA)  # DROID's per-pixel damping eta added to each inverse depth's information (built-in source)
     min_depth: float = ranged(0.05, gt=0, le=MAX_SCALAR)  # smallest valid depth in a target camera (map units)
@@ -80,6 +81,7 @@ class DenseTrackingConfig:
     texture_gradient: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # grey levels per px: a grid block is textured when its RMS gradient exceeds this
     confident_weight: float = ranged(0.2, ge=0, le=1)  # a grid pixel is confident when its flow confidence exceeds this
     max_lost: int = ranged(10, ge=1, le=MAX_KEYFRAMES)  # consecutive failures before the map is restarted (relocalised when loop closure can)
+    retrack_per_frame: int = ranged(0, ge=0, le=MAX_KEYFRAMES)  # monocular: the frames tracked before the initialisation are re-tracked against its maps at most this many per frame, newest first (0: all on the frame that ends the initialisation; KITTI 00: 15 frames, 0.2 s); the rest on the frames after it, before a map restart and at the end of the run
 
 
 @dataclass

@@ -146,6 +146,10 @@ class DenseFrontend(BackendFrontend):
 
     def finish(self) -> None:
         st = self.state
+        if self.starts.pending:  # the sequence ended during the initialisation: its rounds left
+            self.starts.advance(all_left=True)
+        if st.initialized:
+            self.starts.retrack_pending(all_left=True)
         if st.initialized and self.config.global_ba.final and len(st.graph.keyframes) >= 3:
             self.contributor.global_ba()
         self.contributor.feed(all_keyframes=True)
@@ -215,6 +219,8 @@ class DenseFrontend(BackendFrontend):
                 st.initialized = True
                 return st.status(fid, frame, "tracked", is_keyframe=True, events=["initialised"])
             return st.status(fid, frame, "initializing", is_keyframe=True)
+        if st.initialized and st.init_frames:  # re-tracking of the frames before the initialisation, spread
+            self.starts.retrack_pending()
         t0 = time.perf_counter()
         kf_fid = g.active[-1]
         T_WC_pred = st.predict(frame.timestamp)
@@ -255,6 +261,8 @@ class DenseFrontend(BackendFrontend):
             st.records[fid] = RelativePose(kf_fid, np.linalg.inv(st.keyframe_T_WC(kf_fid)) @ T_WC)
             if not st.initialized:  # tracked against a provisional depth map: re-tracked after the initialisation
                 st.init_frames[fid] = (kf_fid, st.source_image(frame))
+            if self.starts.pending and self.starts.advance():
+                events.append("initialised")
             st.update_velocity(fid)
             source = "tracked" if st.initialized else "initializing"
             return st.status(fid, frame, source, num_valid=n_conf, events=events)
@@ -263,8 +271,11 @@ class DenseFrontend(BackendFrontend):
             events.append("keyframe: the confident share faded")
         self.keyframes.add(fid, frame, T_WC, source_added=added, surface=surface)
         if not st.initialized:
-            if len(g.keyframes) >= self.config.graph.init_keyframes:
-                self.starts.initialize()
+            if self.starts.pending:  # a keyframe collected during the initialisation joins its next rounds
+                done = self.starts.advance()
+            else:
+                done = len(g.keyframes) >= self.config.graph.init_keyframes and self.starts.initialize()
+            if done:
                 events.append("initialised")
             st.update_velocity(fid)
             return st.status(fid, frame, "tracked" if st.initialized else "initializing", True, n_conf, events)

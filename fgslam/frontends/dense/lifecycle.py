@@ -17,6 +17,8 @@ from .tracking import DenseTracker
 
 logger = logging.getLogger(__name__)
 
+_NEIGHBOURHOOD, _ALL_PAIRS = "neighbourhood", "all pairs"  # the initialisation's phases
+
 
 class DenseMapStarts:
     """Initialises and restarts the map of the shared ``state`` (its graph, loop port and motion state)
@@ -30,45 +32,85 @@ class DenseMapStarts:
         self.ba = ba
         self.tracker = tracker
         self.contributor = contributor
+        self._rounds: list[str] = []  # the begun initialisation's rounds left (phases)
+        self._phase: str | None = None  # the phase of the last round run
+        self._edges: list[tuple[int, int]] = []  # that phase's edges
 
-    def initialize(self) -> None:
-        """Monocular initialisation: with ``ba.init_neighbour_rounds``, rounds on the edges between
-        keyframes at most ``graph.init_radius`` apart first; then every collected keyframe connected to
-        those within reach and optimised (``ba.init_rounds``); then the frames tracked meanwhile
-        re-tracked against the optimised maps."""
+    @property
+    def pending(self) -> bool:
+        """The monocular initialisation has begun and has rounds left (``ba.init_rounds_per_frame``)."""
+        return bool(self._rounds)
+
+    def initialize(self) -> bool:
+        """Monocular initialisation over the collected keyframes: with ``ba.init_neighbour_rounds``, rounds
+        on the edges between keyframes at most ``graph.init_radius`` apart first; then every collected
+        keyframe connected to those within reach and optimised (``ba.init_rounds``); then the frames
+        tracked meanwhile re-tracked against the optimised maps. ``ba.init_rounds_per_frame`` of the rounds
+        run now, the rest in :meth:`advance` on the next frames. True when the map is initialised."""
+        cfg = self.state.config.ba
+        self._rounds = [_NEIGHBOURHOOD] * cfg.init_neighbour_rounds + [_ALL_PAIRS] * cfg.init_rounds
+        self._phase = None
+        return self.advance()
+
+    def advance(self, all_left: bool = False) -> bool:
+        """The next ``ba.init_rounds_per_frame`` rounds of the begun initialisation (0 or ``all_left``: all
+        left); after
+        the last one the map is initialised and the frames tracked before it re-tracked
+        (:meth:`retrack_pending`). True when the map is initialised."""
         st = self.state
         t0 = time.perf_counter()
         g = st.graph
         cfg = st.config.ba
-        free = list(g.active)
+        free = list(g.active)  # with the keyframes collected since the initialisation began
         flow0 = st.times["flow"]
-        if cfg.init_neighbour_rounds:  # DROID-SLAM: updates on the neighbourhood edges first
-            edges = self.keyframes.connect_neighbourhood(st.config.graph.init_radius)
-            for _ in range(cfg.init_neighbour_rounds):
-                self.ba.measure(edges)
-                self.ba.optimize(free, edges, cfg.init_iterations, init=True)
-        self.keyframes.connect_all()
-        edges = g.active_edges()
-        for _ in range(cfg.init_rounds):
-            self.ba.measure(edges)
-            self.ba.optimize(free, edges, cfg.init_iterations, init=True)
-        st.initialized = True
+        budget = len(self._rounds) if all_left else (cfg.init_rounds_per_frame or len(self._rounds))
+        while self._rounds and budget:
+            phase = self._rounds.pop(0)
+            budget -= 1
+            if phase == _NEIGHBOURHOOD:  # DROID-SLAM: updates on the neighbourhood edges first
+                self._edges = self.keyframes.connect_neighbourhood(st.config.graph.init_radius)
+            else:
+                if phase != self._phase:  # every pair within reach connected once (keyframes collected
+                    self.keyframes.connect_all()  # later join with their usual edges)
+                self._edges = g.active_edges()
+            self._phase = phase
+            self.ba.measure(self._edges)
+            self.ba.optimize(free, self._edges, cfg.init_iterations, init=True)
         st.times["ba"] += time.perf_counter() - t0 - (st.times["flow"] - flow0)
-        logger.info("dense frontend: initialised on %d keyframes, %d edges", len(free), len(edges))
-        self.tracker.retrack(st.init_frames)
-        st.init_frames = {}
+        if self._rounds:
+            return False
+        st.initialized = True
+        logger.info("dense frontend: initialised on %d keyframes, %d edges", len(free), len(self._edges))
+        self.retrack_pending()
+        return True
+
+    def retrack_pending(self, all_left: bool = False) -> None:
+        """Re-track the frames tracked before the initialisation against its maps: at most
+        ``tracking.retrack_per_frame`` of them, newest first (0 or ``all_left``: all, in order); the rest
+        stay pending."""
+        st = self.state
+        cap = st.config.tracking.retrack_per_frame
+        if all_left or not cap or cap >= len(st.init_frames):
+            frames, st.init_frames = st.init_frames, {}
+        else:
+            newest = list(st.init_frames)[-cap:][::-1]
+            frames = {fid: st.init_frames.pop(fid) for fid in newest}
+        self.tracker.retrack(frames)
 
     def restart(self, fid: int, frame) -> str:
         """Start a new map: the current one is finalised (kept for outputs), the next keyframe starts at
         the relocalised pose when the loop service finds one, else at the last prediction."""
         st = self.state
         st.counts["map_restarts"] += 1
+        if st.initialized:  # frames still waiting for their re-tracking get it before the map is finalised
+            self.retrack_pending(all_left=True)
         self.contributor.feed(all_keyframes=True)
         T_WC = st.pose_of(fid)
         found = st.loops.relocalize(frame.image, st.K)
         if found is not None:
             T_WC = np.asarray(found[1], dtype=np.float64)
             st.records[fid] = AbsolutePose(T_WC)
+        self._rounds = []  # an initialisation under way is abandoned with its map
         g = st.graph
         for kf in g.keyframes.values():
             kf.image = None
