@@ -172,11 +172,20 @@ def test_a_failure_after_a_keyframe_is_made_keeps_its_pose_and_the_run_going(roo
             raise OptimizationError("injected")
         return optimize()
 
+    handed = []
+    add_keyframe = fe.state.loops.add_keyframe
+
+    def recording_add_keyframe(kf_id, *args):
+        handed.append(kf_id)
+        return add_keyframe(kf_id, *args)
+
     monkeypatch.setattr(fe.graph, "optimize", failing_optimize)
+    monkeypatch.setattr(fe.state.loops, "add_keyframe", recording_add_keyframe)
     statuses = [fe.process(f) for f in frames]
     fe.finish()
     assert failed and fe.num_failures == 1
     assert [i for i, s in enumerate(statuses) if s.pose_source != "tracked"] == [failed[0]]
     assert statuses[failed[0]].T_WC is not None and np.isfinite(statuses[failed[0]].T_WC).all()
+    assert statuses[failed[0]].is_keyframe and failed[0] in handed  # still a keyframe, and the loop port's
     ate, pct = ate_percent(fe, frames, "se3")
     assert pct <= 0.5, (ate, pct)

@@ -44,6 +44,21 @@ def test_resolution_follows_references():
     assert set(cache) >= set(range(7))
 
 
+def test_a_reference_cycle_gives_no_pose_not_an_endless_recursion(caplog):
+    """A record that refers (directly or through others) back to itself resolves to None with a warning;
+    the frames around it still resolve."""
+    records = _records()
+    records[6] = RelativePose(6, np.eye(4))
+    records[7], records[8] = RelativePose(8, np.eye(4)), InterpolatedPose(0, 7, 0.5)
+    records[9] = RelativePose(7, np.eye(4))
+    cache = {}
+    with caplog.at_level("WARNING", logger="fgslam.frontends.records"):
+        assert resolve_pose(6, records, KF.__getitem__, cache) is None
+        assert resolve_pose(9, records, KF.__getitem__, cache) is None
+    assert "refers back to itself" in caplog.text
+    np.testing.assert_allclose(resolve_pose(1, records, KF.__getitem__, cache), KF[0] @ records[1].T_ref_frame)
+
+
 def test_records_are_immutable():
     with pytest.raises(dataclasses.FrozenInstanceError):
         _records()[1].ref = 4

@@ -20,6 +20,7 @@ Poses are 4x4 Sim(3) matrices ``[[s R, t], [0, 1]]``.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -27,6 +28,10 @@ import numpy as np
 
 from ..core.lie import gtsam_matrix, gtsam_sim3, sim3_matrix_parts
 from ..loop.records import PoseCorrection
+
+logger = logging.getLogger(__name__)
+
+_RESOLVING = object()  # in the cache while a frame's references are followed (a cycle finds it there)
 
 
 def rigid(M: np.ndarray) -> np.ndarray:
@@ -125,9 +130,15 @@ class InterpolatedPose(PoseRecord):
 def resolve_pose(fid: int, records: dict, keyframe_pose: Callable[[int], np.ndarray],
                  cache: dict) -> Optional[np.ndarray]:
     """``T_WC`` of frame ``fid`` from ``records`` (fid -> :class:`PoseRecord` or None), following
-    references; ``cache`` (fid -> pose) is filled on the way."""
+    references; ``cache`` (fid -> pose) is filled on the way. A record whose references lead back to
+    itself (a frontend's bug) gives None, logged, never an endless recursion."""
     if fid in cache:
-        return cache[fid]
+        T = cache[fid]
+        if T is _RESOLVING:
+            logger.warning("the pose record of frame %d refers back to itself: no pose", fid)
+            return None
+        return T
+    cache[fid] = _RESOLVING
     rec = records.get(fid)
     T = None if rec is None else rec.pose(lambda other: resolve_pose(other, records, keyframe_pose, cache),
                                           keyframe_pose, fid)

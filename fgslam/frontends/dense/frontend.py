@@ -49,11 +49,10 @@ from __future__ import annotations
 import logging
 import time
 
-import cv2
 import numpy as np
 
 from ...backend.graph import Backend
-from ...core.errors import ConfigError, OptimizationError
+from ...core.errors import ConfigError
 from ...factors.schur import torch_threads
 from ..base import BackendFrontend, FrameStatus, MotionPrior, SensorMode
 from ..records import RelativePose
@@ -64,7 +63,7 @@ from .export import keyframe_depths, keyframe_points
 from .keyframes import DenseKeyframes
 from .lifecycle import DenseMapStarts
 from .state import DenseState
-from .tracking import DenseTracker
+from .tracking import NUMERICAL_ERRORS, DenseTracker
 from .weights import textured_share
 
 logger = logging.getLogger(__name__)
@@ -131,7 +130,7 @@ class DenseFrontend(BackendFrontend):
     def counts(self) -> dict[str, int]:
         return dict(self.state.counts)
 
-    _numerical_errors = (OptimizationError, RuntimeError, np.linalg.LinAlgError, cv2.error)
+    _numerical_errors = NUMERICAL_ERRORS
 
     def _measuring(self):
         return torch_threads(self.config.threads)
@@ -310,7 +309,8 @@ class DenseFrontend(BackendFrontend):
         st.counts["tracking_failures"] += 1
         st.lost += 1
         events = [reason]
-        if g is not None and g.active and g.active[-1] == fid:  # failed after it became a keyframe: its pose is the keyframe's
+        is_keyframe = g is not None and bool(g.active) and g.active[-1] == fid
+        if is_keyframe:  # failed after it became a keyframe: its pose is the keyframe's
             st.last_fid = fid
         elif g is not None and g.active and st.last_fid is not None:
             if T_WC_pred is None:
@@ -322,4 +322,5 @@ class DenseFrontend(BackendFrontend):
         restart = st.lost >= self.config.tracking.max_lost and g is not None and bool(g.keyframes)
         if restart:
             events.append(self.starts.restart(fid, frame))
-        return st.status(fid, frame, "motion_model", events=events, new_map=restart)
+        return st.status(fid, frame, "motion_model", is_keyframe=is_keyframe and not restart, events=events,
+                         new_map=restart)

@@ -18,6 +18,7 @@ from .tracking import DenseTracker
 logger = logging.getLogger(__name__)
 
 _NEIGHBOURHOOD, _ALL_PAIRS = "neighbourhood", "all pairs"  # the initialisation's phases
+_VELOCITY_FRAMES = 2  # when the initialisation ends, at least the newest two frames are re-tracked (the velocity's)
 
 
 class DenseMapStarts:
@@ -64,32 +65,39 @@ class DenseMapStarts:
         free = list(g.active)  # with the keyframes collected since the initialisation began
         flow0 = st.times["flow"]
         budget = len(self._rounds) if all_left else (cfg.init_rounds_per_frame or len(self._rounds))
-        while self._rounds and budget:
-            phase = self._rounds.pop(0)
-            budget -= 1
-            if phase == _NEIGHBOURHOOD:  # DROID-SLAM: updates on the neighbourhood edges first
-                self._edges = self.keyframes.connect_neighbourhood(st.config.graph.init_radius)
-            else:
-                if phase != self._phase:  # every pair within reach connected once (keyframes collected
-                    self.keyframes.connect_all()  # later join with their usual edges)
-                self._edges = g.active_edges()
-            self._phase = phase
-            self.ba.measure(self._edges)
-            self.ba.optimize(free, self._edges, cfg.init_iterations, init=True)
-        st.times["ba"] += time.perf_counter() - t0 - (st.times["flow"] - flow0)
+        try:
+            while self._rounds and budget:
+                phase = self._rounds.pop(0)
+                budget -= 1
+                if phase == _NEIGHBOURHOOD:  # DROID-SLAM: updates on the neighbourhood edges first
+                    self._edges = self.keyframes.connect_neighbourhood(st.config.graph.init_radius)
+                else:
+                    if phase != self._phase:  # every pair within reach connected once (keyframes collected
+                        self.keyframes.connect_all()  # later join with their usual edges)
+                    self._edges = g.active_edges()
+                self._phase = phase
+                self.ba.measure(self._edges)
+                self.ba.optimize(free, self._edges, cfg.init_iterations, init=True)
+        except BaseException:  # a failed round abandons the initialisation: the next keyframe starts it again
+            self._rounds = []
+            raise
+        finally:
+            st.times["ba"] += time.perf_counter() - t0 - (st.times["flow"] - flow0)
         if self._rounds:
             return False
         st.initialized = True
         logger.info("dense frontend: initialised on %d keyframes, %d edges", len(free), len(self._edges))
-        self.retrack_pending()
+        self.retrack_pending(at_least=_VELOCITY_FRAMES)
         return True
 
-    def retrack_pending(self, all_left: bool = False) -> None:
+    def retrack_pending(self, all_left: bool = False, at_least: int = 0) -> None:
         """Re-track the frames tracked before the initialisation against its maps: at most
-        ``tracking.retrack_per_frame`` of them, newest first (0 or ``all_left``: all, in order); the rest
-        stay pending."""
+        ``tracking.retrack_per_frame`` of them (but ``at_least``), newest first (0 or ``all_left``: all,
+        in order); the rest stay pending."""
         st = self.state
         cap = st.config.tracking.retrack_per_frame
+        if cap:
+            cap = max(cap, at_least)
         if all_left or not cap or cap >= len(st.init_frames):
             frames, st.init_frames = st.init_frames, {}
         else:
@@ -104,6 +112,7 @@ class DenseMapStarts:
         st.counts["map_restarts"] += 1
         if st.initialized:  # frames still waiting for their re-tracking get it before the map is finalised
             self.retrack_pending(all_left=True)
+        st.init_frames = {}  # (a map never initialised: its frames keep their poses)
         self.contributor.feed(all_keyframes=True)
         T_WC = st.pose_of(fid)
         found = st.loops.relocalize(frame.image, st.K)

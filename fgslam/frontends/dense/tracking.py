@@ -4,12 +4,15 @@ the monocular initialisation."""
 
 from __future__ import annotations
 
+import logging
 import time
 
+import cv2
 import numpy as np
 import torch
 
 from ...backend.keys import pose_key
+from ...core.errors import OptimizationError
 from ...factors.dense import DenseEdge, DenseKeyframe, DenseSourceBlock
 from ...factors.reprojection import reproject
 from ...factors.schur import POSE_DIM
@@ -19,6 +22,11 @@ from ..records import RelativePose
 from .graph import DenseKeyframeState
 from .state import DenseState
 from .weights import block_config, huber_weight, information
+
+logger = logging.getLogger(__name__)
+
+#: numerical trouble of one frame's measurement or optimisation: the frame fails, never the run
+NUMERICAL_ERRORS = (OptimizationError, RuntimeError, np.linalg.LinAlgError, cv2.error)
 
 #: information added to every inverse depth in the motion-only optimisation (holds the keyframe's map)
 _HOLD_DEPTH = 1e12
@@ -137,17 +145,24 @@ class DenseTracker:
 
     def retrack(self, frames: dict[int, tuple[int, np.ndarray]]) -> None:
         """Motion-only poses of non-keyframes ``fid -> (keyframe, image)`` against their keyframe's
-        current map, from their current pose (their records become relative to that keyframe)."""
+        current map (a removed keyframe's: the keyframe it was folded into), from their current pose
+        (their records become relative to that keyframe). A frame whose re-tracking fails numerically
+        keeps its pose (logged)."""
         st = self.state
         t0 = time.perf_counter()
         flow0 = st.times["flow"]
         for fid, (kf_fid, image) in frames.items():
             T_WC0 = st.pose_of(fid)
+            while kf_fid not in st.graph.keyframes and isinstance(st.records.get(kf_fid), RelativePose):
+                kf_fid = st.records[kf_fid].ref  # removed by remove_redundant: relative to its neighbour
             if T_WC0 is None or kf_fid not in st.graph.keyframes:
                 continue
             st.source.add_frame(fid, image)
             try:
                 T_WC, _, n_conf, ok = self.track(kf_fid, fid, T_WC0)
+            except NUMERICAL_ERRORS as exc:
+                logger.info("frame %d: re-tracking failed (%s); it keeps its pose", fid, exc)
+                continue
             finally:
                 st.source.remove_frame(fid)
             if ok and n_conf > 0:

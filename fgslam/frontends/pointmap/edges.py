@@ -45,20 +45,22 @@ class PointmapGraph:
         PointmapEdge: joined by depth alone) added and the window optimised; the keyframe handed to the
         loop port (with every pose when loops run)."""
         st = self.state
-        if edge is not None:
-            prev, e = edge
-            if e is None:
-                self.depth_pairs.append((prev, kf.fid))
-            else:
-                self.edges.append(e)
-            self.pairs.add((prev, kf.fid))
-            self.optimize()
-        t0 = time.perf_counter()
-        prev_ids = list(st.kfs)[-2:-1]
-        st.loops.add_keyframe(kf.fid, prev_ids)
-        if st.loops.enabled:
-            st.loops.update_poses({k: st.keyframe_T_WC(k) for k in st.kfs})
-        st.times["bookkeeping"] += time.perf_counter() - t0
+        try:
+            if edge is not None:
+                prev, e = edge
+                if e is None:
+                    self.depth_pairs.append((prev, kf.fid))
+                else:
+                    self.edges.append(e)
+                self.pairs.add((prev, kf.fid))
+                self.optimize()
+        finally:  # a keyframe whose optimisation failed is still the loop port's (its pose is the backend's)
+            t0 = time.perf_counter()
+            prev_ids = list(st.kfs)[-2:-1]
+            st.loops.add_keyframe(kf.fid, prev_ids)
+            if st.loops.enabled:
+                st.loops.update_poses({k: st.keyframe_T_WC(k) for k in st.kfs})
+            st.times["bookkeeping"] += time.perf_counter() - t0
 
     def _set_block(self) -> None:
         """The family's block over the edges whose keyframes are in the backend."""

@@ -271,7 +271,7 @@ class PointmapFrontend(BackendFrontend):
             st.counts["failed"] += 1
             logger.info("pointmap frame %d: %s", frame.index, reason)
             st.T_CkCf, st.uv_prev = np.eye(4), None
-            return st.status(fid, frame, "motion_model", events=[reason])
+            return st.status(fid, frame, "motion_model", is_keyframe=True, events=[reason])
         st.T_WC_imu = st.prior_T_WC(frame.timestamp)
         T_CkCf_imu = None if st.kf is None else st.prior_T_CkCf(st.kf.fid)
         if T_CkCf_imu is not None:
