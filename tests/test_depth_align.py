@@ -120,6 +120,31 @@ def test_block_gradient_is_the_gradient_of_its_cost():
         assert fd == pytest.approx(piece.g[7 + a], rel=1e-3, abs=1e-3 * np.abs(piece.g).max()), a
 
 
+def test_a_linearisation_at_the_poses_of_the_last_cost_reuses_its_association(monkeypatch):
+    """The window's LM takes a cost, then linearises at the same poses: the association runs once for
+    both, and the linearisation is the one a fresh block gives there; other poses associate again."""
+    import fgslam.factors.depth_align_jit as jit
+
+    planes = room_planes()
+    T_k = camera(0.4, 0.3, [0.2, 0.1, 1.4])
+    T_f = camera(0.45, 0.32, [0.25, 0.08, 1.42])
+    values = gtsam.Values()
+    values.insert(pose_key(0), sim3(T_k))
+    values.insert(pose_key(1), sim3(T_f).retract(np.array([0.004, -0.003, 0.002, 0.004, 0.003, -0.002, 0.0])))
+    (fresh,) = _pair(planes, T_k, T_f).linearize(values)
+    calls, associate = [], jit.associate_rows
+    monkeypatch.setattr(jit, "associate_rows", lambda *a: calls.append(1) or associate(*a))
+    block = _pair(planes, T_k, T_f)
+    cost = block.cost(values)
+    (piece,) = block.linearize(values)
+    assert len(calls) == 1 and piece.c == pytest.approx(2 * cost)
+    assert np.array_equal(piece.H, fresh.H) and np.array_equal(piece.g, fresh.g)
+    moved = gtsam.Values(values)
+    moved.update(pose_key(1), values.atSimilarity3(pose_key(1)).retract(np.full(7, 1e-4) * [1, 1, 1, 1, 1, 1, 0]))
+    block.linearize(moved)
+    assert len(calls) == 2
+
+
 def test_texture_free_room_is_tracked_by_depth_alone():
     planes = room_planes()
     T_k = camera(0.5, 0.35, [0.0, 0.0, 1.5])

@@ -229,8 +229,10 @@ class DepthAlignBlock:
         return e, cost, weight, J, paired
 
     def cost(self, values, structure=None) -> float:
-        """GTSAM-convention cost ``sum rho(e)`` at ``values`` (re-associated; no structure)."""
-        return self._terms(values, False)[1]
+        """GTSAM-convention cost ``sum rho(e)`` at ``values`` (re-associated; no structure). The Jacobian
+        comes with it (the compiled association takes no longer for it), so that a linearisation at the
+        same poses, as the window's LM does right after its first cost, reuses the association."""
+        return self._terms(values, True)[1]
 
     def linearize(self, values) -> list[LinearPiece]:
         """One :class:`LinearPiece` over ``(key_k, key_f)`` at ``values`` (re-associated)."""
