@@ -89,3 +89,24 @@ def test_select_patches_spread_and_border():
     assert uv_r.shape == (96, 2) and uv_r.min() >= 12
     # a flat image still yields K centres (LK will reject them)
     assert select_patches(np.full_like(img, 50), 96, 12, [8, 4], "corners", rng).shape == (96, 2)
+
+
+def test_row_nanmedian_equals_numpy_nanmedian():
+    """The sensor-depth window's median (the patch family's depth look-up): the values of
+    ``np.nanmedian(x, axis=1)``, bit for bit, on random rows with missing readings, all-NaN rows,
+    one-column and empty arrays."""
+    import warnings
+
+    from fgslam.frontends.patch.patches import row_nanmedian
+
+    rng = np.random.default_rng(0)
+    cases = [np.zeros((3, 0)), np.full((2, 4), np.nan), np.array([[1.0], [np.nan]])]
+    for _ in range(300):
+        m, k = rng.integers(1, 60), rng.integers(1, 50)
+        x = rng.normal(size=(m, k)) * 10 ** rng.uniform(-3, 3)
+        x[rng.random((m, k)) < rng.random()] = np.nan
+        cases.append(x)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # numpy warns on all-NaN rows
+        for x in cases:
+            assert np.array_equal(row_nanmedian(x), np.nanmedian(x, axis=1), equal_nan=True)
