@@ -70,12 +70,13 @@ class PatchBlock(VisualBlock):
         self.fixed_t = torch.as_tensor(fixed_t, dtype=f64).reshape(-1, 3)
         self.fixed_s = torch.as_tensor(fixed_s, dtype=f64).reshape(-1)
         num_frames = k + int(self.fixed_s.shape[0])
-        src = torch.as_tensor(np.asarray(src)).long().reshape(-1)
-        tgt = torch.as_tensor(np.asarray(tgt)).long().reshape(-1)
-        right = torch.as_tensor(np.asarray(right, dtype=bool)).reshape(-1)
+        # the index bookkeeping in numpy (small arrays: torch's per-call overhead dominated), tensors at the end
+        src = np.asarray(src, dtype=np.int64).reshape(-1)
+        tgt = np.asarray(tgt, dtype=np.int64).reshape(-1)
+        right = np.asarray(right, dtype=bool).reshape(-1)
         n = int(src.shape[0])
         self.num_edges = n
-        if bool(right.any()) and (K_right is None or T_CRCL is None):
+        if right.any() and (K_right is None or T_CRCL is None):
             raise OptimizationError("PatchBlock: right-image edges need K_right and T_CRCL")
         if n and (int(src.max()) >= num_frames or int(tgt.max()) >= num_frames or int(min(src.min(), tgt.min())) < 0):
             raise OptimizationError(f"PatchBlock: edge frames must lie in [0, {num_frames})")
@@ -84,52 +85,53 @@ class PatchBlock(VisualBlock):
         self.T_CRCL = None if T_CRCL is None else torch.as_tensor(np.asarray(T_CRCL), dtype=f64)
 
         # --- group edges by (src, tgt, right), pad to length L
-        key = right.long() * (num_frames * num_frames) + src * num_frames + tgt
-        order = torch.argsort(key, stable=True)
-        uniq, counts = torch.unique_consecutive(key[order], return_counts=True)
+        key = right.astype(np.int64) * (num_frames * num_frames) + src * num_frames + tgt
+        order = np.argsort(key, kind="stable")
+        uniq, counts = np.unique(key[order], return_counts=True)  # sorted keys: their runs
         q = int(uniq.shape[0])
         L = int(counts.max()) if q else 0
-        starts = torch.cumsum(counts, 0) - counts
-        rank = torch.arange(n) - torch.repeat_interleave(starts, counts)
-        group = torch.repeat_interleave(torch.arange(q), counts)
+        starts = np.cumsum(counts) - counts
+        rank = np.arange(n) - np.repeat(starts, counts)
+        group = np.repeat(np.arange(q), counts)
         self.num_groups, self.length = q, L
-        nf2 = max(num_frames, 1) ** 2
-        self.g_right = uniq >= nf2
-        self.g_src = (uniq % nf2) // max(num_frames, 1)
-        self.g_tgt = uniq % max(num_frames, 1)
-        pad_uv = self.K[2:4]
-        self.uv_src = pad_uv.expand(q, L, 2).clone()
-        self.uv_tgt = pad_uv.expand(q, L, 2).clone()
-        self.uv_src[group, rank] = torch.as_tensor(uv_src, dtype=f64)[order]
-        self.uv_tgt[group, rank] = torch.as_tensor(uv_tgt, dtype=f64)[order]
-        edge_w = torch.zeros(q, L, 2, dtype=f64)
-        w_in = torch.as_tensor(np.asarray(weights), dtype=f64)
-        edge_w[group, rank] = (w_in[:, None].expand(-1, 2) if w_in.dim() == 1 else w_in)[order]
-        edge_idx = torch.zeros(q, L, dtype=torch.long)
-        edge_idx[group, rank] = torch.as_tensor(np.asarray(struct_idx)).long()[order]
-        self._row_of_edge = torch.empty(n, dtype=torch.long)  # caller's edge n -> padded row
-        self._row_of_edge[order] = group * L + rank
+        nf = max(num_frames, 1)
+        g_src, g_tgt = (uniq % (nf * nf)) // nf, uniq % nf
+        self.g_right = torch.from_numpy(uniq >= nf * nf)
+        self.g_src, self.g_tgt = torch.from_numpy(g_src), torch.from_numpy(g_tgt)
+        pad = np.asarray(K, dtype=np.float64)[2:4]
+        uv_src_p = np.broadcast_to(pad, (q, L, 2)).copy()
+        uv_tgt_p = np.broadcast_to(pad, (q, L, 2)).copy()
+        uv_src_p[group, rank] = np.asarray(uv_src, dtype=np.float64).reshape(n, 2)[order]
+        uv_tgt_p[group, rank] = np.asarray(uv_tgt, dtype=np.float64).reshape(n, 2)[order]
+        self.uv_src, self.uv_tgt = torch.from_numpy(uv_src_p), torch.from_numpy(uv_tgt_p)
+        edge_w = np.zeros((q, L, 2))
+        w_in = np.asarray(weights, dtype=np.float64)
+        edge_w[group, rank] = (np.broadcast_to(w_in[:, None], (n, 2)) if w_in.ndim == 1 else w_in)[order]
+        edge_idx = np.zeros((q, L), dtype=np.int64)
+        edge_idx[group, rank] = np.asarray(struct_idx, dtype=np.int64).reshape(-1)[order]
+        row_of_edge = np.empty(n, dtype=np.int64)  # caller's edge n -> padded row
+        row_of_edge[order] = group * L + rank
+        self._row_of_edge = torch.from_numpy(row_of_edge)
 
         # --- priors
         if prior_idx is None:
             prior_idx, prior_value, prior_weight = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
         self.prior_value = torch.as_tensor(prior_value, dtype=f64).reshape(-1)
-        prior_idx = torch.as_tensor(np.asarray(prior_idx)).long().reshape(-1)
+        prior_idx = np.asarray(prior_idx, dtype=np.int64).reshape(-1)
         m = int(prior_idx.shape[0])
-        self.weights = torch.cat([
-            edge_w.reshape(-1, 2),
-            torch.stack([torch.as_tensor(prior_weight, dtype=f64).reshape(-1), torch.zeros(m, dtype=f64)], 1),
-        ])
-        if bool((self.weights < 0).any()) or not bool(torch.isfinite(self.weights).all()):
+        prior_rows = np.zeros((m, 2))
+        prior_rows[:, 0] = np.asarray(prior_weight, dtype=np.float64).reshape(-1)
+        weights_all = np.concatenate([edge_w.reshape(-1, 2), prior_rows])
+        if (weights_all < 0).any() or not np.isfinite(weights_all).all():
             raise OptimizationError("PatchBlock: weights must be finite and non-negative")
-        self.struct_idx = torch.cat([edge_idx.reshape(-1), prior_idx])
+        self.weights = torch.from_numpy(weights_all)
+        self.struct_idx = torch.from_numpy(np.concatenate([edge_idx.reshape(-1), prior_idx]))
         # pose slots (fixed frames and priors: the dummy slot k, cropped away)
-        self.g_a = torch.where(self.g_src < k, self.g_src, torch.full_like(self.g_src, k))
-        self.g_b = torch.where(self.g_tgt < k, self.g_tgt, torch.full_like(self.g_tgt, k))
-        row_a = self.g_a.repeat_interleave(L) if q else torch.zeros(0, dtype=torch.long)
-        row_b = self.g_b.repeat_interleave(L) if q else torch.zeros(0, dtype=torch.long)
-        dummy = torch.full((m,), k, dtype=torch.long)
-        self.slots = torch.stack([torch.cat([row_a, dummy]), torch.cat([row_b, dummy])], 1)
+        g_a, g_b = np.where(g_src < k, g_src, k), np.where(g_tgt < k, g_tgt, k)
+        self.g_a, self.g_b = torch.from_numpy(g_a), torch.from_numpy(g_b)
+        dummy = np.full(m, k, dtype=np.int64)
+        self.slots = torch.from_numpy(np.stack([np.concatenate([np.repeat(g_a, L), dummy]),
+                                                np.concatenate([np.repeat(g_b, L), dummy])], 1))
         self.groups = SlotGroups((0, q * L + m), ((k, k),))  # unused: linearize() has its own grouping
         self._structure = torch.zeros(0, dtype=f64)
         self.set_structure(torch.as_tensor(inverse_depth, dtype=f64))
