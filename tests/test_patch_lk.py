@@ -100,7 +100,8 @@ def test_row_nanmedian_equals_numpy_nanmedian():
     from fgslam.frontends.patch.patches import row_nanmedian
 
     rng = np.random.default_rng(0)
-    cases = [np.zeros((3, 0)), np.full((2, 4), np.nan), np.array([[1.0], [np.nan]])]
+    cases = [np.zeros((3, 0)), np.full((2, 4), np.nan), np.array([[1.0], [np.nan]]), np.array([[-0.0], [0.0]]),
+             np.array([[0.0, -0.0, 0.0, np.nan], [np.inf, -np.inf, 1.0, 2.0], [1e308, 1e308, np.nan, np.nan]])]
     for _ in range(300):
         m, k = rng.integers(1, 60), rng.integers(1, 50)
         x = rng.normal(size=(m, k)) * 10 ** rng.uniform(-3, 3)
@@ -109,4 +110,7 @@ def test_row_nanmedian_equals_numpy_nanmedian():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # numpy warns on all-NaN rows
         for x in cases:
-            assert np.array_equal(row_nanmedian(x), np.nanmedian(x, axis=1), equal_nan=True)
+            ours, theirs = row_nanmedian(x), np.nanmedian(x, axis=1)
+            assert np.array_equal(ours, theirs, equal_nan=True) and ours.dtype == theirs.dtype
+            number = ~np.isnan(theirs)  # the sign of a zero median too (a NaN's sign bit means nothing)
+            assert np.array_equal(np.signbit(ours[number]), np.signbit(theirs[number]))

@@ -85,11 +85,11 @@ def row_nanmedian(x: np.ndarray) -> np.ndarray:
     """``np.nanmedian(x, axis=1)`` of a 2-D float array, the same values (NaN for a row without a
     number), without numpy's per-row Python loop: each row sorted (NaN last), the middle of its numbers."""
     if x.shape[1] == 0:
-        return np.full(x.shape[0], np.nan)
+        return np.full(x.shape[0], np.nan, dtype=x.dtype)
     n = np.count_nonzero(~np.isnan(x), axis=1)
     s = np.sort(x, axis=1)
     rows = np.arange(x.shape[0])
-    med = (s[rows, np.maximum(n - 1, 0) // 2] + s[rows, n // 2]) / 2
+    med = (s[rows, np.maximum(n - 1, 0) // 2] + s[rows, n // 2]) / 2 + 0.0  # + 0.0: numpy's median of zeros is +0.0
     return np.where(n > 0, med, np.nan)
 
 
