@@ -55,8 +55,7 @@ class DenseMapStarts:
 
     def advance(self, all_left: bool = False) -> bool:
         """The next ``ba.init_rounds_per_frame`` rounds of the begun initialisation (0 or ``all_left``: all
-        left); after
-        the last one the map is initialised and the frames tracked before it re-tracked
+        left); after the last one the map is initialised and the frames tracked before it re-tracked
         (:meth:`retrack_pending`). True when the map is initialised."""
         st = self.state
         t0 = time.perf_counter()
