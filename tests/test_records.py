@@ -57,6 +57,18 @@ def test_a_reference_cycle_gives_no_pose_not_an_endless_recursion(caplog):
         assert resolve_pose(9, records, KF.__getitem__, cache) is None
     assert "refers back to itself" in caplog.text
     np.testing.assert_allclose(resolve_pose(1, records, KF.__getitem__, cache), KF[0] @ records[1].T_ref_frame)
+    # a lookup that raises leaves no frame marked as in progress: the next one in the same cache resolves
+    cache, calls = {}, []
+
+    def failing_once(kf):
+        calls.append(kf)
+        if len(calls) == 1:
+            raise RuntimeError("keyframe pose not ready")
+        return KF[kf]
+
+    with pytest.raises(RuntimeError):
+        resolve_pose(1, records, failing_once, cache)
+    np.testing.assert_allclose(resolve_pose(1, records, failing_once, cache), KF[0] @ records[1].T_ref_frame)
 
 
 def test_records_are_immutable():

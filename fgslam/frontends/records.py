@@ -140,7 +140,11 @@ def resolve_pose(fid: int, records: dict, keyframe_pose: Callable[[int], np.ndar
         return T
     cache[fid] = _RESOLVING
     rec = records.get(fid)
-    T = None if rec is None else rec.pose(lambda other: resolve_pose(other, records, keyframe_pose, cache),
-                                          keyframe_pose, fid)
+    try:
+        T = None if rec is None else rec.pose(lambda other: resolve_pose(other, records, keyframe_pose, cache),
+                                              keyframe_pose, fid)
+    except BaseException:  # not left marked as in progress: a later lookup would take it for a cycle
+        cache.pop(fid, None)
+        raise
     cache[fid] = T
     return T

@@ -266,25 +266,24 @@ class PointmapFrontend(BackendFrontend):
         """Tracking lost: the motion prior's pose when it gives one (bridged by the IMU: ``imu``, not a
         failure), else the last tracked relative pose (``motion_model``, counted)."""
         st = self.state
-        if st.kf is not None and st.kf.fid == fid:  # failed after it became the keyframe: its pose is the keyframe's
-            st.failures += 1
-            st.counts["failed"] += 1
-            logger.info("pointmap frame %d: %s", frame.index, reason)
-            st.T_CkCf, st.uv_prev = np.eye(4), None
-            return st.status(fid, frame, "motion_model", is_keyframe=True, events=[reason])
-        st.T_WC_imu = st.prior_T_WC(frame.timestamp)
-        T_CkCf_imu = None if st.kf is None else st.prior_T_CkCf(st.kf.fid)
-        if T_CkCf_imu is not None:
-            st.T_CkCf = T_CkCf_imu
-            st.records[fid] = RelativePose(st.kf.fid, T_CkCf_imu.copy())
-            st.uv_prev = None
-            logger.info("pointmap frame %d: %s; pose from the IMU", frame.index, reason)
-            return st.status(fid, frame, "imu", events=[reason, "imu bridge"])
+        keyframe = st.kf is not None and st.kf.fid == fid  # failed after it became the keyframe: its pose is the keyframe's
+        if not keyframe:
+            st.T_WC_imu = st.prior_T_WC(frame.timestamp)
+            T_CkCf_imu = None if st.kf is None else st.prior_T_CkCf(st.kf.fid)
+            if T_CkCf_imu is not None:
+                st.T_CkCf = T_CkCf_imu
+                st.records[fid] = RelativePose(st.kf.fid, T_CkCf_imu.copy())
+                st.uv_prev = None
+                logger.info("pointmap frame %d: %s; pose from the IMU", frame.index, reason)
+                return st.status(fid, frame, "imu", events=[reason, "imu bridge"])
         st.failures += 1
         st.counts["failed"] += 1
         logger.info("pointmap frame %d: %s", frame.index, reason)
         if st.kf is None:
             return st.status(fid, frame, "initializing", events=[reason])
-        st.records[fid] = RelativePose(st.kf.fid, st.T_CkCf.copy())  # the last tracked relative pose
+        if keyframe:
+            st.T_CkCf = np.eye(4)
+        else:
+            st.records[fid] = RelativePose(st.kf.fid, st.T_CkCf.copy())  # the last tracked relative pose
         st.uv_prev = None
-        return st.status(fid, frame, "motion_model", events=[reason])
+        return st.status(fid, frame, "motion_model", is_keyframe=keyframe, events=[reason])
