@@ -13,6 +13,7 @@ import numpy as np
 from ...backend.keys import pose_key
 from ...core.errors import OptimizationError
 from ...factors.pointmap_block import PointmapBlock, PointmapEdge
+from ..records import rigid
 from .keyframes import PointmapKeyframe, measure_edge
 from .state import PointmapState
 
@@ -95,9 +96,18 @@ class PointmapGraph:
         try:
             report = st.backend.optimize_window(free, st.config.graph.iterations)
             logger.debug("pointmap optimisation over %d keyframes: %s", len(free), report)
+            self._write_back_rigid(free)
         except _OPTIMIZATION_ERRORS as exc:
             logger.warning("pointmap optimisation failed (%s); poses kept", exc)
         st.times["optimization"] += time.perf_counter() - t0
+
+    def _write_back_rigid(self, free: list[int]) -> None:
+        """A metric map's optimised keyframes written back rigid: their scale prior holds the Sim(3) scale at 1
+        only to the solver's convergence, and a metric map has none to estimate (as the dense family's RGB-D)."""
+        st = self.state
+        if st.fixed_scale:
+            for f in free:
+                st.backend.set_pose(f, rigid(st.backend.pose_matrix(f)))
 
     def final_optimize(self) -> None:
         """The last optimisation: ``graph.final_iterations`` over every keyframe (when there are two)."""
@@ -107,6 +117,7 @@ class PointmapGraph:
             try:
                 self._set_block()
                 st.backend.optimize_window(list(st.kfs), st.config.graph.final_iterations)
+                self._write_back_rigid(list(st.kfs))
             except _OPTIMIZATION_ERRORS as exc:
                 logger.warning("pointmap final optimisation failed (%s); poses kept", exc)
             st.times["optimization"] += time.perf_counter() - t0
