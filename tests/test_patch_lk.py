@@ -91,6 +91,60 @@ def test_select_patches_spread_and_border():
     assert select_patches(np.full_like(img, 50), 96, 12, [8, 4], "corners", rng).shape == (96, 2)
 
 
+def _corners_by_sorting(score, count, border, grid, block, jitter):
+    """The corner rule by numpy's sorts (the implementation before the compiled kernel): block maxima,
+    ``lexsort`` by cell and ``-(score + jitter)``, the cells' quotas by a stable sort of ``-score``, the
+    rest by another."""
+    h, w = score.shape
+    inner = score[border: h - border, border: w - border]
+    hb, wb = inner.shape[0] // block, inner.shape[1] // block
+    tiles = inner[: hb * block, : wb * block].reshape(hb, block, wb, block).transpose(0, 2, 1, 3).reshape(hb, wb, -1)
+    arg = tiles.argmax(-1)
+    best = np.take_along_axis(tiles, arg[..., None], -1)[..., 0].reshape(-1)
+    by, bx = np.meshgrid(np.arange(hb), np.arange(wb), indexing="ij")
+    v = (by * block + arg // block).reshape(-1) + border
+    u = (bx * block + arg % block).reshape(-1) + border
+    gx, gy = grid
+    cell = (u * gx // w).clip(0, gx - 1) + gx * (v * gy // h).clip(0, gy - 1)
+    order = np.lexsort((-(best + jitter), cell))
+    cell_sorted = cell[order]
+    rank = np.arange(order.size) - np.searchsorted(cell_sorted, cell_sorted, side="left")
+    chosen = order[rank < max(1, count // (gx * gy))]
+    chosen = chosen[np.argsort(-best[chosen], kind="stable")][:count]
+    if chosen.size < count:
+        left = np.ones(best.size, dtype=bool)
+        left[chosen] = False
+        rest = np.flatnonzero(left)
+        chosen = np.concatenate([chosen, rest[np.argsort(-best[rest], kind="stable")][: count - chosen.size]])
+    return np.stack([u[chosen], v[chosen]], 1).astype(np.float64)
+
+
+@pytest.mark.parametrize("h, w, count, border, grid, block", [
+    (240, 320, 48, 6, (8, 4), 4),     # the RGB-D preset's half-resolution response: one per cell, topped up
+    (240, 320, 96, 12, (8, 4), 8),    # three per cell
+    (96, 128, 200, 4, (4, 3), 8),     # more wanted than there are blocks
+    (60, 50, 10, 4, (3, 5), 5),       # ragged blocks at the edges, fewer than one per cell
+    (20, 20, 5, 6, (2, 2), 10),       # no whole block inside the border: random centres
+    (96, 128, 0, 4, (4, 3), 8),       # none wanted
+])
+def test_compiled_corner_selection_equals_the_sorting_rule(monkeypatch, h, w, count, border, grid, block):
+    """The compiled selection picks the pixels, in the order, that numpy's sorts pick, also among equal
+    scores (a response quantised to a few levels, flat regions) and when the cells run short."""
+    rng = np.random.default_rng(h * w + count)
+    for levels in (3, 1000):  # many ties; almost none
+        score = (rng.integers(0, levels, (h, w)) / levels).astype(np.float32)
+        score[rng.random((h, w)) < 0.3] = 0.0  # flat regions
+        monkeypatch.setattr(cv2, "cornerMinEigenVal", lambda image, size, s=score: s)
+        blocks = max(0, (h - 2 * border) // block) * max(0, (w - 2 * border) // block)
+        got = select_patches(np.zeros((h, w), np.uint8), count, border, list(grid), "corners", np.random.default_rng(5), block)
+        assert got.shape == (count, 2)
+        if blocks == 0:  # numpy's reshape of no blocks failed; the compiled rule pads with random centres
+            assert ((got >= border) & (got <= np.array([w, h]) - 1 - border)).all()
+            continue
+        expected = _corners_by_sorting(score, count, border, grid, block, np.random.default_rng(5).uniform(0, 1e-9, blocks))
+        np.testing.assert_array_equal(got[:min(count, blocks)], expected)
+
+
 def test_row_nanmedian_equals_numpy_nanmedian():
     """The sensor-depth window's median (the patch family's depth look-up): the values of
     ``np.nanmedian(x, axis=1)``, bit for bit, on random rows with missing readings, all-NaN rows,

@@ -47,32 +47,13 @@ def select_patches(image: np.ndarray, count: int, border: int, grid: list[int], 
         uv[:, 0] = uv[:, 0].clip(border, w - 1 - border)
         uv[:, 1] = uv[:, 1].clip(border, h - 1 - border)
         return uv
+    from .select_jit import select_corners  # deferred: numba (compiled kernel, core/jit.py)
+
     score = cv2.cornerMinEigenVal(image, 3)
-    inner = score[border: h - border, border: w - border]
-    hb, wb = inner.shape[0] // block, inner.shape[1] // block
-    tiles = inner[: hb * block, : wb * block].reshape(hb, block, wb, block).transpose(0, 2, 1, 3).reshape(hb, wb, -1)
-    arg = tiles.argmax(-1)
-    best = np.take_along_axis(tiles, arg[..., None], -1)[..., 0].reshape(-1)
-    by, bx = np.meshgrid(np.arange(hb), np.arange(wb), indexing="ij")
-    v = (by * block + arg // block).reshape(-1) + border
-    u = (bx * block + arg % block).reshape(-1) + border
-    gx, gy = grid
-    cell = (u * gx // w).clip(0, gx - 1) + gx * (v * gy // h).clip(0, gy - 1)
+    blocks = max(0, (h - 2 * border) // block) * max(0, (w - 2 * border) // block)
     # small random jitter breaks ties between equal scores (flat regions)
-    order = np.lexsort((-(best + rng.uniform(0, 1e-9, best.shape)), cell))
-    cell_sorted = cell[order]
-    first = np.searchsorted(cell_sorted, cell_sorted, side="left")
-    rank = np.arange(order.size) - first
-    quota = max(1, count // (gx * gy))
-    chosen = order[rank < quota]
-    # stable sorts: equal scores keep the index order (numpy's default sort orders ties by the CPU's SIMD kernel)
-    chosen = chosen[np.argsort(-best[chosen], kind="stable")][:count]
-    if chosen.size < count:
-        left = np.ones(best.size, dtype=bool)  # np.setdiff1d's result (ascending) without its hash and sort
-        left[chosen] = False
-        rest = np.flatnonzero(left)
-        rest = rest[np.argsort(-best[rest], kind="stable")][: count - chosen.size]
-        chosen = np.concatenate([chosen, rest])
+    jitter = rng.uniform(0, 1e-9, blocks)
+    chosen, u, v = select_corners(score, border, block, w, h, grid[0], grid[1], jitter, count)
     uv = np.stack([u[chosen], v[chosen]], 1).astype(np.float64)
     if uv.shape[0] < count:  # tiny image: pad with random centres
         extra = count - uv.shape[0]
