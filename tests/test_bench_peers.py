@@ -235,7 +235,7 @@ def test_whole_run_with_fake_peer_and_fake_fgslam(bench, shared_data, tmp_path, 
 
 def test_preset_and_baseline_tree_run_alternately(bench, shared_data, tmp_path, monkeypatch, capsys):
     """--preset runs another preset on a sequence; --baseline runs each fgslam run also on another
-    source tree, alternating, and reports the ratios to it."""
+    source tree, alternating (and with the peer's runs), and reports the ratios to it."""
     from fgslam.run.config import load_slam_config
     from fgslam.run.prepare import open_slam_dataset
 
@@ -262,9 +262,15 @@ def test_preset_and_baseline_tree_run_alternately(bench, shared_data, tmp_path, 
     argv = ["--peer", str(venv), "--peer-scripts", str(scripts), "--data", str(shared_data), "--sequences",
             "kitti00_mono", "--repeats", "1", "--fgslam-repeats", "2", "--preset", "kitti00_mono=driving_mono",
             "--baseline", str(base)]
-    assert bench.main(argv, fgslam_runner=fake_fgslam) == 0
+
+    def peer(*args):
+        calls.append(("orbslam3", None))
+        return bench.run_peer(*args)
+
+    assert bench.main(argv, fgslam_runner=fake_fgslam, peer_runner=peer) == 0
     r = json.loads(capsys.readouterr().out)["sequences"]["kitti00_mono"]
-    assert calls == [("driving_mono", None), ("driving_mono", "main")] * 2
+    assert calls == [("driving_mono", None), ("driving_mono", "main"), ("orbslam3", None),
+                     ("driving_mono", None), ("driving_mono", "main")]
     assert r["fgslam_preset"] == "driving_mono"
     b = r["baseline"]
     assert b["frames_per_cpu_s"] == 10.0 and len(b["runs"]) == 2

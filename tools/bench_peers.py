@@ -15,7 +15,8 @@ from fgslam's calibration otherwise (``orbslam3_settings``).
 
 Per sequence: ORB-SLAM3 runs ``--repeats`` times fed at camera rate (``--pace``, as a live camera
 would; unpaced, monocular ORB-SLAM3 loses track on a 2-core machine), fgslam ``--fgslam-repeats``
-times (``fgslam run PRESET``, one process each). Both trajectories are mapped to fgslam's
+times (``fgslam run PRESET``, one process each), the two alternating run by run (a machine whose speed
+drifts over the minutes weighs on both alike). Both trajectories are mapped to fgslam's
 timestamps and evaluated by fgslam's evaluator against the same ground truth, with the same
 alignment (Sim(3) monocular, SE(3) RGB-D), over **only the frames both posed**, for every pair of
 runs; medians are reported, with each system's ATE over all its own posed frames, frames posed,
@@ -438,14 +439,16 @@ def run_sequence(name: str, args: argparse.Namespace, work: Path,
         settings = work / "orbslam3_settings.yaml"
         settings.write_text(orbslam3_settings(cal.K, cal.width, cal.height, rate, seq.orb_features))
     preset = args.preset_of.get(name, seq.preset)
-    fg_runs, base_runs = [], []
-    for i in range(args.fgslam_repeats):  # alternating with the baseline: both see the same load
-        fg_runs.append(fgslam_runner(preset, root, work / f"fgslam_{i}", args.overrides, args.timeout))
-        if args.baseline is not None:
-            base_runs.append(fgslam_runner(preset, root, work / f"baseline_{i}", args.overrides, args.timeout,
-                                           tree=args.baseline))
-    peer_runs = [peer_runner(peer_command(args, seq.mode, settings, peer_seq, n, work / f"orbslam3_{j}"),
-                             work / f"orbslam3_{j}", fed_t, dataset_t, args.timeout) for j in range(args.repeats)]
+    fg_runs, base_runs, peer_runs = [], [], []
+    for i in range(max(args.fgslam_repeats, args.repeats)):  # alternating: every side sees the same load
+        if i < args.fgslam_repeats:
+            fg_runs.append(fgslam_runner(preset, root, work / f"fgslam_{i}", args.overrides, args.timeout))
+            if args.baseline is not None:
+                base_runs.append(fgslam_runner(preset, root, work / f"baseline_{i}", args.overrides, args.timeout,
+                                               tree=args.baseline))
+        if i < args.repeats:
+            peer_runs.append(peer_runner(peer_command(args, seq.mode, settings, peer_seq, n, work / f"orbslam3_{i}"),
+                                         work / f"orbslam3_{i}", fed_t, dataset_t, args.timeout))
     result = {"sequence": name, "data": str(root), "mode": seq.mode, "align": ALIGN[seq.mode], "frames": n,
               "rate_hz": rate, "fgslam_preset": preset, "orbslam3_settings": str(settings),
               "orbslam3_paced": not args.no_pace}
