@@ -80,7 +80,7 @@ class LoopPort(Protocol):
 
     def update_poses(self, T_WC_by_id: dict) -> None: ...
 
-    def relocalize(self, image: np.ndarray, K: np.ndarray) -> tuple[int, np.ndarray] | None: ...
+    def relocalize(self, image: np.ndarray, K: np.ndarray, before: int | None = None) -> tuple[int, np.ndarray] | None: ...
 
     def map_reset(self) -> None: ...
 
@@ -116,7 +116,7 @@ class NoLoops:
     def update_poses(self, T_WC_by_id: dict) -> None:
         return None
 
-    def relocalize(self, image: np.ndarray, K: np.ndarray) -> tuple[int, np.ndarray] | None:
+    def relocalize(self, image: np.ndarray, K: np.ndarray, before: int | None = None) -> tuple[int, np.ndarray] | None:
         return None
 
     def map_reset(self) -> None:

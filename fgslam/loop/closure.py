@@ -237,9 +237,9 @@ class LoopCloser:
             self._jobs.append(job)
         self._worker.submit(job)
 
-    def relocalize(self, image: np.ndarray, K: Sequence[float]) -> tuple[int, np.ndarray] | None:
+    def relocalize(self, image: np.ndarray, K: Sequence[float], before: int | None = None) -> tuple[int, np.ndarray] | None:
         """Find the keyframe an image (of a lost track) sees and its pose: ``(kf_id, T_WC 4x4)`` (the
-        keyframe's Sim(3) scale) or None. Stricter than loop detection: raw score threshold, ORB
+        keyframe's Sim(3) scale) or None; ``before``: only keyframes with a smaller id are candidates. Stricter than loop detection: raw score threshold, ORB
         matches and PnP RANSAC on the keyframe's triangulated points. Runs in the caller's thread
         once the worker has described every keyframe handed to it (so the result does not depend on
         the worker's speed)."""
@@ -257,7 +257,12 @@ class LoopCloser:
             return None
         min_score = (self.cfg.features.retrieval.relocalization_min_score if self.cfg.features.kind == "xfeat"
                      else rc.min_score)
-        results = self._recognizer.detector.database.query(feats.bow, rc.max_candidates, min_score=min_score)
+        database = self._recognizer.detector.database
+        if before is None:
+            results = database.query(feats.bow, rc.max_candidates, min_score=min_score)
+        else:  # the best candidates among the older keyframes (the newer ones see the place best)
+            results = database.query(feats.bow, max(len(self._keyframes), 1), min_score=min_score)
+            results = [res for res in results if res.kf_id < before][: rc.max_candidates]
         poses, order = dict(self._poses), list(self._order)
         for res in results:
             kf = self._keyframes.get(res.kf_id)

@@ -165,13 +165,14 @@ class LoopService:
             self.closer.update_poses(T_WC_by_id)
             self._times["loop"] += time.perf_counter() - t0
 
-    def relocalize(self, image: np.ndarray, K: np.ndarray) -> tuple[int, np.ndarray] | None:
-        """``(kf_id, T_WC)`` of a lost frame's image on the keyframe database, or None."""
+    def relocalize(self, image: np.ndarray, K: np.ndarray, before: int | None = None) -> tuple[int, np.ndarray] | None:
+        """``(kf_id, T_WC)`` of a lost frame's image on the keyframe database (``before``: only keyframes with
+        a smaller id, e.g. those of the maps before a restart), or None."""
         if self.closer is None:
             return None
         t0 = time.perf_counter()
         self._counts["relocalization_attempts"] += 1
-        found = self.closer.relocalize(image, K)
+        found = self.closer.relocalize(image, K, before)
         self._times["loop"] += time.perf_counter() - t0
         if found is not None:
             self._counts["relocalized"] += 1

@@ -35,14 +35,15 @@ import numpy as np
 from ...core.errors import ConfigError, OptimizationError
 from ...factors.schur import torch_threads
 from ...backend.graph import Backend
-from ..base import BackendFrontend, FrameStatus, SensorMode
-from ..records import RelativePose
+from ..base import NO_LOOPS, BackendFrontend, FrameStatus, SensorMode
+from ..records import RelativePose, rigid
 from .config import PatchConfig
 from .contributor import PatchContributor
 from .initialisation import Initialiser
 from .keyframes import Keyframes
 from .map_export import export_map, keyframe_points
 from .patches import PatchMeasurer
+from .rejoin import MapRejoin
 from .motion import MotionModel
 from .state import PatchState
 from .tracking import Tracker, TrackingFailure
@@ -92,6 +93,7 @@ class PatchFrontend(BackendFrontend):
         self.initialiser = Initialiser(state, self.window, self.motion)
         self.tracker = Tracker(state, self.window, self.motion)
         self._contributor = PatchContributor(state, self.motion)
+        self.rejoin = MapRejoin(state, NO_LOOPS, self._contributor.apply_correction)
         self.calibration = None
         if calibration is not None:
             self._set_calibration(calibration)
@@ -128,6 +130,7 @@ class PatchFrontend(BackendFrontend):
         if motion_prior is not None:
             self.motion.prior = motion_prior
         self.contributor.connect(self.loops)
+        self.rejoin = MapRejoin(self.state, self.loops, self.contributor.apply_correction)
 
     # ------------------------------------------------------------------ Frontend API
     def num_keyframes(self) -> int:
@@ -178,6 +181,10 @@ class PatchFrontend(BackendFrontend):
         self.contributor.feed_keyframes()
         if self.state.initialized and status.pose_source == "tracked":
             self.contributor.proximity_step()
+            rejoined = self.rejoin.step(fid, frame)
+            if rejoined is not None:
+                status.events.append(rejoined)
+                status.T_WC = rigid(self.state.pose_of(fid))
 
     def _keyframe_T_WC(self, fid: int) -> np.ndarray:
         return self.state.keyframe_T_WC(fid)
@@ -212,6 +219,9 @@ class PatchFrontend(BackendFrontend):
             if self.contributor.relocalize(fid, frame) is not None:  # anchor of the re-initialisation
                 events.append("relocalised")
                 source = "relocalized"
+                self.rejoin.cancel()
+            else:  # the new map's frames try to rejoin the maps before it (rejoin.py)
+                self.rejoin.begin(fid)
             events.append("re-initialising")
             self._reset()
         logger.info("frame %d: %s", frame.index, reason)

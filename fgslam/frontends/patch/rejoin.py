@@ -1,0 +1,97 @@
+"""Rejoining a restarted map (patch frontend): after a lost track restarts the map without a relocalisation
+(the restart frame itself unrecognisable: a covered lens, motion blur), the new map's tracked frames keep
+trying to relocalise in the keyframe database, among the keyframes of the maps before the restart. Two
+relocalisations of different frames that imply the same rigid transform between the new map and the old
+(within ``tracking.rejoin_max_translation`` and ``tracking.rejoin_max_rotation_deg``) move every keyframe of
+the new map into the old map's frame, as one correction (:class:`~fgslam.loop.records.PoseCorrection`,
+older keyframes held). Metric maps only (RGB-D, stereo): a monocular map restarts at a scale of its own,
+which one relocalisation does not measure. Needs the classical loop closer's database
+(``loop_closure.mode`` classical or both); otherwise nothing is tried.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ...contracts.contributor import PoseCorrection
+from ..base import LoopPort
+from .state import PatchState
+
+logger = logging.getLogger(__name__)
+
+
+def _rotation_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+class MapRejoin:
+    """The rejoin attempts of the map started at frame ``start`` (module docstring): :meth:`begin` at a
+    restart, :meth:`step` after every tracked frame of the new map. ``apply_correction``: the contributor's
+    (moves graph frames, finalised keyframes, records and the motion model)."""
+
+    def __init__(self, state: PatchState, loops: LoopPort, apply_correction):
+        self.state = state
+        self.loops = loops
+        self.apply_correction = apply_correction
+        self.start: int | None = None  # first frame of the map to rejoin; None: nothing to rejoin
+        self.frames = 0  # tracked frames of the new map seen so far
+        self.pending: tuple[int, np.ndarray] | None = None  # (frame, U) of the last relocalisation not yet confirmed
+        self.rejoined = 0
+
+    def begin(self, start: int) -> None:
+        """A restart at frame ``start`` that was not relocalised: its map may rejoin the maps before it."""
+        cfg = self.state.config.tracking
+        if cfg.rejoin_frames == 0 or not self.loops.classical or self.state.sensor_mode == "mono":
+            self.start = None
+            return
+        self.start, self.frames, self.pending = start, 0, None
+
+    def cancel(self) -> None:
+        """A restart that was relocalised: its map is in the old frame already."""
+        self.start, self.pending = None, None
+
+    def step(self, fid: int, frame) -> str | None:
+        """After tracked frame ``fid`` of the new map: every ``rejoin_every`` frames a relocalisation among the
+        older maps' keyframes; the event to report when the map was moved, else None."""
+        st, cfg = self.state, self.state.config.tracking
+        if self.start is None or not st.initialized:
+            return None
+        self.frames += 1
+        if self.frames > cfg.rejoin_frames:
+            logger.info("map started at frame %d: not rejoined within %d frames", self.start, cfg.rejoin_frames)
+            self.start, self.pending = None, None
+            return None
+        if (self.frames - 1) % cfg.rejoin_every:
+            return None
+        T_new = st.pose_of(fid)
+        found = self.loops.relocalize(frame.image, st.K.numpy(), before=self.start)
+        if found is None or T_new is None:
+            return None
+        kf_id, T_old = found
+        U = np.asarray(T_old, dtype=np.float64) @ np.linalg.inv(T_new)  # new map's world -> old map's world
+        previous, self.pending = self.pending, (fid, U)
+        if previous is None:
+            return None
+        dU = np.linalg.inv(previous[1]) @ U
+        moved, turned = float(np.linalg.norm(dU[:3, 3])), _rotation_deg(dU[:3, :3])
+        if moved > cfg.rejoin_max_translation or turned > cfg.rejoin_max_rotation_deg:
+            logger.info("frame %d relocalised on keyframe %d, %.3f m / %.1f deg from frame %d's: not rejoined yet",
+                        frame.index, kf_id, moved, turned, previous[0])
+            return None
+        self._move(U)
+        event = f"map rejoined: relocalised on keyframe {kf_id}, frames {previous[0]} and {fid} agree"
+        logger.info("frame %d: %s (%.3f m, %.1f deg apart)", frame.index, event, moved, turned)
+        self.start, self.pending = None, None
+        self.rejoined += 1
+        return event
+
+    def _move(self, U: np.ndarray) -> None:
+        """Every keyframe of the new map moved by ``U`` (rigid), the older ones held."""
+        st = self.state
+        frames = [f for f in list(st.graph.frames) + list(st.final.values()) if f.fid >= self.start]
+        T_old = {f.fid: f.T_WC for f in frames}
+        T_new = {k: U @ T for k, T in T_old.items()}
+        self.apply_correction(PoseCorrection.between(T_old, T_new, hold_older=True))
+        self.loops.update_poses({k: st.pose_of(k) for k in T_new})
