@@ -353,6 +353,30 @@ def test_correction_during_a_global_ba_is_kept_and_a_new_map_drops_it(monkeypatc
     assert toy2.events == [] and service2.proximity_loops == [(9, 0, "undone: a new map started during the global BA")]
 
 
+def test_a_map_moved_by_its_frontend_reaches_the_contributor_and_drops_a_running_global_ba():
+    """``move_map`` (a restarted map rejoining the one before it): the correction goes through the
+    contributor, the closer's pose table takes the moved poses and a solve made before is solved again
+    (its epoch), and a global BA started on the poses before the move is dropped."""
+    toy = ToyMap(10)
+    service = _proximity_service(toy, mode="both")
+    service.search(9)
+    C = np.eye(4)
+    C[:3, 3] = [0.0, 2.0, 0.0]
+    moved = {k: C @ toy.poses[k] for k in range(5, 10)}
+    correction = PoseCorrection.between({k: toy.poses[k] for k in moved}, moved, hold_older=True)
+    service.closer._poses.update({k: toy.poses[k] for k in range(10)})  # as if handed to the closer
+    epoch = service.closer._epoch
+    assert service.move_map(correction, moved) is True
+    assert toy.events == ["correction"] and service.closer._epoch == epoch + 1
+    for k in range(10):
+        np.testing.assert_allclose(service.closer._poses[k], moved.get(k, toy.poses[k]), atol=1e-12)
+    toy.gate.set()
+    _poll_until_idle(service)
+    assert toy.events == ["correction"]  # the global BA from before the move was not applied
+    assert service.proximity_loops == [(9, 0, "undone: a new map started during the global BA")]
+    service.finish()
+
+
 def test_finish_waits_for_the_running_global_ba():
     toy = ToyMap(10)
     service = _proximity_service(toy)

@@ -84,6 +84,8 @@ class LoopPort(Protocol):
 
     def map_reset(self) -> None: ...
 
+    def move_map(self, correction, T_WC_by_id: dict) -> bool: ...  # a correction of the frontend's own (rejoin); False: not applied
+
     def keyframe_settled(self, kf_id: int) -> None: ...
 
     def search(self, query: int) -> None: ...
@@ -121,6 +123,9 @@ class NoLoops:
 
     def map_reset(self) -> None:
         return None
+
+    def move_map(self, correction, T_WC_by_id: dict) -> bool:
+        return False
 
     def keyframe_settled(self, kf_id: int) -> None:
         return None

@@ -192,6 +192,15 @@ class LoopCloser:
             if int(k) in self._poses:
                 self._poses[int(k)] = _as_matrix(T)
 
+    def moved(self, T_WC_by_id: dict) -> None:
+        """The frontend moved keyframes itself (a restarted map rejoining the map before it): their poses
+        into the table, and a correction solved on the table before is solved again (as after an applied
+        correction of the closer's own)."""
+        if not self._enabled:
+            return
+        self.update_poses(T_WC_by_id)
+        self._epoch += 1
+
     def poll(self) -> PoseCorrection | None:
         """One tick: the newest correction among the jobs due now (handed over
         ``correction_delay_frames`` ticks ago or earlier; all of them after :meth:`close`), or None.

@@ -141,6 +141,17 @@ class LoopService:
         """The contributor starts a new map: a running global BA of the old one is dropped."""
         self.proximity_closer.map_reset()
 
+    def move_map(self, correction: PoseCorrection, T_WC_by_id: dict) -> bool:
+        """A correction the contributor's frontend measured itself (a restarted map rejoining the map before
+        it): applied through the contributor (and its hooks: the IMU's states turn with the poses), the moved
+        keyframes' poses ``T_WC_by_id`` into the closer's table; a loop solve made on the poses before it is
+        solved again, and a running global BA is dropped. True: applied."""
+        self.contributor.apply_correction(correction)
+        if self.closer is not None:
+            self.closer.moved(T_WC_by_id)
+        self.proximity_closer.map_reset()
+        return True
+
     # ------------------------------------------------------------------ classical
     def add_keyframe(self, kf_id: int, neighbours: Sequence[int] = ()) -> bool:
         """Hand keyframe ``kf_id`` (pose final or about to be) to the closer, once; False when it was

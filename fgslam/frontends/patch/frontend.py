@@ -93,7 +93,7 @@ class PatchFrontend(BackendFrontend):
         self.initialiser = Initialiser(state, self.window, self.motion)
         self.tracker = Tracker(state, self.window, self.motion)
         self._contributor = PatchContributor(state, self.motion)
-        self.rejoin = MapRejoin(state, NO_LOOPS, self._contributor.apply_correction)
+        self.rejoin = MapRejoin(state, NO_LOOPS)
         self.calibration = None
         if calibration is not None:
             self._set_calibration(calibration)
@@ -130,7 +130,7 @@ class PatchFrontend(BackendFrontend):
         if motion_prior is not None:
             self.motion.prior = motion_prior
         self.contributor.connect(self.loops)
-        self.rejoin = MapRejoin(self.state, self.loops, self.contributor.apply_correction)
+        self.rejoin = MapRejoin(self.state, self.loops)
 
     # ------------------------------------------------------------------ Frontend API
     def num_keyframes(self) -> int:
