@@ -22,7 +22,7 @@ NUMERICAL_MODULES = frozenset({"test_determinism", "test_dense_loop", "test_patc
 # whole loop clips). The suite runs on two worker processes, a file on one of them (pyproject.toml,
 # addopts); these start first, so that none of them is what the other worker waits for at the end.
 LONGEST_FIRST = ("test_dense_loop", "test_patch_loop", "test_maps", "test_determinism", "test_imu_families",
-                 "test_dense_global_bg", "test_imu_runs", "test_loop_closure", "test_colmap_compare")
+                 "test_dense_global_bg", "test_imu_runs", "test_loop_closure", "test_colmap_compare", "test_patch_rejoin")
 
 
 # Files whose tests share a session fixture that takes long to build: each group runs on one worker, so the
