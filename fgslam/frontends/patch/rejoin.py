@@ -22,14 +22,11 @@ import numpy as np
 
 from ...contracts.contributor import PoseCorrection
 from ...core.errors import FGSlamError
+from ...eval.trajectory import rotation_angle
 from ..base import LoopPort
 from .state import PatchState
 
 logger = logging.getLogger(__name__)
-
-
-def _rotation_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 #: what an attempt may raise: the library's own errors, numerical ones (and OpenCV's, added where cv2 is imported)
@@ -104,7 +101,7 @@ class MapRejoin:
         if previous is None:
             return None
         dU = np.linalg.inv(previous[1]) @ U
-        moved, turned = float(np.linalg.norm(dU[:3, 3])), _rotation_deg(dU[:3, :3])
+        moved, turned = float(np.linalg.norm(dU[:3, 3])), float(np.degrees(rotation_angle(dU[:3, :3])))
         if moved > cfg.rejoin_max_translation or turned > cfg.rejoin_max_rotation_deg:
             logger.info("frame %d relocalised on keyframe %d, %.3f m / %.1f deg from frame %d's: not rejoined yet",
                         frame.index, kf_id, moved, turned, previous[0])
