@@ -248,10 +248,10 @@ class LoopCloser:
 
     def relocalize(self, image: np.ndarray, K: Sequence[float], before: int | None = None) -> tuple[int, np.ndarray] | None:
         """Find the keyframe an image (of a lost track) sees and its pose: ``(kf_id, T_WC 4x4)`` (the
-        keyframe's Sim(3) scale) or None; ``before``: only keyframes with a smaller id are candidates. Stricter than loop detection: raw score threshold, ORB
-        matches and PnP RANSAC on the keyframe's triangulated points. Runs in the caller's thread
-        once the worker has described every keyframe handed to it (so the result does not depend on
-        the worker's speed)."""
+        keyframe's Sim(3) scale) or None; ``before``: only keyframes with a smaller id are candidates.
+        Stricter than loop detection: raw score threshold, ORB matches and PnP RANSAC on the keyframe's
+        triangulated points. Runs in the caller's thread once the worker has described every keyframe
+        handed to it (so the result does not depend on the worker's speed)."""
         if not self._enabled:
             return None
         self.wait_idle()
