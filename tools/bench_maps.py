@@ -5,7 +5,10 @@ For the preset (``--preset``, default ``patch_7scenes_rgbd``): map the kitchen's
 ATE of the localised poses with the map run's own alignment applied unchanged, and with an alignment of
 their own (``ate_own_alignment_m``: what is left once the map's frame is taken out), CPU per frame; with the
 sequence's anchored odometry, the default, and without it: ``localize_map_only``), run the preset on frames
-300-599 alone without loop closure (``odometry_run_300_599_ate_m``: the odometry's own accuracy), extend
+300-599 alone without loop closure (``odometry_run_300_599_ate_m``: the odometry's own accuracy), count
+the frames 300-599 that share at least 30 % of their view with a map keyframe by ground truth
+(``upper_bound``: :mod:`fgslam.eval.overlap`; most to expect of a localiser) and how many of them each
+localisation posed (``of_overlapping``: any pose, and the localiser's own), extend
 the map with frames 300-599 as a second recording (``fgslam run --map``: both sessions optimised in one
 pose graph) and compare the joint trajectory over 0-599 (``joint_trajectory_tum.txt``: every frame of
 both sessions in the map's frame; evaluated with the run's alignment: SE(3), Sim(3) for monocular
@@ -37,6 +40,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "7scenes_redkitchen_0-599"
 SPLIT = 300
+MIN_OVERLAP = 0.3  # issue 42's bound: frames sharing at least this share of their view with a map keyframe
 LOCALIZE_KEYS = ("frames", "localised", "tracked", "relocalised", "odometry", "localised_fraction", "cpu_ms_per_frame",
                  "frames_per_cpu_s", "setup_cpu_s", "evaluation")
 
@@ -97,6 +101,13 @@ def main() -> None:
         est = read_trajectory(w / ("loc" if name == "localize" else "loc_map_only") / "trajectory_tum.txt", "tum")
         report[name]["ate_own_alignment_m"] = evaluate(gt_all, est, own).ate.rmse
     report["odometry_run_300_599_ate_m"] = odometry["evaluation"]["ate_rmse_m"]
+    overlap = map_overlap(args.data, stored)
+    report["upper_bound"] = {"min_overlap": MIN_OVERLAP, "frames": len(overlap),
+                             "overlapping": int(sum(o >= MIN_OVERLAP for o in overlap.values())),
+                             "overlapping_half": int(sum(o >= 0.5 for o in overlap.values()))}
+    for name in ("localize", "localize_map_only"):
+        report[name]["of_overlapping"] = coverage_of_bound(w / ("loc" if name == "localize" else "loc_map_only")
+                                                           / "localization.csv", overlap)
     if merge["merged"]:
         gt, cfg = open_dataset(args.data).groundtruth, EvalConfig(align=mapped["evaluation"]["align"])
         single_ate = single["evaluation"]["ate_rmse_m"]
@@ -133,6 +144,45 @@ def main() -> None:
                                recording_frames_posed=summary["frames_with_pose"])
                 report["extend_lost"][f"{name}_{how}"] = row
     print(json.dumps(report))
+
+
+def map_overlap(data: Path, stored: Path) -> dict[int, float]:
+    """Per frame of the localised part (raw index from ``SPLIT``): the share of its view the map's keyframes
+    saw, by ground truth (:func:`fgslam.eval.overlap.view_overlap`: ground-truth poses and depth images)."""
+    from fgslam.eval.overlap import view_overlap, view_samples
+    from fgslam.export.mapfile import load_stored_map
+    from fgslam.io.datasets import DatasetConfig, open_dataset
+
+    ds = open_dataset(data, config=DatasetConfig(load_rgb=False, load_imu=False))
+    gt = ds.groundtruth
+    T_gt = {round(float(t), 6): T for t, T in zip(gt.timestamps, gt.T_WC)}
+    index = {round(float(t), 6): i for i, t in enumerate(ds.timestamps)}
+    keys = [index[round(float(t), 6)] for t in load_stored_map(stored).kf_timestamps]
+    keys = [i for i in keys if round(float(ds.timestamps[i]), 6) in T_gt]
+    depths = [ds[i].depth for i in keys]
+    T_keys = np.stack([T_gt[round(float(ds.timestamps[i]), 6)] for i in keys])
+    out = {}
+    for i in range(SPLIT, len(ds)):
+        frame, t = ds[i], round(float(ds.timestamps[i]), 6)
+        if t in T_gt and frame.depth is not None:
+            K = frame.calibration.K
+            out[i] = view_overlap(view_samples(frame.depth, K, T_gt[t]), depths, K, T_keys)
+    return out
+
+
+def coverage_of_bound(csv_path: Path, overlap: dict[int, float]) -> dict:
+    """Of the frames overlapping the map by ``MIN_OVERLAP``: how many got a pose, and how many from the
+    localiser itself (tracked or relocalised, not the anchored odometry)."""
+    import csv
+
+    with open(csv_path, newline="", encoding="utf-8") as f:
+        status = {int(r["frame"]): r["status"] for r in csv.DictReader(f)}
+    frames = [i for i, o in overlap.items() if o >= MIN_OVERLAP]
+    posed = sum(status.get(i, "not_localised") != "not_localised" for i in frames)
+    by_localiser = sum(status.get(i) in ("tracked", "relocalised") for i in frames)
+    n = max(len(frames), 1)
+    return {"posed": posed, "posed_fraction": posed / n, "by_localiser": by_localiser,
+            "by_localiser_fraction": by_localiser / n}
 
 
 def ate_in_map(gt, est, A: np.ndarray) -> float:
