@@ -14,4 +14,4 @@ def test_coverage_counts_only_overlapping_frames_and_tells_the_localiser_from_th
     overlap = {300: 0.9, 301: 0.3, 302: 0.5, 303: 0.6, 304: 0.29, 305: 0.7}
     got = bench_maps.coverage_of_bound(csv_path, overlap)
     assert got == {"posed": 3, "posed_fraction": 3 / 5, "by_localiser": 2, "by_localiser_fraction": 2 / 5}
-    assert bench_maps.coverage_of_bound(csv_path, {304: 0.1})["posed_fraction"] == 0.0
+    assert bench_maps.coverage_of_bound(csv_path, {304: 0.1})["posed_fraction"] is None  # none overlaps

@@ -1,6 +1,7 @@
 """fgslam.eval.overlap: the share of a frame's view that a map keyframe saw, by ground truth."""
 
 import numpy as np
+import pytest
 
 from fgslam.eval.overlap import grid_pixels, seen_share, view_overlap, view_samples
 
@@ -40,11 +41,26 @@ def test_points_behind_the_camera_occluded_or_in_holes_are_not_seen():
     assert seen_share(view, plane(2.0), K, pose(yaw_deg=180.0)) == 0.0  # looking away
     assert seen_share(view, plane(1.0), K, pose()) == 0.0  # a nearer surface hides the points
     assert seen_share(view, plane(2.1), K, pose()) == 1.0  # within the 10 % of the keyframe's depth
+    assert seen_share(view, plane(2.2), K, pose()) == 1.0  # 0.2 m off, within 10 % of 2.2 m: relative
+    assert seen_share(view, plane(1.8), K, pose()) == 0.0  # 0.2 m off, beyond 10 % of 1.8 m
     assert seen_share(view, plane(2.0), K, pose(), depth_tolerance=0.01) == 1.0
+    assert seen_share(view, plane(2.1), K, pose(), depth_tolerance=0.01) == 0.0
     holes = plane(2.0)
     holes[:, : W // 2] = 0.0
-    holes[0, -1] = np.nan
-    assert seen_share(view, holes, K, pose()) == 0.5
+    holes[1, -1] = np.nan  # a grid pixel (cell centres: rows 1, 3, 5, ...): one point fewer seen
+    assert seen_share(view, holes, K, pose()) == 0.5 - 1 / (32 * 24)
+
+
+def test_the_keyframe_pose_is_camera_to_world():
+    """The keyframe 0.64 m to the right sees the frame's right half, at its own left: the half of its depth
+    image on the right holds nothing of it (the inverse convention would look at the other half)."""
+    view = view_samples(plane(2.0), K, pose())
+    right_empty = plane(2.0)
+    right_empty[:, W // 2:] = 0.0
+    assert seen_share(view, right_empty, K, pose((0.64, 0.0, 0.0))) == 0.5
+    left_empty = plane(2.0)
+    left_empty[:, : W // 2] = 0.0
+    assert seen_share(view, left_empty, K, pose((0.64, 0.0, 0.0))) == 0.0
 
 
 def test_pixels_without_depth_leave_the_view_and_an_empty_view_is_unseen():
@@ -63,3 +79,5 @@ def test_the_overlap_is_the_keyframe_that_saw_most():
     keys = np.stack([pose((7.0, 0.0, 0.0)), pose((5.64, 0.0, 0.0)), pose((5.0, 0.0, 0.0), yaw_deg=180.0)])
     assert view_overlap(view, [plane(2.0)] * 3, K, keys) == 0.5
     assert view_overlap(view, [], K, np.zeros((0, 4, 4))) == 0.0
+    with pytest.raises(ValueError):
+        view_overlap(view, [plane(2.0)] * 2, K, keys)

@@ -7,9 +7,11 @@ its view some map keyframe (ground-truth pose, depth image) also saw:
 - the frame's depth pixels on a ``grid`` (columns, rows) of pixel centres, back-projected to 3-D points
   (pixels without depth are left out);
 - each point projected into each keyframe: it counts as seen there when it falls inside that image, in
-  front of the camera, and its depth agrees with the keyframe's depth at that pixel within
-  ``depth_tolerance`` of the latter (a point behind a nearer surface, or in a hole, is not seen);
-- the frame's overlap is the largest share over the keyframes (the keyframe that saw most of it).
+  front of the camera, and its depth agrees with the keyframe's depth at the nearest pixel (pixel centres
+  at integer coordinates) within ``depth_tolerance`` of the latter (a point behind a nearer surface, or
+  in a hole, is not seen);
+- the frame's overlap is the largest share over the keyframes (the one keyframe that saw most of it; a
+  localiser that uses several keyframes at once may pose a frame no single keyframe sees much of).
 
 Pure numpy; the caller reads the images and poses (``tools/bench_maps.py``: frames of the localised
 sequence against the keyframes of the map, all from the dataset's ground truth).
@@ -67,14 +69,14 @@ def seen_share(view: ViewSamples, depth_k: np.ndarray, K: np.ndarray, T_WCk: np.
     if n == 0:
         return 0.0
     T_CkC = np.linalg.inv(np.asarray(T_WCk, dtype=np.float64)) @ view.T_WC
-    X = view.X_C @ T_CkC[:3, :3].T + T_CkC[:3, 3]
+    X_Ck = view.X_C @ T_CkC[:3, :3].T + T_CkC[:3, 3]
     fx, fy, cx, cy = (float(k) for k in K)
     h, w = depth_k.shape
-    z = X[:, 2]
+    z = X_Ck[:, 2]
     front = z > 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.where(front, fx * X[:, 0] / z + cx, -1.0)
-        v = np.where(front, fy * X[:, 1] / z + cy, -1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):  # nearest pixel: centres at integer coordinates
+        u = np.floor(np.where(front, fx * X_Ck[:, 0] / z + cx, -1.0) + 0.5)
+        v = np.floor(np.where(front, fy * X_Ck[:, 1] / z + cy, -1.0) + 0.5)
     inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
     d = np.zeros(n)
     d[inside] = depth_k[v[inside].astype(np.int64), u[inside].astype(np.int64)]
@@ -85,8 +87,8 @@ def seen_share(view: ViewSamples, depth_k: np.ndarray, K: np.ndarray, T_WCk: np.
 def view_overlap(view: ViewSamples, depths_k, K: np.ndarray, T_WCk: np.ndarray,
                  depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE) -> float:
     """The largest :func:`seen_share` of ``view`` over keyframes with depth images ``depths_k`` (a sequence
-    of ``(H, W)``) and poses ``T_WCk`` ``(M, 4, 4)``; 0.0 without keyframes."""
+    of ``(H, W)``, one per pose) and poses ``T_WCk`` ``(M, 4, 4)``; 0.0 without keyframes."""
     best = 0.0
-    for depth_k, T in zip(depths_k, T_WCk):
-        best = max(best, seen_share(view, depth_k, K, T, depth_tolerance))
+    for depth_k, T_WCk_i in zip(depths_k, T_WCk, strict=True):
+        best = max(best, seen_share(view, depth_k, K, T_WCk_i, depth_tolerance))
     return best
