@@ -164,7 +164,7 @@ class PatchFrontend(BackendFrontend):
             return self.initialiser.initialize(fid, frame)
         tracked = self.tracker.track(fid, frame)
         if isinstance(tracked, TrackingFailure):
-            return self._fail(fid, frame, tracked.reason, tracked.T_WC_pred)
+            return self._fail(fid, frame, tracked.reason, tracked.T_WC_pred, tracked.num_valid)
         return tracked
 
     def _recover(self, fid: int, frame, exc: BaseException) -> FrameStatus:
@@ -189,10 +189,12 @@ class PatchFrontend(BackendFrontend):
     def _keyframe_T_WC(self, fid: int) -> np.ndarray:
         return self.state.keyframe_T_WC(fid)
 
-    def _fail(self, fid: int, frame, reason: str, T_WC_pred: np.ndarray | None = None) -> FrameStatus:
-        """Frame ``fid`` could not be tracked: the IMU's pose when the motion prior gives one (bridged),
-        else the predicted pose ``T_WC_pred`` (None: the motion model's), counted as a failure; too many
-        in a row finalise the map and start a new initialisation (:meth:`_reset`)."""
+    def _fail(self, fid: int, frame, reason: str, T_WC_pred: np.ndarray | None = None,
+              num_valid: int = 0) -> FrameStatus:
+        """Frame ``fid`` could not be tracked (``num_valid`` valid image measurements): the IMU's pose when
+        the motion prior gives one (bridged), else the predicted pose ``T_WC_pred`` (None: the motion
+        model's), counted as a failure; too many in a row finalise the map and start a new initialisation
+        (:meth:`_reset`)."""
         st, motion = self.state, self.motion
         self.tracker.clear_stationary()  # stationary frames keep their keyframe's pose
         T_WC_prior = motion.prior(float(frame.timestamp)) if motion.prior is not None and st.initialized else None
@@ -200,13 +202,13 @@ class PatchFrontend(BackendFrontend):
             self._records[fid] = RelativePose(motion.last_fid, np.linalg.inv(st.pose_of(motion.last_fid)) @ T_WC_prior)
             motion.last_fid = fid
             logger.info("frame %d: %s; pose from the IMU", frame.index, reason)
-            return st.status(fid, frame, "imu", events=[reason, "imu bridge"])
+            return st.status(fid, frame, "imu", num_valid=num_valid, events=[reason, "imu bridge"])
         st.failures += 1
         st.lost += 1
         events = [reason]
         if motion.last_fid is None or not st.initialized:
             self._records[fid] = None
-            return st.status(fid, frame, "initializing", events=events)
+            return st.status(fid, frame, "initializing", num_valid=num_valid, events=events)
         if T_WC_pred is None:
             T_WC_pred = motion.predict()
         ref = motion.last_fid
@@ -225,7 +227,7 @@ class PatchFrontend(BackendFrontend):
             events.append("re-initialising")
             self._reset()
         logger.info("frame %d: %s", frame.index, reason)
-        return st.status(fid, frame, source, events=events, new_map=restart)
+        return st.status(fid, frame, source, num_valid=num_valid, events=events, new_map=restart)
 
     def _reset(self) -> None:
         """Finalise the graph and start a new initialisation anchored at the last predicted pose."""

@@ -36,10 +36,12 @@ from .window import LocalBA
 
 @dataclass
 class TrackingFailure:
-    """Why a frame could not be tracked, and its predicted pose (``T_WC_pred``, 4x4)."""
+    """Why a frame could not be tracked, its predicted pose (``T_WC_pred``, 4x4) and how many of its
+    image measurements were valid (``num_valid``: too few, or an implausible motion's)."""
 
     reason: str
     T_WC_pred: np.ndarray
+    num_valid: int = 0
 
 
 def image_information(state: PatchState, fid: int, T_WC: np.ndarray) -> np.ndarray:
@@ -154,7 +156,7 @@ class Tracker:
             if implausible is not None and motion.reference is None:
                 motion.reference = motion.velocity.copy()
             reason = f"tracking lost: {valid} valid measurements" if implausible is None else implausible
-            return TrackingFailure(reason, T_WC_pred)
+            return TrackingFailure(reason, T_WC_pred, valid)
         st.lost = 0
         motion.reference = None
         t0 = time.perf_counter()
