@@ -1,6 +1,7 @@
 """tools/bench_stability.py: the perturbed copies of a sequence change the focal lengths of every
-calibration format by the factor and nothing else; the old-CPU variables parse; the summary's ratio;
-synthetic sequences of a chosen size and seed."""
+calibration format by the factor and nothing else; the pixels copy changes the camera images by one grey
+level and nothing else; the old-CPU variables parse; the summary's ratio; synthetic sequences of a chosen
+size and seed."""
 
 from pathlib import Path
 
@@ -64,6 +65,35 @@ def test_perturbed_copy_links_everything_but_the_calibration(bench, tmp_path):
     assert (copy / "groundtruth.txt").is_symlink() and (copy / "mav0" / "cam0" / "data").is_symlink()
     sensor = copy / "mav0" / "cam0" / "sensor.yaml"
     assert not sensor.is_symlink() and sensor.read_text() == f"intrinsics: [{100.0 * FACTOR!r}, {100.0 * FACTOR!r}, 50.0, 40.0]\n"
+
+
+def test_pixels_copy_moves_a_tenth_of_each_camera_image_by_one_level_and_links_the_rest(bench, tmp_path):
+    import cv2
+
+    rng = np.random.default_rng(3)
+    root = tmp_path / "seq"
+    images = {"mav0/cam0/data/0.png": rng.integers(0, 256, (48, 64, 3), dtype=np.uint8),  # colour, and the extremes
+              "image_1/000000.png": np.array([[0, 255] * 32] * 48, dtype=np.uint8),      # grey (KITTI)
+              "seq-01/frame-000000.color.jpg": rng.integers(0, 256, (48, 64), dtype=np.uint8)}
+    depth = rng.integers(0, 5000, (48, 64), dtype=np.uint16)
+    for rel, image in {**images, "mav0/depth0/data/0.png": depth}.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        assert cv2.imwrite(str(root / rel), image)
+    (root / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    copy = bench.pixels_copy(root, tmp_path / "copy")
+    for rel in images:
+        assert not (copy / rel).is_symlink()
+        image = cv2.imread(str(root / rel), cv2.IMREAD_UNCHANGED)  # as the loader decodes it (the JPEG's, lossy)
+        changed = cv2.imread(str(copy / rel), cv2.IMREAD_UNCHANGED).astype(np.int16) - image  # PNG bytes: by content
+        assert set(np.unique(changed)) <= {-1, 0, 1}
+        share = (changed != 0).mean()  # the drawn tenth, less the steps clipped at 0 and 255 (half, on image_1)
+        assert 0.4 * bench.PIXEL_SHARE < share < bench.PIXEL_SHARE + 0.02
+        if "image_1" not in rel:
+            assert share > bench.PIXEL_SHARE - 0.02  # 3,072 or 9,216 draws: the binomial's spread is 0.003-0.005
+        assert np.all(image[changed > 0] < 255) and np.all(image[changed < 0] > 0)  # clipped, never wrapped
+    assert (copy / "mav0/depth0/data/0.png").is_symlink() and (copy / "calib.txt").is_symlink()
+    again = bench.pixels_copy(root, tmp_path / "again")  # seeded: the same bytes
+    assert all((copy / rel).read_bytes() == (again / rel).read_bytes() for rel in images)
 
 
 def test_old_cpu_variables_parse(bench):

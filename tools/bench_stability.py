@@ -10,7 +10,10 @@ of the input that a SLAM system should notice:
   with them) scaled by 1 +- 1e-6 in a copy of the sequence whose other files are links;
 - ``threads1`` / ``threads2``: ``-o threads=N`` (torch and OpenCV threads of the run);
 - ``oldcpu``: another CPU's kernels (torch, oneDNN, MKL, OpenBLAS, OpenCV): the variables of
-  ``tools/old-cpu.env``, which CI's second step also uses.
+  ``tools/old-cpu.env``, which CI's second step also uses;
+- ``pixels``: one grey level added or taken on a seeded tenth of every camera image's pixels (colour
+  and grey; depth untouched), in a copy of the sequence written losslessly: the size of a decoder's
+  rounding (libpng's colour-to-grey is one level off OpenCV's on about 40 % of a render's pixels).
 
 Targets (issue 36): max/min ATE <= 1.25 for the recommended presets, <= 1.5 for each family's main
 presets. Runs are separate ``fgslam run`` processes (``--jobs`` at a time); synthetic sequences are
@@ -76,7 +79,11 @@ CASES: dict[str, Case] = {
     "pointmap_7scenes_mono": Case("pointmap_7scenes_mono", KITCHEN, FAMILY_RATIO),
     "pointmap_7scenes_rgbd": Case("pointmap_7scenes_rgbd", KITCHEN, FAMILY_RATIO),
 }
-PERTURBATIONS = ("base", "focal+1ppm", "focal-1ppm", "threads1", "threads2", "oldcpu")
+PERTURBATIONS = ("base", "focal+1ppm", "focal-1ppm", "threads1", "threads2", "oldcpu", "pixels")
+PIXEL_SHARE = 0.1  # ``pixels``: the share of each camera image's pixels moved by one grey level
+PIXEL_SEED = 0
+#: camera images a ``pixels`` copy rewrites (depth maps, being 16-bit or named depth, are linked unchanged)
+CAMERA_IMAGE = re.compile(r"(\.color\.(png|jpg)|/(image_[0-3]|cam[0-3]/data)/[^/]+\.png)$")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -169,6 +176,36 @@ def perturbed_copy(root: Path, dest: Path, factor: float) -> Path:
     return dest
 
 
+def pixels_copy(root: Path, dest: Path, share: float = PIXEL_SHARE, seed: int = PIXEL_SEED) -> Path:
+    """``root`` mirrored under ``dest`` by links, every camera image (:data:`CAMERA_IMAGE`) rewritten with one
+    grey level added or taken on ``share`` of its pixels (seeded by ``seed`` and the file's name), as PNG
+    bytes under the same name (the loaders decode by content)."""
+    import cv2
+    import numpy as np
+
+    if (dest / ".complete").exists():
+        return dest
+    shutil.rmtree(dest, ignore_errors=True)
+    for src in sorted(root.rglob("*")):
+        dst = dest / src.relative_to(root)
+        if src.is_dir():
+            dst.mkdir(parents=True, exist_ok=True)
+            continue
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        image = cv2.imread(str(src), cv2.IMREAD_UNCHANGED) if CAMERA_IMAGE.search(src.as_posix()) else None
+        if image is None or image.dtype != np.uint8:
+            dst.symlink_to(src.resolve())
+            continue
+        rng = np.random.default_rng([seed, *src.name.encode()])
+        step = np.where(rng.random(image.shape) < share, rng.choice(np.array([-1, 1], np.int16), image.shape), 0)
+        ok, png = cv2.imencode(".png", np.clip(image.astype(np.int16) + step, 0, 255).astype(np.uint8))
+        if not ok:
+            raise RuntimeError(f"{src}: could not encode the changed image")
+        dst.write_bytes(png.tobytes())
+    (dest / ".complete").write_text("")
+    return dest
+
+
 def old_cpu_env() -> dict[str, str]:
     """The ``VAR=VALUE`` lines of ``tools/old-cpu.env``."""
     lines = (line.strip() for line in OLD_CPU_ENV_FILE.read_text().splitlines())
@@ -184,6 +221,8 @@ def perturbation_setup(name: str, root: Path, work: Path) -> tuple[Path, list[st
         return root, [f"threads={name[len('threads'):]}"], {}
     if name == "oldcpu":
         return root, [], old_cpu_env()
+    if name == "pixels":
+        return pixels_copy(root, work / "data_pixels"), [], {}
     return root, [], {}
 
 
