@@ -23,7 +23,7 @@ def _shift(x: float) -> np.ndarray:
 class Port:
     """Relocalises every image as the next of ``answers`` (kf id, T_WC; None: not found); records the calls."""
 
-    classical = True
+    relocalizes = True
 
     def __init__(self, answers):
         self.answers, self.calls, self.moves = list(answers), [], []

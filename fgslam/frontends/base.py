@@ -74,6 +74,9 @@ class LoopPort(Protocol):
     def classical(self) -> bool: ...  # the classical closer (retrieval, relocalisation) runs
 
     @property
+    def relocalizes(self) -> bool: ...  # a lost frame can be relocalised (the closer's database or a loaded map): keyframes wanted
+
+    @property
     def proximity(self) -> Optional[ProximityGates]: ...  # the proximity gates, None when proximity loops are off
 
     def add_keyframe(self, kf_id: int, neighbours: Sequence[int] = ()) -> bool: ...
@@ -108,6 +111,7 @@ class NoLoops:
 
     enabled = False
     classical = False
+    relocalizes = False
     proximity = None
     runs_global_ba = False
     busy = False
@@ -168,6 +172,9 @@ class Frontend(abc.ABC):
     #: the family hands global optimisations to the loop service's background worker, so the system
     #: connects a loop service (inert but for them) even with loop closure off
     background_global_ba: bool = False
+    #: the family hands its keyframes to the loop port for relocalisation without the classical closer
+    #: (``LoopPort.relocalizes``), so a loaded map (``fgslam run --map``) can relocalise its lost frames
+    relocalizes_in_loaded_map: bool = False
     #: the loop-closure port (:meth:`connect`)
     loops: LoopPort = NO_LOOPS
     #: the run's backend the frontend feeds (None: a frontend that feeds none, e.g. a test's stand-in)

@@ -85,7 +85,7 @@ def merge_recording(stored: StoredMap, recording: StoredMap, config: LocalizeCon
     parts = []
     for part in range(recording.sessions):
         own = [loc for loc in localised if recording.kf_session[loc[0]] == part]
-        fit = _fit_transform(own, mc, metric)
+        fit = fit_transform(own, mc, metric)
         fits.append(fit)
         parts.append({"keyframes": int(np.sum(recording.kf_session == part)), "localised": len(own),
                       "consistent": 0 if fit is None else len(fit[1]), "merged": fit is not None,
@@ -160,7 +160,7 @@ def _keyframes_of(stored: StoredMap, keep: np.ndarray) -> StoredMap:
         stored.frame_timestamps[frames], kf_position[stored.frame_kf[frames]], stored.frame_T_KC[frames])
 
 
-def _fit_transform(pairs: list[Localised], mc: MapMergeConfig, metric: bool) -> tuple[np.ndarray, list[Localised]] | None:
+def fit_transform(pairs: list[Localised], mc: MapMergeConfig, metric: bool) -> tuple[np.ndarray, list[Localised]] | None:
     """The map-from-recording transform (4x4) of localised keyframes ``pairs`` (:func:`merge_recording`)
     and the consistent ones among them, or None with fewer than ``mc.min_keyframes`` consistent."""
     if len(pairs) < mc.min_keyframes:

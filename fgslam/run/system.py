@@ -106,7 +106,8 @@ class SlamSystem:
                                    contributor=contributor, dataset_noise=imu_noise, where=where)
             if imu is not None:  # map corrections of loops and plugins move the IMU states too
                 contributor = ObservedContributor(contributor, imu.adapt_correction, (imu.on_correction,))
-        loops = cls._loop_service(frontend, config.loop_closure, contributor) if backend is not None else None
+        link = cls._loaded_map_link(config, frontend) if backend is not None else None
+        loops = cls._loop_service(frontend, config.loop_closure, contributor, link) if backend is not None else None
         plugins = None
         if config.factors:
             plugins = FactorPlugins(config.factors, backend, timestamps, contributor=contributor)
@@ -122,18 +123,32 @@ class SlamSystem:
         return cls(frontend, loops=cls._loop_service(frontend, loop_config))
 
     @staticmethod
+    def _loaded_map_link(config: SlamConfig, frontend: Frontend):
+        """The loaded map a metric run of a family that uses it relocalises in (``--map``,
+        ``output.map_relocalize``; :class:`fgslam.localize.live.LoadedMapLink`), or None. Its camera was
+        checked before the run."""
+        out = config.output
+        if not (out.extend_map and out.map_relocalize and frontend.metric_scale and frontend.relocalizes_in_loaded_map):
+            return None
+        from ..export.mapfile import load_stored_map  # deferred: the map's libraries
+        from ..localize.live import LoadedMapLink  # deferred: as above
+        from ..localize.localizer import LocalizeConfig  # deferred: as above
+
+        return LoadedMapLink(load_stored_map(out.extend_map), LocalizeConfig(merge=out.map_merge))
+
+    @staticmethod
     def _loop_service(frontend: Frontend, loop_config: Optional[LoopClosureConfig],
-                      contributor: Optional[Contributor] = None) -> Optional[LoopService]:
+                      contributor: Optional[Contributor] = None, link=None) -> Optional[LoopService]:
         """The loop-closure service with ``frontend`` as its contributor (or ``contributor``, the
         frontend's seen through the IMU's correction hooks) (None: ``loop_config`` None or off,
-        unless the frontend hands global optimisations to the service's worker: then a service with
-        loop closure off, inert but for them)."""
+        unless the frontend hands global optimisations to the service's worker, or ``link``, a loaded
+        map to relocalise in, is given: then a service with loop closure off, inert but for them)."""
         if loop_config is None or loop_config.mode == "off":
-            if not frontend.background_global_ba:
+            if not frontend.background_global_ba and link is None:
                 return None
             loop_config = loop_config if loop_config is not None else LoopClosureConfig(mode="off")
         return LoopService(contributor if contributor is not None else frontend.contributor, loop_config,
-                           metric=bool(frontend.metric_scale), proximity=frontend.proximity_gates)
+                           metric=bool(frontend.metric_scale), proximity=frontend.proximity_gates, link=link)
 
     # ------------------------------------------------------------------ the run
     def step(self, frame: Frame) -> FrameStatus:

@@ -21,6 +21,10 @@ calls the rest at fixed points of its frame loop:
 - :meth:`LoopService.relocalize` when the track is lost, :meth:`LoopService.map_reset` when the
   frontend starts a new map, :meth:`LoopService.finish` at the end.
 
+A loaded map (``fgslam run --map``, metric sensors: a :class:`MapLink`,
+:class:`fgslam.localize.live.LoadedMapLink`) gets the keyframes too, and a lost frame that the closer's
+database does not relocalise (or every lost frame, with loop closure off) is relocalised in it.
+
 Classical (``mode`` classical or both): :class:`fgslam.loop.closure.LoopCloser` in its worker thread;
 a correction is a :class:`~fgslam.contracts.contributor.PoseCorrection` (metric maps: SE(3)).
 
@@ -38,6 +42,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
+from typing import Protocol
 
 import numpy as np
 
@@ -49,6 +54,16 @@ from .proximity import ProximityLoops
 logger = logging.getLogger(__name__)
 
 
+class MapLink(Protocol):
+    """A loaded map the run relocalises in (:class:`fgslam.localize.live.LoadedMapLink`)."""
+
+    def add_keyframe(self, kf_id: int, image: np.ndarray) -> bool: ...  # localise a run keyframe in the map
+
+    def map_reset(self) -> None: ...  # the run starts a new map
+
+    def relocalize(self, image: np.ndarray, T_WC_by_id: dict) -> tuple[int, np.ndarray] | None: ...  # in the run's frame
+
+
 class LoopService:
     """Loop closure beside one contributor (see the module docstring).
 
@@ -58,20 +73,23 @@ class LoopService:
         config: ``loop_closure`` (None: off).
         metric: the map has a metric scale (stereo / RGB-D): classical corrections are SE(3).
         proximity: the family's proximity gates (needed when ``config.proximity``).
+        link: a loaded map to relocalise in as well (None: none; module docstring).
     """
 
     def __init__(self, contributor: Contributor, config: LoopClosureConfig | None = None, metric: bool = False,
-                 proximity: ProximityGates | None = None):
+                 proximity: ProximityGates | None = None, link: MapLink | None = None):
         self.contributor = contributor
         self.config = config if config is not None else LoopClosureConfig()
         self.config.validate()
         self.closer = LoopCloser(self.config, metric=metric) if self.config.classical else None
         self.proximity = proximity if self.config.proximity else None
+        self.link = link
+        self._link_poses: dict = {}  # the run's latest keyframe poses, for the link's fit
         self._times: dict[str, float] = {}
-        if self.closer is not None:
+        if self.closer is not None or link is not None:
             self._times["loop"] = 0.0
             self._counts = {"corrections_applied": 0, "keyframes_added": 0, "relocalization_attempts": 0,
-                            "relocalized": 0}
+                            "relocalized": 0, "relocalized_in_loaded_map": 0}
         self._last_added = -1  # newest keyframe id handed to the closer
         # proximity loops and every global BA (run_global_ba also without proximity loops)
         self.proximity_closer = ProximityLoops(contributor, self.config, self.proximity, self.closer)
@@ -85,6 +103,12 @@ class LoopService:
     def classical(self) -> bool:
         """Whether the classical closer (retrieval, verification, relocalisation) runs."""
         return self.closer is not None
+
+    @property
+    def relocalizes(self) -> bool:
+        """Whether a lost frame can be relocalised (the classical closer's database, or a loaded map): the
+        service then takes keyframes (:meth:`add_keyframe`)."""
+        return self.closer is not None or self.link is not None
 
     def verified_loops(self) -> list:
         """The classical closer's verified loops so far (oldest first; empty without the closer)."""
@@ -140,6 +164,8 @@ class LoopService:
     def map_reset(self) -> None:
         """The contributor starts a new map: a running global BA of the old one is dropped."""
         self.proximity_closer.map_reset()
+        if self.link is not None:
+            self.link.map_reset()
 
     def move_map(self, correction: PoseCorrection, T_WC_by_id: dict) -> bool:
         """A correction the contributor's frontend measured itself (a restarted map rejoining the map before
@@ -149,21 +175,26 @@ class LoopService:
         self.contributor.apply_correction(correction)
         if self.closer is not None:
             self.closer.moved(T_WC_by_id)
+        self._link_poses.update(T_WC_by_id)
         self.proximity_closer.map_reset()
         return True
 
     # ------------------------------------------------------------------ classical
     def add_keyframe(self, kf_id: int, neighbours: Sequence[int] = ()) -> bool:
-        """Hand keyframe ``kf_id`` (pose final or about to be) to the closer, once; False when it was
-        handed already or the contributor has no image of it."""
-        if self.closer is None or kf_id <= self._last_added:
+        """Hand keyframe ``kf_id`` (pose final or about to be) to the closer and the loaded map, once; False
+        when it was handed already or the contributor has no image of it."""
+        if not self.relocalizes or kf_id <= self._last_added:
             return False
         t0 = time.perf_counter()
         kf = self.contributor.keyframe_image(kf_id)
         T_WC = self.contributor.keyframe_pose(kf_id)
         added = kf is not None and T_WC is not None
         if added:
-            self.closer.add_keyframe(kf_id, kf.timestamp, kf.image, kf.K, T_WC, neighbours=neighbours)
+            if self.closer is not None:
+                self.closer.add_keyframe(kf_id, kf.timestamp, kf.image, kf.K, T_WC, neighbours=neighbours)
+            if self.link is not None:
+                self.link.add_keyframe(kf_id, kf.image)
+                self._link_poses[kf_id] = T_WC
             self._last_added = kf_id
             self._counts["keyframes_added"] += 1
         self._times["loop"] += time.perf_counter() - t0
@@ -175,15 +206,21 @@ class LoopService:
             t0 = time.perf_counter()
             self.closer.update_poses(T_WC_by_id)
             self._times["loop"] += time.perf_counter() - t0
+        if self.link is not None:
+            self._link_poses.update(T_WC_by_id)
 
     def relocalize(self, image: np.ndarray, K: np.ndarray, before: int | None = None) -> tuple[int, np.ndarray] | None:
         """``(kf_id, T_WC)`` of a lost frame's image on the keyframe database (``before``: only keyframes with
-        a smaller id, e.g. those of the maps before a restart), or None."""
-        if self.closer is None:
+        a smaller id, e.g. those of the maps before a restart), else in the loaded map (``kf_id``: its keyframe;
+        ``T_WC`` in the run's frame), or None."""
+        if not self.relocalizes:
             return None
         t0 = time.perf_counter()
         self._counts["relocalization_attempts"] += 1
-        found = self.closer.relocalize(image, K, before)
+        found = None if self.closer is None else self.closer.relocalize(image, K, before)
+        if found is None and self.link is not None:
+            found = self.link.relocalize(image, self._link_poses)
+            self._counts["relocalized_in_loaded_map"] += found is not None
         self._times["loop"] += time.perf_counter() - t0
         if found is not None:
             self._counts["relocalized"] += 1
@@ -244,10 +281,12 @@ class LoopService:
     def summary(self, index: dict[int, int] | None = None) -> dict | None:
         """Loop-closure counts for the run summary (None when off); ``index`` maps keyframe ids to the
         input frame indices reported in ``loop_frames`` (-1: unknown)."""
-        if not self.enabled:
+        if not self.enabled and self.link is None:
             return None
         index = index or {}
         out: dict = {"mode": self.config.mode}
+        if self.closer is None and self.link is not None:
+            out.update(self._counts)
         if self.closer is not None:
             loops = self.closer.loops
             out.update({**self._counts,

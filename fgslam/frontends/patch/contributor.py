@@ -63,7 +63,7 @@ class PatchContributor:
     def keep_image(self, fid: int, frame, buffered: set[int] | None) -> None:
         """Keep the image of frame ``fid`` while it is in the graph (or ``buffered`` for initialisation:
         the frames a pending initialisation holds, None when there is none)."""
-        if not self.loops.classical:
+        if not self.loops.relocalizes:
             return
         self.images[fid] = (frame.image, float(frame.timestamp), frame.depth)
         keep = buffered if buffered is not None else {f.fid for f in self.state.graph.frames}
@@ -74,7 +74,7 @@ class PatchContributor:
         """Hand keyframes that can no longer be removed (graph positions below
         ``len - 1 - keyframe_index``; every graph frame with ``all_frames``) to the closer, then the
         latest graph poses."""
-        if not self.loops.classical:
+        if not self.loops.relocalizes:
             return
         g = self.state.graph
         final = len(g) if all_frames else len(g) - 1 - self.state.config.tracking.keyframe_index

@@ -77,6 +77,7 @@ class PatchFrontend(BackendFrontend):
     """
 
     name = "patch"
+    relocalizes_in_loaded_map = True  # keyframes and lost frames go to the loop port without the closer (rejoin.py)
 
     def __init__(self, config: PatchConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
                  backend: Backend | None = None):

@@ -10,7 +10,8 @@ Attempts run on frames that entered the graph (not on stationary frames, which r
 view). A map that was not rejoined stays out of the reference: a later restart rejoins only the maps
 before the first such map. Metric maps only (RGB-D, stereo): a monocular map restarts at a scale of its
 own, which one relocalisation does not measure. Needs the classical loop closer's database
-(``loop_closure.mode`` classical or both); otherwise nothing is tried. Numerical trouble in an attempt
+(``loop_closure.mode`` classical or both) or a loaded map (``fgslam run --map``: the lost frame's
+relocalisation falls back to it, :mod:`fgslam.localize.live`); otherwise nothing is tried. Numerical trouble in an attempt
 ends the attempts with a logged warning, never the run.
 """
 
@@ -50,7 +51,7 @@ class MapRejoin:
         """A restart at frame ``start`` that was not relocalised: its map may rejoin the maps before it."""
         self._give_up()  # a map still waiting is left where it is
         cfg = self.state.config.tracking
-        if cfg.rejoin_frames == 0 or not self.loops.classical or self.state.sensor_mode == "mono":
+        if cfg.rejoin_frames == 0 or not self.loops.relocalizes or self.state.sensor_mode == "mono":
             self.reference_end = start if self.reference_end is None else self.reference_end
             return
         self.start, self.frames, self.pending = start, 0, None
