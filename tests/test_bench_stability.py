@@ -96,6 +96,23 @@ def test_pixels_copy_moves_a_tenth_of_each_camera_image_by_one_level_and_links_t
     assert all((copy / rel).read_bytes() == (again / rel).read_bytes() for rel in images)
 
 
+def test_pixels_copy_changes_a_stereo_pairs_images_differently_and_refuses_an_unknown_layout(bench, tmp_path):
+    import cv2
+
+    root = tmp_path / "seq"
+    image = np.full((48, 64), 128, np.uint8)
+    for cam in ("cam0", "cam1"):
+        (root / "mav0" / cam / "data").mkdir(parents=True)
+        assert cv2.imwrite(str(root / "mav0" / cam / "data" / "0.png"), image)
+    copy = bench.pixels_copy(root, tmp_path / "copy")
+    left, right = (cv2.imread(str(copy / "mav0" / cam / "data" / "0.png"), cv2.IMREAD_UNCHANGED) for cam in ("cam0", "cam1"))
+    assert not np.array_equal(left, right)
+    (tmp_path / "other" / "rgb").mkdir(parents=True)
+    assert cv2.imwrite(str(tmp_path / "other" / "rgb" / "0.png"), image)
+    with pytest.raises(RuntimeError, match="no camera image"):
+        bench.pixels_copy(tmp_path / "other", tmp_path / "other_copy")
+
+
 def test_old_cpu_variables_parse(bench):
     env = bench.old_cpu_env()
     assert env["ATEN_CPU_CAPABILITY"] == "default" and "OPENCV_CPU_DISABLE" in env

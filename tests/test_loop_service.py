@@ -444,3 +444,46 @@ def test_cancel_ends_a_running_global_ba_in_its_worker_process_at_once(monkeypat
     for process in processes:
         assert _ended(process, WAIT_S)
     assert service.summary({})["proximity"]["undone"] == 1
+
+
+# ----------------------------------------------------------------------------------- a loaded map
+
+class FakeLink:
+    """A loaded map (services.loops.MapLink) that records what it is given and relocalises every lost frame
+    at a pose read from the contributor's keyframe 0 (None: not found)."""
+
+    def __init__(self, found: bool):
+        self.found, self.keyframes, self.resets = found, [], 0
+
+    def add_keyframe(self, kf_id, image):
+        self.keyframes.append(kf_id)
+        return True
+
+    def map_reset(self):
+        self.resets += 1
+
+    def relocalize(self, image, pose_of):
+        step = np.eye(4)
+        step[0, 3] = 0.1
+        return (7, pose_of(0) @ step) if self.found else None
+
+
+@pytest.mark.parametrize("found", [True, False])
+def test_without_the_closer_a_loaded_map_takes_the_keyframes_and_relocalises_lost_frames(found):
+    toy = ToyKeyframes(np.array([100.0, 100.0, 32.0, 24.0]))
+    toy.images[0], toy.poses[0] = (np.zeros((48, 64), np.uint8), 0.0), np.eye(4)
+    toy.poses[0][:3, 3] = (1.0, 2.0, 3.0)
+    link = FakeLink(found)
+    service = LoopService(toy, LoopClosureConfig(mode="off"), metric=True, link=link)
+    assert service.relocalizes and not service.classical and not service.enabled
+    assert service.add_keyframe(0) and not service.add_keyframe(0) and link.keyframes == [0]
+    result = service.relocalize(np.zeros((48, 64), np.uint8), toy.K)
+    if found:  # the poses come from the contributor when asked (corrections included)
+        assert result[0] == 7 and np.allclose(result[1][:3, 3], [1.1, 2.0, 3.0])
+    else:
+        assert result is None
+    service.map_reset()
+    summary = service.summary()
+    assert link.resets == 1 and summary["mode"] == "off"
+    assert summary["relocalization_attempts"] == 1 and summary["relocalized_in_loaded_map"] == summary["relocalized"] == int(found)
+    assert LoopService(toy, LoopClosureConfig(mode="off")).summary() is None  # neither closer nor map: nothing to report

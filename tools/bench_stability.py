@@ -11,9 +11,10 @@ of the input that a SLAM system should notice:
 - ``threads1`` / ``threads2``: ``-o threads=N`` (torch and OpenCV threads of the run);
 - ``oldcpu``: another CPU's kernels (torch, oneDNN, MKL, OpenBLAS, OpenCV): the variables of
   ``tools/old-cpu.env``, which CI's second step also uses;
-- ``pixels``: one grey level added or taken on a seeded tenth of every camera image's pixels (colour
-  and grey; depth untouched), in a copy of the sequence written losslessly: the size of a decoder's
-  rounding (libpng's colour-to-grey is one level off OpenCV's on about 40 % of a render's pixels).
+- ``pixels``: one grey level added or taken on a seeded tenth of every camera image's pixel values
+  (each channel of a colour image; depth untouched), in a copy of the sequence written losslessly: the
+  size of a decoder's rounding (libpng's colour-to-grey is one level off OpenCV's on about 40 % of a
+  render's pixels).
 
 Targets (issue 36): max/min ATE <= 1.25 for the recommended presets, <= 1.5 for each family's main
 presets. Runs are separate ``fgslam run`` processes (``--jobs`` at a time); synthetic sequences are
@@ -80,7 +81,7 @@ CASES: dict[str, Case] = {
     "pointmap_7scenes_rgbd": Case("pointmap_7scenes_rgbd", KITCHEN, FAMILY_RATIO),
 }
 PERTURBATIONS = ("base", "focal+1ppm", "focal-1ppm", "threads1", "threads2", "oldcpu", "pixels")
-PIXEL_SHARE = 0.1  # ``pixels``: the share of each camera image's pixels moved by one grey level
+PIXEL_SHARE = 0.1  # ``pixels``: the share of each camera image's pixel values moved by one grey level
 PIXEL_SEED = 0
 #: camera images a ``pixels`` copy rewrites (depth maps, being 16-bit or named depth, are linked unchanged)
 CAMERA_IMAGE = re.compile(r"(\.color\.(png|jpg)|/(image_[0-3]|cam[0-3]/data)/[^/]+\.png)$")
@@ -178,14 +179,16 @@ def perturbed_copy(root: Path, dest: Path, factor: float) -> Path:
 
 def pixels_copy(root: Path, dest: Path, share: float = PIXEL_SHARE, seed: int = PIXEL_SEED) -> Path:
     """``root`` mirrored under ``dest`` by links, every camera image (:data:`CAMERA_IMAGE`) rewritten with one
-    grey level added or taken on ``share`` of its pixels (seeded by ``seed`` and the file's name), as PNG
-    bytes under the same name (the loaders decode by content)."""
+    grey level added or taken on ``share`` of its pixel values (seeded by ``seed`` and the file's path in the
+    sequence: a stereo pair's two images differ), as PNG bytes under the same name (the loaders decode by
+    content). RuntimeError: no camera image found (a layout :data:`CAMERA_IMAGE` does not know)."""
     import cv2
     import numpy as np
 
     if (dest / ".complete").exists():
         return dest
     shutil.rmtree(dest, ignore_errors=True)
+    rewritten = 0
     for src in sorted(root.rglob("*")):
         dst = dest / src.relative_to(root)
         if src.is_dir():
@@ -196,12 +199,15 @@ def pixels_copy(root: Path, dest: Path, share: float = PIXEL_SHARE, seed: int = 
         if image is None or image.dtype != np.uint8:
             dst.symlink_to(src.resolve())
             continue
-        rng = np.random.default_rng([seed, *src.name.encode()])
+        rng = np.random.default_rng([seed, *src.relative_to(root).as_posix().encode()])
         step = np.where(rng.random(image.shape) < share, rng.choice(np.array([-1, 1], np.int16), image.shape), 0)
         ok, png = cv2.imencode(".png", np.clip(image.astype(np.int16) + step, 0, 255).astype(np.uint8))
         if not ok:
             raise RuntimeError(f"{src}: could not encode the changed image")
         dst.write_bytes(png.tobytes())
+        rewritten += 1
+    if not rewritten:
+        raise RuntimeError(f"{root}: no camera image to change (pixels perturbation)")
     (dest / ".complete").write_text("")
     return dest
 

@@ -143,6 +143,9 @@ def format_report(s: dict) -> str:
             p = loop["proximity"]
             parts.append(f"proximity {p['accepted']} accepted of {p['candidates']} candidates, "
                          f"{p['global_ba_runs']} global BAs ({p['global_ba_s']:.1f} s)")
+        if "relocalized_in_loaded_map" in loop:
+            parts.append(f"relocalised in the loaded map {loop['relocalized_in_loaded_map']} times in "
+                         f"{loop['relocalization_attempts']} relocalisation attempts")
         lines.append(f"  loops:      {'; '.join(parts)} (mode {loop['mode']})")
     inertial = s.get("inertial")
     if inertial:

@@ -8,14 +8,16 @@ consistent ones, :func:`~fgslam.localize.merge.fit_transform`), puts it in the r
 the new map, as a relocalisation in the run's own keyframe database would be. So a run that loses its
 track relocalises against the loaded map too, before it starts a new map in a frame of its own.
 
-The fit uses the keyframes of the run's first map only: a map started after a lost track that was not
-relocalised is in a frame of its own until it rejoins, and its keyframes would mix the two frames. Metric
-runs only (RGB-D, stereo): the transform is rigid.
+The fit uses the keyframes of the run's first map only (every restart freezes it, a relocalised one
+too): a map started after a lost track that was not relocalised is in a frame of its own until it
+rejoins, and its keyframes would mix the two frames. Metric runs and maps only (RGB-D, stereo): the
+transform is rigid.
 """
 
 from __future__ import annotations
 
 import logging
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -44,6 +46,11 @@ class LoadedMapLink:
         self.relocalised = 0
 
     @property
+    def localised(self) -> dict[int, np.ndarray]:
+        """``T_MC`` (4x4, the map's frame) of each run keyframe localised in the map, by keyframe id."""
+        return {k: T_MC for k, (T_MC, _) in self._localised.items()}
+
+    @property
     def size(self) -> tuple[int, int]:
         """``(width, height)`` of the images the map was made at."""
         return self.localizer.size
@@ -64,18 +71,23 @@ class LoadedMapLink:
         self.frozen = True
         self.localizer.last = self.localizer.prev = None
 
-    def transform(self, T_WC_by_id: dict) -> np.ndarray | None:
+    def transform(self, pose_of: Callable[[int], Optional[np.ndarray]]) -> np.ndarray | None:
         """``S_MR`` (4x4, the run's frame to the map's) fitted on the localised keyframes at their poses
-        ``T_WC_by_id`` (the run's latest), or None with too few consistent ones."""
-        pairs: list[Localised] = [(k, T_MC, np.asarray(T_WC_by_id[k], np.float64), i)
-                                  for k, (T_MC, i) in sorted(self._localised.items()) if k in T_WC_by_id]
+        ``pose_of(kf_id)`` (the run's latest ``T_WC``; None: no longer a keyframe), or None with too few
+        consistent ones."""
+        pairs: list[Localised] = []
+        for k, (T_MC, i) in sorted(self._localised.items()):
+            T_WC = pose_of(k)
+            if T_WC is not None:
+                pairs.append((k, T_MC, np.asarray(T_WC, np.float64), i))
         fit = fit_transform(pairs, self.config.merge, metric=True)
         return None if fit is None else fit[0]
 
-    def relocalize(self, image: np.ndarray, T_WC_by_id: dict) -> tuple[int, np.ndarray] | None:
+    def relocalize(self, image: np.ndarray, pose_of: Callable[[int], Optional[np.ndarray]]) -> tuple[int, np.ndarray] | None:
         """``(stored keyframe id, T_WC in the run's frame)`` of a lost frame's ``image`` localised in the
-        stored map, or None (not localised there, or the run's frame not yet tied to the map's)."""
-        S_MR = self.transform(T_WC_by_id)
+        stored map, or None (not localised there, or the run's frame not yet tied to the map's);
+        ``pose_of``: the run's latest keyframe poses (:meth:`transform`)."""
+        S_MR = self.transform(pose_of)
         if S_MR is None:
             return None
         self.localizer.last = self.localizer.prev = None  # a lost frame: retrieval and verification
@@ -83,5 +95,5 @@ class LoadedMapLink:
         if res.T_WC is None:
             return None
         self.relocalised += 1
-        logger.info("relocalised in the loaded map (its keyframe %d, %d inliers)", res.kf_id, res.inliers)
+        logger.info("relocalised in the loaded map (on the map's keyframe %d, %d inliers)", res.kf_id, res.inliers)
         return int(res.kf_id), np.linalg.inv(S_MR) @ np.asarray(res.T_WC, np.float64)

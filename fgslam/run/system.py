@@ -41,7 +41,7 @@ from ..io.frame import Frame
 from ..loop.records import LoopClosureConfig
 from ..services.corrections import ObservedContributor
 from ..services.imu import ImuService, make_imu_service
-from ..services.loops import LoopService
+from ..services.loops import LoopService, MapLink
 from ..services.plugins import FactorPlugins
 from .config import SlamConfig
 
@@ -123,7 +123,7 @@ class SlamSystem:
         return cls(frontend, loops=cls._loop_service(frontend, loop_config))
 
     @staticmethod
-    def _loaded_map_link(config: SlamConfig, frontend: Frontend):
+    def _loaded_map_link(config: SlamConfig, frontend: Frontend) -> Optional[MapLink]:
         """The loaded map a metric run of a family that uses it relocalises in (``--map``,
         ``output.map_relocalize``; :class:`fgslam.localize.live.LoadedMapLink`), or None. Its camera was
         checked before the run."""
@@ -134,11 +134,16 @@ class SlamSystem:
         from ..localize.live import LoadedMapLink  # deferred: as above
         from ..localize.localizer import LocalizeConfig  # deferred: as above
 
-        return LoadedMapLink(load_stored_map(out.extend_map), LocalizeConfig(merge=out.map_merge))
+        stored = load_stored_map(out.extend_map)
+        if not stored.metric:  # a monocular map has a scale of its own: no rigid tie to this run's frame
+            logger.info("--map %s is monocular: the run does not relocalise in it while it goes on", out.extend_map)
+            return None
+        return LoadedMapLink(stored, LocalizeConfig(merge=out.map_merge))
 
     @staticmethod
     def _loop_service(frontend: Frontend, loop_config: Optional[LoopClosureConfig],
-                      contributor: Optional[Contributor] = None, link=None) -> Optional[LoopService]:
+                      contributor: Optional[Contributor] = None, link: Optional[MapLink] = None
+                      ) -> Optional[LoopService]:
         """The loop-closure service with ``frontend`` as its contributor (or ``contributor``, the
         frontend's seen through the IMU's correction hooks) (None: ``loop_config`` None or off,
         unless the frontend hands global optimisations to the service's worker, or ``link``, a loaded

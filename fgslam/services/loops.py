@@ -41,8 +41,8 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
-from typing import Protocol
+from collections.abc import Callable, Sequence
+from typing import Optional, Protocol
 
 import numpy as np
 
@@ -61,7 +61,8 @@ class MapLink(Protocol):
 
     def map_reset(self) -> None: ...  # the run starts a new map
 
-    def relocalize(self, image: np.ndarray, T_WC_by_id: dict) -> tuple[int, np.ndarray] | None: ...  # in the run's frame
+    def relocalize(self, image: np.ndarray, pose_of: Callable[[int], Optional[np.ndarray]]
+                   ) -> tuple[int, np.ndarray] | None: ...  # (its keyframe, T_WC in the run's frame) from the run's keyframe poses
 
 
 class LoopService:
@@ -84,7 +85,6 @@ class LoopService:
         self.closer = LoopCloser(self.config, metric=metric) if self.config.classical else None
         self.proximity = proximity if self.config.proximity else None
         self.link = link
-        self._link_poses: dict = {}  # the run's latest keyframe poses, for the link's fit
         self._times: dict[str, float] = {}
         if self.closer is not None or link is not None:
             self._times["loop"] = 0.0
@@ -175,7 +175,6 @@ class LoopService:
         self.contributor.apply_correction(correction)
         if self.closer is not None:
             self.closer.moved(T_WC_by_id)
-        self._link_poses.update(T_WC_by_id)
         self.proximity_closer.map_reset()
         return True
 
@@ -194,7 +193,6 @@ class LoopService:
                 self.closer.add_keyframe(kf_id, kf.timestamp, kf.image, kf.K, T_WC, neighbours=neighbours)
             if self.link is not None:
                 self.link.add_keyframe(kf_id, kf.image)
-                self._link_poses[kf_id] = T_WC
             self._last_added = kf_id
             self._counts["keyframes_added"] += 1
         self._times["loop"] += time.perf_counter() - t0
@@ -206,8 +204,6 @@ class LoopService:
             t0 = time.perf_counter()
             self.closer.update_poses(T_WC_by_id)
             self._times["loop"] += time.perf_counter() - t0
-        if self.link is not None:
-            self._link_poses.update(T_WC_by_id)
 
     def relocalize(self, image: np.ndarray, K: np.ndarray, before: int | None = None) -> tuple[int, np.ndarray] | None:
         """``(kf_id, T_WC)`` of a lost frame's image on the keyframe database (``before``: only keyframes with
@@ -219,8 +215,8 @@ class LoopService:
         self._counts["relocalization_attempts"] += 1
         found = None if self.closer is None else self.closer.relocalize(image, K, before)
         if found is None and self.link is not None:
-            found = self.link.relocalize(image, self._link_poses)
-            self._counts["relocalized_in_loaded_map"] += found is not None
+            found = self.link.relocalize(image, self.contributor.keyframe_pose)  # the latest poses, corrections included
+            self._counts["relocalized_in_loaded_map"] += int(found is not None)
         self._times["loop"] += time.perf_counter() - t0
         if found is not None:
             self._counts["relocalized"] += 1
