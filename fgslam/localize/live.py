@@ -43,17 +43,11 @@ class LoadedMapLink:
         self._localised: dict[int, tuple[np.ndarray, int]] = {}  # run keyframe id -> (T_MC, stored position)
         self.frozen = False  # the run started a second map: no more keyframes for the fit
         self.keyframes_tried = 0
-        self.relocalised = 0
 
     @property
     def localised(self) -> dict[int, np.ndarray]:
         """``T_MC`` (4x4, the map's frame) of each run keyframe localised in the map, by keyframe id."""
         return {k: T_MC for k, (T_MC, _) in self._localised.items()}
-
-    @property
-    def size(self) -> tuple[int, int]:
-        """``(width, height)`` of the images the map was made at."""
-        return self.localizer.size
 
     def add_keyframe(self, kf_id: int, image: np.ndarray) -> bool:
         """Localise the run's keyframe ``kf_id`` (its image) in the stored map; True when it localised."""
@@ -94,6 +88,5 @@ class LoadedMapLink:
         res = self.localizer.localize(image)
         if res.T_WC is None:
             return None
-        self.relocalised += 1
         logger.info("relocalised in the loaded map (on the map's keyframe %d, %d inliers)", res.kf_id, res.inliers)
         return int(res.kf_id), np.linalg.inv(S_MR) @ np.asarray(res.T_WC, np.float64)
