@@ -15,7 +15,7 @@ SHARED_REFERENCE = REPO_ROOT.parent / "shared" / "reference"
 # CPU's last bits only fails before it lands.
 NUMERICAL_FIXTURES = frozenset({"shared_data", "shared_reference", "room_loop_clip", "room_loop_rgbd_both"})
 NUMERICAL_MODULES = frozenset({"test_determinism", "test_dense_loop", "test_patch_loop", "test_loop_closure",
-                               "test_imu_loops", "test_nets_reference"})
+                               "test_imu_loops", "test_nets_reference", "test_input_knife_edges"})
 
 
 # The files whose tests take longest (pytest's --durations on CI, longest first: their module fixtures run
