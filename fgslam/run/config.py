@@ -41,7 +41,7 @@ class OutputConfig:
     map_features: MapFeaturesConfig = field(default_factory=MapFeaturesConfig)  # keyframe features of a stored map
     map_merge: MapMergeConfig = field(default_factory=MapMergeConfig)  # `--map`: when the recording is merged into the stored map
     map_join: MapJoinConfig = field(default_factory=MapJoinConfig)  # `--map`: the merged sessions optimised in one pose graph
-    map_relocalize: bool = True  # `--map`, metric sensors: a lost frame is relocalised in the loaded map too while the run goes on (patch family; fgslam/localize/live.py)
+    map_relocalize: bool = True  # `--map`, metric sensors: a lost frame is relocalised in the loaded map too while the run goes on (patch and dense families; fgslam/localize/live.py)
     rerun: RerunConfig = field(default_factory=RerunConfig)  # what `fgslam run --rerun out.rrd` logs (fgslam/export/rerun.py)
 
 

@@ -82,6 +82,10 @@ class DenseTrackingConfig:
     confident_weight: float = ranged(0.2, ge=0, le=1)  # a grid pixel is confident when its flow confidence exceeds this
     max_lost: int = ranged(10, ge=1, le=MAX_KEYFRAMES)  # consecutive failures before the map is restarted (relocalised when loop closure can)
     retrack_per_frame: int = ranged(0, ge=0, le=MAX_KEYFRAMES)  # monocular: the frames tracked before the initialisation are re-tracked against its maps at most this many per frame, newest first (0: all on the frame that ends the initialisation; KITTI 00: 15 frames, 0.2 s); the rest on the frames after it, before a map restart and at the end of the run
+    rejoin_frames: int = ranged(150, ge=0, le=MAX_KEYFRAMES)  # metric maps with the classical loop closer or a loaded map (--map): a map restarted without a relocalisation tries this many of its tracked frames to relocalise among the keyframes before it, and two agreeing relocalisations move it into the old map's frame (frontends/rejoin.py; 0: off)
+    rejoin_every: int = ranged(5, ge=1, le=MAX_KEYFRAMES)  # ... one attempt every this many tracked frames
+    rejoin_max_translation: float = ranged(0.05, ge=0, le=MAX_SCALAR)  # ... the two relocalisations' transforms (new map -> old map) agree within this (m) ...
+    rejoin_max_rotation_deg: float = ranged(2.0, ge=0, le=180)  # ... and this rotation (degrees)
 
 
 @dataclass

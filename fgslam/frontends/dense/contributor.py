@@ -167,11 +167,11 @@ class DenseLoopContributor:
     # ------------------------------------------------------------------ classical loops
     def feed(self, all_keyframes: bool = False) -> None:
         """Hand the keyframes that left the active graph (``all_keyframes``: every keyframe) to the
-        classical closer with their neighbours, and every keyframe's pose."""
+        loop port (the classical closer, a loaded map) with their neighbours, and every keyframe's pose."""
         st = self.state
         if not all_keyframes:
             self.proximity_step()
-        if not st.loops.classical or st.graph is None:
+        if not st.loops.relocalizes or st.graph is None:
             return
         g = st.graph
         active = set(g.active)

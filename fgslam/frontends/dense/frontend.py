@@ -54,8 +54,9 @@ import numpy as np
 from ...backend.graph import Backend
 from ...core.errors import ConfigError
 from ...factors.schur import torch_threads
-from ..base import BackendFrontend, FrameStatus, MotionPrior, SensorMode
-from ..records import RelativePose
+from ..base import NO_LOOPS, BackendFrontend, FrameStatus, MotionPrior, SensorMode
+from ..records import RelativePose, rigid
+from ..rejoin import MapRejoin, RejoinSettings
 from .ba import DenseBA
 from .config import DenseConfig
 from .contributor import DenseLoopContributor
@@ -86,6 +87,7 @@ class DenseFrontend(BackendFrontend):
     """
 
     name = "dense"
+    relocalizes_in_loaded_map = True  # keyframes and a restart's lost frame go to the loop port without the closer
     _skip_nonfinite_poses = True  # a diverged motion-only solve leaves no pose (not a non-finite one)
 
     def __init__(self, config: DenseConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
@@ -102,6 +104,7 @@ class DenseFrontend(BackendFrontend):
         self._contributor = DenseLoopContributor(state, self.ba, self.name)
         self.keyframes = DenseKeyframes(state, self._contributor)
         self.starts = DenseMapStarts(state, self.keyframes, self.ba, self.tracker, self._contributor)
+        self.rejoin = self._map_rejoin(NO_LOOPS)
 
     # ------------------------------------------------------------------ calibration
     @property
@@ -192,6 +195,22 @@ class DenseFrontend(BackendFrontend):
         super().connect(loops)
         self.state.loops = self.loops
         self.state.motion_prior = motion_prior
+        self.rejoin = self._map_rejoin(self.loops)
+
+    def _map_rejoin(self, loops) -> MapRejoin:
+        st = self.state
+        return MapRejoin(RejoinSettings.of(self.config.tracking), loops, metric=st.metric_scale,
+                         keyframe_poses=lambda: {kf.fid: st.keyframe_T_WC(kf.fid) for kf in st.all_keyframes()
+                                                 if st.backend.has_keyframe(kf.fid)})
+
+    def _after_frame(self, fid: int, frame, status: FrameStatus) -> None:
+        """A restarted map's tracked frames try to rejoin the maps before it (:mod:`..rejoin`)."""
+        st = self.state
+        if self.rejoin.waiting and st.initialized and status.pose_source == "tracked":
+            rejoined = self.rejoin.step(fid, frame, st.K, st.pose_of(fid))
+            if rejoined is not None:
+                status.events.append(rejoined)
+                status.T_WC = rigid(st.pose_of(fid))
 
     # ------------------------------------------------------------------ per frame
     def _surface(self, frame):
@@ -321,6 +340,11 @@ class DenseFrontend(BackendFrontend):
         logger.info("frame %d: %s", frame.index, reason)
         restart = st.lost >= self.config.tracking.max_lost and g is not None and bool(g.keyframes)
         if restart:
-            events.append(self.starts.restart(fid, frame))
+            event, relocalised = self.starts.restart(fid, frame)
+            events.append(event)
+            if relocalised:
+                self.rejoin.cancel()
+            else:  # the new map's frames try to rejoin the maps before it (frontends/rejoin.py)
+                self.rejoin.begin(fid)
         return st.status(fid, frame, "motion_model", is_keyframe=is_keyframe and not restart, events=events,
                          new_map=restart)

@@ -104,9 +104,10 @@ class DenseMapStarts:
             frames = {fid: st.init_frames.pop(fid) for fid in newest}
         self.tracker.retrack(frames)
 
-    def restart(self, fid: int, frame) -> str:
+    def restart(self, fid: int, frame) -> tuple[str, bool]:
         """Start a new map: the current one is finalised (kept for outputs), the next keyframe starts at
-        the relocalised pose when the loop service finds one, else at the last prediction."""
+        the relocalised pose when the loop service finds one, else at the last prediction. Returns the
+        event and whether the lost frame was relocalised."""
         st = self.state
         st.counts["map_restarts"] += 1
         if st.initialized:  # frames still waiting for their re-tracking get it before the map is finalised
@@ -133,4 +134,4 @@ class DenseMapStarts:
         st.pending_origin = T_WC if T_WC is not None else np.eye(4)
         st.last_fid = None
         st.velocity = np.eye(4)
-        return "map restarted" + (" (relocalised)" if found is not None else "")
+        return "map restarted" + (" (relocalised)" if found is not None else ""), found is not None

@@ -133,7 +133,7 @@ class PatchTrackingConfig:
     keyframe_flow: str = "raw"  # raw: the keyframe test's mean flow is the full reprojection flow (DPVO); translation: the rotation-compensated flow (each patch reprojected at its depth minus at infinity), so that pure rotation does not keep every frame as a keyframe (rotation-dominant hand-held motion)
     min_valid_edges: int = ranged(24, ge=3, le=MAX_COUNT)  # fewer valid measurements into a new frame is a tracking failure
     max_motion_model_frames: int = ranged(30, ge=1, le=MAX_KEYFRAMES)  # consecutive failures after which the map re-initialises
-    rejoin_frames: int = ranged(150, ge=0, le=MAX_KEYFRAMES)  # metric maps with the classical loop closer or a loaded map (--map): a map re-initialised without a relocalisation tries this many of its tracked frames to relocalise among the keyframes before it, and two agreeing relocalisations move it into the old map's frame (frontends/patch/rejoin.py; 0: off)
+    rejoin_frames: int = ranged(150, ge=0, le=MAX_KEYFRAMES)  # metric maps with the classical loop closer or a loaded map (--map): a map re-initialised without a relocalisation tries this many of its tracked frames to relocalise among the keyframes before it, and two agreeing relocalisations move it into the old map's frame (frontends/rejoin.py; 0: off)
     rejoin_every: int = ranged(5, ge=1, le=MAX_KEYFRAMES)  # ... one attempt every this many tracked frames
     rejoin_max_translation: float = ranged(0.05, ge=0, le=MAX_SCALAR)  # ... the two relocalisations' transforms (new map -> old map) agree within this (m) ...
     rejoin_max_rotation_deg: float = ranged(2.0, ge=0, le=180)  # ... and this rotation (degrees)

@@ -37,13 +37,13 @@ from ...factors.schur import torch_threads
 from ...backend.graph import Backend
 from ..base import NO_LOOPS, BackendFrontend, FrameStatus, SensorMode
 from ..records import RelativePose, rigid
+from ..rejoin import MapRejoin, RejoinSettings
 from .config import PatchConfig
 from .contributor import PatchContributor
 from .initialisation import Initialiser
 from .keyframes import Keyframes
 from .map_export import export_map, keyframe_points
 from .patches import PatchMeasurer
-from .rejoin import MapRejoin
 from .motion import MotionModel
 from .state import PatchState
 from .tracking import Tracker, TrackingFailure
@@ -77,7 +77,7 @@ class PatchFrontend(BackendFrontend):
     """
 
     name = "patch"
-    relocalizes_in_loaded_map = True  # keyframes and lost frames go to the loop port without the closer (rejoin.py)
+    relocalizes_in_loaded_map = True  # keyframes and lost frames go to the loop port without the closer (frontends/rejoin.py)
 
     def __init__(self, config: PatchConfig | None = None, calibration=None, sensor_mode: SensorMode = "mono",
                  backend: Backend | None = None):
@@ -94,7 +94,7 @@ class PatchFrontend(BackendFrontend):
         self.initialiser = Initialiser(state, self.window, self.motion)
         self.tracker = Tracker(state, self.window, self.motion)
         self._contributor = PatchContributor(state, self.motion)
-        self.rejoin = MapRejoin(state, NO_LOOPS)
+        self.rejoin = self._map_rejoin(NO_LOOPS)
         self.calibration = None
         if calibration is not None:
             self._set_calibration(calibration)
@@ -131,7 +131,12 @@ class PatchFrontend(BackendFrontend):
         if motion_prior is not None:
             self.motion.prior = motion_prior
         self.contributor.connect(self.loops)
-        self.rejoin = MapRejoin(self.state, self.loops)
+        self.rejoin = self._map_rejoin(self.loops)
+
+    def _map_rejoin(self, loops) -> MapRejoin:
+        st = self.state
+        return MapRejoin(RejoinSettings.of(st.config.tracking), loops, metric=st.sensor_mode != "mono",
+                         keyframe_poses=lambda: {f.fid: f.T_WC for f in list(st.graph.frames) + list(st.final.values())})
 
     # ------------------------------------------------------------------ Frontend API
     def num_keyframes(self) -> int:
@@ -182,7 +187,9 @@ class PatchFrontend(BackendFrontend):
         self.contributor.feed_keyframes()
         if self.state.initialized and status.pose_source == "tracked":
             self.contributor.proximity_step()
-            rejoined = self.rejoin.step(fid, frame)
+            rejoined = None
+            if self.rejoin.waiting and self.graph.frames[-1].fid == fid:  # not a stationary frame (the keyframe's view)
+                rejoined = self.rejoin.step(fid, frame, self.state.K.numpy(), self.state.pose_of(fid))
             if rejoined is not None:
                 status.events.append(rejoined)
                 status.T_WC = rigid(self.state.pose_of(fid))
@@ -223,7 +230,7 @@ class PatchFrontend(BackendFrontend):
                 events.append("relocalised")
                 source = "relocalized"
                 self.rejoin.cancel()
-            else:  # the new map's frames try to rejoin the maps before it (rejoin.py)
+            else:  # the new map's frames try to rejoin the maps before it (frontends/rejoin.py)
                 self.rejoin.begin(fid)
             events.append("re-initialising")
             self._reset()
