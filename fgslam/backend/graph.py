@@ -30,6 +30,7 @@ from typing import Callable, Iterable, Protocol
 
 import numpy as np
 
+from ..core.lie import sim3_rigid
 from .config import BackendConfig
 from .gauge import Gauge
 from .optimizer import OptimizeReport, Optimizer
@@ -133,6 +134,13 @@ class Backend(GraphStore):
                         extra_free_keys: Iterable[int] = ()) -> OptimizeReport:
         """:meth:`Optimizer.optimize_window <fgslam.backend.optimizer.Optimizer.optimize_window>`."""
         return self.optimizer.optimize_window(free_kf_ids, iterations, extra_free_keys)
+
+    def write_back_rigid(self, kf_ids: Iterable[int]) -> None:
+        """Keyframes ``kf_ids`` set to the rigid part of their poses (a metric map after an optimisation: its
+        sensor depths or fixed scale observe no Sim(3) scale, which the solver holds at 1 only to its
+        convergence)."""
+        for k in kf_ids:
+            self.set_pose(k, sim3_rigid(self.pose_matrix(k)))
 
     def optimize_global(self, iterations: int | None = None) -> OptimizeReport:
         """:meth:`Optimizer.optimize_global <fgslam.backend.optimizer.Optimizer.optimize_global>`."""

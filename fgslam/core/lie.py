@@ -482,6 +482,14 @@ def sim3_matrix_parts(M: np.ndarray, project: bool = False) -> tuple[np.ndarray,
     return R, M[:3, 3].copy(), s
 
 
+def sim3_rigid(M: np.ndarray) -> np.ndarray:
+    """Rigid part ``[R | t]`` of a Sim(3) matrix ``[[s R, t], [0, 1]]`` (a copy; R as :func:`sim3_matrix_parts`
+    gives it, not projected)."""
+    out = np.array(M, dtype=np.float64, copy=True)
+    out[:3, :3] = sim3_matrix_parts(out)[0]
+    return out
+
+
 def similarity3(R: np.ndarray, t: np.ndarray, s: float):
     """``gtsam.Similarity3`` of rotation ``R``, translation ``t`` and scale ``s`` of the matrix
     ``[[s R, t], [0, 1]]`` (gtsam acts as ``s (R p + t_g)``, so ``t_g = t / s``): the one conversion

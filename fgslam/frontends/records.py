@@ -26,7 +26,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ..core.lie import gtsam_matrix, gtsam_sim3, sim3_matrix_parts
+from ..core.lie import gtsam_matrix, gtsam_sim3, sim3_rigid
 from ..loop.records import PoseCorrection
 
 logger = logging.getLogger(__name__)
@@ -34,11 +34,7 @@ logger = logging.getLogger(__name__)
 _RESOLVING = object()  # in the cache while a frame's references are followed (a cycle finds it there)
 
 
-def rigid(M: np.ndarray) -> np.ndarray:
-    """Rigid part ``[R | t]`` of a Sim(3) matrix ``[[s R, t], [0, 1]]``."""
-    out = np.array(M, dtype=np.float64, copy=True)
-    out[:3, :3] = sim3_matrix_parts(out)[0]
-    return out
+rigid = sim3_rigid  # the rigid part [R | t] of a Sim(3) matrix, under the name the frontends use
 
 
 def per_frame_motion(T_prev: np.ndarray, T_new: np.ndarray, steps: int) -> np.ndarray:

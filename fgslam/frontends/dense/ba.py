@@ -116,8 +116,7 @@ class DenseBA:
         for src in block.sources:
             g.keyframes[fid_of[src.keys[0]]].inv_depth = src.inverse_depth.numpy().copy()
         if st.sensor_mode == "rgbd":  # sensor depths observe no Sim(3) scale: written back rigid (as patch)
-            for f in free:
-                st.backend.set_pose(f, rigid(st.backend.pose_matrix(f)))
+            st.backend.write_back_rigid(free)
 
     def depth_blocks(self, free_keys: set[int], global_: bool) -> list:
         """RGB-D depth alignment: the depth blocks between consecutive keyframes of the map (with their

@@ -13,7 +13,6 @@ import numpy as np
 from ...backend.keys import pose_key
 from ...core.errors import OptimizationError
 from ...factors.pointmap_block import PointmapBlock, PointmapEdge
-from ..records import rigid
 from .keyframes import PointmapKeyframe, measure_edge
 from .state import PointmapState
 
@@ -106,8 +105,7 @@ class PointmapGraph:
         only to the solver's convergence, and a metric map has none to estimate (as the dense family's RGB-D)."""
         st = self.state
         if st.fixed_scale:
-            for f in free:
-                st.backend.set_pose(f, rigid(st.backend.pose_matrix(f)))
+            st.backend.write_back_rigid(free)
 
     def final_optimize(self) -> None:
         """The last optimisation: ``graph.final_iterations`` over every keyframe (when there are two)."""
