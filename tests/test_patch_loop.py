@@ -259,7 +259,7 @@ def test_inconsistent_loop_edges_are_undone(prox_frontend):
             "confidence": np.ones(n, np.float32), "inv_depth": a.inv_depth.astype(np.float32)}
     before = {f.fid: f.T_WC.copy() for f in fe.graph.frames}
     stored = fe.graph.inactive.count
-    assert service.run_global_ba(fake) is False
+    assert service.proximity_closer.run_global_ba(fake) is False
     assert all(np.array_equal(f.T_WC, before[f.fid]) for f in fe.graph.frames)
     assert fe.graph.inactive.count == stored
 
@@ -350,7 +350,7 @@ def test_textureless_proximity_candidate_is_rejected(prox_frontend):
 
     fe, _, service = prox_frontend
     q = next(f for f in reversed(fe.graph.frames) if f.features is not None and f.fid in fe._prox_store)
-    cand = fe.contributor.proximity_candidate(q.fid, service.eligible_candidates(q.fid))
+    cand = fe.contributor.proximity_candidate(q.fid, service.proximity_closer.eligible_candidates(q.fid))
     assert cand is not None and fe.contributor.long_range_edges(q.fid, cand.fid) is not None
     old = [cand.fid] + fe._prox_store.neighbours(cand.fid, fe.config.proximity.old_neighbours)
     saved = {fid: fe._prox_store.get(fid) for fid in old}

@@ -91,7 +91,7 @@ class LoopService:
             self._counts = {"corrections_applied": 0, "keyframes_added": 0, "relocalization_attempts": 0,
                             "relocalized": 0, "relocalized_in_loaded_map": 0}
         self._last_added = -1  # newest keyframe id handed to the closer
-        # proximity loops and every global BA (run_global_ba also without proximity loops)
+        # proximity loops and every global BA (its run_global_ba also without proximity loops)
         self.proximity_closer = ProximityLoops(contributor, self.config, self.proximity, self.closer)
 
     # ------------------------------------------------------------------ state
@@ -227,10 +227,6 @@ class LoopService:
         """Keyframe ``kf_id`` can no longer be removed (ids increase): a future candidate."""
         self.proximity_closer.keyframe_settled(kf_id)
 
-    def eligible_candidates(self, query: int) -> list[int]:
-        """Keyframes settled at least ``min_gap`` keyframes before settled keyframe ``query``."""
-        return self.proximity_closer.eligible_candidates(query)
-
     def search(self, query: int) -> None:
         """Search a proximity loop for settled keyframe ``query`` and start its global BA."""
         self.proximity_closer.search(query)
@@ -246,11 +242,6 @@ class LoopService:
         """A global BA of the contributor's map without loop edges in the background, applied at the
         safe point ``global_ba_delay_frames`` polls from now; False when one runs already (or no map)."""
         return self.proximity_closer.start_global_ba()
-
-    def run_global_ba(self, loop_edges: dict | None = None) -> bool:
-        """A global BA with ``loop_edges`` now, in the caller's thread (tests, maintenance): applied
-        when it passes the gate. Returns whether it was applied."""
-        return self.proximity_closer.run_global_ba(loop_edges)
 
     def wait(self) -> None:
         """Wait for a running global BA and apply it (reruns included)."""
