@@ -604,6 +604,28 @@ def test_a_recording_that_lost_its_track_rejoins_through_the_loaded_map_while_it
     assert ate[True] < 0.03 and ate[False] > 2 * ate[True], ate
 
 
+def test_the_restart_relocalises_with_the_lost_maps_newest_keyframes_handed_over(room_map, tmp_path, monkeypatch):
+    """When the patch frontend gives up on its track and restarts, the keyframes still in its window (the
+    newest of the lost map: the views most like the lost frame) are handed to the loop service before the
+    lost frame is relocalised, not after: at that call the frontend keeps no keyframe image back."""
+    from fgslam.services.loops import LoopService
+
+    stored_path, roots, _ = room_map
+    clip = _covered_clip(roots["other_path"], tmp_path / "lost")
+    held_back = []
+    relocalize = LoopService.relocalize
+
+    def recording(self, image, K, before=None):
+        held_back.append((len(self.contributor.images), self._counts["keyframes_added"]))
+        return relocalize(self, image, K, before)
+
+    monkeypatch.setattr(LoopService, "relocalize", recording)
+    assert main(["run", "patch_rgbd", "--data", str(clip), "--out", str(tmp_path / "out"), "--no-progress", "--map",
+                 str(stored_path), "-o", "patch.tracking.max_motion_model_frames=2", "-o", "patch.tracking.rejoin_frames=0"]) == 0
+    assert held_back, "the restart tried no relocalisation"
+    kept, added = held_back[0]
+    assert kept == 0 and added >= 3, held_back[0]  # 3: what the loaded map's fit needs (map_merge.min_keyframes)
+
 
 def test_a_dense_recording_that_lost_its_track_rejoins_through_the_loaded_map(room_map, tmp_path):
     """The same covered clip run by the dense family (``dense_rgbd``) against the map the patch family made:

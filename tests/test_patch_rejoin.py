@@ -1,4 +1,4 @@
-"""A patch map restarted after a lost track rejoins the map before it (frontends/patch/rejoin.py): the
+"""A patch map restarted after a lost track rejoins the map before it (frontends/rejoin.py): the
 7-Scenes kitchen with the camera covered for 40 frames (black colour and depth) and, when it uncovers,
 back at a place the first map saw (frames 110 onwards again). The restart frame is black, so it cannot
 be relocalised; the new map's frames are, and the new map moves into the first map's frame."""

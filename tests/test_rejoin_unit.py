@@ -16,6 +16,7 @@ from fgslam.frontends.rejoin import MapRejoin, RejoinSettings
 
 K = np.array([500.0, 500.0, 320.0, 240.0])
 FRAME = SimpleNamespace(index=0, image=np.zeros((4, 4), np.uint8))
+EYE = lambda fid: np.eye(4)  # noqa: E731  (every frame of the new map at the origin)
 
 
 def _shift(x: float) -> np.ndarray:
@@ -64,7 +65,7 @@ def test_two_agreeing_relocalisations_move_the_new_map_only():
     events = []
     for fid, x in ((10, 0.0), (11, 0.1), (12, 0.2)):
         keyframes[fid] = _shift(x)
-        events.append(rejoin.step(fid, FRAME, K, _shift(x)))
+        events.append(rejoin.step(fid, FRAME, K, keyframes.get))
     assert port.calls == [10, 10]  # frames 10 and 12 (every 2nd), among the keyframes before the restart
     assert events[:2] == [None, None] and events[2].startswith("map rejoined")
     (correction, moved), = port.moves
@@ -79,10 +80,10 @@ def test_disagreeing_relocalisations_wait_and_a_second_restart_keeps_the_referen
     port = Port([(2, _shift(1.0)), (2, _shift(3.0)), (2, _shift(5.0))])
     rejoin, _ = _rejoin(port, every=1)
     rejoin.begin(10)
-    assert rejoin.step(10, FRAME, K, np.eye(4)) is None
-    assert rejoin.step(12, FRAME, K, np.eye(4)) is None and not port.moves  # 2 m apart: waits for another
+    assert rejoin.step(10, FRAME, K, EYE) is None
+    assert rejoin.step(12, FRAME, K, EYE) is None and not port.moves  # 2 m apart: waits for another
     rejoin.begin(20)  # a second restart: the map of frame 10 stays out of the reference
-    rejoin.step(20, FRAME, K, np.eye(4))
+    rejoin.step(20, FRAME, K, EYE)
     assert port.calls == [10, 10, 10] and rejoin.reference_end == 10
 
 
@@ -91,7 +92,7 @@ def test_the_attempts_end_after_rejoin_frames():
     rejoin, _ = _rejoin(port, every=1, frames=3)
     rejoin.begin(10)
     for fid in range(10, 15):
-        assert rejoin.step(fid, FRAME, K, np.eye(4)) is None
+        assert rejoin.step(fid, FRAME, K, EYE) is None
     assert port.calls == [10, 10, 10] and not rejoin.waiting and rejoin.reference_end == 10
 
 
@@ -99,10 +100,25 @@ def test_monocular_maps_and_failing_attempts_end_quietly():
     port = Port([])
     rejoin, _ = _rejoin(port, every=1, metric=False)
     rejoin.begin(10)
-    assert not rejoin.waiting and rejoin.step(10, FRAME, K, np.eye(4)) is None and port.calls == []
+    assert not rejoin.waiting and rejoin.step(10, FRAME, K, EYE) is None and port.calls == []
     port2 = Port([cv2.error("bad image")])
     rejoin2, _ = _rejoin(port2, every=1)
     rejoin2.begin(10)
-    assert rejoin2.step(10, FRAME, K, np.eye(4)) is None
+    assert rejoin2.step(10, FRAME, K, EYE) is None
     assert rejoin2.start is None and rejoin2.reference_end == 10  # given up, the run goes on
 
+
+
+def test_a_waiting_map_that_restarts_relocalised_stays_out_of_the_reference():
+    """A map waiting to rejoin (begun at 10) loses its track and the restart relocalises: the new map is in
+    the reference frame, the waiting one is not, so later relocalisations land only before it."""
+    port = Port([(2, np.eye(4))])
+    rejoin, _ = _rejoin(port, every=1)
+    assert rejoin.reference_before is None  # nothing restarted yet: every keyframe
+    rejoin.restarted(10, relocalised=False)
+    assert rejoin.waiting and rejoin.reference_before == 10
+    rejoin.restarted(20, relocalised=True)
+    assert not rejoin.waiting and rejoin.reference_end == 10 and rejoin.reference_before == 10
+    rejoin.restarted(30, relocalised=False)
+    rejoin.step(30, FRAME, K, EYE)
+    assert port.calls == [10]

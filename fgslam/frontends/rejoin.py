@@ -81,6 +81,19 @@ class MapRejoin:
         """A restarted map waits to rejoin."""
         return self.start is not None
 
+    @property
+    def reference_before(self) -> int | None:
+        """Keyframes below this id are in the reference frame (None: all): what a relocalisation may land on."""
+        return self.reference_end if self.reference_end is not None else self.start
+
+    def restarted(self, start: int, relocalised: bool) -> None:
+        """The family restarted its map at frame ``start`` (the first id its new map can hold): relocalised
+        (the new map is in the reference frame: :meth:`cancel`) or not (:meth:`begin`)."""
+        if relocalised:
+            self.cancel()
+        else:
+            self.begin(start)
+
     def begin(self, start: int) -> None:
         """A restart at frame ``start`` that was not relocalised: its map may rejoin the maps before it."""
         self._give_up()  # a map still waiting is left where it is
@@ -96,13 +109,14 @@ class MapRejoin:
         self.start, self.pending = None, None
 
     def cancel(self) -> None:
-        """A restart that was relocalised: its map is in the old frame already."""
-        self.start, self.pending = None, None
+        """A restart that was relocalised: its map is in the old frame already (a map still waiting to rejoin
+        stays out of the reference)."""
+        self._give_up()
 
-    def step(self, fid: int, frame, K: np.ndarray, T_WC: np.ndarray | None) -> str | None:
-        """After tracked frame ``fid`` of the new map (``frame``: its input, ``K`` its camera, ``T_WC`` its
-        pose in the new map): every ``every`` frames a relocalisation among the older maps' keyframes; the
-        event to report when the map was moved, else None."""
+    def step(self, fid: int, frame, K: np.ndarray, pose_of: Callable[[int], np.ndarray | None]) -> str | None:
+        """After tracked frame ``fid`` of the new map (``frame``: its input, ``K`` its camera, ``pose_of`` the
+        family's frame poses in the new map): every ``every`` frames a relocalisation among the older maps'
+        keyframes; the event to report when the map was moved, else None."""
         if self.start is None:
             return None
         cfg = self.settings
@@ -116,17 +130,17 @@ class MapRejoin:
         import cv2  # deferred: OpenCV (its error type)
 
         try:
-            return self._attempt(fid, frame, K, T_WC)
+            return self._attempt(fid, frame, K, pose_of)
         except (*_ATTEMPT_ERRORS, cv2.error) as exc:
             logger.warning("frame %d: rejoining the map started at frame %d failed (%s); it stays in a frame of its own",
                            frame.index, self.start, exc)
             self._give_up()
             return None
 
-    def _attempt(self, fid: int, frame, K: np.ndarray, T_new: np.ndarray | None) -> str | None:
+    def _attempt(self, fid: int, frame, K: np.ndarray, pose_of: Callable[[int], np.ndarray | None]) -> str | None:
         cfg = self.settings
-        before = self.start if self.reference_end is None else self.reference_end
-        found = self.loops.relocalize(frame.image, K, before=before)
+        found = self.loops.relocalize(frame.image, K, before=self.reference_before)
+        T_new = None if found is None else pose_of(fid)
         if found is None or T_new is None:
             return None
         kf_id, T_old = found

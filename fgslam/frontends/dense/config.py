@@ -80,7 +80,7 @@ class DenseTrackingConfig:
     min_textured: float = ranged(0.03, ge=0, le=1)  # a frame whose share of textured grid blocks is below this is a tracking failure (blank, blurred, covered)
     texture_gradient: float = ranged(1.0, ge=0, le=MAX_SCALAR)  # grey levels per px: a grid block is textured when its RMS gradient exceeds this
     confident_weight: float = ranged(0.2, ge=0, le=1)  # a grid pixel is confident when its flow confidence exceeds this
-    max_lost: int = ranged(10, ge=1, le=MAX_KEYFRAMES)  # consecutive failures before the map is restarted (relocalised when loop closure can)
+    max_lost: int = ranged(10, ge=1, le=MAX_KEYFRAMES)  # consecutive failures before the map is restarted (relocalised when the loop closer or a loaded map can)
     retrack_per_frame: int = ranged(0, ge=0, le=MAX_KEYFRAMES)  # monocular: the frames tracked before the initialisation are re-tracked against its maps at most this many per frame, newest first (0: all on the frame that ends the initialisation; KITTI 00: 15 frames, 0.2 s); the rest on the frames after it, before a map restart and at the end of the run
     rejoin_frames: int = ranged(150, ge=0, le=MAX_KEYFRAMES)  # metric maps with the classical loop closer or a loaded map (--map): a map restarted without a relocalisation tries this many of its tracked frames to relocalise among the keyframes before it, and two agreeing relocalisations move it into the old map's frame (frontends/rejoin.py; 0: off)
     rejoin_every: int = ranged(5, ge=1, le=MAX_KEYFRAMES)  # ... one attempt every this many tracked frames

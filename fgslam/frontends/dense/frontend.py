@@ -8,7 +8,8 @@ Per frame (DROID-SLAM section 3.4, with the built-in DIS flow source of :mod:`.s
    per-pixel damping set very high, so nothing flows into the depths), from the flow measured warm-
    started at the prediction; a frame whose share of confident grid pixels is below
    ``tracking.min_confident`` is a tracking failure (predicted pose, counted, never raised; after
-   ``tracking.max_lost`` in a row the map restarts, relocalised through the loop service when it can);
+   ``tracking.max_lost`` in a row the map restarts, relocalised through the loop service when it can, and
+   a restart that was not tries to rejoin the maps before it, :mod:`..rejoin`);
 2. when the mean measured flow exceeds ``graph.motion_filter_flow``, or its confident grid pixels are
    fewer than ``graph.keyframe_min_confident`` of its textured ones, the frame becomes a keyframe:
    backend keyframe at the tracked pose, inverse depths splatted from the previous keyframe
@@ -207,7 +208,7 @@ class DenseFrontend(BackendFrontend):
         """A restarted map's tracked frames try to rejoin the maps before it (:mod:`..rejoin`)."""
         st = self.state
         if self.rejoin.waiting and st.initialized and status.pose_source == "tracked":
-            rejoined = self.rejoin.step(fid, frame, st.K, st.pose_of(fid))
+            rejoined = self.rejoin.step(fid, frame, st.K, st.pose_of)
             if rejoined is not None:
                 status.events.append(rejoined)
                 status.T_WC = rigid(st.pose_of(fid))
@@ -340,11 +341,10 @@ class DenseFrontend(BackendFrontend):
         logger.info("frame %d: %s", frame.index, reason)
         restart = st.lost >= self.config.tracking.max_lost and g is not None and bool(g.keyframes)
         if restart:
-            event, relocalised = self.starts.restart(fid, frame)
+            event, relocalised = self.starts.restart(fid, frame, before=self.rejoin.reference_before)
             events.append(event)
-            if relocalised:
-                self.rejoin.cancel()
-            else:  # the new map's frames try to rejoin the maps before it (frontends/rejoin.py)
-                self.rejoin.begin(fid)
+            # not relocalised: the new map's frames try to rejoin (frontends/rejoin.py); its keyframes come after
+            # this frame (which may be the old map's last keyframe)
+            self.rejoin.restarted(fid + 1, relocalised)
         return st.status(fid, frame, "motion_model", is_keyframe=is_keyframe and not restart, events=events,
                          new_map=restart)

@@ -104,10 +104,11 @@ class DenseMapStarts:
             frames = {fid: st.init_frames.pop(fid) for fid in newest}
         self.tracker.retrack(frames)
 
-    def restart(self, fid: int, frame) -> tuple[str, bool]:
+    def restart(self, fid: int, frame, before: int | None = None) -> tuple[str, bool]:
         """Start a new map: the current one is finalised (kept for outputs), the next keyframe starts at
-        the relocalised pose when the loop service finds one, else at the last prediction. Returns the
-        event and whether the lost frame was relocalised."""
+        the relocalised pose when the loop service finds one (``before``: among keyframes with a smaller id,
+        the reference maps'), else at the last prediction. Returns the event and whether the lost frame was
+        relocalised."""
         st = self.state
         st.counts["map_restarts"] += 1
         if st.initialized:  # frames still waiting for their re-tracking get it before the map is finalised
@@ -115,7 +116,7 @@ class DenseMapStarts:
         st.init_frames = {}  # (a map never initialised: its frames keep their poses)
         self.contributor.feed(all_keyframes=True)
         T_WC = st.pose_of(fid)
-        found = st.loops.relocalize(frame.image, st.K)
+        found = st.loops.relocalize(frame.image, st.K, before)
         if found is not None:
             T_WC = np.asarray(found[1], dtype=np.float64)
             st.records[fid] = AbsolutePose(T_WC)

@@ -85,11 +85,12 @@ class PatchContributor:
                 del self.images[fid]
         self.loops.update_poses({f.fid: f.T_WC for f in g.frames})
 
-    def relocalize(self, fid: int, frame) -> np.ndarray | None:
-        """Pose of a lost frame from the closer's keyframe database (``T_WC`` 4x4 in the map's units) or
-        None; on success it becomes frame ``fid``'s pose, the anchor of the re-initialisation."""
+    def relocalize(self, fid: int, frame, before: int | None = None) -> np.ndarray | None:
+        """Pose of a lost frame from the closer's keyframe database (``before``: among keyframes with a
+        smaller id) or a loaded map (``T_WC`` 4x4 in the map's units), or None; on success it becomes frame
+        ``fid``'s pose, the anchor of the re-initialisation."""
         st = self.state
-        found = self.loops.relocalize(frame.image, st.K.numpy())
+        found = self.loops.relocalize(frame.image, st.K.numpy(), before)
         if found is None:
             return None
         kf_id, T_WC = found

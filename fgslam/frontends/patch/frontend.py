@@ -189,7 +189,7 @@ class PatchFrontend(BackendFrontend):
             self.contributor.proximity_step()
             rejoined = None
             if self.rejoin.waiting and self.graph.frames[-1].fid == fid:  # not a stationary frame (the keyframe's view)
-                rejoined = self.rejoin.step(fid, frame, self.state.K.numpy(), self.state.pose_of(fid))
+                rejoined = self.rejoin.step(fid, frame, self.state.K.numpy(), self.state.pose_of)
             if rejoined is not None:
                 status.events.append(rejoined)
                 status.T_WC = rigid(self.state.pose_of(fid))
@@ -226,12 +226,13 @@ class PatchFrontend(BackendFrontend):
         source = "motion_model"
         restart = st.lost > self.config.tracking.max_motion_model_frames
         if restart:
-            if self.contributor.relocalize(fid, frame) is not None:  # anchor of the re-initialisation
+            self.contributor.feed_keyframes(all_frames=True)  # the lost map's newest keyframes can relocalise it too
+            # the anchor of the re-initialisation, in the reference frame (a map waiting to rejoin is not)
+            relocalised = self.contributor.relocalize(fid, frame, before=self.rejoin.reference_before) is not None
+            if relocalised:
                 events.append("relocalised")
                 source = "relocalized"
-                self.rejoin.cancel()
-            else:  # the new map's frames try to rejoin the maps before it (frontends/rejoin.py)
-                self.rejoin.begin(fid)
+            self.rejoin.restarted(fid, relocalised)  # not relocalised: the new map's frames try to rejoin (frontends/rejoin.py)
             events.append("re-initialising")
             self._reset()
         logger.info("frame %d: %s", frame.index, reason)
