@@ -239,9 +239,9 @@ class PatchFrontend(BackendFrontend):
         return st.status(fid, frame, source, num_valid=num_valid, events=events, new_map=restart)
 
     def _reset(self) -> None:
-        """Finalise the graph and start a new initialisation anchored at the last predicted pose."""
+        """Finalise the graph and start a new initialisation anchored at the last predicted pose (the graph's
+        keyframes were handed to the loop port before the lost frame's relocalisation, :meth:`_fail`)."""
         st = self.state
-        self.contributor.feed_keyframes(all_frames=True)
         for f in self.graph.clear():
             self.keyframes.finalise(f)
         self.loops.map_reset()
